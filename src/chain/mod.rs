@@ -1,0 +1,18 @@
+//! Relay chains: the graph of frames and links, path resolution, composition and fusion.
+//!
+//! Frames (B, C1, C2, M, C3, G, ...) are the nodes; links `parent_from_child` are the edges.
+//! A target is resolved from its base by walking links forwards (`parent_from_child` takes us
+//! from the child frame to the parent) or inverted. Composing the steps of a path gives
+//! `target_from_base` with its covariance (`method.md` sections 3 and 6). Where several
+//! link-disjoint paths reach a target, their estimates are independent and are fused by
+//! information weighting, with a chi-square statistic of their disagreement.
+
+mod compose;
+mod error;
+mod fuse;
+mod topology;
+
+pub use compose::compose_path;
+pub use error::ChainError;
+pub use fuse::{Consistency, DEFAULT_CONSISTENCY_PROBABILITY, Fused, chi_square_quantile, fuse};
+pub use topology::{Direction, FrameId, LinkEnds, LinkId, Path, Resolution, Step, Topology};

@@ -1,0 +1,177 @@
+//! The command line: subcommands and their output. `main.rs` only parses and dispatches here.
+
+use crate::chain::Direction;
+use crate::config::{self, Installation, LinkKind};
+use crate::geometry::{euler_from_rotation, quaternion_wxyz};
+use clap::{Parser, Subcommand};
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+/// Broken-ray videometrics: deformation of large structures measured through relay stations.
+#[derive(Debug, Parser)]
+#[command(name = "brokenray", version, about, long_about = None)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// The subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Validate an installation file and print its topology: frames, links, and each target's
+    /// resolved path(s).
+    CheckConfig {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
+    /// Print the built-in installation file, a starting point for your own.
+    DefaultConfig,
+}
+
+/// Runs a parsed command line, writing its report to `out`.
+pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
+    match cli.command {
+        Command::CheckConfig { config } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            out.write_all(describe_installation(&installation).as_bytes())?;
+        }
+        Command::DefaultConfig => out.write_all(config::DEFAULT_INSTALLATION_TOML.as_bytes())?,
+    }
+    Ok(())
+}
+
+fn fmt3(v: [f64; 3], decimals: usize) -> String {
+    let parts: Vec<String> = v.iter().map(|x| format!("{x:.decimals$}")).collect();
+    format!("[{}]", parts.join(", "))
+}
+
+/// A human-readable report of a validated installation.
+pub fn describe_installation(inst: &Installation) -> String {
+    let mut s = String::new();
+    let topo = &inst.topology;
+    let _ = writeln!(s, "installation: {} (valid)", inst.source);
+    let _ = writeln!(
+        s,
+        "frames ({}): {}",
+        topo.frames().len(),
+        topo.frames().join(", ")
+    );
+    let _ = writeln!(s, "cameras ({}):", inst.cameras.len());
+    for c in &inst.cameras {
+        let _ = writeln!(
+            s,
+            "  {:<6} {}x{} px, fx {} fy {} px, pixel sigma {} px",
+            c.frame, c.width_px, c.height_px, c.fx_px, c.fy_px, c.pixel_sigma_px
+        );
+    }
+    let _ = writeln!(s, "markers ({}):", inst.markers.len());
+    for m in &inst.markers {
+        let _ = writeln!(s, "  {:<6} {} points", m.frame, m.points_mm.len());
+    }
+    let _ = writeln!(s, "links ({}):", inst.links.len());
+    for l in &inst.links {
+        match &l.kind {
+            LinkKind::Calibrated { parent_from_child } => {
+                let sig = parent_from_child.reported_sigmas();
+                let _ = writeln!(
+                    s,
+                    "  {:<14} calibrated  t_mm {} euler_deg {} sigma {} arcsec {} mm",
+                    l.name,
+                    fmt3(parent_from_child.pose.translation.vector.into(), 1),
+                    fmt3(
+                        euler_from_rotation(&parent_from_child.pose.rotation).to_degrees(),
+                        4
+                    ),
+                    fmt3(sig.rotation_arcsec, 1),
+                    fmt3(sig.translation_mm, 3),
+                );
+            }
+            LinkKind::Measured(m) => {
+                let _ = writeln!(
+                    s,
+                    "  {:<14} measured    model {} at {} Hz, default sigma {} arcsec {} mm",
+                    l.name,
+                    m.model.name(),
+                    m.expected_rate_hz,
+                    fmt3(m.default_sigmas.rotation_arcsec, 1),
+                    fmt3(m.default_sigmas.translation_mm, 3),
+                );
+            }
+        }
+    }
+    let _ = writeln!(s, "targets ({}):", inst.targets.len());
+    for t in &inst.targets {
+        let r = &t.resolution;
+        let _ = writeln!(
+            s,
+            "  {} from {}: {} independent path(s){}",
+            t.name,
+            topo.frame_name(t.base),
+            r.paths.len(),
+            if r.paths.len() > 1 { ", fused" } else { "" }
+        );
+        for (i, path) in r.paths.iter().enumerate() {
+            let steps: Vec<String> = path
+                .steps
+                .iter()
+                .map(|st| {
+                    let name = &topo.link(st.link).name;
+                    match st.direction {
+                        Direction::Forward => format!("{name} (forward)"),
+                        Direction::Inverse => format!("{name} (inverted)"),
+                    }
+                })
+                .collect();
+            let _ = writeln!(s, "    path {}: {}", i + 1, steps.join(" -> "));
+            let _ = writeln!(
+                s,
+                "      {}_from_{} = {}",
+                t.name,
+                topo.frame_name(t.base),
+                topo.describe_product(path)
+            );
+            if let Some(nominal) = nominal_of_path(inst, path) {
+                let _ = writeln!(
+                    s,
+                    "      nominal: t_mm {} euler_deg {} q_wxyz {}",
+                    fmt3(nominal.translation.vector.into(), 2),
+                    fmt3(euler_from_rotation(&nominal.rotation).to_degrees(), 4),
+                    {
+                        let q = quaternion_wxyz(&nominal.rotation);
+                        format!("[{:.6}, {:.6}, {:.6}, {:.6}]", q[0], q[1], q[2], q[3])
+                    }
+                );
+            }
+        }
+        for path in &r.dependent_paths {
+            let names: Vec<&str> = path.links().map(|l| topo.link(l).name.as_str()).collect();
+            let _ = writeln!(
+                s,
+                "    not fused (shares a link with a path above): {}",
+                names.join(" -> ")
+            );
+        }
+    }
+    s
+}
+
+/// The nominal pose of a path, when every link on it has a known (nominal or calibrated) pose.
+fn nominal_of_path(
+    inst: &Installation,
+    path: &crate::chain::Path,
+) -> Option<crate::geometry::Pose> {
+    let mut known = true;
+    let composed = crate::chain::compose_path(path, |id| match &inst.link(id).kind {
+        LinkKind::Calibrated { parent_from_child } => *parent_from_child,
+        LinkKind::Measured(m) => match m.nominal {
+            Some(p) => crate::geometry::PoseCov::exact(p),
+            None => {
+                known = false;
+                crate::geometry::PoseCov::identity()
+            }
+        },
+    });
+    known.then_some(composed.pose)
+}

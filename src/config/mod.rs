@@ -1,0 +1,896 @@
+//! The installation file (TOML) parsed into validated domain types.
+//!
+//! One file describes one installation: frames, cameras, markers, links, targets, and the
+//! server, Rerun and auth settings (`interface.md` section 1). Without a file the built-in
+//! default describes the paper's laboratory setup (base B, station C1-C2, station M-C3,
+//! target G; about 3 m per hop), see [`default_installation`].
+//!
+//! Validation collects every problem it finds, each with its line: unknown keys, wrong types,
+//! a link name that does not match its frames, a duplicate link, a non-finite or non-rotation
+//! pose, a target unreachable from its base, and so on.
+
+mod error;
+mod raw;
+
+pub use error::{ConfigError, ConfigProblem};
+
+use crate::chain::{ChainError, FrameId, LinkId, Resolution, Topology};
+use crate::geometry::{
+    Pose, PoseCov, ReportedSigmas, Rotation, pose_from_parts, rotation_from_euler,
+    rotation_from_matrix, rotation_from_quaternion_wxyz, validate_finite,
+};
+use error::LineIndex;
+use raw::{RawFile, RawPose, RawSigma};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+/// The built-in installation, as a file users can copy (`brokenray default-config`).
+pub const DEFAULT_INSTALLATION_TOML: &str = include_str!("default.toml");
+
+/// What the built-in installation is called in messages.
+pub const DEFAULT_SOURCE_NAME: &str = "<built-in default>";
+
+/// A validated installation.
+#[derive(Debug, Clone)]
+pub struct Installation {
+    /// Where it came from: a file path or [`DEFAULT_SOURCE_NAME`].
+    pub source: String,
+    /// HTTP server settings.
+    pub server: ServerSettings,
+    /// Rerun settings.
+    pub rerun: RerunSettings,
+    /// Cameras, by frame.
+    pub cameras: Vec<Camera>,
+    /// Cooperative markers, by frame.
+    pub markers: Vec<Marker>,
+    /// The frame/link graph.
+    pub topology: Topology,
+    /// Link settings, indexed by [`LinkId`].
+    pub links: Vec<LinkSpec>,
+    /// The targets and how each is reached.
+    pub targets: Vec<TargetSpec>,
+    /// Bearer tokens.
+    pub auth: AuthSettings,
+}
+
+/// HTTP server settings.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ServerSettings {
+    /// The address to listen on.
+    pub listen: SocketAddr,
+    /// The SQLite file (created if missing).
+    pub database: PathBuf,
+}
+
+/// Where visualisation data goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RerunMode {
+    /// No visualisation.
+    Off,
+    /// A recording per run in `recordings_dir`.
+    Save,
+    /// Stream to a viewer at `url`.
+    Connect,
+    /// An in-process server viewers connect to.
+    Serve,
+}
+
+/// Rerun settings.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RerunSettings {
+    /// The mode.
+    pub mode: RerunMode,
+    /// Where `save` writes recordings.
+    pub recordings_dir: PathBuf,
+    /// The viewer `connect` streams to.
+    pub url: String,
+}
+
+/// A pinhole camera with Brown-Conrady distortion (OpenCV's `k1 k2 p1 p2 k3`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    /// The camera's frame.
+    pub frame: String,
+    /// Image width (px).
+    pub width_px: u32,
+    /// Image height (px).
+    pub height_px: u32,
+    /// Focal length along x (px).
+    pub fx_px: f64,
+    /// Focal length along y (px).
+    pub fy_px: f64,
+    /// Principal point x (px).
+    pub cx_px: f64,
+    /// Principal point y (px).
+    pub cy_px: f64,
+    /// `[k1, k2, p1, p2, k3]`.
+    pub distortion: [f64; 5],
+    /// Standard deviation of a measured image point (px).
+    pub pixel_sigma_px: f64,
+}
+
+/// A cooperative marker: known points in its own frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Marker {
+    /// The marker's frame.
+    pub frame: String,
+    /// The points (mm, in the marker frame).
+    pub points_mm: Vec<[f64; 3]>,
+    /// Point ids, one per point (defaults to 0, 1, 2, ...).
+    pub ids: Vec<u32>,
+}
+
+/// How a measured link's pose is expected to move (the filter model, `method.md` section 7).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MotionModel {
+    /// Random walk: constant pose plus process noise.
+    Static,
+    /// White-noise acceleration of the twist.
+    ConstantVelocity,
+    /// Second-order Gauss-Markov oscillation per axis around a slowly drifting mean.
+    Oscillatory,
+}
+
+impl MotionModel {
+    /// The name used in the configuration file.
+    pub fn name(self) -> &'static str {
+        match self {
+            MotionModel::Static => "static",
+            MotionModel::ConstantVelocity => "constant_velocity",
+            MotionModel::Oscillatory => "oscillatory",
+        }
+    }
+}
+
+/// A link of the installation.
+#[derive(Debug, Clone)]
+pub struct LinkSpec {
+    /// Its id in the topology.
+    pub id: LinkId,
+    /// `<parent>_from_<child>`.
+    pub name: String,
+    /// Calibrated or measured.
+    pub kind: LinkKind,
+}
+
+/// What kind of link.
+#[derive(Debug, Clone)]
+pub enum LinkKind {
+    /// A rigid connection inside a station, calibrated once.
+    Calibrated {
+        /// The calibrated pose with its uncertainty.
+        parent_from_child: PoseCov,
+    },
+    /// A camera seeing a marker, measured continuously.
+    Measured(MeasuredLink),
+}
+
+/// Settings of a measured link.
+#[derive(Debug, Clone)]
+pub struct MeasuredLink {
+    /// The filter model.
+    pub model: MotionModel,
+    /// Measurement noise used when a sample carries none.
+    pub default_sigmas: ReportedSigmas,
+    /// How often samples are expected (Hz).
+    pub expected_rate_hz: f64,
+    /// The designed pose, where known (simulation, visualisation before the first sample).
+    pub nominal: Option<Pose>,
+}
+
+/// Deformation thresholds of a target (absent ones are not checked).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct AlarmThresholds {
+    /// Warn above this rotation magnitude (arc-seconds).
+    pub warn_rotation_arcsec: Option<f64>,
+    /// Alarm above this rotation magnitude (arc-seconds).
+    pub alarm_rotation_arcsec: Option<f64>,
+    /// Warn above this translation magnitude (mm).
+    pub warn_translation_mm: Option<f64>,
+    /// Alarm above this translation magnitude (mm).
+    pub alarm_translation_mm: Option<f64>,
+}
+
+/// A target: a frame whose pose relative to its base is monitored.
+#[derive(Debug, Clone)]
+pub struct TargetSpec {
+    /// The target's name (its frame).
+    pub name: String,
+    /// The target frame.
+    pub frame: FrameId,
+    /// The base frame.
+    pub base: FrameId,
+    /// How it is reached.
+    pub resolution: Resolution,
+    /// Deformation thresholds.
+    pub alarms: AlarmThresholds,
+}
+
+/// What a bearer token may do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Scope {
+    /// Read results, history, statistics.
+    Read,
+    /// Post samples and observations.
+    Ingest,
+    /// Set references and calibrations.
+    Admin,
+}
+
+/// A configured bearer token.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TokenSpec {
+    /// Who holds it.
+    pub name: String,
+    /// SHA-256 of the token text, lowercase hex.
+    pub sha256_hex: String,
+    /// What it may do.
+    pub scopes: Vec<Scope>,
+}
+
+/// Authentication settings.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct AuthSettings {
+    /// The tokens; none means the server accepts everything (loopback only).
+    pub tokens: Vec<TokenSpec>,
+}
+
+impl Installation {
+    /// The settings of a link.
+    pub fn link(&self, id: LinkId) -> &LinkSpec {
+        &self.links[id.0]
+    }
+
+    /// The link with this name.
+    pub fn link_by_name(&self, name: &str) -> Option<&LinkSpec> {
+        self.topology.link_id(name).map(|id| self.link(id))
+    }
+
+    /// The target with this name.
+    pub fn target(&self, name: &str) -> Option<&TargetSpec> {
+        self.targets.iter().find(|t| t.name == name)
+    }
+
+    /// The camera on this frame.
+    pub fn camera(&self, frame: &str) -> Option<&Camera> {
+        self.cameras.iter().find(|c| c.frame == frame)
+    }
+
+    /// The marker on this frame.
+    pub fn marker(&self, frame: &str) -> Option<&Marker> {
+        self.markers.iter().find(|m| m.frame == frame)
+    }
+}
+
+/// The built-in laboratory installation.
+pub fn default_installation() -> Installation {
+    // The embedded file is validated by a test; failing here is a build defect.
+    #[allow(clippy::expect_used)]
+    parse(DEFAULT_SOURCE_NAME, DEFAULT_INSTALLATION_TOML)
+        .expect("the built-in installation is valid")
+}
+
+/// Reads and validates an installation file.
+pub fn load(path: &Path) -> Result<Installation, ConfigError> {
+    let source = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        ConfigError::single(
+            &source,
+            ConfigProblem {
+                line: None,
+                column: None,
+                message: format!("cannot read the file: {e}"),
+            },
+        )
+    })?;
+    parse(&source, &text)
+}
+
+/// Loads `path`, or the built-in installation when `None`.
+pub fn load_or_default(path: Option<&Path>) -> Result<Installation, ConfigError> {
+    match path {
+        Some(p) => load(p),
+        None => Ok(default_installation()),
+    }
+}
+
+/// Parses and validates installation text; `source` names it in errors.
+pub fn parse(source: &str, text: &str) -> Result<Installation, ConfigError> {
+    let lines = LineIndex::new(text);
+    let raw: RawFile = toml::from_str(text).map_err(|e| {
+        let (line, column) = match e.span() {
+            Some(span) => {
+                let (l, c) = lines.locate(span.start);
+                (Some(l), Some(c))
+            }
+            None => (None, None),
+        };
+        ConfigError::single(
+            source,
+            ConfigProblem {
+                line,
+                column,
+                message: e.message().trim().to_owned(),
+            },
+        )
+    })?;
+    let mut v = Validator {
+        lines,
+        problems: Vec::new(),
+    };
+    let installation = v.installation(source, raw);
+    if v.problems.is_empty() {
+        if let Some(installation) = installation {
+            return Ok(installation);
+        }
+    }
+    let mut problems = v.problems;
+    problems.sort_by_key(|p| p.line);
+    Err(ConfigError {
+        file: source.to_owned(),
+        problems,
+    })
+}
+
+/// Splits `<parent>_from_<child>` into its frames.
+pub fn split_link_name(name: &str) -> Option<(&str, &str)> {
+    let mut parts = name.split("_from_");
+    match (parts.next(), parts.next(), parts.next()) {
+        (Some(parent), Some(child), None) if !parent.is_empty() && !child.is_empty() => {
+            Some((parent, child))
+        }
+        _ => None,
+    }
+}
+
+/// True for a frame name made of letters, digits, `-` and `_`.
+fn is_valid_frame_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        && !name.contains("_from_")
+}
+
+struct Validator {
+    lines: LineIndex,
+    problems: Vec<ConfigProblem>,
+}
+
+impl Validator {
+    fn problem(&mut self, offset: usize, message: String) {
+        let (line, _) = self.lines.locate(offset);
+        self.problems.push(ConfigProblem {
+            line: Some(line),
+            column: None,
+            message,
+        });
+    }
+
+    fn finite(&mut self, at: usize, what: &str, values: &[f64]) -> bool {
+        match validate_finite(what, values) {
+            Ok(()) => true,
+            Err(e) => {
+                self.problem(at, e.to_string());
+                false
+            }
+        }
+    }
+
+    fn positive(&mut self, at: usize, what: &str, value: f64) -> bool {
+        if value.is_finite() && value > 0.0 {
+            true
+        } else {
+            self.problem(at, format!("{what} must be a positive number, not {value}"));
+            false
+        }
+    }
+
+    fn pose(&mut self, at: usize, what: &str, raw: &RawPose) -> Option<Pose> {
+        let forms = [
+            raw.q_wxyz.is_some(),
+            raw.euler_deg.is_some(),
+            raw.r.is_some(),
+        ]
+        .iter()
+        .filter(|&&b| b)
+        .count();
+        if forms != 1 {
+            self.problem(
+                at,
+                format!(
+                    "{what} needs exactly one rotation: `q_wxyz`, `euler_deg` or `r` (found {forms})"
+                ),
+            );
+            return None;
+        }
+        let rotation: Result<Rotation, _> = if let Some(q) = raw.q_wxyz {
+            rotation_from_quaternion_wxyz(q)
+        } else if let Some(e) = raw.euler_deg {
+            rotation_from_euler(e.map(f64::to_radians))
+        } else if let Some(r) = raw.r {
+            rotation_from_matrix(r)
+        } else {
+            return None;
+        };
+        match rotation.and_then(|r| pose_from_parts(raw.t_mm, r)) {
+            Ok(p) => Some(p),
+            Err(e) => {
+                self.problem(at, format!("{what}: {e}"));
+                None
+            }
+        }
+    }
+
+    fn sigmas(&mut self, at: usize, what: &str, raw: &RawSigma) -> Option<ReportedSigmas> {
+        let rotation_arcsec = raw.rotation_arcsec.per_axis();
+        let translation_mm = raw.translation_mm.per_axis();
+        let mut ok = true;
+        for (name, values) in [
+            ("rotation_arcsec", rotation_arcsec),
+            ("translation_mm", translation_mm),
+        ] {
+            for v in values {
+                ok &= self.positive(at, &format!("{what}.{name}"), v);
+            }
+        }
+        ok.then_some(ReportedSigmas {
+            rotation_arcsec,
+            translation_mm,
+        })
+    }
+
+    fn installation(&mut self, source: &str, raw: RawFile) -> Option<Installation> {
+        let server = self.server(&raw);
+        let rerun = self.rerun(&raw);
+        let cameras = self.cameras(&raw);
+        let markers = self.markers(&raw);
+        let (topology, links) = self.links(&raw);
+        let targets = self.targets(&raw, &topology);
+        let auth = self.auth(&raw);
+        let mut frames_seen = std::collections::HashSet::new();
+        for c in &raw.cameras {
+            if !frames_seen.insert(c.get_ref().frame.clone()) {
+                self.problem(
+                    c.span().start,
+                    format!("duplicate camera on frame `{}`", c.get_ref().frame),
+                );
+            }
+        }
+        for m in &raw.markers {
+            if !frames_seen.insert(m.get_ref().frame.clone()) {
+                self.problem(
+                    m.span().start,
+                    format!(
+                        "frame `{}` already has a camera or marker; a frame is one rigid body's, a station joins two with a calibrated link",
+                        m.get_ref().frame
+                    ),
+                );
+            }
+        }
+        Some(Installation {
+            source: source.to_owned(),
+            server: server?,
+            rerun: rerun?,
+            cameras,
+            markers,
+            topology,
+            links,
+            targets,
+            auth,
+        })
+    }
+
+    fn server(&mut self, raw: &RawFile) -> Option<ServerSettings> {
+        let listen = match &raw.server.listen {
+            None => SocketAddr::from(([127, 0, 0, 1], 7878)),
+            Some(s) => match s.get_ref().parse() {
+                Ok(a) => a,
+                Err(_) => {
+                    self.problem(
+                        s.span().start,
+                        format!(
+                            "server.listen `{}` is not an address like 127.0.0.1:7878",
+                            s.get_ref()
+                        ),
+                    );
+                    return None;
+                }
+            },
+        };
+        Some(ServerSettings {
+            listen,
+            database: PathBuf::from(raw.server.database.as_deref().unwrap_or("brokenray.db")),
+        })
+    }
+
+    fn rerun(&mut self, raw: &RawFile) -> Option<RerunSettings> {
+        let mode = match raw.rerun.mode.as_ref() {
+            None => RerunMode::Off,
+            Some(m) => match m.get_ref().as_str() {
+                "off" => RerunMode::Off,
+                "save" => RerunMode::Save,
+                "connect" => RerunMode::Connect,
+                "serve" => RerunMode::Serve,
+                other => {
+                    self.problem(
+                        m.span().start,
+                        format!("rerun.mode `{other}` is not one of off, save, connect, serve"),
+                    );
+                    return None;
+                }
+            },
+        };
+        Some(RerunSettings {
+            mode,
+            recordings_dir: PathBuf::from(
+                raw.rerun.recordings_dir.as_deref().unwrap_or("recordings"),
+            ),
+            url: raw
+                .rerun
+                .url
+                .clone()
+                .unwrap_or_else(|| "rerun+http://127.0.0.1:9876/proxy".to_owned()),
+        })
+    }
+
+    fn cameras(&mut self, raw: &RawFile) -> Vec<Camera> {
+        let mut out = Vec::new();
+        for spanned in &raw.cameras {
+            let at = spanned.span().start;
+            let c = spanned.get_ref();
+            let what = format!("camera `{}`", c.frame);
+            let mut ok = self.frame_name(at, &c.frame);
+            if c.width == 0 || c.height == 0 {
+                self.problem(at, format!("{what}: width and height must be positive"));
+                ok = false;
+            }
+            ok &= self.positive(at, &format!("{what}: fx"), c.fx);
+            ok &= self.positive(at, &format!("{what}: fy"), c.fy);
+            ok &= self.finite(at, &format!("{what}: principal point"), &[c.cx, c.cy]);
+            ok &= self.finite(at, &format!("{what}: distortion"), &c.distortion);
+            ok &= self.positive(at, &format!("{what}: pixel_sigma"), c.pixel_sigma);
+            if ok {
+                out.push(Camera {
+                    frame: c.frame.clone(),
+                    width_px: c.width,
+                    height_px: c.height,
+                    fx_px: c.fx,
+                    fy_px: c.fy,
+                    cx_px: c.cx,
+                    cy_px: c.cy,
+                    distortion: c.distortion,
+                    pixel_sigma_px: c.pixel_sigma,
+                });
+            }
+        }
+        out
+    }
+
+    fn markers(&mut self, raw: &RawFile) -> Vec<Marker> {
+        let mut out = Vec::new();
+        for spanned in &raw.markers {
+            let at = spanned.span().start;
+            let m = spanned.get_ref();
+            let what = format!("marker `{}`", m.frame);
+            let mut ok = self.frame_name(at, &m.frame);
+            if m.points_mm.len() < 4 {
+                self.problem(
+                    at,
+                    format!("{what} needs at least 4 points, has {}", m.points_mm.len()),
+                );
+                ok = false;
+            }
+            for (i, p) in m.points_mm.iter().enumerate() {
+                ok &= self.finite(at, &format!("{what}: points_mm[{i}]"), p);
+            }
+            let ids = match &m.ids {
+                Some(ids) if ids.len() != m.points_mm.len() => {
+                    self.problem(
+                        at,
+                        format!(
+                            "{what} has {} ids for {} points",
+                            ids.len(),
+                            m.points_mm.len()
+                        ),
+                    );
+                    ok = false;
+                    Vec::new()
+                }
+                Some(ids) => {
+                    let unique: std::collections::HashSet<_> = ids.iter().collect();
+                    if unique.len() != ids.len() {
+                        self.problem(at, format!("{what} has duplicate point ids"));
+                        ok = false;
+                    }
+                    ids.clone()
+                }
+                None => (0..m.points_mm.len() as u32).collect(),
+            };
+            if ok {
+                out.push(Marker {
+                    frame: m.frame.clone(),
+                    points_mm: m.points_mm.clone(),
+                    ids,
+                });
+            }
+        }
+        out
+    }
+
+    fn frame_name(&mut self, at: usize, name: &str) -> bool {
+        if is_valid_frame_name(name) {
+            true
+        } else {
+            self.problem(
+                at,
+                format!(
+                    "frame name `{name}` must be 1 to 64 letters, digits, `-` or `_`, and must not contain `_from_`"
+                ),
+            );
+            false
+        }
+    }
+
+    fn links(&mut self, raw: &RawFile) -> (Topology, Vec<LinkSpec>) {
+        let mut topology = Topology::new();
+        // Frames of cameras and markers exist even when no link touches them.
+        for c in &raw.cameras {
+            if is_valid_frame_name(&c.get_ref().frame) {
+                topology.add_frame(&c.get_ref().frame);
+            }
+        }
+        for m in &raw.markers {
+            if is_valid_frame_name(&m.get_ref().frame) {
+                topology.add_frame(&m.get_ref().frame);
+            }
+        }
+        let mut specs = Vec::new();
+        for spanned in &raw.links {
+            let at = spanned.span().start;
+            let l = spanned.get_ref();
+            let Some((parent, child)) = split_link_name(&l.name) else {
+                self.problem(
+                    at,
+                    format!(
+                        "link name `{}` is not of the form <parent>_from_<child>",
+                        l.name
+                    ),
+                );
+                continue;
+            };
+            let mut ok = self.frame_name(at, parent) & self.frame_name(at, child);
+            for (key, given, expected) in
+                [("parent", &l.parent, parent), ("child", &l.child, child)]
+            {
+                if let Some(given) = given {
+                    if given != expected {
+                        self.problem(
+                            at,
+                            format!(
+                                "link `{}` does not match its frames: its name says {key} `{expected}` but {key} = `{given}`",
+                                l.name
+                            ),
+                        );
+                        ok = false;
+                    }
+                }
+            }
+            let kind = match l.kind.as_str() {
+                "calibrated" => self.calibrated(at, l),
+                "measured" => self.measured(at, l),
+                other => {
+                    self.problem(
+                        at,
+                        format!(
+                            "link `{}`: kind `{other}` is not one of calibrated, measured",
+                            l.name
+                        ),
+                    );
+                    None
+                }
+            };
+            let (Some(kind), true) = (kind, ok) else {
+                continue;
+            };
+            match topology.add_link(&l.name, parent, child) {
+                Ok(id) => specs.push(LinkSpec {
+                    id,
+                    name: l.name.clone(),
+                    kind,
+                }),
+                Err(e) => self.problem(at, e.to_string()),
+            }
+        }
+        (topology, specs)
+    }
+
+    fn calibrated(&mut self, at: usize, l: &raw::RawLink) -> Option<LinkKind> {
+        let what = format!("calibrated link `{}`", l.name);
+        for (key, present) in [
+            ("model", l.model.is_some()),
+            ("expected_rate_hz", l.expected_rate_hz.is_some()),
+            ("nominal", l.nominal.is_some()),
+        ] {
+            if present {
+                self.problem(
+                    at,
+                    format!("{what}: `{key}` applies to measured links only"),
+                );
+            }
+        }
+        let Some(raw_pose) = &l.pose else {
+            self.problem(at, format!("{what} needs `pose`"));
+            return None;
+        };
+        let Some(raw_sigma) = &l.sigma else {
+            self.problem(
+                at,
+                format!("{what} needs `sigma` (its calibration uncertainty; a calibration is never exact)"),
+            );
+            return None;
+        };
+        let pose = self.pose(at, &format!("{what}: pose"), raw_pose)?;
+        let sigmas = self.sigmas(at, &format!("{what}: sigma"), raw_sigma)?;
+        Some(LinkKind::Calibrated {
+            parent_from_child: PoseCov::from_reported_sigmas(pose, &sigmas),
+        })
+    }
+
+    fn measured(&mut self, at: usize, l: &raw::RawLink) -> Option<LinkKind> {
+        let what = format!("measured link `{}`", l.name);
+        if l.pose.is_some() {
+            self.problem(
+                at,
+                format!("{what}: `pose` is for calibrated links; a measured link's designed pose is `nominal`"),
+            );
+        }
+        let model = match l.model.as_deref().unwrap_or("static") {
+            "static" => MotionModel::Static,
+            "constant_velocity" => MotionModel::ConstantVelocity,
+            "oscillatory" => MotionModel::Oscillatory,
+            other => {
+                self.problem(
+                    at,
+                    format!("{what}: model `{other}` is not one of static, constant_velocity, oscillatory"),
+                );
+                return None;
+            }
+        };
+        let Some(raw_sigma) = &l.sigma else {
+            self.problem(
+                at,
+                format!("{what} needs `sigma` (the default measurement noise)"),
+            );
+            return None;
+        };
+        let sigmas = self.sigmas(at, &format!("{what}: sigma"), raw_sigma)?;
+        let Some(rate) = l.expected_rate_hz else {
+            self.problem(at, format!("{what} needs `expected_rate_hz`"));
+            return None;
+        };
+        if !self.positive(at, &format!("{what}: expected_rate_hz"), rate) {
+            return None;
+        }
+        let nominal = match &l.nominal {
+            Some(p) => Some(self.pose(at, &format!("{what}: nominal"), p)?),
+            None => None,
+        };
+        Some(LinkKind::Measured(MeasuredLink {
+            model,
+            default_sigmas: sigmas,
+            expected_rate_hz: rate,
+            nominal,
+        }))
+    }
+
+    fn targets(&mut self, raw: &RawFile, topology: &Topology) -> Vec<TargetSpec> {
+        let mut out: Vec<TargetSpec> = Vec::new();
+        for spanned in &raw.targets {
+            let at = spanned.span().start;
+            let t = spanned.get_ref();
+            if out.iter().any(|o| o.name == t.name) {
+                self.problem(at, format!("duplicate target `{}`", t.name));
+                continue;
+            }
+            let alarms = self.alarms(at, &t.name, &t.alarms);
+            let resolution = match topology.resolve(&t.base, &t.name) {
+                Ok(r) => r,
+                Err(ChainError::UnknownFrame(f)) => {
+                    self.problem(
+                        at,
+                        format!("target `{}`: frame `{f}` is not introduced by any link, camera or marker", t.name),
+                    );
+                    continue;
+                }
+                Err(e) => {
+                    self.problem(at, e.to_string());
+                    continue;
+                }
+            };
+            out.push(TargetSpec {
+                name: t.name.clone(),
+                frame: resolution.target,
+                base: resolution.base,
+                resolution,
+                alarms,
+            });
+        }
+        out
+    }
+
+    fn alarms(&mut self, at: usize, target: &str, a: &raw::RawAlarms) -> AlarmThresholds {
+        let what = format!("target `{target}` alarms");
+        for (name, v) in [
+            ("warn_rotation_arcsec", a.warn_rotation_arcsec),
+            ("alarm_rotation_arcsec", a.alarm_rotation_arcsec),
+            ("warn_translation_mm", a.warn_translation_mm),
+            ("alarm_translation_mm", a.alarm_translation_mm),
+        ] {
+            if let Some(v) = v {
+                self.positive(at, &format!("{what}: {name}"), v);
+            }
+        }
+        for (kind, warn, alarm) in [
+            ("rotation", a.warn_rotation_arcsec, a.alarm_rotation_arcsec),
+            ("translation", a.warn_translation_mm, a.alarm_translation_mm),
+        ] {
+            if let (Some(w), Some(al)) = (warn, alarm) {
+                if w >= al {
+                    self.problem(at, format!("{what}: the {kind} warn level ({w}) must be below the alarm level ({al})"));
+                }
+            }
+        }
+        AlarmThresholds {
+            warn_rotation_arcsec: a.warn_rotation_arcsec,
+            alarm_rotation_arcsec: a.alarm_rotation_arcsec,
+            warn_translation_mm: a.warn_translation_mm,
+            alarm_translation_mm: a.alarm_translation_mm,
+        }
+    }
+
+    fn auth(&mut self, raw: &RawFile) -> AuthSettings {
+        let mut tokens: Vec<TokenSpec> = Vec::new();
+        for spanned in &raw.auth.tokens {
+            let at = spanned.span().start;
+            let t = spanned.get_ref();
+            let hex = t.sha256.to_ascii_lowercase();
+            if hex.len() != 64 || !hex.chars().all(|c| c.is_ascii_hexdigit()) {
+                self.problem(
+                    at,
+                    format!("token `{}`: sha256 must be 64 hexadecimal digits", t.name),
+                );
+                continue;
+            }
+            if tokens.iter().any(|o| o.sha256_hex == hex) {
+                self.problem(
+                    at,
+                    format!("token `{}`: the same sha256 is listed twice", t.name),
+                );
+                continue;
+            }
+            let mut scopes = Vec::new();
+            for s in &t.scopes {
+                match s.as_str() {
+                    "read" => scopes.push(Scope::Read),
+                    "ingest" => scopes.push(Scope::Ingest),
+                    "admin" => scopes.push(Scope::Admin),
+                    other => self.problem(
+                        at,
+                        format!(
+                            "token `{}`: scope `{other}` is not one of read, ingest, admin",
+                            t.name
+                        ),
+                    ),
+                }
+            }
+            tokens.push(TokenSpec {
+                name: t.name.clone(),
+                sha256_hex: hex,
+                scopes,
+            });
+        }
+        AuthSettings { tokens }
+    }
+}

@@ -1,0 +1,144 @@
+//! The file as written: serde types mirroring the TOML, before validation.
+//!
+//! Every table denies unknown keys, so a misspelt key is an error that names its line.
+
+use serde::Deserialize;
+use toml::Spanned;
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawFile {
+    #[serde(default)]
+    pub server: RawServer,
+    #[serde(default)]
+    pub rerun: RawRerun,
+    #[serde(default)]
+    pub cameras: Vec<Spanned<RawCamera>>,
+    #[serde(default)]
+    pub markers: Vec<Spanned<RawMarker>>,
+    #[serde(default)]
+    pub links: Vec<Spanned<RawLink>>,
+    #[serde(default)]
+    pub targets: Vec<Spanned<RawTarget>>,
+    #[serde(default)]
+    pub auth: RawAuth,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawServer {
+    pub listen: Option<Spanned<String>>,
+    pub database: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawRerun {
+    pub mode: Option<Spanned<String>>,
+    pub recordings_dir: Option<String>,
+    pub url: Option<String>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawCamera {
+    pub frame: String,
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    #[serde(default)]
+    pub distortion: [f64; 5],
+    pub pixel_sigma: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawMarker {
+    pub frame: String,
+    pub points_mm: Vec<[f64; 3]>,
+    pub ids: Option<Vec<u32>>,
+}
+
+/// A pose: translation and exactly one rotation form.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawPose {
+    pub t_mm: [f64; 3],
+    pub q_wxyz: Option<[f64; 4]>,
+    pub euler_deg: Option<[f64; 3]>,
+    pub r: Option<[[f64; 3]; 3]>,
+}
+
+/// A scalar applied to all three axes, or one value per axis.
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(untagged)]
+pub(super) enum ScalarOr3 {
+    Scalar(f64),
+    PerAxis([f64; 3]),
+}
+
+impl ScalarOr3 {
+    pub fn per_axis(self) -> [f64; 3] {
+        match self {
+            ScalarOr3::Scalar(v) => [v; 3],
+            ScalarOr3::PerAxis(v) => v,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawSigma {
+    pub rotation_arcsec: ScalarOr3,
+    pub translation_mm: ScalarOr3,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawLink {
+    pub name: String,
+    pub kind: String,
+    pub parent: Option<String>,
+    pub child: Option<String>,
+    pub pose: Option<RawPose>,
+    pub sigma: Option<RawSigma>,
+    pub model: Option<String>,
+    pub expected_rate_hz: Option<f64>,
+    pub nominal: Option<RawPose>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawTarget {
+    pub name: String,
+    pub base: String,
+    #[serde(default)]
+    pub alarms: RawAlarms,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawAlarms {
+    pub warn_rotation_arcsec: Option<f64>,
+    pub alarm_rotation_arcsec: Option<f64>,
+    pub warn_translation_mm: Option<f64>,
+    pub alarm_translation_mm: Option<f64>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawAuth {
+    #[serde(default)]
+    pub tokens: Vec<Spanned<RawToken>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawToken {
+    pub name: String,
+    pub sha256: String,
+    pub scopes: Vec<String>,
+}

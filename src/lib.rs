@@ -1,0 +1,24 @@
+//! brokenray: broken-ray videometrics for the deformation of large structures.
+//!
+//! A base body B and a target body G that cannot see each other are joined by relay stations of
+//! cameras and cooperative markers. Every camera that sees a marker measures one link by pose
+//! estimation; every rigid station contributes one calibrated link; the chain of rigid
+//! transforms gives `G_from_B`. Its change against a reference is the deformation, and its
+//! inverse the correction that devices on G apply.
+//!
+//! # Layout
+//!
+//! * [`geometry`]: SE(3) poses, Exp/Log, adjoint, rotation conversions, covariance, averaging.
+//! * [`chain`]: the frame/link graph, path resolution, composition with covariance, fusion of
+//!   redundant paths with a consistency statistic.
+//! * [`config`]: the TOML installation file, parsed into validated domain types, and the
+//!   built-in laboratory installation.
+//! * [`cli`]: the command line (the binary in `main.rs` only calls it).
+//!
+//! The numerical core (`geometry`, `chain`) is pure and synchronous: no IO, no clock, no async
+//! runtime. Conventions are in the module docs of [`geometry`].
+
+pub mod chain;
+pub mod cli;
+pub mod config;
+pub mod geometry;
