@@ -18,6 +18,8 @@
 //! The numerical core (`geometry`, `chain`) is pure and synchronous: no IO, no clock, no async
 //! runtime. Conventions are in the module docs of [`geometry`].
 
+#![warn(clippy::unwrap_used, clippy::expect_used)]
+
 pub mod chain;
 pub mod cli;
 pub mod config;

@@ -155,6 +155,10 @@ pub struct LinkSpec {
 
 /// What kind of link.
 #[derive(Debug, Clone)]
+#[allow(
+    clippy::large_enum_variant,
+    reason = "a handful of links per installation; boxing buys nothing"
+)]
 pub enum LinkKind {
     /// A rigid connection inside a station, calibrated once.
     Calibrated {
@@ -319,10 +323,10 @@ pub fn parse(source: &str, text: &str) -> Result<Installation, ConfigError> {
         problems: Vec::new(),
     };
     let installation = v.installation(source, raw);
-    if v.problems.is_empty() {
-        if let Some(installation) = installation {
-            return Ok(installation);
-        }
+    if v.problems.is_empty()
+        && let Some(installation) = installation
+    {
+        return Ok(installation);
     }
     let mut problems = v.problems;
     problems.sort_by_key(|p| p.line);
@@ -664,17 +668,17 @@ impl Validator {
             for (key, given, expected) in
                 [("parent", &l.parent, parent), ("child", &l.child, child)]
             {
-                if let Some(given) = given {
-                    if given != expected {
-                        self.problem(
+                if let Some(given) = given
+                    && given != expected
+                {
+                    self.problem(
                             at,
                             format!(
                                 "link `{}` does not match its frames: its name says {key} `{expected}` but {key} = `{given}`",
                                 l.name
                             ),
                         );
-                        ok = false;
-                    }
+                    ok = false;
                 }
             }
             let kind = match l.kind.as_str() {
@@ -836,10 +840,15 @@ impl Validator {
             ("rotation", a.warn_rotation_arcsec, a.alarm_rotation_arcsec),
             ("translation", a.warn_translation_mm, a.alarm_translation_mm),
         ] {
-            if let (Some(w), Some(al)) = (warn, alarm) {
-                if w >= al {
-                    self.problem(at, format!("{what}: the {kind} warn level ({w}) must be below the alarm level ({al})"));
-                }
+            if let (Some(w), Some(al)) = (warn, alarm)
+                && w >= al
+            {
+                self.problem(
+                    at,
+                    format!(
+                        "{what}: the {kind} warn level ({w}) must be below the alarm level ({al})"
+                    ),
+                );
             }
         }
         AlarmThresholds {

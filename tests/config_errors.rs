@@ -1,0 +1,236 @@
+//! Every installation-file error names the file, the line and the problem.
+
+use brokenray::config::{self, LinkKind};
+
+const VALID: &str = r#"
+[[links]]
+name = "C1_from_B"
+kind = "measured"
+sigma = { rotation_arcsec = 20.0, translation_mm = 0.5 }
+expected_rate_hz = 25.0
+
+[[links]]
+name = "C1_from_G"
+kind = "measured"
+sigma = { rotation_arcsec = 20.0, translation_mm = [0.1, 0.1, 0.5] }
+expected_rate_hz = 25.0
+
+[[targets]]
+name = "G"
+base = "B"
+"#;
+
+/// Parses `text` and returns the error text, failing the test if it parsed.
+fn error_of(text: &str) -> String {
+    match config::parse("site.toml", text) {
+        Ok(_) => panic!("expected an error for:\n{text}"),
+        Err(e) => e.to_string(),
+    }
+}
+
+/// The 1-based line of the first line containing `needle`.
+fn line_of(text: &str, needle: &str) -> usize {
+    text.lines()
+        .position(|l| l.contains(needle))
+        .expect("needle in text")
+        + 1
+}
+
+#[test]
+fn a_minimal_file_is_valid() {
+    let inst = config::parse("site.toml", VALID).unwrap();
+    assert_eq!(inst.targets.len(), 1);
+    assert_eq!(inst.targets[0].resolution.paths[0].steps.len(), 2);
+}
+
+#[test]
+fn the_built_in_installation_is_valid_and_resolves_the_papers_chain() {
+    let inst = config::parse(
+        config::DEFAULT_SOURCE_NAME,
+        config::DEFAULT_INSTALLATION_TOML,
+    )
+    .unwrap();
+    assert_eq!(inst.cameras.len(), 3);
+    assert_eq!(inst.markers.len(), 3);
+    let g = inst.target("G").unwrap();
+    assert_eq!(
+        inst.topology.describe_product(&g.resolution.paths[0]),
+        "G_from_C3 * C3_from_M * M_from_C2 * C2_from_C1 * C1_from_B"
+    );
+    let sizes: Vec<(u32, u32)> = inst
+        .cameras
+        .iter()
+        .map(|c| (c.width_px, c.height_px))
+        .collect();
+    assert!(sizes.contains(&(1280, 1024)) && sizes.contains(&(1392, 1040)));
+    assert!(matches!(
+        inst.link_by_name("C2_from_C1").unwrap().kind,
+        LinkKind::Calibrated { .. }
+    ));
+}
+
+#[test]
+fn an_unknown_key_names_its_line_and_the_key() {
+    let text = VALID.replace(
+        "expected_rate_hz = 25.0\n\n[[links]]",
+        "expected_rate_hz = 25.0\nrate = 3\n\n[[links]]",
+    );
+    let err = error_of(&text);
+    let line = line_of(&text, "rate = 3");
+    assert!(err.starts_with(&format!("site.toml:{line}:")), "{err}");
+    assert!(err.contains("unknown field `rate`"), "{err}");
+}
+
+#[test]
+fn a_link_whose_frames_do_not_match_its_name_is_refused() {
+    let text = VALID.replace(
+        "name = \"C1_from_G\"",
+        "name = \"C1_from_G\"\nparent = \"C9\"",
+    );
+    let err = error_of(&text);
+    // A table's problems are reported at its `[[links]]` header, the line before its name.
+    let line = line_of(&text, "name = \"C1_from_G\"") - 1;
+    assert!(err.contains(&format!("site.toml:{line}:")), "{err}");
+    assert!(err.contains("does not match its frames"), "{err}");
+    assert!(err.contains("`C9`"), "{err}");
+}
+
+#[test]
+fn a_link_name_without_from_is_refused() {
+    let text = VALID.replace("C1_from_G", "C1toG");
+    let err = error_of(&text);
+    assert!(
+        err.contains("`C1toG` is not of the form <parent>_from_<child>"),
+        "{err}"
+    );
+}
+
+#[test]
+fn an_unreachable_target_names_target_base_and_line() {
+    let text = format!(
+        "{VALID}\n[[links]]\nname = \"X_from_Y\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 5.0\n\n[[targets]]\nname = \"X\"\nbase = \"B\"\n"
+    );
+    let err = error_of(&text);
+    let line = line_of(&text, "name = \"X\"");
+    assert!(
+        err.contains("target `X` is unreachable from base `B`"),
+        "{err}"
+    );
+    assert!(err.contains(&format!("site.toml:{}:", line - 1)), "{err}");
+}
+
+#[test]
+fn a_non_rotation_pose_is_refused_with_its_line() {
+    let text = format!(
+        "{VALID}\n[[links]]\nname = \"C2_from_C1\"\nkind = \"calibrated\"\npose = {{ t_mm = [0, 0, -150], r = [[1, 0, 0], [0, 1, 0.2], [0, 0, 1]] }}\nsigma = {{ rotation_arcsec = 5.0, translation_mm = 0.05 }}\n"
+    );
+    let err = error_of(&text);
+    let line = line_of(&text, "C2_from_C1");
+    assert!(err.contains("matrix is not a rotation"), "{err}");
+    assert!(err.contains(&format!("site.toml:{}:", line - 1)), "{err}");
+}
+
+#[test]
+fn a_non_unit_quaternion_and_a_non_finite_translation_are_refused() {
+    let q = format!(
+        "{VALID}\n[[links]]\nname = \"C2_from_C1\"\nkind = \"calibrated\"\npose = {{ t_mm = [0, 0, -150], q_wxyz = [1, 0.5, 0, 0] }}\nsigma = {{ rotation_arcsec = 5.0, translation_mm = 0.05 }}\n"
+    );
+    assert!(
+        error_of(&q).contains("quaternion norm is 1.118034"),
+        "{}",
+        error_of(&q)
+    );
+    let nan = q.replace(
+        "[0, 0, -150], q_wxyz = [1, 0.5, 0, 0]",
+        "[0, nan, -150], q_wxyz = [1, 0, 0, 0]",
+    );
+    assert!(
+        error_of(&nan).contains("t_mm[1] is not a finite number (NaN)"),
+        "{}",
+        error_of(&nan)
+    );
+}
+
+#[test]
+fn a_duplicate_link_names_the_second_occurrence() {
+    let text = format!(
+        "{VALID}\n[[links]]\nname = \"C1_from_B\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 25.0\n"
+    );
+    let err = error_of(&text);
+    let second = text.rfind("name = \"C1_from_B\"").unwrap();
+    let line = text[..second].lines().count();
+    assert!(
+        err.contains(&format!("site.toml:{line}: duplicate link `C1_from_B`")),
+        "{err}"
+    );
+}
+
+#[test]
+fn every_problem_is_reported_not_only_the_first() {
+    let text = VALID
+        .replace(
+            "expected_rate_hz = 25.0\n\n[[links]]\nname = \"C1_from_G\"",
+            "expected_rate_hz = -1.0\n\n[[links]]\nname = \"C1_from_G\"",
+        )
+        .replace("base = \"B\"", "base = \"Q\"");
+    let err = error_of(&text);
+    assert_eq!(err.lines().count(), 2, "{err}");
+    assert!(
+        err.contains("expected_rate_hz must be a positive number, not -1"),
+        "{err}"
+    );
+    assert!(err.contains("frame `Q` is not introduced"), "{err}");
+}
+
+#[test]
+fn a_calibrated_link_without_sigma_is_refused() {
+    let text = format!(
+        "{VALID}\n[[links]]\nname = \"C2_from_C1\"\nkind = \"calibrated\"\npose = {{ t_mm = [0, 0, -150], euler_deg = [0, 180, 0] }}\n"
+    );
+    assert!(error_of(&text).contains("needs `sigma`"));
+}
+
+#[test]
+fn a_syntax_error_names_line_and_column() {
+    let err = error_of("[server]\nlisten = \"127.0.0.1:7878\nx = 1\n");
+    assert!(err.starts_with("site.toml:2:"), "{err}");
+}
+
+#[test]
+fn bad_enumerations_list_the_allowed_values() {
+    let model = VALID.replacen(
+        "kind = \"measured\"",
+        "kind = \"measured\"\nmodel = \"wobbly\"",
+        1,
+    );
+    assert!(
+        error_of(&model)
+            .contains("model `wobbly` is not one of static, constant_velocity, oscillatory")
+    );
+    let mode = format!("[rerun]\nmode = \"stream\"\n{VALID}");
+    assert!(
+        error_of(&mode).starts_with("site.toml:2: rerun.mode `stream`"),
+        "{}",
+        error_of(&mode)
+    );
+}
+
+#[test]
+fn warn_levels_must_be_below_alarm_levels() {
+    let text = format!(
+        "{VALID}[targets.alarms]\nwarn_rotation_arcsec = 100.0\nalarm_rotation_arcsec = 50.0\n"
+    );
+    assert!(
+        error_of(&text).contains("rotation warn level (100) must be below the alarm level (50)")
+    );
+}
+
+#[test]
+fn load_names_a_missing_file() {
+    let err = config::load(std::path::Path::new("/nonexistent/site.toml")).unwrap_err();
+    assert!(
+        err.to_string()
+            .starts_with("/nonexistent/site.toml: cannot read the file"),
+        "{err}"
+    );
+}
