@@ -93,7 +93,7 @@ pub fn describe_installation(inst: &Installation) -> String {
                     s,
                     "  {:<14} measured    model {} at {} Hz, default sigma {} arcsec {} mm",
                     l.name,
-                    m.model.name(),
+                    m.tuning.model.name(),
                     m.expected_rate_hz,
                     fmt3(m.default_sigmas.rotation_arcsec, 1),
                     fmt3(m.default_sigmas.translation_mm, 3),

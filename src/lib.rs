@@ -13,9 +13,13 @@
 //!   redundant paths with a consistency statistic.
 //! * [`config`]: the TOML installation file, parsed into validated domain types, and the
 //!   built-in laboratory installation.
+//! * [`filter`]: per-link error-state Kalman filters on SE(3) (static, constant-velocity,
+//!   oscillatory), outlier gating, and the bank that evaluates targets at a time.
+//! * [`deformation`]: references, deformation `G0_from_G` and correction `G_from_G0`.
+//! * [`stats`]: the paper's Table 4/5 statistics over a set of results.
 //! * [`cli`]: the command line (the binary in `main.rs` only calls it).
 //!
-//! The numerical core (`geometry`, `chain`) is pure and synchronous: no IO, no clock, no async
+//! The numerical core (`geometry`, `chain`, `filter`, `deformation`, `stats`) is pure and synchronous: no IO, no clock, no async
 //! runtime. Conventions are in the module docs of [`geometry`].
 
 #![warn(clippy::unwrap_used, clippy::expect_used)]
@@ -23,4 +27,7 @@
 pub mod chain;
 pub mod cli;
 pub mod config;
+pub mod deformation;
+pub mod filter;
 pub mod geometry;
+pub mod stats;

@@ -234,3 +234,54 @@ fn load_names_a_missing_file() {
         "{err}"
     );
 }
+
+#[test]
+fn filter_tuning_is_read_per_link_and_checked_against_the_model() {
+    let text = VALID.replacen(
+        "kind = \"measured\"",
+        "kind = \"measured\"\nmodel = \"oscillatory\"\noscillation = { period_s = 8.0, correlation_time_s = 30.0, rotation_arcsec = [40.0, 60.0, 20.0], translation_mm = 0.4 }",
+        1,
+    );
+    let inst = config::parse("site.toml", &text).unwrap();
+    let LinkKind::Measured(m) = &inst.link_by_name("C1_from_B").unwrap().kind else {
+        panic!("measured");
+    };
+    assert_eq!(m.tuning.model, brokenray::filter::MotionModel::Oscillatory);
+    assert_eq!(m.tuning.oscillation.period_s, 8.0);
+    assert_eq!(m.tuning.oscillation.rotation_arcsec, [40.0, 60.0, 20.0]);
+
+    let wrong = VALID.replacen(
+        "kind = \"measured\"",
+        "kind = \"measured\"\noscillation = { period_s = 8.0, correlation_time_s = 30.0, rotation_arcsec = 40.0, translation_mm = 0.4 }",
+        1,
+    );
+    let err = error_of(&wrong);
+    assert!(
+        err.contains("`oscillation` applies to the oscillatory model"),
+        "{err}"
+    );
+    assert!(err.starts_with("site.toml:2:"), "{err}");
+}
+
+#[test]
+fn filter_section_values_are_checked_with_their_line() {
+    let text = format!("{VALID}\n[filter]\ngate_probability = 2.0\nreinit_after_outliers = 3\n");
+    let err = error_of(&text);
+    let line = line_of(&text, "[filter]");
+    assert!(
+        err.contains(&format!(
+            "site.toml:{line}: filter.gate_probability must be a probability"
+        )),
+        "{err}"
+    );
+    let ok = format!(
+        "{VALID}\n[filter]\ngate_probability = 0.99\nreinit_after_outliers = 3\nstale_after_periods = 10\n"
+    );
+    let inst = config::parse("site.toml", &ok).unwrap();
+    assert_eq!(inst.filter.stale_after_periods, 10.0);
+    let LinkKind::Measured(m) = &inst.link_by_name("C1_from_B").unwrap().kind else {
+        panic!("measured");
+    };
+    assert_eq!(m.tuning.reinit_after_outliers, 3);
+    assert_eq!(m.tuning.gate_probability, 0.99);
+}

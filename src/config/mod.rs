@@ -15,6 +15,7 @@ mod raw;
 pub use error::{ConfigError, ConfigProblem};
 
 use crate::chain::{ChainError, FrameId, LinkId, Resolution, Topology};
+use crate::filter::{BankSettings, FilterTuning, MotionModel};
 use crate::geometry::{
     Pose, PoseCov, ReportedSigmas, Rotation, pose_from_parts, rotation_from_euler,
     rotation_from_matrix, rotation_from_quaternion_wxyz, validate_finite,
@@ -51,6 +52,8 @@ pub struct Installation {
     pub targets: Vec<TargetSpec>,
     /// Bearer tokens.
     pub auth: AuthSettings,
+    /// Settings of the filter bank.
+    pub filter: BankSettings,
 }
 
 /// HTTP server settings.
@@ -120,28 +123,6 @@ pub struct Marker {
     pub ids: Vec<u32>,
 }
 
-/// How a measured link's pose is expected to move (the filter model, `method.md` section 7).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum MotionModel {
-    /// Random walk: constant pose plus process noise.
-    Static,
-    /// White-noise acceleration of the twist.
-    ConstantVelocity,
-    /// Second-order Gauss-Markov oscillation per axis around a slowly drifting mean.
-    Oscillatory,
-}
-
-impl MotionModel {
-    /// The name used in the configuration file.
-    pub fn name(self) -> &'static str {
-        match self {
-            MotionModel::Static => "static",
-            MotionModel::ConstantVelocity => "constant_velocity",
-            MotionModel::Oscillatory => "oscillatory",
-        }
-    }
-}
-
 /// A link of the installation.
 #[derive(Debug, Clone)]
 pub struct LinkSpec {
@@ -172,8 +153,8 @@ pub enum LinkKind {
 /// Settings of a measured link.
 #[derive(Debug, Clone)]
 pub struct MeasuredLink {
-    /// The filter model.
-    pub model: MotionModel,
+    /// The filter model and its tuning.
+    pub tuning: FilterTuning,
     /// Measurement noise used when a sample carries none.
     pub default_sigmas: ReportedSigmas,
     /// How often samples are expected (Hz).
@@ -453,6 +434,7 @@ impl Validator {
         let (topology, links) = self.links(&raw);
         let targets = self.targets(&raw, &topology);
         let auth = self.auth(&raw);
+        let filter = self.bank_settings(&raw);
         let mut frames_seen = std::collections::HashSet::new();
         for c in &raw.cameras {
             if !frames_seen.insert(c.get_ref().frame.clone()) {
@@ -483,6 +465,57 @@ impl Validator {
             links,
             targets,
             auth,
+            filter: filter?,
+        })
+    }
+
+    fn probability(
+        &mut self,
+        at: usize,
+        what: &str,
+        value: Option<f64>,
+        default: f64,
+    ) -> Option<f64> {
+        match value {
+            None => Some(default),
+            Some(p) if p > 0.5 && p < 1.0 => Some(p),
+            Some(p) => {
+                self.problem(
+                    at,
+                    format!("{what} must be a probability between 0.5 and 1 (exclusive), not {p}"),
+                );
+                None
+            }
+        }
+    }
+
+    /// The `[filter]` section.
+    fn bank_settings(&mut self, raw: &RawFile) -> Option<BankSettings> {
+        let empty = raw::RawFilter::default();
+        let (at, f) = match &raw.filter {
+            Some(s) => (s.span().start, s.get_ref()),
+            None => (0, &empty),
+        };
+        let defaults = BankSettings::default();
+        let consistency = self.probability(
+            at,
+            "filter.consistency_probability",
+            f.consistency_probability,
+            defaults.consistency_probability,
+        );
+        let gate = self.probability(at, "filter.gate_probability", f.gate_probability, 0.999);
+        let stale = f
+            .stale_after_periods
+            .unwrap_or(defaults.stale_after_periods);
+        let stale_ok = self.positive(at, "filter.stale_after_periods", stale);
+        if f.reinit_after_outliers == Some(0) {
+            self.problem(at, "filter.reinit_after_outliers must be at least 1".into());
+        }
+        gate?;
+        (stale_ok && f.reinit_after_outliers != Some(0)).then_some(BankSettings {
+            stale_after_periods: stale,
+            consistency_probability: consistency?,
+            ..defaults
         })
     }
 
@@ -651,6 +684,7 @@ impl Validator {
             }
         }
         let mut specs = Vec::new();
+        let empty_filter = raw::RawFilter::default();
         for spanned in &raw.links {
             let at = spanned.span().start;
             let l = spanned.get_ref();
@@ -683,7 +717,11 @@ impl Validator {
             }
             let kind = match l.kind.as_str() {
                 "calibrated" => self.calibrated(at, l),
-                "measured" => self.measured(at, l),
+                "measured" => self.measured(
+                    at,
+                    l,
+                    raw.filter.as_ref().map_or(&empty_filter, |f| f.get_ref()),
+                ),
                 other => {
                     self.problem(
                         at,
@@ -716,6 +754,9 @@ impl Validator {
             ("model", l.model.is_some()),
             ("expected_rate_hz", l.expected_rate_hz.is_some()),
             ("nominal", l.nominal.is_some()),
+            ("random_walk", l.random_walk.is_some()),
+            ("acceleration_noise", l.acceleration_noise.is_some()),
+            ("oscillation", l.oscillation.is_some()),
         ] {
             if present {
                 self.problem(
@@ -742,7 +783,100 @@ impl Validator {
         })
     }
 
-    fn measured(&mut self, at: usize, l: &raw::RawLink) -> Option<LinkKind> {
+    fn tuning(
+        &mut self,
+        at: usize,
+        what: &str,
+        model: MotionModel,
+        l: &raw::RawLink,
+        raw_filter: &raw::RawFilter,
+    ) -> Option<FilterTuning> {
+        let mut t = FilterTuning::default_for(model);
+        let mut ok = true;
+        if let Some(rw) = l.random_walk {
+            if model == MotionModel::ConstantVelocity {
+                self.problem(
+                    at,
+                    format!("{what}: `random_walk` applies to the static and oscillatory models"),
+                );
+                ok = false;
+            }
+            ok &= self.positive(
+                at,
+                &format!("{what}: random_walk.rotation_arcsec_per_sqrt_s"),
+                rw.rotation_arcsec_per_sqrt_s,
+            );
+            ok &= self.positive(
+                at,
+                &format!("{what}: random_walk.translation_mm_per_sqrt_s"),
+                rw.translation_mm_per_sqrt_s,
+            );
+            t.random_walk_rotation_arcsec_per_sqrt_s = rw.rotation_arcsec_per_sqrt_s;
+            t.random_walk_translation_mm_per_sqrt_s = rw.translation_mm_per_sqrt_s;
+        }
+        if let Some(a) = l.acceleration_noise {
+            if model != MotionModel::ConstantVelocity {
+                self.problem(
+                    at,
+                    format!("{what}: `acceleration_noise` applies to the constant_velocity model"),
+                );
+                ok = false;
+            }
+            ok &= self.positive(
+                at,
+                &format!("{what}: acceleration_noise.rotation_arcsec_per_s_sqrt_s"),
+                a.rotation_arcsec_per_s_sqrt_s,
+            );
+            ok &= self.positive(
+                at,
+                &format!("{what}: acceleration_noise.translation_mm_per_s_sqrt_s"),
+                a.translation_mm_per_s_sqrt_s,
+            );
+            t.acceleration_rotation_arcsec_per_s_sqrt_s = a.rotation_arcsec_per_s_sqrt_s;
+            t.acceleration_translation_mm_per_s_sqrt_s = a.translation_mm_per_s_sqrt_s;
+        }
+        if let Some(o) = l.oscillation {
+            if model != MotionModel::Oscillatory {
+                self.problem(
+                    at,
+                    format!("{what}: `oscillation` applies to the oscillatory model"),
+                );
+                ok = false;
+            }
+            ok &= self.positive(at, &format!("{what}: oscillation.period_s"), o.period_s);
+            ok &= self.positive(
+                at,
+                &format!("{what}: oscillation.correlation_time_s"),
+                o.correlation_time_s,
+            );
+            for v in o.rotation_arcsec.per_axis() {
+                ok &= self.positive(at, &format!("{what}: oscillation.rotation_arcsec"), v);
+            }
+            for v in o.translation_mm.per_axis() {
+                ok &= self.positive(at, &format!("{what}: oscillation.translation_mm"), v);
+            }
+            t.oscillation = crate::filter::OscillationTuning {
+                period_s: o.period_s,
+                correlation_time_s: o.correlation_time_s,
+                rotation_arcsec: o.rotation_arcsec.per_axis(),
+                translation_mm: o.translation_mm.per_axis(),
+            };
+        }
+        if let Some(g) = raw_filter.gate_probability {
+            t.gate_probability = g;
+        }
+        if let Some(n) = raw_filter.reinit_after_outliers {
+            t.reinit_after_outliers = n.max(1);
+        }
+        ok.then_some(t)
+    }
+
+    fn measured(
+        &mut self,
+        at: usize,
+        l: &raw::RawLink,
+        raw_filter: &raw::RawFilter,
+    ) -> Option<LinkKind> {
         let what = format!("measured link `{}`", l.name);
         if l.pose.is_some() {
             self.problem(
@@ -781,8 +915,9 @@ impl Validator {
             Some(p) => Some(self.pose(at, &format!("{what}: nominal"), p)?),
             None => None,
         };
+        let tuning = self.tuning(at, &what, model, l, raw_filter)?;
         Some(LinkKind::Measured(MeasuredLink {
-            model,
+            tuning,
             default_sigmas: sigmas,
             expected_rate_hz: rate,
             nominal,

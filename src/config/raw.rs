@@ -22,6 +22,39 @@ pub(super) struct RawFile {
     pub targets: Vec<Spanned<RawTarget>>,
     #[serde(default)]
     pub auth: RawAuth,
+    pub filter: Option<Spanned<RawFilter>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawFilter {
+    pub gate_probability: Option<f64>,
+    pub reinit_after_outliers: Option<usize>,
+    pub stale_after_periods: Option<f64>,
+    pub consistency_probability: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawRandomWalk {
+    pub rotation_arcsec_per_sqrt_s: f64,
+    pub translation_mm_per_sqrt_s: f64,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawAcceleration {
+    pub rotation_arcsec_per_s_sqrt_s: f64,
+    pub translation_mm_per_s_sqrt_s: f64,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawOscillation {
+    pub period_s: f64,
+    pub correlation_time_s: f64,
+    pub rotation_arcsec: ScalarOr3,
+    pub translation_mm: ScalarOr3,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -108,6 +141,9 @@ pub(super) struct RawLink {
     pub model: Option<String>,
     pub expected_rate_hz: Option<f64>,
     pub nominal: Option<RawPose>,
+    pub random_walk: Option<RawRandomWalk>,
+    pub acceleration_noise: Option<RawAcceleration>,
+    pub oscillation: Option<RawOscillation>,
 }
 
 #[derive(Debug, Deserialize)]

@@ -1,0 +1,179 @@
+//! The filter bank on an installation: target evaluation, statuses, raw results.
+
+use approx::assert_relative_eq;
+use brokenray::config::{self, Installation, LinkKind};
+use brokenray::filter::{FilterBank, MeasurementUncertainty, Sample, TargetStatus};
+use brokenray::geometry::{Pose, se3_log};
+
+const T0: i64 = 1_790_000_000_000_000_000;
+const PERIOD_NS: i64 = 40_000_000;
+
+fn nominal(inst: &Installation, name: &str) -> Pose {
+    match &inst.link_by_name(name).unwrap().kind {
+        LinkKind::Measured(m) => m.nominal.unwrap(),
+        LinkKind::Calibrated { parent_from_child } => parent_from_child.pose,
+    }
+}
+
+fn sample(inst: &Installation, name: &str, time_ns: i64, pose: Pose) -> Sample {
+    Sample {
+        link: inst.topology.link_id(name).unwrap(),
+        time_ns,
+        parent_from_child: pose,
+        uncertainty: MeasurementUncertainty::Default,
+    }
+}
+
+const MEASURED: [&str; 3] = ["C1_from_B", "C2_from_M", "C3_from_G"];
+
+#[test]
+fn noise_free_nominal_samples_give_the_papers_chain_product() {
+    let inst = config::default_installation();
+    let mut bank = FilterBank::new(&inst);
+    for k in 0..20 {
+        for name in MEASURED {
+            bank.ingest(&sample(
+                &inst,
+                name,
+                T0 + k * PERIOD_NS,
+                nominal(&inst, name),
+            ))
+            .unwrap();
+        }
+    }
+    let t = T0 + 19 * PERIOD_NS;
+    let est = bank.evaluate(0, t).unwrap();
+    assert_eq!(est.status, TargetStatus::Ok);
+    assert_eq!(est.age_s, 0.0);
+    // G_from_B = G_from_C3 * C3_from_M * M_from_C2 * C2_from_C1 * C1_from_B, written out.
+    let expected = nominal(&inst, "C3_from_G").inverse()
+        * nominal(&inst, "C3_from_M")
+        * nominal(&inst, "C2_from_M").inverse()
+        * nominal(&inst, "C2_from_C1")
+        * nominal(&inst, "C1_from_B");
+    let e = se3_log(&(est.target_from_base.unwrap().pose * expected.inverse()));
+    assert!(e.amax() < 1e-9, "{e}");
+}
+
+#[test]
+fn a_group_with_every_measured_link_gives_one_raw_result() {
+    let inst = config::default_installation();
+    let mut bank = FilterBank::new(&inst);
+    let t = T0;
+    let a = bank
+        .ingest(&sample(&inst, "C1_from_B", t, nominal(&inst, "C1_from_B")))
+        .unwrap();
+    let b = bank
+        .ingest(&sample(&inst, "C2_from_M", t, nominal(&inst, "C2_from_M")))
+        .unwrap();
+    assert!(a.raw_results.is_empty() && b.raw_results.is_empty());
+    // Another link at a different time does not complete the group.
+    let c = bank
+        .ingest(&sample(
+            &inst,
+            "C3_from_G",
+            t + 1,
+            nominal(&inst, "C3_from_G"),
+        ))
+        .unwrap();
+    assert!(c.raw_results.is_empty());
+    let d = bank
+        .ingest(&sample(&inst, "C3_from_G", t, nominal(&inst, "C3_from_G")))
+        .unwrap();
+    assert_eq!(d.raw_results.len(), 1);
+    assert_eq!(d.raw_results[0].time_ns, t);
+    // Out of order for the filter (t < t + 1) but still completes its group.
+    assert!(matches!(
+        d.disposition,
+        brokenray::filter::Disposition::OutOfOrder { .. }
+    ));
+    // The same group is not reported twice.
+    let again = bank
+        .ingest(&sample(&inst, "C1_from_B", t, nominal(&inst, "C1_from_B")))
+        .unwrap();
+    assert!(again.raw_results.is_empty());
+}
+
+#[test]
+fn statuses_follow_the_data() {
+    let inst = config::default_installation();
+    let mut bank = FilterBank::new(&inst);
+    assert_eq!(
+        bank.evaluate(0, T0).unwrap().status,
+        TargetStatus::Initializing
+    );
+    bank.ingest(&sample(&inst, "C1_from_B", T0, nominal(&inst, "C1_from_B")))
+        .unwrap();
+    let partial = bank.evaluate(0, T0).unwrap();
+    assert_eq!(partial.status, TargetStatus::Initializing);
+    assert!(partial.target_from_base.is_none());
+    for name in &MEASURED[1..] {
+        bank.ingest(&sample(&inst, name, T0, nominal(&inst, name)))
+            .unwrap();
+    }
+    assert_eq!(bank.evaluate(0, T0).unwrap().status, TargetStatus::Ok);
+    // 0.1 s later: a prediction, with its age.
+    let later = bank.evaluate(0, T0 + 100_000_000).unwrap();
+    assert_eq!(later.status, TargetStatus::Predicted);
+    assert_relative_eq!(later.age_s, 0.1, epsilon = 1e-12);
+    // Covariance grows with the prediction.
+    let now_cov = bank.evaluate(0, T0).unwrap().target_from_base.unwrap().cov;
+    assert!(later.target_from_base.unwrap().cov.trace() > now_cov.trace());
+    // Five expected periods (5 / 25 Hz = 0.2 s) without a sample: stale.
+    assert_eq!(
+        bank.evaluate(0, T0 + 250_000_000).unwrap().status,
+        TargetStatus::Stale
+    );
+    assert!(
+        bank.evaluate(0, T0 - 1).is_err(),
+        "no evaluation before the filters' time"
+    );
+}
+
+#[test]
+fn redundant_paths_that_disagree_degrade_the_target() {
+    let text = format!(
+        "{}\n[[links]]\nname = \"C4_from_B\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.3 }}\nexpected_rate_hz = 25.0\n\n[[links]]\nname = \"C4_from_G\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.3 }}\nexpected_rate_hz = 25.0\n",
+        config::DEFAULT_INSTALLATION_TOML
+    );
+    let inst = config::parse("redundant.toml", &text).unwrap();
+    assert_eq!(inst.targets[0].resolution.paths.len(), 2);
+    let g_from_b = nominal(&inst, "C3_from_G").inverse()
+        * nominal(&inst, "C3_from_M")
+        * nominal(&inst, "C2_from_M").inverse()
+        * nominal(&inst, "C2_from_C1")
+        * nominal(&inst, "C1_from_B");
+    let c4_from_b = brokenray::geometry::se3_exp(&brokenray::geometry::Twist::new(
+        100.0, -50.0, 2800.0, 3.0, 0.1, -0.2,
+    ));
+    let c4_from_g = c4_from_b * g_from_b.inverse();
+    for (bump_deg, expected) in [(0.0_f64, TargetStatus::Ok), (1.0, TargetStatus::Degraded)] {
+        let mut bank = FilterBank::new(&inst);
+        let bump =
+            brokenray::geometry::rotation_from_euler([0.0, bump_deg.to_radians(), 0.0]).unwrap();
+        let bumped = Pose::from_parts(c4_from_g.translation, bump * c4_from_g.rotation);
+        for name in MEASURED {
+            bank.ingest(&sample(&inst, name, T0, nominal(&inst, name)))
+                .unwrap();
+        }
+        bank.ingest(&sample(&inst, "C4_from_B", T0, c4_from_b))
+            .unwrap();
+        let out = bank
+            .ingest(&sample(&inst, "C4_from_G", T0, bumped))
+            .unwrap();
+        assert_eq!(out.raw_results.len(), 1);
+        let est = bank.evaluate(0, T0).unwrap();
+        assert_eq!(est.paths_used, 2);
+        assert_eq!(est.status, expected, "bump of {bump_deg} degree");
+    }
+}
+
+#[test]
+fn a_sample_on_a_calibrated_link_is_refused() {
+    let inst = config::default_installation();
+    let mut bank = FilterBank::new(&inst);
+    let err = bank
+        .ingest(&sample(&inst, "C2_from_C1", T0, Pose::identity()))
+        .unwrap_err();
+    assert_eq!(err.to_string(), "`C2_from_C1` is not a measured link");
+}
