@@ -15,6 +15,25 @@ pub(crate) enum Update<const N: usize> {
     Rejected { nis: f64 },
 }
 
+/// The chi-square test of an innovation `y` with covariance `s`: `Ok` with the factorisation,
+/// `S^-1 y` and the normalised innovation squared when it passes the gate, `Err(nis)` when it
+/// does not, `None` when `s` is not positive definite.
+type Accepted = (nalgebra::Cholesky<f64, nalgebra::Const<6>>, Twist, f64);
+
+fn innovation_test(s: &Mat6, y: &Twist, gate: f64) -> Option<Result<Accepted, f64>> {
+    let chol = symmetrize(s).cholesky()?;
+    let s_inv_y = chol.solve(y);
+    let nis = y.dot(&s_inv_y);
+    if !nis.is_finite() {
+        return None;
+    }
+    Some(if nis > gate {
+        Err(nis)
+    } else {
+        Ok((chol, s_inv_y, nis))
+    })
+}
+
 /// A gated Kalman update of an `N`-dimensional error state with a 6-dimensional measurement
 /// `y = H delta + v`, `v ~ N(0, r)`. Joseph form: `P+ = (I - K H) P (I - K H)^T + K R K^T`.
 /// Returns `None` when the innovation covariance is not positive definite.
@@ -26,19 +45,13 @@ pub(crate) fn gated_update<const N: usize>(
     gate: f64,
 ) -> Option<Update<N>> {
     let ph_t = p * h.transpose();
-    let s = symmetrize(&(h * ph_t + r));
-    let chol = s.cholesky()?;
-    let s_inv_y = chol.solve(y);
-    let nis = y.dot(&s_inv_y);
-    if !nis.is_finite() {
-        return None;
-    }
-    if nis > gate {
-        return Some(Update::Rejected { nis });
-    }
+    let (chol, s_inv_y, nis) = match innovation_test(&(h * ph_t + r), y, gate)? {
+        Ok(accepted) => accepted,
+        Err(nis) => return Some(Update::Rejected { nis }),
+    };
     // K = P H^T S^-1, computed as (S^-1 (P H^T)^T)^T.
     let k: SMatrix<f64, N, 6> = chol.solve(&ph_t.transpose()).transpose();
-    let delta = k * y;
+    let delta = ph_t * s_inv_y;
     let i_kh = SMatrix::<f64, N, N>::identity() - k * h;
     let p_new = i_kh * p * i_kh.transpose() + k * r * k.transpose();
     Some(Update::Fused {
@@ -51,16 +64,10 @@ pub(crate) fn gated_update<const N: usize>(
 /// [`gated_update`] for a measurement of the whole state (`H = I`, the static model), without
 /// the products by the identity: about a third fewer flops on the hottest path.
 pub(crate) fn gated_update_direct(p: &Mat6, y: &Twist, r: &Mat6, gate: f64) -> Option<Update<6>> {
-    let s = symmetrize(&(p + r));
-    let chol = s.cholesky()?;
-    let s_inv_y = chol.solve(y);
-    let nis = y.dot(&s_inv_y);
-    if !nis.is_finite() {
-        return None;
-    }
-    if nis > gate {
-        return Some(Update::Rejected { nis });
-    }
+    let (chol, s_inv_y, nis) = match innovation_test(&(p + r), y, gate)? {
+        Ok(accepted) => accepted,
+        Err(nis) => return Some(Update::Rejected { nis }),
+    };
     // K = P S^-1 = (S^-1 P)^T (P and S symmetric); K y = P S^-1 y.
     let k = chol.solve(p).transpose();
     let delta = p * s_inv_y;
