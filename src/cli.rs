@@ -3,6 +3,7 @@
 use crate::chain::Direction;
 use crate::config::{self, Installation, LinkKind};
 use crate::geometry::{euler_from_rotation, quaternion_wxyz};
+use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -28,6 +29,18 @@ pub enum Command {
     },
     /// Print the built-in installation file, a starting point for your own.
     DefaultConfig,
+    /// Run the service: HTTP API on the configured address, SQLite history, filtering.
+    Serve {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
+    /// Print a new random bearer token and the SHA-256 to put in `[[auth.tokens]]`.
+    HashToken {
+        /// Hash this token instead of making a new one.
+        #[arg(long, value_name = "TOKEN")]
+        token: Option<String>,
+    },
 }
 
 /// Runs a parsed command line, writing its report to `out`.
@@ -38,7 +51,62 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             out.write_all(describe_installation(&installation).as_bytes())?;
         }
         Command::DefaultConfig => out.write_all(config::DEFAULT_INSTALLATION_TOML.as_bytes())?,
+        Command::Serve { config } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()
+                .context("cannot start the async runtime")?;
+            runtime.block_on(serve(installation))?;
+        }
+        Command::HashToken { token } => {
+            let token = match token {
+                Some(t) => t,
+                None => random_token()?,
+            };
+            writeln!(out, "token:  {token}")?;
+            writeln!(out, "sha256: {}", crate::api::auth::sha256_hex(&token))?;
+            writeln!(
+                out,
+                "\nAdd to the configuration (give the token itself only to its holder):\n\n[[auth.tokens]]\nname = \"...\"\nsha256 = \"{}\"\nscopes = [\"read\"]",
+                crate::api::auth::sha256_hex(&token)
+            )?;
+        }
     }
+    Ok(())
+}
+
+/// 32 random bytes from the operating system, as hex.
+fn random_token() -> anyhow::Result<String> {
+    use std::io::Read as _;
+    let mut bytes = [0u8; 32];
+    std::fs::File::open("/dev/urandom")
+        .and_then(|mut f| f.read_exact(&mut bytes))
+        .context("cannot read random bytes from /dev/urandom")?;
+    Ok(hex::encode(bytes))
+}
+
+async fn serve(installation: Installation) -> anyhow::Result<()> {
+    let source = installation.source.clone();
+    let database = installation.server.database.clone();
+    let targets: Vec<String> = installation
+        .targets
+        .iter()
+        .map(|t| t.name.clone())
+        .collect();
+    let n_links = installation.links.len();
+    let app = crate::api::App::build(installation).await?;
+    let addr = app.local_addr()?;
+    tracing::info!(
+        listen = %addr,
+        database = %database.display(),
+        installation = %source,
+        links = n_links,
+        targets = ?targets,
+        "brokenray serving on http://{addr}/api/v1"
+    );
+    app.run_until(crate::api::shutdown_signal()).await?;
+    tracing::info!("stopped: every acknowledged write is on disk");
     Ok(())
 }
 

@@ -24,10 +24,13 @@
 
 #![warn(clippy::unwrap_used, clippy::expect_used)]
 
+pub mod api;
 pub mod chain;
 pub mod cli;
 pub mod config;
 pub mod deformation;
 pub mod filter;
 pub mod geometry;
+pub mod service;
 pub mod stats;
+pub mod store;

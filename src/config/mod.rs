@@ -63,6 +63,10 @@ pub struct ServerSettings {
     pub listen: SocketAddr,
     /// The SQLite file (created if missing).
     pub database: PathBuf,
+    /// Largest request body (bytes).
+    pub max_body_bytes: usize,
+    /// Most samples in one ingest batch.
+    pub max_batch_samples: usize,
 }
 
 /// Where visualisation data goes.
@@ -539,6 +543,12 @@ impl Validator {
         Some(ServerSettings {
             listen,
             database: PathBuf::from(raw.server.database.as_deref().unwrap_or("brokenray.db")),
+            max_body_bytes: raw
+                .server
+                .max_body_bytes
+                .unwrap_or(32 * 1024 * 1024)
+                .max(1024),
+            max_batch_samples: raw.server.max_batch_samples.unwrap_or(100_000).max(1),
         })
     }
 

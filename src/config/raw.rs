@@ -62,6 +62,8 @@ pub(super) struct RawOscillation {
 pub(super) struct RawServer {
     pub listen: Option<Spanned<String>>,
     pub database: Option<String>,
+    pub max_body_bytes: Option<usize>,
+    pub max_batch_samples: Option<usize>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -1,11 +1,19 @@
 //! The filter bank: one filter per measured link; targets evaluated by composing the predicted
 //! links of their paths; raw results from measurement groups.
 
-use super::{BankSettings, Disposition, FilterError, LinkFilter, NS_PER_S};
+use super::{BankSettings, Disposition, FilterError, LinkFilter, LinkFilterRecord, NS_PER_S};
 use crate::chain::{Consistency, LinkId, compose_path, fuse};
 use crate::config::{Installation, LinkKind};
 use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, check_covariance};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::Arc;
+
+/// How many past states each link keeps, so that targets can be evaluated at recent times
+/// whatever order the links' samples arrived in.
+const LINK_HISTORY: usize = 256;
+
+/// How many recent sample times each link keeps to estimate its observed rate.
+const RATE_WINDOW: usize = 64;
 
 /// How uncertain a sample is.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -61,6 +69,9 @@ pub struct SampleOutcome {
     pub measurement: PoseCov,
     /// Raw results completed by this sample.
     pub raw_results: Vec<RawResult>,
+    /// Filtered results: for each target whose every link has now reached a newer time, the
+    /// target evaluated at that time.
+    pub filtered_results: Vec<TargetEstimate>,
 }
 
 /// The state of a target's result.
@@ -138,22 +149,52 @@ struct Group {
     emitted: Vec<bool>,
 }
 
+/// A measured link's filter and its recent past states.
+#[derive(Debug, Clone)]
+struct MeasuredSlot {
+    filter: LinkFilter,
+    /// Past states, oldest first, each after a fused sample or a restart.
+    history: VecDeque<LinkFilter>,
+    /// Recent sample times, for the observed rate.
+    recent_times: VecDeque<i64>,
+}
+
+/// The bank's state as plain records, for persistence.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct BankRecord {
+    /// Per measured link, by name: its filter state.
+    pub filters: Vec<(String, LinkFilterRecord)>,
+    /// Per link, by name: sample, outlier and restart counts and the newest sample time.
+    pub counters: Vec<(String, u64, u64, u64, Option<i64>)>,
+    /// Per target, by name: the time of the newest filtered result.
+    pub frontiers: Vec<(String, i64)>,
+}
+
 /// One filter per measured link of an installation.
 #[derive(Debug, Clone)]
 pub struct FilterBank {
-    installation: Installation,
+    installation: Arc<Installation>,
     settings: BankSettings,
-    filters: Vec<Option<LinkFilter>>,
-    calibrations: Vec<Option<PoseCov>>,
+    measured: Vec<Option<MeasuredSlot>>,
+    /// Per calibrated link: its calibrations, `(valid_from_ns, pose)`, oldest first; the one in
+    /// the installation file is valid from the beginning of time.
+    calibrations: Vec<Vec<(i64, PoseCov)>>,
     status: Vec<LinkStatus>,
     groups: BTreeMap<i64, Group>,
     /// Per link: the targets whose independent paths use it.
     targets_of_link: Vec<Vec<usize>>,
+    /// Per target: the time of the newest filtered result.
+    frontier_ns: Vec<Option<i64>>,
 }
 
 impl FilterBank {
     /// A bank for the installation, every filter uninitialised.
     pub fn new(installation: &Installation) -> Self {
+        Self::shared(Arc::new(installation.clone()))
+    }
+
+    /// A bank sharing an installation, every filter uninitialised.
+    pub fn shared(installation: Arc<Installation>) -> Self {
         let n = installation.links.len();
         let mut targets_of_link = vec![Vec::new(); n];
         for (ti, t) in installation.targets.iter().enumerate() {
@@ -167,11 +208,15 @@ impl FilterBank {
         }
         Self {
             settings: installation.filter,
-            filters: installation
+            measured: installation
                 .links
                 .iter()
                 .map(|l| match &l.kind {
-                    LinkKind::Measured(m) => Some(LinkFilter::new(m.tuning)),
+                    LinkKind::Measured(m) => Some(MeasuredSlot {
+                        filter: LinkFilter::new(m.tuning),
+                        history: VecDeque::new(),
+                        recent_times: VecDeque::new(),
+                    }),
                     LinkKind::Calibrated { .. } => None,
                 })
                 .collect(),
@@ -179,10 +224,13 @@ impl FilterBank {
                 .links
                 .iter()
                 .map(|l| match &l.kind {
-                    LinkKind::Calibrated { parent_from_child } => Some(*parent_from_child),
-                    LinkKind::Measured(_) => None,
+                    LinkKind::Calibrated { parent_from_child } => {
+                        vec![(i64::MIN, *parent_from_child)]
+                    }
+                    LinkKind::Measured(_) => Vec::new(),
                 })
                 .collect(),
+            frontier_ns: vec![None; installation.targets.len()],
             status: vec![
                 LinkStatus {
                     n_samples: 0,
@@ -194,7 +242,32 @@ impl FilterBank {
             ],
             groups: BTreeMap::new(),
             targets_of_link,
-            installation: installation.clone(),
+            installation,
+        }
+    }
+
+    /// A copy that can evaluate targets from the current states on (no past states, no
+    /// pending measurement groups): cheap enough to publish after every commit.
+    pub fn current_view(&self) -> Self {
+        Self {
+            installation: Arc::clone(&self.installation),
+            settings: self.settings,
+            measured: self
+                .measured
+                .iter()
+                .map(|slot| {
+                    slot.as_ref().map(|s| MeasuredSlot {
+                        filter: s.filter.clone(),
+                        history: VecDeque::new(),
+                        recent_times: s.recent_times.clone(),
+                    })
+                })
+                .collect(),
+            calibrations: self.calibrations.clone(),
+            status: self.status.clone(),
+            groups: BTreeMap::new(),
+            targets_of_link: self.targets_of_link.clone(),
+            frontier_ns: self.frontier_ns.clone(),
         }
     }
 
@@ -203,20 +276,81 @@ impl FilterBank {
         &self.installation
     }
 
-    /// Replaces a calibrated link's pose (a new calibration). Returns false for a measured link.
-    pub fn set_calibration(&mut self, link: LinkId, parent_from_child: PoseCov) -> bool {
+    /// Adds a calibration of a calibrated link, valid from `valid_from_ns` (until a later one).
+    /// Returns false for a measured link.
+    pub fn add_calibration(
+        &mut self,
+        link: LinkId,
+        valid_from_ns: i64,
+        parent_from_child: PoseCov,
+    ) -> bool {
         match self.calibrations.get_mut(link.0) {
-            Some(Some(c)) => {
-                *c = parent_from_child;
+            Some(list) if !list.is_empty() => {
+                let at = list.partition_point(|(t, _)| *t <= valid_from_ns);
+                list.insert(at, (valid_from_ns, parent_from_child));
                 true
             }
             _ => false,
         }
     }
 
+    /// Removes a calibration added with [`Self::add_calibration`] (a write that did not commit).
+    pub fn remove_calibration(&mut self, link: LinkId, valid_from_ns: i64) {
+        if let Some(list) = self.calibrations.get_mut(link.0)
+            && let Some(i) = list.iter().rposition(|(t, _)| *t == valid_from_ns)
+            && list.len() > 1
+        {
+            list.remove(i);
+        }
+    }
+
+    /// Returns every filter, counter and frontier to a recorded state (the last commit), as if
+    /// nothing since had happened. Calibrations are kept. Returns what could not be restored.
+    pub fn rollback(&mut self, record: &BankRecord) -> Vec<String> {
+        for slot in self.measured.iter_mut().flatten() {
+            slot.filter = LinkFilter::new(*slot.filter.tuning());
+            slot.history.clear();
+            slot.recent_times.clear();
+        }
+        for s in &mut self.status {
+            *s = LinkStatus {
+                n_samples: 0,
+                n_outliers: 0,
+                n_reinitializations: 0,
+                last_time_ns: None,
+            };
+        }
+        self.frontier_ns.iter_mut().for_each(|f| *f = None);
+        self.groups.clear();
+        self.restore(record)
+    }
+
+    /// The calibration of a calibrated link in force at `time_ns`.
+    pub fn calibration_at(&self, link: LinkId, time_ns: i64) -> Option<PoseCov> {
+        let list = self.calibrations.get(link.0)?;
+        let at = list.partition_point(|(t, _)| *t <= time_ns);
+        list.get(at.checked_sub(1)?).map(|(_, p)| *p)
+    }
+
     /// The filter of a measured link.
     pub fn filter(&self, link: LinkId) -> Option<&LinkFilter> {
-        self.filters.get(link.0).and_then(Option::as_ref)
+        self.measured
+            .get(link.0)
+            .and_then(Option::as_ref)
+            .map(|s| &s.filter)
+    }
+
+    /// The observed sample rate of a measured link over its recent samples (Hz).
+    pub fn observed_rate_hz(&self, link: LinkId) -> Option<f64> {
+        let slot = self.measured.get(link.0)?.as_ref()?;
+        let (first, last) = (slot.recent_times.front()?, slot.recent_times.back()?);
+        let span_s = (last - first) as f64 / NS_PER_S;
+        (span_s > 0.0).then(|| (slot.recent_times.len() - 1) as f64 / span_s)
+    }
+
+    /// The targets a link's independent paths serve.
+    pub fn targets_of_link(&self, link: LinkId) -> &[usize] {
+        &self.targets_of_link[link.0]
     }
 
     /// A link's counters.
@@ -255,12 +389,34 @@ impl FilterBank {
     pub fn ingest(&mut self, sample: &Sample) -> Result<SampleOutcome, FilterError> {
         let z = self.measurement(sample)?;
         let link = sample.link;
-        let Some(filter) = self.filters[link.0].as_mut() else {
+        let Some(slot) = self.measured[link.0].as_mut() else {
             return Err(FilterError::NotMeasured(
                 self.installation.links[link.0].name.clone(),
             ));
         };
-        let disposition = filter.update(sample.time_ns, &z);
+        let disposition = slot.filter.update(sample.time_ns, &z);
+        if matches!(
+            disposition,
+            Disposition::Initialized
+                | Disposition::Fused { .. }
+                | Disposition::Reinitialized { .. }
+        ) {
+            if matches!(disposition, Disposition::Reinitialized { .. }) {
+                // The past states describe the link before the step: evaluating an older time
+                // through them would mix the two.
+                slot.history.clear();
+            }
+            slot.history.push_back(slot.filter.clone());
+            if slot.history.len() > LINK_HISTORY {
+                slot.history.pop_front();
+            }
+        }
+        if slot.recent_times.back().is_none_or(|&t| sample.time_ns > t) {
+            slot.recent_times.push_back(sample.time_ns);
+            if slot.recent_times.len() > RATE_WINDOW {
+                slot.recent_times.pop_front();
+            }
+        }
         let status = &mut self.status[link.0];
         status.n_samples += 1;
         if disposition.is_outlier() {
@@ -275,13 +431,54 @@ impl FilterBank {
                 .map_or(sample.time_ns, |t| t.max(sample.time_ns)),
         );
         let raw_results = self.add_to_group(link, sample.time_ns, z);
+        let mut filtered_results = Vec::new();
+        for ti in self.targets_of_link[link.0].clone() {
+            let Some(frontier) = self.frontier(ti) else {
+                continue;
+            };
+            if self.frontier_ns[ti].is_some_and(|f| frontier <= f) {
+                continue;
+            }
+            if let Ok(estimate) = self.evaluate(ti, frontier) {
+                self.frontier_ns[ti] = Some(frontier);
+                filtered_results.push(estimate);
+            }
+        }
         Ok(SampleOutcome {
             link,
             time_ns: sample.time_ns,
             disposition,
             measurement: z,
             raw_results,
+            filtered_results,
         })
+    }
+
+    /// The time every measured link of the target's available paths has reached: the newest
+    /// time at which the target can be evaluated from data rather than prediction.
+    pub fn frontier(&self, target: usize) -> Option<i64> {
+        let spec = &self.installation.targets[target];
+        let mut frontier: Option<i64> = None;
+        for path in &spec.resolution.paths {
+            let mut path_min: Option<i64> = Some(i64::MAX);
+            for l in path.links() {
+                if let Some(slot) = &self.measured[l.0] {
+                    path_min = match (path_min, slot.filter.time_ns()) {
+                        (Some(m), Some(t)) => Some(m.min(t)),
+                        _ => None,
+                    };
+                }
+            }
+            if let Some(m) = path_min.filter(|&m| m != i64::MAX) {
+                frontier = Some(frontier.map_or(m, |f| f.min(m)));
+            }
+        }
+        frontier
+    }
+
+    /// The time of the newest filtered result of a target.
+    pub fn last_result_ns(&self, target: usize) -> Option<i64> {
+        self.frontier_ns[target]
     }
 
     fn add_to_group(&mut self, link: LinkId, time_ns: i64, z: PoseCov) -> Vec<RawResult> {
@@ -309,7 +506,7 @@ impl FilterBank {
             let mut complete = true;
             for path in &target.resolution.paths {
                 let mut missing = false;
-                let composed = compose_path(path, |l| match self.calibrations[l.0] {
+                let composed = compose_path(path, |l| match self.calibration_at(l, time_ns) {
                     Some(c) => c,
                     None => match group.samples.get(&l) {
                         Some(s) => *s,
@@ -346,24 +543,42 @@ impl FilterBank {
         out
     }
 
-    /// A measured link's filtered pose predicted to `time_ns`; `None` before its first sample.
+    /// A link's pose at `time_ns`: a calibrated link's calibration in force then, or a measured
+    /// link's filtered pose predicted from its newest state at or before that time. `None`
+    /// before a measured link's first sample; an error for a time older than its history.
     pub fn link_estimate(
         &self,
         link: LinkId,
         time_ns: i64,
     ) -> Result<Option<PoseCov>, FilterError> {
-        match (&self.filters[link.0], &self.calibrations[link.0]) {
-            (_, Some(c)) => Ok(Some(*c)),
-            (Some(f), None) => match f.predict(time_ns) {
-                None => Ok(None),
-                Some(Ok(p)) => Ok(Some(p)),
-                Some(Err(filter_ns)) => Err(FilterError::BeforeFilterTime {
-                    link: self.installation.links[link.0].name.clone(),
-                    requested_ns: time_ns,
-                    filter_ns,
-                }),
-            },
-            (None, None) => Ok(None),
+        if let Some(c) = self.calibration_at(link, time_ns) {
+            return Ok(Some(c));
+        }
+        let Some(slot) = &self.measured[link.0] else {
+            return Ok(None);
+        };
+        let Some(current) = slot.filter.time_ns() else {
+            return Ok(None);
+        };
+        let source = if time_ns >= current {
+            Some(&slot.filter)
+        } else {
+            slot.history
+                .iter()
+                .rev()
+                .find(|f| f.time_ns().is_some_and(|t| t <= time_ns))
+        };
+        match source.and_then(|f| f.predict(time_ns)) {
+            Some(Ok(p)) => Ok(Some(p)),
+            _ => Err(FilterError::BeforeFilterTime {
+                link: self.installation.links[link.0].name.clone(),
+                requested_ns: time_ns,
+                filter_ns: slot
+                    .history
+                    .front()
+                    .and_then(LinkFilter::time_ns)
+                    .unwrap_or(current),
+            }),
         }
     }
 
@@ -374,8 +589,91 @@ impl FilterBank {
             .paths
             .iter()
             .flat_map(|p| p.links())
-            .filter_map(|l| self.filters[l.0].as_ref().and_then(LinkFilter::time_ns))
+            .filter_map(|l| self.filter(l).and_then(LinkFilter::time_ns))
             .max()
+    }
+
+    /// The bank's state as plain records (filters, counters, frontiers), for persistence.
+    pub fn record(&self) -> BankRecord {
+        let links = &self.installation.links;
+        BankRecord {
+            filters: self
+                .measured
+                .iter()
+                .enumerate()
+                .filter_map(|(i, s)| {
+                    s.as_ref()
+                        .and_then(|s| s.filter.record())
+                        .map(|r| (links[i].name.clone(), r))
+                })
+                .collect(),
+            counters: self
+                .status
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| s.n_samples > 0)
+                .map(|(i, s)| {
+                    (
+                        links[i].name.clone(),
+                        s.n_samples,
+                        s.n_outliers,
+                        s.n_reinitializations,
+                        s.last_time_ns,
+                    )
+                })
+                .collect(),
+            frontiers: self
+                .frontier_ns
+                .iter()
+                .enumerate()
+                .filter_map(|(i, f)| f.map(|f| (self.installation.targets[i].name.clone(), f)))
+                .collect(),
+        }
+    }
+
+    /// Restores a recorded state into this (fresh) bank. Entries for links or targets the
+    /// installation no longer has, or whose model changed, are skipped and listed in the answer.
+    pub fn restore(&mut self, record: &BankRecord) -> Vec<String> {
+        let mut skipped = Vec::new();
+        for (name, r) in &record.filters {
+            let Some(id) = self.installation.topology.link_id(name) else {
+                skipped.push(format!("link `{name}` is no longer in the installation"));
+                continue;
+            };
+            let Some(slot) = self.measured[id.0].as_mut() else {
+                skipped.push(format!("link `{name}` is no longer measured"));
+                continue;
+            };
+            match LinkFilter::restore(*slot.filter.tuning(), r) {
+                Ok(f) => {
+                    slot.history.clear();
+                    slot.history.push_back(f.clone());
+                    slot.filter = f;
+                }
+                Err(e) => skipped.push(format!("link `{name}`: {e}")),
+            }
+        }
+        for (name, n, o, re, last) in &record.counters {
+            if let Some(id) = self.installation.topology.link_id(name) {
+                self.status[id.0] = LinkStatus {
+                    n_samples: *n,
+                    n_outliers: *o,
+                    n_reinitializations: *re,
+                    last_time_ns: *last,
+                };
+            }
+        }
+        for (name, f) in &record.frontiers {
+            if let Some(i) = self
+                .installation
+                .targets
+                .iter()
+                .position(|t| &t.name == name)
+            {
+                self.frontier_ns[i] = Some(*f);
+            }
+        }
+        skipped
     }
 
     /// Evaluates a target at `time_ns`: predicts every measured link of its paths to that

@@ -417,3 +417,148 @@ impl LinkFilter {
         Disposition::Outlier { nis, run_length }
     }
 }
+
+/// A pose as `[tx, ty, tz, qw, qx, qy, qz]` (mm, unit quaternion).
+fn pose_numbers(p: &Pose) -> [f64; 7] {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    [t.x, t.y, t.z, q.w, q.i, q.j, q.k]
+}
+
+fn pose_from_numbers(n: &[f64; 7]) -> Pose {
+    Pose::from_parts(
+        nalgebra::Translation3::new(n[0], n[1], n[2]),
+        nalgebra::UnitQuaternion::new_normalize(nalgebra::Quaternion::new(n[3], n[4], n[5], n[6])),
+    )
+}
+
+/// One outlier of a pending run, as plain numbers.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct OutlierRecord {
+    /// Its time (ns).
+    pub time_ns: i64,
+    /// Its pose `[tx, ty, tz, qw, qx, qy, qz]`.
+    pub pose: [f64; 7],
+    /// Its covariance, row-major.
+    pub cov: Vec<f64>,
+}
+
+/// A link filter's state as plain numbers, so that a service can persist it and restart from
+/// exactly where it stopped.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LinkFilterRecord {
+    /// The model's name.
+    pub model: String,
+    /// The state's time (ns).
+    pub time_ns: i64,
+    /// The pose (static, constant-velocity) or the mean pose (oscillatory), `[t; q]`.
+    pub pose: [f64; 7],
+    /// The twist rate (constant-velocity), or `x` then `v` (oscillatory); empty for static.
+    pub rates: Vec<f64>,
+    /// The error-state covariance, row-major.
+    pub p: Vec<f64>,
+    /// The pending run of outliers.
+    pub outlier_run: Vec<OutlierRecord>,
+}
+
+impl LinkFilter {
+    /// The state as plain numbers; `None` before the first sample.
+    pub fn record(&self) -> Option<LinkFilterRecord> {
+        let state = self.state.as_ref()?;
+        let (pose, rates, p) = match state {
+            State::Static { pose, p } => (pose_numbers(pose), Vec::new(), p.as_slice().to_vec()),
+            State::ConstantVelocity { pose, nu, p } => (
+                pose_numbers(pose),
+                nu.as_slice().to_vec(),
+                p.as_slice().to_vec(),
+            ),
+            State::Oscillatory { mean, x, v, p } => (
+                pose_numbers(mean),
+                x.iter().chain(v.iter()).copied().collect(),
+                p.as_slice().to_vec(),
+            ),
+        };
+        Some(LinkFilterRecord {
+            model: self.tuning.model.name().to_owned(),
+            time_ns: self.time_ns,
+            pose,
+            rates,
+            p,
+            outlier_run: self
+                .outlier_run
+                .iter()
+                .map(|(t, z)| OutlierRecord {
+                    time_ns: *t,
+                    pose: pose_numbers(&z.pose),
+                    cov: z.cov.as_slice().to_vec(),
+                })
+                .collect(),
+        })
+    }
+
+    /// A filter restored from a record; an error when the record does not fit the tuning's
+    /// model (the installation changed) or its numbers are malformed.
+    pub fn restore(tuning: FilterTuning, record: &LinkFilterRecord) -> Result<Self, String> {
+        if record.model != tuning.model.name() {
+            return Err(format!(
+                "the stored state is of model `{}`, the link is now `{}`",
+                record.model,
+                tuning.model.name()
+            ));
+        }
+        let n = match tuning.model {
+            MotionModel::Static => 6,
+            MotionModel::ConstantVelocity => 12,
+            MotionModel::Oscillatory => 18,
+        };
+        let rates_len = n - 6;
+        if record.p.len() != n * n
+            || record.rates.len() != rates_len
+            || record
+                .p
+                .iter()
+                .chain(&record.rates)
+                .chain(&record.pose)
+                .any(|v| !v.is_finite())
+        {
+            return Err("the stored state has the wrong size or a non-finite number".into());
+        }
+        let pose = pose_from_numbers(&record.pose);
+        let twist = |offset: usize| Twist::from_fn(|i, _| record.rates[offset + i]);
+        let state = match tuning.model {
+            MotionModel::Static => State::Static {
+                pose,
+                p: Mat6::from_column_slice(&record.p),
+            },
+            MotionModel::ConstantVelocity => State::ConstantVelocity {
+                pose,
+                nu: twist(0),
+                p: Mat12::from_column_slice(&record.p),
+            },
+            MotionModel::Oscillatory => State::Oscillatory {
+                mean: pose,
+                x: twist(0),
+                v: twist(6),
+                p: Mat18::from_column_slice(&record.p),
+            },
+        };
+        let mut outlier_run = Vec::with_capacity(record.outlier_run.len());
+        for o in &record.outlier_run {
+            if o.cov.len() != 36 {
+                return Err("a stored outlier has a malformed covariance".into());
+            }
+            outlier_run.push((
+                o.time_ns,
+                PoseCov {
+                    pose: pose_from_numbers(&o.pose),
+                    cov: Mat6::from_column_slice(&o.cov),
+                },
+            ));
+        }
+        let mut filter = LinkFilter::new(tuning);
+        filter.state = Some(state);
+        filter.time_ns = record.time_ns;
+        filter.outlier_run = outlier_run;
+        Ok(filter)
+    }
+}

@@ -30,10 +30,10 @@ mod link;
 mod tuning;
 
 pub use bank::{
-    FilterBank, LinkEstimate, LinkStatus, MeasurementUncertainty, RawResult, Sample, SampleOutcome,
-    TargetEstimate, TargetStatus,
+    BankRecord, FilterBank, LinkEstimate, LinkStatus, MeasurementUncertainty, RawResult, Sample,
+    SampleOutcome, TargetEstimate, TargetStatus,
 };
-pub use link::{CV_RATE_PRIOR_S, Disposition, LinkFilter};
+pub use link::{CV_RATE_PRIOR_S, Disposition, LinkFilter, LinkFilterRecord, OutlierRecord};
 pub use tuning::{BankSettings, FilterTuning, MotionModel, OscillationTuning};
 
 /// Errors of the filtering layer.

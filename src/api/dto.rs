@@ -1,0 +1,255 @@
+//! Request and response bodies, and their conversion to and from domain types. Only the API
+//! knows these shapes (`interface.md` section 2); field names carry their units.
+
+use super::error::{ApiError, ErrorDetail};
+use crate::geometry::{
+    ARCSEC_PER_RAD, Mat6, Pose, PoseCov, ReportedSigmas, check_covariance, euler_from_rotation,
+    pose_from_parts, quaternion_wxyz, rotation_from_euler, rotation_from_matrix,
+    rotation_from_quaternion_wxyz,
+};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+/// A pose as sent: `t_mm` with exactly one of `q_wxyz`, `euler_deg`, `r`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PoseIn {
+    /// Translation (mm).
+    pub t_mm: [f64; 3],
+    /// Unit quaternion `[w, x, y, z]`.
+    pub q_wxyz: Option<[f64; 4]>,
+    /// Euler angles `[Ax, Ay, Az]` (degrees), `R = Rz Ry Rx`.
+    pub euler_deg: Option<[f64; 3]>,
+    /// Rotation matrix, row-major.
+    pub r: Option<[[f64; 3]; 3]>,
+}
+
+/// Sigmas as sent: each a number (all axes) or three numbers.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SigmaIn {
+    /// Rotation sigma (arc-seconds).
+    pub rotation_arcsec: Value,
+    /// Translation sigma (mm).
+    pub translation_mm: Value,
+}
+
+/// Pose-estimation quality as sent.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct QualityIn {
+    /// Reprojection RMS (px).
+    pub reprojection_rms_px: Option<f64>,
+    /// Number of points.
+    pub points: Option<u32>,
+}
+
+/// One sample as sent.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SampleIn {
+    /// The measured link's name.
+    pub link: String,
+    /// RFC 3339 text or integer nanoseconds.
+    pub time: Value,
+    /// The measured `parent_from_child`.
+    pub pose: PoseIn,
+    /// Per-axis sigmas (optional).
+    pub sigma: Option<SigmaIn>,
+    /// A full covariance, 36 numbers row-major, `[rho_mm; phi_rad]` (optional).
+    pub covariance: Option<Vec<f64>>,
+    /// Quality (optional).
+    pub quality: Option<QualityIn>,
+}
+
+/// A problem found while converting one field.
+pub type FieldProblem = (String, String);
+
+fn finite(field: &str, values: &[f64]) -> Result<(), FieldProblem> {
+    match values.iter().position(|v| !v.is_finite()) {
+        Some(i) => Err((format!("{field}[{i}]"), "is not a finite number".into())),
+        None => Ok(()),
+    }
+}
+
+impl PoseIn {
+    /// The pose, validated; `prefix` names the field in problems (`pose`).
+    pub fn to_pose(&self, prefix: &str) -> Result<Pose, FieldProblem> {
+        let forms = [
+            self.q_wxyz.is_some(),
+            self.euler_deg.is_some(),
+            self.r.is_some(),
+        ]
+        .iter()
+        .filter(|b| **b)
+        .count();
+        if forms != 1 {
+            return Err((
+                prefix.to_owned(),
+                format!("needs exactly one rotation: `q_wxyz`, `euler_deg` or `r` (found {forms})"),
+            ));
+        }
+        finite(&format!("{prefix}.t_mm"), &self.t_mm)?;
+        let rotation = if let Some(q) = self.q_wxyz {
+            finite(&format!("{prefix}.q_wxyz"), &q)?;
+            rotation_from_quaternion_wxyz(q)
+                .map_err(|e| (format!("{prefix}.q_wxyz"), e.to_string()))?
+        } else if let Some(e) = self.euler_deg {
+            finite(&format!("{prefix}.euler_deg"), &e)?;
+            rotation_from_euler(e.map(f64::to_radians))
+                .map_err(|e| (format!("{prefix}.euler_deg"), e.to_string()))?
+        } else if let Some(r) = self.r {
+            for (i, row) in r.iter().enumerate() {
+                finite(&format!("{prefix}.r[{i}]"), row)?;
+            }
+            rotation_from_matrix(r).map_err(|e| (format!("{prefix}.r"), e.to_string()))?
+        } else {
+            return Err((prefix.to_owned(), "has no rotation".into()));
+        };
+        pose_from_parts(self.t_mm, rotation).map_err(|e| (format!("{prefix}.t_mm"), e.to_string()))
+    }
+}
+
+fn scalar_or_3(field: &str, v: &Value) -> Result<[f64; 3], FieldProblem> {
+    let values = match v {
+        Value::Number(n) => {
+            let x = n
+                .as_f64()
+                .ok_or_else(|| (field.to_owned(), "is not a number".to_owned()))?;
+            [x; 3]
+        }
+        Value::Array(a) if a.len() == 3 => {
+            let mut out = [0.0; 3];
+            for (i, item) in a.iter().enumerate() {
+                out[i] = item.as_f64().ok_or_else(|| {
+                    (
+                        format!("{field}[{i}]"),
+                        format!("must be a number, not {item}"),
+                    )
+                })?;
+            }
+            out
+        }
+        other => {
+            return Err((
+                field.to_owned(),
+                format!("must be a number or three numbers, not {other}"),
+            ));
+        }
+    };
+    for (i, x) in values.iter().enumerate() {
+        if !(x.is_finite() && *x > 0.0) {
+            return Err((
+                format!("{field}[{i}]"),
+                format!("must be a positive number, not {x}"),
+            ));
+        }
+    }
+    Ok(values)
+}
+
+impl SigmaIn {
+    /// The sigmas, validated (positive, finite).
+    pub fn to_sigmas(&self, prefix: &str) -> Result<ReportedSigmas, FieldProblem> {
+        Ok(ReportedSigmas {
+            rotation_arcsec: scalar_or_3(
+                &format!("{prefix}.rotation_arcsec"),
+                &self.rotation_arcsec,
+            )?,
+            translation_mm: scalar_or_3(&format!("{prefix}.translation_mm"), &self.translation_mm)?,
+        })
+    }
+}
+
+/// A covariance given as 36 numbers, row-major, checked symmetric positive definite.
+pub fn covariance_from(field: &str, values: &[f64]) -> Result<Mat6, FieldProblem> {
+    if values.len() != 36 {
+        return Err((
+            field.to_owned(),
+            format!("must have 36 numbers, has {}", values.len()),
+        ));
+    }
+    finite(field, values)?;
+    let m = Mat6::from_row_slice(values);
+    check_covariance(&m).map_err(|e| (field.to_owned(), e.to_string()))?;
+    if m.cholesky().is_none() {
+        return Err((
+            field.to_owned(),
+            "is singular (a measurement is never exact)".into(),
+        ));
+    }
+    Ok(m)
+}
+
+/// A pose as answered.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PoseOut {
+    /// Translation (mm).
+    pub t_mm: [f64; 3],
+    /// Quaternion `[w, x, y, z]`, `w >= 0`.
+    pub q_wxyz: [f64; 4],
+    /// Euler angles `[Ax, Ay, Az]` (degrees).
+    pub euler_deg: [f64; 3],
+}
+
+impl From<&Pose> for PoseOut {
+    fn from(p: &Pose) -> Self {
+        Self {
+            t_mm: p.translation.vector.into(),
+            q_wxyz: quaternion_wxyz(&p.rotation),
+            euler_deg: euler_from_rotation(&p.rotation).to_degrees(),
+        }
+    }
+}
+
+/// Sigmas as answered.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SigmaOut {
+    /// Per axis (arc-seconds).
+    pub rotation_arcsec: [f64; 3],
+    /// Per translation component (mm).
+    pub translation_mm: [f64; 3],
+}
+
+impl From<ReportedSigmas> for SigmaOut {
+    fn from(s: ReportedSigmas) -> Self {
+        Self {
+            rotation_arcsec: s.rotation_arcsec,
+            translation_mm: s.translation_mm,
+        }
+    }
+}
+
+impl From<&PoseCov> for SigmaOut {
+    fn from(p: &PoseCov) -> Self {
+        p.reported_sigmas().into()
+    }
+}
+
+/// The rotation vector of a pose in arc-seconds.
+pub fn rotation_vector_arcsec(p: &Pose) -> [f64; 3] {
+    let v = crate::geometry::so3_log(&p.rotation) * ARCSEC_PER_RAD;
+    [v.x, v.y, v.z]
+}
+
+/// Turns a list of field problems into a 422.
+pub fn invalid(
+    message: impl Into<String>,
+    problems: Vec<(Option<usize>, FieldProblem)>,
+) -> ApiError {
+    ApiError::new(
+        axum::http::StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_request",
+        message,
+    )
+    .with_details(
+        problems
+            .into_iter()
+            .map(|(index, (field, message))| ErrorDetail {
+                index,
+                field: Some(field),
+                message,
+            })
+            .collect(),
+    )
+}

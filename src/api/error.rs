@@ -1,0 +1,156 @@
+//! The API's one error type: a status code and the JSON body
+//! `{"error": {"code": "...", "message": "...", "details": [...]}}`.
+
+use crate::service::{ItemProblem, ServiceError};
+use axum::Json;
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+
+/// One detail of an error: the item and field concerned.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ErrorDetail {
+    /// Index of the item in the request (for NDJSON, the line's index among the items).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub index: Option<usize>,
+    /// The field concerned, as a path (`pose.q_wxyz`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub field: Option<String>,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl From<ItemProblem> for ErrorDetail {
+    fn from(p: ItemProblem) -> Self {
+        Self {
+            index: p.index,
+            field: p.field,
+            message: p.message,
+        }
+    }
+}
+
+/// An error answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ApiError {
+    /// The HTTP status.
+    pub status: StatusCode,
+    /// A stable machine-readable code (`invalid_samples`, `conflict`, `not_found`, ...).
+    pub code: &'static str,
+    /// A sentence for people.
+    pub message: String,
+    /// The items and fields concerned.
+    pub details: Vec<ErrorDetail>,
+}
+
+#[derive(Serialize)]
+struct Body<'a> {
+    error: BodyInner<'a>,
+}
+
+#[derive(Serialize)]
+struct BodyInner<'a> {
+    code: &'a str,
+    message: &'a str,
+    details: &'a [ErrorDetail],
+}
+
+impl ApiError {
+    /// A new error without details.
+    pub fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> Self {
+        Self {
+            status,
+            code,
+            message: message.into(),
+            details: Vec::new(),
+        }
+    }
+
+    /// Adds details.
+    pub fn with_details(mut self, details: Vec<ErrorDetail>) -> Self {
+        self.details = details;
+        self
+    }
+
+    /// 400 Bad Request.
+    pub fn bad_request(code: &'static str, message: impl Into<String>) -> Self {
+        Self::new(StatusCode::BAD_REQUEST, code, message)
+    }
+
+    /// 404 Not Found.
+    pub fn not_found(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::NOT_FOUND, "not_found", message)
+    }
+
+    /// 422 with one detail naming a field.
+    pub fn invalid_field(field: &str, message: impl Into<String>) -> Self {
+        let message = message.into();
+        Self::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_request",
+            format!("`{field}`: {message}"),
+        )
+        .with_details(vec![ErrorDetail {
+            index: None,
+            field: Some(field.to_owned()),
+            message,
+        }])
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        if self.status.is_server_error() {
+            // Logged once here; the body says nothing of the internals.
+            tracing::error!(code = self.code, message = %self.message, "request failed");
+        }
+        let message = if self.status.is_server_error() {
+            "the service could not complete the request; nothing of it was stored".to_owned()
+        } else {
+            self.message.clone()
+        };
+        (
+            self.status,
+            Json(Body {
+                error: BodyInner {
+                    code: self.code,
+                    message: &message,
+                    details: &self.details,
+                },
+            }),
+        )
+            .into_response()
+    }
+}
+
+impl From<ServiceError> for ApiError {
+    fn from(e: ServiceError) -> Self {
+        match e {
+            ServiceError::Invalid { message, problems } => {
+                ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid_request", message)
+                    .with_details(problems.into_iter().map(Into::into).collect())
+            }
+            ServiceError::Conflict { message, problems } => {
+                ApiError::new(StatusCode::CONFLICT, "conflict", message)
+                    .with_details(problems.into_iter().map(Into::into).collect())
+            }
+            ServiceError::NotFound(m) => ApiError::not_found(m),
+            ServiceError::Storage(e) => ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "storage_unavailable",
+                e.to_string(),
+            ),
+            ServiceError::ShuttingDown => ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "shutting_down",
+                "the service is shutting down",
+            ),
+        }
+    }
+}
+
+impl From<crate::store::StoreError> for ApiError {
+    fn from(e: crate::store::StoreError) -> Self {
+        ServiceError::Storage(e).into()
+    }
+}

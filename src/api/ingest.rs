@@ -1,0 +1,375 @@
+//! `POST /api/v1/samples`: a JSON batch `{"samples": [...]}` or NDJSON (one sample a line).
+//!
+//! Parsing collects every problem of every item before answering: a syntax error names the
+//! item and field it fell in, a type error its path, a semantic problem (unknown link, bad
+//! rotation, bad time, duplicate inside the batch, ...) its field. Nothing of a refused batch is
+//! stored. A 200 answer means the whole batch is on disk.
+
+use super::AppState;
+use super::dto::{SampleIn, covariance_from, invalid};
+use super::error::{ApiError, ErrorDetail};
+use super::jsonpath::{item_index, offset_of, path_at};
+use super::time::parse_json_time;
+use crate::config::{Installation, LinkKind};
+use crate::filter::{MeasurementUncertainty, Sample};
+use crate::service::{IngestItem, IngestReport};
+use crate::store::Quality;
+use axum::Json;
+use axum::body::Body;
+use axum::extract::State;
+use axum::http::{HeaderMap, StatusCode, header};
+use serde::Serialize;
+use serde_json::value::RawValue;
+use std::collections::HashSet;
+
+/// The answer to an accepted batch.
+#[derive(Debug, Serialize)]
+pub struct IngestResponse {
+    /// Samples in the batch, all durably stored.
+    pub accepted: usize,
+    /// Newly stored.
+    pub stored: usize,
+    /// Identical to samples already stored (retries).
+    pub duplicates: usize,
+    /// Flagged as outliers.
+    pub outliers: usize,
+    /// Older than their link's filter: stored, not fused.
+    pub out_of_order: usize,
+    /// Filter restarts after runs of consistent outliers.
+    pub reinitialized: usize,
+    /// Raw results completed.
+    pub raw_results: usize,
+    /// Filtered results produced.
+    pub filtered_results: usize,
+}
+
+impl From<IngestReport> for IngestResponse {
+    fn from(r: IngestReport) -> Self {
+        Self {
+            accepted: r.accepted,
+            stored: r.stored,
+            duplicates: r.duplicates,
+            outliers: r.outliers,
+            out_of_order: r.out_of_order,
+            reinitialized: r.reinitialized,
+            raw_results: r.raw_results,
+            filtered_results: r.filtered_results,
+        }
+    }
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct BatchIn<'a> {
+    #[serde(borrow)]
+    samples: Vec<&'a RawValue>,
+}
+
+/// Reads the body up to the limit: 413 past it.
+pub async fn read_body(
+    body: Body,
+    headers: &HeaderMap,
+    limit: usize,
+) -> Result<bytes::Bytes, ApiError> {
+    let too_large = || {
+        ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "payload_too_large",
+            format!("the request body exceeds the limit of {limit} bytes; send smaller batches"),
+        )
+    };
+    if let Some(len) = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<usize>().ok())
+        && len > limit
+    {
+        return Err(too_large());
+    }
+    axum::body::to_bytes(body, limit).await.map_err(|e| {
+        let is_limit = std::error::Error::source(&e)
+            .is_some_and(|s| s.is::<http_body_util::LengthLimitError>())
+            || e.to_string().contains("length limit");
+        if is_limit {
+            too_large()
+        } else {
+            ApiError::bad_request(
+                "unreadable_body",
+                format!("the request body could not be read: {e}"),
+            )
+        }
+    })
+}
+
+fn syntax_problem(
+    text: &str,
+    e: &serde_json::Error,
+    prefix: &str,
+) -> (Option<usize>, String, String) {
+    let offset = offset_of(text, e.line(), e.column());
+    let path = path_at(text, offset);
+    let index = item_index(&path, "samples");
+    let field = if prefix.is_empty() {
+        path
+    } else {
+        format!("{prefix}{path}")
+    };
+    (
+        index,
+        field,
+        format!(
+            "malformed JSON at line {}, column {}: {e}",
+            e.line(),
+            e.column()
+        ),
+    )
+}
+
+/// Parses one item, naming the field of a type error.
+fn parse_item(text: &str) -> Result<SampleIn, (String, String)> {
+    let mut de = serde_json::Deserializer::from_str(text);
+    serde_path_to_error::deserialize::<_, SampleIn>(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        let field = if path == "." { String::new() } else { path };
+        (field, inner.to_string())
+    })
+}
+
+/// Problems of a batch: the item index and the field problem.
+pub type Problems = Vec<(Option<usize>, (String, String))>;
+
+/// Converts parsed items into validated samples, listing every problem.
+pub fn validate_samples(
+    installation: &Installation,
+    items: Vec<(usize, SampleIn)>,
+) -> Result<Vec<IngestItem>, Problems> {
+    let mut problems = Vec::new();
+    let mut out = Vec::with_capacity(items.len());
+    let mut seen: HashSet<(usize, i64)> = HashSet::new();
+    for (index, s) in items {
+        let mut item_problems = Vec::new();
+        let link = match installation.link_by_name(&s.link) {
+            None => {
+                item_problems.push(("link".to_owned(), format!("unknown link `{}`", s.link)));
+                None
+            }
+            Some(spec) if matches!(spec.kind, LinkKind::Calibrated { .. }) => {
+                item_problems.push((
+                    "link".to_owned(),
+                    format!(
+                        "`{}` is a calibrated link; samples are for measured links",
+                        s.link
+                    ),
+                ));
+                None
+            }
+            Some(spec) => Some(spec.id),
+        };
+        let time_ns = match parse_json_time(&s.time) {
+            Ok(t) => Some(t),
+            Err(m) => {
+                item_problems.push(("time".to_owned(), m));
+                None
+            }
+        };
+        let pose = match s.pose.to_pose("pose") {
+            Ok(p) => Some(p),
+            Err(p) => {
+                item_problems.push(p);
+                None
+            }
+        };
+        let uncertainty = match (&s.sigma, &s.covariance) {
+            (Some(_), Some(_)) => {
+                item_problems.push((
+                    "sigma".to_owned(),
+                    "give `sigma` or `covariance`, not both".to_owned(),
+                ));
+                None
+            }
+            (Some(sig), None) => match sig.to_sigmas("sigma") {
+                Ok(s) => Some(MeasurementUncertainty::Sigmas(s)),
+                Err(p) => {
+                    item_problems.push(p);
+                    None
+                }
+            },
+            (None, Some(c)) => match covariance_from("covariance", c) {
+                Ok(m) => Some(MeasurementUncertainty::Covariance(m)),
+                Err(p) => {
+                    item_problems.push(p);
+                    None
+                }
+            },
+            (None, None) => Some(MeasurementUncertainty::Default),
+        };
+        let quality = match &s.quality {
+            None => Some(Quality::default()),
+            Some(q) => match q.reprojection_rms_px {
+                Some(v) if !(v.is_finite() && v >= 0.0) => {
+                    item_problems.push((
+                        "quality.reprojection_rms_px".to_owned(),
+                        format!("must be a non-negative number, not {v}"),
+                    ));
+                    None
+                }
+                _ => Some(Quality {
+                    reprojection_rms_px: q.reprojection_rms_px,
+                    points: q.points,
+                }),
+            },
+        };
+        if let (Some(link), Some(time_ns)) = (link, time_ns)
+            && !seen.insert((link.0, time_ns))
+        {
+            item_problems.push((
+                "time".to_owned(),
+                format!(
+                    "a second sample of `{}` at the same time in this batch",
+                    s.link
+                ),
+            ));
+        }
+        match (
+            link,
+            time_ns,
+            pose,
+            uncertainty,
+            quality,
+            item_problems.is_empty(),
+        ) {
+            (Some(link), Some(time_ns), Some(pose), Some(uncertainty), Some(quality), true) => {
+                out.push(IngestItem {
+                    index,
+                    sample: Sample {
+                        link,
+                        time_ns,
+                        parent_from_child: pose,
+                        uncertainty,
+                    },
+                    quality,
+                });
+            }
+            _ => problems.extend(item_problems.into_iter().map(|p| (Some(index), p))),
+        }
+    }
+    if problems.is_empty() {
+        Ok(out)
+    } else {
+        Err(problems)
+    }
+}
+
+fn is_ndjson(headers: &HeaderMap) -> bool {
+    headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| {
+            let v = v.to_ascii_lowercase();
+            v.starts_with("application/x-ndjson") || v.starts_with("application/jsonl")
+        })
+}
+
+/// Parses a request body into items, every problem listed.
+pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, ApiError> {
+    let mut items = Vec::new();
+    let mut problems: Vec<ErrorDetail> = Vec::new();
+    if ndjson {
+        for (index, line) in text.lines().filter(|l| !l.trim().is_empty()).enumerate() {
+            if let Err(e) = serde_json::from_str::<&RawValue>(line) {
+                let (_, field, message) = syntax_problem(line, &e, "");
+                problems.push(ErrorDetail {
+                    index: Some(index),
+                    field: Some(field).filter(|f| !f.is_empty()),
+                    message,
+                });
+                continue;
+            }
+            match parse_item(line) {
+                Ok(s) => items.push((index, s)),
+                Err((field, message)) => problems.push(ErrorDetail {
+                    index: Some(index),
+                    field: Some(field).filter(|f| !f.is_empty()),
+                    message,
+                }),
+            }
+        }
+    } else {
+        let batch: BatchIn = serde_json::from_str(text).map_err(|e| {
+            if e.is_syntax() || e.is_eof() {
+                let (index, field, message) = syntax_problem(text, &e, "");
+                ApiError::bad_request("malformed_json", message).with_details(vec![ErrorDetail {
+                    index,
+                    field: Some(field).filter(|f| !f.is_empty()),
+                    message: "malformed JSON here".into(),
+                }])
+            } else {
+                ApiError::new(
+                    StatusCode::UNPROCESSABLE_ENTITY,
+                    "invalid_request",
+                    format!("the body must be {{\"samples\": [...]}}: {e}"),
+                )
+            }
+        })?;
+        for (index, raw) in batch.samples.into_iter().enumerate() {
+            match parse_item(raw.get()) {
+                Ok(s) => items.push((index, s)),
+                Err((field, message)) => problems.push(ErrorDetail {
+                    index: Some(index),
+                    field: Some(field).filter(|f| !f.is_empty()),
+                    message,
+                }),
+            }
+        }
+    }
+    if !problems.is_empty() {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_samples",
+            format!(
+                "{} sample(s) could not be read; nothing was stored",
+                problems.len()
+            ),
+        )
+        .with_details(problems));
+    }
+    Ok(items)
+}
+
+/// `POST /api/v1/samples`.
+pub async fn post_samples(
+    State(app): State<AppState>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<IngestResponse>, ApiError> {
+    let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
+    let text = std::str::from_utf8(&bytes).map_err(|e| {
+        ApiError::bad_request("malformed_json", format!("the body is not UTF-8: {e}"))
+    })?;
+    let items = parse_batch(text, is_ndjson(&headers))?;
+    if items.is_empty() {
+        return Err(ApiError::invalid_field("samples", "the batch is empty"));
+    }
+    if items.len() > app.limits.max_batch_samples {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "batch_too_large",
+            format!(
+                "the batch has {} samples, more than the limit of {}; split it",
+                items.len(),
+                app.limits.max_batch_samples
+            ),
+        ));
+    }
+    let n = items.len();
+    let valid = validate_samples(app.service.installation(), items).map_err(|p| {
+        invalid(
+            format!("{} problem(s) in the batch; nothing was stored", p.len()),
+            p,
+        )
+    })?;
+    debug_assert_eq!(valid.len(), n);
+    let report = app.service.ingest(valid).await?;
+    Ok(Json(report.into()))
+}

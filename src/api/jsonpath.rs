@@ -1,0 +1,119 @@
+//! The JSON path at a byte offset (`samples[3].pose.t_mm[1]`): lets a syntax error, which
+//! serde reports as a line and column, name the item and field it occurred in.
+
+enum Frame {
+    Object {
+        key: Option<String>,
+        expecting_key: bool,
+    },
+    Array {
+        index: usize,
+    },
+}
+
+/// The path of the value being read at byte `offset` of `text`.
+pub fn path_at(text: &str, offset: usize) -> String {
+    let bytes = text.as_bytes();
+    let end = offset.min(bytes.len());
+    let mut stack: Vec<Frame> = Vec::new();
+    let mut i = 0;
+    while i < end {
+        match bytes[i] {
+            b'"' => {
+                let start = i + 1;
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'"' {
+                    if bytes[i] == b'\\' {
+                        i += 1;
+                    }
+                    i += 1;
+                }
+                if let Some(Frame::Object { key, expecting_key }) = stack.last_mut()
+                    && *expecting_key
+                {
+                    *key = Some(
+                        String::from_utf8_lossy(&bytes[start..i.min(bytes.len())]).into_owned(),
+                    );
+                }
+            }
+            b'{' => stack.push(Frame::Object {
+                key: None,
+                expecting_key: true,
+            }),
+            b'[' => stack.push(Frame::Array { index: 0 }),
+            b'}' | b']' => {
+                stack.pop();
+            }
+            b':' => {
+                if let Some(Frame::Object { expecting_key, .. }) = stack.last_mut() {
+                    *expecting_key = false;
+                }
+            }
+            b',' => match stack.last_mut() {
+                Some(Frame::Object { key, expecting_key }) => {
+                    *key = None;
+                    *expecting_key = true;
+                }
+                Some(Frame::Array { index }) => *index += 1,
+                None => {}
+            },
+            _ => {}
+        }
+        i += 1;
+    }
+    let mut path = String::new();
+    for frame in &stack {
+        match frame {
+            Frame::Object { key: Some(k), .. } => {
+                if !path.is_empty() {
+                    path.push('.');
+                }
+                path.push_str(k);
+            }
+            Frame::Object { key: None, .. } => {}
+            Frame::Array { index } => path.push_str(&format!("[{index}]")),
+        }
+    }
+    path
+}
+
+/// The byte offset of a 1-based line and column (as serde_json reports them).
+pub fn offset_of(text: &str, line: usize, column: usize) -> usize {
+    let line_start: usize = text
+        .split_inclusive('\n')
+        .take(line.saturating_sub(1))
+        .map(str::len)
+        .sum();
+    (line_start + column.saturating_sub(1)).min(text.len())
+}
+
+/// The index of the item in a `{"samples": [...]}` batch that a path names, if any.
+pub fn item_index(path: &str, array_key: &str) -> Option<usize> {
+    let rest = path.strip_prefix(array_key)?.strip_prefix('[')?;
+    rest.split(']').next()?.parse().ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn path_names_the_item_and_field_of_an_offset() {
+        let text = r#"{"samples": [{"link": "A", "pose": {"t_mm": [1, 2, 3]}}, {"link": "B", "pose": {"t_mm": [1, NaN, 3]}}]}"#;
+        let offset = text.find("NaN").unwrap();
+        let path = path_at(text, offset);
+        assert_eq!(path, "samples[1].pose.t_mm[1]");
+        assert_eq!(item_index(&path, "samples"), Some(1));
+    }
+
+    #[test]
+    fn strings_with_brackets_and_escapes_do_not_confuse_the_scan() {
+        let text = r#"{"a": "x[{\"", "b": [0, {"c": ]}"#;
+        assert_eq!(path_at(text, text.rfind(']').unwrap()), "b[1].c");
+    }
+
+    #[test]
+    fn offsets_come_from_lines_and_columns() {
+        assert_eq!(offset_of("ab\ncd\nef", 3, 2), 7);
+    }
+}

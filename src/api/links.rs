@@ -1,0 +1,347 @@
+//! Links: list with counters, stored samples, calibrations.
+
+use super::AppState;
+use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
+use super::error::ApiError;
+use super::time::{format_ns, parse_json_time, parse_query_time};
+use crate::chain::LinkId;
+use crate::config::{LinkKind, LinkSpec};
+use crate::filter::NS_PER_S;
+use crate::geometry::PoseCov;
+use crate::store::StoredUncertainty;
+use axum::Json;
+use axum::extract::{Path, Query, State};
+use axum::http::StatusCode;
+use serde::{Deserialize, Serialize};
+
+fn link_spec(app: &AppState, name: &str) -> Result<LinkSpec, ApiError> {
+    app.service
+        .installation()
+        .link_by_name(name)
+        .cloned()
+        .ok_or_else(|| ApiError::not_found(format!("unknown link `{name}`")))
+}
+
+/// A link as listed.
+#[derive(Debug, Serialize)]
+pub struct LinkOut {
+    /// `<parent>_from_<child>`.
+    pub name: String,
+    /// `measured` or `calibrated`.
+    pub kind: &'static str,
+    /// Parent frame.
+    pub parent: String,
+    /// Child frame.
+    pub child: String,
+    /// Filter model (measured links).
+    pub model: Option<&'static str>,
+    /// Samples received.
+    pub n_samples: u64,
+    /// Of which outliers.
+    pub n_outliers: u64,
+    /// Filter restarts after consistent outlier runs.
+    pub n_reinitializations: u64,
+    /// Newest sample time.
+    pub last_time: Option<String>,
+    /// Observed rate over recent samples (Hz).
+    pub rate_hz: Option<f64>,
+    /// Configured rate (Hz).
+    pub expected_rate_hz: Option<f64>,
+    /// `ok`, `stale` (behind the newest link by more than its staleness limit), `no_data`, or
+    /// `calibrated`.
+    pub status: &'static str,
+}
+
+/// `GET /api/v1/links`.
+pub async fn list_links(State(app): State<AppState>) -> Json<Vec<LinkOut>> {
+    let inst = app.service.installation();
+    let snapshot = app.service.snapshot();
+    let bank = &snapshot.bank;
+    let newest = inst
+        .links
+        .iter()
+        .filter_map(|l| bank.link_status(l.id).last_time_ns)
+        .max();
+    Json(
+        inst.links
+            .iter()
+            .map(|l| {
+                let ends = inst.topology.link(l.id);
+                let st = bank.link_status(l.id);
+                let (kind, model, expected, status) = match &l.kind {
+                    LinkKind::Calibrated { .. } => ("calibrated", None, None, "calibrated"),
+                    LinkKind::Measured(m) => {
+                        let status = match (st.last_time_ns, newest) {
+                            (None, _) => "no_data",
+                            (Some(t), Some(n))
+                                if (n - t) as f64 / NS_PER_S
+                                    > inst.filter.stale_after_periods / m.expected_rate_hz =>
+                            {
+                                "stale"
+                            }
+                            _ => "ok",
+                        };
+                        (
+                            "measured",
+                            Some(m.tuning.model.name()),
+                            Some(m.expected_rate_hz),
+                            status,
+                        )
+                    }
+                };
+                LinkOut {
+                    name: l.name.clone(),
+                    kind,
+                    parent: inst.topology.frame_name(ends.parent).to_owned(),
+                    child: inst.topology.frame_name(ends.child).to_owned(),
+                    model,
+                    n_samples: st.n_samples,
+                    n_outliers: st.n_outliers,
+                    n_reinitializations: st.n_reinitializations,
+                    last_time: st.last_time_ns.map(format_ns),
+                    rate_hz: bank.observed_rate_hz(l.id),
+                    expected_rate_hz: expected,
+                    status,
+                }
+            })
+            .collect(),
+    )
+}
+
+/// Query of `samples`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SamplesQuery {
+    /// Start.
+    pub from: Option<String>,
+    /// End.
+    pub to: Option<String>,
+    /// At most this many (default 1000, at most 100000).
+    pub limit: Option<i64>,
+}
+
+/// A stored sample as answered.
+#[derive(Debug, Serialize)]
+pub struct SampleOut {
+    /// Measurement time.
+    pub time: String,
+    /// The measured pose.
+    pub pose: PoseOut,
+    /// Sigmas as given (absent when the link's default applied or a covariance was given).
+    pub sigma: Option<SigmaOut>,
+    /// Covariance as given (36 numbers, row-major).
+    pub covariance: Option<Vec<f64>>,
+    /// Reprojection RMS (px).
+    pub reprojection_rms_px: Option<f64>,
+    /// Points used.
+    pub points: Option<u32>,
+    /// Flagged as an outlier.
+    pub outlier: bool,
+    /// What the filter did: `initialized`, `fused`, `outlier`, `reinitialized`, `out_of_order`.
+    pub disposition: String,
+    /// Normalised innovation squared.
+    pub nis: Option<f64>,
+    /// When the service received it.
+    pub received: String,
+}
+
+/// `GET .../samples`.
+#[derive(Debug, Serialize)]
+pub struct SamplesOut {
+    /// Link.
+    pub link: String,
+    /// Samples, oldest first.
+    pub samples: Vec<SampleOut>,
+}
+
+/// `GET /api/v1/links/{name}/samples?from=&to=&limit=`.
+pub async fn list_samples(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    Query(q): Query<SamplesQuery>,
+) -> Result<Json<SamplesOut>, ApiError> {
+    let spec = link_spec(&app, &name)?;
+    let from = match &q.from {
+        Some(f) => parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?,
+        None => i64::MIN,
+    };
+    let to = match &q.to {
+        Some(t) => parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?,
+        None => i64::MAX,
+    };
+    let limit = q.limit.unwrap_or(1000);
+    if !(1..=100_000).contains(&limit) {
+        return Err(ApiError::invalid_field(
+            "limit",
+            "must be between 1 and 100000",
+        ));
+    }
+    let stored = app
+        .service
+        .store()
+        .samples(spec.id, from, to, limit)
+        .await?;
+    Ok(Json(SamplesOut {
+        link: spec.name,
+        samples: stored
+            .into_iter()
+            .map(|s| {
+                let (sigma, covariance) = match s.values.uncertainty {
+                    StoredUncertainty::Default => (None, None),
+                    StoredUncertainty::Sigmas(sg) => (Some(sg.into()), None),
+                    StoredUncertainty::Covariance(c) => {
+                        (None, Some(c.transpose().as_slice().to_vec()))
+                    }
+                };
+                SampleOut {
+                    time: format_ns(s.time_ns),
+                    pose: (&s.values.pose).into(),
+                    sigma,
+                    covariance,
+                    reprojection_rms_px: s.values.quality.reprojection_rms_px,
+                    points: s.values.quality.points,
+                    outlier: s.outlier,
+                    disposition: s.disposition,
+                    nis: s.nis,
+                    received: format_ns(s.received_ns),
+                }
+            })
+            .collect(),
+    }))
+}
+
+/// Body of `PUT .../calibration`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationIn {
+    /// `parent_from_child`.
+    pub pose: PoseIn,
+    /// Its sigmas (or `covariance`).
+    pub sigma: Option<SigmaIn>,
+    /// Its covariance, 36 numbers row-major.
+    pub covariance: Option<Vec<f64>>,
+    /// From when it is valid (RFC 3339 or ns); now when absent.
+    pub valid_from: Option<serde_json::Value>,
+}
+
+/// A calibration as answered.
+#[derive(Debug, Serialize)]
+pub struct CalibrationOut {
+    /// Link.
+    pub link: String,
+    /// Version (0: the installation file's).
+    pub version: i64,
+    /// From when it is valid (absent: always, the installation file's).
+    pub valid_from: Option<String>,
+    /// `parent_from_child`.
+    pub pose: Option<PoseOut>,
+    /// Its sigmas.
+    pub sigma: Option<SigmaOut>,
+    /// When it was stored.
+    pub created: Option<String>,
+}
+
+fn calibrated(spec: &LinkSpec) -> Result<PoseCov, ApiError> {
+    match &spec.kind {
+        LinkKind::Calibrated { parent_from_child } => Ok(*parent_from_child),
+        LinkKind::Measured(_) => Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "not_calibrated",
+            format!(
+                "`{}` is a measured link; only calibrated links take calibrations",
+                spec.name
+            ),
+        )),
+    }
+}
+
+/// `PUT /api/v1/links/{name}/calibration`.
+pub async fn put_calibration(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    body: axum::body::Bytes,
+) -> Result<(StatusCode, Json<CalibrationOut>), ApiError> {
+    let spec = link_spec(&app, &name)?;
+    calibrated(&spec)?;
+    let c: CalibrationIn = super::parse_json_body(&body)?;
+    let pose = c
+        .pose
+        .to_pose("pose")
+        .map_err(|(f, m)| ApiError::invalid_field(&f, m))?;
+    let cov = match (&c.sigma, &c.covariance) {
+        (Some(s), None) => {
+            let sigmas = s
+                .to_sigmas("sigma")
+                .map_err(|(f, m)| ApiError::invalid_field(&f, m))?;
+            PoseCov::from_reported_sigmas(pose, &sigmas).cov
+        }
+        (None, Some(values)) => covariance_from("covariance", values)
+            .map_err(|(f, m)| ApiError::invalid_field(&f, m))?,
+        _ => {
+            return Err(ApiError::invalid_field(
+                "sigma",
+                "give the calibration's uncertainty as `sigma` or `covariance` (one of them)",
+            ));
+        }
+    };
+    let valid_from_ns = match &c.valid_from {
+        Some(v) => parse_json_time(v).map_err(|m| ApiError::invalid_field("valid_from", m))?,
+        None => crate::service::now_ns(),
+    };
+    let version = app
+        .service
+        .add_calibration(spec.id, valid_from_ns, PoseCov { pose, cov })
+        .await?;
+    Ok((
+        StatusCode::CREATED,
+        Json(CalibrationOut {
+            link: spec.name,
+            version,
+            valid_from: Some(format_ns(valid_from_ns)),
+            pose: Some((&pose).into()),
+            sigma: Some((&PoseCov { pose, cov }).into()),
+            created: Some(format_ns(crate::service::now_ns())),
+        }),
+    ))
+}
+
+/// `GET .../calibrations`.
+#[derive(Debug, Serialize)]
+pub struct CalibrationsOut {
+    /// Link.
+    pub link: String,
+    /// The installation file's (version 0), then every stored version.
+    pub calibrations: Vec<CalibrationOut>,
+}
+
+/// `GET /api/v1/links/{name}/calibrations`.
+pub async fn list_calibrations(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+) -> Result<Json<CalibrationsOut>, ApiError> {
+    let spec = link_spec(&app, &name)?;
+    let original = calibrated(&spec)?;
+    let link: LinkId = spec.id;
+    let mut out = vec![CalibrationOut {
+        link: spec.name.clone(),
+        version: 0,
+        valid_from: None,
+        pose: Some((&original.pose).into()),
+        sigma: Some((&original).into()),
+        created: None,
+    }];
+    for c in app.service.store().calibrations(link).await? {
+        out.push(CalibrationOut {
+            link: spec.name.clone(),
+            version: c.version,
+            valid_from: Some(format_ns(c.valid_from_ns)),
+            pose: Some((&c.parent_from_child.pose).into()),
+            sigma: Some((&c.parent_from_child).into()),
+            created: Some(format_ns(c.created_ns)),
+        });
+    }
+    Ok(Json(CalibrationsOut {
+        link: spec.name,
+        calibrations: out,
+    }))
+}

@@ -1,0 +1,242 @@
+//! The HTTP API (`/api/v1`, `interface.md` section 2): routes, request and response bodies,
+//! errors, authentication, and the server's start and graceful stop.
+//!
+//! Handlers are thin: read the request, convert it to domain types ([`dto`]), call the
+//! [`crate::service`], convert the answer back. Every error is one [`ApiError`] with the body
+//! `{"error": {"code", "message", "details": [{"index", "field", "message"}]}}`.
+
+pub mod auth;
+pub mod dto;
+pub mod error;
+pub mod ingest;
+pub mod jsonpath;
+pub mod links;
+pub mod targets;
+pub mod time;
+
+pub use error::{ApiError, ErrorDetail};
+
+use crate::config::Installation;
+use crate::service::{PipelineHandle, Service};
+use axum::Router;
+use axum::http::StatusCode;
+use axum::routing::get;
+use serde::de::DeserializeOwned;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+use tower_http::timeout::TimeoutLayer;
+use tower_http::trace::TraceLayer;
+
+/// Request size limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Largest request body (bytes).
+    pub max_body_bytes: usize,
+    /// Most samples in one batch.
+    pub max_batch_samples: usize,
+}
+
+/// What handlers share.
+#[derive(Clone)]
+pub struct AppState {
+    /// The service.
+    pub service: Service,
+    /// Size limits.
+    pub limits: Limits,
+}
+
+/// Parses a JSON body, naming the field of any problem (400 for malformed JSON, 422 for a
+/// well-formed body of the wrong shape).
+pub fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
+    let text = std::str::from_utf8(body).map_err(|e| {
+        ApiError::bad_request("malformed_json", format!("the body is not UTF-8: {e}"))
+    })?;
+    let mut de = serde_json::Deserializer::from_str(text);
+    serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        if inner.is_syntax() || inner.is_eof() {
+            ApiError::bad_request("malformed_json", format!("malformed JSON: {inner}"))
+        } else {
+            ApiError::invalid_field(if path == "." { "body" } else { &path }, inner.to_string())
+        }
+    })
+}
+
+async fn healthz(
+    axum::extract::State(app): axum::extract::State<AppState>,
+) -> (StatusCode, axum::Json<serde_json::Value>) {
+    let database = app.service.store().ping().await;
+    let writer = app.service.pipeline_alive();
+    let status = if database && writer {
+        StatusCode::OK
+    } else {
+        StatusCode::SERVICE_UNAVAILABLE
+    };
+    (
+        status,
+        axum::Json(serde_json::json!({
+            "status": if status == StatusCode::OK { "ok" } else { "unavailable" },
+            "database": database,
+            "writer": writer,
+        })),
+    )
+}
+
+async fn api_not_found(uri: axum::http::Uri) -> ApiError {
+    ApiError::not_found(format!("no endpoint at `{}`", uri.path()))
+}
+
+/// The router of the whole service.
+pub fn router(state: AppState) -> Router {
+    let tokens = Arc::new(state.service.installation().auth.tokens.clone());
+    let api = Router::new()
+        .route("/samples", axum::routing::post(ingest::post_samples))
+        .route("/targets", get(targets::list_targets))
+        .route(
+            "/targets/{name}/compensation",
+            get(targets::get_compensation),
+        )
+        .route("/targets/{name}/stats", get(targets::get_stats))
+        .route(
+            "/targets/{name}/reference",
+            get(targets::get_reference).post(targets::post_reference),
+        )
+        .route("/targets/{name}/references", get(targets::list_references))
+        .route("/links", get(links::list_links))
+        .route("/links/{name}/samples", get(links::list_samples))
+        .route(
+            "/links/{name}/calibration",
+            axum::routing::put(links::put_calibration),
+        )
+        .route("/links/{name}/calibrations", get(links::list_calibrations))
+        .fallback(api_not_found);
+    Router::new()
+        .nest("/api/v1", api)
+        .route("/healthz", get(healthz))
+        .fallback(api_not_found)
+        .layer(axum::middleware::from_fn(move |req, next| {
+            auth::require_token(Arc::clone(&tokens), req, next)
+        }))
+        .layer((
+            TraceLayer::new_for_http(),
+            TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, Duration::from_secs(60)),
+        ))
+        .with_state(state)
+}
+
+/// Errors of starting the server.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// Listening without tokens on an address others can reach.
+    #[error(
+        "refusing to listen on {0} without authentication: add [[auth.tokens]] to the configuration \
+         (see `brokenray hash-token`), or listen on a loopback address such as 127.0.0.1"
+    )]
+    UnauthenticatedNonLoopback(SocketAddr),
+    /// The address could not be bound.
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The service could not start.
+    #[error(transparent)]
+    Service(#[from] crate::service::ServiceError),
+}
+
+/// A bound, started service, ready to run until a shutdown signal.
+pub struct App {
+    listener: tokio::net::TcpListener,
+    service: Service,
+    pipeline: PipelineHandle,
+    limits: Limits,
+}
+
+impl App {
+    /// Starts the service and binds its address (port 0 picks a free port).
+    pub async fn build(installation: Installation) -> Result<App, StartError> {
+        let addr = installation.server.listen;
+        if installation.auth.tokens.is_empty() && !addr.ip().is_loopback() {
+            return Err(StartError::UnauthenticatedNonLoopback(addr));
+        }
+        let limits = Limits {
+            max_body_bytes: installation.server.max_body_bytes,
+            max_batch_samples: installation.server.max_batch_samples,
+        };
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|source| StartError::Bind { addr, source })?;
+        let (service, pipeline) = Service::start(installation).await?;
+        Ok(App {
+            listener,
+            service,
+            pipeline,
+            limits,
+        })
+    }
+
+    /// The bound address.
+    pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        self.listener.local_addr()
+    }
+
+    /// The service (for in-process use).
+    pub fn service(&self) -> &Service {
+        &self.service
+    }
+
+    /// Serves until `shutdown` resolves, then stops accepting, finishes in-flight requests and
+    /// the queued writes, and closes the database.
+    pub async fn run_until(
+        self,
+        shutdown: impl Future<Output = ()> + Send + 'static,
+    ) -> std::io::Result<()> {
+        let state = AppState {
+            service: self.service.clone(),
+            limits: self.limits,
+        };
+        let store = self.service.store().clone();
+        axum::serve(self.listener, router(state))
+            .with_graceful_shutdown(shutdown)
+            .await?;
+        // Handlers are done: dropping the last service handle closes the job queue, and the
+        // pipeline commits what is queued before it stops.
+        drop(self.service);
+        self.pipeline.finished().await;
+        store.close().await;
+        Ok(())
+    }
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!(error = %e, "cannot listen for Ctrl-C");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => tracing::info!("Ctrl-C: shutting down"),
+        () = terminate => tracing::info!("SIGTERM: shutting down"),
+    }
+}

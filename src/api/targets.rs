@@ -1,0 +1,613 @@
+//! Targets: list, compensation, statistics, references.
+
+use super::AppState;
+use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
+use super::error::ApiError;
+use super::time::{format_ns, parse_query_time};
+use crate::chain::Direction;
+use crate::config::{AlarmThresholds, TargetSpec};
+use crate::deformation::{Deformation, ReferenceOrigin};
+use crate::filter::{TargetEstimate, TargetStatus};
+use crate::geometry::{PoseCov, se3_exp, se3_log};
+use crate::service::{CurrentReference, ReferenceRequest};
+use crate::stats::pose_stats;
+use axum::Json;
+use axum::extract::{Path, Query, State};
+use axum::http::StatusCode;
+use serde::{Deserialize, Serialize};
+
+fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetSpec), ApiError> {
+    app.service
+        .installation()
+        .targets
+        .iter()
+        .enumerate()
+        .find(|(_, t)| t.name == name)
+        .map(|(i, t)| (i, t.clone()))
+        .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))
+}
+
+/// A step of a path as answered.
+#[derive(Debug, Serialize)]
+pub struct StepOut {
+    /// The link.
+    pub link: String,
+    /// `forward` (as stored) or `inverted`.
+    pub direction: &'static str,
+}
+
+/// A path as answered.
+#[derive(Debug, Serialize)]
+pub struct PathOut {
+    /// Steps from the base outwards.
+    pub steps: Vec<StepOut>,
+    /// The product it computes, `G_from_C3 * ... * C1_from_B`.
+    pub product: String,
+}
+
+/// A target as listed.
+#[derive(Debug, Serialize)]
+pub struct TargetOut {
+    /// Its name (frame).
+    pub name: String,
+    /// Its base frame.
+    pub base: String,
+    /// Current status.
+    pub status: &'static str,
+    /// Time of the newest filtered result.
+    pub time: Option<String>,
+    /// Independent paths (fused).
+    pub paths: Vec<PathOut>,
+    /// Further paths sharing a link with one above (not fused).
+    pub dependent_paths: Vec<PathOut>,
+}
+
+/// `GET /api/v1/targets`.
+pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
+    let inst = app.service.installation();
+    let snapshot = app.service.snapshot();
+    let topo = &inst.topology;
+    let path_out = |p: &crate::chain::Path| PathOut {
+        steps: p
+            .steps
+            .iter()
+            .map(|s| StepOut {
+                link: topo.link(s.link).name.clone(),
+                direction: match s.direction {
+                    Direction::Forward => "forward",
+                    Direction::Inverse => "inverted",
+                },
+            })
+            .collect(),
+        product: topo.describe_product(p),
+    };
+    Json(
+        inst.targets
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let latest = snapshot.targets[i].latest.as_ref();
+                TargetOut {
+                    name: t.name.clone(),
+                    base: topo.frame_name(t.base).to_owned(),
+                    status: latest.map_or("initializing", |l| l.status.name()),
+                    time: latest.map(|l| format_ns(l.time_ns)),
+                    paths: t.resolution.paths.iter().map(path_out).collect(),
+                    dependent_paths: t.resolution.dependent_paths.iter().map(path_out).collect(),
+                }
+            })
+            .collect(),
+    )
+}
+
+/// A reference as answered.
+#[derive(Debug, Serialize)]
+pub struct ReferenceOut {
+    /// Translation of `G0_from_B` (mm).
+    pub t_mm: [f64; 3],
+    /// Rotation (quaternion).
+    pub q_wxyz: [f64; 4],
+    /// Rotation (Euler, degrees).
+    pub euler_deg: [f64; 3],
+    /// When it was set.
+    pub since: String,
+    /// Its version.
+    pub version: i64,
+    /// `explicit` or `window`.
+    pub origin: &'static str,
+    /// The averaged window, for a `window` reference.
+    pub window: Option<WindowOut>,
+    /// Its own uncertainty (zero for an explicit one).
+    pub sigma: SigmaOut,
+}
+
+/// A reference's window.
+#[derive(Debug, Serialize)]
+pub struct WindowOut {
+    /// Start.
+    pub from: String,
+    /// End.
+    pub to: String,
+    /// Results averaged.
+    pub count: usize,
+}
+
+impl From<&CurrentReference> for ReferenceOut {
+    fn from(r: &CurrentReference) -> Self {
+        let p = PoseOut::from(&r.reference.g0_from_b.pose);
+        let (origin, window) = match r.reference.origin {
+            ReferenceOrigin::Explicit => ("explicit", None),
+            ReferenceOrigin::Window {
+                from_ns,
+                to_ns,
+                count,
+            } => (
+                "window",
+                Some(WindowOut {
+                    from: format_ns(from_ns),
+                    to: format_ns(to_ns),
+                    count,
+                }),
+            ),
+        };
+        Self {
+            t_mm: p.t_mm,
+            q_wxyz: p.q_wxyz,
+            euler_deg: p.euler_deg,
+            since: format_ns(r.created_ns),
+            version: r.version,
+            origin,
+            window,
+            sigma: (&r.reference.g0_from_b).into(),
+        }
+    }
+}
+
+/// A deformation as answered (`G0_from_G`).
+#[derive(Debug, Serialize)]
+pub struct DeformationOut {
+    /// Rotation vector (arc-seconds, reference target axes).
+    pub rotation_arcsec: [f64; 3],
+    /// Translation (mm, reference target coordinates).
+    pub translation_mm: [f64; 3],
+    /// Their sigmas.
+    pub sigma: SigmaOut,
+}
+
+/// A correction as answered (`G_from_G0`).
+#[derive(Debug, Serialize)]
+pub struct CorrectionOut {
+    /// Rotation (quaternion).
+    pub q_wxyz: [f64; 4],
+    /// Translation (mm).
+    pub t_mm: [f64; 3],
+    /// Rotation vector (arc-seconds).
+    pub rotation_arcsec: [f64; 3],
+    /// Sigmas.
+    pub sigma: SigmaOut,
+}
+
+/// Redundant paths' agreement.
+#[derive(Debug, Serialize)]
+pub struct ConsistencyOut {
+    /// Chi-square of the paths' disagreement.
+    pub chi2: f64,
+    /// Degrees of freedom.
+    pub dof: usize,
+    /// The threshold.
+    pub threshold: f64,
+}
+
+/// `GET .../compensation`.
+#[derive(Debug, Serialize)]
+pub struct CompensationOut {
+    /// Target name.
+    pub target: String,
+    /// Base frame.
+    pub base: String,
+    /// Time of the result.
+    pub time: Option<String>,
+    /// Seconds since the newest sample behind the result.
+    pub age_s: f64,
+    /// `ok`, `stale`, `degraded`, `initializing` or `predicted`.
+    pub status: &'static str,
+    /// Where the value comes from: `live` (newest filtered result), `predicted` (filters
+    /// predicted to a later time) or `history` (stored results, interpolated).
+    pub source: &'static str,
+    /// `G_from_B`.
+    pub pose: Option<PoseOut>,
+    /// Its sigmas.
+    pub sigma: Option<SigmaOut>,
+    /// The current reference.
+    pub reference: Option<ReferenceOut>,
+    /// `G0_from_G`.
+    pub deformation: Option<DeformationOut>,
+    /// `G_from_G0`.
+    pub correction: Option<CorrectionOut>,
+    /// `none`, `warn` or `alarm` against the target's thresholds.
+    pub alarm: &'static str,
+    /// Redundant paths' agreement, where several were fused.
+    pub consistency: Option<ConsistencyOut>,
+}
+
+/// The alarm level of a deformation against thresholds.
+pub fn alarm_level(thresholds: &AlarmThresholds, d: &Deformation) -> &'static str {
+    let m = d.deformation();
+    let rot = m.rotation_magnitude_arcsec();
+    let tr = m.translation_magnitude_mm();
+    let over = |v: f64, limit: Option<f64>| limit.is_some_and(|l| v >= l);
+    if over(rot, thresholds.alarm_rotation_arcsec) || over(tr, thresholds.alarm_translation_mm) {
+        "alarm"
+    } else if over(rot, thresholds.warn_rotation_arcsec) || over(tr, thresholds.warn_translation_mm)
+    {
+        "warn"
+    } else {
+        "none"
+    }
+}
+
+/// A result to answer, wherever it came from.
+struct Evaluated {
+    time_ns: Option<i64>,
+    status: TargetStatus,
+    age_s: f64,
+    source: &'static str,
+    estimate: Option<PoseCov>,
+    consistency: Option<crate::chain::Consistency>,
+}
+
+fn evaluated(e: &TargetEstimate, source: &'static str) -> Evaluated {
+    Evaluated {
+        time_ns: Some(e.time_ns),
+        status: e.status,
+        age_s: e.age_s,
+        source,
+        estimate: e.target_from_base,
+        consistency: e.consistency,
+    }
+}
+
+fn compensation_out(
+    app: &AppState,
+    spec: &TargetSpec,
+    e: Evaluated,
+    reference: Option<&CurrentReference>,
+) -> CompensationOut {
+    let Evaluated {
+        time_ns,
+        status,
+        age_s,
+        source,
+        estimate,
+        consistency,
+    } = e;
+    let inst = app.service.installation();
+    let deformation = match (estimate, reference) {
+        (Some(e), Some(r)) => Some(Deformation::new(&r.reference, &e)),
+        _ => None,
+    };
+    CompensationOut {
+        target: spec.name.clone(),
+        base: inst.topology.frame_name(spec.base).to_owned(),
+        time: time_ns.map(format_ns),
+        age_s,
+        status: status.name(),
+        source,
+        pose: estimate.as_ref().map(|e| (&e.pose).into()),
+        sigma: estimate.as_ref().map(Into::into),
+        reference: reference.map(Into::into),
+        deformation: deformation.map(|d| {
+            let m = d.deformation();
+            DeformationOut {
+                rotation_arcsec: m.rotation_arcsec,
+                translation_mm: m.translation_mm,
+                sigma: m.sigmas.into(),
+            }
+        }),
+        correction: deformation.map(|d| {
+            let c = d.correction();
+            let p = PoseOut::from(&d.g_from_g0.pose);
+            CorrectionOut {
+                q_wxyz: p.q_wxyz,
+                t_mm: p.t_mm,
+                rotation_arcsec: rotation_vector_arcsec(&d.g_from_g0.pose),
+                sigma: c.sigmas.into(),
+            }
+        }),
+        alarm: deformation.map_or("none", |d| alarm_level(&spec.alarms, &d)),
+        consistency: consistency.map(|c| ConsistencyOut {
+            chi2: c.chi2,
+            dof: c.dof,
+            threshold: c.threshold,
+        }),
+    }
+}
+
+/// Query of `compensation`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AtQuery {
+    /// A past or future time (RFC 3339 or integer ns); the newest result without it.
+    pub at: Option<String>,
+}
+
+/// `GET /api/v1/targets/{name}/compensation[?at=TIME]`.
+pub async fn get_compensation(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    Query(q): Query<AtQuery>,
+) -> Result<Json<CompensationOut>, ApiError> {
+    let (ti, spec) = target_index(&app, &name)?;
+    let snapshot = app.service.snapshot();
+    let view = &snapshot.targets[ti];
+    let reference = view.reference.as_ref();
+    let Some(at) = q.at else {
+        return Ok(Json(match &view.latest {
+            Some(l) => compensation_out(&app, &spec, evaluated(l, "live"), reference),
+            None => compensation_out(
+                &app,
+                &spec,
+                Evaluated {
+                    time_ns: None,
+                    status: TargetStatus::Initializing,
+                    age_s: 0.0,
+                    source: "live",
+                    estimate: None,
+                    consistency: None,
+                },
+                reference,
+            ),
+        }));
+    };
+    let at_ns = parse_query_time(&at).map_err(|m| ApiError::invalid_field("at", m))?;
+    let latest_ns = view.latest.as_ref().map(|l| l.time_ns);
+    if latest_ns.is_some_and(|l| at_ns >= l) {
+        let est: TargetEstimate = snapshot
+            .bank
+            .evaluate(ti, at_ns)
+            .map_err(|e| ApiError::invalid_field("at", e.to_string()))?;
+        let source = if est.status == TargetStatus::Predicted {
+            "predicted"
+        } else {
+            "live"
+        };
+        return Ok(Json(compensation_out(
+            &app,
+            &spec,
+            evaluated(&est, source),
+            reference,
+        )));
+    }
+    let (before, after) = app.service.store().results_around(ti, true, at_ns).await?;
+    let Some(before) = before else {
+        return Err(ApiError::not_found(format!(
+            "target `{name}` has no filtered result at or before {}",
+            format_ns(at_ns)
+        )));
+    };
+    let estimate = match after {
+        Some(after) if before.time_ns < at_ns => {
+            // Interpolate on SE(3): T = Exp(a Log(T1 T0^-1)) T0; covariances linearly.
+            let a = (at_ns - before.time_ns) as f64 / (after.time_ns - before.time_ns) as f64;
+            let d = se3_log(&(after.estimate.pose * before.estimate.pose.inverse()));
+            PoseCov {
+                pose: se3_exp(&(d * a)) * before.estimate.pose,
+                cov: before.estimate.cov * (1.0 - a) + after.estimate.cov * a,
+            }
+        }
+        _ => before.estimate,
+    };
+    Ok(Json(compensation_out(
+        &app,
+        &spec,
+        Evaluated {
+            time_ns: Some(at_ns),
+            status: crate::service::parse_status(&before.status),
+            age_s: before.age_s,
+            source: "history",
+            estimate: Some(estimate),
+            consistency: None,
+        },
+        reference,
+    )))
+}
+
+/// Query of `stats` and other windows.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WindowQuery {
+    /// Start (RFC 3339 or integer ns); the beginning of time without it.
+    pub from: Option<String>,
+    /// End; the end of time without it.
+    pub to: Option<String>,
+    /// `raw` or `filtered` (default `filtered`).
+    pub source: Option<String>,
+}
+
+/// Parses `from`, `to` and `source` of a window query.
+pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
+    let from = match &q.from {
+        Some(f) => parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?,
+        None => i64::MIN,
+    };
+    let to = match &q.to {
+        Some(t) => parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?,
+        None => i64::MAX,
+    };
+    if from > to {
+        return Err(ApiError::invalid_field("to", "`to` is before `from`"));
+    }
+    let filtered = match q.source.as_deref() {
+        None | Some("filtered") => true,
+        Some("raw") => false,
+        Some(other) => {
+            return Err(ApiError::invalid_field(
+                "source",
+                format!("`{other}` is not `raw` or `filtered`"),
+            ));
+        }
+    };
+    Ok((from, to, filtered))
+}
+
+/// Three statistics.
+#[derive(Debug, Serialize)]
+pub struct ComponentsOut {
+    /// Minimum.
+    pub min: [f64; 3],
+    /// Maximum.
+    pub max: [f64; 3],
+    /// Mean.
+    pub mean: [f64; 3],
+    /// Population standard deviation.
+    pub rms: [f64; 3],
+}
+
+/// `GET .../stats`.
+#[derive(Debug, Serialize)]
+pub struct StatsOut {
+    /// Target.
+    pub target: String,
+    /// `raw` or `filtered`.
+    pub source: &'static str,
+    /// Results in the window.
+    pub count: usize,
+    /// Window start (as asked, or the first result).
+    pub from: Option<String>,
+    /// Window end.
+    pub to: Option<String>,
+    /// Euler angles (degrees).
+    pub euler_deg: Option<ComponentsOut>,
+    /// Translation (mm).
+    pub t_mm: Option<ComponentsOut>,
+}
+
+/// The most results one statistics request reads.
+const MAX_STATS_RESULTS: i64 = 50_000_000;
+
+/// `GET /api/v1/targets/{name}/stats?from=&to=&source=raw|filtered`.
+pub async fn get_stats(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    Query(q): Query<WindowQuery>,
+) -> Result<Json<StatsOut>, ApiError> {
+    let (ti, spec) = target_index(&app, &name)?;
+    let (from, to, filtered) = parse_window(&q)?;
+    let results = app
+        .service
+        .store()
+        .results(ti, filtered, from, to, MAX_STATS_RESULTS)
+        .await?;
+    let stats = pose_stats(results.iter().map(|r| &r.estimate.pose));
+    let comp = |c: crate::stats::ComponentStats| ComponentsOut {
+        min: c.min,
+        max: c.max,
+        mean: c.mean,
+        rms: c.rms,
+    };
+    Ok(Json(StatsOut {
+        target: spec.name,
+        source: if filtered { "filtered" } else { "raw" },
+        count: stats.map_or(0, |s| s.count),
+        from: results
+            .first()
+            .map(|r| format_ns(if from == i64::MIN { r.time_ns } else { from })),
+        to: results
+            .last()
+            .map(|r| format_ns(if to == i64::MAX { r.time_ns } else { to })),
+        euler_deg: stats.map(|s| comp(s.euler_deg)),
+        t_mm: stats.map(|s| comp(s.t_mm)),
+    }))
+}
+
+/// Body of `POST .../reference`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReferenceIn {
+    /// Window start (with `to`).
+    pub from: Option<serde_json::Value>,
+    /// Window end (with `from`).
+    pub to: Option<serde_json::Value>,
+    /// An explicit `G0_from_B` (instead of a window).
+    pub pose: Option<PoseIn>,
+}
+
+/// `POST /api/v1/targets/{name}/reference`.
+pub async fn post_reference(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    body: axum::body::Bytes,
+) -> Result<(StatusCode, Json<ReferenceOut>), ApiError> {
+    let (ti, _) = target_index(&app, &name)?;
+    let r: ReferenceIn = super::parse_json_body(&body)?;
+    let request = match (r.pose, r.from, r.to) {
+        (Some(p), None, None) => ReferenceRequest::Explicit(
+            p.to_pose("pose")
+                .map_err(|(f, m)| ApiError::invalid_field(&f, m))?,
+        ),
+        (None, Some(from), Some(to)) => {
+            let from_ns = super::time::parse_json_time(&from)
+                .map_err(|m| ApiError::invalid_field("from", m))?;
+            let to_ns =
+                super::time::parse_json_time(&to).map_err(|m| ApiError::invalid_field("to", m))?;
+            if from_ns > to_ns {
+                return Err(ApiError::invalid_field("to", "`to` is before `from`"));
+            }
+            ReferenceRequest::Window { from_ns, to_ns }
+        }
+        _ => {
+            return Err(ApiError::invalid_field(
+                "pose",
+                "give either `pose`, or both `from` and `to` (a window of filtered results)",
+            ));
+        }
+    };
+    let current = app.service.set_reference(ti, request).await?;
+    Ok((StatusCode::CREATED, Json((&current).into())))
+}
+
+/// `GET /api/v1/targets/{name}/reference`.
+pub async fn get_reference(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+) -> Result<Json<ReferenceOut>, ApiError> {
+    let (ti, _) = target_index(&app, &name)?;
+    let snapshot = app.service.snapshot();
+    snapshot.targets[ti]
+        .reference
+        .as_ref()
+        .map(|r| Json(r.into()))
+        .ok_or_else(|| ApiError::not_found(format!("target `{name}` has no reference yet")))
+}
+
+/// `GET .../references`.
+#[derive(Debug, Serialize)]
+pub struct ReferencesOut {
+    /// Target.
+    pub target: String,
+    /// Every version, oldest first.
+    pub references: Vec<ReferenceOut>,
+}
+
+/// `GET /api/v1/targets/{name}/references`.
+pub async fn list_references(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+) -> Result<Json<ReferencesOut>, ApiError> {
+    let (ti, spec) = target_index(&app, &name)?;
+    let stored = app.service.store().references(ti).await?;
+    Ok(Json(ReferencesOut {
+        target: spec.name,
+        references: stored
+            .iter()
+            .map(|r| {
+                (&CurrentReference {
+                    version: r.version,
+                    reference: r.reference,
+                    created_ns: r.created_ns,
+                })
+                    .into()
+            })
+            .collect(),
+    }))
+}

@@ -1,0 +1,70 @@
+//! Times at the API edge: RFC 3339 UTC text or integer nanoseconds since the Unix epoch.
+
+use time::OffsetDateTime;
+use time::format_description::well_known::Rfc3339;
+
+/// Parses a time given as RFC 3339 text (any offset; converted to UTC).
+pub fn parse_rfc3339_ns(text: &str) -> Result<i64, String> {
+    let t = OffsetDateTime::parse(text, &Rfc3339)
+        .map_err(|e| format!("`{text}` is not an RFC 3339 time ({e})"))?;
+    i64::try_from(t.unix_timestamp_nanos())
+        .map_err(|_| format!("`{text}` is outside the representable range (years 1678 to 2261)"))
+}
+
+/// Parses a JSON time: RFC 3339 text or integer nanoseconds.
+pub fn parse_json_time(v: &serde_json::Value) -> Result<i64, String> {
+    match v {
+        serde_json::Value::String(s) => parse_rfc3339_ns(s),
+        serde_json::Value::Number(n) => n.as_i64().ok_or_else(|| {
+            format!("{n} is not an integer number of nanoseconds within the representable range")
+        }),
+        other => Err(format!(
+            "must be RFC 3339 text or integer nanoseconds since the Unix epoch, not {other}"
+        )),
+    }
+}
+
+/// Parses a query-string time: RFC 3339 text, or integer nanoseconds.
+pub fn parse_query_time(text: &str) -> Result<i64, String> {
+    if let Ok(ns) = text.parse::<i64>() {
+        return Ok(ns);
+    }
+    parse_rfc3339_ns(text)
+}
+
+/// Formats nanoseconds as RFC 3339 UTC text with nanosecond precision.
+pub fn format_ns(ns: i64) -> String {
+    OffsetDateTime::from_unix_timestamp_nanos(i128::from(ns))
+        .ok()
+        .and_then(|t| t.format(&Rfc3339).ok())
+        .unwrap_or_else(|| ns.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rfc3339_round_trips_to_the_nanosecond() {
+        let ns = parse_rfc3339_ns("2026-11-21T10:00:00.040000001Z").unwrap();
+        assert_eq!(format_ns(ns), "2026-11-21T10:00:00.040000001Z");
+        assert_eq!(
+            parse_rfc3339_ns("2026-11-21T11:00:00.04+01:00").unwrap(),
+            ns - 1
+        );
+    }
+
+    #[test]
+    fn times_outside_i64_nanoseconds_are_refused() {
+        assert!(
+            parse_rfc3339_ns("2500-01-01T00:00:00Z")
+                .unwrap_err()
+                .contains("representable")
+        );
+        assert!(
+            parse_rfc3339_ns("1500-01-01T00:00:00Z")
+                .unwrap_err()
+                .contains("representable")
+        );
+    }
+}

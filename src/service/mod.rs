@@ -1,0 +1,366 @@
+//! Orchestration: ingest -> filter -> store, references, calibrations, and what readers see.
+//!
+//! The only place that sequences IO. One pipeline task ([`pipeline`]) owns the database's write
+//! connection and the filter bank. Requests reach it as jobs on a queue; it takes every job
+//! waiting, applies them in order inside one transaction (conflict checks against the store,
+//! filtering, results), persists the bank's state in the same transaction, commits, and only
+//! then answers each job. Many requests therefore share one commit (group commit), and an
+//! answer always means "on disk". If a commit fails, the bank is restored to the state of the
+//! last commit and the jobs are answered with an error: memory never runs ahead of the disk.
+//!
+//! After each commit the pipeline publishes a [`Snapshot`] (latest filtered result, deformation
+//! and reference per target, link counters, and a view of the filters for predictions), which
+//! readers use without touching the pipeline.
+
+mod pipeline;
+
+pub use pipeline::{IngestItem, IngestReport};
+
+use crate::config::Installation;
+use crate::deformation::{Deformation, Reference};
+use crate::filter::{FilterBank, TargetEstimate, TargetStatus};
+use crate::geometry::{Pose, PoseCov};
+use crate::store::{self, Store, StoreError};
+use std::sync::{Arc, RwLock};
+use tokio::sync::{mpsc, oneshot};
+
+/// A problem with one item of a request.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ItemProblem {
+    /// Index of the item in the request.
+    pub index: Option<usize>,
+    /// The field concerned (`time`, `pose.q_wxyz`, ...).
+    pub field: Option<String>,
+    /// What is wrong.
+    pub message: String,
+}
+
+/// Errors of the service layer.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The request is invalid; nothing was stored.
+    #[error("{message}")]
+    Invalid {
+        /// Summary.
+        message: String,
+        /// The items concerned.
+        problems: Vec<ItemProblem>,
+    },
+    /// The request conflicts with stored data; nothing was stored.
+    #[error("{message}")]
+    Conflict {
+        /// Summary.
+        message: String,
+        /// The items concerned.
+        problems: Vec<ItemProblem>,
+    },
+    /// Something asked for does not exist.
+    #[error("{0}")]
+    NotFound(String),
+    /// The store failed; nothing of the request was stored.
+    #[error("storage failed: {0}")]
+    Storage(#[from] StoreError),
+    /// The pipeline is not running (the service is shutting down).
+    #[error("the service is shutting down")]
+    ShuttingDown,
+}
+
+/// Result alias of the service.
+pub type ServiceResult<T> = Result<T, ServiceError>;
+
+/// A target's current reference.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CurrentReference {
+    /// Its version.
+    pub version: i64,
+    /// The reference.
+    pub reference: Reference,
+    /// When it was set (ns, wall clock).
+    pub created_ns: i64,
+}
+
+/// What readers see of one target.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TargetView {
+    /// The newest filtered result.
+    pub latest: Option<TargetEstimate>,
+    /// The current reference.
+    pub reference: Option<CurrentReference>,
+}
+
+impl TargetView {
+    /// The deformation of the newest result against the current reference.
+    pub fn deformation(&self) -> Option<Deformation> {
+        let estimate = self.latest.as_ref()?.target_from_base?;
+        Some(Deformation::new(&self.reference?.reference, &estimate))
+    }
+}
+
+/// What readers see, as of the last commit.
+#[derive(Debug, Clone)]
+pub struct Snapshot {
+    /// Per target (installation order).
+    pub targets: Vec<TargetView>,
+    /// The filters' current states, for predictions and link counters.
+    pub bank: FilterBank,
+}
+
+/// How a reference is set.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ReferenceRequest {
+    /// An explicit `G0_from_B`.
+    Explicit(Pose),
+    /// The mean of the filtered results in `[from_ns, to_ns]`.
+    Window {
+        /// Start (ns).
+        from_ns: i64,
+        /// End (ns).
+        to_ns: i64,
+    },
+}
+
+#[allow(
+    clippy::large_enum_variant,
+    reason = "one per request on the queue; boxing buys nothing"
+)]
+pub(crate) enum Job {
+    Ingest {
+        items: Vec<IngestItem>,
+        reply: oneshot::Sender<ServiceResult<IngestReport>>,
+    },
+    SetReference {
+        target: usize,
+        request: ReferenceRequest,
+        reply: oneshot::Sender<ServiceResult<CurrentReference>>,
+    },
+    AddCalibration {
+        link: crate::chain::LinkId,
+        valid_from_ns: i64,
+        parent_from_child: PoseCov,
+        reply: oneshot::Sender<ServiceResult<i64>>,
+    },
+}
+
+struct Inner {
+    installation: Arc<Installation>,
+    store: Store,
+    jobs: mpsc::Sender<Job>,
+    snapshot: RwLock<Arc<Snapshot>>,
+}
+
+/// The running service: a handle that request handlers clone.
+#[derive(Clone)]
+pub struct Service {
+    inner: Arc<Inner>,
+}
+
+/// The pipeline task, to await at shutdown (it finishes the jobs already queued).
+pub struct PipelineHandle(tokio::task::JoinHandle<()>);
+
+impl PipelineHandle {
+    /// Waits until every queued job is committed and answered.
+    pub async fn finished(self) {
+        if let Err(e) = self.0.await {
+            tracing::error!(error = %e, "the pipeline task panicked");
+        }
+    }
+}
+
+/// Wall-clock time (ns since the Unix epoch), for receipt and creation stamps only.
+pub fn now_ns() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
+        .unwrap_or(0)
+}
+
+/// A short fingerprint of the parts of an installation that the filter state depends on.
+fn installation_digest(inst: &Installation) -> String {
+    let mut parts: Vec<String> = inst
+        .links
+        .iter()
+        .map(|l| match &l.kind {
+            crate::config::LinkKind::Measured(m) => format!("{}:{}", l.name, m.tuning.model.name()),
+            crate::config::LinkKind::Calibrated { .. } => format!("{}:calibrated", l.name),
+        })
+        .collect();
+    parts.sort();
+    parts.join(",")
+}
+
+impl Service {
+    /// Opens the store, restores the filters, references and calibrations, and starts the
+    /// pipeline. The handle must be awaited after the last request, at shutdown.
+    pub async fn start(installation: Installation) -> ServiceResult<(Service, PipelineHandle)> {
+        let installation = Arc::new(installation);
+        let link_names: Vec<String> = installation.links.iter().map(|l| l.name.clone()).collect();
+        let target_names: Vec<String> = installation
+            .targets
+            .iter()
+            .map(|t| t.name.clone())
+            .collect();
+        let (store, write) = store::open(
+            &installation.server.database,
+            &link_names,
+            &target_names,
+            now_ns(),
+        )
+        .await?;
+
+        let mut bank = FilterBank::shared(Arc::clone(&installation));
+        for spec in &installation.links {
+            if matches!(spec.kind, crate::config::LinkKind::Calibrated { .. }) {
+                for c in store.calibrations(spec.id).await? {
+                    bank.add_calibration(spec.id, c.valid_from_ns, c.parent_from_child);
+                }
+            }
+        }
+        let digest = installation_digest(&installation);
+        if let Some((stored_digest, state)) = store.filter_state().await? {
+            if stored_digest != digest {
+                tracing::warn!(
+                    stored = %stored_digest,
+                    now = %digest,
+                    "the installation's links changed since the filter state was saved; restoring what still fits"
+                );
+            }
+            match serde_json::from_str::<crate::filter::BankRecord>(&state) {
+                Ok(record) => {
+                    for skipped in bank.restore(&record) {
+                        tracing::warn!(%skipped, "filter state not restored");
+                    }
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "the stored filter state is unreadable; filters start afresh")
+                }
+            }
+        }
+        let mut targets = Vec::with_capacity(installation.targets.len());
+        for (ti, _) in installation.targets.iter().enumerate() {
+            let reference = store.references(ti).await?.pop().map(|r| CurrentReference {
+                version: r.version,
+                reference: r.reference,
+                created_ns: r.created_ns,
+            });
+            let latest = store
+                .latest_result(ti, true)
+                .await?
+                .map(|r| TargetEstimate {
+                    target: ti,
+                    time_ns: r.time_ns,
+                    status: parse_status(&r.status),
+                    target_from_base: Some(r.estimate),
+                    age_s: r.age_s,
+                    consistency: None,
+                    paths_used: 0,
+                });
+            targets.push(TargetView { latest, reference });
+        }
+        let snapshot = Arc::new(Snapshot {
+            targets: targets.clone(),
+            bank: bank.current_view(),
+        });
+        let (jobs, rx) = mpsc::channel(1024);
+        let inner = Arc::new(Inner {
+            installation: Arc::clone(&installation),
+            store,
+            jobs,
+            snapshot: RwLock::new(snapshot),
+        });
+        let publisher = Arc::clone(&inner);
+        let task = tokio::spawn(pipeline::run(
+            pipeline::Pipeline::new(write, bank, targets, digest),
+            rx,
+            move |s: Snapshot| {
+                if let Ok(mut guard) = publisher.snapshot.write() {
+                    *guard = Arc::new(s);
+                }
+            },
+        ));
+        Ok((Service { inner }, PipelineHandle(task)))
+    }
+
+    /// The installation.
+    pub fn installation(&self) -> &Installation {
+        &self.inner.installation
+    }
+
+    /// The store's read side.
+    pub fn store(&self) -> &Store {
+        &self.inner.store
+    }
+
+    /// The state as of the last commit.
+    pub fn snapshot(&self) -> Arc<Snapshot> {
+        match self.inner.snapshot.read() {
+            Ok(g) => Arc::clone(&g),
+            Err(poisoned) => Arc::clone(&poisoned.into_inner()),
+        }
+    }
+
+    /// True while the pipeline accepts jobs.
+    pub fn pipeline_alive(&self) -> bool {
+        !self.inner.jobs.is_closed()
+    }
+
+    async fn submit<T>(
+        &self,
+        make: impl FnOnce(oneshot::Sender<ServiceResult<T>>) -> Job,
+    ) -> ServiceResult<T> {
+        let (reply, answer) = oneshot::channel();
+        self.inner
+            .jobs
+            .send(make(reply))
+            .await
+            .map_err(|_| ServiceError::ShuttingDown)?;
+        answer.await.map_err(|_| ServiceError::ShuttingDown)?
+    }
+
+    /// Ingests validated samples atomically: all are durably stored (or were already, as
+    /// identical retries) when this returns `Ok`; none is when it returns an error.
+    pub async fn ingest(&self, items: Vec<IngestItem>) -> ServiceResult<IngestReport> {
+        self.submit(|reply| Job::Ingest { items, reply }).await
+    }
+
+    /// Sets a target's reference (a new version).
+    pub async fn set_reference(
+        &self,
+        target: usize,
+        request: ReferenceRequest,
+    ) -> ServiceResult<CurrentReference> {
+        self.submit(|reply| Job::SetReference {
+            target,
+            request,
+            reply,
+        })
+        .await
+    }
+
+    /// Stores a new calibration of a calibrated link, valid from `valid_from_ns`; returns its
+    /// version.
+    pub async fn add_calibration(
+        &self,
+        link: crate::chain::LinkId,
+        valid_from_ns: i64,
+        parent_from_child: PoseCov,
+    ) -> ServiceResult<i64> {
+        self.submit(|reply| Job::AddCalibration {
+            link,
+            valid_from_ns,
+            parent_from_child,
+            reply,
+        })
+        .await
+    }
+}
+
+/// Parses a stored status name.
+pub fn parse_status(s: &str) -> TargetStatus {
+    match s {
+        "ok" => TargetStatus::Ok,
+        "stale" => TargetStatus::Stale,
+        "degraded" => TargetStatus::Degraded,
+        "predicted" => TargetStatus::Predicted,
+        _ => TargetStatus::Initializing,
+    }
+}

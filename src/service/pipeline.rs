@@ -1,0 +1,454 @@
+//! The pipeline task: the one writer. See the module docs of [`crate::service`].
+
+use super::{
+    CurrentReference, ItemProblem, Job, ReferenceRequest, ServiceError, ServiceResult, Snapshot,
+    TargetView, now_ns,
+};
+use crate::chain::LinkId;
+use crate::deformation::{Deformation, Reference};
+use crate::filter::{BankRecord, Disposition, FilterBank, Sample, TargetEstimate};
+use crate::store::write_tx::WriteTx;
+use crate::store::{NewResult, NewSample, Quality, SampleValues, StoreError, WriteConn};
+use std::collections::{BTreeMap, HashMap};
+use tokio::sync::{mpsc, oneshot};
+
+/// At most this many queued jobs share one commit (bounds the latency of the first).
+const MAX_JOBS_PER_COMMIT: usize = 256;
+
+/// One validated sample of an ingest request.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IngestItem {
+    /// Its index in the request.
+    pub index: usize,
+    /// The sample.
+    pub sample: Sample,
+    /// Pose-estimation quality, as given.
+    pub quality: Quality,
+}
+
+/// What an ingest request did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct IngestReport {
+    /// Samples in the request: all now durably stored.
+    pub accepted: usize,
+    /// Of those, newly stored.
+    pub stored: usize,
+    /// Of those, identical to samples already stored (retries).
+    pub duplicates: usize,
+    /// New samples flagged as outliers.
+    pub outliers: usize,
+    /// New samples older than their link's filter (stored, not fused).
+    pub out_of_order: usize,
+    /// Filter restarts after a run of consistent outliers.
+    pub reinitialized: usize,
+    /// Raw results completed.
+    pub raw_results: usize,
+    /// Filtered results produced.
+    pub filtered_results: usize,
+}
+
+pub(super) struct Pipeline {
+    write: WriteConn,
+    bank: FilterBank,
+    targets: Vec<TargetView>,
+    digest: String,
+    committed_state: BankRecord,
+}
+
+#[allow(
+    clippy::large_enum_variant,
+    reason = "one per request in a commit group; boxing buys nothing"
+)]
+enum Pending {
+    Ingest(
+        oneshot::Sender<ServiceResult<IngestReport>>,
+        ServiceResult<IngestReport>,
+    ),
+    Reference(
+        oneshot::Sender<ServiceResult<CurrentReference>>,
+        ServiceResult<CurrentReference>,
+    ),
+    Calibration(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
+}
+
+impl Pending {
+    fn answer(self) {
+        // A requester that gave up (closed connection) no longer listens: nothing to do.
+        let _ = match self {
+            Pending::Ingest(tx, r) => tx.send(r).map_err(|_| ()),
+            Pending::Reference(tx, r) => tx.send(r).map_err(|_| ()),
+            Pending::Calibration(tx, r) => tx.send(r).map_err(|_| ()),
+        };
+    }
+
+    fn fail(self, message: &str) {
+        let err = || ServiceError::Storage(StoreError::Malformed(message.to_owned()));
+        let _ = match self {
+            Pending::Ingest(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+            Pending::Reference(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+            Pending::Calibration(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+        };
+    }
+}
+
+impl Pipeline {
+    pub(super) fn new(
+        write: WriteConn,
+        bank: FilterBank,
+        targets: Vec<TargetView>,
+        digest: String,
+    ) -> Self {
+        let committed_state = bank.record();
+        Self {
+            write,
+            bank,
+            targets,
+            digest,
+            committed_state,
+        }
+    }
+
+    fn snapshot(&self) -> Snapshot {
+        Snapshot {
+            targets: self.targets.clone(),
+            bank: self.bank.current_view(),
+        }
+    }
+
+    /// Applies a group of jobs in one transaction and answers them after the commit.
+    async fn commit_group(&mut self, jobs: Vec<Job>) -> bool {
+        let now = now_ns();
+        let targets_before = self.targets.clone();
+        let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
+        let mut pending: Vec<Pending> = Vec::with_capacity(jobs.len());
+        let Pipeline {
+            write,
+            bank,
+            targets,
+            digest,
+            ..
+        } = self;
+        let outcome: Result<BankRecord, StoreError> = async {
+            let mut tx = write.begin().await?;
+            for job in jobs {
+                match job {
+                    Job::Ingest { items, reply } => {
+                        let r = ingest(&mut tx, bank, targets, items, now).await?;
+                        pending.push(Pending::Ingest(reply, r));
+                    }
+                    Job::SetReference {
+                        target,
+                        request,
+                        reply,
+                    } => {
+                        let r = set_reference(&mut tx, targets, target, request, now).await?;
+                        pending.push(Pending::Reference(reply, r));
+                    }
+                    Job::AddCalibration {
+                        link,
+                        valid_from_ns,
+                        parent_from_child,
+                        reply,
+                    } => {
+                        let version = tx
+                            .insert_calibration(link, valid_from_ns, &parent_from_child, now)
+                            .await?;
+                        if bank.add_calibration(link, valid_from_ns, parent_from_child) {
+                            added_calibrations.push((link, valid_from_ns));
+                            pending.push(Pending::Calibration(reply, Ok(version)));
+                        } else {
+                            pending.push(Pending::Calibration(
+                                reply,
+                                Err(ServiceError::Invalid {
+                                    message: "only calibrated links take calibrations".into(),
+                                    problems: Vec::new(),
+                                }),
+                            ));
+                        }
+                    }
+                }
+            }
+            let record = bank.record();
+            let json = serde_json::to_string(&record).map_err(|e| {
+                StoreError::Malformed(format!("cannot encode the filter state: {e}"))
+            })?;
+            tx.save_filter_state(digest, &json, now).await?;
+            tx.commit().await?;
+            Ok(record)
+        }
+        .await;
+        match outcome {
+            Ok(record) => {
+                self.committed_state = record;
+                for p in pending {
+                    p.answer();
+                }
+                true
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "a commit failed; its requests are refused and the filters roll back");
+                for skipped in self.bank.rollback(&self.committed_state) {
+                    tracing::warn!(%skipped, "rollback could not restore a filter");
+                }
+                for (link, valid_from) in added_calibrations {
+                    self.bank.remove_calibration(link, valid_from);
+                }
+                self.targets = targets_before;
+                for p in pending {
+                    p.fail("the database did not accept the write");
+                }
+                false
+            }
+        }
+    }
+}
+
+/// Runs the pipeline until every sender is gone, then closes the write connection.
+pub(super) async fn run(mut p: Pipeline, mut rx: mpsc::Receiver<Job>, publish: impl Fn(Snapshot)) {
+    while let Some(first) = rx.recv().await {
+        let mut jobs = vec![first];
+        while jobs.len() < MAX_JOBS_PER_COMMIT {
+            match rx.try_recv() {
+                Ok(j) => jobs.push(j),
+                Err(_) => break,
+            }
+        }
+        if p.commit_group(jobs).await {
+            publish(p.snapshot());
+        }
+    }
+    if let Err(e) = p.write.close().await {
+        tracing::error!(error = %e, "closing the database failed");
+    }
+}
+
+fn disposition_name(d: &Disposition) -> &'static str {
+    match d {
+        Disposition::Initialized => "initialized",
+        Disposition::Fused { .. } => "fused",
+        Disposition::Outlier { .. } => "outlier",
+        Disposition::Reinitialized { .. } => "reinitialized",
+        Disposition::OutOfOrder { .. } => "out_of_order",
+    }
+}
+
+fn nis_of(d: &Disposition) -> Option<f64> {
+    match d {
+        Disposition::Fused { nis }
+        | Disposition::Outlier { nis, .. }
+        | Disposition::Reinitialized { nis, .. } => Some(*nis).filter(|n| n.is_finite()),
+        _ => None,
+    }
+}
+
+fn deformation_of(
+    targets: &[TargetView],
+    target: usize,
+    estimate: &crate::geometry::PoseCov,
+) -> Option<(i64, crate::deformation::SmallMotion)> {
+    let r = targets[target].reference?;
+    Some((
+        r.version,
+        Deformation::new(&r.reference, estimate).deformation(),
+    ))
+}
+
+/// One ingest job: conflict checks, filtering, rows. `Ok(Err(..))` refuses the job alone (no
+/// effect on the bank or the transaction); `Err` aborts the whole transaction.
+async fn ingest(
+    tx: &mut WriteTx<'_>,
+    bank: &mut FilterBank,
+    targets: &mut [TargetView],
+    items: Vec<IngestItem>,
+    now: i64,
+) -> Result<ServiceResult<IngestReport>, StoreError> {
+    // Check every measurement before the bank sees any of them.
+    let mut problems = Vec::new();
+    for item in &items {
+        if let Err(e) = bank.measurement(&item.sample) {
+            problems.push(ItemProblem {
+                index: Some(item.index),
+                field: Some("covariance".into()),
+                message: e.to_string(),
+            });
+        }
+    }
+    if !problems.is_empty() {
+        return Ok(Err(ServiceError::Invalid {
+            message: format!(
+                "{} sample(s) have unusable uncertainties; nothing was stored",
+                problems.len()
+            ),
+            problems,
+        }));
+    }
+    // Retries and conflicts: compare with what is stored (earlier jobs of this transaction
+    // included), link by link over the batch's time span.
+    let mut spans: HashMap<LinkId, (i64, i64)> = HashMap::new();
+    for item in &items {
+        let e = spans
+            .entry(item.sample.link)
+            .or_insert((item.sample.time_ns, item.sample.time_ns));
+        e.0 = e.0.min(item.sample.time_ns);
+        e.1 = e.1.max(item.sample.time_ns);
+    }
+    let mut stored: HashMap<(LinkId, i64), SampleValues> = HashMap::new();
+    for (link, (from, to)) in spans {
+        for (t, v) in tx.existing_samples(link, from, to).await? {
+            stored.insert((link, t), v);
+        }
+    }
+    let mut report = IngestReport {
+        accepted: items.len(),
+        ..IngestReport::default()
+    };
+    let mut fresh = Vec::with_capacity(items.len());
+    let mut conflicts = Vec::new();
+    for item in items {
+        let values = SampleValues {
+            pose: item.sample.parent_from_child,
+            uncertainty: item.sample.uncertainty.into(),
+            quality: item.quality,
+        };
+        match stored.get(&(item.sample.link, item.sample.time_ns)) {
+            Some(existing) if existing.same_as(&values) => report.duplicates += 1,
+            Some(_) => conflicts.push(ItemProblem {
+                index: Some(item.index),
+                field: Some("time".into()),
+                message: format!(
+                    "a different sample of `{}` at this time is already stored",
+                    bank.installation().links[item.sample.link.0].name
+                ),
+            }),
+            None => fresh.push((item, values)),
+        }
+    }
+    if !conflicts.is_empty() {
+        return Ok(Err(ServiceError::Conflict {
+            message: format!(
+                "{} sample(s) conflict with stored samples (same link and time, other values); nothing was stored",
+                conflicts.len()
+            ),
+            problems: conflicts,
+        }));
+    }
+    // Filter in time order, links in a fixed order within one time.
+    fresh.sort_by_key(|(item, _)| (item.sample.time_ns, item.sample.link));
+    let mut sample_rows = Vec::with_capacity(fresh.len());
+    let mut result_rows: BTreeMap<(usize, bool, i64), NewResult> = BTreeMap::new();
+    let mut latest: HashMap<usize, TargetEstimate> = HashMap::new();
+    for (item, values) in fresh {
+        let outcome = match bank.ingest(&item.sample) {
+            Ok(o) => o,
+            // Checked above; a failure here would be a defect, not bad input.
+            Err(e) => {
+                return Err(StoreError::Malformed(format!(
+                    "the filter refused a checked sample: {e}"
+                )));
+            }
+        };
+        let d = outcome.disposition;
+        report.stored += 1;
+        match d {
+            Disposition::Outlier { .. } => report.outliers += 1,
+            Disposition::Reinitialized { .. } => {
+                report.outliers += 1;
+                report.reinitialized += 1;
+            }
+            Disposition::OutOfOrder { .. } => report.out_of_order += 1,
+            _ => {}
+        }
+        sample_rows.push(NewSample {
+            link: item.sample.link,
+            time_ns: item.sample.time_ns,
+            values,
+            disposition: disposition_name(&d),
+            outlier: d.is_outlier(),
+            nis: nis_of(&d),
+            received_ns: now,
+        });
+        for raw in &outcome.raw_results {
+            report.raw_results += 1;
+            result_rows.insert(
+                (raw.target, false, raw.time_ns),
+                NewResult {
+                    target: raw.target,
+                    filtered: false,
+                    time_ns: raw.time_ns,
+                    estimate: raw.target_from_base,
+                    status: if raw.consistency.is_some_and(|c| !c.is_consistent()) {
+                        "degraded"
+                    } else {
+                        "ok"
+                    },
+                    age_s: 0.0,
+                    chi2: raw.consistency.map(|c| c.chi2),
+                    deformation: deformation_of(targets, raw.target, &raw.target_from_base),
+                },
+            );
+        }
+        for est in outcome.filtered_results {
+            let Some(pose) = est.target_from_base else {
+                continue;
+            };
+            report.filtered_results += 1;
+            result_rows.insert(
+                (est.target, true, est.time_ns),
+                NewResult {
+                    target: est.target,
+                    filtered: true,
+                    time_ns: est.time_ns,
+                    estimate: pose,
+                    status: est.status.name(),
+                    age_s: est.age_s,
+                    chi2: est.consistency.map(|c| c.chi2),
+                    deformation: deformation_of(targets, est.target, &pose),
+                },
+            );
+            latest.insert(est.target, est);
+        }
+    }
+    tx.insert_samples(&sample_rows).await?;
+    let rows: Vec<NewResult> = result_rows.into_values().collect();
+    tx.insert_results(&rows).await?;
+    for (t, est) in latest {
+        targets[t].latest = Some(est);
+    }
+    Ok(Ok(report))
+}
+
+async fn set_reference(
+    tx: &mut WriteTx<'_>,
+    targets: &mut [TargetView],
+    target: usize,
+    request: ReferenceRequest,
+    now: i64,
+) -> Result<ServiceResult<CurrentReference>, StoreError> {
+    let reference = match request {
+        ReferenceRequest::Explicit(pose) => Reference::explicit(pose),
+        ReferenceRequest::Window { from_ns, to_ns } => {
+            let poses = tx.filtered_poses(target, from_ns, to_ns).await?;
+            match Reference::from_window(&poses, from_ns, to_ns) {
+                Ok(r) => r,
+                Err(_) => {
+                    return Ok(Err(ServiceError::Invalid {
+                        message: "there are no filtered results in the window".into(),
+                        problems: vec![ItemProblem {
+                            index: None,
+                            field: Some("from".into()),
+                            message: "no filtered result lies between `from` and `to`".into(),
+                        }],
+                    }));
+                }
+            }
+        }
+    };
+    let version = tx.insert_reference(target, &reference, now).await?;
+    let current = CurrentReference {
+        version,
+        reference,
+        created_ns: now,
+    };
+    targets[target].reference = Some(current);
+    Ok(Ok(current))
+}

@@ -1,0 +1,149 @@
+//! Conversions between domain values and columns.
+
+use super::StoreError;
+use crate::filter::MeasurementUncertainty;
+use crate::geometry::{Mat6, Pose, ReportedSigmas};
+use nalgebra::{Quaternion, Translation3, UnitQuaternion};
+
+/// A 6x6 matrix as 36 little-endian f64, column-major.
+pub(crate) fn encode_mat6(m: &Mat6) -> Vec<u8> {
+    let mut out = Vec::with_capacity(36 * 8);
+    for v in m.iter() {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+pub(crate) fn decode_f64s(bytes: &[u8], n: usize) -> Result<Vec<f64>, StoreError> {
+    if bytes.len() != n * 8 {
+        return Err(StoreError::Malformed(format!(
+            "a blob of {} bytes where {} numbers were expected",
+            bytes.len(),
+            n
+        )));
+    }
+    Ok(bytes
+        .chunks_exact(8)
+        .map(|c| {
+            let mut a = [0u8; 8];
+            a.copy_from_slice(c);
+            f64::from_le_bytes(a)
+        })
+        .collect())
+}
+
+pub(crate) fn decode_mat6(bytes: &[u8]) -> Result<Mat6, StoreError> {
+    Ok(Mat6::from_column_slice(&decode_f64s(bytes, 36)?))
+}
+
+/// A pose as `[tx, ty, tz, qw, qx, qy, qz]`.
+pub(crate) fn pose_columns(p: &Pose) -> [f64; 7] {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    [t.x, t.y, t.z, q.w, q.i, q.j, q.k]
+}
+
+pub(crate) fn pose_from_columns(c: [f64; 7]) -> Pose {
+    Pose::from_parts(
+        Translation3::new(c[0], c[1], c[2]),
+        UnitQuaternion::new_unchecked(Quaternion::new(c[3], c[4], c[5], c[6])),
+    )
+}
+
+/// How a sample's uncertainty was given, as stored.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[allow(clippy::large_enum_variant, reason = "one per stored sample, by value")]
+pub enum StoredUncertainty {
+    /// The link's default.
+    Default,
+    /// Per-axis sigmas.
+    Sigmas(ReportedSigmas),
+    /// A full covariance.
+    Covariance(Mat6),
+}
+
+impl From<MeasurementUncertainty> for StoredUncertainty {
+    fn from(u: MeasurementUncertainty) -> Self {
+        match u {
+            MeasurementUncertainty::Default => StoredUncertainty::Default,
+            MeasurementUncertainty::Sigmas(s) => StoredUncertainty::Sigmas(s),
+            MeasurementUncertainty::Covariance(c) => StoredUncertainty::Covariance(c),
+        }
+    }
+}
+
+impl From<StoredUncertainty> for MeasurementUncertainty {
+    fn from(u: StoredUncertainty) -> Self {
+        match u {
+            StoredUncertainty::Default => MeasurementUncertainty::Default,
+            StoredUncertainty::Sigmas(s) => MeasurementUncertainty::Sigmas(s),
+            StoredUncertainty::Covariance(c) => MeasurementUncertainty::Covariance(c),
+        }
+    }
+}
+
+impl StoredUncertainty {
+    pub(crate) fn columns(&self) -> (i64, Option<Vec<u8>>) {
+        match self {
+            StoredUncertainty::Default => (0, None),
+            StoredUncertainty::Sigmas(s) => {
+                let mut out = Vec::with_capacity(48);
+                for v in s.rotation_arcsec.iter().chain(&s.translation_mm) {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+                (1, Some(out))
+            }
+            StoredUncertainty::Covariance(c) => (2, Some(encode_mat6(c))),
+        }
+    }
+
+    pub(crate) fn from_columns(kind: i64, blob: Option<&[u8]>) -> Result<Self, StoreError> {
+        match (kind, blob) {
+            (0, _) => Ok(StoredUncertainty::Default),
+            (1, Some(b)) => {
+                let v = decode_f64s(b, 6)?;
+                Ok(StoredUncertainty::Sigmas(ReportedSigmas {
+                    rotation_arcsec: [v[0], v[1], v[2]],
+                    translation_mm: [v[3], v[4], v[5]],
+                }))
+            }
+            (2, Some(b)) => Ok(StoredUncertainty::Covariance(decode_mat6(b)?)),
+            _ => Err(StoreError::Malformed(format!("uncertainty kind {kind}"))),
+        }
+    }
+}
+
+/// Pose-estimation quality reported with a sample.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Quality {
+    /// Reprojection RMS (px).
+    pub reprojection_rms_px: Option<f64>,
+    /// Number of points used.
+    pub points: Option<u32>,
+}
+
+/// What makes two samples of one link and time the same: their values as given.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SampleValues {
+    /// The measured pose.
+    pub pose: Pose,
+    /// Its uncertainty as given.
+    pub uncertainty: StoredUncertainty,
+    /// Its quality as given.
+    pub quality: Quality,
+}
+
+impl SampleValues {
+    /// Equality of the stored numbers, bit for bit (a retry sends the same text, so parses to
+    /// the same numbers).
+    pub fn same_as(&self, other: &SampleValues) -> bool {
+        pose_columns(&self.pose)
+            .iter()
+            .zip(pose_columns(&other.pose).iter())
+            .all(|(a, b)| a.to_bits() == b.to_bits())
+            && self.uncertainty.columns() == other.uncertainty.columns()
+            && self.quality.points == other.quality.points
+            && self.quality.reprojection_rms_px.map(f64::to_bits)
+                == other.quality.reprojection_rms_px.map(f64::to_bits)
+    }
+}

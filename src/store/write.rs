@@ -1,0 +1,315 @@
+//! The write connection and the statements of one transaction.
+
+use super::codec::{encode_mat6, pose_columns};
+use super::{SampleValues, StoreResult};
+use crate::chain::LinkId;
+use crate::deformation::SmallMotion;
+use crate::geometry::PoseCov;
+use sqlx::{Connection, QueryBuilder, Sqlite, SqliteConnection, Transaction};
+
+/// Rows per multi-row insert: well under SQLite's limit on bound parameters.
+const ROWS_PER_STATEMENT: usize = 400;
+
+/// A raw sample to store.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NewSample {
+    /// The link.
+    pub link: LinkId,
+    /// Measurement time (ns).
+    pub time_ns: i64,
+    /// Its values as given.
+    pub values: SampleValues,
+    /// What the filter did with it (`fused`, `outlier`, ...).
+    pub disposition: &'static str,
+    /// True when flagged as an outlier.
+    pub outlier: bool,
+    /// Normalised innovation squared, where the filter computed one.
+    pub nis: Option<f64>,
+    /// When the service received it (ns, wall clock).
+    pub received_ns: i64,
+}
+
+/// A target result to store.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NewResult {
+    /// Target index in the installation.
+    pub target: usize,
+    /// False for a raw result, true for a filtered one.
+    pub filtered: bool,
+    /// Its time (ns).
+    pub time_ns: i64,
+    /// `target_from_base` with covariance.
+    pub estimate: PoseCov,
+    /// `ok`, `stale`, ...
+    pub status: &'static str,
+    /// Age of the newest sample behind it (s).
+    pub age_s: f64,
+    /// Chi-square of redundant paths, where there were several.
+    pub chi2: Option<f64>,
+    /// The reference version and the deformation against it.
+    pub deformation: Option<(i64, SmallMotion)>,
+}
+
+/// The one connection that writes.
+#[derive(Debug)]
+pub struct WriteConn {
+    conn: SqliteConnection,
+    link_ids: Vec<i64>,
+    target_ids: Vec<i64>,
+}
+
+/// One write transaction.
+pub struct WriteTx<'c> {
+    tx: Transaction<'c, Sqlite>,
+    link_ids: &'c [i64],
+    target_ids: &'c [i64],
+}
+
+impl WriteConn {
+    pub(super) fn new(conn: SqliteConnection, link_ids: Vec<i64>, target_ids: Vec<i64>) -> Self {
+        Self {
+            conn,
+            link_ids,
+            target_ids,
+        }
+    }
+
+    /// Starts a transaction.
+    pub async fn begin(&mut self) -> StoreResult<WriteTx<'_>> {
+        Ok(WriteTx {
+            tx: self.conn.begin().await?,
+            link_ids: &self.link_ids,
+            target_ids: &self.target_ids,
+        })
+    }
+
+    /// Closes the connection (checkpointing the WAL).
+    pub async fn close(self) -> StoreResult<()> {
+        self.conn.close().await?;
+        Ok(())
+    }
+}
+
+impl WriteTx<'_> {
+    /// Commits: everything written in this transaction is on disk when this returns.
+    pub async fn commit(self) -> StoreResult<()> {
+        self.tx.commit().await?;
+        Ok(())
+    }
+
+    /// The stored samples of a link with times in `[from_ns, to_ns]` (this transaction's
+    /// writes included), with their values.
+    pub async fn existing_samples(
+        &mut self,
+        link: LinkId,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<(i64, SampleValues)>> {
+        let rows: Vec<super::read::SampleRow> = sqlx::query_as(super::read::SAMPLE_SELECT_BY_RANGE)
+            .bind(self.link_ids[link.0])
+            .bind(from_ns)
+            .bind(to_ns)
+            .bind(i64::MAX)
+            .fetch_all(&mut *self.tx)
+            .await?;
+        rows.into_iter()
+            .map(|r| Ok((r.time_ns, r.values()?)))
+            .collect()
+    }
+
+    /// Inserts samples (keys must be new).
+    pub async fn insert_samples(&mut self, samples: &[NewSample]) -> StoreResult<()> {
+        for chunk in samples.chunks(ROWS_PER_STATEMENT) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "insert into samples (link_id, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, \
+                 uncertainty_kind, uncertainty, reprojection_rms_px, points, disposition, outlier, nis, received_ns) ",
+            );
+            qb.push_values(chunk, |mut b, s| {
+                let p = pose_columns(&s.values.pose);
+                let (kind, blob) = s.values.uncertainty.columns();
+                b.push_bind(self.link_ids[s.link.0]).push_bind(s.time_ns);
+                for v in p {
+                    b.push_bind(v);
+                }
+                b.push_bind(kind)
+                    .push_bind(blob)
+                    .push_bind(s.values.quality.reprojection_rms_px)
+                    .push_bind(s.values.quality.points.map(i64::from))
+                    .push_bind(s.disposition)
+                    .push_bind(s.outlier)
+                    .push_bind(s.nis)
+                    .push_bind(s.received_ns);
+            });
+            qb.build().execute(&mut *self.tx).await?;
+        }
+        Ok(())
+    }
+
+    /// Inserts target results; a result at an existing (target, source, time) replaces it (a
+    /// raw group completed again by a late sample, or a filtered result recomputed).
+    pub async fn insert_results(&mut self, results: &[NewResult]) -> StoreResult<()> {
+        for chunk in results.chunks(ROWS_PER_STATEMENT / 2) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "insert or replace into results (target_id, source, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
+                 sigma_rx_arcsec, sigma_ry_arcsec, sigma_rz_arcsec, sigma_tx_mm, sigma_ty_mm, sigma_tz_mm, \
+                 status, age_s, chi2, reference_version, def_rx_arcsec, def_ry_arcsec, def_rz_arcsec, \
+                 def_tx_mm, def_ty_mm, def_tz_mm) ",
+            );
+            qb.push_values(chunk, |mut b, r| {
+                b.push_bind(self.target_ids[r.target])
+                    .push_bind(i64::from(r.filtered))
+                    .push_bind(r.time_ns);
+                for v in pose_columns(&r.estimate.pose) {
+                    b.push_bind(v);
+                }
+                b.push_bind(encode_mat6(&r.estimate.cov));
+                let s = r.estimate.reported_sigmas();
+                for v in s.rotation_arcsec.iter().chain(&s.translation_mm) {
+                    b.push_bind(*v);
+                }
+                b.push_bind(r.status).push_bind(r.age_s).push_bind(r.chi2);
+                match &r.deformation {
+                    Some((version, d)) => {
+                        b.push_bind(Some(*version));
+                        for v in d.rotation_arcsec.iter().chain(&d.translation_mm) {
+                            b.push_bind(Some(*v));
+                        }
+                    }
+                    None => {
+                        b.push_bind(None::<i64>);
+                        for _ in 0..6 {
+                            b.push_bind(None::<f64>);
+                        }
+                    }
+                }
+            });
+            qb.build().execute(&mut *self.tx).await?;
+        }
+        Ok(())
+    }
+
+    /// The filtered results of a target in `[from_ns, to_ns]`, oldest first.
+    pub async fn filtered_poses(
+        &mut self,
+        target: usize,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<PoseCov>> {
+        let rows: Vec<super::read::ResultRow> = sqlx::query_as(super::read::RESULT_SELECT_BY_RANGE)
+            .bind(self.target_ids[target])
+            .bind(1i64)
+            .bind(from_ns)
+            .bind(to_ns)
+            .bind(i64::MAX)
+            .fetch_all(&mut *self.tx)
+            .await?;
+        rows.into_iter()
+            .map(|r| r.into_result().map(|r| r.estimate))
+            .collect()
+    }
+
+    /// Stores a new reference version of a target; returns its version.
+    pub async fn insert_reference(
+        &mut self,
+        target: usize,
+        reference: &crate::deformation::Reference,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let target_id = self.target_ids[target];
+        let (max,): (Option<i64>,) =
+            sqlx::query_as("select max(version) from target_references where target_id = ?")
+                .bind(target_id)
+                .fetch_one(&mut *self.tx)
+                .await?;
+        let version = max.unwrap_or(0) + 1;
+        let p = pose_columns(&reference.g0_from_b.pose);
+        let (origin, from, to, count) = match reference.origin {
+            crate::deformation::ReferenceOrigin::Explicit => ("explicit", None, None, None),
+            crate::deformation::ReferenceOrigin::Window {
+                from_ns,
+                to_ns,
+                count,
+            } => ("window", Some(from_ns), Some(to_ns), Some(count as i64)),
+        };
+        sqlx::query(
+            "insert into target_references (target_id, version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
+             origin, window_from_ns, window_to_ns, window_count, created_ns) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(target_id)
+        .bind(version)
+        .bind(p[0])
+        .bind(p[1])
+        .bind(p[2])
+        .bind(p[3])
+        .bind(p[4])
+        .bind(p[5])
+        .bind(p[6])
+        .bind(encode_mat6(&reference.g0_from_b.cov))
+        .bind(origin)
+        .bind(from)
+        .bind(to)
+        .bind(count)
+        .bind(now_ns)
+        .execute(&mut *self.tx)
+        .await?;
+        Ok(version)
+    }
+
+    /// Stores a new calibration version of a link; returns its version.
+    pub async fn insert_calibration(
+        &mut self,
+        link: LinkId,
+        valid_from_ns: i64,
+        parent_from_child: &PoseCov,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let link_id = self.link_ids[link.0];
+        let (max,): (Option<i64>,) =
+            sqlx::query_as("select max(version) from calibrations where link_id = ?")
+                .bind(link_id)
+                .fetch_one(&mut *self.tx)
+                .await?;
+        let version = max.unwrap_or(0) + 1;
+        let p = pose_columns(&parent_from_child.pose);
+        sqlx::query(
+            "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(link_id)
+        .bind(version)
+        .bind(valid_from_ns)
+        .bind(p[0])
+        .bind(p[1])
+        .bind(p[2])
+        .bind(p[3])
+        .bind(p[4])
+        .bind(p[5])
+        .bind(p[6])
+        .bind(encode_mat6(&parent_from_child.cov))
+        .bind(now_ns)
+        .execute(&mut *self.tx)
+        .await?;
+        Ok(version)
+    }
+
+    /// Saves the filter bank's state.
+    pub async fn save_filter_state(
+        &mut self,
+        digest: &str,
+        state_json: &str,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "insert into filter_state (id, installation_digest, state, updated_ns) values (1, ?, ?, ?) \
+             on conflict (id) do update set installation_digest = excluded.installation_digest, \
+             state = excluded.state, updated_ns = excluded.updated_ns",
+        )
+        .bind(digest)
+        .bind(state_json)
+        .bind(now_ns)
+        .execute(&mut *self.tx)
+        .await?;
+        Ok(())
+    }
+}
