@@ -73,39 +73,51 @@ fn finite(field: &str, values: &[f64]) -> Result<(), FieldProblem> {
 }
 
 impl PoseIn {
-    /// The pose, validated; `prefix` names the field in problems (`pose`).
+    /// The pose, validated; `prefix` names the field in problems (`pose`). Several rotation
+    /// forms may be given (a pose as this API answers it has `q_wxyz` and `euler_deg`) when
+    /// they agree within 1e-6 rad; `q_wxyz`, then `r`, then `euler_deg` is used.
     pub fn to_pose(&self, prefix: &str) -> Result<Pose, FieldProblem> {
-        let forms = [
-            self.q_wxyz.is_some(),
-            self.euler_deg.is_some(),
-            self.r.is_some(),
-        ]
-        .iter()
-        .filter(|b| **b)
-        .count();
-        if forms != 1 {
+        finite(&format!("{prefix}.t_mm"), &self.t_mm)?;
+        let mut forms: Vec<(String, crate::geometry::Rotation)> = Vec::new();
+        if let Some(q) = self.q_wxyz {
+            let field = format!("{prefix}.q_wxyz");
+            finite(&field, &q)?;
+            let r = rotation_from_quaternion_wxyz(q).map_err(|e| (field.clone(), e.to_string()))?;
+            forms.push((field, r));
+        }
+        if let Some(m) = self.r {
+            let field = format!("{prefix}.r");
+            for (i, row) in m.iter().enumerate() {
+                finite(&format!("{field}[{i}]"), row)?;
+            }
+            let r = rotation_from_matrix(m).map_err(|e| (field.clone(), e.to_string()))?;
+            forms.push((field, r));
+        }
+        if let Some(e) = self.euler_deg {
+            let field = format!("{prefix}.euler_deg");
+            finite(&field, &e)?;
+            let r = rotation_from_euler(e.map(f64::to_radians))
+                .map_err(|e| (field.clone(), e.to_string()))?;
+            forms.push((field, r));
+        }
+        let Some((first_field, rotation)) = forms.first().cloned() else {
             return Err((
                 prefix.to_owned(),
-                format!("needs exactly one rotation: `q_wxyz`, `euler_deg` or `r` (found {forms})"),
+                "needs a rotation: `q_wxyz`, `euler_deg` or `r`".to_owned(),
             ));
-        }
-        finite(&format!("{prefix}.t_mm"), &self.t_mm)?;
-        let rotation = if let Some(q) = self.q_wxyz {
-            finite(&format!("{prefix}.q_wxyz"), &q)?;
-            rotation_from_quaternion_wxyz(q)
-                .map_err(|e| (format!("{prefix}.q_wxyz"), e.to_string()))?
-        } else if let Some(e) = self.euler_deg {
-            finite(&format!("{prefix}.euler_deg"), &e)?;
-            rotation_from_euler(e.map(f64::to_radians))
-                .map_err(|e| (format!("{prefix}.euler_deg"), e.to_string()))?
-        } else if let Some(r) = self.r {
-            for (i, row) in r.iter().enumerate() {
-                finite(&format!("{prefix}.r[{i}]"), row)?;
-            }
-            rotation_from_matrix(r).map_err(|e| (format!("{prefix}.r"), e.to_string()))?
-        } else {
-            return Err((prefix.to_owned(), "has no rotation".into()));
         };
+        for (field, other) in &forms[1..] {
+            let angle = rotation.angle_to(other);
+            if angle > 1e-6 {
+                return Err((
+                    field.clone(),
+                    format!(
+                        "disagrees with `{first_field}` by {:.6} degrees; give one rotation, or agreeing ones",
+                        angle.to_degrees()
+                    ),
+                ));
+            }
+        }
         pose_from_parts(self.t_mm, rotation).map_err(|e| (format!("{prefix}.t_mm"), e.to_string()))
     }
 }

@@ -360,8 +360,10 @@ pub async fn get_compensation(
         }));
     };
     let at_ns = parse_query_time(&at).map_err(|m| ApiError::invalid_field("at", m))?;
-    let latest_ns = view.latest.as_ref().map(|l| l.time_ns);
-    if latest_ns.is_some_and(|l| at_ns >= l) {
+    // Predict only past the newest state of every link on the paths; before that, the stored
+    // results answer (the published filters keep no past states).
+    let newest_ns = snapshot.bank.latest_time_ns(ti);
+    if view.latest.is_some() && newest_ns.is_some_and(|l| at_ns >= l) {
         let est: TargetEstimate = snapshot
             .bank
             .evaluate(ti, at_ns)

@@ -144,8 +144,11 @@ pub(crate) enum Job {
 struct Inner {
     installation: Arc<Installation>,
     store: Store,
+    /// The queue's only sender: when the last handle is dropped the pipeline drains and stops.
     jobs: mpsc::Sender<Job>,
-    snapshot: RwLock<Arc<Snapshot>>,
+    /// Shared with the pipeline, which publishes into it (it must not hold `Inner`, or the
+    /// queue would never close).
+    snapshot: Arc<RwLock<Arc<Snapshot>>>,
 }
 
 /// The running service: a handle that request handlers clone.
@@ -261,20 +264,19 @@ impl Service {
             bank: bank.current_view(),
         });
         let (jobs, rx) = mpsc::channel(1024);
+        let slot = Arc::new(RwLock::new(snapshot));
         let inner = Arc::new(Inner {
             installation: Arc::clone(&installation),
             store,
             jobs,
-            snapshot: RwLock::new(snapshot),
+            snapshot: Arc::clone(&slot),
         });
-        let publisher = Arc::clone(&inner);
         let task = tokio::spawn(pipeline::run(
             pipeline::Pipeline::new(write, bank, targets, digest),
             rx,
-            move |s: Snapshot| {
-                if let Ok(mut guard) = publisher.snapshot.write() {
-                    *guard = Arc::new(s);
-                }
+            move |s: Snapshot| match slot.write() {
+                Ok(mut guard) => *guard = Arc::new(s),
+                Err(poisoned) => *poisoned.into_inner() = Arc::new(s),
             },
         ));
         Ok((Service { inner }, PipelineHandle(task)))

@@ -1,0 +1,140 @@
+//! A service on a temporary SQLite file, driven in process through the router.
+
+use axum::Router;
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use brokenray::api::{AppState, Limits, router};
+use brokenray::config::{self, Installation};
+use brokenray::service::{PipelineHandle, Service};
+use http_body_util::BodyExt;
+use serde_json::Value;
+use tower::ServiceExt;
+
+pub struct TestApp {
+    pub dir: tempfile::TempDir,
+    pub service: Service,
+    pub pipeline: Option<PipelineHandle>,
+    pub router: Router,
+}
+
+/// The built-in installation with its database in a fresh temporary directory, plus `extra`
+/// TOML appended (or replacing it entirely when `replace` is given).
+pub fn installation(dir: &tempfile::TempDir, text: Option<&str>) -> Installation {
+    let base = text.unwrap_or(config::DEFAULT_INSTALLATION_TOML);
+    let db = dir.path().join("brokenray.db");
+    let text = if base.contains("[server]") {
+        base.replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", db.display()),
+        )
+    } else {
+        format!("[server]\ndatabase = \"{}\"\n{base}", db.display())
+    };
+    config::parse("test.toml", &text).expect("valid test installation")
+}
+
+impl TestApp {
+    pub async fn start(text: Option<&str>) -> TestApp {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let inst = installation(&dir, text);
+        Self::start_with(dir, inst).await
+    }
+
+    pub async fn start_with(dir: tempfile::TempDir, inst: Installation) -> TestApp {
+        let limits = Limits {
+            max_body_bytes: inst.server.max_body_bytes,
+            max_batch_samples: inst.server.max_batch_samples,
+        };
+        let (service, pipeline) = Service::start(inst).await.expect("service starts");
+        let router = router(AppState {
+            service: service.clone(),
+            limits,
+        });
+        TestApp {
+            dir,
+            service,
+            pipeline: Some(pipeline),
+            router,
+        }
+    }
+
+    /// Stops the service cleanly and starts it again on the same database.
+    pub async fn restart(mut self, text: Option<&str>) -> TestApp {
+        let pipeline = self.pipeline.take().expect("running");
+        let store = self.service.store().clone();
+        drop(self.router);
+        drop(self.service);
+        pipeline.finished().await;
+        store.close().await;
+        let inst = installation(&self.dir, text);
+        Self::start_with(self.dir, inst).await
+    }
+
+    pub async fn request(
+        &self,
+        method: &str,
+        uri: &str,
+        body: Option<(&str, String)>,
+        token: Option<&str>,
+    ) -> (StatusCode, Value) {
+        let mut builder = Request::builder().method(method).uri(uri);
+        if let Some(t) = token {
+            builder = builder.header("authorization", format!("Bearer {t}"));
+        }
+        let req = match body {
+            Some((content_type, text)) => builder
+                .header("content-type", content_type)
+                .body(Body::from(text)),
+            None => builder.body(Body::empty()),
+        }
+        .expect("request");
+        let resp = self.router.clone().oneshot(req).await.expect("response");
+        let status = resp.status();
+        let bytes = resp.into_body().collect().await.expect("body").to_bytes();
+        let value = if bytes.is_empty() {
+            Value::Null
+        } else {
+            serde_json::from_slice(&bytes)
+                .unwrap_or_else(|_| Value::String(String::from_utf8_lossy(&bytes).into_owned()))
+        };
+        (status, value)
+    }
+
+    pub async fn get(&self, uri: &str) -> (StatusCode, Value) {
+        self.request("GET", uri, None, None).await
+    }
+
+    pub async fn post_json(&self, uri: &str, body: &Value) -> (StatusCode, Value) {
+        self.request(
+            "POST",
+            uri,
+            Some(("application/json", body.to_string())),
+            None,
+        )
+        .await
+    }
+
+    pub async fn post_text(
+        &self,
+        uri: &str,
+        content_type: &str,
+        text: &str,
+    ) -> (StatusCode, Value) {
+        self.request("POST", uri, Some((content_type, text.to_owned())), None)
+            .await
+    }
+}
+
+/// RFC 3339 text of a time `k * 40 ms` after 2026-11-21T10:00:00Z.
+pub fn time_text(k: i64) -> String {
+    brokenray::api::time::format_ns(T0_NS + k * 40_000_000)
+}
+
+/// 2026-11-21T10:00:00Z in nanoseconds.
+pub const T0_NS: i64 = 1_795_255_200_000_000_000;
+
+pub fn pose_json(p: &brokenray::geometry::Pose) -> Value {
+    let q = brokenray::geometry::quaternion_wxyz(&p.rotation);
+    let t = p.translation.vector;
+    serde_json::json!({"t_mm": [t.x, t.y, t.z], "q_wxyz": q})
+}

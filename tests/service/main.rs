@@ -1,0 +1,6 @@
+//! The service in process: the router on a real SQLite file.
+
+mod access;
+mod helpers;
+mod ingest_errors;
+mod results;

@@ -1,0 +1,487 @@
+//! Results through the API: ground truth, the paper's statistics, history, references,
+//! calibrations, restarts.
+
+use super::helpers::{T0_NS, TestApp, pose_json, time_text};
+use axum::http::StatusCode;
+use brokenray::config::{self, LinkKind};
+use brokenray::geometry::{
+    ARCSEC_PER_RAD, Pose, PoseCov, Twist, rotation_from_euler, se3_exp, se3_log,
+};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use rand_distr::{Distribution, StandardNormal};
+use serde_json::{Value, json};
+
+const MEASURED: [&str; 3] = ["C1_from_B", "C2_from_M", "C3_from_G"];
+
+/// The true link poses: the nominal ones, each moved a little (so the truth is not the file).
+fn truth() -> Vec<(String, Pose)> {
+    let inst = config::default_installation();
+    MEASURED
+        .iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let LinkKind::Measured(m) = &inst.link_by_name(name).unwrap().kind else {
+                panic!()
+            };
+            let f = i as f64 + 1.0;
+            let nudge = se3_exp(&Twist::new(0.7 * f, -0.4 * f, 1.1, 2e-4 * f, -1e-4, 3e-4));
+            (name.to_string(), nudge * m.nominal.unwrap())
+        })
+        .collect()
+}
+
+fn g_from_b(links: &[(String, Pose)]) -> Pose {
+    let inst = config::default_installation();
+    let get = |n: &str| links.iter().find(|(k, _)| k == n).map(|(_, p)| *p).unwrap();
+    let cal = |n: &str| match &inst.link_by_name(n).unwrap().kind {
+        LinkKind::Calibrated { parent_from_child } => parent_from_child.pose,
+        _ => panic!(),
+    };
+    get("C3_from_G").inverse()
+        * cal("C3_from_M")
+        * get("C2_from_M").inverse()
+        * cal("C2_from_C1")
+        * get("C1_from_B")
+}
+
+fn pose_of(v: &Value) -> Pose {
+    let t: Vec<f64> = serde_json::from_value(v["t_mm"].clone()).unwrap();
+    let q: Vec<f64> = serde_json::from_value(v["q_wxyz"].clone()).unwrap();
+    brokenray::geometry::pose_from_parts(
+        [t[0], t[1], t[2]],
+        brokenray::geometry::rotation_from_quaternion_wxyz([q[0], q[1], q[2], q[3]]).unwrap(),
+    )
+    .unwrap()
+}
+
+fn group(k: i64, links: &[(String, Pose)]) -> Vec<Value> {
+    links
+        .iter()
+        .map(|(name, pose)| json!({"link": name, "time": time_text(k), "pose": pose_json(pose)}))
+        .collect()
+}
+
+#[tokio::test]
+async fn noise_free_samples_give_the_true_chain() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    let mut samples = Vec::new();
+    for k in 0..20 {
+        samples.extend(group(k, &links));
+    }
+    let (status, body) = app
+        .post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["stored"], 60);
+    assert_eq!(body["raw_results"], 20);
+    let (status, c) = app.get("/api/v1/targets/G/compensation").await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(c["status"], "ok");
+    assert_eq!(c["time"], time_text(19));
+    let got = pose_of(&c["pose"]);
+    let want = g_from_b(&links);
+    let e = se3_log(&(got * want.inverse()));
+    let t_err = (got.translation.vector - want.translation.vector).amax();
+    let rot_err_deg = e.fixed_rows::<3>(3).amax().to_degrees();
+    assert!(t_err < 1e-6, "translation off by {t_err} mm");
+    assert!(rot_err_deg < 1e-6, "rotation off by {rot_err_deg} degree");
+}
+
+#[tokio::test]
+async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
+    let app = TestApp::start(None).await;
+    let inst = config::default_installation();
+    let links = truth();
+    let mut rng = StdRng::seed_from_u64(5);
+    let mut samples = Vec::new();
+    for k in 0..250 {
+        for (name, pose) in &links {
+            let LinkKind::Measured(m) = &inst.link_by_name(name).unwrap().kind else {
+                panic!()
+            };
+            let cov = PoseCov::from_reported_sigmas(*pose, &m.default_sigmas).cov;
+            let l = cov.cholesky().unwrap().l();
+            let z = Twist::from_fn(|_, _| StandardNormal.sample(&mut rng));
+            let noisy = se3_exp(&(l * z)) * pose;
+            samples.push(json!({"link": name, "time": time_text(k), "pose": pose_json(&noisy)}));
+        }
+    }
+    let (status, body) = app
+        .post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, c) = app.get("/api/v1/targets/G/compensation").await;
+    let got = pose_of(&c["pose"]);
+    let want = g_from_b(&links);
+    let sigma_rot: Vec<f64> =
+        serde_json::from_value(c["sigma"]["rotation_arcsec"].clone()).unwrap();
+    let sigma_t: Vec<f64> = serde_json::from_value(c["sigma"]["translation_mm"].clone()).unwrap();
+    // Rotation error about the left frame's axes, translation error per component.
+    let phi =
+        brokenray::geometry::so3_log(&(got.rotation * want.rotation.inverse())) * ARCSEC_PER_RAD;
+    let dt = got.translation.vector - want.translation.vector;
+    for i in 0..3 {
+        assert!(
+            phi[i].abs() < 3.0 * sigma_rot[i],
+            "rotation axis {i}: {:.2} arcsec vs sigma {:.2}",
+            phi[i],
+            sigma_rot[i]
+        );
+        assert!(
+            dt[i].abs() < 3.0 * sigma_t[i],
+            "translation {i}: {:.3} mm vs sigma {:.3}",
+            dt[i],
+            sigma_t[i]
+        );
+    }
+    // The filter has averaged: its sigma is well below a single raw composition's.
+    let (_, raw) = app.get("/api/v1/targets/G/stats?source=raw").await;
+    let raw_rms: Vec<f64> = serde_json::from_value(raw["t_mm"]["rms"].clone()).unwrap();
+    assert!(
+        sigma_t.iter().zip(&raw_rms).all(|(s, r)| s < r),
+        "{sigma_t:?} vs raw scatter {raw_rms:?}"
+    );
+}
+
+const ONE_LINK: &str = r#"
+[[links]]
+name = "G_from_B"
+kind = "measured"
+sigma = { rotation_arcsec = 30.0, translation_mm = 1.0 }
+expected_rate_hz = 1.0
+
+[[targets]]
+name = "G"
+base = "B"
+"#;
+
+#[tokio::test]
+async fn the_papers_samples_give_back_table_4_and_5_through_stats() {
+    let app = TestApp::start(Some(ONE_LINK)).await;
+    let table_4 = [
+        [-4.1106, 1.4515, 164.4249],
+        [-4.1247, 1.5001, 164.4373],
+        [-4.1231, 1.5011, 164.4326],
+        [-4.1195, 1.5339, 164.4173],
+        [-4.1043, 1.5008, 164.413],
+        [-4.1294, 1.5051, 164.4842],
+        [-4.106, 1.4553, 164.4531],
+        [-4.1058, 1.4557, 164.4731],
+    ];
+    let table_5 = [
+        [-1282.9398, -2952.0529, 532.8236],
+        [-1283.5764, -2951.5021, 531.9766],
+        [-1283.5592, -2951.4957, 531.8821],
+        [-1283.6027, -2951.4567, 531.3036],
+        [-1283.6827, -2951.3879, 532.3849],
+        [-1283.7936, -2952.4626, 531.8462],
+        [-1282.7306, -2951.9466, 533.1364],
+        [-1281.5911, -2955.1939, 534.1465],
+    ];
+    let samples: Vec<Value> = (0..8)
+        .map(|i| json!({"link": "G_from_B", "time": time_text(i as i64 * 25), "pose": {"t_mm": table_5[i], "euler_deg": table_4[i]}}))
+        .collect();
+    let (status, body) = app
+        .post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (status, s) = app.get("/api/v1/targets/G/stats?source=raw").await;
+    assert_eq!(status, StatusCode::OK, "{s}");
+    assert_eq!(s["count"], 8);
+    let check = |section: &str, stat: &str, printed: [&str; 3], allowance: f64| {
+        let got: Vec<f64> = serde_json::from_value(s[section][stat].clone()).unwrap();
+        for i in 0..3 {
+            let value: f64 = printed[i].parse().unwrap();
+            let decimals = printed[i].split('.').nth(1).map_or(0, str::len) as i32;
+            let tol = 0.5 * 10f64.powi(-decimals) + allowance + 1e-9;
+            assert!(
+                (got[i] - value).abs() <= tol,
+                "{section}.{stat}[{i}] = {} vs printed {}",
+                got[i],
+                printed[i]
+            );
+        }
+    };
+    // See tests/deformation_and_stats.rs: means and rms may differ from the paper's by the
+    // rounding of its printed samples (half a unit of their 4th decimal).
+    check("euler_deg", "min", ["-4.1294", "1.4515", "164.413"], 0.0);
+    check("euler_deg", "max", ["-4.1043", "1.5339", "164.4842"], 0.0);
+    check(
+        "euler_deg",
+        "mean",
+        ["-4.11543", "1.4879", "164.4419"],
+        0.5e-4,
+    );
+    check(
+        "euler_deg",
+        "rms",
+        ["0.009256", "0.02812", "0.02430"],
+        0.5e-4,
+    );
+    check("t_mm", "min", ["-1283.7936", "-2955.1939", "531.3036"], 0.0);
+    check("t_mm", "max", ["-1281.5911", "-2951.3879", "534.1465"], 0.0);
+    check(
+        "t_mm",
+        "mean",
+        ["-1283.1845", "-2952.1873", "532.4374"],
+        0.5e-4,
+    );
+    check("t_mm", "rms", ["0.6976", "1.1891", "0.8454"], 0.5e-4);
+}
+
+#[tokio::test]
+async fn retries_store_one_copy_and_changed_values_conflict() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    let batch = json!({"samples": group(0, &links)});
+    let (s1, b1) = app.post_json("/api/v1/samples", &batch).await;
+    let (s2, b2) = app.post_json("/api/v1/samples", &batch).await;
+    assert_eq!((s1, s2), (StatusCode::OK, StatusCode::OK), "{b1} {b2}");
+    assert_eq!(b2["duplicates"], 3);
+    assert_eq!(b2["stored"], 0);
+    let (_, samples) = app.get("/api/v1/links/C1_from_B/samples").await;
+    assert_eq!(samples["samples"].as_array().unwrap().len(), 1);
+    let mut changed = group(0, &links);
+    changed[1]["pose"]["t_mm"][0] = json!(12.5);
+    changed
+        .push(json!({"link": "C1_from_B", "time": time_text(1), "pose": pose_json(&links[0].1)}));
+    let (status, body) = app
+        .post_json("/api/v1/samples", &json!({"samples": changed}))
+        .await;
+    assert_eq!(status, StatusCode::CONFLICT, "{body}");
+    assert_eq!(body["error"]["details"][0]["index"], 1);
+    assert_eq!(body["error"]["details"][0]["field"], "time");
+    // Atomic: the new sample of the refused batch was not stored either.
+    let (_, samples) = app.get("/api/v1/links/C1_from_B/samples").await;
+    assert_eq!(samples["samples"].as_array().unwrap().len(), 1);
+}
+
+#[tokio::test]
+async fn compensation_at_a_past_time_is_interpolated_and_a_later_one_predicted() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    // The target drifts: C3_from_G slides 0.01 mm per group along x (a fifth of its sigma).
+    let mut samples = Vec::new();
+    for k in 0..10 {
+        let mut l = links.clone();
+        l[2].1 = Pose::from_parts(
+            nalgebra::Translation3::from(
+                l[2].1.translation.vector + nalgebra::Vector3::new(0.01 * k as f64, 0.0, 0.0),
+            ),
+            l[2].1.rotation,
+        );
+        samples.extend(group(k, &l));
+    }
+    let (status, _) = app
+        .post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    let at = |k: i64, frac: f64| {
+        brokenray::api::time::format_ns(T0_NS + k * 40_000_000 + (frac * 40e6) as i64)
+    };
+    let (s3, c3) = app
+        .get(&format!("/api/v1/targets/G/compensation?at={}", at(3, 0.0)))
+        .await;
+    let (s4, c4) = app
+        .get(&format!("/api/v1/targets/G/compensation?at={}", at(4, 0.0)))
+        .await;
+    let (sm, cm) = app
+        .get(&format!("/api/v1/targets/G/compensation?at={}", at(3, 0.5)))
+        .await;
+    assert_eq!(
+        (s3, s4, sm),
+        (StatusCode::OK, StatusCode::OK, StatusCode::OK),
+        "{c3} {c4} {cm}"
+    );
+    assert_eq!(cm["source"], "history");
+    let (p3, p4, pm) = (
+        pose_of(&c3["pose"]),
+        pose_of(&c4["pose"]),
+        pose_of(&cm["pose"]),
+    );
+    let mid = (p3.translation.vector + p4.translation.vector) / 2.0;
+    assert!(
+        (pm.translation.vector - mid).amax() < 1e-6,
+        "{} vs {}",
+        pm.translation.vector,
+        mid
+    );
+    let (status, future) = app
+        .get(&format!(
+            "/api/v1/targets/G/compensation?at={}",
+            at(12, 0.0)
+        ))
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(future["status"], "predicted");
+    assert_eq!(future["source"], "predicted");
+    assert!((future["age_s"].as_f64().unwrap() - 0.12).abs() < 1e-9);
+    let (status, _) = app
+        .get(&format!(
+            "/api/v1/targets/G/compensation?at={}",
+            at(-5, 0.0)
+        ))
+        .await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+}
+
+#[tokio::test]
+async fn a_window_reference_gives_deformation_and_correction() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    let mut samples = Vec::new();
+    for k in 0..10 {
+        samples.extend(group(k, &links));
+    }
+    app.post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    let (status, r) = app
+        .post_json(
+            "/api/v1/targets/G/reference",
+            &json!({"from": time_text(0), "to": time_text(9)}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED, "{r}");
+    assert_eq!(r["version"], 1);
+    assert_eq!(r["window"]["count"], 10);
+    // The target then turns by 100 arc-seconds about C3's x axis.
+    let mut moved = links.clone();
+    let turn = rotation_from_euler([(100.0 / 3600.0f64).to_radians(), 0.0, 0.0]).unwrap();
+    moved[2].1 = Pose::from_parts(moved[2].1.translation, turn * moved[2].1.rotation);
+    let mut samples = Vec::new();
+    for k in 10..400 {
+        samples.extend(group(k, &moved));
+    }
+    app.post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    let (_, c) = app.get("/api/v1/targets/G/compensation").await;
+    let def: Vec<f64> =
+        serde_json::from_value(c["deformation"]["rotation_arcsec"].clone()).unwrap();
+    let magnitude = (def[0] * def[0] + def[1] * def[1] + def[2] * def[2]).sqrt();
+    assert!(
+        (magnitude - 100.0).abs() < 1.0,
+        "deformation {magnitude:.2} arcsec, expected 100"
+    );
+    assert_eq!(
+        c["alarm"], "warn",
+        "100 arcsec is between warn (60) and alarm (120)"
+    );
+    let corr: Vec<f64> =
+        serde_json::from_value(c["correction"]["rotation_arcsec"].clone()).unwrap();
+    for i in 0..3 {
+        assert!(
+            (corr[i] + def[i]).abs() < 0.5,
+            "correction undoes the deformation: {corr:?} vs {def:?}"
+        );
+    }
+    // An explicit reference makes version 2; the history lists both.
+    let (status, r2) = app
+        .post_json("/api/v1/targets/G/reference", &json!({"pose": c["pose"]}))
+        .await;
+    assert_eq!(status, StatusCode::CREATED, "{r2}");
+    let (_, list) = app.get("/api/v1/targets/G/references").await;
+    assert_eq!(list["references"].as_array().unwrap().len(), 2);
+    let (_, c2) = app.get("/api/v1/targets/G/compensation").await;
+    assert_eq!(c2["alarm"], "none");
+    let (status, _) = app
+        .post_json(
+            "/api/v1/targets/G/reference",
+            &json!({"from": time_text(-100), "to": time_text(-50)}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+}
+
+#[tokio::test]
+async fn a_new_calibration_is_versioned_and_used() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    app.post_json("/api/v1/samples", &json!({"samples": group(0, &links)}))
+        .await;
+    let (_, before) = app.get("/api/v1/targets/G/compensation").await;
+    let (status, _) = app
+        .request(
+            "PUT",
+            "/api/v1/links/C2_from_C1/calibration",
+            Some((
+                "application/json",
+                json!({"pose": {"t_mm": [-67.2, 37.5, -96.8], "euler_deg": [76.6492, 8.9522, 176.3952]},
+                       "sigma": {"rotation_arcsec": 5.0, "translation_mm": 0.05},
+                       "valid_from": time_text(0)})
+                .to_string(),
+            )),
+            None,
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED);
+    app.post_json("/api/v1/samples", &json!({"samples": group(1, &links)}))
+        .await;
+    let (_, after) = app.get("/api/v1/targets/G/compensation").await;
+    let moved = (pose_of(&after["pose"]).translation.vector
+        - pose_of(&before["pose"]).translation.vector)
+        .norm();
+    assert!(
+        moved > 5.0,
+        "a 10 mm change of the station moves the result ({moved:.2} mm)"
+    );
+    let (_, list) = app.get("/api/v1/links/C2_from_C1/calibrations").await;
+    let versions: Vec<i64> = list["calibrations"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["version"].as_i64().unwrap())
+        .collect();
+    assert_eq!(versions, [0, 1]);
+    let (status, _) = app
+        .request("PUT", "/api/v1/links/C1_from_B/calibration", Some(("application/json", json!({"pose": {"t_mm": [0,0,0], "q_wxyz": [1,0,0,0]}, "sigma": {"rotation_arcsec": 1, "translation_mm": 1}}).to_string())), None)
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+}
+
+#[tokio::test]
+async fn a_restart_restores_the_filters_and_answers_the_same_compensation() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    let mut rng = StdRng::seed_from_u64(9);
+    let mut samples = Vec::new();
+    for k in 0..50 {
+        for (name, pose) in &links {
+            let z = Twist::from_fn(|i, _| {
+                let n: f64 = StandardNormal.sample(&mut rng);
+                n * if i < 3 { 0.1 } else { 5e-5 }
+            });
+            samples.push(json!({"link": name, "time": time_text(k), "pose": pose_json(&(se3_exp(&z) * pose))}));
+        }
+    }
+    app.post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    let (_, before) = app.get("/api/v1/targets/G/compensation").await;
+    let (_, links_before) = app.get("/api/v1/links").await;
+    let app = app.restart(None).await;
+    let (_, after) = app.get("/api/v1/targets/G/compensation").await;
+    assert_eq!(before, after);
+    let (_, links_after) = app.get("/api/v1/links").await;
+    for (a, b) in links_before
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(links_after.as_array().unwrap())
+    {
+        assert_eq!(a["n_samples"], b["n_samples"]);
+        assert_eq!(a["last_time"], b["last_time"]);
+    }
+    // And the filters continue where they were: the next group is fused, not a fresh start.
+    let (_, next) = app
+        .post_json("/api/v1/samples", &json!({"samples": group(50, &links)}))
+        .await;
+    assert_eq!(next["filtered_results"], 1);
+    let (_, samples) = app
+        .get(&format!(
+            "/api/v1/links/C1_from_B/samples?from={}",
+            time_text(50)
+        ))
+        .await;
+    assert_eq!(samples["samples"][0]["disposition"], "fused");
+}
