@@ -4,7 +4,7 @@
 use super::{BankSettings, Disposition, FilterError, LinkFilter, LinkFilterRecord, NS_PER_S};
 use crate::chain::{Consistency, LinkId, compose_path, fuse};
 use crate::config::{Installation, LinkKind};
-use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, check_covariance};
+use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
 
@@ -372,22 +372,39 @@ impl FilterBank {
             MeasurementUncertainty::Sigmas(s) => PoseCov::from_reported_sigmas(pose, &s),
             MeasurementUncertainty::Covariance(c) => PoseCov { pose, cov: c },
         };
-        check_covariance(&z.cov).map_err(|e| FilterError::BadMeasurement {
-            link: spec.name.clone(),
-            reason: e.to_string(),
-        })?;
-        if z.cov.cholesky().is_none() {
-            return Err(FilterError::BadMeasurement {
+        // A measurement must be positive definite: a Cholesky factorisation proves it (and is
+        // much cheaper than the eigenvalues a semi-definite check needs).
+        let scale = z.cov.amax().max(f64::MIN_POSITIVE);
+        let reason = if z.cov.iter().any(|v| !v.is_finite()) {
+            Some("it has a non-finite entry".to_owned())
+        } else if (z.cov - z.cov.transpose()).amax() > 1e-9 * scale {
+            Some("it is not symmetric".to_owned())
+        } else if z.cov.cholesky().is_none() {
+            Some("it is not positive definite (a measurement is never exact)".to_owned())
+        } else {
+            None
+        };
+        match reason {
+            Some(reason) => Err(FilterError::BadMeasurement {
                 link: spec.name.clone(),
-                reason: "it is singular (a measurement is never exact)".into(),
-            });
+                reason,
+            }),
+            None => Ok(z),
         }
-        Ok(z)
     }
 
     /// Ingests one sample: filters it, and assembles raw results of completed groups.
     pub fn ingest(&mut self, sample: &Sample) -> Result<SampleOutcome, FilterError> {
         let z = self.measurement(sample)?;
+        self.ingest_measurement(sample, z)
+    }
+
+    /// [`Self::ingest`] with the measurement already checked by [`Self::measurement`].
+    pub fn ingest_measurement(
+        &mut self,
+        sample: &Sample,
+        z: PoseCov,
+    ) -> Result<SampleOutcome, FilterError> {
         let link = sample.link;
         let Some(slot) = self.measured[link.0].as_mut() else {
             return Err(FilterError::NotMeasured(

@@ -264,13 +264,15 @@ async fn ingest(
 ) -> Result<ServiceResult<IngestReport>, StoreError> {
     // Check every measurement before the bank sees any of them.
     let mut problems = Vec::new();
+    let mut measurements = Vec::with_capacity(items.len());
     for item in &items {
-        if let Err(e) = bank.measurement(&item.sample) {
-            problems.push(ItemProblem {
+        match bank.measurement(&item.sample) {
+            Ok(z) => measurements.push(z),
+            Err(e) => problems.push(ItemProblem {
                 index: Some(item.index),
                 field: Some("covariance".into()),
                 message: e.to_string(),
-            });
+            }),
         }
     }
     if !problems.is_empty() {
@@ -304,7 +306,7 @@ async fn ingest(
     };
     let mut fresh = Vec::with_capacity(items.len());
     let mut conflicts = Vec::new();
-    for item in items {
+    for (item, z) in items.into_iter().zip(measurements) {
         let values = SampleValues {
             pose: item.sample.parent_from_child,
             uncertainty: item.sample.uncertainty.into(),
@@ -320,7 +322,7 @@ async fn ingest(
                     bank.installation().links[item.sample.link.0].name
                 ),
             }),
-            None => fresh.push((item, values)),
+            None => fresh.push((item, values, z)),
         }
     }
     if !conflicts.is_empty() {
@@ -333,12 +335,12 @@ async fn ingest(
         }));
     }
     // Filter in time order, links in a fixed order within one time.
-    fresh.sort_by_key(|(item, _)| (item.sample.time_ns, item.sample.link));
+    fresh.sort_by_key(|(item, _, _)| (item.sample.time_ns, item.sample.link));
     let mut sample_rows = Vec::with_capacity(fresh.len());
     let mut result_rows: BTreeMap<(usize, bool, i64), NewResult> = BTreeMap::new();
     let mut latest: HashMap<usize, TargetEstimate> = HashMap::new();
-    for (item, values) in fresh {
-        let outcome = match bank.ingest(&item.sample) {
+    for (item, values, z) in fresh {
+        let outcome = match bank.ingest_measurement(&item.sample, z) {
             Ok(o) => o,
             // Checked above; a failure here would be a defect, not bad input.
             Err(e) => {

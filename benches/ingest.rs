@@ -1,0 +1,260 @@
+//! Load generator: ingest over HTTP on loopback and compensation latency, against the release
+//! binary in its own process, with a raw SQLite insert baseline. Prints its figures.
+//!
+//! Run: `cargo bench --bench ingest` (options through the environment: `CLIENTS` (4),
+//! `BATCHES` (300), `BATCH` (1000 samples)).
+
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+const T0: i64 = 1_795_255_200_000_000_000;
+const LINKS: [(&str, [f64; 3], [f64; 4]); 3] = [
+    (
+        "C1_from_B",
+        [-20.0, 10.0, 2991.7],
+        [0.0118, 0.9999, 0.0108, -0.0002],
+    ),
+    ("C2_from_M", [0.0, 0.0, 3156.6], [0.0, 1.0, 0.0, 0.0]),
+    (
+        "C3_from_G",
+        [-25.0, -40.0, 2999.6],
+        [0.0021, 0.2167, 0.9762, 0.0017],
+    ),
+];
+
+fn env_usize(name: &str, default: usize) -> usize {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+/// Batch `b` of `n` samples: groups of the three links at 25 Hz, with a little noise.
+fn batch_body(b: usize, n: usize) -> String {
+    let mut s = String::with_capacity(n * 120);
+    s.push_str("{\"samples\":[");
+    let groups = n / 3;
+    for g in 0..groups {
+        let k = (b * groups + g) as i64;
+        let time = T0 + k * 40_000_000;
+        for (i, (link, t, q)) in LINKS.iter().enumerate() {
+            if g > 0 || i > 0 {
+                s.push(',');
+            }
+            let noise =
+                ((k as f64 * 12.9898 + i as f64 * 78.233).sin() * 43758.5453).fract() * 0.05;
+            s.push_str(&format!(
+                "{{\"link\":\"{link}\",\"time\":{time},\"pose\":{{\"t_mm\":[{:.4},{:.4},{:.4}],\"q_wxyz\":[{},{},{},{}]}}}}",
+                t[0] + noise,
+                t[1] - noise,
+                t[2] + noise,
+                q[0],
+                q[1],
+                q[2],
+                q[3]
+            ));
+        }
+    }
+    s.push_str("]}");
+    s
+}
+
+fn peak_rss_mb(pid: u32) -> f64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|v| v.parse::<f64>().ok())
+            })
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// The raw baseline: the same schema, one prepared statement, one transaction per batch.
+fn raw_sqlite_baseline(dir: &std::path::Path, batches: usize, n: usize) -> f64 {
+    let path = dir.join("raw.sqlite");
+    let conn = rusqlite::Connection::open(&path).expect("open");
+    conn.pragma_update(None, "journal_mode", "WAL")
+        .expect("wal");
+    conn.pragma_update(None, "synchronous", "FULL")
+        .expect("sync");
+    let schema = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/migrations/0001_initial.sql"
+    ))
+    .expect("schema");
+    conn.execute_batch(&schema).expect("schema");
+    conn.execute("insert into links (link_id, name, created_ns) values (1, 'a', 0), (2, 'b', 0), (3, 'c', 0)", [])
+        .expect("links");
+    let mut conn = conn;
+    let start = Instant::now();
+    for b in 0..batches {
+        let tx = conn.transaction().expect("tx");
+        {
+            let mut stmt = tx
+                .prepare_cached(
+                    "insert into samples (link_id, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, uncertainty_kind, \
+                     uncertainty, reprojection_rms_px, points, disposition, outlier, nis, received_ns) \
+                     values (?, ?, ?, ?, ?, ?, ?, ?, ?, 0, null, null, null, 'fused', 0, 1.0, 0)",
+                )
+                .expect("prepare");
+            for g in 0..n / 3 {
+                let k = (b * (n / 3) + g) as i64;
+                for (i, (_, t, q)) in LINKS.iter().enumerate() {
+                    stmt.execute(rusqlite::params![
+                        i as i64 + 1,
+                        T0 + k * 40_000_000,
+                        t[0],
+                        t[1],
+                        t[2],
+                        q[0],
+                        q[1],
+                        q[2],
+                        q[3]
+                    ])
+                    .expect("insert");
+                }
+            }
+        }
+        tx.commit().expect("commit");
+    }
+    (batches * (n / 3) * 3) as f64 / start.elapsed().as_secs_f64()
+}
+
+fn main() {
+    // Criterion-style benches also run under `cargo test --benches`: do nothing there.
+    if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
+        println!("ingest load generator: run with `cargo bench --bench ingest`");
+        return;
+    }
+    let clients = env_usize("CLIENTS", 4);
+    let batches = env_usize("BATCHES", 300);
+    let n = env_usize("BATCH", 1000) / 3 * 3;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let config = dir.path().join("site.toml");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("127.0.0.1:7878", "127.0.0.1:0")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!(
+                "database = \"{}\"",
+                dir.path().join("bench.sqlite").display()
+            ),
+        );
+    std::fs::write(&config, text).expect("config");
+
+    println!("preparing {batches} batches of {n} samples ...");
+    let bodies: Arc<Vec<String>> = Arc::new((0..batches).map(|b| batch_body(b, n)).collect());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args(["serve", "--config", config.to_str().expect("utf-8 path")])
+        .env("RUST_LOG", "warn,brokenray=info")
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("server starts");
+    let pid = child.id();
+    let stderr = child.stderr.take().expect("stderr");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("serving on http://").nth(1) {
+                let _ = tx.send(rest.split('/').next().unwrap_or_default().to_owned());
+            }
+        }
+    });
+    let addr = rx
+        .recv_timeout(Duration::from_secs(30))
+        .expect("server address");
+    let base = format!("http://{addr}");
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    runtime.block_on(async {
+        let client = reqwest::Client::new();
+        // Ingest: clients take batches from a shared counter until none are left.
+        let next = Arc::new(AtomicUsize::new(0));
+        let start = Instant::now();
+        let mut tasks = Vec::new();
+        for _ in 0..clients {
+            let (client, base, bodies, next) = (client.clone(), base.clone(), Arc::clone(&bodies), Arc::clone(&next));
+            tasks.push(tokio::spawn(async move {
+                loop {
+                    let b = next.fetch_add(1, Ordering::Relaxed);
+                    if b >= bodies.len() {
+                        return;
+                    }
+                    let r = client
+                        .post(format!("{base}/api/v1/samples"))
+                        .header("content-type", "application/json")
+                        .body(bodies[b].clone())
+                        .send()
+                        .await
+                        .expect("post");
+                    assert!(r.status().is_success(), "ingest refused: {}", r.status());
+                }
+            }));
+        }
+        for t in tasks {
+            t.await.expect("client");
+        }
+        let elapsed = start.elapsed().as_secs_f64();
+        let total = batches * n;
+        let rate = total as f64 / elapsed;
+        let rss = peak_rss_mb(pid);
+        println!("ingest over HTTP: {total} samples in {elapsed:.2} s = {rate:.0} samples/s ({clients} clients, batches of {n}, durable before each answer)");
+        println!("server peak RSS during ingest: {rss:.1} MB");
+
+        // Compensation under load: a fixed rate over many connections, latency per request.
+        let target_rps = env_usize("RPS", 5000);
+        let seconds = 5;
+        let workers = 64;
+        let per_worker = target_rps / workers;
+        let interval = Duration::from_secs_f64(1.0 / per_worker as f64);
+        let mut tasks = Vec::new();
+        let begin = Instant::now();
+        for _ in 0..workers {
+            let (client, base) = (client.clone(), base.clone());
+            tasks.push(tokio::spawn(async move {
+                let mut latencies = Vec::with_capacity(per_worker * seconds);
+                let mut ticker = tokio::time::interval(interval);
+                ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
+                for _ in 0..per_worker * seconds {
+                    ticker.tick().await;
+                    let t = Instant::now();
+                    let r = client.get(format!("{base}/api/v1/targets/G/compensation")).send().await.expect("get");
+                    let _ = r.bytes().await.expect("body");
+                    latencies.push(t.elapsed());
+                }
+                latencies
+            }));
+        }
+        let mut all = Vec::new();
+        for t in tasks {
+            all.extend(t.await.expect("worker"));
+        }
+        let wall = begin.elapsed().as_secs_f64();
+        all.sort();
+        let pct = |p: f64| all[((all.len() as f64 * p) as usize).min(all.len() - 1)].as_secs_f64() * 1e3;
+        println!(
+            "GET compensation: {} requests in {wall:.2} s = {:.0} req/s, p50 {:.3} ms, p99 {:.3} ms, max {:.3} ms",
+            all.len(),
+            all.len() as f64 / wall,
+            pct(0.50),
+            pct(0.99),
+            pct(1.0)
+        );
+    });
+    let _ = child.kill();
+    let _ = child.wait();
+    let raw = raw_sqlite_baseline(dir.path(), batches.min(200), n);
+    println!(
+        "raw SQLite baseline (rusqlite, one prepared statement, one transaction per batch, WAL, synchronous=FULL): {raw:.0} samples/s"
+    );
+}

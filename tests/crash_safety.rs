@@ -1,0 +1,172 @@
+//! The binary on a real port, killed with SIGKILL mid-stream: nothing acknowledged is lost, and
+//! the compensation after a restart is the one before the kill.
+
+use serde_json::{Value, json};
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+struct Server {
+    child: Child,
+    base: String,
+}
+
+/// Starts `brokenray serve` and waits for the line that says where it listens.
+fn start(config: &std::path::Path) -> Server {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args(["serve", "--config", config.to_str().unwrap()])
+        .env("RUST_LOG", "info")
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("the binary starts");
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut sent = false;
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if !sent && let Some(rest) = line.split("serving on http://").nth(1) {
+                let addr = rest.split('/').next().unwrap().to_owned();
+                let _ = tx.send(addr);
+                sent = true;
+            }
+        }
+    });
+    let addr = rx
+        .recv_timeout(Duration::from_secs(30))
+        .expect("the server says where it listens");
+    Server {
+        child,
+        base: format!("http://{addr}"),
+    }
+}
+
+fn group(k: i64) -> Value {
+    let time = 1_795_255_200_000_000_000i64 + k * 40_000_000;
+    let wobble = (k as f64 * 0.37).sin() * 0.02;
+    json!({"samples": [
+        {"link": "C1_from_B", "time": time, "pose": {"t_mm": [-20.0 + wobble, 10.0, 2991.7], "euler_deg": [178.6589, 1.245, -0.0291]}},
+        {"link": "C2_from_M", "time": time, "pose": {"t_mm": [0.0, wobble, 3156.6], "euler_deg": [180.0, 0.0, 0.0]}},
+        {"link": "C3_from_G", "time": time, "pose": {"t_mm": [-25.0, -40.0, 2999.6 + wobble], "euler_deg": [179.137, 0.257, 164.5782]}}
+    ]})
+}
+
+async fn stored_times(client: &reqwest::Client, base: &str, link: &str) -> Vec<i64> {
+    let v: Value = client
+        .get(format!("{base}/api/v1/links/{link}/samples?limit=100000"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    v["samples"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| brokenray::api::time::parse_rfc3339_ns(s["time"].as_str().unwrap()).unwrap())
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("site.toml");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("127.0.0.1:7878", "127.0.0.1:0")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", dir.path().join("db.sqlite").display()),
+        );
+    std::fs::write(&config, text).unwrap();
+    let client = reqwest::Client::new();
+
+    // Phase 1: four writers stream groups; the server is killed while they do.
+    let mut server = start(&config);
+    let acknowledged = Arc::new(Mutex::new(Vec::<i64>::new()));
+    let mut writers = Vec::new();
+    for w in 0..4i64 {
+        let (client, base, acknowledged) = (
+            client.clone(),
+            server.base.clone(),
+            Arc::clone(&acknowledged),
+        );
+        writers.push(tokio::spawn(async move {
+            for k in (w..100_000).step_by(4) {
+                match client
+                    .post(format!("{base}/api/v1/samples"))
+                    .json(&group(k))
+                    .send()
+                    .await
+                {
+                    Ok(r) if r.status().is_success() => acknowledged.lock().unwrap().push(k),
+                    Ok(r) => panic!("refused: {}", r.status()),
+                    Err(_) => return,
+                }
+            }
+        }));
+    }
+    while acknowledged.lock().unwrap().len() < 300 {
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    server.child.kill().expect("SIGKILL");
+    server.child.wait().unwrap();
+    for w in writers {
+        w.await.unwrap();
+    }
+    let acked = acknowledged.lock().unwrap().clone();
+    assert!(acked.len() >= 300);
+
+    let mut server = start(&config);
+    for link in ["C1_from_B", "C2_from_M", "C3_from_G"] {
+        let stored: std::collections::HashSet<i64> = stored_times(&client, &server.base, link)
+            .await
+            .into_iter()
+            .collect();
+        for k in &acked {
+            let t = 1_795_255_200_000_000_000i64 + k * 40_000_000;
+            assert!(
+                stored.contains(&t),
+                "acknowledged group {k} of {link} is missing after SIGKILL"
+            );
+        }
+    }
+
+    // Phase 2: quiet, read the compensation, kill, restart, read again.
+    let next = acked.iter().max().unwrap() + 1_000;
+    for k in next..next + 20 {
+        let r = client
+            .post(format!("{}/api/v1/samples", server.base))
+            .json(&group(k))
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success());
+    }
+    let get = |base: String| {
+        let client = client.clone();
+        async move {
+            client
+                .get(format!("{base}/api/v1/targets/G/compensation"))
+                .send()
+                .await
+                .unwrap()
+                .json::<Value>()
+                .await
+                .unwrap()
+        }
+    };
+    let before = get(server.base.clone()).await;
+    assert_eq!(before["status"], "ok");
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+    let mut server = start(&config);
+    let after = get(server.base.clone()).await;
+    assert_eq!(
+        before, after,
+        "compensation changed across SIGKILL and restart"
+    );
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+}
