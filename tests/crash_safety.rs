@@ -170,3 +170,68 @@ async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
     server.child.kill().unwrap();
     server.child.wait().unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_finishes_in_flight_writes_and_exits_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("site.toml");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("127.0.0.1:7878", "127.0.0.1:0")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", dir.path().join("db.sqlite").display()),
+        );
+    std::fs::write(&config, text).unwrap();
+    let client = reqwest::Client::new();
+    let mut server = start(&config);
+    let acknowledged = Arc::new(Mutex::new(Vec::<i64>::new()));
+    let mut writers = Vec::new();
+    for w in 0..4i64 {
+        let (client, base, acknowledged) = (
+            client.clone(),
+            server.base.clone(),
+            Arc::clone(&acknowledged),
+        );
+        writers.push(tokio::spawn(async move {
+            for k in (w..100_000).step_by(4) {
+                match client
+                    .post(format!("{base}/api/v1/samples"))
+                    .json(&group(k))
+                    .send()
+                    .await
+                {
+                    Ok(r) if r.status().is_success() => acknowledged.lock().unwrap().push(k),
+                    // Refused while stopping (503) or the connection closed: not acknowledged.
+                    _ => return,
+                }
+            }
+        }));
+    }
+    while acknowledged.lock().unwrap().len() < 200 {
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let status = Command::new("kill")
+        .args(["-TERM", &server.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let exit = server.child.wait().unwrap();
+    assert!(exit.success(), "SIGTERM ends the service cleanly: {exit}");
+    for w in writers {
+        w.await.unwrap();
+    }
+    let acked = acknowledged.lock().unwrap().clone();
+    let mut server = start(&config);
+    let stored: std::collections::HashSet<i64> = stored_times(&client, &server.base, "C3_from_G")
+        .await
+        .into_iter()
+        .collect();
+    for k in &acked {
+        assert!(
+            stored.contains(&(1_795_255_200_000_000_000i64 + k * 40_000_000)),
+            "acknowledged group {k} missing after SIGTERM"
+        );
+    }
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+}

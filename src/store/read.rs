@@ -231,16 +231,6 @@ impl Store {
             .collect()
     }
 
-    /// How many samples a link has stored, and how many of them are outliers.
-    pub async fn sample_counts(&self, link: LinkId) -> StoreResult<(i64, i64)> {
-        let (n, o): (i64, Option<i64>) =
-            sqlx::query_as("select count(*), sum(outlier) from samples where link_id = ?")
-                .bind(self.link_ids[link.0])
-                .fetch_one(&self.pool)
-                .await?;
-        Ok((n, o.unwrap_or(0)))
-    }
-
     /// Stored results of a target in `[from_ns, to_ns]`, oldest first, at most `limit`.
     pub async fn results(
         &self,
@@ -300,17 +290,6 @@ impl Store {
         filtered: bool,
     ) -> StoreResult<Option<StoredResult>> {
         Ok(self.results_around(target, filtered, i64::MAX).await?.0)
-    }
-
-    /// How many results a target has stored, raw and filtered.
-    pub async fn result_counts(&self, target: usize) -> StoreResult<(i64, i64)> {
-        let (raw, filtered): (Option<i64>, Option<i64>) = sqlx::query_as(
-            "select sum(source = 0), sum(source = 1) from results where target_id = ?",
-        )
-        .bind(self.target_ids[target])
-        .fetch_one(&self.pool)
-        .await?;
-        Ok((raw.unwrap_or(0), filtered.unwrap_or(0)))
     }
 
     /// Every reference version of a target, oldest first.
