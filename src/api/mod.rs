@@ -100,6 +100,7 @@ pub fn router(state: AppState) -> Router {
             get(targets::get_compensation),
         )
         .route("/targets/{name}/stats", get(targets::get_stats))
+        .route("/targets/{name}/history", get(targets::get_history))
         .route(
             "/targets/{name}/reference",
             get(targets::get_reference).post(targets::post_reference),

@@ -613,3 +613,200 @@ pub async fn list_references(
             .collect(),
     }))
 }
+
+/// Query of `history`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HistoryQuery {
+    /// Start (RFC 3339 or integer ns); the first result without it.
+    pub from: Option<String>,
+    /// End; the last result without it.
+    pub to: Option<String>,
+    /// `raw` or `filtered` (default `filtered`).
+    pub source: Option<String>,
+    /// At most this many buckets (default 1000, at most 100000).
+    pub max_points: Option<usize>,
+    /// `json` (default) or `csv`.
+    pub format: Option<String>,
+}
+
+/// One component's series.
+#[derive(Debug, Serialize)]
+pub struct SeriesOut {
+    /// Minimum per bucket (`null` where the bucket has no value of it).
+    pub min: Vec<Option<f64>>,
+    /// Mean per bucket.
+    pub mean: Vec<Option<f64>>,
+    /// Maximum per bucket.
+    pub max: Vec<Option<f64>>,
+}
+
+/// `GET .../history`.
+#[derive(Debug, Serialize)]
+pub struct HistoryOut {
+    /// Target.
+    pub target: String,
+    /// `raw` or `filtered`.
+    pub source: &'static str,
+    /// Window start.
+    pub from: Option<String>,
+    /// Window end.
+    pub to: Option<String>,
+    /// Width of each bucket (s).
+    pub bucket_s: f64,
+    /// What the buckets were built from: a rollup width (s), or `null` for the results
+    /// themselves.
+    pub resolution_s: Option<i64>,
+    /// Bucket start times.
+    pub time: Vec<String>,
+    /// Results per bucket.
+    pub count: Vec<i64>,
+    /// Per component (`euler_x_deg`, `t_x_mm`, `def_rx_arcsec`, `sigma_tx_mm`, ...).
+    pub series: std::collections::BTreeMap<&'static str, SeriesOut>,
+}
+
+/// `GET /api/v1/targets/{name}/history?from=&to=&source=&max_points=&format=csv`.
+pub async fn get_history(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    Query(q): Query<HistoryQuery>,
+) -> Result<axum::response::Response, ApiError> {
+    use crate::store::rollup::{Bucket, COMPONENTS, N_COMPONENTS, ROLLUP_WIDTHS_S};
+    use axum::response::IntoResponse;
+    let (ti, spec) = target_index(&app, &name)?;
+    let (from_q, to_q, filtered) = parse_window(&WindowQuery {
+        from: q.from.clone(),
+        to: q.to.clone(),
+        source: q.source.clone(),
+    })?;
+    let max_points = q.max_points.unwrap_or(1000);
+    if !(1..=100_000).contains(&max_points) {
+        return Err(ApiError::invalid_field(
+            "max_points",
+            "must be between 1 and 100000",
+        ));
+    }
+    let csv = match q.format.as_deref() {
+        None | Some("json") => false,
+        Some("csv") => true,
+        Some(other) => {
+            return Err(ApiError::invalid_field(
+                "format",
+                format!("`{other}` is not `json` or `csv`"),
+            ));
+        }
+    };
+    let store = app.service.store();
+    let bounds = store.result_bounds(ti, filtered).await?;
+    let (from, to) = match bounds {
+        Some((lo, hi)) => (
+            if from_q == i64::MIN { lo } else { from_q },
+            if to_q == i64::MAX { hi } else { to_q },
+        ),
+        None => (from_q, to_q),
+    };
+    let mut buckets: std::collections::BTreeMap<i64, Bucket> = std::collections::BTreeMap::new();
+    let (mut width_ns, mut resolution_s) = (1i64, None);
+    if bounds.is_some() && from <= to {
+        let span = (to as i128 - from as i128 + 1) as f64;
+        let wanted_ns = (span / max_points as f64).ceil().max(1.0) as i64;
+        let level = ROLLUP_WIDTHS_S
+            .iter()
+            .rev()
+            .copied()
+            .find(|w| w * 1_000_000_000 <= wanted_ns);
+        let (rows, start) = match level {
+            Some(w) => {
+                let level_ns = w * 1_000_000_000;
+                let start = from.div_euclid(level_ns) * level_ns;
+                // The aligned span may be one level bucket longer: widen to stay within max_points.
+                let aligned = (to as i128 - start as i128 + 1) as f64;
+                width_ns = ((aligned / max_points as f64 / level_ns as f64).ceil() as i64).max(1)
+                    * level_ns;
+                resolution_s = Some(w);
+                (
+                    store.rollup_buckets(ti, filtered, w, from, to).await?,
+                    start,
+                )
+            }
+            None => {
+                width_ns = wanted_ns;
+                (store.result_buckets(ti, filtered, from, to).await?, from)
+            }
+        };
+        for row in rows {
+            let index = (row.start_ns - start).div_euclid(width_ns);
+            let bucket_start = start + index * width_ns;
+            buckets
+                .entry(bucket_start)
+                .or_insert_with(|| Bucket::empty(bucket_start))
+                .merge(&row);
+        }
+    }
+    let value = |b: &Bucket, i: usize, which: u8| -> Option<f64> {
+        b.has(i).then(|| match which {
+            0 => b.min[i],
+            1 => b.sum[i] / if (6..12).contains(&i) { b.n_def } else { b.n } as f64,
+            _ => b.max[i],
+        })
+    };
+    if csv {
+        let mut header = String::from("time,count");
+        for c in COMPONENTS {
+            header.push_str(&format!(",{c}_min,{c}_mean,{c}_max"));
+        }
+        header.push('\n');
+        let lines = std::iter::once(header).chain(buckets.values().map(move |b| {
+            let mut line = format!("{},{}", format_ns(b.start_ns), b.n);
+            for i in 0..N_COMPONENTS {
+                for which in 0..3 {
+                    match value(b, i, which) {
+                        Some(v) => line.push_str(&format!(",{v}")),
+                        None => line.push(','),
+                    }
+                }
+            }
+            line.push('\n');
+            line
+        }));
+        let lines: Vec<Result<String, std::convert::Infallible>> = lines.map(Ok).collect();
+        let body = axum::body::Body::from_stream(futures::stream::iter(lines));
+        return Ok((
+            [
+                (
+                    axum::http::header::CONTENT_TYPE,
+                    "text/csv; charset=utf-8".to_owned(),
+                ),
+                (
+                    axum::http::header::CONTENT_DISPOSITION,
+                    format!("attachment; filename=\"{}-history.csv\"", spec.name),
+                ),
+            ],
+            body,
+        )
+            .into_response());
+    }
+    let mut series = std::collections::BTreeMap::new();
+    for (i, c) in COMPONENTS.iter().enumerate() {
+        series.insert(
+            *c,
+            SeriesOut {
+                min: buckets.values().map(|b| value(b, i, 0)).collect(),
+                mean: buckets.values().map(|b| value(b, i, 1)).collect(),
+                max: buckets.values().map(|b| value(b, i, 2)).collect(),
+            },
+        );
+    }
+    Ok(Json(HistoryOut {
+        target: spec.name,
+        source: if filtered { "filtered" } else { "raw" },
+        from: bounds.map(|_| format_ns(from)),
+        to: bounds.map(|_| format_ns(to)),
+        bucket_s: width_ns as f64 / 1e9,
+        resolution_s,
+        time: buckets.keys().map(|t| format_ns(*t)).collect(),
+        count: buckets.values().map(|b| b.n).collect(),
+        series,
+    })
+    .into_response())
+}

@@ -54,6 +54,17 @@ pub struct Installation {
     pub auth: AuthSettings,
     /// Settings of the filter bank.
     pub filter: BankSettings,
+    /// How long raw samples and results are kept (rollups are kept for good).
+    pub retention: RetentionSettings,
+}
+
+/// How long raw samples and results are kept, counted back from the newest result.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RetentionSettings {
+    /// Raw samples (days).
+    pub samples_days: f64,
+    /// Raw and filtered results (days); rollups stay.
+    pub results_days: f64,
 }
 
 /// HTTP server settings.
@@ -439,6 +450,7 @@ impl Validator {
         let targets = self.targets(&raw, &topology);
         let auth = self.auth(&raw);
         let filter = self.bank_settings(&raw);
+        let retention = self.retention(&raw);
         let mut frames_seen = std::collections::HashSet::new();
         for c in &raw.cameras {
             if !frames_seen.insert(c.get_ref().frame.clone()) {
@@ -470,6 +482,23 @@ impl Validator {
             targets,
             auth,
             filter: filter?,
+            retention: retention?,
+        })
+    }
+
+    fn retention(&mut self, raw: &RawFile) -> Option<RetentionSettings> {
+        let empty = raw::RawRetention::default();
+        let (at, r) = match &raw.retention {
+            Some(s) => (s.span().start, s.get_ref()),
+            None => (0, &empty),
+        };
+        let samples_days = r.samples_days.unwrap_or(90.0);
+        let results_days = r.results_days.unwrap_or(90.0);
+        let ok = self.positive(at, "retention.samples_days", samples_days)
+            & self.positive(at, "retention.results_days", results_days);
+        ok.then_some(RetentionSettings {
+            samples_days,
+            results_days,
         })
     }
 

@@ -23,6 +23,14 @@ pub(super) struct RawFile {
     #[serde(default)]
     pub auth: RawAuth,
     pub filter: Option<Spanned<RawFilter>>,
+    pub retention: Option<Spanned<RawRetention>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawRetention {
+    pub samples_days: Option<f64>,
+    pub results_days: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -133,6 +133,10 @@ pub(crate) enum Job {
         request: ReferenceRequest,
         reply: oneshot::Sender<ServiceResult<CurrentReference>>,
     },
+    Prune {
+        retention: crate::config::RetentionSettings,
+        reply: oneshot::Sender<ServiceResult<(u64, u64)>>,
+    },
     AddCalibration {
         link: crate::chain::LinkId,
         valid_from_ns: i64,
@@ -279,7 +283,25 @@ impl Service {
                 Err(poisoned) => *poisoned.into_inner() = Arc::new(s),
             },
         ));
-        Ok((Service { inner }, PipelineHandle(task)))
+        let service = Service { inner };
+        // Retention runs every ten minutes through the pipeline; the task ends with the service.
+        let weak = Arc::downgrade(&service.inner);
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(std::time::Duration::from_secs(600));
+            every.tick().await;
+            loop {
+                every.tick().await;
+                let Some(inner) = weak.upgrade() else { return };
+                match (Service { inner }).prune().await {
+                    Ok((0, 0)) => {}
+                    Ok((samples, results)) => {
+                        tracing::info!(samples, results, "retention pruned old rows")
+                    }
+                    Err(e) => tracing::warn!(error = %e, "retention failed"),
+                }
+            }
+        });
+        Ok((service, PipelineHandle(task)))
     }
 
     /// The installation.
@@ -336,6 +358,13 @@ impl Service {
             reply,
         })
         .await
+    }
+
+    /// Deletes samples and results older than the retention ages (counted back from the newest
+    /// result); rollups stay. Returns how many `(samples, results)` were deleted.
+    pub async fn prune(&self) -> ServiceResult<(u64, u64)> {
+        let retention = self.inner.installation.retention;
+        self.submit(|reply| Job::Prune { retention, reply }).await
     }
 
     /// Stores a new calibration of a calibrated link, valid from `valid_from_ns`; returns its

@@ -69,6 +69,10 @@ enum Pending {
         ServiceResult<CurrentReference>,
     ),
     Calibration(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
+    Prune(
+        oneshot::Sender<ServiceResult<(u64, u64)>>,
+        ServiceResult<(u64, u64)>,
+    ),
 }
 
 impl Pending {
@@ -78,6 +82,7 @@ impl Pending {
             Pending::Ingest(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Reference(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Calibration(tx, r) => tx.send(r).map_err(|_| ()),
+            Pending::Prune(tx, r) => tx.send(r).map_err(|_| ()),
         };
     }
 
@@ -87,6 +92,7 @@ impl Pending {
             Pending::Ingest(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Reference(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Calibration(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+            Pending::Prune(tx, _) => tx.send(Err(err())).map_err(|_| ()),
         };
     }
 }
@@ -143,6 +149,24 @@ impl Pipeline {
                     } => {
                         let r = set_reference(&mut tx, targets, target, request, now).await?;
                         pending.push(Pending::Reference(reply, r));
+                    }
+                    Job::Prune { retention, reply } => {
+                        let newest = targets
+                            .iter()
+                            .filter_map(|t| t.latest.as_ref().map(|l| l.time_ns))
+                            .max();
+                        let r = match newest {
+                            Some(n) => {
+                                let days = |d: f64| (d * 86_400e9) as i64;
+                                tx.prune(
+                                    n.saturating_sub(days(retention.samples_days)),
+                                    n.saturating_sub(days(retention.results_days)),
+                                )
+                                .await?
+                            }
+                            None => (0, 0),
+                        };
+                        pending.push(Pending::Prune(reply, Ok(r)));
                     }
                     Job::AddCalibration {
                         link,
@@ -413,6 +437,7 @@ async fn ingest(
     tx.insert_samples(&sample_rows).await?;
     let rows: Vec<NewResult> = result_rows.into_values().collect();
     tx.insert_results(&rows).await?;
+    tx.update_rollups(&rows).await?;
     for (t, est) in latest {
         targets[t].latest = Some(est);
     }

@@ -12,6 +12,7 @@
 
 mod codec;
 mod read;
+pub mod rollup;
 mod write;
 
 /// The statements of one write transaction.

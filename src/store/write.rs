@@ -7,6 +7,9 @@ use crate::deformation::SmallMotion;
 use crate::geometry::PoseCov;
 use sqlx::{Connection, QueryBuilder, Sqlite, SqliteConnection, Transaction};
 
+/// A stored rollup row: key, counts, statistics blob.
+type RollupRow = (i64, i64, i64, i64, i64, i64, Vec<u8>);
+
 /// Rows per multi-row insert: well under SQLite's limit on bound parameters.
 const ROWS_PER_STATEMENT: usize = 400;
 
@@ -186,6 +189,90 @@ impl WriteTx<'_> {
             qb.build().execute(&mut *self.tx).await?;
         }
         Ok(())
+    }
+
+    /// Adds new results to the rollups (in the same transaction as the results): the touched
+    /// buckets of every level are read in one statement, merged, and written back in one.
+    pub async fn update_rollups(&mut self, results: &[NewResult]) -> StoreResult<()> {
+        use super::rollup::{Bucket, decode_bucket, encode_stats};
+        use std::collections::HashMap;
+        type Key = (i64, i64, i64, i64);
+        let mut fresh: Vec<(Key, Bucket)> = super::rollup::aggregate(results)
+            .into_iter()
+            .map(|((target, filtered, width_s, start), b)| {
+                (
+                    (self.target_ids[target], i64::from(filtered), width_s, start),
+                    b,
+                )
+            })
+            .collect();
+        fresh.sort_by_key(|(k, _)| *k);
+        // Row-value IN: 4 parameters a key, well under SQLite's limit per statement.
+        let mut existing: HashMap<Key, Bucket> = HashMap::new();
+        for chunk in fresh.chunks(2000) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "select target_id, source, width_s, bucket_ns, n, n_def, stats from rollups \
+                 where (target_id, source, width_s, bucket_ns) in (values ",
+            );
+            let mut sep = qb.separated(", ");
+            for ((t, s, w, b), _) in chunk {
+                sep.push("(")
+                    .push_bind_unseparated(*t)
+                    .push_unseparated(", ")
+                    .push_bind_unseparated(*s)
+                    .push_unseparated(", ")
+                    .push_bind_unseparated(*w)
+                    .push_unseparated(", ")
+                    .push_bind_unseparated(*b)
+                    .push_unseparated(")");
+            }
+            qb.push(")");
+            let rows: Vec<RollupRow> = qb.build_query_as().fetch_all(&mut *self.tx).await?;
+            for (t, s, w, b, n, n_def, stats) in rows {
+                existing.insert((t, s, w, b), decode_bucket(b, n, n_def, &stats)?);
+            }
+        }
+        for (key, bucket) in &mut fresh {
+            if let Some(old) = existing.get(key) {
+                bucket.merge(old);
+            }
+        }
+        for chunk in fresh.chunks(ROWS_PER_STATEMENT) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "insert or replace into rollups (target_id, source, width_s, bucket_ns, n, n_def, stats) ",
+            );
+            qb.push_values(chunk, |mut b, ((t, s, w, start), bucket)| {
+                b.push_bind(*t)
+                    .push_bind(*s)
+                    .push_bind(*w)
+                    .push_bind(*start)
+                    .push_bind(bucket.n)
+                    .push_bind(bucket.n_def)
+                    .push_bind(encode_stats(bucket));
+            });
+            qb.build().execute(&mut *self.tx).await?;
+        }
+        Ok(())
+    }
+
+    /// Deletes samples older than `samples_before_ns` and results older than
+    /// `results_before_ns`; rollups stay. Returns how many `(samples, results)` went.
+    pub async fn prune(
+        &mut self,
+        samples_before_ns: i64,
+        results_before_ns: i64,
+    ) -> StoreResult<(u64, u64)> {
+        let samples = sqlx::query("delete from samples where time_ns < ?")
+            .bind(samples_before_ns)
+            .execute(&mut *self.tx)
+            .await?
+            .rows_affected();
+        let results = sqlx::query("delete from results where time_ns < ?")
+            .bind(results_before_ns)
+            .execute(&mut *self.tx)
+            .await?
+            .rows_affected();
+        Ok((samples, results))
     }
 
     /// The filtered results of a target in `[from_ns, to_ns]`, oldest first.

@@ -2,5 +2,6 @@
 
 mod access;
 mod helpers;
+mod history;
 mod ingest_errors;
 mod results;

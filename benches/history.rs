@@ -1,0 +1,140 @@
+//! History query latency over 10 million stored filtered results (one target, 25 Hz, about 4.6
+//! days): 24 h and full-range queries at `max_points=2000`, through the router in process.
+//!
+//! Run: `cargo bench --bench history` (`RESULTS` sets the count; the database is built once per
+//! run in a temporary directory, which takes a minute or two).
+
+use axum::body::Body;
+use axum::http::Request;
+use brokenray::api::{AppState, Limits, router};
+use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
+use brokenray::service::Service;
+use brokenray::store::{self, NewResult};
+use http_body_util::BodyExt;
+use nalgebra::Translation3;
+use std::time::Instant;
+use tower::ServiceExt;
+
+const T0: i64 = 1_795_255_200_000_000_000;
+const PERIOD_NS: i64 = 40_000_000;
+
+fn main() {
+    if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
+        println!("history latency bench: run with `cargo bench --bench history`");
+        return;
+    }
+    let n: i64 = std::env::var("RESULTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(10_000_000);
+    let dir = tempfile::tempdir().expect("temp dir");
+    let text = format!(
+        "[server]\ndatabase = \"{}\"\n[[links]]\nname = \"G_from_B\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 30.0, translation_mm = 1.0 }}\nexpected_rate_hz = 25.0\n[[targets]]\nname = \"G\"\nbase = \"B\"\n",
+        dir.path().join("history.sqlite").display()
+    );
+    let inst = brokenray::config::parse("bench.toml", &text).expect("config");
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    runtime.block_on(async {
+        let build = Instant::now();
+        let (store, mut write) = store::open(
+            &inst.server.database,
+            &["G_from_B".into()],
+            &["G".into()],
+            0,
+        )
+        .await
+        .expect("open");
+        let chunk = 200_000;
+        for start in (0..n).step_by(chunk) {
+            let rows: Vec<NewResult> = (start..(start + chunk as i64).min(n))
+                .map(|k| {
+                    let t = k as f64 / 25.0;
+                    NewResult {
+                        target: 0,
+                        filtered: true,
+                        time_ns: T0 + k * PERIOD_NS,
+                        estimate: PoseCov {
+                            pose: Pose::from_parts(
+                                Translation3::new(
+                                    (t / 8.0).sin(),
+                                    -2952.0,
+                                    532.0 + (t / 15.0).cos(),
+                                ),
+                                rotation_from_euler([
+                                    -0.0718,
+                                    0.026,
+                                    2.87 + 1e-5 * (t / 8.0).sin(),
+                                ])
+                                .expect("rotation"),
+                            ),
+                            cov: Mat6::identity() * 1e-6,
+                        },
+                        status: "ok",
+                        age_s: 0.0,
+                        chi2: None,
+                        deformation: None,
+                    }
+                })
+                .collect();
+            let mut tx = write.begin().await.expect("begin");
+            tx.insert_results(&rows).await.expect("insert");
+            tx.update_rollups(&rows).await.expect("rollups");
+            tx.commit().await.expect("commit");
+        }
+        write.close().await.expect("close");
+        store.close().await;
+        println!(
+            "built {n} filtered results in {:.1} s",
+            build.elapsed().as_secs_f64()
+        );
+
+        let limits = Limits {
+            max_body_bytes: inst.server.max_body_bytes,
+            max_batch_samples: inst.server.max_batch_samples,
+        };
+        let (service, _pipeline) = Service::start(inst).await.expect("service");
+        let app = router(AppState { service, limits });
+        let last = T0 + (n - 1) * PERIOD_NS;
+        let day = 86_400 * 1_000_000_000i64;
+        for (label, uri) in [
+            (
+                "last 24 h",
+                format!(
+                    "/api/v1/targets/G/history?from={}&to={}&max_points=2000",
+                    last - day,
+                    last
+                ),
+            ),
+            (
+                "full range",
+                "/api/v1/targets/G/history?max_points=2000".to_owned(),
+            ),
+            (
+                "full range, csv",
+                "/api/v1/targets/G/history?max_points=2000&format=csv".to_owned(),
+            ),
+        ] {
+            let mut times = Vec::new();
+            for _ in 0..21 {
+                let t = Instant::now();
+                let resp = app
+                    .clone()
+                    .oneshot(Request::get(&uri).body(Body::empty()).expect("request"))
+                    .await
+                    .expect("response");
+                assert!(resp.status().is_success());
+                let bytes = resp.into_body().collect().await.expect("body").to_bytes();
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                assert!(!bytes.is_empty());
+            }
+            times.sort_by(f64::total_cmp);
+            println!(
+                "history {label}: median {:.1} ms, max {:.1} ms (21 queries, max_points=2000)",
+                times[10], times[20]
+            );
+        }
+    });
+}

@@ -1,0 +1,280 @@
+//! Rollups: per bucket, the count and min, sum and max of every result component, so a history
+//! at any scale reads a bounded number of rows and a spike survives downsampling.
+
+use super::{NewResult, Store, StoreResult, StoredResult};
+use crate::geometry::{PoseCov, euler_from_rotation};
+use std::collections::HashMap;
+
+/// Bucket widths of the rollup levels (s).
+pub const ROLLUP_WIDTHS_S: [i64; 5] = [1, 10, 60, 600, 3600];
+
+/// How many components a result has.
+pub const N_COMPONENTS: usize = 18;
+
+/// The components, in column order: Euler angles (deg), translation (mm), deformation rotation
+/// (arcsec) and translation (mm), sigmas of rotation (arcsec) and translation (mm).
+pub const COMPONENTS: [&str; N_COMPONENTS] = [
+    "euler_x_deg",
+    "euler_y_deg",
+    "euler_z_deg",
+    "t_x_mm",
+    "t_y_mm",
+    "t_z_mm",
+    "def_rx_arcsec",
+    "def_ry_arcsec",
+    "def_rz_arcsec",
+    "def_tx_mm",
+    "def_ty_mm",
+    "def_tz_mm",
+    "sigma_rx_arcsec",
+    "sigma_ry_arcsec",
+    "sigma_rz_arcsec",
+    "sigma_tx_mm",
+    "sigma_ty_mm",
+    "sigma_tz_mm",
+];
+
+/// Indices of the deformation components (absent while a target has no reference).
+const DEF: std::ops::Range<usize> = 6..12;
+
+/// A bucket of results: count and per component min, sum, max.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Bucket {
+    /// Bucket start (ns).
+    pub start_ns: i64,
+    /// Results in the bucket.
+    pub n: i64,
+    /// Of which with a deformation.
+    pub n_def: i64,
+    /// Minimum per component.
+    pub min: [f64; N_COMPONENTS],
+    /// Sum per component.
+    pub sum: [f64; N_COMPONENTS],
+    /// Maximum per component.
+    pub max: [f64; N_COMPONENTS],
+}
+
+impl Bucket {
+    /// An empty bucket starting at `start_ns`.
+    pub fn empty(start_ns: i64) -> Self {
+        Self {
+            start_ns,
+            n: 0,
+            n_def: 0,
+            min: [f64::INFINITY; N_COMPONENTS],
+            sum: [0.0; N_COMPONENTS],
+            max: [f64::NEG_INFINITY; N_COMPONENTS],
+        }
+    }
+
+    /// Adds one result's components.
+    pub fn add(&mut self, values: &[f64; N_COMPONENTS], has_deformation: bool) {
+        self.n += 1;
+        if has_deformation {
+            self.n_def += 1;
+        }
+        for (i, v) in values.iter().enumerate() {
+            if DEF.contains(&i) && !has_deformation {
+                continue;
+            }
+            self.min[i] = self.min[i].min(*v);
+            self.max[i] = self.max[i].max(*v);
+            self.sum[i] += v;
+        }
+    }
+
+    /// Merges another bucket into this one.
+    pub fn merge(&mut self, other: &Bucket) {
+        self.n += other.n;
+        self.n_def += other.n_def;
+        for i in 0..N_COMPONENTS {
+            self.min[i] = self.min[i].min(other.min[i]);
+            self.max[i] = self.max[i].max(other.max[i]);
+            self.sum[i] += other.sum[i];
+        }
+    }
+
+    /// The mean of component `i`, `None` when no result carried it.
+    pub fn mean(&self, i: usize) -> Option<f64> {
+        let n = if DEF.contains(&i) { self.n_def } else { self.n };
+        (n > 0).then(|| self.sum[i] / n as f64)
+    }
+
+    /// True when component `i` has values in this bucket.
+    pub fn has(&self, i: usize) -> bool {
+        if DEF.contains(&i) {
+            self.n_def > 0
+        } else {
+            self.n > 0
+        }
+    }
+}
+
+/// The components of a result.
+pub fn components(
+    estimate: &PoseCov,
+    deformation: Option<([f64; 3], [f64; 3])>,
+) -> ([f64; N_COMPONENTS], bool) {
+    let e = euler_from_rotation(&estimate.pose.rotation).to_degrees();
+    let t = estimate.pose.translation.vector;
+    let s = estimate.reported_sigmas();
+    let (dr, dt) = deformation.unwrap_or(([0.0; 3], [0.0; 3]));
+    (
+        [
+            e[0],
+            e[1],
+            e[2],
+            t.x,
+            t.y,
+            t.z,
+            dr[0],
+            dr[1],
+            dr[2],
+            dt[0],
+            dt[1],
+            dt[2],
+            s.rotation_arcsec[0],
+            s.rotation_arcsec[1],
+            s.rotation_arcsec[2],
+            s.translation_mm[0],
+            s.translation_mm[1],
+            s.translation_mm[2],
+        ],
+        deformation.is_some(),
+    )
+}
+
+/// The buckets that new results add to, per (target, source, width, bucket start).
+pub(super) fn aggregate(results: &[NewResult]) -> HashMap<(usize, bool, i64, i64), Bucket> {
+    let mut out: HashMap<(usize, bool, i64, i64), Bucket> = HashMap::new();
+    for r in results {
+        let (values, has_def) = components(
+            &r.estimate,
+            r.deformation
+                .map(|(_, d)| (d.rotation_arcsec, d.translation_mm)),
+        );
+        for width_s in ROLLUP_WIDTHS_S {
+            let width_ns = width_s * 1_000_000_000;
+            let start = r.time_ns.div_euclid(width_ns) * width_ns;
+            out.entry((r.target, r.filtered, width_s, start))
+                .or_insert_with(|| Bucket::empty(start))
+                .add(&values, has_def);
+        }
+    }
+    out
+}
+
+/// Encodes a bucket's min, sum and max per component (432 bytes).
+pub(super) fn encode_stats(b: &Bucket) -> Vec<u8> {
+    let mut out = Vec::with_capacity(N_COMPONENTS * 3 * 8);
+    for i in 0..N_COMPONENTS {
+        for v in [b.min[i], b.sum[i], b.max[i]] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// Decodes a stored bucket.
+pub(super) fn decode_bucket(
+    start_ns: i64,
+    n: i64,
+    n_def: i64,
+    stats: &[u8],
+) -> StoreResult<Bucket> {
+    let values = super::codec::decode_f64s(stats, N_COMPONENTS * 3)?;
+    let mut b = Bucket::empty(start_ns);
+    b.n = n;
+    b.n_def = n_def;
+    for i in 0..N_COMPONENTS {
+        b.min[i] = values[3 * i];
+        b.sum[i] = values[3 * i + 1];
+        b.max[i] = values[3 * i + 2];
+    }
+    Ok(b)
+}
+
+impl Store {
+    /// The span of a target's history: from the finest rollup, which is kept when old results
+    /// are pruned (its last bucket counts to its end), else from the results. Each end is its
+    /// own indexed lookup (SQLite optimises a lone `min` or `max`, not both in one query).
+    pub async fn result_bounds(
+        &self,
+        target: usize,
+        filtered: bool,
+    ) -> StoreResult<Option<(i64, i64)>> {
+        let end = |order: &'static str| {
+            sqlx::query_as::<_, (i64,)>(match order {
+                "asc" => "select bucket_ns from rollups where target_id = ? and source = ? and width_s = ? order by bucket_ns asc limit 1",
+                _ => "select bucket_ns from rollups where target_id = ? and source = ? and width_s = ? order by bucket_ns desc limit 1",
+            })
+            .bind(self.target_ids[target])
+            .bind(i64::from(filtered))
+            .bind(ROLLUP_WIDTHS_S[0])
+            .fetch_optional(&self.pool)
+        };
+        if let (Some((lo,)), Some((hi,))) = (end("asc").await?, end("desc").await?) {
+            return Ok(Some((lo, hi + ROLLUP_WIDTHS_S[0] * 1_000_000_000 - 1)));
+        }
+        let first = self
+            .results_around(target, filtered, i64::MIN)
+            .await?
+            .1
+            .map(|r| r.time_ns);
+        let last = self
+            .latest_result(target, filtered)
+            .await?
+            .map(|r| r.time_ns);
+        Ok(first.zip(last))
+    }
+
+    /// The rollup buckets of width `width_s` overlapping `[from_ns, to_ns]`, oldest first.
+    pub async fn rollup_buckets(
+        &self,
+        target: usize,
+        filtered: bool,
+        width_s: i64,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<Bucket>> {
+        let width_ns = width_s * 1_000_000_000;
+        let rows: Vec<(i64, i64, i64, Vec<u8>)> = sqlx::query_as(
+            "select bucket_ns, n, n_def, stats from rollups where target_id = ? and source = ? and width_s = ? \
+             and bucket_ns >= ? and bucket_ns <= ? order by bucket_ns",
+        )
+        .bind(self.target_ids[target])
+        .bind(i64::from(filtered))
+        .bind(width_s)
+        .bind(from_ns.div_euclid(width_ns) * width_ns)
+        .bind(to_ns)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|(start, n, n_def, stats)| decode_bucket(*start, *n, *n_def, stats))
+            .collect()
+    }
+
+    /// Every result in `[from_ns, to_ns]` as a one-result bucket, oldest first (for history
+    /// finer than the finest rollup).
+    pub async fn result_buckets(
+        &self,
+        target: usize,
+        filtered: bool,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<Bucket>> {
+        let results: Vec<StoredResult> = self
+            .results(target, filtered, from_ns, to_ns, i64::MAX)
+            .await?;
+        Ok(results
+            .iter()
+            .map(|r| {
+                let (values, has_def) =
+                    components(&r.estimate, r.deformation.map(|(_, rot, t)| (rot, t)));
+                let mut b = Bucket::empty(r.time_ns);
+                b.add(&values, has_def);
+                b
+            })
+            .collect())
+    }
+}

@@ -1,0 +1,187 @@
+//! History at scale: a million results over 30 days, downsampled to 2000 buckets whose min and
+//! max contain every stored value of their span (checked against a direct scan).
+
+use super::helpers::{T0_NS, TestApp, installation};
+use axum::http::StatusCode;
+use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
+use brokenray::store::{self, NewResult};
+use nalgebra::Translation3;
+
+const ONE_LINK: &str = r#"
+[[links]]
+name = "G_from_B"
+kind = "measured"
+sigma = { rotation_arcsec = 30.0, translation_mm = 1.0 }
+expected_rate_hz = 1.0
+
+[[targets]]
+name = "G"
+base = "B"
+"#;
+
+const N: i64 = 1_000_000;
+const SPAN_NS: i64 = 30 * 86_400 * 1_000_000_000;
+const SPIKE: i64 = 654_321;
+
+fn result(k: i64) -> NewResult {
+    let t = k as f64 * 1e-4;
+    let x = if k == SPIKE {
+        500.0
+    } else {
+        (t * 3.1).sin() * 2.0 + (k % 7) as f64 * 0.01
+    };
+    let pose = Pose::from_parts(
+        Translation3::new(x, -2952.0 + (t * 0.7).cos(), 532.0),
+        rotation_from_euler([-0.0718 + 1e-5 * (t * 1.3).sin(), 0.026, 2.87]).unwrap(),
+    );
+    NewResult {
+        target: 0,
+        filtered: true,
+        time_ns: T0_NS + k * (SPAN_NS / N),
+        estimate: PoseCov {
+            pose,
+            cov: Mat6::identity() * 1e-6,
+        },
+        status: "ok",
+        age_s: 0.0,
+        chi2: None,
+        deformation: None,
+    }
+}
+
+#[tokio::test]
+async fn a_month_of_results_downsamples_without_losing_a_spike() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = installation(&dir, Some(ONE_LINK));
+    {
+        let (store, mut write) = store::open(
+            &inst.server.database,
+            &["G_from_B".into()],
+            &["G".into()],
+            0,
+        )
+        .await
+        .unwrap();
+        for chunk_start in (0..N).step_by(100_000) {
+            let rows: Vec<NewResult> = (chunk_start..chunk_start + 100_000).map(result).collect();
+            let mut tx = write.begin().await.unwrap();
+            tx.insert_results(&rows).await.unwrap();
+            tx.update_rollups(&rows).await.unwrap();
+            tx.commit().await.unwrap();
+        }
+        write.close().await.unwrap();
+        store.close().await;
+    }
+    let app = TestApp::start_with(dir, inst).await;
+    let (status, h) = app.get("/api/v1/targets/G/history?max_points=2000").await;
+    assert_eq!(status, StatusCode::OK);
+    let times = h["time"].as_array().unwrap();
+    assert!(
+        !times.is_empty() && times.len() <= 2000,
+        "{} buckets",
+        times.len()
+    );
+    assert_eq!(
+        h["resolution_s"], 600,
+        "a month in 2000 buckets reads the 10-minute rollup"
+    );
+    let counts: Vec<i64> = serde_json::from_value(h["count"].clone()).unwrap();
+    assert_eq!(counts.iter().sum::<i64>(), N, "every result is in a bucket");
+    let width_ns = (h["bucket_s"].as_f64().unwrap() * 1e9).round() as i64;
+    let starts: Vec<i64> = times
+        .iter()
+        .map(|t| brokenray::api::time::parse_rfc3339_ns(t.as_str().unwrap()).unwrap())
+        .collect();
+    let x_min: Vec<f64> = serde_json::from_value(h["series"]["t_x_mm"]["min"].clone()).unwrap();
+    let x_max: Vec<f64> = serde_json::from_value(h["series"]["t_x_mm"]["max"].clone()).unwrap();
+    let x_mean: Vec<f64> = serde_json::from_value(h["series"]["t_x_mm"]["mean"].clone()).unwrap();
+    // Direct scan: every stored value lies within its bucket's min and max, which it attains.
+    let stored = app
+        .service
+        .store()
+        .results(0, true, i64::MIN, i64::MAX, i64::MAX)
+        .await
+        .unwrap();
+    assert_eq!(stored.len() as i64, N);
+    let mut scan_min = vec![f64::INFINITY; starts.len()];
+    let mut scan_max = vec![f64::NEG_INFINITY; starts.len()];
+    let mut scan_sum = vec![0.0; starts.len()];
+    let mut scan_n = vec![0i64; starts.len()];
+    for r in &stored {
+        let b = starts.partition_point(|s| *s <= r.time_ns) - 1;
+        assert!(
+            r.time_ns < starts[b] + width_ns,
+            "result outside every bucket"
+        );
+        let x = r.estimate.pose.translation.vector.x;
+        scan_min[b] = scan_min[b].min(x);
+        scan_max[b] = scan_max[b].max(x);
+        scan_sum[b] += x;
+        scan_n[b] += 1;
+    }
+    for b in 0..starts.len() {
+        assert_eq!(scan_n[b], counts[b]);
+        assert_eq!(x_min[b], scan_min[b], "bucket {b} min");
+        assert_eq!(x_max[b], scan_max[b], "bucket {b} max");
+        assert!(
+            (x_mean[b] - scan_sum[b] / scan_n[b] as f64).abs() < 1e-9,
+            "bucket {b} mean"
+        );
+    }
+    // The spike survives in its bucket's max.
+    let spike_time = T0_NS + SPIKE * (SPAN_NS / N);
+    let b = starts.partition_point(|s| *s <= spike_time) - 1;
+    assert_eq!(x_max[b], 500.0);
+    // A narrow window reads the results themselves; CSV has a header and one line a bucket.
+    let narrow = format!(
+        "/api/v1/targets/G/history?from={}&to={}&max_points=100",
+        T0_NS,
+        T0_NS + 60 * 1_000_000_000
+    );
+    let (_, n) = app.get(&narrow).await;
+    assert_eq!(n["resolution_s"], serde_json::Value::Null);
+    let (status, csv) = app.get(&format!("{narrow}&format=csv")).await;
+    assert_eq!(status, StatusCode::OK);
+    let text = csv.as_str().unwrap();
+    assert!(text.starts_with("time,count,euler_x_deg_min,euler_x_deg_mean,euler_x_deg_max"));
+    assert_eq!(
+        text.lines().count(),
+        n["time"].as_array().unwrap().len() + 1
+    );
+}
+
+#[tokio::test]
+async fn retention_prunes_old_rows_and_keeps_rollups() {
+    let app = TestApp::start(Some(&format!(
+        "{ONE_LINK}\n[retention]\nsamples_days = 1\nresults_days = 2\n"
+    )))
+    .await;
+    // Five days of samples, one an hour.
+    let samples: Vec<serde_json::Value> = (0..120)
+        .map(|h| {
+            serde_json::json!({"link": "G_from_B", "time": T0_NS + h * 3_600_000_000_000i64,
+                               "pose": {"t_mm": [1.0, 2.0, 3.0], "q_wxyz": [1, 0, 0, 0]}})
+        })
+        .collect();
+    let (status, _) = app
+        .post_json("/api/v1/samples", &serde_json::json!({"samples": samples}))
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    let (_, before) = app
+        .get("/api/v1/targets/G/history?source=raw&max_points=5")
+        .await;
+    let (samples_gone, results_gone) = app.service.prune().await.unwrap();
+    // The newest result is at hour 119: samples before hour 95 go, hour 95 itself stays.
+    assert_eq!(
+        samples_gone, 95,
+        "samples older than a day before the newest"
+    );
+    assert!(results_gone > 0);
+    let (_, left) = app.get("/api/v1/links/G_from_B/samples?limit=1000").await;
+    assert_eq!(left["samples"].as_array().unwrap().len(), 25);
+    // The coarse history still covers all five days from the rollups.
+    let (_, after) = app
+        .get("/api/v1/targets/G/history?source=raw&max_points=5")
+        .await;
+    assert_eq!(before["count"], after["count"]);
+}
