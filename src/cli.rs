@@ -35,6 +35,15 @@ pub enum Command {
         #[arg(long, value_name = "FILE")]
         config: Option<PathBuf>,
     },
+    /// Write an online, consistent copy of the database (safe while `serve` runs).
+    Backup {
+        /// The installation file whose database to copy; the built-in one without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Where to write the copy (must not exist).
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+    },
     /// Print a new random bearer token and the SHA-256 to put in `[[auth.tokens]]`.
     HashToken {
         /// Hash this token instead of making a new one.
@@ -58,6 +67,35 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 .build()
                 .context("cannot start the async runtime")?;
             runtime.block_on(serve(installation))?;
+        }
+        Command::Backup {
+            config,
+            out: out_file,
+        } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let database = installation.server.database.clone();
+            writeln!(
+                out,
+                "backing up {} to {} ...",
+                database.display(),
+                out_file.display()
+            )?;
+            out.flush()?;
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .context("cannot start the async runtime")?;
+            let started = std::time::Instant::now();
+            let bytes = runtime
+                .block_on(crate::store::backup(&database, &out_file))
+                .with_context(|| format!("backup of {} failed", database.display()))?;
+            writeln!(
+                out,
+                "done: {} ({:.1} MB) in {:.1} s, a consistent copy",
+                out_file.display(),
+                bytes as f64 / 1e6,
+                started.elapsed().as_secs_f64()
+            )?;
         }
         Command::HashToken { token } => {
             let token = match token {

@@ -80,6 +80,7 @@ fn help_lists_only_working_subcommands() {
             "check-config",
             "default-config",
             "serve",
+            "backup",
             "hash-token",
             "help"
         ]

@@ -146,3 +146,32 @@ impl Store {
         self.pool.close().await;
     }
 }
+
+/// Writes a consistent copy of the database at `database` to `out` while the service may be
+/// writing to it (`VACUUM INTO` reads one snapshot; WAL lets the writer go on). Refuses to
+/// overwrite `out`. Returns the copy's size in bytes.
+pub async fn backup(database: &Path, out: &Path) -> StoreResult<u64> {
+    if out.exists() {
+        return Err(StoreError::Malformed(format!(
+            "{} already exists; a backup never overwrites a file",
+            out.display()
+        )));
+    }
+    if !database.exists() {
+        return Err(StoreError::Malformed(format!(
+            "no database at {}",
+            database.display()
+        )));
+    }
+    let mut conn = SqliteConnectOptions::new()
+        .filename(database)
+        .busy_timeout(Duration::from_secs(30))
+        .connect()
+        .await?;
+    sqlx::query("vacuum into ?")
+        .bind(out.to_string_lossy().into_owned())
+        .execute(&mut conn)
+        .await?;
+    conn.close().await?;
+    Ok(std::fs::metadata(out).map(|m| m.len()).unwrap_or(0))
+}
