@@ -98,8 +98,33 @@ impl ApiError {
     }
 }
 
+/// Refused requests since start, by status code (400, 401, 403, 404, 408, 409, 413, 422, 5xx).
+pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 9] = [
+    (400, std::sync::atomic::AtomicU64::new(0)),
+    (401, std::sync::atomic::AtomicU64::new(0)),
+    (403, std::sync::atomic::AtomicU64::new(0)),
+    (404, std::sync::atomic::AtomicU64::new(0)),
+    (408, std::sync::atomic::AtomicU64::new(0)),
+    (409, std::sync::atomic::AtomicU64::new(0)),
+    (413, std::sync::atomic::AtomicU64::new(0)),
+    (422, std::sync::atomic::AtomicU64::new(0)),
+    (500, std::sync::atomic::AtomicU64::new(0)),
+];
+
+fn count_rejection(status: StatusCode) {
+    let code = if status.is_server_error() {
+        500
+    } else {
+        status.as_u16()
+    };
+    if let Some((_, counter)) = REJECTED.iter().find(|(c, _)| *c == code) {
+        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
+        count_rejection(self.status);
         if self.status.is_server_error() {
             // Logged once here; the body says nothing of the internals.
             tracing::error!(code = self.code, message = %self.message, "request failed");

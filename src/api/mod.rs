@@ -11,6 +11,7 @@ pub mod error;
 pub mod ingest;
 pub mod jsonpath;
 pub mod links;
+pub mod metrics;
 pub mod targets;
 pub mod time;
 
@@ -117,6 +118,7 @@ pub fn router(state: AppState) -> Router {
     Router::new()
         .nest("/api/v1", api)
         .route("/healthz", get(healthz))
+        .route("/metrics", get(metrics::get_metrics))
         .fallback(api_not_found)
         .layer(axum::middleware::from_fn(move |req, next| {
             auth::require_token(Arc::clone(&tokens), req, next)

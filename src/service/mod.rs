@@ -12,7 +12,10 @@
 //! and reference per target, link counters, and a view of the filters for predictions), which
 //! readers use without touching the pipeline.
 
+mod metrics;
 mod pipeline;
+
+pub use metrics::Metrics;
 
 pub use pipeline::{IngestItem, IngestReport};
 
@@ -153,6 +156,8 @@ struct Inner {
     /// Shared with the pipeline, which publishes into it (it must not hold `Inner`, or the
     /// queue would never close).
     snapshot: Arc<RwLock<Arc<Snapshot>>>,
+    /// Counters, shared with the pipeline.
+    metrics: Arc<Metrics>,
 }
 
 /// The running service: a handle that request handlers clone.
@@ -269,14 +274,16 @@ impl Service {
         });
         let (jobs, rx) = mpsc::channel(1024);
         let slot = Arc::new(RwLock::new(snapshot));
+        let metrics = Arc::new(Metrics::default());
         let inner = Arc::new(Inner {
             installation: Arc::clone(&installation),
             store,
             jobs,
             snapshot: Arc::clone(&slot),
+            metrics: Arc::clone(&metrics),
         });
         let task = tokio::spawn(pipeline::run(
-            pipeline::Pipeline::new(write, bank, targets, digest),
+            pipeline::Pipeline::new(write, bank, targets, digest, metrics),
             rx,
             move |s: Snapshot| match slot.write() {
                 Ok(mut guard) => *guard = Arc::new(s),
@@ -320,6 +327,16 @@ impl Service {
             Ok(g) => Arc::clone(&g),
             Err(poisoned) => Arc::clone(&poisoned.into_inner()),
         }
+    }
+
+    /// The pipeline's counters.
+    pub fn metrics(&self) -> &Metrics {
+        &self.inner.metrics
+    }
+
+    /// Jobs waiting for the pipeline.
+    pub fn queue_depth(&self) -> usize {
+        self.inner.jobs.max_capacity() - self.inner.jobs.capacity()
     }
 
     /// True while the pipeline accepts jobs.

@@ -53,6 +53,7 @@ pub(super) struct Pipeline {
     targets: Vec<TargetView>,
     digest: String,
     committed_state: BankRecord,
+    metrics: std::sync::Arc<super::Metrics>,
 }
 
 #[allow(
@@ -103,6 +104,7 @@ impl Pipeline {
         bank: FilterBank,
         targets: Vec<TargetView>,
         digest: String,
+        metrics: std::sync::Arc<super::Metrics>,
     ) -> Self {
         let committed_state = bank.record();
         Self {
@@ -111,6 +113,7 @@ impl Pipeline {
             targets,
             digest,
             committed_state,
+            metrics,
         }
     }
 
@@ -124,6 +127,7 @@ impl Pipeline {
     /// Applies a group of jobs in one transaction and answers them after the commit.
     async fn commit_group(&mut self, jobs: Vec<Job>) -> bool {
         let now = now_ns();
+        let started = std::time::Instant::now();
         let targets_before = self.targets.clone();
         let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
         let mut pending: Vec<Pending> = Vec::with_capacity(jobs.len());
@@ -204,6 +208,18 @@ impl Pipeline {
         match outcome {
             Ok(record) => {
                 self.committed_state = record;
+                use std::sync::atomic::Ordering::Relaxed;
+                let m = &self.metrics;
+                m.commit(u64::try_from(started.elapsed().as_micros()).unwrap_or(u64::MAX));
+                for p in &pending {
+                    if let Pending::Ingest(_, Ok(r)) = p {
+                        m.ingest_requests.fetch_add(1, Relaxed);
+                        m.samples_stored.fetch_add(r.stored as u64, Relaxed);
+                        m.samples_duplicate.fetch_add(r.duplicates as u64, Relaxed);
+                        m.samples_outlier.fetch_add(r.outliers as u64, Relaxed);
+                        m.filter_restarts.fetch_add(r.reinitialized as u64, Relaxed);
+                    }
+                }
                 for p in pending {
                     p.answer();
                 }
@@ -211,6 +227,9 @@ impl Pipeline {
             }
             Err(e) => {
                 tracing::error!(error = %e, "a commit failed; its requests are refused and the filters roll back");
+                self.metrics
+                    .commits_failed
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 for skipped in self.bank.rollback(&self.committed_state) {
                     tracing::warn!(%skipped, "rollback could not restore a filter");
                 }

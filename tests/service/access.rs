@@ -156,3 +156,63 @@ async fn listening_beyond_loopback_without_tokens_is_refused() {
         "{err}"
     );
 }
+
+fn metric(text: &str, name: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(name) && l[name.len()..].starts_with(' '))
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no metric `{name}` in:\n{text}"))
+}
+
+#[tokio::test]
+async fn metrics_count_ingest_rejections_and_links_in_prometheus_text() {
+    let app = TestApp::start(None).await;
+    let group = |k: i64| {
+        let samples: Vec<serde_json::Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
+            .iter()
+            .map(|l| {
+                json!({"link": l, "time": 1_795_255_200_000_000_000i64 + k * 40_000_000,
+                       "pose": {"t_mm": [0.0, 0.0, 3000.0], "q_wxyz": [0, 1, 0, 0]}})
+            })
+            .collect();
+        json!({ "samples": samples })
+    };
+    let (_, before) = app.get("/metrics").await;
+    let rejected_before = metric(
+        before.as_str().unwrap(),
+        "brokenray_requests_rejected_total{status=\"422\"}",
+    );
+    for k in 0..3 {
+        app.post_json("/api/v1/samples", &group(k)).await;
+    }
+    app.post_json("/api/v1/samples", &group(2)).await;
+    let (status, _) = app
+        .post_json("/api/v1/samples", &json!({"samples": []}))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    let (status, text) = app.get("/metrics").await;
+    assert_eq!(status, StatusCode::OK);
+    let text = text.as_str().unwrap();
+    assert!(text.contains("# TYPE brokenray_samples_stored_total counter"));
+    assert_eq!(metric(text, "brokenray_samples_stored_total"), 9.0);
+    assert_eq!(metric(text, "brokenray_samples_duplicate_total"), 3.0);
+    assert_eq!(metric(text, "brokenray_ingest_requests_total"), 4.0);
+    assert!(metric(text, "brokenray_commit_seconds_count") >= 1.0);
+    assert!(
+        metric(text, "brokenray_requests_rejected_total{status=\"422\"}") >= rejected_before + 1.0
+    );
+    assert_eq!(
+        metric(text, "brokenray_link_samples_total{link=\"C1_from_B\"}"),
+        3.0
+    );
+    assert_eq!(
+        metric(text, "brokenray_link_rate_hz{link=\"C2_from_M\"}"),
+        25.0
+    );
+    assert_eq!(
+        metric(text, "brokenray_link_stale{link=\"C3_from_G\"}"),
+        0.0
+    );
+    assert_eq!(metric(text, "brokenray_writer_queue_depth"), 0.0);
+}

@@ -1,0 +1,205 @@
+//! `GET /metrics`: Prometheus text exposition.
+
+use super::AppState;
+use super::error::REJECTED;
+use crate::config::LinkKind;
+use crate::filter::NS_PER_S;
+use crate::service::Metrics;
+use axum::extract::State;
+use axum::http::header;
+use axum::response::IntoResponse;
+use std::fmt::Write as _;
+
+fn family(out: &mut String, name: &str, kind: &str, help: &str) {
+    let _ = writeln!(out, "# HELP {name} {help}");
+    let _ = writeln!(out, "# TYPE {name} {kind}");
+}
+
+/// `GET /metrics`.
+pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
+    let service = &app.service;
+    let m = service.metrics();
+    let mut out = String::new();
+    for (name, help, counter) in [
+        (
+            "brokenray_ingest_requests_total",
+            "Ingest requests committed.",
+            &m.ingest_requests,
+        ),
+        (
+            "brokenray_samples_stored_total",
+            "Samples newly stored.",
+            &m.samples_stored,
+        ),
+        (
+            "brokenray_samples_duplicate_total",
+            "Samples that were identical retries of stored ones.",
+            &m.samples_duplicate,
+        ),
+        (
+            "brokenray_samples_outlier_total",
+            "Samples flagged as outliers by the innovation gate.",
+            &m.samples_outlier,
+        ),
+        (
+            "brokenray_filter_restarts_total",
+            "Filter restarts after runs of consistent outliers.",
+            &m.filter_restarts,
+        ),
+        (
+            "brokenray_commits_failed_total",
+            "Transactions that failed; their requests were refused.",
+            &m.commits_failed,
+        ),
+    ] {
+        family(&mut out, name, "counter", help);
+        let _ = writeln!(out, "{name} {}", Metrics::get(counter));
+    }
+    family(
+        &mut out,
+        "brokenray_requests_rejected_total",
+        "counter",
+        "Requests refused, by status code (500: any 5xx).",
+    );
+    for (code, counter) in &REJECTED {
+        let _ = writeln!(
+            out,
+            "brokenray_requests_rejected_total{{status=\"{code}\"}} {}",
+            Metrics::get(counter)
+        );
+    }
+    family(
+        &mut out,
+        "brokenray_writer_queue_depth",
+        "gauge",
+        "Requests waiting for the writer.",
+    );
+    let _ = writeln!(
+        out,
+        "brokenray_writer_queue_depth {}",
+        service.queue_depth()
+    );
+    family(
+        &mut out,
+        "brokenray_commit_seconds",
+        "summary",
+        "Duration of write transactions.",
+    );
+    let _ = writeln!(
+        out,
+        "brokenray_commit_seconds_sum {}",
+        Metrics::get(&m.commit_micros_sum) as f64 / 1e6
+    );
+    let _ = writeln!(
+        out,
+        "brokenray_commit_seconds_count {}",
+        Metrics::get(&m.commits)
+    );
+    family(
+        &mut out,
+        "brokenray_commit_seconds_max",
+        "gauge",
+        "Longest write transaction since start.",
+    );
+    let _ = writeln!(
+        out,
+        "brokenray_commit_seconds_max {}",
+        Metrics::get(&m.commit_micros_max) as f64 / 1e6
+    );
+
+    let inst = service.installation();
+    let snapshot = service.snapshot();
+    let bank = &snapshot.bank;
+    let newest = inst
+        .links
+        .iter()
+        .filter_map(|l| bank.link_status(l.id).last_time_ns)
+        .max();
+    family(
+        &mut out,
+        "brokenray_link_samples_total",
+        "counter",
+        "Samples of a measured link.",
+    );
+    family(
+        &mut out,
+        "brokenray_link_outliers_total",
+        "counter",
+        "Outliers of a measured link.",
+    );
+    family(
+        &mut out,
+        "brokenray_link_rate_hz",
+        "gauge",
+        "Observed sample rate of a measured link.",
+    );
+    family(
+        &mut out,
+        "brokenray_link_behind_seconds",
+        "gauge",
+        "How far a link's newest sample is behind the newest sample of any link (measurement time).",
+    );
+    family(
+        &mut out,
+        "brokenray_link_stale",
+        "gauge",
+        "1 when a link is behind by more than its staleness limit.",
+    );
+    for l in &inst.links {
+        let LinkKind::Measured(spec) = &l.kind else {
+            continue;
+        };
+        let st = bank.link_status(l.id);
+        let name = &l.name;
+        let _ = writeln!(
+            out,
+            "brokenray_link_samples_total{{link=\"{name}\"}} {}",
+            st.n_samples
+        );
+        let _ = writeln!(
+            out,
+            "brokenray_link_outliers_total{{link=\"{name}\"}} {}",
+            st.n_outliers
+        );
+        if let Some(rate) = bank.observed_rate_hz(l.id) {
+            let _ = writeln!(out, "brokenray_link_rate_hz{{link=\"{name}\"}} {rate}");
+        }
+        if let (Some(last), Some(newest)) = (st.last_time_ns, newest) {
+            let behind = (newest - last) as f64 / NS_PER_S;
+            let stale = behind > inst.filter.stale_after_periods / spec.expected_rate_hz;
+            let _ = writeln!(
+                out,
+                "brokenray_link_behind_seconds{{link=\"{name}\"}} {behind}"
+            );
+            let _ = writeln!(
+                out,
+                "brokenray_link_stale{{link=\"{name}\"}} {}",
+                u8::from(stale)
+            );
+        }
+    }
+    family(
+        &mut out,
+        "brokenray_target_age_seconds",
+        "gauge",
+        "Age of a target's newest filtered result.",
+    );
+    for (i, t) in inst.targets.iter().enumerate() {
+        if let Some(l) = &snapshot.targets[i].latest {
+            let _ = writeln!(
+                out,
+                "brokenray_target_age_seconds{{target=\"{}\",status=\"{}\"}} {}",
+                t.name,
+                l.status.name(),
+                l.age_s
+            );
+        }
+    }
+    (
+        [(
+            header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
+        out,
+    )
+}

@@ -1,0 +1,41 @@
+//! Process-wide counters for `GET /metrics`, shared by the pipeline (which counts) and the
+//! readers (which render them). Atomics only: counting never waits.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Counters of the pipeline.
+#[derive(Debug, Default)]
+pub struct Metrics {
+    /// Ingest requests committed.
+    pub ingest_requests: AtomicU64,
+    /// Samples newly stored.
+    pub samples_stored: AtomicU64,
+    /// Samples that were identical retries.
+    pub samples_duplicate: AtomicU64,
+    /// Samples flagged as outliers.
+    pub samples_outlier: AtomicU64,
+    /// Filter restarts after runs of consistent outliers.
+    pub filter_restarts: AtomicU64,
+    /// Transactions committed.
+    pub commits: AtomicU64,
+    /// Transactions that failed (their requests were refused).
+    pub commits_failed: AtomicU64,
+    /// Sum of commit durations (microseconds).
+    pub commit_micros_sum: AtomicU64,
+    /// Longest commit (microseconds).
+    pub commit_micros_max: AtomicU64,
+}
+
+impl Metrics {
+    /// Records one commit's duration.
+    pub fn commit(&self, micros: u64) {
+        self.commits.fetch_add(1, Ordering::Relaxed);
+        self.commit_micros_sum.fetch_add(micros, Ordering::Relaxed);
+        self.commit_micros_max.fetch_max(micros, Ordering::Relaxed);
+    }
+
+    /// Reads a counter.
+    pub fn get(counter: &AtomicU64) -> u64 {
+        counter.load(Ordering::Relaxed)
+    }
+}
