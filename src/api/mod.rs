@@ -8,6 +8,7 @@
 pub mod auth;
 pub mod dto;
 pub mod error;
+pub mod events;
 pub mod ingest;
 pub mod jsonpath;
 pub mod links;
@@ -107,6 +108,7 @@ pub fn router(state: AppState) -> Router {
             get(targets::get_reference).post(targets::post_reference),
         )
         .route("/targets/{name}/references", get(targets::list_references))
+        .route("/events", get(events::get_events))
         .route("/links", get(links::list_links))
         .route("/links/{name}/samples", get(links::list_samples))
         .route(

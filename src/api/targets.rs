@@ -323,6 +323,16 @@ fn compensation_out(
     }
 }
 
+/// The compensation JSON of a live result (for the event stream).
+pub fn live_compensation(
+    app: &AppState,
+    spec: &TargetSpec,
+    estimate: &TargetEstimate,
+    reference: Option<&CurrentReference>,
+) -> CompensationOut {
+    compensation_out(app, spec, evaluated(estimate, "live"), reference)
+}
+
 /// Query of `compensation`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]

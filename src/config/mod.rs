@@ -68,7 +68,7 @@ pub struct RetentionSettings {
 }
 
 /// HTTP server settings.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ServerSettings {
     /// The address to listen on.
     pub listen: SocketAddr,
@@ -78,6 +78,8 @@ pub struct ServerSettings {
     pub max_body_bytes: usize,
     /// Most samples in one ingest batch.
     pub max_batch_samples: usize,
+    /// Most live result events per target and second of measurement time.
+    pub events_max_hz: f64,
 }
 
 /// Where visualisation data goes.
@@ -578,6 +580,17 @@ impl Validator {
                 .unwrap_or(32 * 1024 * 1024)
                 .max(1024),
             max_batch_samples: raw.server.max_batch_samples.unwrap_or(100_000).max(1),
+            events_max_hz: match raw.server.events_max_hz {
+                None => 10.0,
+                Some(hz) if hz.is_finite() && hz > 0.0 => hz,
+                Some(hz) => {
+                    self.problem(
+                        0,
+                        format!("server.events_max_hz must be a positive number, not {hz}"),
+                    );
+                    return None;
+                }
+            },
         })
     }
 

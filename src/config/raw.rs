@@ -72,6 +72,7 @@ pub(super) struct RawServer {
     pub database: Option<String>,
     pub max_body_bytes: Option<usize>,
     pub max_batch_samples: Option<usize>,
+    pub events_max_hz: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

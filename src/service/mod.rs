@@ -99,6 +99,23 @@ impl TargetView {
     }
 }
 
+/// An event for live subscribers.
+#[derive(Debug, Clone)]
+pub enum LiveEvent {
+    /// A new filtered result of a target (rate-limited per target).
+    Result {
+        /// Target index.
+        target: usize,
+        /// The result.
+        estimate: TargetEstimate,
+        /// The reference in force.
+        reference: Option<CurrentReference>,
+    },
+}
+
+/// How many events a live subscriber may fall behind before it is dropped.
+pub const EVENT_BUFFER: usize = 256;
+
 /// What readers see, as of the last commit.
 #[derive(Debug, Clone)]
 pub struct Snapshot {
@@ -158,6 +175,8 @@ struct Inner {
     snapshot: Arc<RwLock<Arc<Snapshot>>>,
     /// Counters, shared with the pipeline.
     metrics: Arc<Metrics>,
+    /// Live events; sending never waits, a subscriber that lags is dropped.
+    events: tokio::sync::broadcast::Sender<LiveEvent>,
 }
 
 /// The running service: a handle that request handlers clone.
@@ -275,7 +294,9 @@ impl Service {
         let (jobs, rx) = mpsc::channel(1024);
         let slot = Arc::new(RwLock::new(snapshot));
         let metrics = Arc::new(Metrics::default());
+        let (events, _) = tokio::sync::broadcast::channel(EVENT_BUFFER);
         let inner = Arc::new(Inner {
+            events: events.clone(),
             installation: Arc::clone(&installation),
             store,
             jobs,
@@ -283,7 +304,7 @@ impl Service {
             metrics: Arc::clone(&metrics),
         });
         let task = tokio::spawn(pipeline::run(
-            pipeline::Pipeline::new(write, bank, targets, digest, metrics),
+            pipeline::Pipeline::new(write, bank, targets, digest, metrics, events),
             rx,
             move |s: Snapshot| match slot.write() {
                 Ok(mut guard) => *guard = Arc::new(s),
@@ -327,6 +348,11 @@ impl Service {
             Ok(g) => Arc::clone(&g),
             Err(poisoned) => Arc::clone(&poisoned.into_inner()),
         }
+    }
+
+    /// Subscribes to live events.
+    pub fn subscribe(&self) -> tokio::sync::broadcast::Receiver<LiveEvent> {
+        self.inner.events.subscribe()
     }
 
     /// The pipeline's counters.

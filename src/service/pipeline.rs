@@ -54,6 +54,9 @@ pub(super) struct Pipeline {
     digest: String,
     committed_state: BankRecord,
     metrics: std::sync::Arc<super::Metrics>,
+    events: tokio::sync::broadcast::Sender<super::LiveEvent>,
+    /// Per target: the measurement time of the last result sent live.
+    last_event_ns: Vec<Option<i64>>,
 }
 
 #[allow(
@@ -105,15 +108,37 @@ impl Pipeline {
         targets: Vec<TargetView>,
         digest: String,
         metrics: std::sync::Arc<super::Metrics>,
+        events: tokio::sync::broadcast::Sender<super::LiveEvent>,
     ) -> Self {
         let committed_state = bank.record();
+        let last_event_ns = vec![None; targets.len()];
         Self {
+            events,
+            last_event_ns,
             write,
             bank,
             targets,
             digest,
             committed_state,
             metrics,
+        }
+    }
+
+    /// Sends each target's newest result to live subscribers, at most `events_max_hz` per
+    /// target in measurement time. Never waits: with no subscriber the send just fails.
+    fn publish_events(&mut self) {
+        let min_interval_ns = (1e9 / self.bank.installation().server.events_max_hz) as i64;
+        for (ti, view) in self.targets.iter().enumerate() {
+            let Some(latest) = &view.latest else { continue };
+            if self.last_event_ns[ti].is_some_and(|t| latest.time_ns < t + min_interval_ns) {
+                continue;
+            }
+            self.last_event_ns[ti] = Some(latest.time_ns);
+            let _ = self.events.send(super::LiveEvent::Result {
+                target: ti,
+                estimate: latest.clone(),
+                reference: view.reference,
+            });
         }
     }
 
@@ -223,6 +248,7 @@ impl Pipeline {
                 for p in pending {
                     p.answer();
                 }
+                self.publish_events();
                 true
             }
             Err(e) => {

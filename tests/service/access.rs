@@ -216,3 +216,97 @@ async fn metrics_count_ingest_rejections_and_links_in_prometheus_text() {
     );
     assert_eq!(metric(text, "brokenray_writer_queue_depth"), 0.0);
 }
+
+#[tokio::test]
+async fn events_stream_new_results_and_drop_a_client_that_lags() {
+    use axum::body::Body;
+    use axum::http::Request;
+    use http_body_util::BodyExt;
+    use tower::ServiceExt;
+    let app = TestApp::start(None).await;
+    // A subscriber that never reads: ingest must not wait for it.
+    let mut idle = app.service.subscribe();
+    let resp = app
+        .router
+        .clone()
+        .oneshot(Request::get("/api/v1/events").body(Body::empty()).unwrap())
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    assert_eq!(resp.headers()["content-type"], "text/event-stream");
+    let mut body = resp.into_body();
+    let group = |k: i64| {
+        let samples: Vec<serde_json::Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
+            .iter()
+            .map(|l| {
+                json!({"link": l, "time": 1_795_255_200_000_000_000i64 + k * 40_000_000,
+                       "pose": {"t_mm": [0.0, 0.0, 3000.0], "q_wxyz": [0, 1, 0, 0]}})
+            })
+            .collect();
+        json!({ "samples": samples })
+    };
+    let (status, _) = app.post_json("/api/v1/samples", &group(0)).await;
+    assert_eq!(status, StatusCode::OK);
+    let mut text = String::new();
+    while !text.contains("event: result") || !text.contains("\n\n") {
+        let frame = tokio::time::timeout(std::time::Duration::from_secs(5), body.frame())
+            .await
+            .expect("an event within 5 s")
+            .expect("stream open")
+            .unwrap();
+        if let Ok(data) = frame.into_data() {
+            text.push_str(&String::from_utf8_lossy(&data));
+        }
+    }
+    let data = text
+        .lines()
+        .find_map(|l| l.strip_prefix("data: "))
+        .expect("data line");
+    let event: serde_json::Value = serde_json::from_str(data).unwrap();
+    assert_eq!(event["target"], "G");
+    assert_eq!(event["status"], "ok");
+    assert!(event["pose"]["t_mm"].is_array());
+    // Flood past the buffer: 300 commits, each a result 0.4 s (measurement time) after the
+    // last, so none is held back by the 10-a-second limit. The idle subscriber lags and is told
+    // so; every request was answered meanwhile.
+    for i in 1..=300 {
+        let (status, _) = app.post_json("/api/v1/samples", &group(10 * i)).await;
+        assert_eq!(status, StatusCode::OK);
+    }
+    let mut lagged = false;
+    while let Ok(r) = idle.try_recv().map_err(|e| {
+        lagged |= matches!(e, tokio::sync::broadcast::error::TryRecvError::Lagged(_));
+    }) {
+        let _ = r;
+    }
+    assert!(
+        lagged,
+        "a subscriber that does not read falls behind and is cut off"
+    );
+}
+
+#[tokio::test]
+async fn live_results_are_limited_per_target_in_measurement_time() {
+    let app = TestApp::start(None).await;
+    let mut rx = app.service.subscribe();
+    for k in 0..10i64 {
+        let samples: Vec<serde_json::Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
+            .iter()
+            .map(|l| {
+                json!({"link": l, "time": 1_795_255_200_000_000_000i64 + k * 40_000_000,
+                       "pose": {"t_mm": [0.0, 0.0, 3000.0], "q_wxyz": [0, 1, 0, 0]}})
+            })
+            .collect();
+        let (status, _) = app
+            .post_json("/api/v1/samples", &json!({ "samples": samples }))
+            .await;
+        assert_eq!(status, StatusCode::OK);
+    }
+    // Ten results 40 ms apart (0.36 s) at the default 10 events a second: times 0, 120, 240,
+    // 360 ms pass (each at least 100 ms after the last sent).
+    let mut times = Vec::new();
+    while let Ok(brokenray::service::LiveEvent::Result { estimate, .. }) = rx.try_recv() {
+        times.push((estimate.time_ns - 1_795_255_200_000_000_000i64) / 1_000_000);
+    }
+    assert_eq!(times, [0, 120, 240, 360]);
+}

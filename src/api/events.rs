@@ -1,0 +1,40 @@
+//! `GET /api/v1/events`: Server-Sent Events. Each new filtered result (at most
+//! `server.events_max_hz` per target) arrives as an event `result` whose data is the
+//! compensation JSON. A client that falls more than a few hundred events behind is dropped:
+//! publishing never waits for subscribers.
+
+use super::AppState;
+use crate::service::LiveEvent;
+use axum::extract::State;
+use axum::response::sse::{Event, KeepAlive, Sse};
+use futures::Stream;
+use std::convert::Infallible;
+use tokio::sync::broadcast::error::RecvError;
+
+/// `GET /api/v1/events`.
+pub async fn get_events(
+    State(app): State<AppState>,
+) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+    let rx = app.service.subscribe();
+    let stream = futures::stream::unfold((rx, app), |(mut rx, app)| async move {
+        match rx.recv().await {
+            Ok(LiveEvent::Result {
+                target,
+                estimate,
+                reference,
+            }) => {
+                let spec = app.service.installation().targets[target].clone();
+                let body =
+                    super::targets::live_compensation(&app, &spec, &estimate, reference.as_ref());
+                let event = Event::default()
+                    .event("result")
+                    .json_data(body)
+                    .unwrap_or_else(|_| Event::default().event("error").data("unencodable result"));
+                Some((Ok(event), (rx, app)))
+            }
+            // Too slow: drop the client rather than hold anything back.
+            Err(RecvError::Lagged(_)) | Err(RecvError::Closed) => None,
+        }
+    });
+    Sse::new(stream).keep_alive(KeepAlive::default())
+}
