@@ -16,6 +16,7 @@
 //! * [`filter`]: per-link error-state Kalman filters on SE(3) (static, constant-velocity,
 //!   oscillatory), outlier gating, and the bank that evaluates targets at a time.
 //! * [`deformation`]: references, deformation `G0_from_G` and correction `G_from_G0`.
+//! * [`alarms`]: alarm levels of a target with hysteresis, dwell, rate of change and stale data.
 //! * [`stats`]: the paper's Table 4/5 statistics over a set of results.
 //! * [`cli`]: the command line (the binary in `main.rs` only calls it).
 //!
@@ -24,6 +25,7 @@
 
 #![warn(clippy::unwrap_used, clippy::expect_used)]
 
+pub mod alarms;
 pub mod api;
 pub mod chain;
 pub mod cli;

@@ -1,6 +1,6 @@
 //! `GET /api/v1/events`: Server-Sent Events. Each new filtered result (at most
 //! `server.events_max_hz` per target) arrives as an event `result` whose data is the
-//! compensation JSON. A client that falls more than a few hundred events behind is dropped:
+//! compensation JSON; each alarm transition arrives as an event `alarm`. A client that falls more than a few hundred events behind is dropped:
 //! publishing never waits for subscribers.
 
 use super::AppState;
@@ -30,6 +30,15 @@ pub async fn get_events(
                     .event("result")
                     .json_data(body)
                     .unwrap_or_else(|_| Event::default().event("error").data("unencodable result"));
+                Some((Ok(event), (rx, app)))
+            }
+            Ok(LiveEvent::Alarm { target, transition }) => {
+                let name = app.service.installation().targets[target].name.clone();
+                let body = super::alarms::AlarmOut::new(name, &transition);
+                let event = Event::default()
+                    .event("alarm")
+                    .json_data(body)
+                    .unwrap_or_else(|_| Event::default().event("error").data("unencodable alarm"));
                 Some((Ok(event), (rx, app)))
             }
             // Too slow: drop the client rather than hold anything back.

@@ -5,6 +5,7 @@
 //! [`crate::service`], convert the answer back. Every error is one [`ApiError`] with the body
 //! `{"error": {"code", "message", "details": [{"index", "field", "message"}]}}`.
 
+pub mod alarms;
 pub mod auth;
 pub mod dto;
 pub mod error;
@@ -109,6 +110,7 @@ pub fn router(state: AppState) -> Router {
         )
         .route("/targets/{name}/references", get(targets::list_references))
         .route("/events", get(events::get_events))
+        .route("/alarms", get(alarms::list_alarms))
         .route("/links", get(links::list_links))
         .route("/links/{name}/samples", get(links::list_samples))
         .route(

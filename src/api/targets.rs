@@ -224,7 +224,8 @@ pub struct CompensationOut {
     pub deformation: Option<DeformationOut>,
     /// `G_from_G0`.
     pub correction: Option<CorrectionOut>,
-    /// `none`, `warn` or `alarm` against the target's thresholds.
+    /// `none`, `warn` or `alarm`: live, the target's alarm state (hysteresis, dwell, rate,
+    /// stale); for another time, the deformation against the thresholds.
     pub alarm: &'static str,
     /// Redundant paths' agreement, where several were fused.
     pub consistency: Option<ConsistencyOut>,
@@ -353,7 +354,12 @@ pub async fn get_compensation(
     let reference = view.reference.as_ref();
     let Some(at) = q.at else {
         return Ok(Json(match &view.latest {
-            Some(l) => compensation_out(&app, &spec, evaluated(l, "live"), reference),
+            Some(l) => {
+                let mut out = compensation_out(&app, &spec, evaluated(l, "live"), reference);
+                // Live: the alarm state with its hysteresis, dwell, rate and stale tracks.
+                out.alarm = view.alarms.level().name();
+                out
+            }
             None => compensation_out(
                 &app,
                 &spec,

@@ -181,7 +181,7 @@ pub struct MeasuredLink {
 }
 
 /// Deformation thresholds of a target (absent ones are not checked).
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AlarmThresholds {
     /// Warn above this rotation magnitude (arc-seconds).
     pub warn_rotation_arcsec: Option<f64>,
@@ -191,6 +191,14 @@ pub struct AlarmThresholds {
     pub warn_translation_mm: Option<f64>,
     /// Alarm above this translation magnitude (mm).
     pub alarm_translation_mm: Option<f64>,
+    /// A level is left only below `(1 - hysteresis)` of its threshold.
+    pub hysteresis: f64,
+    /// A new level must hold this long (s, measurement time) to become a transition.
+    pub dwell_s: f64,
+    /// Alarm above this rate of rotation of the target (arc-seconds per second).
+    pub rate_rotation_arcsec_per_s: Option<f64>,
+    /// Alarm above this rate of translation of the target (mm per second).
+    pub rate_translation_mm_per_s: Option<f64>,
 }
 
 /// A target: a frame whose pose relative to its base is monitored.
@@ -1038,11 +1046,37 @@ impl Validator {
                 );
             }
         }
+        let hysteresis = a.hysteresis.unwrap_or(0.1);
+        if !(0.0..0.5).contains(&hysteresis) {
+            self.problem(
+                at,
+                format!("{what}: hysteresis must be a fraction from 0 up to 0.5, not {hysteresis}"),
+            );
+        }
+        let dwell_s = a.dwell_s.unwrap_or(1.0);
+        if !(dwell_s.is_finite() && dwell_s >= 0.0) {
+            self.problem(
+                at,
+                format!("{what}: dwell_s must be zero or more seconds, not {dwell_s}"),
+            );
+        }
+        for (name, v) in [
+            ("rate_rotation_arcsec_per_s", a.rate_rotation_arcsec_per_s),
+            ("rate_translation_mm_per_s", a.rate_translation_mm_per_s),
+        ] {
+            if let Some(v) = v {
+                self.positive(at, &format!("{what}: {name}"), v);
+            }
+        }
         AlarmThresholds {
             warn_rotation_arcsec: a.warn_rotation_arcsec,
             alarm_rotation_arcsec: a.alarm_rotation_arcsec,
             warn_translation_mm: a.warn_translation_mm,
             alarm_translation_mm: a.alarm_translation_mm,
+            hysteresis,
+            dwell_s,
+            rate_rotation_arcsec_per_s: a.rate_rotation_arcsec_per_s,
+            rate_translation_mm_per_s: a.rate_translation_mm_per_s,
         }
     }
 

@@ -173,6 +173,10 @@ pub(super) struct RawAlarms {
     pub alarm_rotation_arcsec: Option<f64>,
     pub warn_translation_mm: Option<f64>,
     pub alarm_translation_mm: Option<f64>,
+    pub hysteresis: Option<f64>,
+    pub dwell_s: Option<f64>,
+    pub rate_rotation_arcsec_per_s: Option<f64>,
+    pub rate_translation_mm_per_s: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -89,6 +89,8 @@ pub struct TargetView {
     pub latest: Option<TargetEstimate>,
     /// The current reference.
     pub reference: Option<CurrentReference>,
+    /// The alarm state, fed with every filtered result.
+    pub alarms: crate::alarms::AlarmMonitor,
 }
 
 impl TargetView {
@@ -101,6 +103,10 @@ impl TargetView {
 
 /// An event for live subscribers.
 #[derive(Debug, Clone)]
+#[allow(
+    clippy::large_enum_variant,
+    reason = "a few per second, cloned into each subscriber's slot; boxing buys nothing"
+)]
 pub enum LiveEvent {
     /// A new filtered result of a target (rate-limited per target).
     Result {
@@ -110,6 +116,13 @@ pub enum LiveEvent {
         estimate: TargetEstimate,
         /// The reference in force.
         reference: Option<CurrentReference>,
+    },
+    /// An alarm transition.
+    Alarm {
+        /// Target index.
+        target: usize,
+        /// The transition.
+        transition: crate::alarms::Transition,
     },
 }
 
@@ -285,7 +298,18 @@ impl Service {
                     consistency: None,
                     paths_used: 0,
                 });
-            targets.push(TargetView { latest, reference });
+            let [deformation, rate, stale] = store.alarm_levels(ti).await?;
+            let alarms = crate::alarms::AlarmMonitor::new(
+                installation.targets[ti].alarms,
+                deformation,
+                rate,
+                stale,
+            );
+            targets.push(TargetView {
+                latest,
+                reference,
+                alarms,
+            });
         }
         let snapshot = Arc::new(Snapshot {
             targets: targets.clone(),

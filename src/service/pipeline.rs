@@ -155,6 +155,7 @@ impl Pipeline {
         let started = std::time::Instant::now();
         let targets_before = self.targets.clone();
         let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
+        let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
         let mut pending: Vec<Pending> = Vec::with_capacity(jobs.len());
         let Pipeline {
             write,
@@ -168,7 +169,9 @@ impl Pipeline {
             for job in jobs {
                 match job {
                     Job::Ingest { items, reply } => {
-                        let r = ingest(&mut tx, bank, targets, items, now).await?;
+                        let mut t = Vec::new();
+                        let r = ingest(&mut tx, bank, targets, items, now, &mut t).await?;
+                        transitions.extend(t);
                         pending.push(Pending::Ingest(reply, r));
                     }
                     Job::SetReference {
@@ -249,6 +252,11 @@ impl Pipeline {
                     p.answer();
                 }
                 self.publish_events();
+                for (target, transition) in transitions {
+                    let _ = self
+                        .events
+                        .send(super::LiveEvent::Alarm { target, transition });
+                }
                 true
             }
             Err(e) => {
@@ -330,6 +338,7 @@ async fn ingest(
     targets: &mut [TargetView],
     items: Vec<IngestItem>,
     now: i64,
+    new_transitions: &mut Vec<(usize, crate::alarms::Transition)>,
 ) -> Result<ServiceResult<IngestReport>, StoreError> {
     // Check every measurement before the bank sees any of them.
     let mut problems = Vec::new();
@@ -408,6 +417,7 @@ async fn ingest(
     let mut sample_rows = Vec::with_capacity(fresh.len());
     let mut result_rows: BTreeMap<(usize, bool, i64), NewResult> = BTreeMap::new();
     let mut latest: HashMap<usize, TargetEstimate> = HashMap::new();
+    let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
     for (item, values, z) in fresh {
         let outcome = match bank.ingest_measurement(&item.sample, z) {
             Ok(o) => o,
@@ -476,6 +486,16 @@ async fn ingest(
                     deformation: deformation_of(targets, est.target, &pose),
                 },
             );
+            let magnitudes = deformation_of(targets, est.target, &pose)
+                .map(|(_, d)| (d.rotation_magnitude_arcsec(), d.translation_magnitude_mm()));
+            for t in targets[est.target].alarms.update(
+                est.time_ns,
+                est.status == crate::filter::TargetStatus::Stale,
+                &pose.pose,
+                magnitudes,
+            ) {
+                transitions.push((est.target, t));
+            }
             latest.insert(est.target, est);
         }
     }
@@ -483,6 +503,11 @@ async fn ingest(
     let rows: Vec<NewResult> = result_rows.into_values().collect();
     tx.insert_results(&rows).await?;
     tx.update_rollups(&rows).await?;
+    for (target, t) in &transitions {
+        tx.insert_alarms(*target, std::slice::from_ref(t), now)
+            .await?;
+    }
+    *new_transitions = transitions;
     for (t, est) in latest {
         targets[t].latest = Some(est);
     }

@@ -21,7 +21,7 @@ pub mod write_tx {
 }
 
 pub use codec::{Quality, SampleValues, StoredUncertainty};
-pub use read::{StoredCalibration, StoredReference, StoredResult, StoredSample};
+pub use read::{StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample};
 pub use write::{NewResult, NewSample, WriteConn};
 
 use sqlx::sqlite::{

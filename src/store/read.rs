@@ -366,3 +366,79 @@ impl Store {
         )
     }
 }
+
+/// A stored alarm transition.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredAlarm {
+    /// Target index in the installation.
+    pub target: usize,
+    /// The transition.
+    pub transition: crate::alarms::Transition,
+}
+
+impl Store {
+    /// Alarm transitions in `[from_ns, to_ns]`, of one target or all, oldest first, at most
+    /// `limit`.
+    pub async fn alarms(
+        &self,
+        target: Option<usize>,
+        from_ns: i64,
+        to_ns: i64,
+        limit: i64,
+    ) -> StoreResult<Vec<StoredAlarm>> {
+        let rows: Vec<(i64, i64, String, String, String, f64, String)> = sqlx::query_as(
+            "select target_id, time_ns, kind, from_level, to_level, value, message from alarms \
+             where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? order by time_ns, target_id limit ?",
+        )
+        .bind(target.map(|t| self.target_ids[t]))
+        .bind(target.map(|t| self.target_ids[t]))
+        .bind(from_ns)
+        .bind(to_ns)
+        .bind(limit)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.into_iter()
+            .map(|(tid, time_ns, kind, from, to, value, message)| {
+                let malformed =
+                    || super::StoreError::Malformed(format!("alarm row of kind `{kind}`"));
+                Ok(StoredAlarm {
+                    target: self
+                        .target_ids
+                        .iter()
+                        .position(|t| *t == tid)
+                        .ok_or_else(malformed)?,
+                    transition: crate::alarms::Transition {
+                        kind: crate::alarms::AlarmKind::parse(&kind).ok_or_else(malformed)?,
+                        time_ns,
+                        from: crate::alarms::Level::parse(&from).ok_or_else(malformed)?,
+                        to: crate::alarms::Level::parse(&to).ok_or_else(malformed)?,
+                        value,
+                        message,
+                    },
+                })
+            })
+            .collect()
+    }
+
+    /// The level each alarm kind of a target was last left at (`none` when never raised).
+    pub async fn alarm_levels(&self, target: usize) -> StoreResult<[crate::alarms::Level; 3]> {
+        use crate::alarms::{AlarmKind, Level};
+        let mut out = [Level::None; 3];
+        for (i, kind) in [AlarmKind::Deformation, AlarmKind::Rate, AlarmKind::Stale]
+            .iter()
+            .enumerate()
+        {
+            let row: Option<(String,)> = sqlx::query_as(
+                "select to_level from alarms where target_id = ? and kind = ? order by time_ns desc limit 1",
+            )
+            .bind(self.target_ids[target])
+            .bind(kind.name())
+            .fetch_optional(&self.pool)
+            .await?;
+            if let Some((level,)) = row {
+                out[i] = Level::parse(&level).unwrap_or(Level::None);
+            }
+        }
+        Ok(out)
+    }
+}

@@ -255,6 +255,32 @@ impl WriteTx<'_> {
         Ok(())
     }
 
+    /// Stores alarm transitions of a target.
+    pub async fn insert_alarms(
+        &mut self,
+        target: usize,
+        transitions: &[crate::alarms::Transition],
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        for chunk in transitions.chunks(ROWS_PER_STATEMENT) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "insert or replace into alarms (target_id, time_ns, kind, from_level, to_level, value, message, created_ns) ",
+            );
+            qb.push_values(chunk, |mut b, t| {
+                b.push_bind(self.target_ids[target])
+                    .push_bind(t.time_ns)
+                    .push_bind(t.kind.name())
+                    .push_bind(t.from.name())
+                    .push_bind(t.to.name())
+                    .push_bind(t.value)
+                    .push_bind(t.message.clone())
+                    .push_bind(now_ns);
+            });
+            qb.build().execute(&mut *self.tx).await?;
+        }
+        Ok(())
+    }
+
     /// Deletes samples older than `samples_before_ns` and results older than
     /// `results_before_ns`; rollups stay. Returns how many `(samples, results)` went.
     pub async fn prune(

@@ -1,6 +1,7 @@
 //! The service in process: the router on a real SQLite file.
 
 mod access;
+mod alarms;
 mod helpers;
 mod history;
 mod ingest_errors;

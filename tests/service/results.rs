@@ -383,8 +383,24 @@ async fn a_window_reference_gives_deformation_and_correction() {
     assert_eq!(status, StatusCode::CREATED, "{r2}");
     let (_, list) = app.get("/api/v1/targets/G/references").await;
     assert_eq!(list["references"].as_array().unwrap().len(), 2);
+    // The alarm state follows results: two more seconds against the new zero (longer than
+    // the 1 s dwell) clear it.
+    let mut samples = Vec::new();
+    for k in 400..450 {
+        samples.extend(group(k, &moved));
+    }
+    app.post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
     let (_, c2) = app.get("/api/v1/targets/G/compensation").await;
     assert_eq!(c2["alarm"], "none");
+    let (_, alarms) = app.get("/api/v1/alarms?target=G").await;
+    let levels: Vec<&str> = alarms["alarms"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["to"].as_str().unwrap())
+        .collect();
+    assert_eq!(levels, ["warn", "none"]);
     let (status, _) = app
         .post_json(
             "/api/v1/targets/G/reference",

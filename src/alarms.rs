@@ -1,0 +1,388 @@
+//! Alarms of a target: deformation levels with hysteresis and dwell, a rate-of-change limit,
+//! and stale data. Pure: fed with results in measurement-time order, it returns transitions.
+//!
+//! * Deformation: the magnitudes of the deformation rotation (arc-seconds) and translation (mm)
+//!   against the warn and alarm thresholds. A level is entered when a magnitude reaches its
+//!   threshold, and left only when the magnitude falls below `(1 - hysteresis)` of it.
+//! * Rate: the change of `target_from_base` between consecutive results (rotation angle per
+//!   second, translation per second) against its limits: level `alarm` or `none`.
+//! * Stale: `alarm` while the result's status is `stale`.
+//!
+//! A new level must hold for `dwell_s` of measurement time before it becomes a transition, so
+//! noise around a threshold does not flap (stale data switches at once).
+
+use crate::config::AlarmThresholds;
+use crate::geometry::{ARCSEC_PER_RAD, Pose, so3_log};
+
+/// An alarm level.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Level {
+    /// Nothing to report.
+    None,
+    /// Over the warn threshold.
+    Warn,
+    /// Over the alarm threshold.
+    Alarm,
+}
+
+impl Level {
+    /// The name on the wire.
+    pub fn name(self) -> &'static str {
+        match self {
+            Level::None => "none",
+            Level::Warn => "warn",
+            Level::Alarm => "alarm",
+        }
+    }
+
+    /// Parses a name.
+    pub fn parse(s: &str) -> Option<Level> {
+        match s {
+            "none" => Some(Level::None),
+            "warn" => Some(Level::Warn),
+            "alarm" => Some(Level::Alarm),
+            _ => None,
+        }
+    }
+}
+
+/// What an alarm is about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum AlarmKind {
+    /// The deformation's magnitude.
+    Deformation,
+    /// The rate of change of the target's pose.
+    Rate,
+    /// Data stopped arriving.
+    Stale,
+}
+
+impl AlarmKind {
+    /// The name on the wire.
+    pub fn name(self) -> &'static str {
+        match self {
+            AlarmKind::Deformation => "deformation",
+            AlarmKind::Rate => "rate",
+            AlarmKind::Stale => "stale",
+        }
+    }
+
+    /// Parses a name.
+    pub fn parse(s: &str) -> Option<AlarmKind> {
+        match s {
+            "deformation" => Some(AlarmKind::Deformation),
+            "rate" => Some(AlarmKind::Rate),
+            "stale" => Some(AlarmKind::Stale),
+            _ => None,
+        }
+    }
+}
+
+/// A change of level.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Transition {
+    /// What it is about.
+    pub kind: AlarmKind,
+    /// When (ns, measurement time).
+    pub time_ns: i64,
+    /// The level before.
+    pub from: Level,
+    /// The level after.
+    pub to: Level,
+    /// The value that decided it (arc-seconds, mm, per second for rates; 0 for stale).
+    pub value: f64,
+    /// A sentence for people.
+    pub message: String,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Track {
+    level: Level,
+    pending: Option<(Level, i64)>,
+}
+
+impl Track {
+    fn new(level: Level) -> Self {
+        Self {
+            level,
+            pending: None,
+        }
+    }
+
+    /// Moves towards `candidate`; a change becomes a transition after `dwell_ns`.
+    fn step(&mut self, candidate: Level, time_ns: i64, dwell_ns: i64) -> Option<(Level, Level)> {
+        if candidate == self.level {
+            self.pending = None;
+            return None;
+        }
+        let since = match self.pending {
+            Some((level, since)) if level == candidate => since,
+            _ => {
+                self.pending = Some((candidate, time_ns));
+                time_ns
+            }
+        };
+        if time_ns - since >= dwell_ns {
+            let from = self.level;
+            self.level = candidate;
+            self.pending = None;
+            Some((from, candidate))
+        } else {
+            None
+        }
+    }
+}
+
+/// The level of `value` against `warn` and `alarm`, holding the `current` level down to
+/// `(1 - hysteresis)` of its threshold.
+fn level_of(
+    value: f64,
+    warn: Option<f64>,
+    alarm: Option<f64>,
+    current: Level,
+    hysteresis: f64,
+) -> Level {
+    let keep = 1.0 - hysteresis;
+    let over = |limit: Option<f64>, level: Level| {
+        limit.is_some_and(|l| value >= l || (current >= level && value >= l * keep))
+    };
+    if over(alarm, Level::Alarm) {
+        Level::Alarm
+    } else if over(warn, Level::Warn) {
+        Level::Warn
+    } else {
+        Level::None
+    }
+}
+
+/// The alarm state of one target.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AlarmMonitor {
+    thresholds: AlarmThresholds,
+    deformation: Track,
+    rate: Track,
+    stale: Track,
+    last_pose: Option<(i64, Pose)>,
+}
+
+impl AlarmMonitor {
+    /// A monitor starting from known levels (the last stored transition of each kind).
+    pub fn new(thresholds: AlarmThresholds, deformation: Level, rate: Level, stale: Level) -> Self {
+        Self {
+            thresholds,
+            deformation: Track::new(deformation),
+            rate: Track::new(rate),
+            stale: Track::new(stale),
+            last_pose: None,
+        }
+    }
+
+    /// The overall level: the highest of the three.
+    pub fn level(&self) -> Level {
+        self.deformation
+            .level
+            .max(self.rate.level)
+            .max(self.stale.level)
+    }
+
+    /// Feeds one result: its time, whether it is stale, `target_from_base`, and the deformation
+    /// magnitudes (rotation arcsec, translation mm) when the target has a reference.
+    pub fn update(
+        &mut self,
+        time_ns: i64,
+        is_stale: bool,
+        target_from_base: &Pose,
+        deformation: Option<(f64, f64)>,
+    ) -> Vec<Transition> {
+        let t = self.thresholds;
+        let dwell_ns = (t.dwell_s * 1e9) as i64;
+        let mut out = Vec::new();
+        if let Some((rot, tr)) = deformation {
+            let current = self.deformation.level;
+            let candidate = level_of(
+                rot,
+                t.warn_rotation_arcsec,
+                t.alarm_rotation_arcsec,
+                current,
+                t.hysteresis,
+            )
+            .max(level_of(
+                tr,
+                t.warn_translation_mm,
+                t.alarm_translation_mm,
+                current,
+                t.hysteresis,
+            ));
+            if let Some((from, to)) = self.deformation.step(candidate, time_ns, dwell_ns) {
+                out.push(Transition {
+                    kind: AlarmKind::Deformation,
+                    time_ns,
+                    from,
+                    to,
+                    value: rot,
+                    message: format!(
+                        "deformation {} -> {}: {rot:.1} arcsec, {tr:.3} mm",
+                        from.name(),
+                        to.name()
+                    ),
+                });
+            }
+        }
+        if let Some((t0, p0)) = self.last_pose
+            && time_ns > t0
+        {
+            let dt_s = (time_ns - t0) as f64 / 1e9;
+            let d = target_from_base * p0.inverse();
+            let rot_rate = so3_log(&d.rotation).norm() * ARCSEC_PER_RAD / dt_s;
+            let tr_rate =
+                (target_from_base.translation.vector - p0.translation.vector).norm() / dt_s;
+            let current = self.rate.level;
+            let candidate = level_of(
+                rot_rate,
+                None,
+                t.rate_rotation_arcsec_per_s,
+                current,
+                t.hysteresis,
+            )
+            .max(level_of(
+                tr_rate,
+                None,
+                t.rate_translation_mm_per_s,
+                current,
+                t.hysteresis,
+            ));
+            if let Some((from, to)) = self.rate.step(candidate, time_ns, dwell_ns) {
+                out.push(Transition {
+                    kind: AlarmKind::Rate,
+                    time_ns,
+                    from,
+                    to,
+                    value: rot_rate,
+                    message: format!(
+                        "rate of change {} -> {}: {rot_rate:.1} arcsec/s, {tr_rate:.3} mm/s",
+                        from.name(),
+                        to.name()
+                    ),
+                });
+            }
+        }
+        self.last_pose = Some((time_ns, *target_from_base));
+        let candidate = if is_stale { Level::Alarm } else { Level::None };
+        if let Some((from, to)) = self.stale.step(candidate, time_ns, 0) {
+            out.push(Transition {
+                kind: AlarmKind::Stale,
+                time_ns,
+                from,
+                to,
+                value: 0.0,
+                message: if is_stale {
+                    "a link stopped delivering samples at its expected rate".into()
+                } else {
+                    "every link delivers again".into()
+                },
+            });
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn thresholds() -> AlarmThresholds {
+        AlarmThresholds {
+            warn_rotation_arcsec: Some(60.0),
+            alarm_rotation_arcsec: Some(120.0),
+            warn_translation_mm: None,
+            alarm_translation_mm: None,
+            hysteresis: 0.1,
+            dwell_s: 1.0,
+            rate_rotation_arcsec_per_s: None,
+            rate_translation_mm_per_s: None,
+        }
+    }
+
+    /// Feeds a deformation series at 25 Hz; returns the transitions as (second, from, to).
+    fn run(values: impl Iterator<Item = f64>) -> Vec<(f64, Level, Level)> {
+        let mut m = AlarmMonitor::new(thresholds(), Level::None, Level::None, Level::None);
+        let mut out = Vec::new();
+        for (k, v) in values.enumerate() {
+            let t = k as i64 * 40_000_000;
+            for tr in m.update(t, false, &Pose::identity(), Some((v, 0.0))) {
+                out.push((t as f64 / 1e9, tr.from, tr.to));
+            }
+        }
+        out
+    }
+
+    /// A deterministic jitter in [-1, 1).
+    fn jitter(k: usize) -> f64 {
+        ((k as f64 * 12.9898).sin() * 43758.5453).fract() * 2.0 - 1.0
+    }
+
+    #[test]
+    fn a_ramp_up_and_down_crosses_each_level_once_each_way() {
+        // 0 to 150 arcsec in 30 s, 10 s at 150, back to 0 in 30 s, with 3 arcsec of noise.
+        let series = (0..(70 * 25)).map(|k| {
+            let t = k as f64 / 25.0;
+            let v = if t < 30.0 {
+                t * 5.0
+            } else if t < 40.0 {
+                150.0
+            } else {
+                150.0 - (t - 40.0) * 5.0
+            };
+            v.max(0.0) + 3.0 * jitter(k)
+        });
+        let levels: Vec<(Level, Level)> = run(series).into_iter().map(|(_, f, t)| (f, t)).collect();
+        use Level::*;
+        assert_eq!(
+            levels,
+            [(None, Warn), (Warn, Alarm), (Alarm, Warn), (Warn, None)]
+        );
+    }
+
+    #[test]
+    fn noise_hovering_at_a_threshold_does_not_flap() {
+        // 60 +- 5 arcsec for a minute: one entry into warn at most, never back and forth.
+        let out = run((0..(60 * 25)).map(|k| 60.0 + 5.0 * jitter(k)));
+        assert!(out.len() <= 1, "{out:?}");
+    }
+
+    #[test]
+    fn a_short_excursion_shorter_than_the_dwell_is_not_an_alarm() {
+        let out = run((0..(10 * 25)).map(|k| if (100..110).contains(&k) { 200.0 } else { 0.0 }));
+        assert!(out.is_empty(), "{out:?}");
+    }
+
+    #[test]
+    fn a_fast_change_raises_the_rate_alarm_and_stale_data_its_own() {
+        let mut t = thresholds();
+        t.rate_rotation_arcsec_per_s = Some(30.0);
+        t.dwell_s = 0.0;
+        let mut m = AlarmMonitor::new(t, Level::None, Level::None, Level::None);
+        let turn = |arcsec: f64| {
+            Pose::from_parts(
+                nalgebra::Translation3::new(0.0, 0.0, 0.0),
+                crate::geometry::rotation_from_euler([(arcsec / 3600.0f64).to_radians(), 0.0, 0.0])
+                    .unwrap(),
+            )
+        };
+        assert!(m.update(0, false, &turn(0.0), None).is_empty());
+        // 10 arcsec in 40 ms is 250 arcsec/s.
+        let out = m.update(40_000_000, false, &turn(10.0), None);
+        assert_eq!(out.len(), 1);
+        assert_eq!((out[0].kind, out[0].to), (AlarmKind::Rate, Level::Alarm));
+        let out = m.update(80_000_000, true, &turn(10.0), None);
+        let kinds: Vec<_> = out.iter().map(|t| (t.kind, t.to)).collect();
+        assert_eq!(
+            kinds,
+            [
+                (AlarmKind::Rate, Level::None),
+                (AlarmKind::Stale, Level::Alarm)
+            ]
+        );
+        assert_eq!(m.level(), Level::Alarm);
+    }
+}

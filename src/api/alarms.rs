@@ -1,0 +1,103 @@
+//! `GET /api/v1/alarms`: stored alarm transitions.
+
+use super::AppState;
+use super::error::ApiError;
+use super::time::{format_ns, parse_query_time};
+use crate::alarms::Transition;
+use axum::Json;
+use axum::extract::{Query, State};
+use serde::{Deserialize, Serialize};
+
+/// An alarm transition as answered.
+#[derive(Debug, Serialize)]
+pub struct AlarmOut {
+    /// Target.
+    pub target: String,
+    /// When (measurement time).
+    pub time: String,
+    /// `deformation`, `rate` or `stale`.
+    pub kind: &'static str,
+    /// Level before: `none`, `warn` or `alarm`.
+    pub from: &'static str,
+    /// Level after.
+    pub to: &'static str,
+    /// The deciding value (arcsec, arcsec/s; 0 for stale).
+    pub value: f64,
+    /// A sentence.
+    pub message: String,
+}
+
+impl AlarmOut {
+    /// From a transition.
+    pub fn new(target: String, t: &Transition) -> Self {
+        Self {
+            target,
+            time: format_ns(t.time_ns),
+            kind: t.kind.name(),
+            from: t.from.name(),
+            to: t.to.name(),
+            value: t.value,
+            message: t.message.clone(),
+        }
+    }
+}
+
+/// Query of `alarms`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AlarmsQuery {
+    /// One target only.
+    pub target: Option<String>,
+    /// Start.
+    pub from: Option<String>,
+    /// End.
+    pub to: Option<String>,
+    /// At most this many (default 1000, at most 100000).
+    pub limit: Option<i64>,
+}
+
+/// `GET .../alarms`.
+#[derive(Debug, Serialize)]
+pub struct AlarmsOut {
+    /// Transitions, oldest first.
+    pub alarms: Vec<AlarmOut>,
+}
+
+/// `GET /api/v1/alarms?target=&from=&to=&limit=`.
+pub async fn list_alarms(
+    State(app): State<AppState>,
+    Query(q): Query<AlarmsQuery>,
+) -> Result<Json<AlarmsOut>, ApiError> {
+    let inst = app.service.installation();
+    let target = match &q.target {
+        Some(name) => Some(
+            inst.targets
+                .iter()
+                .position(|t| &t.name == name)
+                .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))?,
+        ),
+        None => None,
+    };
+    let from = match &q.from {
+        Some(f) => parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?,
+        None => i64::MIN,
+    };
+    let to = match &q.to {
+        Some(t) => parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?,
+        None => i64::MAX,
+    };
+    let limit = q.limit.unwrap_or(1000);
+    if !(1..=100_000).contains(&limit) {
+        return Err(ApiError::invalid_field(
+            "limit",
+            "must be between 1 and 100000",
+        ));
+    }
+    let stored = app.service.store().alarms(target, from, to, limit).await?;
+    Ok(Json(AlarmsOut {
+        alarms: stored
+            .iter()
+            .map(|a| AlarmOut::new(inst.targets[a.target].name.clone(), &a.transition))
+            .collect(),
+    }))
+}

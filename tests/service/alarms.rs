@@ -1,0 +1,84 @@
+//! Alarms through the service: a deformation ramp stores exactly its transitions.
+
+use super::helpers::{T0_NS, TestApp};
+use axum::http::StatusCode;
+use serde_json::json;
+
+const ONE_LINK: &str = r#"
+[[links]]
+name = "G_from_B"
+kind = "measured"
+sigma = { rotation_arcsec = 5.0, translation_mm = 0.05 }
+expected_rate_hz = 25.0
+random_walk = { rotation_arcsec_per_sqrt_s = 20.0, translation_mm_per_sqrt_s = 0.1 }
+
+[[targets]]
+name = "G"
+base = "B"
+[targets.alarms]
+warn_rotation_arcsec = 60.0
+alarm_rotation_arcsec = 120.0
+hysteresis = 0.1
+dwell_s = 1.0
+"#;
+
+#[tokio::test]
+async fn a_deformation_ramp_stores_exactly_its_transitions() {
+    let app = TestApp::start(Some(ONE_LINK)).await;
+    let (status, _) = app
+        .post_json(
+            "/api/v1/targets/G/reference",
+            &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED);
+    // Rotation about x: up to 150 arcsec at 5 arcsec/s, 10 s there, back down; 25 Hz.
+    let mut samples = Vec::new();
+    for k in 0..(70 * 25) {
+        let t = k as f64 / 25.0;
+        let v: f64 = if t < 30.0 {
+            t * 5.0
+        } else if t < 40.0 {
+            150.0
+        } else {
+            (150.0 - (t - 40.0) * 5.0).max(0.0)
+        };
+        let half = (v / 3600.0f64).to_radians() / 2.0;
+        samples.push(json!({"link": "G_from_B", "time": T0_NS + k * 40_000_000,
+                            "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}}));
+    }
+    for chunk in samples.chunks(250) {
+        let (status, body) = app
+            .post_json("/api/v1/samples", &json!({"samples": chunk}))
+            .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+    }
+    let (status, list) = app.get("/api/v1/alarms?target=G").await;
+    assert_eq!(status, StatusCode::OK);
+    let steps: Vec<(String, String, String)> = list["alarms"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| {
+            (
+                a["kind"].as_str().unwrap().into(),
+                a["from"].as_str().unwrap().into(),
+                a["to"].as_str().unwrap().into(),
+            )
+        })
+        .collect();
+    let expected = [
+        ("none", "warn"),
+        ("warn", "alarm"),
+        ("alarm", "warn"),
+        ("warn", "none"),
+    ]
+    .map(|(f, t)| ("deformation".to_owned(), f.to_owned(), t.to_owned()));
+    assert_eq!(steps, expected);
+    let (_, c) = app.get("/api/v1/targets/G/compensation").await;
+    assert_eq!(c["alarm"], "none");
+    // The level survives a restart: the next ramp starts from where the last one ended.
+    let app = app.restart(Some(ONE_LINK)).await;
+    let (_, again) = app.get("/api/v1/alarms").await;
+    assert_eq!(again["alarms"].as_array().unwrap().len(), 4);
+}
