@@ -2,7 +2,8 @@
 //! binary in its own process, with a raw SQLite insert baseline. Prints its figures.
 //!
 //! Run: `cargo bench --bench ingest` (options through the environment: `CLIENTS` (4),
-//! `BATCHES` (300), `BATCH` (1000 samples)).
+//! `BATCHES` (300), `BATCH` (1000 samples), `SSE_CLIENTS` (0): that many clients reading
+//! `/api/v1/events` while the batches go in).
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
@@ -178,6 +179,20 @@ fn main() {
         .expect("runtime");
     runtime.block_on(async {
         let client = reqwest::Client::new();
+        // Live subscribers, reading every event while ingest runs.
+        let sse_clients = env_usize("SSE_CLIENTS", 0);
+        let events_seen = Arc::new(AtomicUsize::new(0));
+        let mut subscribers = Vec::new();
+        for _ in 0..sse_clients {
+            let (client, base, seen) = (client.clone(), base.clone(), Arc::clone(&events_seen));
+            subscribers.push(tokio::spawn(async move {
+                let mut resp = client.get(format!("{base}/api/v1/events")).send().await.expect("events");
+                while let Ok(Some(chunk)) = resp.chunk().await {
+                    let n = chunk.windows(13).filter(|w| w == b"event: result").count();
+                    seen.fetch_add(n, Ordering::Relaxed);
+                }
+            }));
+        }
         // Ingest: clients take batches from a shared counter until none are left.
         let next = Arc::new(AtomicUsize::new(0));
         let start = Instant::now();
@@ -210,6 +225,15 @@ fn main() {
         let rss = peak_rss_mb(pid);
         println!("ingest over HTTP: {total} samples in {elapsed:.2} s = {rate:.0} samples/s ({clients} clients, batches of {n}, durable before each answer)");
         println!("server peak RSS during ingest: {rss:.1} MB");
+        if sse_clients > 0 {
+            println!(
+                "{sse_clients} event-stream clients connected, {} result events delivered to them",
+                events_seen.load(Ordering::Relaxed)
+            );
+            for s in &subscribers {
+                s.abort();
+            }
+        }
 
         // Compensation under load: a fixed rate over many connections, latency per request.
         let target_rps = env_usize("RPS", 5000);
