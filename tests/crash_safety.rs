@@ -42,6 +42,20 @@ fn start(config: &std::path::Path) -> Server {
     }
 }
 
+/// A temporary directory with the built-in installation on port 0 and a database inside it.
+fn site() -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("site.toml");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("127.0.0.1:7878", "127.0.0.1:0")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", dir.path().join("db.sqlite").display()),
+        );
+    std::fs::write(&config, text).unwrap();
+    (dir, config)
+}
+
 fn group(k: i64) -> Value {
     let time = 1_795_255_200_000_000_000i64 + k * 40_000_000;
     let wobble = (k as f64 * 0.37).sin() * 0.02;
@@ -71,15 +85,7 @@ async fn stored_times(client: &reqwest::Client, base: &str, link: &str) -> Vec<i
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = dir.path().join("site.toml");
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
-        .replace("127.0.0.1:7878", "127.0.0.1:0")
-        .replace(
-            "database = \"brokenray.db\"",
-            &format!("database = \"{}\"", dir.path().join("db.sqlite").display()),
-        );
-    std::fs::write(&config, text).unwrap();
+    let (_dir, config) = site();
     let client = reqwest::Client::new();
 
     // Phase 1: four writers stream groups; the server is killed while they do.
@@ -173,15 +179,7 @@ async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigterm_finishes_in_flight_writes_and_exits_cleanly() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = dir.path().join("site.toml");
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
-        .replace("127.0.0.1:7878", "127.0.0.1:0")
-        .replace(
-            "database = \"brokenray.db\"",
-            &format!("database = \"{}\"", dir.path().join("db.sqlite").display()),
-        );
-    std::fs::write(&config, text).unwrap();
+    let (_dir, config) = site();
     let client = reqwest::Client::new();
     let mut server = start(&config);
     let acknowledged = Arc::new(Mutex::new(Vec::<i64>::new()));
@@ -238,15 +236,7 @@ async fn sigterm_finishes_in_flight_writes_and_exits_cleanly() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn backup_while_serving_gives_a_consistent_copy() {
-    let dir = tempfile::tempdir().unwrap();
-    let config = dir.path().join("site.toml");
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
-        .replace("127.0.0.1:7878", "127.0.0.1:0")
-        .replace(
-            "database = \"brokenray.db\"",
-            &format!("database = \"{}\"", dir.path().join("db.sqlite").display()),
-        );
-    std::fs::write(&config, text).unwrap();
+    let (dir, config) = site();
     let client = reqwest::Client::new();
     let mut server = start(&config);
     for k in 0..50 {

@@ -2,7 +2,7 @@
 
 use super::AppState;
 use super::error::ApiError;
-use super::time::{format_ns, parse_query_time};
+use super::time::format_ns;
 use crate::alarms::Transition;
 use axum::Json;
 use axum::extract::{Query, State};
@@ -78,14 +78,7 @@ pub async fn list_alarms(
         ),
         None => None,
     };
-    let from = match &q.from {
-        Some(f) => parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?,
-        None => i64::MIN,
-    };
-    let to = match &q.to {
-        Some(t) => parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?,
-        None => i64::MAX,
-    };
+    let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let limit = q.limit.unwrap_or(1000);
     if !(1..=100_000).contains(&limit) {
         return Err(ApiError::invalid_field(

@@ -3,7 +3,7 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use super::error::ApiError;
-use super::time::{format_ns, parse_json_time, parse_query_time};
+use super::time::{format_ns, parse_json_time};
 use crate::chain::LinkId;
 use crate::config::{LinkKind, LinkSpec};
 use crate::filter::NS_PER_S;
@@ -161,14 +161,7 @@ pub async fn list_samples(
     Query(q): Query<SamplesQuery>,
 ) -> Result<Json<SamplesOut>, ApiError> {
     let spec = link_spec(&app, &name)?;
-    let from = match &q.from {
-        Some(f) => parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?,
-        None => i64::MIN,
-    };
-    let to = match &q.to {
-        Some(t) => parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?,
-        None => i64::MAX,
-    };
+    let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let limit = q.limit.unwrap_or(1000);
     if !(1..=100_000).contains(&limit) {
         return Err(ApiError::invalid_field(

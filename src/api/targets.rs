@@ -444,14 +444,7 @@ pub struct WindowQuery {
 
 /// Parses `from`, `to` and `source` of a window query.
 pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
-    let from = match &q.from {
-        Some(f) => parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?,
-        None => i64::MIN,
-    };
-    let to = match &q.to {
-        Some(t) => parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?,
-        None => i64::MAX,
-    };
+    let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     if from > to {
         return Err(ApiError::invalid_field("to", "`to` is before `from`"));
     }

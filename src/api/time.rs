@@ -32,6 +32,27 @@ pub fn parse_query_time(text: &str) -> Result<i64, String> {
     parse_rfc3339_ns(text)
 }
 
+/// Parses the optional `from` and `to` of a query into `[from, to]` (open ends unbounded),
+/// refusing a `to` before `from`.
+pub fn parse_query_range(
+    from: Option<&str>,
+    to: Option<&str>,
+) -> Result<(i64, i64), super::error::ApiError> {
+    use super::error::ApiError;
+    let from = match from {
+        Some(f) => parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?,
+        None => i64::MIN,
+    };
+    let to = match to {
+        Some(t) => parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?,
+        None => i64::MAX,
+    };
+    if from > to {
+        return Err(ApiError::invalid_field("to", "`to` is before `from`"));
+    }
+    Ok((from, to))
+}
+
 /// Formats nanoseconds as RFC 3339 UTC text with nanosecond precision.
 pub fn format_ns(ns: i64) -> String {
     OffsetDateTime::from_unix_timestamp_nanos(i128::from(ns))
