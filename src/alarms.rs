@@ -155,6 +155,30 @@ fn level_of(
     }
 }
 
+/// The level of deformation magnitudes against the thresholds alone (no hysteresis, no dwell):
+/// what a single result at another time than the live one shows.
+pub fn threshold_level(
+    thresholds: &AlarmThresholds,
+    rotation_arcsec: f64,
+    translation_mm: f64,
+) -> Level {
+    let t = thresholds;
+    level_of(
+        rotation_arcsec,
+        t.warn_rotation_arcsec,
+        t.alarm_rotation_arcsec,
+        Level::None,
+        0.0,
+    )
+    .max(level_of(
+        translation_mm,
+        t.warn_translation_mm,
+        t.alarm_translation_mm,
+        Level::None,
+        0.0,
+    ))
+}
+
 /// The alarm state of one target.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AlarmMonitor {

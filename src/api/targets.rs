@@ -5,7 +5,7 @@ use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::ApiError;
 use super::time::{format_ns, parse_query_time};
 use crate::chain::Direction;
-use crate::config::{AlarmThresholds, TargetSpec};
+use crate::config::TargetSpec;
 use crate::deformation::{Deformation, ReferenceOrigin};
 use crate::filter::{TargetEstimate, TargetStatus};
 use crate::geometry::{PoseCov, se3_exp, se3_log};
@@ -231,22 +231,6 @@ pub struct CompensationOut {
     pub consistency: Option<ConsistencyOut>,
 }
 
-/// The alarm level of a deformation against thresholds.
-pub fn alarm_level(thresholds: &AlarmThresholds, d: &Deformation) -> &'static str {
-    let m = d.deformation();
-    let rot = m.rotation_magnitude_arcsec();
-    let tr = m.translation_magnitude_mm();
-    let over = |v: f64, limit: Option<f64>| limit.is_some_and(|l| v >= l);
-    if over(rot, thresholds.alarm_rotation_arcsec) || over(tr, thresholds.alarm_translation_mm) {
-        "alarm"
-    } else if over(rot, thresholds.warn_rotation_arcsec) || over(tr, thresholds.warn_translation_mm)
-    {
-        "warn"
-    } else {
-        "none"
-    }
-}
-
 /// A result to answer, wherever it came from.
 struct Evaluated {
     time_ns: Option<i64>,
@@ -315,7 +299,15 @@ fn compensation_out(
                 sigma: c.sigmas.into(),
             }
         }),
-        alarm: deformation.map_or("none", |d| alarm_level(&spec.alarms, &d)),
+        alarm: deformation.map_or("none", |d| {
+            let m = d.deformation();
+            crate::alarms::threshold_level(
+                &spec.alarms,
+                m.rotation_magnitude_arcsec(),
+                m.translation_magnitude_mm(),
+            )
+            .name()
+        }),
         consistency: consistency.map(|c| ConsistencyOut {
             chi2: c.chi2,
             dof: c.dof,
@@ -753,11 +745,11 @@ pub async fn get_history(
         }
     }
     let value = |b: &Bucket, i: usize, which: u8| -> Option<f64> {
-        b.has(i).then(|| match which {
-            0 => b.min[i],
-            1 => b.sum[i] / if (6..12).contains(&i) { b.n_def } else { b.n } as f64,
-            _ => b.max[i],
-        })
+        match which {
+            0 => b.has(i).then(|| b.min[i]),
+            1 => b.mean(i),
+            _ => b.has(i).then(|| b.max[i]),
+        }
     };
     if csv {
         let mut header = String::from("time,count");

@@ -473,6 +473,7 @@ async fn ingest(
                 continue;
             };
             report.filtered_results += 1;
+            let deformation = deformation_of(targets, est.target, &pose);
             result_rows.insert(
                 (est.target, true, est.time_ns),
                 NewResult {
@@ -483,10 +484,10 @@ async fn ingest(
                     status: est.status.name(),
                     age_s: est.age_s,
                     chi2: est.consistency.map(|c| c.chi2),
-                    deformation: deformation_of(targets, est.target, &pose),
+                    deformation,
                 },
             );
-            let magnitudes = deformation_of(targets, est.target, &pose)
+            let magnitudes = deformation
                 .map(|(_, d)| (d.rotation_magnitude_arcsec(), d.translation_magnitude_mm()));
             for t in targets[est.target].alarms.update(
                 est.time_ns,
