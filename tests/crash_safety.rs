@@ -56,6 +56,37 @@ fn site() -> (tempfile::TempDir, std::path::PathBuf) {
     (dir, config)
 }
 
+/// Four writers streaming groups (every fourth each) until the server goes away; each
+/// acknowledged group is recorded. A refusal fails the test unless `refusals_expected` (a
+/// server stopping answers 503).
+fn spawn_writers(
+    client: &reqwest::Client,
+    base: &str,
+    acknowledged: &Arc<Mutex<Vec<i64>>>,
+    refusals_expected: bool,
+) -> Vec<tokio::task::JoinHandle<()>> {
+    (0..4i64)
+        .map(|w| {
+            let (client, base, acknowledged) =
+                (client.clone(), base.to_owned(), Arc::clone(acknowledged));
+            tokio::spawn(async move {
+                for k in (w..100_000).step_by(4) {
+                    match client
+                        .post(format!("{base}/api/v1/samples"))
+                        .json(&group(k))
+                        .send()
+                        .await
+                    {
+                        Ok(r) if r.status().is_success() => acknowledged.lock().unwrap().push(k),
+                        Ok(r) if !refusals_expected => panic!("refused: {}", r.status()),
+                        _ => return,
+                    }
+                }
+            })
+        })
+        .collect()
+}
+
 fn group(k: i64) -> Value {
     let time = 1_795_255_200_000_000_000i64 + k * 40_000_000;
     let wobble = (k as f64 * 0.37).sin() * 0.02;
@@ -91,28 +122,7 @@ async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
     // Phase 1: four writers stream groups; the server is killed while they do.
     let mut server = start(&config);
     let acknowledged = Arc::new(Mutex::new(Vec::<i64>::new()));
-    let mut writers = Vec::new();
-    for w in 0..4i64 {
-        let (client, base, acknowledged) = (
-            client.clone(),
-            server.base.clone(),
-            Arc::clone(&acknowledged),
-        );
-        writers.push(tokio::spawn(async move {
-            for k in (w..100_000).step_by(4) {
-                match client
-                    .post(format!("{base}/api/v1/samples"))
-                    .json(&group(k))
-                    .send()
-                    .await
-                {
-                    Ok(r) if r.status().is_success() => acknowledged.lock().unwrap().push(k),
-                    Ok(r) => panic!("refused: {}", r.status()),
-                    Err(_) => return,
-                }
-            }
-        }));
-    }
+    let writers = spawn_writers(&client, &server.base, &acknowledged, false);
     while acknowledged.lock().unwrap().len() < 300 {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
@@ -183,28 +193,7 @@ async fn sigterm_finishes_in_flight_writes_and_exits_cleanly() {
     let client = reqwest::Client::new();
     let mut server = start(&config);
     let acknowledged = Arc::new(Mutex::new(Vec::<i64>::new()));
-    let mut writers = Vec::new();
-    for w in 0..4i64 {
-        let (client, base, acknowledged) = (
-            client.clone(),
-            server.base.clone(),
-            Arc::clone(&acknowledged),
-        );
-        writers.push(tokio::spawn(async move {
-            for k in (w..100_000).step_by(4) {
-                match client
-                    .post(format!("{base}/api/v1/samples"))
-                    .json(&group(k))
-                    .send()
-                    .await
-                {
-                    Ok(r) if r.status().is_success() => acknowledged.lock().unwrap().push(k),
-                    // Refused while stopping (503) or the connection closed: not acknowledged.
-                    _ => return,
-                }
-            }
-        }));
-    }
+    let writers = spawn_writers(&client, &server.base, &acknowledged, true);
     while acknowledged.lock().unwrap().len() < 200 {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }

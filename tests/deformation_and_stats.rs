@@ -9,50 +9,10 @@ use brokenray::geometry::{
     se3_exp, se3_log,
 };
 use brokenray::stats::pose_stats;
+use common::paper::{PRINTED, TABLE_4, TABLE_5, assert_printed};
 use common::{perturb, random_covariance, random_pose};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-
-/// Table 4 (Euler angles, degrees) and Table 5 (translations, mm) of the paper.
-const TABLE_4: [[f64; 3]; 8] = [
-    [-4.1106, 1.4515, 164.4249],
-    [-4.1247, 1.5001, 164.4373],
-    [-4.1231, 1.5011, 164.4326],
-    [-4.1195, 1.5339, 164.4173],
-    [-4.1043, 1.5008, 164.413],
-    [-4.1294, 1.5051, 164.4842],
-    [-4.106, 1.4553, 164.4531],
-    [-4.1058, 1.4557, 164.4731],
-];
-const TABLE_5: [[f64; 3]; 8] = [
-    [-1282.9398, -2952.0529, 532.8236],
-    [-1283.5764, -2951.5021, 531.9766],
-    [-1283.5592, -2951.4957, 531.8821],
-    [-1283.6027, -2951.4567, 531.3036],
-    [-1283.6827, -2951.3879, 532.3849],
-    [-1283.7936, -2952.4626, 531.8462],
-    [-1282.7306, -2951.9466, 533.1364],
-    [-1281.5911, -2955.1939, 534.1465],
-];
-
-/// Half a unit of the samples' last printed digit (they are printed with 4 decimals).
-const SAMPLE_ROUNDING: f64 = 0.5e-4;
-
-/// Asserts `got` agrees with `printed` (given as text so its precision is known) to half a unit
-/// of its last digit, plus `input_rounding`: the paper computed its statistics from unrounded
-/// readings and printed the samples rounded, so a mean or rms of the printed samples may differ
-/// by up to half a unit of the samples' precision (min and max are samples themselves: none).
-/// Of the 24 printed statistics, only the mean of Tz needs that allowance: the printed samples
-/// give 532.4374875, the paper prints 532.4374.
-fn assert_printed(got: f64, printed: &str, input_rounding: f64) {
-    let value: f64 = printed.parse().unwrap();
-    let decimals = printed.split('.').nth(1).map_or(0, str::len) as i32;
-    let half_unit = 0.5 * 10f64.powi(-decimals);
-    assert!(
-        (got - value).abs() <= half_unit + input_rounding + 1e-12,
-        "{got} does not print as {printed}"
-    );
-}
 
 #[test]
 fn the_papers_eight_samples_give_back_table_4_and_5() {
@@ -65,38 +25,36 @@ fn the_papers_eight_samples_give_back_table_4_and_5() {
         .collect();
     let s = pose_stats(&poses).unwrap();
     assert_eq!(s.count, 8);
-    let rows: [(&[f64; 3], [&str; 3], f64); 8] = [
-        (&s.euler_deg.min, ["-4.1294", "1.4515", "164.413"], 0.0),
-        (&s.euler_deg.max, ["-4.1043", "1.5339", "164.4842"], 0.0),
-        (
-            &s.euler_deg.mean,
-            ["-4.11543", "1.4879", "164.4419"],
-            SAMPLE_ROUNDING,
-        ),
-        (
-            &s.euler_deg.rms,
-            ["0.009256", "0.02812", "0.02430"],
-            SAMPLE_ROUNDING,
-        ),
-        (&s.t_mm.min, ["-1283.7936", "-2955.1939", "531.3036"], 0.0),
-        (&s.t_mm.max, ["-1281.5911", "-2951.3879", "534.1465"], 0.0),
-        (
-            &s.t_mm.mean,
-            ["-1283.1845", "-2952.1873", "532.4374"],
-            SAMPLE_ROUNDING,
-        ),
-        (&s.t_mm.rms, ["0.6976", "1.1891", "0.8454"], SAMPLE_ROUNDING),
-    ];
-    for (got, printed, input_rounding) in rows {
+    let pick = |section: &str, stat: &str| {
+        let c = if section == "euler_deg" {
+            s.euler_deg
+        } else {
+            s.t_mm
+        };
+        match stat {
+            "min" => c.min,
+            "max" => c.max,
+            "mean" => c.mean,
+            _ => c.rms,
+        }
+    };
+    for (section, stat, printed, allowance) in PRINTED {
+        let got = pick(section, stat);
         for i in 0..3 {
-            assert_printed(got[i], printed[i], input_rounding);
+            assert_printed(
+                &format!("{section}.{stat}[{i}]"),
+                got[i],
+                printed[i],
+                allowance,
+            );
         }
     }
     // Without the allowance every statistic but the mean of Tz rounds to the printed text.
-    for (got, printed, _) in rows {
+    for (section, stat, printed, _) in PRINTED {
+        let got = pick(section, stat);
         for i in 0..3 {
             if printed[i] != "532.4374" {
-                assert_printed(got[i], printed[i], 0.0);
+                assert_printed(&format!("{section}.{stat}[{i}]"), got[i], printed[i], 0.0);
             }
         }
     }

@@ -1,6 +1,8 @@
 //! Helpers shared by the integration tests: random poses and covariances, seeded.
 #![allow(dead_code)]
 
+pub mod paper;
+
 use brokenray::geometry::{Mat6, Pose, Rotation, Twist, Vec3, se3_exp};
 use nalgebra::{Quaternion, Translation3};
 use rand::Rng;

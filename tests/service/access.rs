@@ -1,6 +1,6 @@
 //! Authentication, unknown endpoints, health.
 
-use super::helpers::TestApp;
+use super::helpers::{TestApp, nominal_group};
 use axum::http::StatusCode;
 use brokenray::api::auth::sha256_hex;
 use serde_json::json;
@@ -168,16 +168,7 @@ fn metric(text: &str, name: &str) -> f64 {
 #[tokio::test]
 async fn metrics_count_ingest_rejections_and_links_in_prometheus_text() {
     let app = TestApp::start(None).await;
-    let group = |k: i64| {
-        let samples: Vec<serde_json::Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
-            .iter()
-            .map(|l| {
-                json!({"link": l, "time": 1_795_255_200_000_000_000i64 + k * 40_000_000,
-                       "pose": {"t_mm": [0.0, 0.0, 3000.0], "q_wxyz": [0, 1, 0, 0]}})
-            })
-            .collect();
-        json!({ "samples": samples })
-    };
+    let group = nominal_group;
     let (_, before) = app.get("/metrics").await;
     let rejected_before = metric(
         before.as_str().unwrap(),
@@ -235,16 +226,7 @@ async fn events_stream_new_results_and_drop_a_client_that_lags() {
     assert_eq!(resp.status(), StatusCode::OK);
     assert_eq!(resp.headers()["content-type"], "text/event-stream");
     let mut body = resp.into_body();
-    let group = |k: i64| {
-        let samples: Vec<serde_json::Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
-            .iter()
-            .map(|l| {
-                json!({"link": l, "time": 1_795_255_200_000_000_000i64 + k * 40_000_000,
-                       "pose": {"t_mm": [0.0, 0.0, 3000.0], "q_wxyz": [0, 1, 0, 0]}})
-            })
-            .collect();
-        json!({ "samples": samples })
-    };
+    let group = nominal_group;
     let (status, _) = app.post_json("/api/v1/samples", &group(0)).await;
     assert_eq!(status, StatusCode::OK);
     let mut text = String::new();
@@ -290,16 +272,7 @@ async fn live_results_are_limited_per_target_in_measurement_time() {
     let app = TestApp::start(None).await;
     let mut rx = app.service.subscribe();
     for k in 0..10i64 {
-        let samples: Vec<serde_json::Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
-            .iter()
-            .map(|l| {
-                json!({"link": l, "time": 1_795_255_200_000_000_000i64 + k * 40_000_000,
-                       "pose": {"t_mm": [0.0, 0.0, 3000.0], "q_wxyz": [0, 1, 0, 0]}})
-            })
-            .collect();
-        let (status, _) = app
-            .post_json("/api/v1/samples", &json!({ "samples": samples }))
-            .await;
+        let (status, _) = app.post_json("/api/v1/samples", &nominal_group(k)).await;
         assert_eq!(status, StatusCode::OK);
     }
     // Ten results 40 ms apart (0.36 s) at the default 10 events a second: times 0, 120, 240,

@@ -138,3 +138,29 @@ pub fn pose_json(p: &brokenray::geometry::Pose) -> Value {
     let t = p.translation.vector;
     serde_json::json!({"t_mm": [t.x, t.y, t.z], "q_wxyz": q})
 }
+
+/// A one-link installation: `G_from_B` measured directly, target G from base B.
+pub const ONE_LINK: &str = r#"
+[[links]]
+name = "G_from_B"
+kind = "measured"
+sigma = { rotation_arcsec = 30.0, translation_mm = 1.0 }
+expected_rate_hz = 1.0
+
+[[targets]]
+name = "G"
+base = "B"
+"#;
+
+/// A group of the three measured links of the built-in installation at `k * 40 ms` after
+/// 2026-11-21T10:00:00Z (poses near the nominal ones).
+pub fn nominal_group(k: i64) -> Value {
+    let samples: Vec<Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
+        .iter()
+        .map(|l| {
+            serde_json::json!({"link": l, "time": T0_NS + k * 40_000_000,
+                               "pose": {"t_mm": [0.0, 0.0, 3000.0], "q_wxyz": [0, 1, 0, 0]}})
+        })
+        .collect();
+    serde_json::json!({ "samples": samples })
+}

@@ -1,23 +1,11 @@
 //! History at scale: a million results over 30 days, downsampled to 2000 buckets whose min and
 //! max contain every stored value of their span (checked against a direct scan).
 
-use super::helpers::{T0_NS, TestApp, installation};
+use super::helpers::{ONE_LINK, T0_NS, TestApp, installation};
 use axum::http::StatusCode;
 use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
 use brokenray::store::{self, NewResult};
 use nalgebra::Translation3;
-
-const ONE_LINK: &str = r#"
-[[links]]
-name = "G_from_B"
-kind = "measured"
-sigma = { rotation_arcsec = 30.0, translation_mm = 1.0 }
-expected_rate_hz = 1.0
-
-[[targets]]
-name = "G"
-base = "B"
-"#;
 
 const N: i64 = 1_000_000;
 const SPAN_NS: i64 = 30 * 86_400 * 1_000_000_000;

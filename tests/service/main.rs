@@ -5,4 +5,6 @@ mod alarms;
 mod helpers;
 mod history;
 mod ingest_errors;
+#[path = "../common/paper.rs"]
+mod paper;
 mod results;

@@ -1,7 +1,8 @@
 //! Results through the API: ground truth, the paper's statistics, history, references,
 //! calibrations, restarts.
 
-use super::helpers::{T0_NS, TestApp, pose_json, time_text};
+use super::helpers::{ONE_LINK, T0_NS, TestApp, pose_json, time_text};
+use super::paper::{PRINTED, TABLE_4, TABLE_5, assert_printed};
 use axum::http::StatusCode;
 use brokenray::config::{self, LinkKind};
 use brokenray::geometry::{
@@ -145,43 +146,11 @@ async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
     );
 }
 
-const ONE_LINK: &str = r#"
-[[links]]
-name = "G_from_B"
-kind = "measured"
-sigma = { rotation_arcsec = 30.0, translation_mm = 1.0 }
-expected_rate_hz = 1.0
-
-[[targets]]
-name = "G"
-base = "B"
-"#;
-
 #[tokio::test]
 async fn the_papers_samples_give_back_table_4_and_5_through_stats() {
     let app = TestApp::start(Some(ONE_LINK)).await;
-    let table_4 = [
-        [-4.1106, 1.4515, 164.4249],
-        [-4.1247, 1.5001, 164.4373],
-        [-4.1231, 1.5011, 164.4326],
-        [-4.1195, 1.5339, 164.4173],
-        [-4.1043, 1.5008, 164.413],
-        [-4.1294, 1.5051, 164.4842],
-        [-4.106, 1.4553, 164.4531],
-        [-4.1058, 1.4557, 164.4731],
-    ];
-    let table_5 = [
-        [-1282.9398, -2952.0529, 532.8236],
-        [-1283.5764, -2951.5021, 531.9766],
-        [-1283.5592, -2951.4957, 531.8821],
-        [-1283.6027, -2951.4567, 531.3036],
-        [-1283.6827, -2951.3879, 532.3849],
-        [-1283.7936, -2952.4626, 531.8462],
-        [-1282.7306, -2951.9466, 533.1364],
-        [-1281.5911, -2955.1939, 534.1465],
-    ];
     let samples: Vec<Value> = (0..8)
-        .map(|i| json!({"link": "G_from_B", "time": time_text(i as i64 * 25), "pose": {"t_mm": table_5[i], "euler_deg": table_4[i]}}))
+        .map(|i| json!({"link": "G_from_B", "time": time_text(i as i64 * 25), "pose": {"t_mm": TABLE_5[i], "euler_deg": TABLE_4[i]}}))
         .collect();
     let (status, body) = app
         .post_json("/api/v1/samples", &json!({"samples": samples}))
@@ -190,45 +159,19 @@ async fn the_papers_samples_give_back_table_4_and_5_through_stats() {
     let (status, s) = app.get("/api/v1/targets/G/stats?source=raw").await;
     assert_eq!(status, StatusCode::OK, "{s}");
     assert_eq!(s["count"], 8);
-    let check = |section: &str, stat: &str, printed: [&str; 3], allowance: f64| {
+    // Means and rms may differ from the paper's by the rounding of its printed samples (see
+    // tests/common/paper.rs).
+    for (section, stat, printed, allowance) in PRINTED {
         let got: Vec<f64> = serde_json::from_value(s[section][stat].clone()).unwrap();
         for i in 0..3 {
-            let value: f64 = printed[i].parse().unwrap();
-            let decimals = printed[i].split('.').nth(1).map_or(0, str::len) as i32;
-            let tol = 0.5 * 10f64.powi(-decimals) + allowance + 1e-9;
-            assert!(
-                (got[i] - value).abs() <= tol,
-                "{section}.{stat}[{i}] = {} vs printed {}",
+            assert_printed(
+                &format!("{section}.{stat}[{i}]"),
                 got[i],
-                printed[i]
+                printed[i],
+                allowance,
             );
         }
-    };
-    // See tests/deformation_and_stats.rs: means and rms may differ from the paper's by the
-    // rounding of its printed samples (half a unit of their 4th decimal).
-    check("euler_deg", "min", ["-4.1294", "1.4515", "164.413"], 0.0);
-    check("euler_deg", "max", ["-4.1043", "1.5339", "164.4842"], 0.0);
-    check(
-        "euler_deg",
-        "mean",
-        ["-4.11543", "1.4879", "164.4419"],
-        0.5e-4,
-    );
-    check(
-        "euler_deg",
-        "rms",
-        ["0.009256", "0.02812", "0.02430"],
-        0.5e-4,
-    );
-    check("t_mm", "min", ["-1283.7936", "-2955.1939", "531.3036"], 0.0);
-    check("t_mm", "max", ["-1281.5911", "-2951.3879", "534.1465"], 0.0);
-    check(
-        "t_mm",
-        "mean",
-        ["-1283.1845", "-2952.1873", "532.4374"],
-        0.5e-4,
-    );
-    check("t_mm", "rms", ["0.6976", "1.1891", "0.8454"], 0.5e-4);
+    }
 }
 
 #[tokio::test]
