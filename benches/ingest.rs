@@ -147,6 +147,23 @@ fn main() {
                 dir.path().join("bench.sqlite").display()
             ),
         );
+    // RERUN=off (default) | save | connect (to an address where nothing listens).
+    let rerun_mode = std::env::var("RERUN").unwrap_or_else(|_| "off".into());
+    let recordings = dir.path().join("recordings");
+    let rerun_section = match rerun_mode.as_str() {
+        "off" => "mode = \"off\"".to_owned(),
+        "save" => format!(
+            "mode = \"save\"\nrecordings_dir = \"{}\"",
+            recordings.display()
+        ),
+        "connect" => "mode = \"connect\"\nurl = \"rerun+http://127.0.0.1:1/proxy\"".to_owned(),
+        other => panic!("RERUN={other}: use off, save or connect"),
+    };
+    let text = text.replace(
+        "[rerun]\nmode = \"off\"\nrecordings_dir = \"recordings\"\nurl = \"rerun+http://127.0.0.1:9876/proxy\"\n",
+        &format!("[rerun]\n{rerun_section}\n"),
+    );
+    println!("rerun: {rerun_mode}");
     std::fs::write(&config, text).expect("config");
 
     println!("preparing {batches} batches of {n} samples ...");
@@ -193,6 +210,15 @@ fn main() {
                 }
             }));
         }
+        // A reference (the nominal G_from_B), so that every result carries its deformation.
+        let r = client
+            .post(format!("{base}/api/v1/targets/G/reference"))
+            .header("content-type", "application/json")
+            .body(r#"{"pose": {"t_mm": [-1283.2, -2952.2, 532.5], "euler_deg": [-4.115, 1.488, 164.442]}}"#)
+            .send()
+            .await
+            .expect("reference");
+        assert!(r.status().is_success(), "reference refused: {}", r.status());
         // Ingest: clients take batches from a shared counter until none are left.
         let next = Arc::new(AtomicUsize::new(0));
         let start = Instant::now();
@@ -275,8 +301,21 @@ fn main() {
             pct(1.0)
         );
     });
-    let _ = child.kill();
+    // SIGTERM: the service commits, the logger closes its recording.
+    let _ = Command::new("kill")
+        .args(["-TERM", &pid.to_string()])
+        .status();
     let _ = child.wait();
+    if rerun_mode == "save" {
+        let bytes: u64 = std::fs::read_dir(&recordings)
+            .map(|d| {
+                d.filter_map(|e| e.ok()?.metadata().ok())
+                    .map(|m| m.len())
+                    .sum()
+            })
+            .unwrap_or(0);
+        println!("recordings: {:.1} MB", bytes as f64 / 1e6);
+    }
     let raw = raw_sqlite_baseline(dir.path(), batches.min(200), n);
     println!(
         "raw SQLite baseline (rusqlite, one prepared statement, one transaction per batch, WAL, synchronous=FULL): {raw:.0} samples/s"

@@ -44,6 +44,35 @@ pub enum Command {
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
     },
+    /// Rebuild a Rerun recording (.rrd) of a stored period, for review in the Rerun viewer:
+    /// every stored result, sample and alarm transition of the period.
+    Replay {
+        /// The installation file whose database to read; the built-in one without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Start of the period (RFC 3339 or integer ns).
+        #[arg(long, value_name = "TIME")]
+        from: String,
+        /// End of the period (RFC 3339 or integer ns).
+        #[arg(long, value_name = "TIME")]
+        to: String,
+        /// One target only (all without it).
+        #[arg(long, value_name = "NAME")]
+        target: Option<String>,
+        /// The recording to write (must not exist).
+        #[arg(long, value_name = "FILE.rrd")]
+        out: PathBuf,
+    },
+    /// Ask a running service's `/healthz` (exit status 0 when it answers 200): the container
+    /// health check, which has no HTTP client to call.
+    Healthcheck {
+        /// The installation file whose `server.listen` to ask; the built-in one without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Give up after this many seconds.
+        #[arg(long, value_name = "SECONDS", default_value_t = 5.0)]
+        timeout_s: f64,
+    },
     /// Print a new random bearer token and the SHA-256 to put in `[[auth.tokens]]`.
     HashToken {
         /// Hash this token instead of making a new one.
@@ -97,6 +126,30 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 started.elapsed().as_secs_f64()
             )?;
         }
+        Command::Replay {
+            config,
+            from,
+            to,
+            target,
+            out: out_file,
+        } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let summary = replay(installation, &from, &to, target.as_deref(), &out_file)?;
+            writeln!(
+                out,
+                "wrote {}: {} filtered and {} raw results, {} samples, {} alarm transitions",
+                out_file.display(),
+                summary.filtered,
+                summary.raw,
+                summary.samples,
+                summary.alarms
+            )?;
+        }
+        Command::Healthcheck { config, timeout_s } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let answer = healthcheck(installation.server.listen, timeout_s)?;
+            writeln!(out, "{answer}")?;
+        }
         Command::HashToken { token } => {
             let token = match token {
                 Some(t) => t,
@@ -112,6 +165,129 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// `brokenray replay`: checks the arguments, then writes the recording with a progress bar
+/// (on standard error).
+fn replay(
+    installation: Installation,
+    from: &str,
+    to: &str,
+    target: Option<&str>,
+    out_file: &std::path::Path,
+) -> anyhow::Result<crate::viz::replay::ReplaySummary> {
+    let time = |name: &str, text: &str| {
+        crate::api::time::parse_query_time(text).map_err(|e| anyhow::anyhow!("--{name}: {e}"))
+    };
+    let (from_ns, to_ns) = (time("from", from)?, time("to", to)?);
+    anyhow::ensure!(from_ns <= to_ns, "--to is before --from");
+    let targets = match target {
+        None => Vec::new(),
+        Some(name) => vec![
+            installation
+                .targets
+                .iter()
+                .position(|t| t.name == name)
+                .ok_or_else(|| anyhow::anyhow!("--target: unknown target `{name}`"))?,
+        ],
+    };
+    anyhow::ensure!(
+        !out_file.exists(),
+        "{} already exists; choose another --out",
+        out_file.display()
+    );
+    let database = installation.server.database.clone();
+    anyhow::ensure!(
+        database.exists(),
+        "no database at {}: nothing was stored yet (see `server.database`)",
+        database.display()
+    );
+    let installation = std::sync::Arc::new(installation);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    runtime.block_on(async {
+        let links: Vec<String> = installation.links.iter().map(|l| l.name.clone()).collect();
+        let names: Vec<String> = installation
+            .targets
+            .iter()
+            .map(|t| t.name.clone())
+            .collect();
+        let (store, write) =
+            crate::store::open(&database, &links, &names, crate::service::now_ns())
+                .await
+                .with_context(|| format!("cannot open {}", database.display()))?;
+        drop(write);
+        let bar = indicatif::ProgressBar::new(0).with_style(
+            indicatif::ProgressStyle::with_template(
+                "{msg} [{bar:40}] {pos}/{len} rows ({eta} left)",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        bar.set_message("replaying");
+        let summary = crate::viz::replay::replay(
+            &installation,
+            &store,
+            &targets,
+            from_ns,
+            to_ns,
+            out_file,
+            &mut |done, total| {
+                bar.set_length(total);
+                bar.set_position(done);
+            },
+        )
+        .await;
+        bar.finish_and_clear();
+        store.close().await;
+        summary.with_context(|| format!("replay to {} failed", out_file.display()))
+    })
+}
+
+/// Asks `GET /healthz` of the service listening on `listen` (an unspecified address is asked
+/// on loopback) and returns the answer's body when the status is 200.
+///
+/// One plain HTTP/1.1 request over a std `TcpStream`: the answer is tiny and local, and an HTTP
+/// client crate would add a second TLS-capable stack to the binary for this alone.
+pub fn healthcheck(listen: std::net::SocketAddr, timeout_s: f64) -> anyhow::Result<String> {
+    use std::io::{Read as _, Write as _};
+    anyhow::ensure!(
+        timeout_s.is_finite() && timeout_s > 0.0,
+        "--timeout-s must be a positive number of seconds"
+    );
+    let timeout = std::time::Duration::from_secs_f64(timeout_s);
+    let mut addr = listen;
+    if addr.ip().is_unspecified() {
+        addr.set_ip(if addr.is_ipv4() {
+            std::net::Ipv4Addr::LOCALHOST.into()
+        } else {
+            std::net::Ipv6Addr::LOCALHOST.into()
+        });
+    }
+    let mut stream = std::net::TcpStream::connect_timeout(&addr, timeout)
+        .with_context(|| format!("nothing answers on {addr}"))?;
+    stream.set_read_timeout(Some(timeout))?;
+    stream.set_write_timeout(Some(timeout))?;
+    write!(
+        stream,
+        "GET /healthz HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut response = String::new();
+    stream
+        .read_to_string(&mut response)
+        .with_context(|| format!("no complete answer from {addr}"))?;
+    let status_line = response.lines().next().unwrap_or_default();
+    let body = response
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.trim())
+        .unwrap_or_default();
+    anyhow::ensure!(
+        status_line.split_whitespace().nth(1) == Some("200"),
+        "unhealthy: {status_line}: {body}"
+    );
+    Ok(body.to_owned())
 }
 
 /// 32 random bytes from the operating system, as hex.

@@ -36,3 +36,4 @@ pub mod geometry;
 pub mod service;
 pub mod stats;
 pub mod store;
+pub mod viz;

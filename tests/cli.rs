@@ -81,8 +81,44 @@ fn help_lists_only_working_subcommands() {
             "default-config",
             "serve",
             "backup",
+            "replay",
+            "healthcheck",
             "hash-token",
             "help"
         ]
     );
+}
+
+/// The container's installation is the built-in one with container paths, listening on all
+/// interfaces and streaming to the compose file's viewer; and the Dockerfile runs and checks
+/// the file it copies.
+#[test]
+fn the_container_installation_is_the_default_with_container_paths() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("docker/installation.toml")).unwrap();
+    let inst = brokenray::config::parse("docker/installation.toml", &text).expect("valid");
+    assert_eq!(inst.server.listen.to_string(), "0.0.0.0:7878");
+    assert_eq!(
+        inst.server.database,
+        std::path::Path::new("/var/lib/brokenray/brokenray.db")
+    );
+    let topology = |t: &str| t[t.find("[[cameras]]").expect("cameras")..].to_owned();
+    assert_eq!(
+        topology(&text),
+        topology(brokenray::config::DEFAULT_INSTALLATION_TOML),
+        "docker/installation.toml's topology drifted from src/config/default.toml"
+    );
+    let dockerfile = std::fs::read_to_string(root.join("docker/Dockerfile")).unwrap();
+    assert!(dockerfile.contains("COPY docker/installation.toml /etc/brokenray/installation.toml"));
+    for line in ["HEALTHCHECK", "CMD [\"serve\""] {
+        let l = dockerfile
+            .lines()
+            .skip_while(|l| !l.starts_with(line))
+            .take(2)
+            .collect::<String>();
+        assert!(
+            l.contains("/etc/brokenray/installation.toml"),
+            "{line}: {l}"
+        );
+    }
 }

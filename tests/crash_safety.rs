@@ -295,3 +295,49 @@ async fn backup_while_serving_gives_a_consistent_copy() {
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
 }
+
+/// The container health check: `brokenray healthcheck` succeeds against a running service, with
+/// tokens configured (health checks carry none), and fails once the service is gone.
+#[test]
+fn healthcheck_answers_for_a_running_service_and_fails_without_one() {
+    let (dir, config) = site();
+    let tokens = format!(
+        "\n[[auth.tokens]]\nname = \"viewer\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n",
+        brokenray::api::auth::sha256_hex("secret")
+    );
+    let text = std::fs::read_to_string(&config).unwrap() + &tokens;
+    std::fs::write(&config, &text).unwrap();
+    let mut server = start(&config);
+    // The same installation, naming the port the service got.
+    let port = server.base.rsplit(':').next().unwrap().to_owned();
+    let with_tokens = dir.path().join("bound.toml");
+    std::fs::write(
+        &with_tokens,
+        text.replace("127.0.0.1:0", &format!("127.0.0.1:{port}")),
+    )
+    .unwrap();
+    let check = || {
+        Command::new(env!("CARGO_BIN_EXE_brokenray"))
+            .args(["healthcheck", "--config", with_tokens.to_str().unwrap()])
+            .args(["--timeout-s", "5"])
+            .output()
+            .unwrap()
+    };
+    let ok = check();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let body: Value = serde_json::from_slice(&ok.stdout).expect("the health JSON");
+    assert_eq!(body["status"], "ok");
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+    let down = check();
+    assert!(!down.status.success());
+    assert!(
+        String::from_utf8_lossy(&down.stderr).contains("nothing answers"),
+        "{}",
+        String::from_utf8_lossy(&down.stderr)
+    );
+}

@@ -1,7 +1,7 @@
 //! `GET /api/v1/alarms`: stored alarm transitions.
 
 use super::AppState;
-use super::error::ApiError;
+use super::error::{ApiError, ErrorBody};
 use super::time::format_ns;
 use crate::alarms::Transition;
 use axum::Json;
@@ -9,7 +9,7 @@ use axum::extract::{Query, State};
 use serde::{Deserialize, Serialize};
 
 /// An alarm transition as answered.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct AlarmOut {
     /// Target.
     pub target: String,
@@ -43,7 +43,8 @@ impl AlarmOut {
 }
 
 /// Query of `alarms`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct AlarmsQuery {
     /// One target only.
@@ -57,13 +58,21 @@ pub struct AlarmsQuery {
 }
 
 /// `GET .../alarms`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct AlarmsOut {
     /// Transitions, oldest first.
     pub alarms: Vec<AlarmOut>,
 }
 
 /// `GET /api/v1/alarms?target=&from=&to=&limit=`.
+#[utoipa::path(get, path = "/alarms", tag = "alarms",
+    params(AlarmsQuery),
+    responses(
+        (status = 200, description = "Alarm transitions, oldest first", body = AlarmsOut),
+        (status = 404, description = "Unknown target", body = ErrorBody),
+        (status = 422, description = "Invalid query", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn list_alarms(
     State(app): State<AppState>,
     Query(q): Query<AlarmsQuery>,

@@ -1,6 +1,8 @@
 //! Bearer tokens: `Authorization: Bearer <token>`, checked against the SHA-256 hashes of the
 //! configuration, each with scopes `read`, `ingest`, `admin`. Without configured tokens every
 //! request is accepted (the server then listens on loopback only; see [`crate::api::App`]).
+//! `/healthz` is open to all: health checks carry no token, and it tells only whether the
+//! service works.
 
 use super::error::ApiError;
 use crate::config::{Scope, TokenSpec};
@@ -38,7 +40,7 @@ pub async fn require_token(
     request: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
-    if tokens.is_empty() {
+    if tokens.is_empty() || request.uri().path() == "/healthz" {
         return Ok(next.run(request).await);
     }
     let given = request

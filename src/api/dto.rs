@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 /// A pose as sent: `t_mm` with exactly one of `q_wxyz`, `euler_deg`, `r`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PoseIn {
     /// Translation (mm).
@@ -25,17 +25,19 @@ pub struct PoseIn {
 }
 
 /// Sigmas as sent: each a number (all axes) or three numbers.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SigmaIn {
     /// Rotation sigma (arc-seconds).
+    #[schema(schema_with = sigma_schema)]
     pub rotation_arcsec: Value,
     /// Translation sigma (mm).
+    #[schema(schema_with = sigma_schema)]
     pub translation_mm: Value,
 }
 
 /// Pose-estimation quality as sent.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct QualityIn {
     /// Reprojection RMS (px).
@@ -45,12 +47,13 @@ pub struct QualityIn {
 }
 
 /// One sample as sent.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SampleIn {
     /// The measured link's name.
     pub link: String,
     /// RFC 3339 text or integer nanoseconds.
+    #[schema(schema_with = time_schema)]
     pub time: Value,
     /// The measured `parent_from_child`.
     pub pose: PoseIn,
@@ -60,6 +63,49 @@ pub struct SampleIn {
     pub covariance: Option<Vec<f64>>,
     /// Quality (optional).
     pub quality: Option<QualityIn>,
+}
+
+/// The OpenAPI schema of a time as sent: RFC 3339 text, or integer nanoseconds since the Unix
+/// epoch (UTC).
+pub fn time_schema() -> utoipa::openapi::schema::Schema {
+    use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, OneOfBuilder, SchemaFormat, Type};
+    OneOfBuilder::new()
+        .item(
+            ObjectBuilder::new()
+                .schema_type(Type::String)
+                .format(Some(SchemaFormat::KnownFormat(KnownFormat::DateTime))),
+        )
+        .item(
+            ObjectBuilder::new()
+                .schema_type(Type::Integer)
+                .format(Some(SchemaFormat::KnownFormat(KnownFormat::Int64))),
+        )
+        .description(Some(
+            "RFC 3339 text, or integer nanoseconds since the Unix epoch (UTC)",
+        ))
+        .build()
+        .into()
+}
+
+/// The OpenAPI schema of a sigma as sent: one positive number for all three axes, or three.
+pub fn sigma_schema() -> utoipa::openapi::schema::Schema {
+    use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, OneOfBuilder, Type};
+    let number = || {
+        ObjectBuilder::new()
+            .schema_type(Type::Number)
+            .exclusive_minimum(Some(0.0))
+    };
+    OneOfBuilder::new()
+        .item(number())
+        .item(
+            ArrayBuilder::new()
+                .items(number())
+                .min_items(Some(3))
+                .max_items(Some(3)),
+        )
+        .description(Some("One positive number for every axis, or one per axis"))
+        .build()
+        .into()
 }
 
 /// A problem found while converting one field.
@@ -194,7 +240,7 @@ pub fn covariance_from(field: &str, values: &[f64]) -> Result<Mat6, FieldProblem
 }
 
 /// A pose as answered.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct PoseOut {
     /// Translation (mm).
     pub t_mm: [f64; 3],
@@ -215,7 +261,7 @@ impl From<&Pose> for PoseOut {
 }
 
 /// Sigmas as answered.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct SigmaOut {
     /// Per axis (arc-seconds).
     pub rotation_arcsec: [f64; 3],

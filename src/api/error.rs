@@ -8,7 +8,7 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 /// One detail of an error: the item and field concerned.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct ErrorDetail {
     /// Index of the item in the request (for NDJSON, the line's index among the items).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -43,16 +43,22 @@ pub struct ApiError {
     pub details: Vec<ErrorDetail>,
 }
 
-#[derive(Serialize)]
-struct Body<'a> {
-    error: BodyInner<'a>,
+/// The body of every error answer.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ErrorBody {
+    /// The error.
+    pub error: ErrorContent,
 }
 
-#[derive(Serialize)]
-struct BodyInner<'a> {
-    code: &'a str,
-    message: &'a str,
-    details: &'a [ErrorDetail],
+/// What went wrong.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ErrorContent {
+    /// A stable machine-readable code (`invalid_samples`, `conflict`, `not_found`, ...).
+    pub code: String,
+    /// A sentence for people.
+    pub message: String,
+    /// The items and fields concerned.
+    pub details: Vec<ErrorDetail>,
 }
 
 impl ApiError {
@@ -132,15 +138,15 @@ impl IntoResponse for ApiError {
         let message = if self.status.is_server_error() {
             "the service could not complete the request; nothing of it was stored".to_owned()
         } else {
-            self.message.clone()
+            self.message
         };
         (
             self.status,
-            Json(Body {
-                error: BodyInner {
-                    code: self.code,
-                    message: &message,
-                    details: &self.details,
+            Json(ErrorBody {
+                error: ErrorContent {
+                    code: self.code.to_owned(),
+                    message,
+                    details: self.details,
                 },
             }),
         )
@@ -163,6 +169,11 @@ impl From<ServiceError> for ApiError {
             ServiceError::Storage(e) => ApiError::new(
                 StatusCode::SERVICE_UNAVAILABLE,
                 "storage_unavailable",
+                e.to_string(),
+            ),
+            ServiceError::Viz(e) => ApiError::new(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "visualisation_failed",
                 e.to_string(),
             ),
             ServiceError::ShuttingDown => ApiError::new(

@@ -12,6 +12,9 @@ use std::convert::Infallible;
 use tokio::sync::broadcast::error::RecvError;
 
 /// `GET /api/v1/events`.
+#[utoipa::path(get, path = "/events", tag = "events",
+    responses((status = 200, description = "Server-Sent Events: `result` (data: a compensation, as `GET /targets/{name}/compensation`) and `alarm` (data: an alarm transition)", content_type = "text/event-stream", body = String)),
+    security(("bearer" = ["read"])))]
 pub async fn get_events(
     State(app): State<AppState>,
 ) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {

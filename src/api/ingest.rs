@@ -7,7 +7,7 @@
 
 use super::AppState;
 use super::dto::{SampleIn, covariance_from, invalid};
-use super::error::{ApiError, ErrorDetail};
+use super::error::{ApiError, ErrorBody, ErrorDetail};
 use super::jsonpath::{item_index, offset_of, path_at};
 use super::time::parse_json_time;
 use crate::config::{Installation, LinkKind};
@@ -23,7 +23,7 @@ use serde_json::value::RawValue;
 use std::collections::HashSet;
 
 /// The answer to an accepted batch.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct IngestResponse {
     /// Samples in the batch, all durably stored.
     pub accepted: usize,
@@ -58,10 +58,12 @@ impl From<IngestReport> for IngestResponse {
     }
 }
 
-#[derive(serde::Deserialize)]
+/// A JSON batch of samples.
+#[derive(serde::Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct TypedBatchIn {
-    samples: Vec<SampleIn>,
+pub struct SamplesBatch {
+    /// The samples, each stored or none.
+    pub samples: Vec<SampleIn>,
 }
 
 #[derive(serde::Deserialize)]
@@ -304,7 +306,7 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
     } else {
         // Fast path: one typed pass. Only a batch with a problem takes the slower path that
         // reads item by item to name every problem.
-        if let Ok(batch) = serde_json::from_str::<TypedBatchIn>(text) {
+        if let Ok(batch) = serde_json::from_str::<SamplesBatch>(text) {
             return Ok(batch.samples.into_iter().enumerate().collect());
         }
         let batch: BatchIn = serde_json::from_str(text).map_err(|e| {
@@ -349,6 +351,20 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
 }
 
 /// `POST /api/v1/samples`.
+#[utoipa::path(post, path = "/samples", tag = "ingest",
+    request_body(content(
+        (SamplesBatch = "application/json"),
+        (SampleIn = "application/x-ndjson"),
+    ), description = "A batch `{\"samples\": [...]}`, or NDJSON with one sample a line"),
+    responses(
+        (status = 200, description = "The whole batch is durably stored", body = IngestResponse),
+        (status = 400, description = "Malformed JSON (the item and field are named)", body = ErrorBody),
+        (status = 409, description = "A sample differs from the one stored at the same link and time", body = ErrorBody),
+        (status = 413, description = "Body or batch over the limit", body = ErrorBody),
+        (status = 422, description = "Invalid samples; nothing was stored", body = ErrorBody),
+        (status = 503, description = "The writer is not available", body = ErrorBody),
+    ),
+    security(("bearer" = ["ingest"])))]
 pub async fn post_samples(
     State(app): State<AppState>,
     headers: HeaderMap,

@@ -2,7 +2,7 @@
 
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
-use super::error::ApiError;
+use super::error::{ApiError, ErrorBody};
 use super::time::{format_ns, parse_json_time};
 use crate::chain::LinkId;
 use crate::config::{LinkKind, LinkSpec};
@@ -23,7 +23,7 @@ fn link_spec(app: &AppState, name: &str) -> Result<LinkSpec, ApiError> {
 }
 
 /// A link as listed.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct LinkOut {
     /// `<parent>_from_<child>`.
     pub name: String,
@@ -53,6 +53,9 @@ pub struct LinkOut {
 }
 
 /// `GET /api/v1/links`.
+#[utoipa::path(get, path = "/links", tag = "links",
+    responses((status = 200, description = "Every link with its counters, rate and status", body = [LinkOut])),
+    security(("bearer" = ["read"])))]
 pub async fn list_links(State(app): State<AppState>) -> Json<Vec<LinkOut>> {
     let inst = app.service.installation();
     let snapshot = app.service.snapshot();
@@ -109,7 +112,8 @@ pub async fn list_links(State(app): State<AppState>) -> Json<Vec<LinkOut>> {
 }
 
 /// Query of `samples`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct SamplesQuery {
     /// Start.
@@ -121,7 +125,7 @@ pub struct SamplesQuery {
 }
 
 /// A stored sample as answered.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct SampleOut {
     /// Measurement time.
     pub time: String,
@@ -146,7 +150,7 @@ pub struct SampleOut {
 }
 
 /// `GET .../samples`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct SamplesOut {
     /// Link.
     pub link: String,
@@ -155,6 +159,14 @@ pub struct SamplesOut {
 }
 
 /// `GET /api/v1/links/{name}/samples?from=&to=&limit=`.
+#[utoipa::path(get, path = "/links/{name}/samples", tag = "links",
+    params(("name" = String, Path, description = "Link name, `<parent>_from_<child>`"), SamplesQuery),
+    responses(
+        (status = 200, description = "Stored raw samples with their outlier flag", body = SamplesOut),
+        (status = 404, description = "Unknown link", body = ErrorBody),
+        (status = 422, description = "Invalid query", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn list_samples(
     State(app): State<AppState>,
     Path(name): Path<String>,
@@ -204,7 +216,7 @@ pub async fn list_samples(
 }
 
 /// Body of `PUT .../calibration`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CalibrationIn {
     /// `parent_from_child`.
@@ -214,11 +226,12 @@ pub struct CalibrationIn {
     /// Its covariance, 36 numbers row-major.
     pub covariance: Option<Vec<f64>>,
     /// From when it is valid (RFC 3339 or ns); now when absent.
+    #[schema(schema_with = super::dto::time_schema)]
     pub valid_from: Option<serde_json::Value>,
 }
 
 /// A calibration as answered.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct CalibrationOut {
     /// Link.
     pub link: String,
@@ -249,6 +262,16 @@ fn calibrated(spec: &LinkSpec) -> Result<PoseCov, ApiError> {
 }
 
 /// `PUT /api/v1/links/{name}/calibration`.
+#[utoipa::path(put, path = "/links/{name}/calibration", tag = "links",
+    params(("name" = String, Path, description = "Calibrated link name")),
+    request_body(content = CalibrationIn, description = "The new `parent_from_child` and its uncertainty"),
+    responses(
+        (status = 201, description = "The new calibration version", body = CalibrationOut),
+        (status = 400, description = "Malformed JSON", body = ErrorBody),
+        (status = 404, description = "Unknown link", body = ErrorBody),
+        (status = 422, description = "Invalid calibration, or a measured link", body = ErrorBody),
+    ),
+    security(("bearer" = ["admin"])))]
 pub async fn put_calibration(
     State(app): State<AppState>,
     Path(name): Path<String>,
@@ -299,7 +322,7 @@ pub async fn put_calibration(
 }
 
 /// `GET .../calibrations`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct CalibrationsOut {
     /// Link.
     pub link: String,
@@ -308,6 +331,14 @@ pub struct CalibrationsOut {
 }
 
 /// `GET /api/v1/links/{name}/calibrations`.
+#[utoipa::path(get, path = "/links/{name}/calibrations", tag = "links",
+    params(("name" = String, Path, description = "Calibrated link name")),
+    responses(
+        (status = 200, description = "The installation file's calibration, then every stored version", body = CalibrationsOut),
+        (status = 404, description = "Unknown link", body = ErrorBody),
+        (status = 422, description = "A measured link", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn list_calibrations(
     State(app): State<AppState>,
     Path(name): Path<String>,

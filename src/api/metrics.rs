@@ -16,9 +16,13 @@ fn family(out: &mut String, name: &str, kind: &str, help: &str) {
 }
 
 /// `GET /metrics`.
+#[utoipa::path(get, path = "/metrics", tag = "operations",
+    responses((status = 200, description = "Prometheus text exposition", content_type = "text/plain; version=0.0.4", body = String)),
+    security(("bearer" = ["read"])))]
 pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
     let service = &app.service;
     let m = service.metrics();
+    let viz = service.viz_counters();
     let mut out = String::new();
     for (name, help, counter) in [
         (
@@ -50,6 +54,36 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             "brokenray_commits_failed_total",
             "Transactions that failed; their requests were refused.",
             &m.commits_failed,
+        ),
+        (
+            "brokenray_rerun_queued_total",
+            "Records queued for the Rerun logger.",
+            &viz.queued,
+        ),
+        (
+            "brokenray_rerun_dropped_total",
+            "Records for Rerun dropped because the logger's queue was full (a slow or absent viewer).",
+            &viz.dropped,
+        ),
+        (
+            "brokenray_rerun_decimated_total",
+            "Records for Rerun left out by the configured rates.",
+            &viz.decimated,
+        ),
+        (
+            "brokenray_rerun_logged_total",
+            "Records the Rerun logger wrote.",
+            &viz.logged,
+        ),
+        (
+            "brokenray_rerun_errors_total",
+            "Records the Rerun SDK refused.",
+            &viz.errors,
+        ),
+        (
+            "brokenray_rerun_files_total",
+            "Recording files started (one per run and rotation).",
+            &viz.files,
         ),
     ] {
         family(&mut out, name, "counter", help);

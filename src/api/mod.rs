@@ -23,14 +23,15 @@ use crate::config::Installation;
 use crate::service::{PipelineHandle, Service};
 use axum::Router;
 use axum::http::StatusCode;
-use axum::routing::get;
 use serde::de::DeserializeOwned;
 use std::future::Future;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
 /// Request size limits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -68,61 +69,153 @@ pub fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> 
     })
 }
 
+/// `GET /healthz`.
+#[derive(Debug, serde::Serialize, utoipa::ToSchema)]
+pub struct HealthOut {
+    /// `ok` or `unavailable`.
+    pub status: &'static str,
+    /// The database answers.
+    pub database: bool,
+    /// The single writer (the pipeline task) runs.
+    pub writer: bool,
+}
+
+/// `GET /healthz`: open to all (no token), for container health checks and load balancers; it
+/// tells nothing but whether the service works.
+#[utoipa::path(get, path = "/healthz", tag = "operations",
+    responses(
+        (status = 200, description = "The database answers and the writer runs", body = HealthOut),
+        (status = 503, description = "The database or the writer is down", body = HealthOut),
+    ),
+    security(()))]
 async fn healthz(
     axum::extract::State(app): axum::extract::State<AppState>,
-) -> (StatusCode, axum::Json<serde_json::Value>) {
+) -> (StatusCode, axum::Json<HealthOut>) {
     let database = app.service.store().ping().await;
     let writer = app.service.pipeline_alive();
-    let status = if database && writer {
-        StatusCode::OK
-    } else {
-        StatusCode::SERVICE_UNAVAILABLE
-    };
+    let ok = database && writer;
     (
-        status,
-        axum::Json(serde_json::json!({
-            "status": if status == StatusCode::OK { "ok" } else { "unavailable" },
-            "database": database,
-            "writer": writer,
-        })),
+        if ok {
+            StatusCode::OK
+        } else {
+            StatusCode::SERVICE_UNAVAILABLE
+        },
+        axum::Json(HealthOut {
+            status: if ok { "ok" } else { "unavailable" },
+            database,
+            writer,
+        }),
     )
+}
+
+/// `GET /api/v1/openapi.json`: this API's OpenAPI 3.1 document, generated from the handlers.
+#[utoipa::path(get, path = "/openapi.json", tag = "operations",
+    responses((status = 200, description = "The OpenAPI document of this API", body = Object)),
+    security(("bearer" = ["read"])))]
+async fn openapi_json() -> axum::response::Response {
+    use axum::response::IntoResponse;
+    (
+        [(axum::http::header::CONTENT_TYPE, "application/json")],
+        openapi_text(),
+    )
+        .into_response()
 }
 
 async fn api_not_found(uri: axum::http::Uri) -> ApiError {
     ApiError::not_found(format!("no endpoint at `{}`", uri.path()))
 }
 
+#[derive(utoipa::OpenApi)]
+#[openapi(
+    info(
+        title = "brokenray",
+        description = "Broken-ray videometrics: link poses in, filtered chain, deformation and \
+                       compensation out. Units are in the field names (`_mm`, `_deg`, `_arcsec`); \
+                       `a_from_b` maps frame b coordinates into frame a; quaternions are \
+                       `[w, x, y, z]`; times are RFC 3339 UTC."
+    ),
+    modifiers(&BearerAuth),
+    tags(
+        (name = "ingest", description = "Link samples from the measurement pipeline"),
+        (name = "targets", description = "Compensation, history, statistics and references"),
+        (name = "links", description = "Links, their samples and calibrations"),
+        (name = "alarms", description = "Alarm transitions"),
+        (name = "events", description = "Live results and alarms"),
+        (name = "operations", description = "Health, metrics, this document"),
+    )
+)]
+struct ApiDoc;
+
+/// Declares the bearer scheme the operations' `security` refers to; its scopes are `read`,
+/// `ingest` and `admin`.
+struct BearerAuth;
+
+impl utoipa::Modify for BearerAuth {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        openapi
+            .components
+            .get_or_insert_default()
+            .add_security_scheme(
+                "bearer",
+                SecurityScheme::Http(
+                    HttpBuilder::new()
+                        .scheme(HttpAuthScheme::Bearer)
+                        .description(Some(
+                            "A token from the configuration's [[auth.tokens]]; the scope each \
+                         operation needs is listed in its `security`",
+                        ))
+                        .build(),
+                ),
+            );
+    }
+}
+
+/// Every route, each registered with its OpenAPI operation: a handler cannot be routed without
+/// appearing in the document.
+fn routes() -> OpenApiRouter<AppState> {
+    let api = OpenApiRouter::new()
+        .routes(routes!(ingest::post_samples))
+        .routes(routes!(targets::list_targets))
+        .routes(routes!(targets::get_compensation))
+        .routes(routes!(targets::get_stats))
+        .routes(routes!(targets::get_history))
+        .routes(routes!(targets::get_reference, targets::post_reference))
+        .routes(routes!(targets::list_references))
+        .routes(routes!(events::get_events))
+        .routes(routes!(alarms::list_alarms))
+        .routes(routes!(links::list_links))
+        .routes(routes!(links::list_samples))
+        .routes(routes!(links::put_calibration))
+        .routes(routes!(links::list_calibrations))
+        .routes(routes!(openapi_json));
+    OpenApiRouter::with_openapi(<ApiDoc as utoipa::OpenApi>::openapi())
+        .nest("/api/v1", api)
+        .routes(routes!(healthz))
+        .routes(routes!(metrics::get_metrics))
+}
+
+/// The OpenAPI document of the API.
+pub fn openapi() -> &'static utoipa::openapi::OpenApi {
+    static DOC: OnceLock<utoipa::openapi::OpenApi> = OnceLock::new();
+    DOC.get_or_init(|| routes().split_for_parts().1)
+}
+
+fn openapi_text() -> String {
+    static TEXT: OnceLock<String> = OnceLock::new();
+    TEXT.get_or_init(|| {
+        openapi()
+            .to_pretty_json()
+            .unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    })
+    .clone()
+}
+
 /// The router of the whole service.
 pub fn router(state: AppState) -> Router {
     let tokens = Arc::new(state.service.installation().auth.tokens.clone());
-    let api = Router::new()
-        .route("/samples", axum::routing::post(ingest::post_samples))
-        .route("/targets", get(targets::list_targets))
-        .route(
-            "/targets/{name}/compensation",
-            get(targets::get_compensation),
-        )
-        .route("/targets/{name}/stats", get(targets::get_stats))
-        .route("/targets/{name}/history", get(targets::get_history))
-        .route(
-            "/targets/{name}/reference",
-            get(targets::get_reference).post(targets::post_reference),
-        )
-        .route("/targets/{name}/references", get(targets::list_references))
-        .route("/events", get(events::get_events))
-        .route("/alarms", get(alarms::list_alarms))
-        .route("/links", get(links::list_links))
-        .route("/links/{name}/samples", get(links::list_samples))
-        .route(
-            "/links/{name}/calibration",
-            axum::routing::put(links::put_calibration),
-        )
-        .route("/links/{name}/calibrations", get(links::list_calibrations))
-        .fallback(api_not_found);
-    Router::new()
-        .nest("/api/v1", api)
-        .route("/healthz", get(healthz))
-        .route("/metrics", get(metrics::get_metrics))
+    let (router, _) = routes().split_for_parts();
+    router
         .fallback(api_not_found)
         .layer(axum::middleware::from_fn(move |req, next| {
             auth::require_token(Arc::clone(&tokens), req, next)

@@ -2,7 +2,7 @@
 
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
-use super::error::ApiError;
+use super::error::{ApiError, ErrorBody};
 use super::time::{format_ns, parse_query_time};
 use crate::chain::Direction;
 use crate::config::TargetSpec;
@@ -28,7 +28,7 @@ fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetSpec), ApiEr
 }
 
 /// A step of a path as answered.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct StepOut {
     /// The link.
     pub link: String,
@@ -37,7 +37,7 @@ pub struct StepOut {
 }
 
 /// A path as answered.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct PathOut {
     /// Steps from the base outwards.
     pub steps: Vec<StepOut>,
@@ -46,7 +46,7 @@ pub struct PathOut {
 }
 
 /// A target as listed.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct TargetOut {
     /// Its name (frame).
     pub name: String,
@@ -63,6 +63,9 @@ pub struct TargetOut {
 }
 
 /// `GET /api/v1/targets`.
+#[utoipa::path(get, path = "/targets", tag = "targets",
+    responses((status = 200, description = "Every target with its paths and status", body = [TargetOut])),
+    security(("bearer" = ["read"])))]
 pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
     let inst = app.service.installation();
     let snapshot = app.service.snapshot();
@@ -101,7 +104,7 @@ pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
 }
 
 /// A reference as answered.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct ReferenceOut {
     /// Translation of `G0_from_B` (mm).
     pub t_mm: [f64; 3],
@@ -122,7 +125,7 @@ pub struct ReferenceOut {
 }
 
 /// A reference's window.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct WindowOut {
     /// Start.
     pub from: String,
@@ -164,7 +167,7 @@ impl From<&CurrentReference> for ReferenceOut {
 }
 
 /// A deformation as answered (`G0_from_G`).
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct DeformationOut {
     /// Rotation vector (arc-seconds, reference target axes).
     pub rotation_arcsec: [f64; 3],
@@ -175,7 +178,7 @@ pub struct DeformationOut {
 }
 
 /// A correction as answered (`G_from_G0`).
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct CorrectionOut {
     /// Rotation (quaternion).
     pub q_wxyz: [f64; 4],
@@ -188,7 +191,7 @@ pub struct CorrectionOut {
 }
 
 /// Redundant paths' agreement.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct ConsistencyOut {
     /// Chi-square of the paths' disagreement.
     pub chi2: f64,
@@ -199,7 +202,7 @@ pub struct ConsistencyOut {
 }
 
 /// `GET .../compensation`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct CompensationOut {
     /// Target name.
     pub target: String,
@@ -327,7 +330,8 @@ pub fn live_compensation(
 }
 
 /// Query of `compensation`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct AtQuery {
     /// A past or future time (RFC 3339 or integer ns); the newest result without it.
@@ -335,6 +339,14 @@ pub struct AtQuery {
 }
 
 /// `GET /api/v1/targets/{name}/compensation[?at=TIME]`.
+#[utoipa::path(get, path = "/targets/{name}/compensation", tag = "targets",
+    params(("name" = String, Path, description = "Target frame"), AtQuery),
+    responses(
+        (status = 200, description = "The current (or asked-for) pose, deformation and correction", body = CompensationOut),
+        (status = 404, description = "Unknown target, or no result at that time", body = ErrorBody),
+        (status = 422, description = "Invalid `at`", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn get_compensation(
     State(app): State<AppState>,
     Path(name): Path<String>,
@@ -423,7 +435,8 @@ pub async fn get_compensation(
 }
 
 /// Query of `stats` and other windows.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct WindowQuery {
     /// Start (RFC 3339 or integer ns); the beginning of time without it.
@@ -454,7 +467,7 @@ pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
 }
 
 /// Three statistics.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct ComponentsOut {
     /// Minimum.
     pub min: [f64; 3],
@@ -467,7 +480,7 @@ pub struct ComponentsOut {
 }
 
 /// `GET .../stats`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct StatsOut {
     /// Target.
     pub target: String,
@@ -489,6 +502,14 @@ pub struct StatsOut {
 const MAX_STATS_RESULTS: i64 = 50_000_000;
 
 /// `GET /api/v1/targets/{name}/stats?from=&to=&source=raw|filtered`.
+#[utoipa::path(get, path = "/targets/{name}/stats", tag = "targets",
+    params(("name" = String, Path, description = "Target frame"), WindowQuery),
+    responses(
+        (status = 200, description = "Min, max, mean and RMS over the window", body = StatsOut),
+        (status = 404, description = "Unknown target", body = ErrorBody),
+        (status = 422, description = "Invalid window", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn get_stats(
     State(app): State<AppState>,
     Path(name): Path<String>,
@@ -524,18 +545,30 @@ pub async fn get_stats(
 }
 
 /// Body of `POST .../reference`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ReferenceIn {
     /// Window start (with `to`).
+    #[schema(schema_with = super::dto::time_schema)]
     pub from: Option<serde_json::Value>,
     /// Window end (with `from`).
+    #[schema(schema_with = super::dto::time_schema)]
     pub to: Option<serde_json::Value>,
     /// An explicit `G0_from_B` (instead of a window).
     pub pose: Option<PoseIn>,
 }
 
 /// `POST /api/v1/targets/{name}/reference`.
+#[utoipa::path(post, path = "/targets/{name}/reference", tag = "targets",
+    params(("name" = String, Path, description = "Target frame")),
+    request_body(content = ReferenceIn, description = "An explicit `G0_from_B`, or a window of filtered results to average"),
+    responses(
+        (status = 201, description = "The new reference version", body = ReferenceOut),
+        (status = 400, description = "Malformed JSON", body = ErrorBody),
+        (status = 404, description = "Unknown target", body = ErrorBody),
+        (status = 422, description = "Invalid reference, or an empty window", body = ErrorBody),
+    ),
+    security(("bearer" = ["admin"])))]
 pub async fn post_reference(
     State(app): State<AppState>,
     Path(name): Path<String>,
@@ -570,6 +603,13 @@ pub async fn post_reference(
 }
 
 /// `GET /api/v1/targets/{name}/reference`.
+#[utoipa::path(get, path = "/targets/{name}/reference", tag = "targets",
+    params(("name" = String, Path, description = "Target frame")),
+    responses(
+        (status = 200, description = "The current reference", body = ReferenceOut),
+        (status = 404, description = "Unknown target, or no reference yet", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn get_reference(
     State(app): State<AppState>,
     Path(name): Path<String>,
@@ -584,7 +624,7 @@ pub async fn get_reference(
 }
 
 /// `GET .../references`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct ReferencesOut {
     /// Target.
     pub target: String,
@@ -593,6 +633,13 @@ pub struct ReferencesOut {
 }
 
 /// `GET /api/v1/targets/{name}/references`.
+#[utoipa::path(get, path = "/targets/{name}/references", tag = "targets",
+    params(("name" = String, Path, description = "Target frame")),
+    responses(
+        (status = 200, description = "Every reference version, oldest first", body = ReferencesOut),
+        (status = 404, description = "Unknown target", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn list_references(
     State(app): State<AppState>,
     Path(name): Path<String>,
@@ -616,7 +663,8 @@ pub async fn list_references(
 }
 
 /// Query of `history`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct HistoryQuery {
     /// Start (RFC 3339 or integer ns); the first result without it.
@@ -632,7 +680,7 @@ pub struct HistoryQuery {
 }
 
 /// One component's series.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct SeriesOut {
     /// Minimum per bucket (`null` where the bucket has no value of it).
     pub min: Vec<Option<f64>>,
@@ -643,7 +691,7 @@ pub struct SeriesOut {
 }
 
 /// `GET .../history`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct HistoryOut {
     /// Target.
     pub target: String,
@@ -667,6 +715,17 @@ pub struct HistoryOut {
 }
 
 /// `GET /api/v1/targets/{name}/history?from=&to=&source=&max_points=&format=csv`.
+#[utoipa::path(get, path = "/targets/{name}/history", tag = "targets",
+    params(("name" = String, Path, description = "Target frame"), HistoryQuery),
+    responses(
+        (status = 200, description = "Min, mean and max per time bucket (JSON), or one row per bucket (`format=csv`)", content(
+            (HistoryOut = "application/json"),
+            (String = "text/csv"),
+        )),
+        (status = 404, description = "Unknown target", body = ErrorBody),
+        (status = 422, description = "Invalid query", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
 pub async fn get_history(
     State(app): State<AppState>,
     Path(name): Path<String>,

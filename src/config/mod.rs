@@ -82,28 +82,41 @@ pub struct ServerSettings {
     pub events_max_hz: f64,
 }
 
-/// Where visualisation data goes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum RerunMode {
-    /// No visualisation.
-    Off,
-    /// A recording per run in `recordings_dir`.
-    Save,
-    /// Stream to a viewer at `url`.
-    Connect,
-    /// An in-process server viewers connect to.
-    Serve,
-}
-
-/// Rerun settings.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// Rerun settings: which sinks, where, and how much goes to them.
+#[derive(Debug, Clone, PartialEq)]
 pub struct RerunSettings {
-    /// The mode.
-    pub mode: RerunMode,
+    /// Write a recording per run (rotated) in `recordings_dir`.
+    pub save: bool,
+    /// Stream to a viewer at `url`.
+    pub connect: bool,
+    /// Run a gRPC server at `serve_listen` that viewers connect to (late joiners get the
+    /// buffered history).
+    pub serve: bool,
     /// Where `save` writes recordings.
     pub recordings_dir: PathBuf,
     /// The viewer `connect` streams to.
     pub url: String,
+    /// Where `serve` listens.
+    pub serve_listen: SocketAddr,
+    /// How much history `serve` keeps for late joiners (bytes).
+    pub serve_memory_limit_bytes: u64,
+    /// A new recording file after this long (s).
+    pub rotate_after_s: f64,
+    /// ... or once a file reaches this size (bytes).
+    pub rotate_max_bytes: u64,
+    /// Records waiting for the logger thread; more are dropped (and counted).
+    pub queue_capacity: usize,
+    /// Most scene updates (frame transforms) per second of measurement time.
+    pub scene_hz: f64,
+    /// Most points per second of measurement time in each time series.
+    pub series_hz: f64,
+}
+
+impl RerunSettings {
+    /// Whether anything goes to Rerun.
+    pub fn enabled(&self) -> bool {
+        self.save || self.connect || self.serve
+    }
 }
 
 /// A pinhole camera with Brown-Conrady distortion (OpenCV's `k1 k2 p1 p2 k3`).
@@ -603,32 +616,104 @@ impl Validator {
     }
 
     fn rerun(&mut self, raw: &RawFile) -> Option<RerunSettings> {
-        let mode = match raw.rerun.mode.as_ref() {
-            None => RerunMode::Off,
-            Some(m) => match m.get_ref().as_str() {
-                "off" => RerunMode::Off,
-                "save" => RerunMode::Save,
-                "connect" => RerunMode::Connect,
-                "serve" => RerunMode::Serve,
-                other => {
+        let r = &raw.rerun;
+        let (mut save, mut connect, mut serve) = (false, false, false);
+        let mut ok = true;
+        if let Some(m) = &r.mode {
+            let names: Vec<&str> = match m.get_ref() {
+                raw::RawModes::One(s) => vec![s.as_str()],
+                raw::RawModes::Several(v) => v.iter().map(String::as_str).collect(),
+            };
+            for name in &names {
+                match *name {
+                    "off" if names.len() == 1 => {}
+                    "save" => save = true,
+                    "connect" => connect = true,
+                    "serve" => serve = true,
+                    other => {
+                        self.problem(
+                            m.span().start,
+                            if other == "off" {
+                                "rerun.mode `off` cannot be combined with other modes".to_owned()
+                            } else {
+                                format!(
+                                    "rerun.mode `{other}` is not one of off, save, connect, serve"
+                                )
+                            },
+                        );
+                        ok = false;
+                    }
+                }
+            }
+        }
+        let mut positive = |v: &Option<toml::Spanned<f64>>, name: &str, default: f64| match v {
+            None => Some(default),
+            Some(x) if x.get_ref().is_finite() && *x.get_ref() > 0.0 => Some(*x.get_ref()),
+            Some(x) => {
+                self.problem(
+                    x.span().start,
+                    format!(
+                        "rerun.{name} must be a positive number, not {}",
+                        x.get_ref()
+                    ),
+                );
+                None
+            }
+        };
+        let memory_mb = positive(&r.serve_memory_limit_mb, "serve_memory_limit_mb", 256.0);
+        let rotate_hours = positive(&r.rotate_hours, "rotate_hours", 24.0);
+        let rotate_max_mb = positive(&r.rotate_max_mb, "rotate_max_mb", 1024.0);
+        let scene_hz = positive(&r.scene_hz, "scene_hz", 2.0);
+        let series_hz = positive(&r.series_hz, "series_hz", 10.0);
+        let queue_capacity = match &r.queue_capacity {
+            None => Some(4096),
+            Some(q) if (1..=10_000_000).contains(q.get_ref()) => usize::try_from(*q.get_ref()).ok(),
+            Some(q) => {
+                self.problem(
+                    q.span().start,
+                    format!(
+                        "rerun.queue_capacity must be between 1 and 10000000, not {}",
+                        q.get_ref()
+                    ),
+                );
+                None
+            }
+        };
+        let serve_listen = match &r.serve_listen {
+            None => Some(SocketAddr::from(([127, 0, 0, 1], 9876))),
+            Some(a) => match a.get_ref().parse::<SocketAddr>() {
+                Ok(addr) => Some(addr),
+                Err(e) => {
                     self.problem(
-                        m.span().start,
-                        format!("rerun.mode `{other}` is not one of off, save, connect, serve"),
+                        a.span().start,
+                        format!(
+                            "rerun.serve_listen `{}` is not an address such as 127.0.0.1:9876: {e}",
+                            a.get_ref()
+                        ),
                     );
-                    return None;
+                    None
                 }
             },
         };
+        if !ok {
+            return None;
+        }
         Some(RerunSettings {
-            mode,
-            recordings_dir: PathBuf::from(
-                raw.rerun.recordings_dir.as_deref().unwrap_or("recordings"),
-            ),
-            url: raw
-                .rerun
+            save,
+            connect,
+            serve,
+            recordings_dir: PathBuf::from(r.recordings_dir.as_deref().unwrap_or("recordings")),
+            url: r
                 .url
                 .clone()
                 .unwrap_or_else(|| "rerun+http://127.0.0.1:9876/proxy".to_owned()),
+            serve_listen: serve_listen?,
+            serve_memory_limit_bytes: (memory_mb? * 1e6) as u64,
+            rotate_after_s: rotate_hours? * 3600.0,
+            rotate_max_bytes: (rotate_max_mb? * 1e6) as u64,
+            queue_capacity: queue_capacity?,
+            scene_hz: scene_hz?,
+            series_hz: series_hz?,
         })
     }
 

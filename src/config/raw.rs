@@ -78,9 +78,24 @@ pub(super) struct RawServer {
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct RawRerun {
-    pub mode: Option<Spanned<String>>,
+    pub mode: Option<Spanned<RawModes>>,
     pub recordings_dir: Option<String>,
     pub url: Option<String>,
+    pub serve_listen: Option<Spanned<String>>,
+    pub serve_memory_limit_mb: Option<Spanned<f64>>,
+    pub rotate_hours: Option<Spanned<f64>>,
+    pub rotate_max_mb: Option<Spanned<f64>>,
+    pub queue_capacity: Option<Spanned<i64>>,
+    pub scene_hz: Option<Spanned<f64>>,
+    pub series_hz: Option<Spanned<f64>>,
+}
+
+/// `mode = "save"` or `mode = ["save", "serve"]`.
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+pub(super) enum RawModes {
+    One(String),
+    Several(Vec<String>),
 }
 
 #[derive(Debug, Deserialize)]

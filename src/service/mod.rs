@@ -66,6 +66,9 @@ pub enum ServiceError {
     /// The pipeline is not running (the service is shutting down).
     #[error("the service is shutting down")]
     ShuttingDown,
+    /// The visualisation could not start.
+    #[error(transparent)]
+    Viz(#[from] crate::viz::VizError),
 }
 
 /// Result alias of the service.
@@ -190,6 +193,8 @@ struct Inner {
     metrics: Arc<Metrics>,
     /// Live events; sending never waits, a subscriber that lags is dropped.
     events: tokio::sync::broadcast::Sender<LiveEvent>,
+    /// What went to Rerun.
+    viz_counters: Arc<crate::viz::VizCounters>,
 }
 
 /// The running service: a handle that request handlers clone.
@@ -198,14 +203,22 @@ pub struct Service {
     inner: Arc<Inner>,
 }
 
-/// The pipeline task, to await at shutdown (it finishes the jobs already queued).
-pub struct PipelineHandle(tokio::task::JoinHandle<()>);
+/// The pipeline task, to await at shutdown (it finishes the jobs already queued), and the
+/// Rerun logger behind it.
+pub struct PipelineHandle(tokio::task::JoinHandle<()>, crate::viz::VizThread);
 
 impl PipelineHandle {
-    /// Waits until every queued job is committed and answered.
+    /// Waits until every queued job is committed and answered, then (for a bounded time) until
+    /// the Rerun logger has written out what it was given and closed its recordings.
     pub async fn finished(self) {
         if let Err(e) = self.0.await {
             tracing::error!(error = %e, "the pipeline task panicked");
+        }
+        let viz = self.1;
+        let finish =
+            tokio::task::spawn_blocking(move || viz.finish(std::time::Duration::from_secs(30)));
+        if let Err(e) = finish.await {
+            tracing::error!(error = %e, "the Rerun logger panicked");
         }
     }
 }
@@ -315,6 +328,8 @@ impl Service {
             targets: targets.clone(),
             bank: bank.current_view(),
         });
+        let (viz, viz_thread) = crate::viz::start(&installation)?;
+        let viz_counters = Arc::clone(viz.counters());
         let (jobs, rx) = mpsc::channel(1024);
         let slot = Arc::new(RwLock::new(snapshot));
         let metrics = Arc::new(Metrics::default());
@@ -326,9 +341,10 @@ impl Service {
             jobs,
             snapshot: Arc::clone(&slot),
             metrics: Arc::clone(&metrics),
+            viz_counters,
         });
         let task = tokio::spawn(pipeline::run(
-            pipeline::Pipeline::new(write, bank, targets, digest, metrics, events),
+            pipeline::Pipeline::new(write, bank, targets, digest, metrics, events, viz),
             rx,
             move |s: Snapshot| match slot.write() {
                 Ok(mut guard) => *guard = Arc::new(s),
@@ -353,7 +369,7 @@ impl Service {
                 }
             }
         });
-        Ok((service, PipelineHandle(task)))
+        Ok((service, PipelineHandle(task, viz_thread)))
     }
 
     /// The installation.
@@ -377,6 +393,11 @@ impl Service {
     /// Subscribes to live events.
     pub fn subscribe(&self) -> tokio::sync::broadcast::Receiver<LiveEvent> {
         self.inner.events.subscribe()
+    }
+
+    /// What went to Rerun (all zero when it is off).
+    pub fn viz_counters(&self) -> &crate::viz::VizCounters {
+        &self.inner.viz_counters
     }
 
     /// The pipeline's counters.

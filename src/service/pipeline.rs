@@ -57,6 +57,8 @@ pub(super) struct Pipeline {
     events: tokio::sync::broadcast::Sender<super::LiveEvent>,
     /// Per target: the measurement time of the last result sent live.
     last_event_ns: Vec<Option<i64>>,
+    /// What goes to Rerun (never waits).
+    viz: crate::viz::VizSender,
 }
 
 #[allow(
@@ -109,10 +111,12 @@ impl Pipeline {
         digest: String,
         metrics: std::sync::Arc<super::Metrics>,
         events: tokio::sync::broadcast::Sender<super::LiveEvent>,
+        viz: crate::viz::VizSender,
     ) -> Self {
         let committed_state = bank.record();
         let last_event_ns = vec![None; targets.len()];
         Self {
+            viz,
             events,
             last_event_ns,
             write,
@@ -142,6 +146,39 @@ impl Pipeline {
         }
     }
 
+    /// Hands a committed group's records to the visualisation, with the frames placed by the
+    /// links' filtered poses at the newest result's time when a scene is due.
+    fn publish_viz(&mut self, records: Vec<crate::viz::Record>) {
+        if !self.viz.enabled() {
+            return;
+        }
+        let newest = records
+            .iter()
+            .filter(|r| matches!(r, crate::viz::Record::Result { filtered: true, .. }))
+            .map(crate::viz::Record::time_ns)
+            .max();
+        for r in records {
+            self.viz.send(r);
+        }
+        if let Some(t) = newest
+            && self.viz.scene_due(t)
+        {
+            let link_poses = (0..self.bank.installation().links.len())
+                .map(|l| {
+                    self.bank
+                        .link_estimate(LinkId(l), t)
+                        .ok()
+                        .flatten()
+                        .map(|p| p.pose)
+                })
+                .collect();
+            self.viz.send(crate::viz::Record::Scene {
+                time_ns: t,
+                link_poses,
+            });
+        }
+    }
+
     fn snapshot(&self) -> Snapshot {
         Snapshot {
             targets: self.targets.clone(),
@@ -156,7 +193,9 @@ impl Pipeline {
         let targets_before = self.targets.clone();
         let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
         let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
+        let mut viz_records: Vec<crate::viz::Record> = Vec::new();
         let mut pending: Vec<Pending> = Vec::with_capacity(jobs.len());
+        let record_viz = self.viz.enabled();
         let Pipeline {
             write,
             bank,
@@ -170,7 +209,8 @@ impl Pipeline {
                 match job {
                     Job::Ingest { items, reply } => {
                         let mut t = Vec::new();
-                        let r = ingest(&mut tx, bank, targets, items, now, &mut t).await?;
+                        let viz = record_viz.then_some(&mut viz_records);
+                        let r = ingest(&mut tx, bank, targets, items, now, &mut t, viz).await?;
                         transitions.extend(t);
                         pending.push(Pending::Ingest(reply, r));
                     }
@@ -180,6 +220,13 @@ impl Pipeline {
                         reply,
                     } => {
                         let r = set_reference(&mut tx, targets, target, request, now).await?;
+                        if record_viz && let Ok(current) = &r {
+                            viz_records.push(crate::viz::Record::Reference {
+                                target,
+                                time_ns: targets[target].latest.as_ref().map_or(now, |l| l.time_ns),
+                                g0_from_b: current.reference.g0_from_b.pose,
+                            });
+                        }
                         pending.push(Pending::Reference(reply, r));
                     }
                     Job::Prune { retention, reply } => {
@@ -252,11 +299,18 @@ impl Pipeline {
                     p.answer();
                 }
                 self.publish_events();
+                for (target, transition) in &transitions {
+                    viz_records.push(crate::viz::Record::Alarm {
+                        target: *target,
+                        transition: transition.clone(),
+                    });
+                }
                 for (target, transition) in transitions {
                     let _ = self
                         .events
                         .send(super::LiveEvent::Alarm { target, transition });
                 }
+                self.publish_viz(viz_records);
                 true
             }
             Err(e) => {
@@ -339,6 +393,7 @@ async fn ingest(
     items: Vec<IngestItem>,
     now: i64,
     new_transitions: &mut Vec<(usize, crate::alarms::Transition)>,
+    mut viz: Option<&mut Vec<crate::viz::Record>>,
 ) -> Result<ServiceResult<IngestReport>, StoreError> {
     // Check every measurement before the bank sees any of them.
     let mut problems = Vec::new();
@@ -439,6 +494,14 @@ async fn ingest(
             Disposition::OutOfOrder { .. } => report.out_of_order += 1,
             _ => {}
         }
+        if let Some(v) = viz.as_deref_mut() {
+            v.push(crate::viz::Record::Sample {
+                link: item.sample.link.0,
+                time_ns: item.sample.time_ns,
+                nis: nis_of(&d),
+                outlier: d.is_outlier(),
+            });
+        }
         sample_rows.push(NewSample {
             link: item.sample.link,
             time_ns: item.sample.time_ns,
@@ -450,6 +513,16 @@ async fn ingest(
         });
         for raw in &outcome.raw_results {
             report.raw_results += 1;
+            let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
+            if let Some(v) = viz.as_deref_mut() {
+                v.push(crate::viz::Record::Result {
+                    target: raw.target,
+                    time_ns: raw.time_ns,
+                    filtered: false,
+                    target_from_base: raw.target_from_base,
+                    deformation: deformation.map(|(_, d)| d),
+                });
+            }
             result_rows.insert(
                 (raw.target, false, raw.time_ns),
                 NewResult {
@@ -464,7 +537,7 @@ async fn ingest(
                     },
                     age_s: 0.0,
                     chi2: raw.consistency.map(|c| c.chi2),
-                    deformation: deformation_of(targets, raw.target, &raw.target_from_base),
+                    deformation,
                 },
             );
         }
@@ -474,6 +547,15 @@ async fn ingest(
             };
             report.filtered_results += 1;
             let deformation = deformation_of(targets, est.target, &pose);
+            if let Some(v) = viz.as_deref_mut() {
+                v.push(crate::viz::Record::Result {
+                    target: est.target,
+                    time_ns: est.time_ns,
+                    filtered: true,
+                    target_from_base: pose,
+                    deformation: deformation.map(|(_, d)| d),
+                });
+            }
             result_rows.insert(
                 (est.target, true, est.time_ns),
                 NewResult {

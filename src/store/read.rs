@@ -251,6 +251,39 @@ impl Store {
         rows.into_iter().map(ResultRow::into_result).collect()
     }
 
+    /// How many results of a target are stored in `[from_ns, to_ns]`.
+    pub async fn count_results(
+        &self,
+        target: usize,
+        filtered: bool,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<u64> {
+        let (n,): (i64,) = sqlx::query_as(
+            "select count(*) from results where target_id = ? and source = ? and time_ns >= ? and time_ns <= ?",
+        )
+        .bind(self.target_ids[target])
+        .bind(i64::from(filtered))
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(u64::try_from(n).unwrap_or(0))
+    }
+
+    /// How many samples of a link are stored in `[from_ns, to_ns]`.
+    pub async fn count_samples(&self, link: LinkId, from_ns: i64, to_ns: i64) -> StoreResult<u64> {
+        let (n,): (i64,) = sqlx::query_as(
+            "select count(*) from samples where link_id = ? and time_ns >= ? and time_ns <= ?",
+        )
+        .bind(self.link_ids[link.0])
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(u64::try_from(n).unwrap_or(0))
+    }
+
     /// The stored results of a target nearest to `at_ns`: the newest at or before it and the
     /// oldest after it.
     pub async fn results_around(

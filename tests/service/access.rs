@@ -5,7 +5,7 @@ use axum::http::StatusCode;
 use brokenray::api::auth::sha256_hex;
 use serde_json::json;
 
-fn with_tokens() -> String {
+pub fn with_tokens() -> String {
     format!(
         "{}\n[[auth.tokens]]\nname = \"viewer\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n\n[[auth.tokens]]\nname = \"pipeline\"\nsha256 = \"{}\"\nscopes = [\"ingest\"]\n\n[[auth.tokens]]\nname = \"operator\"\nsha256 = \"{}\"\nscopes = [\"read\", \"admin\"]\n",
         brokenray::config::DEFAULT_INSTALLATION_TOML,

@@ -5,6 +5,8 @@ mod alarms;
 mod helpers;
 mod history;
 mod ingest_errors;
+mod openapi;
 #[path = "../common/paper.rs"]
 mod paper;
+mod recordings;
 mod results;

@@ -1,0 +1,64 @@
+//! The layout a recording opens with: the frame tree on the left; per target a tab with the
+//! deformation rotation and translation (raw, filtered, 3-sigma band); the links' innovations;
+//! the alarm lanes and log. The time panel follows the measurement timeline.
+
+use super::TIMELINE;
+use crate::config::{Installation, LinkKind};
+use rerun::blueprint::{
+    Blueprint, ContainerLike, Horizontal, Spatial3DView, StateTimelineView, Tabs, TextLogView,
+    TimePanel, TimeSeriesView, Vertical,
+};
+
+/// The blueprint of an installation's recordings.
+pub fn blueprint(inst: &Installation) -> Blueprint {
+    let per_target: Vec<ContainerLike> = inst
+        .targets
+        .iter()
+        .map(|t| {
+            Vertical::new([
+                TimeSeriesView::new(format!("{} deformation rotation [arcsec]", t.name))
+                    .with_origin(format!("/plots/{}/rotation_arcsec", t.name))
+                    .into(),
+                TimeSeriesView::new(format!("{} deformation translation [mm]", t.name))
+                    .with_origin(format!("/plots/{}/translation_mm", t.name))
+                    .into(),
+            ])
+            .with_name(t.name.clone())
+            .into()
+        })
+        .collect();
+    let mut right: Vec<ContainerLike> = vec![Tabs::new(per_target).into()];
+    if inst
+        .links
+        .iter()
+        .any(|l| matches!(l.kind, LinkKind::Measured(_)))
+    {
+        right.push(
+            TimeSeriesView::new("Link innovations (NIS) and outliers")
+                .with_origin("/plots/links")
+                .into(),
+        );
+    }
+    right.push(
+        StateTimelineView::new("Alarm state")
+            .with_origin("/alarms")
+            .with_contents(["+ /alarms/**", "- /alarms/log"])
+            .into(),
+    );
+    right.push(
+        TextLogView::new("Alarm log")
+            .with_origin("/alarms/log")
+            .into(),
+    );
+    // The target tabs get the most room, the alarm lanes and log the least.
+    let mut shares = vec![4.0, 2.0, 1.0, 1.0];
+    shares.drain(1..1 + (4 - right.len()));
+    Blueprint::new(
+        Horizontal::new([
+            Spatial3DView::new("Frames").with_origin("/world").into(),
+            Vertical::new(right).with_row_shares(shares).into(),
+        ])
+        .with_column_shares([1.0, 1.0]),
+    )
+    .with_time_panel(TimePanel::new().with_timeline(TIMELINE))
+}

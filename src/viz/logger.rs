@@ -1,0 +1,627 @@
+//! The one place that calls the Rerun SDK: turns [`Record`]s into entities on the measurement
+//! timeline, owns the recording streams (a rotated file, a viewer to stream to, an in-process
+//! server), and lays out the blueprint.
+//!
+//! Entities (frame and link names as in the installation):
+//!
+//! * `world/<base>/<frame>/...`: the frame tree, one `Transform3D` (parent from child) per tree
+//!   link from the links' filtered poses; `.../camera` a pinhole of each camera, `.../points`
+//!   each marker's points (mm);
+//! * `world/<base>/<target>_filtered`, `_raw`, `_reference`: the target's fused, raw and
+//!   reference poses in its base;
+//! * `plots/<target>/rotation_arcsec/{raw,filtered,plus_3sigma,minus_3sigma}` and
+//!   `plots/<target>/translation_mm/...`: the deformation `G0_from_G` (x, y, z);
+//! * `plots/links/<link>/{nis,gate,outliers}`: each measured link's normalised innovation, its
+//!   gate, and the rejected samples;
+//! * `alarms/<target>`: the alarm level as a state lane; `alarms/log`: the transitions as text.
+
+use super::{Record, TIMELINE, VizCounters, VizError};
+use crate::chain::chi_square_quantile;
+use crate::config::{Installation, LinkKind};
+use crate::geometry::Pose;
+use rerun::{RecordingStream, RecordingStreamBuilder};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::Ordering::Relaxed;
+use std::time::{Duration, Instant};
+
+/// The application id of every recording; the viewer groups recordings by it.
+pub const APPLICATION_ID: &str = "brokenray";
+
+/// Where each frame sits in the entity tree, and which link places it.
+#[derive(Debug, Clone)]
+struct FrameNode {
+    path: String,
+    /// The link between the frame and its tree parent, and whether the link maps the other way
+    /// (its parent is this frame).
+    link: Option<(usize, bool)>,
+}
+
+/// A file sink, renewed after a while or a size.
+struct Rotation {
+    dir: PathBuf,
+    current: PathBuf,
+    opened: Instant,
+    after: Duration,
+    max_bytes: u64,
+    since_check: u32,
+}
+
+/// Writes records to Rerun.
+pub struct Logger {
+    inst: Arc<Installation>,
+    /// Every stream; each record goes to each.
+    streams: Vec<RecordingStream>,
+    /// Index in `streams` of the file stream, with its rotation.
+    file: Option<(usize, Rotation)>,
+    /// Index in `streams` of a stream to a remote viewer (whose flush may never return).
+    remote: Option<usize>,
+    frames: Vec<FrameNode>,
+    /// Per target: the base frame's entity path.
+    target_base: Vec<String>,
+    /// Per link: the NIS gate (measured links).
+    gates: Vec<Option<f64>>,
+    counters: Arc<VizCounters>,
+}
+
+fn sdk_error(what: &'static str) -> impl Fn(rerun::RecordingStreamError) -> VizError {
+    move |e| VizError::Sink {
+        what,
+        message: e.to_string(),
+    }
+}
+
+/// A recording file name for a start time: `brokenray-20261121T120000Z.rrd`, made unique
+/// within `dir`.
+fn file_name(dir: &Path) -> PathBuf {
+    let now = time::OffsetDateTime::now_utc();
+    let stamp = format!(
+        "{:04}{:02}{:02}T{:02}{:02}{:02}Z",
+        now.year(),
+        u8::from(now.month()),
+        now.day(),
+        now.hour(),
+        now.minute(),
+        now.second()
+    );
+    let mut path = dir.join(format!("brokenray-{stamp}.rrd"));
+    let mut n = 1;
+    while path.exists() {
+        path = dir.join(format!("brokenray-{stamp}-{n}.rrd"));
+        n += 1;
+    }
+    path
+}
+
+impl Logger {
+    /// The streams of the live service, from `[rerun]`: `save`, `connect` and `serve` may be
+    /// combined; all share one recording id, so a viewer merges them.
+    pub fn live(inst: &Arc<Installation>, counters: Arc<VizCounters>) -> Result<Self, VizError> {
+        let s = &inst.rerun;
+        let recording_id = format!("brokenray-{}", crate::service::now_ns());
+        let builder = || {
+            RecordingStreamBuilder::new(APPLICATION_ID)
+                .recording_id(recording_id.clone())
+                .recording_name("brokenray live")
+        };
+        let mut streams = Vec::new();
+        let mut file = None;
+        let mut remote = None;
+        if s.save {
+            std::fs::create_dir_all(&s.recordings_dir).map_err(|source| {
+                VizError::RecordingsDir {
+                    path: s.recordings_dir.clone(),
+                    source,
+                }
+            })?;
+            let path = file_name(&s.recordings_dir);
+            let rec = builder().save(&path).map_err(sdk_error("save"))?;
+            tracing::info!(file = %path.display(), "recording to file");
+            counters.files.fetch_add(1, Relaxed);
+            file = Some((
+                streams.len(),
+                Rotation {
+                    dir: s.recordings_dir.clone(),
+                    current: path,
+                    opened: Instant::now(),
+                    after: Duration::from_secs_f64(s.rotate_after_s),
+                    max_bytes: s.rotate_max_bytes,
+                    since_check: 0,
+                },
+            ));
+            streams.push(rec);
+        }
+        if s.connect {
+            let rec = builder()
+                .connect_grpc_opts(s.url.clone())
+                .map_err(sdk_error("connect"))?;
+            tracing::info!(url = %s.url, "streaming to a Rerun viewer");
+            remote = Some(streams.len());
+            streams.push(rec);
+        }
+        if s.serve {
+            let options = rerun::ServerOptions {
+                memory_limit: rerun::MemoryLimit::from_bytes(s.serve_memory_limit_bytes),
+                ..Default::default()
+            };
+            let rec = builder()
+                .serve_grpc_opts(
+                    s.serve_listen.ip().to_string(),
+                    s.serve_listen.port(),
+                    options,
+                )
+                .map_err(sdk_error("serve"))?;
+            tracing::info!(
+                url = %format!("rerun+http://{}/proxy", s.serve_listen),
+                "serving Rerun to viewers"
+            );
+            streams.push(rec);
+        }
+        Ok(Self::with_streams(inst, streams, file, remote, counters))
+    }
+
+    /// One file, no rotation (for `replay`).
+    pub fn to_file(
+        inst: &Arc<Installation>,
+        path: &Path,
+        name: &str,
+        counters: Arc<VizCounters>,
+    ) -> Result<Self, VizError> {
+        let rec = RecordingStreamBuilder::new(APPLICATION_ID)
+            .recording_name(name)
+            .save(path)
+            .map_err(sdk_error("save"))?;
+        counters.files.fetch_add(1, Relaxed);
+        Ok(Self::with_streams(inst, vec![rec], None, None, counters))
+    }
+
+    /// Over streams made elsewhere (tests use a memory sink).
+    pub fn over(
+        inst: &Arc<Installation>,
+        streams: Vec<RecordingStream>,
+        counters: Arc<VizCounters>,
+    ) -> Self {
+        Self::with_streams(inst, streams, None, None, counters)
+    }
+
+    fn with_streams(
+        inst: &Arc<Installation>,
+        streams: Vec<RecordingStream>,
+        file: Option<(usize, Rotation)>,
+        remote: Option<usize>,
+        counters: Arc<VizCounters>,
+    ) -> Self {
+        let frames = frame_tree(inst);
+        let target_base = inst
+            .targets
+            .iter()
+            .map(|t| frames[t.base.0].path.clone())
+            .collect();
+        let gates = inst
+            .links
+            .iter()
+            .map(|l| match &l.kind {
+                LinkKind::Measured(m) => Some(chi_square_quantile(6, m.tuning.gate_probability)),
+                LinkKind::Calibrated { .. } => None,
+            })
+            .collect();
+        let logger = Self {
+            inst: Arc::clone(inst),
+            streams,
+            file,
+            remote,
+            frames,
+            target_base,
+            gates,
+            counters,
+        };
+        for rec in &logger.streams {
+            rec.set_log_time_enabled(false);
+            logger.setup(rec);
+        }
+        logger
+    }
+
+    fn count(&self, r: rerun::RecordingStreamResult<()>) {
+        if let Err(e) = r
+            && self.counters.errors.fetch_add(1, Relaxed) < 10
+        {
+            tracing::warn!(error = %e, "Rerun refused a record");
+        }
+    }
+
+    /// The static part: blueprint, styles, cameras, markers, the calibrated links.
+    fn setup(&self, rec: &RecordingStream) {
+        let inst = &self.inst;
+        let bp = super::blueprint::blueprint(inst);
+        self.count(rec.send_blueprint_opts(&rerun::blueprint::BlueprintOpts {
+            blueprint: bp,
+            activation: rerun::blueprint::BlueprintActivation::default(),
+        }));
+        for node in &self.frames {
+            self.count(rec.log_static(
+                node.path.as_str(),
+                &rerun::TransformAxes3D::new(150.0).with_show_frame(true),
+            ));
+        }
+        for c in &inst.cameras {
+            let Some(f) = inst.topology.frame_id(&c.frame) else {
+                continue;
+            };
+            let pinhole = rerun::Pinhole::from_focal_length_and_resolution(
+                [c.fx_px as f32, c.fy_px as f32],
+                [c.width_px as f32, c.height_px as f32],
+            )
+            .with_principal_point([c.cx_px as f32, c.cy_px as f32])
+            .with_image_plane_distance(300.0);
+            self.count(rec.log_static(format!("{}/camera", self.frames[f.0].path), &pinhole));
+        }
+        for m in &inst.markers {
+            let Some(f) = inst.topology.frame_id(&m.frame) else {
+                continue;
+            };
+            let points = rerun::Points3D::new(
+                m.points_mm
+                    .iter()
+                    .map(|p| [p[0] as f32, p[1] as f32, p[2] as f32]),
+            )
+            .with_radii([8.0])
+            .with_colors([rerun::Color::from_rgb(255, 200, 40)]);
+            self.count(rec.log_static(format!("{}/points", self.frames[f.0].path), &points));
+        }
+        // Calibrated links place their frames until a recalibration is seen.
+        for (i, node) in self.frames.iter().enumerate() {
+            let Some((link, inverted)) = node.link else {
+                continue;
+            };
+            if let LinkKind::Calibrated { parent_from_child } = &inst.links[link].kind {
+                let tf = tree_transform(&parent_from_child.pose, inverted);
+                self.count(rec.log_static(self.frames[i].path.as_str(), &tf));
+            }
+        }
+        let rgb = |r, g, b| rerun::Color::from_rgb(r, g, b);
+        let axes = ["x", "y", "z"];
+        let raw_colors = [rgb(255, 150, 150), rgb(150, 220, 150), rgb(150, 170, 255)];
+        let colors = [rgb(220, 40, 40), rgb(30, 160, 30), rgb(40, 80, 230)];
+        let band_colors = [rgb(240, 180, 180), rgb(180, 230, 180), rgb(180, 190, 250)];
+        for t in &inst.targets {
+            for (quantity, unit) in [("rotation_arcsec", "arcsec"), ("translation_mm", "mm")] {
+                let base = format!("plots/{}/{quantity}", t.name);
+                let names = |what: &str| axes.map(|a| format!("{a} {what} [{unit}]"));
+                self.count(
+                    rec.log_static(
+                        format!("{base}/raw"),
+                        &rerun::SeriesPoints::new()
+                            .with_names(names("raw"))
+                            .with_colors(raw_colors)
+                            .with_marker_sizes([1.5, 1.5, 1.5]),
+                    ),
+                );
+                self.count(
+                    rec.log_static(
+                        format!("{base}/filtered"),
+                        &rerun::SeriesLines::new()
+                            .with_names(names("filtered"))
+                            .with_colors(colors)
+                            .with_widths([2.0, 2.0, 2.0]),
+                    ),
+                );
+                for band in ["plus_3sigma", "minus_3sigma"] {
+                    self.count(
+                        rec.log_static(
+                            format!("{base}/{band}"),
+                            &rerun::SeriesLines::new()
+                                .with_names(names(&band.replace('_', " ")))
+                                .with_colors(band_colors)
+                                .with_widths([0.75, 0.75, 0.75]),
+                        ),
+                    );
+                }
+            }
+            self.count(
+                rec.log_static(
+                    format!("alarms/{}", t.name),
+                    &rerun::StateConfiguration::new()
+                        .with_values(["none", "warn", "alarm"])
+                        .with_labels(["ok", "warning", "ALARM"])
+                        .with_colors([0x4CAF50FFu32, 0xFFA000FFu32, 0xD32F2FFFu32]),
+                ),
+            );
+            self.count(rec.log_static(
+                format!("alarms/{}", t.name),
+                &rerun::StateChange::single("none"),
+            ));
+        }
+        for (l, gate) in self.gates.iter().enumerate() {
+            if gate.is_none() {
+                continue;
+            }
+            let name = &inst.links[l].name;
+            let base = format!("plots/links/{name}");
+            self.count(
+                rec.log_static(
+                    format!("{base}/nis"),
+                    &rerun::SeriesLines::new()
+                        .with_names([format!("{name} NIS")])
+                        .with_widths([1.0]),
+                ),
+            );
+            self.count(
+                rec.log_static(
+                    format!("{base}/gate"),
+                    &rerun::SeriesLines::new()
+                        .with_names([format!("{name} gate")])
+                        .with_colors([rgb(150, 150, 150)])
+                        .with_widths([0.75]),
+                ),
+            );
+            self.count(
+                rec.log_static(
+                    format!("{base}/outliers"),
+                    &rerun::SeriesPoints::new()
+                        .with_names([format!("{name} outlier")])
+                        .with_colors([rgb(230, 30, 30)])
+                        .with_markers([rerun::components::MarkerShape::Cross])
+                        .with_marker_sizes([4.0]),
+                ),
+            );
+        }
+    }
+
+    /// Writes one record to every stream (and rotates the file when due).
+    pub fn log(&mut self, record: &Record) {
+        self.rotate_if_due();
+        for i in 0..self.streams.len() {
+            let rec = self.streams[i].clone();
+            rec.set_time(
+                TIMELINE,
+                rerun::TimeCell::from_timestamp_nanos_since_epoch(record.time_ns()),
+            );
+            self.log_to(&rec, record);
+        }
+        self.counters.logged.fetch_add(1, Relaxed);
+    }
+
+    fn log_to(&self, rec: &RecordingStream, record: &Record) {
+        let inst = &self.inst;
+        match record {
+            Record::Sample {
+                link, nis, outlier, ..
+            } => {
+                let base = format!("plots/links/{}", inst.links[*link].name);
+                if let Some(nis) = nis {
+                    let entity = if *outlier { "outliers" } else { "nis" };
+                    self.count(rec.log(format!("{base}/{entity}"), &rerun::Scalars::single(*nis)));
+                }
+                if let Some(gate) = self.gates[*link] {
+                    self.count(rec.log(format!("{base}/gate"), &rerun::Scalars::single(gate)));
+                }
+            }
+            Record::Result {
+                target,
+                filtered,
+                target_from_base,
+                deformation,
+                ..
+            } => {
+                let name = &inst.targets[*target].name;
+                let which = if *filtered { "filtered" } else { "raw" };
+                let frame = format!("{}/{name}_{which}", self.target_base[*target]);
+                self.count(rec.log(
+                    frame.as_str(),
+                    &tree_transform(&target_from_base.pose, true),
+                ));
+                if let Some(d) = deformation {
+                    let quantities = [
+                        (
+                            "rotation_arcsec",
+                            d.rotation_arcsec,
+                            d.sigmas.rotation_arcsec,
+                        ),
+                        ("translation_mm", d.translation_mm, d.sigmas.translation_mm),
+                    ];
+                    for (quantity, value, sigma) in quantities {
+                        let base = format!("plots/{name}/{quantity}");
+                        self.count(rec.log(format!("{base}/{which}"), &rerun::Scalars::new(value)));
+                        if *filtered {
+                            let plus: [f64; 3] = std::array::from_fn(|i| value[i] + 3.0 * sigma[i]);
+                            let minus: [f64; 3] =
+                                std::array::from_fn(|i| value[i] - 3.0 * sigma[i]);
+                            self.count(
+                                rec.log(format!("{base}/plus_3sigma"), &rerun::Scalars::new(plus)),
+                            );
+                            self.count(
+                                rec.log(
+                                    format!("{base}/minus_3sigma"),
+                                    &rerun::Scalars::new(minus),
+                                ),
+                            );
+                        }
+                    }
+                }
+            }
+            Record::Scene { link_poses, .. } => {
+                for node in &self.frames {
+                    let Some((link, inverted)) = node.link else {
+                        continue;
+                    };
+                    if let Some(Some(pose)) = link_poses.get(link) {
+                        self.count(rec.log(node.path.as_str(), &tree_transform(pose, inverted)));
+                    }
+                }
+            }
+            Record::Reference {
+                target, g0_from_b, ..
+            } => {
+                let name = &inst.targets[*target].name;
+                let frame = format!("{}/{name}_reference", self.target_base[*target]);
+                self.count(rec.log(frame.as_str(), &tree_transform(g0_from_b, true)));
+            }
+            Record::Alarm { target, transition } => {
+                let name = &inst.targets[*target].name;
+                self.count(rec.log(
+                    format!("alarms/{name}"),
+                    &rerun::StateChange::single(transition.to.name()),
+                ));
+                let level = match transition.to {
+                    crate::alarms::Level::Alarm => rerun::TextLogLevel::ERROR,
+                    crate::alarms::Level::Warn => rerun::TextLogLevel::WARN,
+                    crate::alarms::Level::None => rerun::TextLogLevel::INFO,
+                };
+                self.count(
+                    rec.log(
+                        "alarms/log",
+                        &rerun::TextLog::new(format!(
+                            "{name}: {} {} -> {}: {}",
+                            transition.kind.name(),
+                            transition.from.name(),
+                            transition.to.name(),
+                            transition.message
+                        ))
+                        .with_level(level),
+                    ),
+                );
+            }
+        }
+    }
+
+    /// Starts a new file when the current one is old or large enough; the static part is
+    /// written again so that each file opens ready to read.
+    fn rotate_if_due(&mut self) {
+        let Some((index, rotation)) = &mut self.file else {
+            return;
+        };
+        rotation.since_check += 1;
+        if rotation.since_check < 256 {
+            return;
+        }
+        rotation.since_check = 0;
+        let size = std::fs::metadata(&rotation.current).map_or(0, |m| m.len());
+        if rotation.opened.elapsed() < rotation.after && size < rotation.max_bytes {
+            return;
+        }
+        let next = file_name(&rotation.dir);
+        let rec = self.streams[*index].clone();
+        match rec.save(&next) {
+            Ok(()) => {
+                tracing::info!(closed = %rotation.current.display(), file = %next.display(), "recording rotated");
+                rotation.current = next;
+                rotation.opened = Instant::now();
+                self.counters.files.fetch_add(1, Relaxed);
+                rec.set_log_time_enabled(false);
+                self.setup(&rec);
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot rotate the recording; continuing in the current file");
+                rotation.opened = Instant::now();
+            }
+        }
+    }
+
+    /// The file currently written, if any.
+    pub fn current_file(&self) -> Option<&Path> {
+        self.file.as_ref().map(|(_, r)| r.current.as_path())
+    }
+
+    /// Writes out what is buffered and closes the streams. A remote viewer gets a bounded
+    /// time; files are always completed (their footer written).
+    pub fn close(self) {
+        for (i, rec) in self.streams.into_iter().enumerate() {
+            if Some(i) == self.remote {
+                if rec.flush_with_timeout(Duration::from_secs(2)).is_err() {
+                    tracing::warn!("the Rerun viewer did not take the last records");
+                }
+                // Dropping the stream would flush again without a bound.
+                std::mem::forget(rec);
+            } else if let Err(e) = rec.flush_with_timeout(Duration::from_secs(30)) {
+                tracing::warn!(error = %e, "flushing a Rerun stream failed");
+            }
+        }
+    }
+}
+
+/// The transform of a frame's entity, given the link between it and its tree parent: the
+/// link's `parent_from_child` when the link maps the frame into its tree parent, its inverse
+/// when it maps the other way.
+fn tree_transform(link_pose: &Pose, inverted: bool) -> rerun::Transform3D {
+    let p = if inverted {
+        link_pose.inverse()
+    } else {
+        *link_pose
+    };
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    rerun::Transform3D::from_translation([t.x as f32, t.y as f32, t.z as f32])
+        .with_quaternion(rerun::Quaternion::from_xyzw([
+            q.i as f32, q.j as f32, q.k as f32, q.w as f32,
+        ]))
+        .with_relation(rerun::TransformRelation::ParentFromChild)
+}
+
+/// The entity tree of the frames: breadth first from each target's base (then from any frame
+/// not reached), each frame under the first frame it is linked to.
+fn frame_tree(inst: &Installation) -> Vec<FrameNode> {
+    let topo = &inst.topology;
+    let n = topo.frames().len();
+    let mut nodes: Vec<Option<FrameNode>> = vec![None; n];
+    let roots: Vec<usize> = inst.targets.iter().map(|t| t.base.0).chain(0..n).collect();
+    for root in roots {
+        if nodes[root].is_some() {
+            continue;
+        }
+        nodes[root] = Some(FrameNode {
+            path: format!("world/{}", topo.frames()[root]),
+            link: None,
+        });
+        let mut queue = std::collections::VecDeque::from([root]);
+        while let Some(f) = queue.pop_front() {
+            let parent_path = nodes[f]
+                .as_ref()
+                .map(|n| n.path.clone())
+                .unwrap_or_default();
+            for (l, ends) in topo.links().iter().enumerate() {
+                // The link places its other end under `f`.
+                let (other, inverted) = if ends.parent.0 == f {
+                    (ends.child.0, false)
+                } else if ends.child.0 == f {
+                    (ends.parent.0, true)
+                } else {
+                    continue;
+                };
+                if nodes[other].is_some() {
+                    continue;
+                }
+                nodes[other] = Some(FrameNode {
+                    path: format!("{parent_path}/{}", topo.frames()[other]),
+                    link: Some((l, inverted)),
+                });
+                queue.push_back(other);
+            }
+        }
+    }
+    nodes
+        .into_iter()
+        .enumerate()
+        .map(|(i, n)| {
+            // Every frame is a root or reached from one; this only keeps the types total.
+            n.unwrap_or_else(|| FrameNode {
+                path: format!("world/{}", topo.frames()[i]),
+                link: None,
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_paper_chain_is_one_branch_from_the_base() {
+        let inst = crate::config::default_installation();
+        let tree = frame_tree(&inst);
+        let path = |name: &str| tree[inst.topology.frame_id(name).unwrap().0].path.clone();
+        assert_eq!(path("B"), "world/B");
+        assert_eq!(path("G"), "world/B/C1/C2/M/C3/G");
+    }
+}

@@ -1,0 +1,199 @@
+//! `brokenray replay`: a recording rebuilt from the stored history, so that any past period can
+//! be reviewed in Rerun even when nothing was recorded live.
+//!
+//! Every stored result of the period becomes a point (raw and filtered, no decimation); every
+//! stored sample of the targets' measured links its NIS (and outlier mark); every alarm
+//! transition its lane change and log line; each reference version its frame. The filtered
+//! link poses are not stored, so the frame tree is placed by the links' raw samples (and the
+//! calibrations), at most `scene_hz` times a second.
+
+use super::logger::Logger;
+use super::{Decimator, Record, VizCounters};
+use crate::config::{Installation, LinkKind};
+use crate::deformation::Deformation;
+use crate::store::Store;
+use std::path::Path;
+use std::sync::Arc;
+
+/// Rows read from the database at a time.
+const PAGE: i64 = 20_000;
+
+/// What was written.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReplaySummary {
+    /// Filtered results.
+    pub filtered: u64,
+    /// Raw results.
+    pub raw: u64,
+    /// Samples.
+    pub samples: u64,
+    /// Alarm transitions.
+    pub alarms: u64,
+}
+
+/// Errors of a replay.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    /// The database could not be read.
+    #[error(transparent)]
+    Store(#[from] crate::store::StoreError),
+    /// The recording could not be written.
+    #[error(transparent)]
+    Viz(#[from] super::VizError),
+    /// The target is not in the installation.
+    #[error("unknown target `{0}`")]
+    UnknownTarget(String),
+}
+
+/// Writes the period `[from_ns, to_ns]` of `targets` (indices; all when empty) to `out`.
+/// `progress` is told the number of rows done and the total.
+pub async fn replay(
+    inst: &Arc<Installation>,
+    store: &Store,
+    targets: &[usize],
+    from_ns: i64,
+    to_ns: i64,
+    out: &Path,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<ReplaySummary, ReplayError> {
+    let targets: Vec<usize> = if targets.is_empty() {
+        (0..inst.targets.len()).collect()
+    } else {
+        targets.to_vec()
+    };
+    let mut links: Vec<usize> = targets
+        .iter()
+        .flat_map(|&t| inst.targets[t].resolution.paths.iter())
+        .flat_map(|p| p.links())
+        .map(|l| l.0)
+        .filter(|&l| matches!(inst.links[l].kind, LinkKind::Measured(_)))
+        .collect();
+    links.sort_unstable();
+    links.dedup();
+    let mut total = 0u64;
+    for &t in &targets {
+        for filtered in [true, false] {
+            total += store.count_results(t, filtered, from_ns, to_ns).await?;
+        }
+    }
+    for &l in &links {
+        total += store
+            .count_samples(crate::chain::LinkId(l), from_ns, to_ns)
+            .await?;
+    }
+    let name = format!(
+        "brokenray replay {} .. {}",
+        crate::api::time::format_ns(from_ns),
+        crate::api::time::format_ns(to_ns)
+    );
+    let mut logger = Logger::to_file(inst, out, &name, Arc::new(VizCounters::default()))?;
+    let mut summary = ReplaySummary::default();
+    let mut done = 0u64;
+    progress(0, total);
+
+    for &t in &targets {
+        let references = store.references(t).await?;
+        for r in &references {
+            logger.log(&Record::Reference {
+                target: t,
+                time_ns: r.created_ns.clamp(from_ns, to_ns),
+                g0_from_b: r.reference.g0_from_b.pose,
+            });
+        }
+        for filtered in [true, false] {
+            let mut cursor = from_ns;
+            loop {
+                let page = store.results(t, filtered, cursor, to_ns, PAGE).await?;
+                let Some(last) = page.last().map(|r| r.time_ns) else {
+                    break;
+                };
+                for r in &page {
+                    let deformation = r.deformation.and_then(|(version, _, _)| {
+                        references
+                            .iter()
+                            .find(|x| x.version == version)
+                            .map(|x| Deformation::new(&x.reference, &r.estimate).deformation())
+                    });
+                    logger.log(&Record::Result {
+                        target: t,
+                        time_ns: r.time_ns,
+                        filtered,
+                        target_from_base: r.estimate,
+                        deformation,
+                    });
+                }
+                let n = page.len() as u64;
+                if filtered {
+                    summary.filtered += n;
+                } else {
+                    summary.raw += n;
+                }
+                done += n;
+                progress(done, total);
+                if (page.len() as i64) < PAGE || last == i64::MAX {
+                    break;
+                }
+                cursor = last + 1;
+            }
+        }
+    }
+
+    // The links' samples, and the frame tree from them.
+    let mut scene = Decimator::new(inst.rerun.scene_hz, f64::INFINITY);
+    let mut poses: Vec<Option<crate::geometry::Pose>> = inst
+        .links
+        .iter()
+        .map(|l| match &l.kind {
+            LinkKind::Calibrated { parent_from_child } => Some(parent_from_child.pose),
+            LinkKind::Measured(_) => None,
+        })
+        .collect();
+    for &l in &links {
+        let mut cursor = from_ns;
+        loop {
+            let page = store
+                .samples(crate::chain::LinkId(l), cursor, to_ns, PAGE)
+                .await?;
+            let Some(last) = page.last().map(|s| s.time_ns) else {
+                break;
+            };
+            for s in &page {
+                logger.log(&Record::Sample {
+                    link: l,
+                    time_ns: s.time_ns,
+                    nis: s.nis,
+                    outlier: s.outlier,
+                });
+                if !s.outlier {
+                    poses[l] = Some(s.values.pose);
+                    let record = Record::Scene {
+                        time_ns: s.time_ns,
+                        link_poses: poses.clone(),
+                    };
+                    if scene.keep(&record) {
+                        logger.log(&record);
+                    }
+                }
+            }
+            summary.samples += page.len() as u64;
+            done += page.len() as u64;
+            progress(done, total);
+            if (page.len() as i64) < PAGE || last == i64::MAX {
+                break;
+            }
+            cursor = last + 1;
+        }
+    }
+
+    for &t in &targets {
+        for a in store.alarms(Some(t), from_ns, to_ns, i64::MAX).await? {
+            logger.log(&Record::Alarm {
+                target: a.target,
+                transition: a.transition,
+            });
+            summary.alarms += 1;
+        }
+    }
+    logger.close();
+    Ok(summary)
+}

@@ -1,0 +1,318 @@
+//! Rerun: what a recording of a run holds (read back with the SDK's own decoder), that an absent
+//! viewer never holds up ingest, and that `replay` rebuilds a stored period.
+
+use super::helpers::{T0_NS, TestApp, installation, pose_json};
+use axum::http::StatusCode;
+use brokenray::geometry::{Pose, Vec3, se3_exp};
+use rerun::external::re_log_encoding::DecoderApp;
+use rerun::log::{Chunk, LogMsg};
+use serde_json::{Value, json};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+
+/// The built-in installation with its `[rerun]` section replaced.
+fn with_rerun(section: &str) -> String {
+    brokenray::config::DEFAULT_INSTALLATION_TOML.replace(
+        "[rerun]\nmode = \"off\"\nrecordings_dir = \"recordings\"\nurl = \"rerun+http://127.0.0.1:9876/proxy\"\n",
+        &format!("[rerun]\n{section}\n"),
+    )
+}
+
+/// A group of the three measured links at `k * 40 ms`; G turns slowly about its x axis
+/// (0.5 arc-seconds a step), so the deformation changes from result to result.
+fn turning_group(k: i64) -> Value {
+    let nominal = |t: [f64; 3]| Pose::from_parts(Vec3::from(t).into(), Default::default());
+    let turn = se3_exp(&brokenray::geometry::Twist::new(
+        0.0,
+        0.0,
+        0.0,
+        (0.5 * k as f64).to_radians() / 3600.0,
+        0.0,
+        0.0,
+    ));
+    let poses = [
+        ("C1_from_B", nominal([0.0, 0.0, 3000.0])),
+        ("C2_from_M", nominal([0.0, 0.0, 3000.0])),
+        ("C3_from_G", nominal([0.0, 0.0, 3000.0]) * turn),
+    ];
+    let samples: Vec<Value> = poses
+        .iter()
+        .map(|(l, p)| json!({"link": l, "time": T0_NS + k * 40_000_000, "pose": pose_json(p)}))
+        .collect();
+    json!({ "samples": samples })
+}
+
+/// What a recording holds: every entity path, and per entity the rows of f64 scalars and the
+/// number of transform rows, each with its measurement time.
+#[derive(Debug, Default)]
+struct Recording {
+    entities: BTreeSet<String>,
+    scalars: BTreeMap<String, Vec<(i64, Vec<f64>)>>,
+    transforms: BTreeMap<String, usize>,
+}
+
+fn read_recording(path: &Path) -> Recording {
+    let file = std::fs::File::open(path).expect("the recording exists");
+    let decoder =
+        DecoderApp::decode_eager(std::io::BufReader::new(file)).expect("an .rrd recording");
+    let timeline: rerun::TimelineName = brokenray::viz::TIMELINE.into();
+    let mut out = Recording::default();
+    for msg in decoder {
+        let LogMsg::ArrowMsg(store_id, arrow) = msg.expect("a readable message") else {
+            continue;
+        };
+        if store_id.kind() != rerun::StoreKind::Recording {
+            continue;
+        }
+        let chunk = Chunk::from_arrow_msg(&arrow).expect("a chunk");
+        let entity = chunk.entity_path().to_string();
+        out.entities.insert(entity.clone());
+        if chunk.is_static() {
+            continue;
+        }
+        let times: Vec<i64> = chunk
+            .timelines()
+            .get(&timeline)
+            .map(|c| c.times_raw().to_vec())
+            .unwrap_or_default();
+        let scalars: Vec<Vec<f64>> = chunk
+            .iter_slices::<f64>(rerun::Scalars::descriptor_scalars().component)
+            .map(|s| s.to_vec())
+            .collect();
+        if !scalars.is_empty() {
+            assert_eq!(
+                times.len(),
+                scalars.len(),
+                "{entity}: every row has its time"
+            );
+            out.scalars
+                .entry(entity.clone())
+                .or_default()
+                .extend(times.iter().copied().zip(scalars));
+        }
+        let translations = chunk
+            .iter_slices::<[f32; 3]>(rerun::Transform3D::descriptor_translation().component)
+            .count();
+        *out.transforms.entry(entity).or_default() += translations;
+    }
+    for rows in out.scalars.values_mut() {
+        rows.sort_by_key(|(t, _)| *t);
+    }
+    out
+}
+
+/// The only `.rrd` file of a directory.
+fn only_recording(dir: &Path) -> std::path::PathBuf {
+    let files: Vec<_> = std::fs::read_dir(dir)
+        .expect("the recordings directory")
+        .map(|e| e.expect("entry").path())
+        .filter(|p| p.extension().is_some_and(|e| e == "rrd"))
+        .collect();
+    assert_eq!(files.len(), 1, "{files:?}");
+    files[0].clone()
+}
+
+/// Stops the service (the logger closes its file) and starts it again without Rerun on the
+/// same database.
+async fn stop_and_restart(app: TestApp) -> TestApp {
+    app.restart(None).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_recorded_run_holds_the_frames_and_the_values_the_api_serves() {
+    let dir = tempfile::tempdir().unwrap();
+    let recordings = dir.path().join("recordings");
+    let text = with_rerun(&format!(
+        "mode = \"save\"\nrecordings_dir = \"{}\"\nseries_hz = 1000.0\nscene_hz = 5.0",
+        recordings.display()
+    ));
+    let inst = installation(&dir, Some(&text));
+    let app = TestApp::start_with(dir, inst).await;
+    for k in 0..10 {
+        let (s, body) = app.post_json("/api/v1/samples", &turning_group(k)).await;
+        assert_eq!(s, StatusCode::OK, "{body}");
+    }
+    let window = json!({"from": T0_NS, "to": T0_NS + 9 * 40_000_000});
+    let (s, body) = app.post_json("/api/v1/targets/G/reference", &window).await;
+    assert_eq!(s, StatusCode::CREATED, "{body}");
+    for k in 10..120 {
+        let (s, body) = app.post_json("/api/v1/samples", &turning_group(k)).await;
+        assert_eq!(s, StatusCode::OK, "{body}");
+    }
+    let app = stop_and_restart(app).await;
+    let rec = read_recording(&only_recording(&recordings));
+
+    for entity in [
+        "/world/B",
+        "/world/B/C1",
+        "/world/B/C1/camera",
+        "/world/B/C1/C2/M/points",
+        "/world/B/C1/C2/M/C3/G",
+        "/world/B/G_filtered",
+        "/world/B/G_raw",
+        "/world/B/G_reference",
+        "/plots/G/rotation_arcsec/filtered",
+        "/plots/G/rotation_arcsec/raw",
+        "/plots/G/rotation_arcsec/plus_3sigma",
+        "/plots/G/translation_mm/filtered",
+        "/plots/links/C3_from_G/nis",
+        "/plots/links/C3_from_G/gate",
+        "/alarms/G",
+    ] {
+        assert!(
+            rec.entities.contains(entity),
+            "no {entity} in {:?}",
+            rec.entities
+        );
+    }
+    // The measured links place their frames over time.
+    assert!(rec.transforms["/world/B/C1/C2/M/C3/G"] >= 2);
+
+    let rotation = &rec.scalars["/plots/G/rotation_arcsec/filtered"];
+    let translation = &rec.scalars["/plots/G/translation_mm/filtered"];
+    assert!(rotation.len() >= 100, "{} filtered points", rotation.len());
+    assert_eq!(rotation.len(), translation.len());
+    let mut largest = 0.0f64;
+    for ((t, rot), (t2, trans)) in rotation.iter().zip(translation) {
+        assert_eq!(t, t2);
+        let (s, c) = app
+            .get(&format!("/api/v1/targets/G/compensation?at={t}"))
+            .await;
+        assert_eq!(s, StatusCode::OK, "{c}");
+        for i in 0..3 {
+            let api_rot = c["deformation"]["rotation_arcsec"][i].as_f64().unwrap();
+            let api_trans = c["deformation"]["translation_mm"][i].as_f64().unwrap();
+            assert!(
+                (rot[i] - api_rot).abs() < 1e-9,
+                "t={t} rotation[{i}]: {} vs {api_rot}",
+                rot[i]
+            );
+            assert!(
+                (trans[i] - api_trans).abs() < 1e-9,
+                "t={t} translation[{i}]: {} vs {api_trans}",
+                trans[i]
+            );
+        }
+        largest = largest.max(rot[0].abs());
+    }
+    // The turn shows: tens of arc-seconds by the end, not a constant.
+    assert!(largest > 20.0, "largest x rotation {largest} arcsec");
+    // The 3-sigma band surrounds the filtered value.
+    let plus = &rec.scalars["/plots/G/rotation_arcsec/plus_3sigma"];
+    assert_eq!(plus.len(), rotation.len());
+    for ((_, p), (_, v)) in plus.iter().zip(rotation) {
+        assert!((0..3).all(|i| p[i] > v[i]));
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_absent_viewer_never_holds_up_ingest() {
+    let dir = tempfile::tempdir().unwrap();
+    // Nothing listens on port 1; a one-record queue fills at once.
+    let text = with_rerun(
+        "mode = \"connect\"\nurl = \"rerun+http://127.0.0.1:1/proxy\"\nqueue_capacity = 1\nseries_hz = 1000000.0\nscene_hz = 1000000.0",
+    );
+    let inst = installation(&dir, Some(&text));
+    let app = TestApp::start_with(dir, inst).await;
+    for batch in 0..20 {
+        let samples: Vec<Value> = (0..50)
+            .flat_map(|j| {
+                turning_group(batch * 50 + j)["samples"]
+                    .as_array()
+                    .unwrap()
+                    .clone()
+            })
+            .collect();
+        let (s, body) = app
+            .post_json("/api/v1/samples", &json!({ "samples": samples }))
+            .await;
+        assert_eq!(s, StatusCode::OK, "batch {batch}: {body}");
+        assert_eq!(body["stored"], 150);
+    }
+    let (_, metrics) = app.get("/metrics").await;
+    let text = metrics.as_str().expect("Prometheus text");
+    let value = |name: &str| -> f64 {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+            .unwrap_or_else(|| panic!("no {name}"))
+    };
+    assert!(value("brokenray_rerun_dropped_total") > 0.0);
+    assert!(value("brokenray_rerun_queued_total") > 0.0);
+    assert_eq!(value("brokenray_samples_stored_total"), 3000.0);
+    // The service still stops (the viewer gets a bounded time).
+    let _ = stop_and_restart(app).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replay_writes_one_filtered_point_per_stored_result() {
+    let app = TestApp::start(None).await;
+    for k in 0..5 {
+        let (s, _) = app.post_json("/api/v1/samples", &turning_group(k)).await;
+        assert_eq!(s, StatusCode::OK);
+    }
+    let window = json!({"from": T0_NS, "to": T0_NS + 4 * 40_000_000});
+    let (s, _) = app.post_json("/api/v1/targets/G/reference", &window).await;
+    assert_eq!(s, StatusCode::CREATED);
+    for k in 5..80 {
+        let (s, _) = app.post_json("/api/v1/samples", &turning_group(k)).await;
+        assert_eq!(s, StatusCode::OK);
+    }
+    // The period: from step 20 to step 60, both included.
+    let (from_ns, to_ns) = (T0_NS + 20 * 40_000_000, T0_NS + 60 * 40_000_000);
+    let stored = app
+        .service
+        .store()
+        .results(0, true, from_ns, to_ns, i64::MAX)
+        .await
+        .unwrap();
+    assert!(stored.len() >= 40, "{} stored results", stored.len());
+    let config = app.dir.path().join("site.toml");
+    std::fs::write(
+        &config,
+        brokenray::config::DEFAULT_INSTALLATION_TOML.replace(
+            "database = \"brokenray.db\"",
+            &format!(
+                "database = \"{}\"",
+                app.dir.path().join("brokenray.db").display()
+            ),
+        ),
+    )
+    .unwrap();
+    let out = app.dir.path().join("review.rrd");
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args(["replay", "--config", config.to_str().unwrap()])
+        .args(["--from", &from_ns.to_string(), "--to", &to_ns.to_string()])
+        .args(["--target", "G", "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let report = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        report.contains(&format!("{} filtered", stored.len())),
+        "{report}"
+    );
+    let rec = read_recording(&out);
+    let points = &rec.scalars["/plots/G/rotation_arcsec/filtered"];
+    assert_eq!(points.len(), stored.len());
+    for (p, r) in points.iter().zip(&stored) {
+        assert_eq!(p.0, r.time_ns);
+        let (_, rotation, _) = r.deformation.expect("a reference was in force");
+        for (got, stored) in p.1.iter().zip(rotation) {
+            assert!((got - stored).abs() < 1e-9, "{got} vs {stored}");
+        }
+    }
+    assert_eq!(rec.transforms["/world/B/G_filtered"], stored.len());
+    // A second replay to the same file is refused.
+    let again = std::process::Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args(["replay", "--config", config.to_str().unwrap()])
+        .args(["--from", &from_ns.to_string(), "--to", &to_ns.to_string()])
+        .args(["--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
+}
