@@ -307,3 +307,49 @@ fn run_logger(mut logger: logger::Logger, rx: Receiver<Record>) {
     }
     logger.close();
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(link: usize, time_ns: i64, outlier: bool) -> Record {
+        Record::Sample {
+            link,
+            time_ns,
+            nis: Some(1.0),
+            outlier,
+        }
+    }
+
+    #[test]
+    fn decimation_keeps_one_point_per_series_and_interval_and_every_outlier() {
+        // 10 points a second per series; samples every 40 ms on two links for 2 s.
+        let mut d = Decimator::new(1.0, 10.0);
+        let mut kept = [0usize; 2];
+        for k in 0..50 {
+            for (link, n) in kept.iter_mut().enumerate() {
+                if d.keep(&sample(link, k * 40_000_000, false)) {
+                    *n += 1;
+                }
+            }
+        }
+        // 0, 120, 240, ... 1920 ms: one per 100 ms interval started, on each link alone.
+        assert_eq!(kept, [17, 17]);
+        assert!(
+            d.keep(&sample(0, 1_930_000_000, true)),
+            "outliers always pass"
+        );
+        assert!(!d.keep(&sample(0, 1_940_000_000, false)));
+        // A time going backwards (a replay, a restarted pipeline) starts the series afresh.
+        assert!(d.keep(&sample(0, 0, false)));
+    }
+
+    #[test]
+    fn an_off_sender_counts_nothing() {
+        let mut s = VizSender::off();
+        s.send(sample(0, 0, false));
+        assert!(!s.enabled());
+        assert_eq!(s.counters().queued.load(Relaxed), 0);
+        assert_eq!(s.counters().dropped.load(Relaxed), 0);
+    }
+}
