@@ -159,6 +159,19 @@ fn main() {
         "connect" => "mode = \"connect\"\nurl = \"rerun+http://127.0.0.1:1/proxy\"".to_owned(),
         other => panic!("RERUN={other}: use off, save or connect"),
     };
+    // Decimation rates other than the defaults: RERUN_SERIES_HZ, RERUN_SCENE_HZ.
+    let mut rerun_section = rerun_section;
+    for (var, key) in [
+        ("RERUN_SERIES_HZ", "series_hz"),
+        ("RERUN_SCENE_HZ", "scene_hz"),
+    ] {
+        if let Ok(v) = std::env::var(var) {
+            let hz: f64 = v
+                .parse()
+                .unwrap_or_else(|_| panic!("{var}={v}: not a number"));
+            rerun_section.push_str(&format!("\n{key} = {hz:?}"));
+        }
+    }
     let text = text.replace(
         "[rerun]\nmode = \"off\"\nrecordings_dir = \"recordings\"\nurl = \"rerun+http://127.0.0.1:9876/proxy\"\n",
         &format!("[rerun]\n{rerun_section}\n"),

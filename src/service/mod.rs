@@ -216,7 +216,7 @@ impl PipelineHandle {
         }
         let viz = self.1;
         let finish =
-            tokio::task::spawn_blocking(move || viz.finish(std::time::Duration::from_secs(30)));
+            tokio::task::spawn_blocking(move || viz.finish(std::time::Duration::from_secs(10)));
         if let Err(e) = finish.await {
             tracing::error!(error = %e, "the Rerun logger panicked");
         }

@@ -9,6 +9,7 @@ use crate::deformation::{Deformation, Reference};
 use crate::filter::{BankRecord, Disposition, FilterBank, Sample, TargetEstimate};
 use crate::store::write_tx::WriteTx;
 use crate::store::{NewResult, NewSample, Quality, SampleValues, StoreError, WriteConn};
+use crate::viz::Series;
 use std::collections::{BTreeMap, HashMap};
 use tokio::sync::{mpsc, oneshot};
 
@@ -158,10 +159,10 @@ impl Pipeline {
             .map(crate::viz::Record::time_ns)
             .max();
         for r in records {
-            self.viz.send(r);
+            self.viz.send_kept(r);
         }
         if let Some(t) = newest
-            && self.viz.scene_due(t)
+            && self.viz.keep(Series::Scene, t)
         {
             let link_poses = (0..self.bank.installation().links.len())
                 .map(|l| {
@@ -172,7 +173,7 @@ impl Pipeline {
                         .map(|p| p.pose)
                 })
                 .collect();
-            self.viz.send(crate::viz::Record::Scene {
+            self.viz.send_kept(crate::viz::Record::Scene {
                 time_ns: t,
                 link_poses,
             });
@@ -197,6 +198,7 @@ impl Pipeline {
         let mut pending: Vec<Pending> = Vec::with_capacity(jobs.len());
         let record_viz = self.viz.enabled();
         let Pipeline {
+            viz,
             write,
             bank,
             targets,
@@ -209,8 +211,11 @@ impl Pipeline {
                 match job {
                     Job::Ingest { items, reply } => {
                         let mut t = Vec::new();
-                        let viz = record_viz.then_some(&mut viz_records);
-                        let r = ingest(&mut tx, bank, targets, items, now, &mut t, viz).await?;
+                        let collect = record_viz.then_some(VizCollect {
+                            sender: &mut *viz,
+                            records: &mut viz_records,
+                        });
+                        let r = ingest(&mut tx, bank, targets, items, now, &mut t, collect).await?;
                         transitions.extend(t);
                         pending.push(Pending::Ingest(reply, r));
                     }
@@ -384,6 +389,13 @@ fn deformation_of(
     ))
 }
 
+/// Where an ingest job puts what it shows in Rerun: the sender decides (decimation) before a
+/// record is built; the records go out after the commit.
+struct VizCollect<'a> {
+    sender: &'a mut crate::viz::VizSender,
+    records: &'a mut Vec<crate::viz::Record>,
+}
+
 /// One ingest job: conflict checks, filtering, rows. `Ok(Err(..))` refuses the job alone (no
 /// effect on the bank or the transaction); `Err` aborts the whole transaction.
 async fn ingest(
@@ -393,7 +405,7 @@ async fn ingest(
     items: Vec<IngestItem>,
     now: i64,
     new_transitions: &mut Vec<(usize, crate::alarms::Transition)>,
-    mut viz: Option<&mut Vec<crate::viz::Record>>,
+    mut viz: Option<VizCollect<'_>>,
 ) -> Result<ServiceResult<IngestReport>, StoreError> {
     // Check every measurement before the bank sees any of them.
     let mut problems = Vec::new();
@@ -494,8 +506,12 @@ async fn ingest(
             Disposition::OutOfOrder { .. } => report.out_of_order += 1,
             _ => {}
         }
-        if let Some(v) = viz.as_deref_mut() {
-            v.push(crate::viz::Record::Sample {
+        if let Some(v) = viz.as_mut()
+            && (d.is_outlier()
+                || v.sender
+                    .keep(Series::Link(item.sample.link.0), item.sample.time_ns))
+        {
+            v.records.push(crate::viz::Record::Sample {
                 link: item.sample.link.0,
                 time_ns: item.sample.time_ns,
                 nis: nis_of(&d),
@@ -514,8 +530,10 @@ async fn ingest(
         for raw in &outcome.raw_results {
             report.raw_results += 1;
             let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
-            if let Some(v) = viz.as_deref_mut() {
-                v.push(crate::viz::Record::Result {
+            if let Some(v) = viz.as_mut()
+                && v.sender.keep(Series::Raw(raw.target), raw.time_ns)
+            {
+                v.records.push(crate::viz::Record::Result {
                     target: raw.target,
                     time_ns: raw.time_ns,
                     filtered: false,
@@ -547,8 +565,10 @@ async fn ingest(
             };
             report.filtered_results += 1;
             let deformation = deformation_of(targets, est.target, &pose);
-            if let Some(v) = viz.as_deref_mut() {
-                v.push(crate::viz::Record::Result {
+            if let Some(v) = viz.as_mut()
+                && v.sender.keep(Series::Filtered(est.target), est.time_ns)
+            {
+                v.records.push(crate::viz::Record::Result {
                     target: est.target,
                     time_ns: est.time_ns,
                     filtered: true,

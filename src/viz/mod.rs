@@ -112,13 +112,16 @@ pub struct VizCounters {
     pub files: AtomicU64,
 }
 
-/// Keeps at most one record per series and interval of measurement time.
+/// Keeps at most one record per series and interval of measurement time: the first whose time
+/// falls in a new interval (`floor(t / interval)`). A record older than the newest one kept in
+/// its series (a late, out-of-order sample) is left out: it is stored, and `replay` shows it.
 #[derive(Debug, Clone)]
 pub struct Decimator {
     scene_interval_ns: i64,
     series_interval_ns: i64,
-    /// Per series key: the time of the last record let through.
-    last_ns: std::collections::HashMap<(u8, usize), i64>,
+    /// Per series (see [`Decimator::series`]): the interval index of the last record let
+    /// through, `i64::MIN` before the first.
+    last_bucket: Vec<i64>,
 }
 
 impl Decimator {
@@ -126,15 +129,15 @@ impl Decimator {
     pub fn new(scene_hz: f64, series_hz: f64) -> Self {
         let interval = |hz: f64| {
             if hz.is_finite() && hz > 0.0 {
-                (1e9 / hz) as i64
+                ((1e9 / hz) as i64).max(1)
             } else {
-                0
+                1
             }
         };
         Self {
             scene_interval_ns: interval(scene_hz),
             series_interval_ns: interval(series_hz),
-            last_ns: Default::default(),
+            last_bucket: Vec::new(),
         }
     }
 
@@ -143,37 +146,83 @@ impl Decimator {
         Self::new(f64::INFINITY, f64::INFINITY)
     }
 
-    /// Whether a scene at `time_ns` is due.
-    pub fn scene_due(&self, time_ns: i64) -> bool {
-        self.due((0, 0), self.scene_interval_ns, time_ns)
+    /// The index of a series: the scene, each link's samples, each target's raw and filtered
+    /// results.
+    fn series(kind: Series) -> usize {
+        match kind {
+            Series::Scene => 0,
+            Series::Link(l) => 1 + 3 * l,
+            Series::Raw(t) => 2 + 3 * t,
+            Series::Filtered(t) => 3 + 3 * t,
+        }
     }
 
-    fn due(&self, key: (u8, usize), interval: i64, time_ns: i64) -> bool {
-        self.last_ns
-            .get(&key)
-            .is_none_or(|&last| time_ns < last || time_ns >= last.saturating_add(interval))
+    fn interval(&self, kind: Series) -> i64 {
+        match kind {
+            Series::Scene => self.scene_interval_ns,
+            _ => self.series_interval_ns,
+        }
+    }
+
+    /// Whether a record of `kind` at `time_ns` would be kept (nothing is recorded).
+    pub fn due(&self, kind: Series, time_ns: i64) -> bool {
+        let bucket = time_ns.div_euclid(self.interval(kind));
+        self.last_bucket
+            .get(Self::series(kind))
+            .is_none_or(|&last| bucket > last)
+    }
+
+    /// Whether a record of `kind` at `time_ns` is kept, recording it if so.
+    pub fn keep_series(&mut self, kind: Series, time_ns: i64) -> bool {
+        if !self.due(kind, time_ns) {
+            return false;
+        }
+        let i = Self::series(kind);
+        if self.last_bucket.len() <= i {
+            self.last_bucket.resize(i + 1, i64::MIN);
+        }
+        self.last_bucket[i] = time_ns.div_euclid(self.interval(kind));
+        true
+    }
+
+    /// Whether a scene at `time_ns` is due.
+    pub fn scene_due(&self, time_ns: i64) -> bool {
+        self.due(Series::Scene, time_ns)
     }
 
     /// Whether `record` is kept; outliers, references and alarms always are.
     pub fn keep(&mut self, record: &Record) -> bool {
-        let (key, interval) = match record {
+        let kind = match record {
             Record::Sample { outlier: true, .. }
             | Record::Reference { .. }
             | Record::Alarm { .. } => return true,
-            Record::Sample { link, .. } => ((1, *link), self.series_interval_ns),
+            Record::Sample { link, .. } => Series::Link(*link),
             Record::Result {
                 target, filtered, ..
-            } => ((2 + u8::from(*filtered), *target), self.series_interval_ns),
-            Record::Scene { .. } => ((0, 0), self.scene_interval_ns),
+            } => {
+                if *filtered {
+                    Series::Filtered(*target)
+                } else {
+                    Series::Raw(*target)
+                }
+            }
+            Record::Scene { .. } => Series::Scene,
         };
-        let t = record.time_ns();
-        if self.due(key, interval, t) {
-            self.last_ns.insert(key, t);
-            true
-        } else {
-            false
-        }
+        self.keep_series(kind, record.time_ns())
     }
+}
+
+/// A decimated series.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Series {
+    /// The frames.
+    Scene,
+    /// A link's samples (by link index).
+    Link(usize),
+    /// A target's raw results (by target index).
+    Raw(usize),
+    /// A target's filtered results (by target index).
+    Filtered(usize),
 }
 
 /// The pipeline's end of the queue: decimates, then offers without ever waiting.
@@ -202,6 +251,33 @@ impl VizSender {
     /// Whether a scene at `time_ns` would be kept (to skip computing it otherwise).
     pub fn scene_due(&self, time_ns: i64) -> bool {
         self.enabled() && self.decimator.scene_due(time_ns)
+    }
+
+    /// Whether a record of `kind` at `time_ns` is kept, recording it if so: lets the pipeline
+    /// build only the records that will be shown (then [`VizSender::send_kept`]). Outliers are
+    /// always kept and need no asking.
+    pub fn keep(&mut self, kind: Series, time_ns: i64) -> bool {
+        if !self.enabled() {
+            return false;
+        }
+        let kept = self.decimator.keep_series(kind, time_ns);
+        if !kept {
+            self.counters.decimated.fetch_add(1, Relaxed);
+        }
+        kept
+    }
+
+    /// Offers a record already decimated: queued or dropped; never waits.
+    pub fn send_kept(&mut self, record: Record) {
+        let Some(tx) = &self.tx else { return };
+        match tx.try_send(record) {
+            Ok(()) => {
+                self.counters.queued.fetch_add(1, Relaxed);
+            }
+            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+                self.counters.dropped.fetch_add(1, Relaxed);
+            }
+        }
     }
 
     /// Offers a record: kept or decimated away, queued or dropped; never waits.
@@ -285,12 +361,36 @@ pub fn start(installation: &Arc<Installation>) -> Result<(VizSender, VizThread),
         return Ok((VizSender::off(), VizThread::none()));
     }
     let counters = Arc::new(VizCounters::default());
-    let logger = logger::Logger::live(installation, Arc::clone(&counters))?;
     let (tx, rx) = std::sync::mpsc::sync_channel(settings.queue_capacity);
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+    let (inst, c) = (Arc::clone(installation), Arc::clone(&counters));
     let handle = std::thread::Builder::new()
         .name("rerun-logger".into())
-        .spawn(move || run_logger(logger, rx))
+        .spawn(move || {
+            // Visualisation comes last: at the lowest CPU priority (nice 19), set before the
+            // streams are made so that the SDK's batcher and writer threads inherit it. On a
+            // saturated machine the queue then fills and records are dropped, rather than
+            // ingest slowing down.
+            if let Err(e) =
+                thread_priority::set_current_thread_priority(thread_priority::ThreadPriority::Min)
+            {
+                tracing::warn!(error = ?e, "cannot lower the Rerun logger's priority");
+            }
+            match logger::Logger::live(&inst, c) {
+                Ok(logger) => {
+                    let _ = ready_tx.send(Ok(()));
+                    run_logger(logger, rx);
+                }
+                Err(e) => {
+                    let _ = ready_tx.send(Err(e));
+                }
+            }
+        })
         .map_err(VizError::Thread)?;
+    ready_rx.recv().map_err(|_| VizError::Sink {
+        what: "logger",
+        message: "the logger thread ended while starting".into(),
+    })??;
     Ok((
         VizSender {
             tx: Some(tx),
@@ -301,9 +401,21 @@ pub fn start(installation: &Arc<Installation>) -> Result<(VizSender, VizThread),
     ))
 }
 
+/// Records written per batch at most.
+const BATCH: usize = 4096;
+
 fn run_logger(mut logger: logger::Logger, rx: Receiver<Record>) {
-    while let Ok(record) = rx.recv() {
-        logger.log(&record);
+    let mut batch = Vec::with_capacity(BATCH);
+    while let Ok(first) = rx.recv() {
+        batch.push(first);
+        while batch.len() < BATCH {
+            match rx.try_recv() {
+                Ok(r) => batch.push(r),
+                Err(_) => break,
+            }
+        }
+        logger.log_batch(&batch);
+        batch.clear();
     }
     logger.close();
 }
@@ -333,15 +445,16 @@ mod tests {
                 }
             }
         }
-        // 0, 120, 240, ... 1920 ms: one per 100 ms interval started, on each link alone.
-        assert_eq!(kept, [17, 17]);
+        // 0, 120, 200, 320, 400, ...: the first of each 100 ms interval, on each link alone.
+        assert_eq!(kept, [20, 20]);
         assert!(
             d.keep(&sample(0, 1_930_000_000, true)),
             "outliers always pass"
         );
         assert!(!d.keep(&sample(0, 1_940_000_000, false)));
-        // A time going backwards (a replay, a restarted pipeline) starts the series afresh.
-        assert!(d.keep(&sample(0, 0, false)));
+        // A late sample, older than the newest kept, is left out; the next interval is kept.
+        assert!(!d.keep(&sample(0, 500_000_000, false)));
+        assert!(d.keep(&sample(0, 2_000_000_000, false)));
     }
 
     #[test]

@@ -107,6 +107,7 @@ pub async fn replay(
                 let Some(last) = page.last().map(|r| r.time_ns) else {
                     break;
                 };
+                let mut batch = Vec::with_capacity(page.len());
                 for r in &page {
                     let deformation = r.deformation.and_then(|(version, _, _)| {
                         references
@@ -114,7 +115,7 @@ pub async fn replay(
                             .find(|x| x.version == version)
                             .map(|x| Deformation::new(&x.reference, &r.estimate).deformation())
                     });
-                    logger.log(&Record::Result {
+                    batch.push(Record::Result {
                         target: t,
                         time_ns: r.time_ns,
                         filtered,
@@ -122,6 +123,7 @@ pub async fn replay(
                         deformation,
                     });
                 }
+                logger.log_batch(&batch);
                 let n = page.len() as u64;
                 if filtered {
                     summary.filtered += n;
@@ -139,7 +141,12 @@ pub async fn replay(
     }
 
     // The links' samples, and the frame tree from them.
-    let mut scene = Decimator::new(inst.rerun.scene_hz, f64::INFINITY);
+    // Links are read one after the other, so each has its own scene decimation.
+    let mut scenes: Vec<Decimator> = inst
+        .links
+        .iter()
+        .map(|_| Decimator::new(inst.rerun.scene_hz, f64::INFINITY))
+        .collect();
     let mut poses: Vec<Option<crate::geometry::Pose>> = inst
         .links
         .iter()
@@ -157,8 +164,9 @@ pub async fn replay(
             let Some(last) = page.last().map(|s| s.time_ns) else {
                 break;
             };
+            let mut batch = Vec::with_capacity(page.len());
             for s in &page {
-                logger.log(&Record::Sample {
+                batch.push(Record::Sample {
                     link: l,
                     time_ns: s.time_ns,
                     nis: s.nis,
@@ -170,11 +178,12 @@ pub async fn replay(
                         time_ns: s.time_ns,
                         link_poses: poses.clone(),
                     };
-                    if scene.keep(&record) {
-                        logger.log(&record);
+                    if scenes[l].keep(&record) {
+                        batch.push(record);
                     }
                 }
             }
+            logger.log_batch(&batch);
             summary.samples += page.len() as u64;
             done += page.len() as u64;
             progress(done, total);
