@@ -285,3 +285,16 @@ fn filter_section_values_are_checked_with_their_line() {
     assert_eq!(m.tuning.reinit_after_outliers, 3);
     assert_eq!(m.tuning.gate_probability, 0.99);
 }
+
+#[test]
+fn an_installation_without_targets_is_refused() {
+    let err = error_of("# an empty file\n");
+    assert!(err.contains("the installation has no [[targets]]"), "{err}");
+    // The links alone are not enough either.
+    let links_only = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .split("[[targets]]")
+        .next()
+        .unwrap()
+        .to_owned();
+    assert!(error_of(&links_only).contains("no [[targets]]"));
+}

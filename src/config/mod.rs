@@ -1071,6 +1071,16 @@ impl Validator {
 
     fn targets(&mut self, raw: &RawFile, topology: &Topology) -> Vec<TargetSpec> {
         let mut out: Vec<TargetSpec> = Vec::new();
+        if raw.targets.is_empty() {
+            // An empty or mistaken file would otherwise run a service that measures nothing.
+            self.problems.push(ConfigProblem {
+                line: None,
+                column: None,
+                message: "the installation has no [[targets]]: nothing would be measured \
+                          (see `brokenray default-config` for a complete file)"
+                    .to_owned(),
+            });
+        }
         for spanned in &raw.targets {
             let at = spanned.span().start;
             let t = spanned.get_ref();
