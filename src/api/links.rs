@@ -6,7 +6,6 @@ use super::error::{ApiError, ErrorBody};
 use super::time::{format_ns, parse_json_time};
 use crate::chain::LinkId;
 use crate::config::{LinkKind, LinkSpec};
-use crate::filter::NS_PER_S;
 use crate::geometry::PoseCov;
 use crate::store::StoredUncertainty;
 use axum::Json;
@@ -60,11 +59,7 @@ pub async fn list_links(State(app): State<AppState>) -> Json<Vec<LinkOut>> {
     let inst = app.service.installation();
     let snapshot = app.service.snapshot();
     let bank = &snapshot.bank;
-    let newest = inst
-        .links
-        .iter()
-        .filter_map(|l| bank.link_status(l.id).last_time_ns)
-        .max();
+    let newest = bank.newest_sample_ns();
     Json(
         inst.links
             .iter()
@@ -74,14 +69,10 @@ pub async fn list_links(State(app): State<AppState>) -> Json<Vec<LinkOut>> {
                 let (kind, model, expected, status) = match &l.kind {
                     LinkKind::Calibrated { .. } => ("calibrated", None, None, "calibrated"),
                     LinkKind::Measured(m) => {
-                        let status = match (st.last_time_ns, newest) {
+                        let lag = newest.and_then(|n| bank.link_lag(l.id, n));
+                        let status = match (st.last_time_ns, lag) {
                             (None, _) => "no_data",
-                            (Some(t), Some(n))
-                                if (n - t) as f64 / NS_PER_S
-                                    > inst.filter.stale_after_periods / m.expected_rate_hz =>
-                            {
-                                "stale"
-                            }
+                            (_, Some(lag)) if lag.stale => "stale",
                             _ => "ok",
                         };
                         (

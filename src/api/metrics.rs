@@ -3,7 +3,6 @@
 use super::AppState;
 use super::error::REJECTED;
 use crate::config::LinkKind;
-use crate::filter::NS_PER_S;
 use crate::service::Metrics;
 use axum::extract::State;
 use axum::http::header;
@@ -144,11 +143,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
     let inst = service.installation();
     let snapshot = service.snapshot();
     let bank = &snapshot.bank;
-    let newest = inst
-        .links
-        .iter()
-        .filter_map(|l| bank.link_status(l.id).last_time_ns)
-        .max();
+    let newest = bank.newest_sample_ns();
     family(
         &mut out,
         "brokenray_link_samples_total",
@@ -180,9 +175,9 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         "1 when a link is behind by more than its staleness limit.",
     );
     for l in &inst.links {
-        let LinkKind::Measured(spec) = &l.kind else {
+        if !matches!(l.kind, LinkKind::Measured(_)) {
             continue;
-        };
+        }
         let st = bank.link_status(l.id);
         let name = &l.name;
         let _ = writeln!(
@@ -198,17 +193,16 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         if let Some(rate) = bank.observed_rate_hz(l.id) {
             let _ = writeln!(out, "brokenray_link_rate_hz{{link=\"{name}\"}} {rate}");
         }
-        if let (Some(last), Some(newest)) = (st.last_time_ns, newest) {
-            let behind = (newest - last) as f64 / NS_PER_S;
-            let stale = behind > inst.filter.stale_after_periods / spec.expected_rate_hz;
+        if let Some(lag) = newest.and_then(|n| bank.link_lag(l.id, n)) {
             let _ = writeln!(
                 out,
-                "brokenray_link_behind_seconds{{link=\"{name}\"}} {behind}"
+                "brokenray_link_behind_seconds{{link=\"{name}\"}} {}",
+                lag.behind_s
             );
             let _ = writeln!(
                 out,
                 "brokenray_link_stale{{link=\"{name}\"}} {}",
-                u8::from(stale)
+                u8::from(lag.stale)
             );
         }
     }

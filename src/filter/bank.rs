@@ -134,6 +134,15 @@ pub struct LinkStatus {
     pub last_time_ns: Option<i64>,
 }
 
+/// How far a measured link is behind a time (see [`FilterBank::link_lag`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinkLag {
+    /// Seconds between the link's newest sample and the time asked about.
+    pub behind_s: f64,
+    /// More than the link's staleness limit.
+    pub stale: bool,
+}
+
 /// A measured link's filtered pose at a time.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LinkEstimate {
@@ -356,6 +365,26 @@ impl FilterBank {
     /// A link's counters.
     pub fn link_status(&self, link: LinkId) -> &LinkStatus {
         &self.status[link.0]
+    }
+
+    /// The newest sample time of any link (ns).
+    pub fn newest_sample_ns(&self) -> Option<i64> {
+        self.status.iter().filter_map(|s| s.last_time_ns).max()
+    }
+
+    /// How far a measured link's newest sample lies behind `time_ns`, and whether that is more
+    /// than its staleness limit (`stale_after_periods` of its expected period). `None` for a
+    /// calibrated link, or before its first sample.
+    pub fn link_lag(&self, link: LinkId, time_ns: i64) -> Option<LinkLag> {
+        let LinkKind::Measured(m) = &self.installation.links[link.0].kind else {
+            return None;
+        };
+        let last = self.status[link.0].last_time_ns?;
+        let behind_s = (time_ns - last) as f64 / NS_PER_S;
+        Some(LinkLag {
+            behind_s,
+            stale: behind_s > self.settings.stale_after_periods / m.expected_rate_hz,
+        })
     }
 
     /// The measurement covariance of a sample: its own, else the link's default.
@@ -715,15 +744,11 @@ impl FilterBank {
                         break;
                     }
                 }
-                if let (LinkKind::Measured(m), Some(last)) = (
-                    &self.installation.links[l.0].kind,
-                    self.status[l.0].last_time_ns,
-                ) {
+                if let (Some(lag), Some(last)) =
+                    (self.link_lag(l, time_ns), self.status[l.0].last_time_ns)
+                {
                     newest_ns = Some(newest_ns.map_or(last, |n| n.max(last)));
-                    let limit_s = self.settings.stale_after_periods / m.expected_rate_hz;
-                    if (time_ns - last) as f64 / NS_PER_S > limit_s {
-                        stale = true;
-                    }
+                    stale |= lag.stale;
                 }
             }
             if available {

@@ -30,8 +30,8 @@ mod link;
 mod tuning;
 
 pub use bank::{
-    BankRecord, FilterBank, LinkEstimate, LinkStatus, MeasurementUncertainty, RawResult, Sample,
-    SampleOutcome, TargetEstimate, TargetStatus,
+    BankRecord, FilterBank, LinkEstimate, LinkLag, LinkStatus, MeasurementUncertainty, RawResult,
+    Sample, SampleOutcome, TargetEstimate, TargetStatus,
 };
 pub use link::{CV_RATE_PRIOR_S, Disposition, LinkFilter, LinkFilterRecord, OutlierRecord};
 pub use tuning::{BankSettings, FilterTuning, MotionModel, OscillationTuning};
