@@ -79,22 +79,11 @@ pub async fn list_alarms(
 ) -> Result<Json<AlarmsOut>, ApiError> {
     let inst = app.service.installation();
     let target = match &q.target {
-        Some(name) => Some(
-            inst.targets
-                .iter()
-                .position(|t| &t.name == name)
-                .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))?,
-        ),
+        Some(name) => Some(super::targets::target_index(&app, name)?.0),
         None => None,
     };
     let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
-    let limit = q.limit.unwrap_or(1000);
-    if !(1..=100_000).contains(&limit) {
-        return Err(ApiError::invalid_field(
-            "limit",
-            "must be between 1 and 100000",
-        ));
-    }
+    let limit = super::query_count("limit", q.limit, 1000)?;
     let stored = app.service.store().alarms(target, from, to, limit).await?;
     Ok(Json(AlarmsOut {
         alarms: stored

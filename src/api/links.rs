@@ -165,13 +165,7 @@ pub async fn list_samples(
 ) -> Result<Json<SamplesOut>, ApiError> {
     let spec = link_spec(&app, &name)?;
     let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
-    let limit = q.limit.unwrap_or(1000);
-    if !(1..=100_000).contains(&limit) {
-        return Err(ApiError::invalid_field(
-            "limit",
-            "must be between 1 and 100000",
-        ));
-    }
+    let limit = super::query_count("limit", q.limit, 1000)?;
     let stored = app
         .service
         .store()

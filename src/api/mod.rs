@@ -121,6 +121,18 @@ async fn openapi_json() -> axum::response::Response {
         .into_response()
 }
 
+/// A count of a query (`limit`, `max_points`): `default` when absent, else 1 to 100000.
+pub fn query_count(field: &str, value: Option<i64>, default: i64) -> Result<i64, ApiError> {
+    let n = value.unwrap_or(default);
+    if !(1..=100_000).contains(&n) {
+        return Err(ApiError::invalid_field(
+            field,
+            "must be between 1 and 100000",
+        ));
+    }
+    Ok(n)
+}
+
 async fn api_not_found(uri: axum::http::Uri) -> ApiError {
     ApiError::not_found(format!("no endpoint at `{}`", uri.path()))
 }

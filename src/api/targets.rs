@@ -16,7 +16,7 @@ use axum::extract::{Path, Query, State};
 use axum::http::StatusCode;
 use serde::{Deserialize, Serialize};
 
-fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetSpec), ApiError> {
+pub(super) fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetSpec), ApiError> {
     app.service
         .installation()
         .targets
@@ -450,9 +450,6 @@ pub struct WindowQuery {
 /// Parses `from`, `to` and `source` of a window query.
 pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
     let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
-    if from > to {
-        return Err(ApiError::invalid_field("to", "`to` is before `from`"));
-    }
     let filtered = match q.source.as_deref() {
         None | Some("filtered") => true,
         Some("raw") => false,
@@ -739,13 +736,11 @@ pub async fn get_history(
         to: q.to.clone(),
         source: q.source.clone(),
     })?;
-    let max_points = q.max_points.unwrap_or(1000);
-    if !(1..=100_000).contains(&max_points) {
-        return Err(ApiError::invalid_field(
-            "max_points",
-            "must be between 1 and 100000",
-        ));
-    }
+    let max_points = super::query_count(
+        "max_points",
+        q.max_points.map(|n| i64::try_from(n).unwrap_or(i64::MAX)),
+        1000,
+    )? as usize;
     let csv = match q.format.as_deref() {
         None | Some("json") => false,
         Some("csv") => true,
