@@ -39,14 +39,7 @@ fn main() {
         .expect("runtime");
     runtime.block_on(async {
         let build = Instant::now();
-        let (store, mut write) = store::open(
-            &inst.server.database,
-            &["G_from_B".into()],
-            &["G".into()],
-            0,
-        )
-        .await
-        .expect("open");
+        let (store, mut write) = store::open(&inst, 0).await.expect("open");
         let chunk = 200_000;
         for start in (0..n).step_by(chunk) {
             let rows: Vec<NewResult> = (start..(start + chunk as i64).min(n))

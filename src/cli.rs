@@ -208,16 +208,9 @@ fn replay(
         .build()
         .context("cannot start the async runtime")?;
     runtime.block_on(async {
-        let links: Vec<String> = installation.links.iter().map(|l| l.name.clone()).collect();
-        let names: Vec<String> = installation
-            .targets
-            .iter()
-            .map(|t| t.name.clone())
-            .collect();
-        let (store, write) =
-            crate::store::open(&database, &links, &names, crate::service::now_ns())
-                .await
-                .with_context(|| format!("cannot open {}", database.display()))?;
+        let (store, write) = crate::store::open(&installation, crate::service::now_ns())
+            .await
+            .with_context(|| format!("cannot open {}", database.display()))?;
         drop(write);
         let bar = indicatif::ProgressBar::new(0).with_style(
             indicatif::ProgressStyle::with_template(

@@ -250,19 +250,7 @@ impl Service {
     /// pipeline. The handle must be awaited after the last request, at shutdown.
     pub async fn start(installation: Installation) -> ServiceResult<(Service, PipelineHandle)> {
         let installation = Arc::new(installation);
-        let link_names: Vec<String> = installation.links.iter().map(|l| l.name.clone()).collect();
-        let target_names: Vec<String> = installation
-            .targets
-            .iter()
-            .map(|t| t.name.clone())
-            .collect();
-        let (store, write) = store::open(
-            &installation.server.database,
-            &link_names,
-            &target_names,
-            now_ns(),
-        )
-        .await?;
+        let (store, write) = store::open(&installation, now_ns()).await?;
 
         let mut bank = FilterBank::shared(Arc::clone(&installation));
         for spec in &installation.links {

@@ -73,14 +73,16 @@ fn options(path: &Path) -> SqliteConnectOptions {
         .disable_statement_logging()
 }
 
-/// Opens (creating if needed) the database, applies migrations and registers the names of the
-/// installation's links and targets. Returns the read side and the one write connection.
+/// Opens (creating if needed) the installation's database (`server.database`), applies
+/// migrations and registers the names of its links and targets. Returns the read side and the
+/// one write connection.
 pub async fn open(
-    path: &Path,
-    link_names: &[String],
-    target_names: &[String],
+    installation: &crate::config::Installation,
     now_ns: i64,
 ) -> StoreResult<(Store, WriteConn)> {
+    let path = installation.server.database.as_path();
+    let link_names: Vec<&String> = installation.links.iter().map(|l| &l.name).collect();
+    let target_names: Vec<&String> = installation.targets.iter().map(|t| &t.name).collect();
     let mut conn = options(path).connect().await?;
     MIGRATOR.run(&mut conn).await?;
     let mut tx = conn.begin().await?;

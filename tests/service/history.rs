@@ -42,14 +42,7 @@ async fn a_month_of_results_downsamples_without_losing_a_spike() {
     let dir = tempfile::tempdir().unwrap();
     let inst = installation(&dir, Some(ONE_LINK));
     {
-        let (store, mut write) = store::open(
-            &inst.server.database,
-            &["G_from_B".into()],
-            &["G".into()],
-            0,
-        )
-        .await
-        .unwrap();
+        let (store, mut write) = store::open(&inst, 0).await.unwrap();
         for chunk_start in (0..N).step_by(100_000) {
             let rows: Vec<NewResult> = (chunk_start..chunk_start + 100_000).map(result).collect();
             let mut tx = write.begin().await.unwrap();
