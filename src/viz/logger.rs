@@ -650,18 +650,11 @@ impl Columns {
     }
 
     fn transform(&mut self, entity: String, time_ns: i64, link_pose: &Pose, inverted: bool) {
-        let p = if inverted {
-            link_pose.inverse()
-        } else {
-            *link_pose
-        };
-        let t = p.translation.vector;
-        let q = p.rotation.quaternion();
+        let (translation, quaternion_xyzw) = frame_parts(link_pose, inverted);
         let c = self.transforms.entry(entity).or_default();
         c.times.push(time_ns);
-        c.translations.push([t.x as f32, t.y as f32, t.z as f32]);
-        c.quaternions_xyzw
-            .push([q.i as f32, q.j as f32, q.k as f32, q.w as f32]);
+        c.translations.push(translation);
+        c.quaternions_xyzw.push(quaternion_xyzw);
     }
 }
 
@@ -669,6 +662,15 @@ impl Columns {
 /// link's `parent_from_child` when the link maps the frame into its tree parent, its inverse
 /// when it maps the other way.
 fn tree_transform(link_pose: &Pose, inverted: bool) -> rerun::Transform3D {
+    let (translation, quaternion_xyzw) = frame_parts(link_pose, inverted);
+    rerun::Transform3D::from_translation(translation)
+        .with_quaternion(rerun::Quaternion::from_xyzw(quaternion_xyzw))
+        .with_relation(rerun::TransformRelation::ParentFromChild)
+}
+
+/// The translation and the `[x, y, z, w]` quaternion (f32, as Rerun stores them) of a frame
+/// placed by a link, inverted when the link maps the other way.
+fn frame_parts(link_pose: &Pose, inverted: bool) -> ([f32; 3], [f32; 4]) {
     let p = if inverted {
         link_pose.inverse()
     } else {
@@ -676,11 +678,10 @@ fn tree_transform(link_pose: &Pose, inverted: bool) -> rerun::Transform3D {
     };
     let t = p.translation.vector;
     let q = p.rotation.quaternion();
-    rerun::Transform3D::from_translation([t.x as f32, t.y as f32, t.z as f32])
-        .with_quaternion(rerun::Quaternion::from_xyzw([
-            q.i as f32, q.j as f32, q.k as f32, q.w as f32,
-        ]))
-        .with_relation(rerun::TransformRelation::ParentFromChild)
+    (
+        [t.x as f32, t.y as f32, t.z as f32],
+        [q.i as f32, q.j as f32, q.k as f32, q.w as f32],
+    )
 }
 
 /// The entity tree of the frames: breadth first from each target's base (then from any frame

@@ -141,11 +141,6 @@ impl Decimator {
         }
     }
 
-    /// Lets everything through.
-    pub fn everything() -> Self {
-        Self::new(f64::INFINITY, f64::INFINITY)
-    }
-
     /// The index of a series: the scene, each link's samples, each target's raw and filtered
     /// results.
     fn series(kind: Series) -> usize {
@@ -183,11 +178,6 @@ impl Decimator {
         }
         self.last_bucket[i] = time_ns.div_euclid(self.interval(kind));
         true
-    }
-
-    /// Whether a scene at `time_ns` is due.
-    pub fn scene_due(&self, time_ns: i64) -> bool {
-        self.due(Series::Scene, time_ns)
     }
 
     /// Whether `record` is kept; outliers, references and alarms always are.
@@ -238,7 +228,7 @@ impl VizSender {
     pub fn off() -> Self {
         Self {
             tx: None,
-            decimator: Decimator::everything(),
+            decimator: Decimator::new(f64::INFINITY, f64::INFINITY),
             counters: Arc::default(),
         }
     }
@@ -246,11 +236,6 @@ impl VizSender {
     /// Whether anything is shown.
     pub fn enabled(&self) -> bool {
         self.tx.is_some()
-    }
-
-    /// Whether a scene at `time_ns` would be kept (to skip computing it otherwise).
-    pub fn scene_due(&self, time_ns: i64) -> bool {
-        self.enabled() && self.decimator.scene_due(time_ns)
     }
 
     /// Whether a record of `kind` at `time_ns` is kept, recording it if so: lets the pipeline
@@ -270,23 +255,6 @@ impl VizSender {
     /// Offers a record already decimated: queued or dropped; never waits.
     pub fn send_kept(&mut self, record: Record) {
         let Some(tx) = &self.tx else { return };
-        match tx.try_send(record) {
-            Ok(()) => {
-                self.counters.queued.fetch_add(1, Relaxed);
-            }
-            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
-                self.counters.dropped.fetch_add(1, Relaxed);
-            }
-        }
-    }
-
-    /// Offers a record: kept or decimated away, queued or dropped; never waits.
-    pub fn send(&mut self, record: Record) {
-        let Some(tx) = &self.tx else { return };
-        if !self.decimator.keep(&record) {
-            self.counters.decimated.fetch_add(1, Relaxed);
-            return;
-        }
         match tx.try_send(record) {
             Ok(()) => {
                 self.counters.queued.fetch_add(1, Relaxed);
@@ -460,7 +428,8 @@ mod tests {
     #[test]
     fn an_off_sender_counts_nothing() {
         let mut s = VizSender::off();
-        s.send(sample(0, 0, false));
+        assert!(!s.keep(Series::Link(0), 0));
+        s.send_kept(sample(0, 0, false));
         assert!(!s.enabled());
         assert_eq!(s.counters().queued.load(Relaxed), 0);
         assert_eq!(s.counters().dropped.load(Relaxed), 0);
