@@ -207,26 +207,30 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(metrics::get_metrics))
 }
 
+/// The document, set by the first [`router`] (or [`openapi`]) from the same registrations.
+static DOC: OnceLock<utoipa::openapi::OpenApi> = OnceLock::new();
+
 /// The OpenAPI document of the API.
 pub fn openapi() -> &'static utoipa::openapi::OpenApi {
-    static DOC: OnceLock<utoipa::openapi::OpenApi> = OnceLock::new();
     DOC.get_or_init(|| routes().split_for_parts().1)
 }
 
-fn openapi_text() -> String {
+/// The document as served: rendered once.
+fn openapi_text() -> &'static str {
     static TEXT: OnceLock<String> = OnceLock::new();
     TEXT.get_or_init(|| {
         openapi()
             .to_pretty_json()
             .unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
     })
-    .clone()
 }
 
 /// The router of the whole service.
 pub fn router(state: AppState) -> Router {
     let tokens = Arc::new(state.service.installation().auth.tokens.clone());
-    let (router, _) = routes().split_for_parts();
+    let (router, doc) = routes().split_for_parts();
+    // The routes are the same every time: keep the first document.
+    let _ = DOC.set(doc);
     router
         .fallback(api_not_found)
         .layer(axum::middleware::from_fn(move |req, next| {
