@@ -74,7 +74,6 @@ fn main() {
                 .collect();
             let mut tx = write.begin().await.expect("begin");
             tx.insert_results(&rows).await.expect("insert");
-            tx.update_rollups(&rows).await.expect("rollups");
             tx.commit().await.expect("commit");
         }
         write.close().await.expect("close");

@@ -605,7 +605,6 @@ async fn ingest(
     tx.insert_samples(&sample_rows).await?;
     let rows: Vec<NewResult> = result_rows.into_values().collect();
     tx.insert_results(&rows).await?;
-    tx.update_rollups(&rows).await?;
     for (target, t) in &transitions {
         tx.insert_alarms(*target, std::slice::from_ref(t), now)
             .await?;

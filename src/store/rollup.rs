@@ -2,7 +2,7 @@
 //! at any scale reads a bounded number of rows and a spike survives downsampling.
 
 use super::{NewResult, Store, StoreResult, StoredResult};
-use crate::geometry::{PoseCov, euler_from_rotation};
+use crate::geometry::{PoseCov, ReportedSigmas, euler_from_rotation};
 use std::collections::HashMap;
 
 /// Bucket widths of the rollup levels (s).
@@ -110,14 +110,14 @@ impl Bucket {
     }
 }
 
-/// The components of a result.
+/// The components of a result, given its reported sigmas.
 pub fn components(
     estimate: &PoseCov,
+    s: &ReportedSigmas,
     deformation: Option<([f64; 3], [f64; 3])>,
 ) -> ([f64; N_COMPONENTS], bool) {
     let e = euler_from_rotation(&estimate.pose.rotation).to_degrees();
     let t = estimate.pose.translation.vector;
-    let s = estimate.reported_sigmas();
     let (dr, dt) = deformation.unwrap_or(([0.0; 3], [0.0; 3]));
     (
         [
@@ -145,11 +145,15 @@ pub fn components(
 }
 
 /// The buckets that new results add to, per (target, source, width, bucket start).
-pub(super) fn aggregate(results: &[NewResult]) -> HashMap<(usize, bool, i64, i64), Bucket> {
+pub(super) fn aggregate(
+    results: &[NewResult],
+    sigmas: &[ReportedSigmas],
+) -> HashMap<(usize, bool, i64, i64), Bucket> {
     let mut out: HashMap<(usize, bool, i64, i64), Bucket> = HashMap::new();
-    for r in results {
+    for (r, s) in results.iter().zip(sigmas) {
         let (values, has_def) = components(
             &r.estimate,
+            s,
             r.deformation
                 .map(|(_, d)| (d.rotation_arcsec, d.translation_mm)),
         );
@@ -269,8 +273,11 @@ impl Store {
         Ok(results
             .iter()
             .map(|r| {
-                let (values, has_def) =
-                    components(&r.estimate, r.deformation.map(|(_, rot, t)| (rot, t)));
+                let (values, has_def) = components(
+                    &r.estimate,
+                    &r.estimate.reported_sigmas(),
+                    r.deformation.map(|(_, rot, t)| (rot, t)),
+                );
                 let mut b = Bucket::empty(r.time_ns);
                 b.add(&values, has_def);
                 b

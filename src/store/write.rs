@@ -4,7 +4,7 @@ use super::codec::{encode_mat6, pose_columns};
 use super::{SampleValues, StoreResult};
 use crate::chain::LinkId;
 use crate::deformation::SmallMotion;
-use crate::geometry::PoseCov;
+use crate::geometry::{PoseCov, ReportedSigmas};
 use sqlx::{Connection, QueryBuilder, Sqlite, SqliteConnection, Transaction};
 
 /// A stored rollup row: key, counts, statistics blob.
@@ -148,17 +148,26 @@ impl WriteTx<'_> {
         Ok(())
     }
 
-    /// Inserts target results; a result at an existing (target, source, time) replaces it (a
-    /// raw group completed again by a late sample, or a filtered result recomputed).
+    /// Inserts target results and adds them to the rollups, in this transaction; a result at an
+    /// existing (target, source, time) replaces it (a raw group completed again by a late
+    /// sample, or a filtered result recomputed).
     pub async fn insert_results(&mut self, results: &[NewResult]) -> StoreResult<()> {
-        for chunk in results.chunks(ROWS_PER_STATEMENT / 2) {
+        // Both the rows and the rollups carry the sigmas: derive them once.
+        let sigmas: Vec<ReportedSigmas> = results
+            .iter()
+            .map(|r| r.estimate.reported_sigmas())
+            .collect();
+        for (chunk, chunk_sigmas) in results
+            .chunks(ROWS_PER_STATEMENT / 2)
+            .zip(sigmas.chunks(ROWS_PER_STATEMENT / 2))
+        {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
                 "insert or replace into results (target_id, source, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
                  sigma_rx_arcsec, sigma_ry_arcsec, sigma_rz_arcsec, sigma_tx_mm, sigma_ty_mm, sigma_tz_mm, \
                  status, age_s, chi2, reference_version, def_rx_arcsec, def_ry_arcsec, def_rz_arcsec, \
                  def_tx_mm, def_ty_mm, def_tz_mm) ",
             );
-            qb.push_values(chunk, |mut b, r| {
+            qb.push_values(chunk.iter().zip(chunk_sigmas), |mut b, (r, s)| {
                 b.push_bind(self.target_ids[r.target])
                     .push_bind(i64::from(r.filtered))
                     .push_bind(r.time_ns);
@@ -166,7 +175,6 @@ impl WriteTx<'_> {
                     b.push_bind(v);
                 }
                 b.push_bind(encode_mat6(&r.estimate.cov));
-                let s = r.estimate.reported_sigmas();
                 for v in s.rotation_arcsec.iter().chain(&s.translation_mm) {
                     b.push_bind(*v);
                 }
@@ -188,16 +196,20 @@ impl WriteTx<'_> {
             });
             qb.build().execute(&mut *self.tx).await?;
         }
-        Ok(())
+        self.update_rollups(results, &sigmas).await
     }
 
-    /// Adds new results to the rollups (in the same transaction as the results): the touched
-    /// buckets of every level are read in one statement, merged, and written back in one.
-    pub async fn update_rollups(&mut self, results: &[NewResult]) -> StoreResult<()> {
+    /// Adds new results to the rollups: the touched buckets of every level are read in one
+    /// statement, merged, and written back in one.
+    async fn update_rollups(
+        &mut self,
+        results: &[NewResult],
+        sigmas: &[ReportedSigmas],
+    ) -> StoreResult<()> {
         use super::rollup::{Bucket, decode_bucket, encode_stats};
         use std::collections::HashMap;
         type Key = (i64, i64, i64, i64);
-        let mut fresh: Vec<(Key, Bucket)> = super::rollup::aggregate(results)
+        let mut fresh: Vec<(Key, Bucket)> = super::rollup::aggregate(results, sigmas)
             .into_iter()
             .map(|((target, filtered, width_s, start), b)| {
                 (

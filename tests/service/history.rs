@@ -47,7 +47,6 @@ async fn a_month_of_results_downsamples_without_losing_a_spike() {
             let rows: Vec<NewResult> = (chunk_start..chunk_start + 100_000).map(result).collect();
             let mut tx = write.begin().await.unwrap();
             tx.insert_results(&rows).await.unwrap();
-            tx.update_rollups(&rows).await.unwrap();
             tx.commit().await.unwrap();
         }
         write.close().await.unwrap();
