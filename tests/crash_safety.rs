@@ -12,6 +12,58 @@ struct Server {
     base: String,
 }
 
+impl Server {
+    /// SIGKILL, and wait for the process to be gone.
+    fn kill(mut self) {
+        self.child.kill().expect("SIGKILL");
+        self.child.wait().expect("the killed process");
+    }
+}
+
+/// The time of group `k`: 2026-11-21T10:00:00Z plus `k` times 40 ms.
+fn group_time(k: i64) -> i64 {
+    1_795_255_200_000_000_000 + k * 40_000_000
+}
+
+/// Runs `brokenray ARGS` to completion.
+fn brokenray(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+/// Posts group `k`, which must be accepted.
+async fn post_group(client: &reqwest::Client, base: &str, k: i64) {
+    let r = client
+        .post(format!("{base}/api/v1/samples"))
+        .json(&group(k))
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "group {k}: {}", r.status());
+}
+
+/// Every acknowledged group is stored, on each of `links`.
+async fn assert_stored(
+    client: &reqwest::Client,
+    base: &str,
+    links: &[&str],
+    acked: &[i64],
+    after: &str,
+) {
+    for link in links {
+        let stored: std::collections::HashSet<i64> =
+            stored_times(client, base, link).await.into_iter().collect();
+        for k in acked {
+            assert!(
+                stored.contains(&group_time(*k)),
+                "acknowledged group {k} of {link} is missing after {after}"
+            );
+        }
+    }
+}
+
 /// Starts `brokenray serve` and waits for the line that says where it listens.
 fn start(config: &std::path::Path) -> Server {
     let mut child = Command::new(env!("CARGO_BIN_EXE_brokenray"))
@@ -88,7 +140,7 @@ fn spawn_writers(
 }
 
 fn group(k: i64) -> Value {
-    let time = 1_795_255_200_000_000_000i64 + k * 40_000_000;
+    let time = group_time(k);
     let wobble = (k as f64 * 0.37).sin() * 0.02;
     json!({"samples": [
         {"link": "C1_from_B", "time": time, "pose": {"t_mm": [-20.0 + wobble, 10.0, 2991.7], "euler_deg": [178.6589, 1.245, -0.0291]}},
@@ -120,45 +172,33 @@ async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
     let client = reqwest::Client::new();
 
     // Phase 1: four writers stream groups; the server is killed while they do.
-    let mut server = start(&config);
+    let server = start(&config);
     let acknowledged = Arc::new(Mutex::new(Vec::<i64>::new()));
     let writers = spawn_writers(&client, &server.base, &acknowledged, false);
     while acknowledged.lock().unwrap().len() < 300 {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
-    server.child.kill().expect("SIGKILL");
-    server.child.wait().unwrap();
+    server.kill();
     for w in writers {
         w.await.unwrap();
     }
     let acked = acknowledged.lock().unwrap().clone();
     assert!(acked.len() >= 300);
 
-    let mut server = start(&config);
-    for link in ["C1_from_B", "C2_from_M", "C3_from_G"] {
-        let stored: std::collections::HashSet<i64> = stored_times(&client, &server.base, link)
-            .await
-            .into_iter()
-            .collect();
-        for k in &acked {
-            let t = 1_795_255_200_000_000_000i64 + k * 40_000_000;
-            assert!(
-                stored.contains(&t),
-                "acknowledged group {k} of {link} is missing after SIGKILL"
-            );
-        }
-    }
+    let server = start(&config);
+    assert_stored(
+        &client,
+        &server.base,
+        &["C1_from_B", "C2_from_M", "C3_from_G"],
+        &acked,
+        "SIGKILL",
+    )
+    .await;
 
     // Phase 2: quiet, read the compensation, kill, restart, read again.
     let next = acked.iter().max().unwrap() + 1_000;
     for k in next..next + 20 {
-        let r = client
-            .post(format!("{}/api/v1/samples", server.base))
-            .json(&group(k))
-            .send()
-            .await
-            .unwrap();
-        assert!(r.status().is_success());
+        post_group(&client, &server.base, k).await;
     }
     let get = |base: String| {
         let client = client.clone();
@@ -175,16 +215,14 @@ async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
     };
     let before = get(server.base.clone()).await;
     assert_eq!(before["status"], "ok");
-    server.child.kill().unwrap();
-    server.child.wait().unwrap();
-    let mut server = start(&config);
+    server.kill();
+    let server = start(&config);
     let after = get(server.base.clone()).await;
     assert_eq!(
         before, after,
         "compensation changed across SIGKILL and restart"
     );
-    server.child.kill().unwrap();
-    server.child.wait().unwrap();
+    server.kill();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -208,59 +246,35 @@ async fn sigterm_finishes_in_flight_writes_and_exits_cleanly() {
         w.await.unwrap();
     }
     let acked = acknowledged.lock().unwrap().clone();
-    let mut server = start(&config);
-    let stored: std::collections::HashSet<i64> = stored_times(&client, &server.base, "C3_from_G")
-        .await
-        .into_iter()
-        .collect();
-    for k in &acked {
-        assert!(
-            stored.contains(&(1_795_255_200_000_000_000i64 + k * 40_000_000)),
-            "acknowledged group {k} missing after SIGTERM"
-        );
-    }
-    server.child.kill().unwrap();
-    server.child.wait().unwrap();
+    let server = start(&config);
+    assert_stored(&client, &server.base, &["C3_from_G"], &acked, "SIGTERM").await;
+    server.kill();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn backup_while_serving_gives_a_consistent_copy() {
     let (dir, config) = site();
     let client = reqwest::Client::new();
-    let mut server = start(&config);
+    let server = start(&config);
     for k in 0..50 {
-        let r = client
-            .post(format!("{}/api/v1/samples", server.base))
-            .json(&group(k))
-            .send()
-            .await
-            .unwrap();
-        assert!(r.status().is_success());
+        post_group(&client, &server.base, k).await;
     }
     // A writer keeps going while the backup runs.
     let (c, base) = (client.clone(), server.base.clone());
     let writer = tokio::spawn(async move {
         for k in 50..400 {
-            let r = c
-                .post(format!("{base}/api/v1/samples"))
-                .json(&group(k))
-                .send()
-                .await
-                .unwrap();
-            assert!(r.status().is_success());
+            post_group(&c, &base, k).await;
         }
     });
     let out = dir.path().join("copy.sqlite");
-    let backup = Command::new(env!("CARGO_BIN_EXE_brokenray"))
-        .args([
-            "backup",
-            "--config",
-            config.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
+    let backup_args = [
+        "backup",
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let backup = brokenray(&backup_args);
     assert!(
         backup.status.success(),
         "{}",
@@ -268,8 +282,7 @@ async fn backup_while_serving_gives_a_consistent_copy() {
     );
     assert!(String::from_utf8_lossy(&backup.stdout).contains("a consistent copy"));
     writer.await.unwrap();
-    server.child.kill().unwrap();
-    server.child.wait().unwrap();
+    server.kill();
     // The copy is a sound database holding at least what was acknowledged before it began,
     // with whole groups only (each commit is all or nothing).
     let conn = rusqlite::Connection::open(&out).unwrap();
@@ -282,16 +295,7 @@ async fn backup_while_serving_gives_a_consistent_copy() {
         .unwrap();
     assert!(n >= 150 && n % 3 == 0, "{n} samples in the copy");
     // A second backup to the same file is refused rather than overwriting it.
-    let again = Command::new(env!("CARGO_BIN_EXE_brokenray"))
-        .args([
-            "backup",
-            "--config",
-            config.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
+    let again = brokenray(&backup_args);
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
 }
@@ -307,7 +311,7 @@ fn healthcheck_answers_for_a_running_service_and_fails_without_one() {
     );
     let text = std::fs::read_to_string(&config).unwrap() + &tokens;
     std::fs::write(&config, &text).unwrap();
-    let mut server = start(&config);
+    let server = start(&config);
     // The same installation, naming the port the service got.
     let port = server.base.rsplit(':').next().unwrap().to_owned();
     let with_tokens = dir.path().join("bound.toml");
@@ -317,11 +321,13 @@ fn healthcheck_answers_for_a_running_service_and_fails_without_one() {
     )
     .unwrap();
     let check = || {
-        Command::new(env!("CARGO_BIN_EXE_brokenray"))
-            .args(["healthcheck", "--config", with_tokens.to_str().unwrap()])
-            .args(["--timeout-s", "5"])
-            .output()
-            .unwrap()
+        brokenray(&[
+            "healthcheck",
+            "--config",
+            with_tokens.to_str().unwrap(),
+            "--timeout-s",
+            "5",
+        ])
     };
     let ok = check();
     assert!(
@@ -331,8 +337,7 @@ fn healthcheck_answers_for_a_running_service_and_fails_without_one() {
     );
     let body: Value = serde_json::from_slice(&ok.stdout).expect("the health JSON");
     assert_eq!(body["status"], "ok");
-    server.child.kill().unwrap();
-    server.child.wait().unwrap();
+    server.kill();
     let down = check();
     assert!(!down.status.success());
     assert!(
