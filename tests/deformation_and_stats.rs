@@ -9,7 +9,7 @@ use brokenray::geometry::{
     se3_exp, se3_log,
 };
 use brokenray::stats::pose_stats;
-use common::paper::{PRINTED, TABLE_4, TABLE_5, assert_printed};
+use common::paper::{self, PRINTED, TABLE_4, TABLE_5, assert_printed};
 use common::{perturb, random_covariance, random_pose};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -38,17 +38,7 @@ fn the_papers_eight_samples_give_back_table_4_and_5() {
             _ => c.rms,
         }
     };
-    for (section, stat, printed, allowance) in PRINTED {
-        let got = pick(section, stat);
-        for i in 0..3 {
-            assert_printed(
-                &format!("{section}.{stat}[{i}]"),
-                got[i],
-                printed[i],
-                allowance,
-            );
-        }
-    }
+    paper::assert_all_printed(pick);
     // Without the allowance every statistic but the mean of Tz rounds to the printed text.
     for (section, stat, printed, _) in PRINTED {
         let got = pick(section, stat);

@@ -64,6 +64,22 @@ pub const PRINTED: [(&str, &str, [&str; 3], f64); 8] = [
     ),
 ];
 
+/// Asserts every statistic of [`PRINTED`] as `got(section, stat)` gives it, within its
+/// allowance.
+pub fn assert_all_printed(got: impl Fn(&str, &str) -> [f64; 3]) {
+    for (section, stat, printed, allowance) in PRINTED {
+        let values = got(section, stat);
+        for i in 0..3 {
+            assert_printed(
+                &format!("{section}.{stat}[{i}]"),
+                values[i],
+                printed[i],
+                allowance,
+            );
+        }
+    }
+}
+
 /// Asserts `got` agrees with `printed` (text, so its precision is known) to half a unit of its
 /// last digit plus `allowance`.
 pub fn assert_printed(label: &str, got: f64, printed: &str, allowance: f64) {

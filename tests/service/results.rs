@@ -2,7 +2,7 @@
 //! calibrations, restarts.
 
 use super::helpers::{ONE_LINK, T0_NS, TestApp, pose_json, time_text};
-use super::paper::{PRINTED, TABLE_4, TABLE_5, assert_printed};
+use super::paper::{self, TABLE_4, TABLE_5};
 use axum::http::StatusCode;
 use brokenray::config::{self, LinkKind};
 use brokenray::geometry::{
@@ -161,17 +161,9 @@ async fn the_papers_samples_give_back_table_4_and_5_through_stats() {
     assert_eq!(s["count"], 8);
     // Means and rms may differ from the paper's by the rounding of its printed samples (see
     // tests/common/paper.rs).
-    for (section, stat, printed, allowance) in PRINTED {
-        let got: Vec<f64> = serde_json::from_value(s[section][stat].clone()).unwrap();
-        for i in 0..3 {
-            assert_printed(
-                &format!("{section}.{stat}[{i}]"),
-                got[i],
-                printed[i],
-                allowance,
-            );
-        }
-    }
+    paper::assert_all_printed(|section, stat| {
+        serde_json::from_value(s[section][stat].clone()).expect("three numbers")
+    });
 }
 
 #[tokio::test]
