@@ -14,6 +14,12 @@ fn family(out: &mut String, name: &str, kind: &str, help: &str) {
     let _ = writeln!(out, "# TYPE {name} {kind}");
 }
 
+/// A family of one unlabelled value.
+fn single(out: &mut String, name: &str, kind: &str, help: &str, value: impl std::fmt::Display) {
+    family(out, name, kind, help);
+    let _ = writeln!(out, "{name} {value}");
+}
+
 /// `GET /metrics`.
 #[utoipa::path(get, path = "/metrics", tag = "operations",
     responses((status = 200, description = "Prometheus text exposition", content_type = "text/plain; version=0.0.4", body = String)),
@@ -85,8 +91,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             &viz.files,
         ),
     ] {
-        family(&mut out, name, "counter", help);
-        let _ = writeln!(out, "{name} {}", Metrics::get(counter));
+        single(&mut out, name, "counter", help, Metrics::get(counter));
     }
     family(
         &mut out,
@@ -101,16 +106,12 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             Metrics::get(counter)
         );
     }
-    family(
+    single(
         &mut out,
         "brokenray_writer_queue_depth",
         "gauge",
         "Requests waiting for the writer.",
-    );
-    let _ = writeln!(
-        out,
-        "brokenray_writer_queue_depth {}",
-        service.queue_depth()
+        service.queue_depth(),
     );
     family(
         &mut out,
@@ -128,16 +129,12 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         "brokenray_commit_seconds_count {}",
         Metrics::get(&m.commits)
     );
-    family(
+    single(
         &mut out,
         "brokenray_commit_seconds_max",
         "gauge",
         "Longest write transaction since start.",
-    );
-    let _ = writeln!(
-        out,
-        "brokenray_commit_seconds_max {}",
-        Metrics::get(&m.commit_micros_max) as f64 / 1e6
+        Metrics::get(&m.commit_micros_max) as f64 / 1e6,
     );
 
     let inst = service.installation();
