@@ -18,6 +18,8 @@
 //! * [`deformation`]: references, deformation `G0_from_G` and correction `G_from_G0`.
 //! * [`alarms`]: alarm levels of a target with hysteresis, dwell, rate of change and stale data.
 //! * [`stats`]: the paper's Table 4/5 statistics over a set of results.
+//! * [`vision`]: the camera model, PnP (IPPE / SQPnP + Levenberg-Marquardt) and hand-eye
+//!   station calibration.
 //! * [`cli`]: the command line (the binary in `main.rs` only calls it).
 //!
 //! The numerical core (`geometry`, `chain`, `filter`, `deformation`, `stats`) is pure and synchronous: no IO, no clock, no async
@@ -36,4 +38,5 @@ pub mod geometry;
 pub mod service;
 pub mod stats;
 pub mod store;
+pub mod vision;
 pub mod viz;

@@ -1,0 +1,28 @@
+//! The measurement pipeline's geometry: the camera model, pose estimation (PnP) and station
+//! calibration (hand-eye, `AX = XB`), `method.md` section 9.
+//!
+//! * [`CameraModel`]: pinhole with Brown-Conrady distortion (OpenCV's `k1 k2 p1 p2 k3`);
+//!   projection with its Jacobian, undistortion by Newton's method with a convergence check.
+//! * [`solve_pnp`]: `camera_from_marker` from marker points and pixels: IPPE (planar markers,
+//!   both solutions) or SQPnP (markers with depth) to start, Levenberg-Marquardt on the
+//!   reprojection error to finish, with the covariance `(J^T J)^-1 sigma_px^2` in the left
+//!   perturbation of [`crate::geometry`], the RMS, and a planar-ambiguity ratio. Refuses too few
+//!   or collinear points, points behind the camera and a fit over the RMS limit; optionally
+//!   robust (RANSAC) against a mislabelled point.
+//! * [`solve_hand_eye`]: a rigid station's calibrated link from motions `A_i X = X B_i`.
+//!
+//! Pure and synchronous, like the rest of the core; one error type, [`VisionError`].
+
+mod camera;
+mod error;
+mod handeye;
+mod ippe;
+mod pnp;
+mod sqpnp;
+
+pub use camera::CameraModel;
+pub use error::VisionError;
+pub use handeye::{
+    HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
+};
+pub use pnp::{MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, refine, solve_pnp};

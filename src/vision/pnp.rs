@@ -1,0 +1,552 @@
+//! Perspective-n-point: `camera_from_marker` from a marker's known points and their pixels.
+//!
+//! 1. Undistort the pixels to normalized rays ([`CameraModel::undistort`]).
+//! 2. Initialise: IPPE for planar markers (both solutions kept), SQPnP otherwise.
+//! 3. Refine each candidate by Levenberg-Marquardt on the reprojection error in pixels, with the
+//!    full distortion model, perturbing the pose about the marker points' centroid; keep the best.
+//! 4. Check: every point in front of the camera, the RMS under the limit, a well-conditioned
+//!    information matrix. The covariance is `(J^T J)^-1 sigma_px^2`, of the left perturbation
+//!    `[rho (mm); phi (rad)]` (`method.md` section 6), so it feeds the filter as is.
+//!
+//! In robust mode an observation that fails the RMS check is solved again by RANSAC over
+//! four-point subsets (a fixed pseudo-random sequence: the same input gives the same answer),
+//! and the points off the consensus are reported.
+
+use super::camera::CameraModel;
+use super::{VisionError, ippe, sqpnp};
+use crate::geometry::{Mat3, Mat6, Pose, Rotation, Twist, Vec3, adjoint, se3_exp, skew};
+use nalgebra::{Matrix2x3, SMatrix, Translation3, Vector2};
+
+/// Fewest points accepted (a unique pose needs four in general position).
+pub const MIN_POINTS: usize = 4;
+
+/// How a pose is estimated and when it is refused.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PnpOptions {
+    /// Standard deviation of a measured image point (px): scales the covariance.
+    pub pixel_sigma_px: f64,
+    /// A solution with a larger reprojection RMS is refused (px).
+    pub max_rms_px: f64,
+    /// Retry a refused observation by RANSAC, dropping points off the consensus.
+    pub robust: bool,
+    /// RANSAC: a point within this reprojection error supports a pose (px).
+    pub inlier_threshold_px: f64,
+    /// Levenberg-Marquardt iterations at most.
+    pub max_iterations: usize,
+}
+
+impl Default for PnpOptions {
+    fn default() -> Self {
+        Self {
+            pixel_sigma_px: 0.1,
+            max_rms_px: 1.0,
+            robust: false,
+            inlier_threshold_px: 2.0,
+            max_iterations: 50,
+        }
+    }
+}
+
+/// An estimated pose with its quality.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PnpSolution {
+    /// The pose of the marker in the camera frame.
+    pub camera_from_marker: Pose,
+    /// Covariance of the left perturbation `[rho (mm); phi (rad)]`: `(J^T J)^-1 sigma_px^2`.
+    pub covariance: Mat6,
+    /// Root mean square of the reprojection error over the points used (px).
+    pub rms_px: f64,
+    /// Points used.
+    pub points: usize,
+    /// The RMS of the best solution over that of the runner-up local minimum (0 when there is
+    /// none): near 1 the view is ambiguous (a planar marker seen nearly face-on, small in the
+    /// image), near 0 it is not.
+    pub ambiguity_ratio: f64,
+    /// Indices of points left out in robust mode (empty otherwise).
+    pub rejected_points: Vec<usize>,
+    /// Levenberg-Marquardt iterations of the kept solution.
+    pub iterations: usize,
+}
+
+/// The result of refining one start.
+#[derive(Debug, Clone, Copy)]
+pub struct Refinement {
+    /// The refined pose.
+    pub camera_from_marker: Pose,
+    /// Sum of squared reprojection errors (px^2).
+    pub cost_px2: f64,
+    /// The solution with the marker frame moved to the points' centroid.
+    pub camera_from_centred: Pose,
+    /// `J^T J` at the solution, of the right perturbation of `camera_from_centred`.
+    pub information_centred: Mat6,
+    /// Iterations taken.
+    pub iterations: usize,
+}
+
+/// Estimates `camera_from_marker` from marker points (mm) and their measured pixels.
+pub fn solve_pnp(
+    camera: &CameraModel,
+    marker_points_mm: &[Vec3],
+    image_points_px: &[Vector2<f64>],
+    options: &PnpOptions,
+) -> Result<PnpSolution, VisionError> {
+    check_input(marker_points_mm, image_points_px)?;
+    let first = solve_all(camera, marker_points_mm, image_points_px, options);
+    match first {
+        Err(VisionError::ReprojectionTooLarge { .. }) if options.robust => {
+            solve_ransac(camera, marker_points_mm, image_points_px, options)
+        }
+        other => other,
+    }
+}
+
+fn check_input(marker: &[Vec3], image: &[Vector2<f64>]) -> Result<(), VisionError> {
+    if marker.len() != image.len() {
+        return Err(VisionError::MismatchedPoints {
+            marker_points: marker.len(),
+            image_points: image.len(),
+        });
+    }
+    if marker.len() < MIN_POINTS {
+        return Err(VisionError::NotEnoughPoints {
+            given: marker.len(),
+            needed: MIN_POINTS,
+        });
+    }
+    for (i, p) in marker.iter().enumerate() {
+        if !p.iter().all(|v| v.is_finite()) {
+            return Err(VisionError::NonFinite {
+                what: format!("marker point {i}"),
+            });
+        }
+    }
+    for (i, p) in image.iter().enumerate() {
+        if !p.iter().all(|v| v.is_finite()) {
+            return Err(VisionError::NonFinite {
+                what: format!("image point {i}"),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The shape of a marker: centroid and principal axes (rows of `plane_from_marker`).
+struct Shape {
+    centroid: Vec3,
+    /// Rows: the principal axes, largest spread first; the last is the plane normal.
+    axes: Mat3,
+    planar: bool,
+}
+
+fn shape(points: &[Vec3]) -> Result<Shape, VisionError> {
+    let n = points.len() as f64;
+    let centroid = points.iter().fold(Vec3::zeros(), |a, p| a + p) / n;
+    let scatter = points.iter().fold(Mat3::zeros(), |a, p| {
+        a + (p - centroid) * (p - centroid).transpose()
+    }) / n;
+    let eigen = nalgebra::SymmetricEigen::new(scatter);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
+    let [l0, l1, l2] = order.map(|k| eigen.eigenvalues[k].max(0.0));
+    if l0.is_nan() || l0 <= 0.0 || l1 < 1e-10 * l0 {
+        return Err(VisionError::Degenerate {
+            reason: "the marker points are collinear (or coincide)".to_owned(),
+        });
+    }
+    let e0: Vec3 = eigen.eigenvectors.column(order[0]).into_owned();
+    let e1: Vec3 = eigen.eigenvectors.column(order[1]).into_owned();
+    let e2 = e0.cross(&e1);
+    Ok(Shape {
+        centroid,
+        axes: Mat3::from_rows(&[e0.transpose(), e1.transpose(), e2.transpose()]),
+        planar: l2 < 1e-10 * l0,
+    })
+}
+
+/// Initial `camera_from_marker` candidates, best first (by the initialiser's own cost).
+pub fn initial_poses(
+    camera: &CameraModel,
+    marker_points_mm: &[Vec3],
+    image_points_px: &[Vector2<f64>],
+) -> Result<Vec<Pose>, VisionError> {
+    check_input(marker_points_mm, image_points_px)?;
+    let normalized = image_points_px
+        .iter()
+        .map(|p| camera.undistort(*p))
+        .collect::<Result<Vec<_>, _>>()?;
+    initial_from_normalized(marker_points_mm, &normalized)
+}
+
+fn initial_from_normalized(
+    marker: &[Vec3],
+    normalized: &[Vector2<f64>],
+) -> Result<Vec<Pose>, VisionError> {
+    let shape = shape(marker)?;
+    let mut poses = Vec::with_capacity(2);
+    if shape.planar {
+        let plane_xy: Vec<Vector2<f64>> = marker
+            .iter()
+            .map(|p| {
+                let q = shape.axes * (p - shape.centroid);
+                Vector2::new(q.x, q.y)
+            })
+            .collect();
+        for (r_camera_from_plane, t) in ippe::candidates(&plane_xy, normalized) {
+            // camera_from_marker = camera_from_plane * plane_from_marker.
+            let rotation = r_camera_from_plane * shape.axes;
+            let t_mm = t - rotation * shape.centroid;
+            poses.push(pose_of(&rotation, &t_mm));
+        }
+    } else {
+        let centred: Vec<Vec3> = marker.iter().map(|p| p - shape.centroid).collect();
+        for m in sqpnp::minima(&centred, normalized) {
+            let t_mm = m.t_mm - m.rotation * shape.centroid;
+            poses.push(pose_of(&m.rotation, &t_mm));
+        }
+    }
+    if poses.is_empty() {
+        return Err(VisionError::Degenerate {
+            reason: "the image points do not determine a pose".to_owned(),
+        });
+    }
+    Ok(poses)
+}
+
+fn pose_of(rotation: &Mat3, t_mm: &Vec3) -> Pose {
+    let r = Rotation::from_matrix_eps(rotation, 1e-15, 100, Rotation::identity());
+    Pose::from_parts(Translation3::from(*t_mm), r)
+}
+
+/// Cost, `J^T J` and `J^T r` of the reprojection error at `camera_from_centred` (the marker
+/// frame moved to the points' centroid `c`), over a right perturbation
+/// `camera_from_centred * Exp(delta)`; `None` if a point is behind the camera. About the
+/// centroid, rotation and translation are nearly decoupled, which keeps Gauss-Newton quadratic
+/// for the narrow fields of view of measurement cameras.
+fn evaluate(
+    camera: &CameraModel,
+    marker: &[Vec3],
+    c: &Vec3,
+    image: &[Vector2<f64>],
+    camera_from_centred: &Pose,
+) -> Option<(f64, Mat6, SMatrix<f64, 6, 1>)> {
+    let r_mat = camera_from_centred
+        .rotation
+        .to_rotation_matrix()
+        .into_inner();
+    let mut cost = 0.0;
+    let mut jtj = Mat6::zeros();
+    let mut jtr = SMatrix::<f64, 6, 1>::zeros();
+    for (x, uv) in marker.iter().zip(image) {
+        let xc = x - c;
+        let p = r_mat * xc + camera_from_centred.translation.vector;
+        let (proj, dp) = camera.project_with_jacobian(&p)?;
+        let r = proj - uv;
+        cost += r.norm_squared();
+        // p = R (x + rho + phi x x) + t: dp/drho = R, dp/dphi = -R [x]x.
+        let dpr: Matrix2x3<f64> = dp * r_mat;
+        let mut j = SMatrix::<f64, 2, 6>::zeros();
+        j.fixed_view_mut::<2, 3>(0, 0).copy_from(&dpr);
+        j.fixed_view_mut::<2, 3>(0, 3)
+            .copy_from(&(-(dpr * skew(&xc))));
+        jtj += j.transpose() * j;
+        jtr += j.transpose() * r;
+    }
+    Some((cost, jtj, jtr))
+}
+
+/// Levenberg-Marquardt on the reprojection error from `start`. `None` if the start puts a
+/// point behind the camera.
+pub fn refine(
+    camera: &CameraModel,
+    marker_points_mm: &[Vec3],
+    image_points_px: &[Vector2<f64>],
+    start: &Pose,
+    max_iterations: usize,
+) -> Option<Refinement> {
+    let c = marker_points_mm.iter().fold(Vec3::zeros(), |a, p| a + p)
+        / marker_points_mm.len().max(1) as f64;
+    let mut pose = start * Translation3::from(c);
+    let eval = |pose: &Pose| evaluate(camera, marker_points_mm, &c, image_points_px, pose);
+    let (mut cost, mut jtj, mut jtr) = eval(&pose)?;
+    // The initialisers start close: begin as Gauss-Newton, damp only when a step fails.
+    let mut lambda = 1e-6;
+    let mut iterations = 0;
+    while iterations < max_iterations {
+        iterations += 1;
+        let mut a = jtj;
+        for i in 0..6 {
+            a[(i, i)] += lambda * jtj[(i, i)].max(1e-12);
+        }
+        let Some(chol) = a.cholesky() else {
+            lambda *= 10.0;
+            continue;
+        };
+        let delta: Twist = chol.solve(&(-jtr));
+        // Converged: the step would lower the cost by less than its rounding, or no longer
+        // moves the pose by anything that matters (1e-10 of the distance, 1e-12 rad).
+        let predicted = -delta.dot(&jtr);
+        let small = delta.fixed_rows::<3>(0).norm()
+            < 1e-10 * (1.0 + pose.translation.vector.norm())
+            && delta.fixed_rows::<3>(3).norm() < 1e-12;
+        if small || predicted <= 1e-15 * cost {
+            break;
+        }
+        let candidate = pose * se3_exp(&delta);
+        match eval(&candidate).filter(|(c, _, _)| *c <= cost) {
+            Some((c, j, g)) => {
+                pose = candidate;
+                (cost, jtj, jtr) = (c, j, g);
+                lambda = (lambda * 0.1).max(1e-12);
+            }
+            None => {
+                lambda *= 10.0;
+                if lambda > 1e8 {
+                    break;
+                }
+            }
+        }
+    }
+    Some(Refinement {
+        camera_from_marker: pose * Translation3::from(-c),
+        camera_from_centred: pose,
+        cost_px2: cost,
+        information_centred: jtj,
+        iterations,
+    })
+}
+
+fn rms(cost_px2: f64, n: usize) -> f64 {
+    (cost_px2 / n as f64).sqrt()
+}
+
+/// Solves with every point.
+fn solve_all(
+    camera: &CameraModel,
+    marker: &[Vec3],
+    image: &[Vector2<f64>],
+    options: &PnpOptions,
+) -> Result<PnpSolution, VisionError> {
+    let normalized = image
+        .iter()
+        .map(|p| camera.undistort(*p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let starts = initial_from_normalized(marker, &normalized)?;
+    let mut refined: Vec<Refinement> = starts
+        .iter()
+        .take(2)
+        .filter_map(|s| refine(camera, marker, image, s, options.max_iterations))
+        .collect();
+    refined.sort_by(|a, b| a.cost_px2.total_cmp(&b.cost_px2));
+    let Some(best) = refined.first().copied() else {
+        let behind = starts
+            .first()
+            .map_or(marker.len(), |s| count_behind(s, marker));
+        return Err(VisionError::BehindCamera { count: behind });
+    };
+    let ambiguity_ratio = match refined.get(1) {
+        Some(second) if !same_pose(&second.camera_from_marker, &best.camera_from_marker) => {
+            if second.cost_px2 > 0.0 {
+                (best.cost_px2 / second.cost_px2).sqrt()
+            } else {
+                1.0
+            }
+        }
+        _ => 0.0,
+    };
+    // The initialiser's best fit lies behind the camera: whatever fits in front is a poorer
+    // explanation of the pixels, and a refusal should say why.
+    let behind_best = starts.first().map_or(0, |s| count_behind(s, marker));
+    finish(best, marker, options, ambiguity_ratio, behind_best)
+}
+
+fn same_pose(a: &Pose, b: &Pose) -> bool {
+    a.rotation.angle_to(&b.rotation) < 1e-9
+        && (a.translation.vector - b.translation.vector).norm() < 1e-6
+}
+
+fn count_behind(pose: &Pose, marker: &[Vec3]) -> usize {
+    marker
+        .iter()
+        .filter(|x| (pose * nalgebra::Point3::from(**x)).z <= 0.0)
+        .count()
+}
+
+/// Checks a refined solution and derives its covariance.
+fn finish(
+    best: Refinement,
+    marker_used: &[Vec3],
+    options: &PnpOptions,
+    ambiguity_ratio: f64,
+    behind_best_start: usize,
+) -> Result<PnpSolution, VisionError> {
+    let behind = count_behind(&best.camera_from_marker, marker_used);
+    if behind > 0 {
+        return Err(VisionError::BehindCamera { count: behind });
+    }
+    let rms_px = rms(best.cost_px2, marker_used.len());
+    if rms_px.is_nan() || rms_px > options.max_rms_px {
+        if behind_best_start > 0 {
+            return Err(VisionError::BehindCamera {
+                count: behind_best_start,
+            });
+        }
+        return Err(VisionError::ReprojectionTooLarge {
+            rms_px,
+            limit_px: options.max_rms_px,
+        });
+    }
+    let covariance = covariance_of(&best, options.pixel_sigma_px)?;
+    Ok(PnpSolution {
+        camera_from_marker: best.camera_from_marker,
+        covariance,
+        rms_px,
+        points: marker_used.len(),
+        ambiguity_ratio,
+        rejected_points: Vec::new(),
+        iterations: best.iterations,
+    })
+}
+
+/// `(J^T J)^-1 sigma^2` in the left perturbation of `camera_from_marker`, refused when the
+/// information is (numerically) singular: the view does not determine some direction of the
+/// pose. The right perturbation of `camera_from_centred` moves to the left one of
+/// `camera_from_marker = camera_from_centred * const` by its adjoint.
+fn covariance_of(refinement: &Refinement, sigma_px: f64) -> Result<Mat6, VisionError> {
+    let information = &refinement.information_centred;
+    let d = information.diagonal().map(|v| v.max(0.0).sqrt());
+    if d.iter().any(|v| v.is_nan() || *v <= 0.0) {
+        return Err(degenerate_view());
+    }
+    let scale = Mat6::from_diagonal(&d.map(|v| 1.0 / v));
+    let normalized = scale * information * scale;
+    // With a unit diagonal, the largest diagonal entry of the inverse bounds 1/lambda_min
+    // from below within a factor of 6: a cheap condition check.
+    let inv = normalized.cholesky().ok_or_else(degenerate_view)?.inverse();
+    if inv.diagonal().max() > 1e12 {
+        return Err(degenerate_view());
+    }
+    let right = scale * inv * scale * (sigma_px * sigma_px);
+    let ad = adjoint(&refinement.camera_from_centred);
+    let cov = ad * right * ad.transpose();
+    Ok((cov + cov.transpose()) * 0.5)
+}
+
+fn degenerate_view() -> VisionError {
+    VisionError::Degenerate {
+        reason: "the view does not determine the pose (points nearly collinear in the image)"
+            .to_owned(),
+    }
+}
+
+/// A small, fixed pseudo-random sequence (xorshift64*): RANSAC is reproducible.
+struct Sequence(u64);
+
+impl Sequence {
+    fn below(&mut self, n: usize) -> usize {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        let v = self.0.wrapping_mul(0x2545_F491_4F6C_DD1D);
+        ((v >> 33) % n as u64) as usize
+    }
+}
+
+fn solve_ransac(
+    camera: &CameraModel,
+    marker: &[Vec3],
+    image: &[Vector2<f64>],
+    options: &PnpOptions,
+) -> Result<PnpSolution, VisionError> {
+    let n = marker.len();
+    let needed = MIN_POINTS.max(n.div_ceil(2) + 1).min(n);
+    let no_consensus = || VisionError::NoConsensus {
+        given: n,
+        needed,
+        threshold_px: options.inlier_threshold_px,
+    };
+    if n <= MIN_POINTS {
+        return Err(no_consensus());
+    }
+    let normalized = image
+        .iter()
+        .map(|p| camera.undistort(*p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let threshold2 = options.inlier_threshold_px * options.inlier_threshold_px;
+    let inliers_of = |pose: &Pose| -> Vec<usize> {
+        (0..n)
+            .filter(|&i| {
+                let p = pose * nalgebra::Point3::from(marker[i]);
+                camera
+                    .project(&p.coords)
+                    .is_some_and(|uv| (uv - image[i]).norm_squared() <= threshold2)
+            })
+            .collect()
+    };
+    let mut rng = Sequence(0x9E37_79B9_7F4A_7C15 ^ n as u64);
+    let mut best: Vec<usize> = Vec::new();
+    for _ in 0..200 {
+        let mut subset: Vec<usize> = Vec::with_capacity(MIN_POINTS);
+        while subset.len() < MIN_POINTS {
+            let k = rng.below(n);
+            if !subset.contains(&k) {
+                subset.push(k);
+            }
+        }
+        let m: Vec<Vec3> = subset.iter().map(|&i| marker[i]).collect();
+        let v: Vec<Vector2<f64>> = subset.iter().map(|&i| normalized[i]).collect();
+        let Ok(poses) = initial_from_normalized(&m, &v) else {
+            continue;
+        };
+        for pose in poses {
+            let inliers = inliers_of(&pose);
+            if inliers.len() > best.len() {
+                best = inliers;
+            }
+        }
+        if best.len() == n {
+            break;
+        }
+    }
+    if best.len() < needed {
+        return Err(no_consensus());
+    }
+    // Refine on the consensus, then take the consensus of the refined pose and refine again.
+    let mut kept = best;
+    for _ in 0..2 {
+        let m: Vec<Vec3> = kept.iter().map(|&i| marker[i]).collect();
+        let px: Vec<Vector2<f64>> = kept.iter().map(|&i| image[i]).collect();
+        let solution = solve_all(
+            camera,
+            &m,
+            &px,
+            &PnpOptions {
+                robust: false,
+                ..*options
+            },
+        )?;
+        let again = inliers_of(&solution.camera_from_marker);
+        if again == kept || again.len() < needed {
+            let rejected = (0..n).filter(|i| !kept.contains(i)).collect();
+            return Ok(PnpSolution {
+                rejected_points: rejected,
+                ..solution
+            });
+        }
+        kept = again;
+    }
+    let m: Vec<Vec3> = kept.iter().map(|&i| marker[i]).collect();
+    let px: Vec<Vector2<f64>> = kept.iter().map(|&i| image[i]).collect();
+    let solution = solve_all(
+        camera,
+        &m,
+        &px,
+        &PnpOptions {
+            robust: false,
+            ..*options
+        },
+    )?;
+    Ok(PnpSolution {
+        rejected_points: (0..n).filter(|i| !kept.contains(i)).collect(),
+        ..solution
+    })
+}
