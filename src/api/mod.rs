@@ -16,6 +16,7 @@ pub mod links;
 pub mod metrics;
 pub mod targets;
 pub mod time;
+pub mod vision;
 
 pub use error::{ApiError, ErrorDetail};
 
@@ -148,7 +149,8 @@ async fn api_not_found(uri: axum::http::Uri) -> ApiError {
     ),
     modifiers(&BearerAuth),
     tags(
-        (name = "ingest", description = "Link samples from the measurement pipeline"),
+        (name = "ingest", description = "Link samples and raw marker observations from the measurement pipeline"),
+        (name = "calibration", description = "Station calibration (hand-eye)"),
         (name = "targets", description = "Compensation, history, statistics and references"),
         (name = "links", description = "Links, their samples and calibrations"),
         (name = "alarms", description = "Alarm transitions"),
@@ -188,6 +190,8 @@ impl utoipa::Modify for BearerAuth {
 fn routes() -> OpenApiRouter<AppState> {
     let api = OpenApiRouter::new()
         .routes(routes!(ingest::post_samples))
+        .routes(routes!(vision::post_observations))
+        .routes(routes!(vision::post_hand_eye))
         .routes(routes!(targets::list_targets))
         .routes(routes!(targets::get_compensation))
         .routes(routes!(targets::get_stats))

@@ -56,6 +56,19 @@ pub struct Installation {
     pub filter: BankSettings,
     /// How long raw samples and results are kept (rollups are kept for good).
     pub retention: RetentionSettings,
+    /// How marker observations are solved (`POST /observations`, the simulator).
+    pub pnp: PnpSettings,
+}
+
+/// Pose estimation of marker observations.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PnpSettings {
+    /// A solution with a larger reprojection RMS is refused (px).
+    pub max_reprojection_rms_px: f64,
+    /// Retry a refused observation by RANSAC, leaving out points off the consensus.
+    pub robust: bool,
+    /// RANSAC: a point within this reprojection error supports a pose (px).
+    pub inlier_threshold_px: f64,
 }
 
 /// How long raw samples and results are kept, counted back from the newest result.
@@ -474,6 +487,7 @@ impl Validator {
         let auth = self.auth(&raw);
         let filter = self.bank_settings(&raw);
         let retention = self.retention(&raw);
+        let pnp = self.pnp(&raw);
         let mut frames_seen = std::collections::HashSet::new();
         for c in &raw.cameras {
             if !frames_seen.insert(c.get_ref().frame.clone()) {
@@ -506,6 +520,24 @@ impl Validator {
             auth,
             filter: filter?,
             retention: retention?,
+            pnp: pnp?,
+        })
+    }
+
+    fn pnp(&mut self, raw: &RawFile) -> Option<PnpSettings> {
+        let empty = raw::RawPnp::default();
+        let (at, r) = match &raw.pnp {
+            Some(s) => (s.span().start, s.get_ref()),
+            None => (0, &empty),
+        };
+        let max_reprojection_rms_px = r.max_reprojection_rms_px.unwrap_or(1.0);
+        let inlier_threshold_px = r.inlier_threshold_px.unwrap_or(2.0);
+        let ok = self.positive(at, "pnp.max_reprojection_rms_px", max_reprojection_rms_px)
+            & self.positive(at, "pnp.inlier_threshold_px", inlier_threshold_px);
+        ok.then_some(PnpSettings {
+            max_reprojection_rms_px,
+            robust: r.robust.unwrap_or(false),
+            inlier_threshold_px,
         })
     }
 

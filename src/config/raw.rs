@@ -24,6 +24,15 @@ pub(super) struct RawFile {
     pub auth: RawAuth,
     pub filter: Option<Spanned<RawFilter>>,
     pub retention: Option<Spanned<RawRetention>>,
+    pub pnp: Option<Spanned<RawPnp>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawPnp {
+    pub max_reprojection_rms_px: Option<f64>,
+    pub robust: Option<bool>,
+    pub inlier_threshold_px: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -195,6 +195,8 @@ struct Inner {
     events: tokio::sync::broadcast::Sender<LiveEvent>,
     /// What went to Rerun.
     viz_counters: Arc<crate::viz::VizCounters>,
+    /// Solves marker observations into link samples.
+    observer: Arc<crate::vision::Observer>,
 }
 
 /// The running service: a handle that request handlers clone.
@@ -330,6 +332,7 @@ impl Service {
             snapshot: Arc::clone(&slot),
             metrics: Arc::clone(&metrics),
             viz_counters,
+            observer: Arc::new(crate::vision::Observer::new(&installation)),
         });
         let task = tokio::spawn(pipeline::run(
             pipeline::Pipeline::new(write, bank, targets, digest, metrics, events, viz),
@@ -363,6 +366,11 @@ impl Service {
     /// The installation.
     pub fn installation(&self) -> &Installation {
         &self.inner.installation
+    }
+
+    /// The installation's camera-marker links, for solving observations.
+    pub fn observer(&self) -> Arc<crate::vision::Observer> {
+        Arc::clone(&self.inner.observer)
     }
 
     /// The store's read side.
