@@ -73,6 +73,86 @@ pub enum Command {
         #[arg(long, value_name = "SECONDS", default_value_t = 5.0)]
         timeout_s: f64,
     },
+    /// Generate a scenario (static, drift, ship, tunnel, bump) on an installation: what its
+    /// cameras see, posted to a running service (`--to`) or written as NDJSON (`--out`), with
+    /// the ground truth (`--truth`).
+    Simulate {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// How long a run to generate (60s, 15m, 2h, 1d).
+        #[arg(long, value_name = "DURATION", default_value = "60s")]
+        duration: String,
+        /// Groups (trigger times) per second.
+        #[arg(long, value_name = "HZ", default_value_t = 25.0)]
+        rate: f64,
+        /// static, drift, ship, tunnel or bump.
+        #[arg(long, value_name = "NAME", default_value = "ship")]
+        scenario: String,
+        /// Raw observations (the service runs PnP) or link poses solved here.
+        #[arg(long, value_enum, default_value_t = crate::feed::Emit::Observations)]
+        emit: crate::feed::Emit,
+        /// Pixel noise (px); each camera's `pixel_sigma` without it.
+        #[arg(long, value_name = "PX")]
+        pixel_sigma: Option<f64>,
+        /// Probability that an observation is an outlier (shifted 2 to 5 px).
+        #[arg(long, value_name = "P", default_value_t = 0.0)]
+        outliers: f64,
+        /// Seed of the noise and motion.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Time of the first group (RFC 3339 or integer ns); now without it.
+        #[arg(long, value_name = "TIME")]
+        start: Option<String>,
+        /// A running service to post to (`http://127.0.0.1:7878`), in real time unless `--fast`.
+        #[arg(
+            long,
+            value_name = "URL",
+            conflicts_with = "out",
+            required_unless_present = "out"
+        )]
+        to: Option<String>,
+        /// Write NDJSON here instead (one observation or sample a line).
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+        /// Write the ground truth here (NDJSON, one group a line).
+        #[arg(long, value_name = "FILE")]
+        truth: Option<PathBuf>,
+        /// Post as fast as the service takes it, not in real time.
+        #[arg(long)]
+        fast: bool,
+        /// Bearer token with the `ingest` scope.
+        #[arg(long, env = "BROKENRAY_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+    },
+    /// Calibrate a rigid station (hand-eye, `A_i X = X B_i`) from a JSON file of motions
+    /// (`{"pairs": [{"a": pose, "b": pose}, ...]}`, as `POST /api/v1/calibration/hand-eye`
+    /// takes); prints X with its residuals.
+    Calibrate {
+        /// The motions (JSON).
+        #[arg(long, value_name = "FILE")]
+        input: PathBuf,
+        /// Write the result here (JSON) as well as printing it.
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+    },
+    /// A first look: the service on the built-in installation (or `--config`), fed live by the
+    /// simulator (ship flexure, observations through PnP), with a reference set after 5 s and a
+    /// Rerun recording. Stop with Ctrl-C.
+    Demo {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// static, drift, ship, tunnel or bump.
+        #[arg(long, value_name = "NAME", default_value = "ship")]
+        scenario: String,
+        /// Groups per second.
+        #[arg(long, value_name = "HZ", default_value_t = 25.0)]
+        rate: f64,
+        /// Stop by itself after this long (60s, 15m, ...); runs until Ctrl-C without it.
+        #[arg(long, value_name = "DURATION")]
+        duration: Option<String>,
+    },
     /// Print a new random bearer token and the SHA-256 to put in `[[auth.tokens]]`.
     HashToken {
         /// Hash this token instead of making a new one.
@@ -149,6 +229,137 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             let installation = config::load_or_default(config.as_deref())?;
             let answer = healthcheck(installation.server.listen, timeout_s)?;
             writeln!(out, "{answer}")?;
+        }
+        Command::Simulate {
+            config,
+            duration,
+            rate,
+            scenario,
+            emit,
+            pixel_sigma,
+            outliers,
+            seed,
+            start,
+            to,
+            out: out_file,
+            truth,
+            fast,
+            token,
+        } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let duration_s =
+                crate::feed::parse_duration_s(&duration).map_err(anyhow::Error::msg)?;
+            let start_ns = match &start {
+                Some(t) => crate::api::time::parse_query_time(t)
+                    .map_err(|e| anyhow::anyhow!("--start: {e}"))?,
+                None => now_ns(),
+            };
+            let settings = crate::sim::SimSettings {
+                scenario: scenario.parse().map_err(anyhow::Error::msg)?,
+                rate_hz: rate,
+                start_ns,
+                duration_s: Some(duration_s),
+                pixel_sigma_px: pixel_sigma,
+                outlier_rate: outliers,
+                seed,
+            };
+            let groups = (duration_s * rate).round() as u64;
+            let sink = match (&to, &out_file) {
+                (Some(url), _) => crate::feed::Sink::Http(crate::feed::Client::new(url, token)?),
+                (None, Some(path)) => {
+                    crate::feed::Sink::File(std::io::BufWriter::new(create_new(path)?))
+                }
+                (None, None) => anyhow::bail!("give --to URL or --out FILE"),
+            };
+            let truth_file = truth
+                .as_deref()
+                .map(|p| create_new(p).map(std::io::BufWriter::new))
+                .transpose()?;
+            let real_time = to.is_some() && !fast;
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()
+                .context("cannot start the async runtime")?;
+            let summary = runtime.block_on(simulate(
+                &installation,
+                settings,
+                sink,
+                truth_file,
+                crate::feed::FeedSettings {
+                    rate_hz: rate,
+                    progress: progress_bar(Some(groups)),
+                    emit,
+                    groups: Some(groups),
+                    real_time,
+                    groups_per_request: 40,
+                },
+            ))?;
+            let target = to.clone().unwrap_or_else(|| {
+                out_file
+                    .as_ref()
+                    .map(|p| p.display().to_string())
+                    .unwrap_or_default()
+            });
+            writeln!(
+                out,
+                "{} groups ({:.0} s at {rate} Hz, scenario {scenario}): {} {} sent to {target}, {} refused",
+                summary.groups,
+                duration_s,
+                summary.items,
+                match emit {
+                    crate::feed::Emit::Observations => "observations",
+                    crate::feed::Emit::Samples => "samples",
+                },
+                summary.refused
+            )?;
+        }
+        Command::Calibrate {
+            input,
+            out: out_file,
+        } => {
+            let text = std::fs::read(&input)
+                .with_context(|| format!("cannot read {}", input.display()))?;
+            let request: crate::api::vision::HandEyeIn = crate::api::parse_json_body(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {}", input.display(), e.describe()))?;
+            let result = request
+                .solve()
+                .map_err(|e| anyhow::anyhow!("{}: {}", input.display(), e.describe()))?;
+            let text = serde_json::to_string_pretty(&result)?;
+            if let Some(path) = &out_file {
+                std::fs::write(path, &text)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
+            writeln!(out, "{text}")?;
+        }
+        Command::Demo {
+            config,
+            scenario,
+            rate,
+            duration,
+        } => {
+            let mut installation = config::load_or_default(config.as_deref())?;
+            if !installation.rerun.enabled() {
+                installation.rerun.save = true;
+            }
+            let duration_s = duration
+                .as_deref()
+                .map(crate::feed::parse_duration_s)
+                .transpose()
+                .map_err(anyhow::Error::msg)?;
+            let settings = crate::sim::SimSettings {
+                scenario: scenario.parse().map_err(anyhow::Error::msg)?,
+                rate_hz: rate,
+                start_ns: now_ns(),
+                duration_s,
+                pixel_sigma_px: None,
+                outlier_rate: 0.002,
+                seed: 1,
+            };
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()
+                .context("cannot start the async runtime")?;
+            runtime.block_on(demo(installation, settings, out))?;
         }
         Command::HashToken { token } => {
             let token = match token {
@@ -284,6 +495,149 @@ pub fn healthcheck(listen: std::net::SocketAddr, timeout_s: f64) -> anyhow::Resu
 }
 
 /// 32 random bytes from the operating system, as hex.
+fn now_ns() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
+}
+
+fn create_new(path: &std::path::Path) -> anyhow::Result<std::fs::File> {
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .with_context(|| format!("cannot create {} (it must not exist)", path.display()))
+}
+
+fn progress_bar(groups: Option<u64>) -> indicatif::ProgressBar {
+    match groups {
+        Some(n) => indicatif::ProgressBar::new(n).with_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:40}] {pos}/{len} groups ({per_sec}, eta {eta})",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        ),
+        None => indicatif::ProgressBar::new_spinner().with_style(
+            indicatif::ProgressStyle::with_template(
+                "{spinner} {elapsed_precise} {pos} groups sent ({per_sec})",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        ),
+    }
+}
+
+/// `brokenray simulate`.
+async fn simulate(
+    installation: &Installation,
+    settings: crate::sim::SimSettings,
+    sink: crate::feed::Sink,
+    truth: Option<std::io::BufWriter<std::fs::File>>,
+    feed: crate::feed::FeedSettings,
+) -> anyhow::Result<crate::feed::FeedSummary> {
+    let mut sim = crate::sim::Simulator::new(installation, settings)?;
+    let observer = crate::vision::Observer::new(installation);
+    let stop = Box::pin(async {
+        let _ = tokio::signal::ctrl_c().await;
+    });
+    crate::feed::feed(
+        &mut sim,
+        &observer,
+        sink,
+        truth,
+        feed,
+        stop,
+        async |_, _| Ok(()),
+    )
+    .await
+}
+
+/// `brokenray demo`: the service and the simulator in one process, talking HTTP.
+async fn demo(
+    installation: Installation,
+    settings: crate::sim::SimSettings,
+    out: &mut impl std::io::Write,
+) -> anyhow::Result<()> {
+    let targets: Vec<String> = installation
+        .targets
+        .iter()
+        .map(|t| t.name.clone())
+        .collect();
+    let recordings = installation.rerun.recordings_dir.clone();
+    let database = installation.server.database.clone();
+    let mut sim = crate::sim::Simulator::new(&installation, settings)?;
+    let observer = crate::vision::Observer::new(&installation);
+    let app = crate::api::App::build(installation).await?;
+    let addr = app.local_addr()?;
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let mut server_stop = stop_rx.clone();
+    let server = tokio::spawn(app.run_until(async move {
+        let _ = server_stop.wait_for(|s| *s).await;
+    }));
+    writeln!(
+        out,
+        "brokenray demo: API http://{addr}/api/v1 (described at /api/v1/openapi.json)\n  database {}, Rerun recordings in {}/\n  scenario {:?} at {} Hz; the reference is set after 5 s; Ctrl-C stops",
+        database.display(),
+        recordings.display(),
+        settings.scenario,
+        settings.rate_hz
+    )?;
+    out.flush()?;
+    let client = crate::feed::Client::new(&format!("http://{addr}"), None)?;
+    let groups = settings
+        .duration_s
+        .map(|d| (d * settings.rate_hz).round() as u64);
+    let mut feed_stop = stop_rx.clone();
+    let stop = Box::pin(async move {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = feed_stop.wait_for(|s| *s) => {}
+        }
+    });
+    let reference_at = settings.start_ns + 5_000_000_000;
+    let mut reference_set = false;
+    let result = crate::feed::feed(
+        &mut sim,
+        &observer,
+        crate::feed::Sink::Http(client),
+        None,
+        crate::feed::FeedSettings {
+            rate_hz: settings.rate_hz,
+            progress: progress_bar(groups),
+            emit: crate::feed::Emit::Observations,
+            groups,
+            real_time: true,
+            groups_per_request: 1,
+        },
+        stop,
+        async |group, sink| {
+            if !reference_set && group.time_ns >= reference_at {
+                if let crate::feed::Sink::Http(c) = sink {
+                    for t in &targets {
+                        let body = serde_json::json!({
+                            "from": crate::api::time::format_ns(settings.start_ns + 1_000_000_000),
+                            "to": crate::api::time::format_ns(group.time_ns),
+                        });
+                        c.post(&format!("/api/v1/targets/{t}/reference"), &body)
+                            .await?;
+                    }
+                }
+                reference_set = true;
+            }
+            Ok(())
+        },
+    )
+    .await;
+    let _ = stop_tx.send(true);
+    server.await.context("the server task failed")??;
+    let summary = result?;
+    writeln!(
+        out,
+        "demo stopped after {} groups ({} observations, {} refused); every acknowledged write is on disk",
+        summary.groups, summary.items, summary.refused
+    )?;
+    Ok(())
+}
+
 fn random_token() -> anyhow::Result<String> {
     use std::io::Read as _;
     let mut bytes = [0u8; 32];

@@ -20,6 +20,10 @@
 //! * [`stats`]: the paper's Table 4/5 statistics over a set of results.
 //! * [`vision`]: the camera model, PnP (IPPE / SQPnP + Levenberg-Marquardt) and hand-eye
 //!   station calibration.
+//! * [`sim`]: the scenario simulator (static, drift, ship flexure, tunnel creep, a bumped
+//!   station): ground truth and what the cameras see.
+//! * [`feed`]: the simulator's output as request bodies and NDJSON, and the HTTP client that
+//!   feeds a service with it.
 //! * [`cli`]: the command line (the binary in `main.rs` only calls it).
 //!
 //! The numerical core (`geometry`, `chain`, `filter`, `deformation`, `stats`) is pure and synchronous: no IO, no clock, no async
@@ -33,9 +37,11 @@ pub mod chain;
 pub mod cli;
 pub mod config;
 pub mod deformation;
+pub mod feed;
 pub mod filter;
 pub mod geometry;
 pub mod service;
+pub mod sim;
 pub mod stats;
 pub mod store;
 pub mod vision;

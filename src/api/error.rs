@@ -78,6 +78,22 @@ impl ApiError {
         self
     }
 
+    /// The message with its details, one line each (for the command line).
+    pub fn describe(&self) -> String {
+        let mut text = self.message.clone();
+        for d in &self.details {
+            text.push_str("\n  ");
+            if let Some(i) = d.index {
+                text.push_str(&format!("[{i}] "));
+            }
+            if let Some(f) = &d.field {
+                text.push_str(&format!("{f}: "));
+            }
+            text.push_str(&d.message);
+        }
+        text
+    }
+
     /// 400 Bad Request.
     pub fn bad_request(code: &'static str, message: impl Into<String>) -> Self {
         Self::new(StatusCode::BAD_REQUEST, code, message)

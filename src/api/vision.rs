@@ -98,7 +98,10 @@ pub async fn post_observations(
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     let batch: ObservationsBatch = parse_json_body(&bytes)?;
     if batch.observations.is_empty() {
-        return Err(ApiError::invalid_field("observations", "the batch is empty"));
+        return Err(ApiError::invalid_field(
+            "observations",
+            "the batch is empty",
+        ));
     }
     if batch.observations.len() > app.limits.max_batch_samples {
         return Err(ApiError::new(
@@ -164,7 +167,10 @@ fn solve_batch(
                 Some(index),
                 (
                     "time".to_owned(),
-                    format!("a second observation of `{}` at the same time in this batch", link.name),
+                    format!(
+                        "a second observation of `{}` at the same time in this batch",
+                        link.name
+                    ),
                 ),
             ));
             continue;
@@ -338,17 +344,30 @@ impl HandEyeIn {
                 ("sigma.translation_mm", s.translation_mm),
             ] {
                 if !(v.is_finite() && v > 0.0) {
-                    problems.push((None, (field.to_owned(), format!("must be a positive number, not {v}"))));
+                    problems.push((
+                        None,
+                        (
+                            field.to_owned(),
+                            format!("must be a positive number, not {v}"),
+                        ),
+                    ));
                 }
             }
             options.sigma_rotation_arcsec = s.rotation_arcsec;
             options.sigma_translation_mm = s.translation_mm;
         }
         if !problems.is_empty() {
-            return Err(invalid(format!("{} invalid pose(s) or setting(s)", problems.len()), problems));
+            return Err(invalid(
+                format!("{} invalid pose(s) or setting(s)", problems.len()),
+                problems,
+            ));
         }
         let solution = solve_hand_eye(&pairs, &options).map_err(|e| {
-            ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "calibration_refused", e.to_string())
+            ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                "calibration_refused",
+                e.to_string(),
+            )
         })?;
         Ok(HandEyeOut::from(&solution))
     }
@@ -372,6 +391,8 @@ pub async fn post_hand_eye(
     let input: HandEyeIn = parse_json_body(&bytes)?;
     let out = tokio::task::spawn_blocking(move || input.solve())
         .await
-        .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))??;
+        .map_err(|e| {
+            ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string())
+        })??;
     Ok(Json(out))
 }

@@ -93,8 +93,16 @@ impl Observer {
         }
         Self {
             by_pair,
-            cameras: installation.cameras.iter().map(|c| c.frame.clone()).collect(),
-            markers: installation.markers.iter().map(|m| m.frame.clone()).collect(),
+            cameras: installation
+                .cameras
+                .iter()
+                .map(|c| c.frame.clone())
+                .collect(),
+            markers: installation
+                .markers
+                .iter()
+                .map(|m| m.frame.clone())
+                .collect(),
         }
     }
 
@@ -108,13 +116,19 @@ impl Observer {
         if !self.cameras.iter().any(|c| c == camera) {
             return Err(ObservationError::new(
                 "camera",
-                format!("unknown camera `{camera}` (configured: {})", self.cameras.join(", ")),
+                format!(
+                    "unknown camera `{camera}` (configured: {})",
+                    self.cameras.join(", ")
+                ),
             ));
         }
         if !self.markers.iter().any(|m| m == marker) {
             return Err(ObservationError::new(
                 "marker",
-                format!("unknown marker `{marker}` (configured: {})", self.markers.join(", ")),
+                format!(
+                    "unknown marker `{marker}` (configured: {})",
+                    self.markers.join(", ")
+                ),
             ));
         }
         self.by_pair
@@ -161,17 +175,24 @@ impl Observer {
                 let mut out = Vec::with_capacity(ids.len());
                 for id in ids {
                     if !seen.insert(*id) {
-                        return Err(ObservationError::new("ids", format!("id {id} appears twice")));
+                        return Err(ObservationError::new(
+                            "ids",
+                            format!("id {id} appears twice"),
+                        ));
                     }
                     let k = link.ids.iter().position(|m| m == id).ok_or_else(|| {
-                        ObservationError::new("ids", format!("marker {marker} has no point with id {id}"))
+                        ObservationError::new(
+                            "ids",
+                            format!("marker {marker} has no point with id {id}"),
+                        )
                     })?;
                     out.push(link.points_mm[k]);
                 }
                 out
             }
         };
-        let pixels: Vec<Vector2<f64>> = points_px.iter().map(|p| Vector2::new(p[0], p[1])).collect();
+        let pixels: Vec<Vector2<f64>> =
+            points_px.iter().map(|p| Vector2::new(p[0], p[1])).collect();
         let solution = solve_pnp(&link.camera, &marker_points, &pixels, &link.options)
             .map_err(|e| ObservationError::new("points_px", e.to_string()))?;
         Ok((link, solution))

@@ -331,8 +331,10 @@ fn solve_all(
         .map(|p| camera.undistort(*p))
         .collect::<Result<Vec<_>, _>>()?;
     let starts = initial_from_normalized(marker, &normalized)?;
+    // Refine the two best starts that put the marker in front of the camera.
     let mut refined: Vec<Refinement> = starts
         .iter()
+        .filter(|s| count_behind(s, marker) == 0)
         .take(2)
         .filter_map(|s| refine(camera, marker, image, s, options.max_iterations))
         .collect();

@@ -21,8 +21,8 @@ type Mat9 = SMatrix<f64, 9, 9>;
 const NULL_SPACE_TOLERANCE: f64 = 1e-10;
 /// Newton iterations per start.
 const NEWTON_MAX_ITERATIONS: usize = 20;
-/// Newton stops when its step is below this (rad).
-const NEWTON_STEP_TOLERANCE: f64 = 1e-12;
+/// Newton stops when its step is below this (rad); Levenberg-Marquardt finishes the job.
+const NEWTON_STEP_TOLERANCE: f64 = 1e-10;
 
 /// One minimum of the object-space error: `camera_from_centred` rotation and translation.
 #[derive(Debug, Clone, Copy)]
@@ -68,11 +68,14 @@ pub(super) fn minima(centred: &[Vec3], normalized: &[Vector2<f64>]) -> Vec<Minim
     let mut order: Vec<usize> = (0..9).collect();
     order.sort_by(|&a, &b| eigen.eigenvalues[a].total_cmp(&eigen.eigenvalues[b]));
     let largest = eigen.eigenvalues[order[8]].abs().max(f64::MIN_POSITIVE);
+    // The null space, and at least the three smallest: a marker that is nearly planar has
+    // three nearly null directions (its third rotation column is barely observed), and the
+    // smallest alone can lead to the mirrored solution behind the camera.
     let starts = order
         .iter()
         .enumerate()
         .take_while(|(rank, k)| {
-            *rank == 0 || eigen.eigenvalues[**k] <= NULL_SPACE_TOLERANCE * largest
+            *rank < 3 || eigen.eigenvalues[**k] <= NULL_SPACE_TOLERANCE * largest
         })
         .map(|(_, k)| *k);
 
@@ -81,7 +84,9 @@ pub(super) fn minima(centred: &[Vec3], normalized: &[Vector2<f64>]) -> Vec<Minim
         let e: Vec9 = eigen.eigenvectors.column(k).into_owned() * 3f64.sqrt();
         for sign in [1.0, -1.0] {
             let start = nearest_rotation(&matrix_of(&(e * sign)));
-            let rotation = newton_on_rotations(&omega, start);
+            let Some(rotation) = newton_on_rotations(&omega, start, &found) else {
+                continue;
+            };
             let rv = vec_of(&rotation);
             let cost = (rv.transpose() * omega * rv)[(0, 0)].max(0.0);
             let t_mm = p * rv;
@@ -132,9 +137,14 @@ pub(super) fn nearest_rotation(m: &Mat3) -> Mat3 {
 /// with `J = d vec(W R) / dw` and `G = mat(Omega r)` the gradient is `2 J^T Omega r` and the Hessian
 /// `2 (J^T Omega J + sym(R G^T) - tr(G^T R) I)`: each step is a 3x3 solve, where the SQP of the
 /// paper solves the same local problem in the null space of its constraints.
-fn newton_on_rotations(omega: &Mat9, start: Mat3) -> Mat3 {
+///
+/// `None` once it comes within 1e-4 of a minimum in `known` (it would end there).
+fn newton_on_rotations(omega: &Mat9, start: Mat3, known: &[Minimum]) -> Option<Mat3> {
     let mut rotation = start;
     for _ in 0..NEWTON_MAX_ITERATIONS {
+        if known.iter().any(|m| (m.rotation - rotation).norm() < 1e-4) {
+            return None;
+        }
         let r = vec_of(&rotation);
         let omega_r = omega * r;
         let mut jac = SMatrix::<f64, 9, 3>::zeros();
@@ -161,5 +171,5 @@ fn newton_on_rotations(omega: &Mat9, start: Mat3) -> Mat3 {
             break;
         }
     }
-    rotation
+    Some(rotation)
 }
