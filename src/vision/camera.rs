@@ -127,12 +127,20 @@ impl CameraModel {
             u_px: uv_px.x,
             v_px: uv_px.y,
         };
+        // A root past the fold of the model (where it turns back on itself) is not the point
+        // that was imaged: the Jacobian there is not positive and the ray points elsewhere.
+        let valid =
+            |xy: Vector2<f64>, dd: &Matrix2<f64>| dd.determinant() > 0.0 && xy.dot(&target) >= 0.0;
         let mut xy = target;
         for _ in 0..UNDISTORT_MAX_ITERATIONS {
             let (d, dd) = self.distort(xy);
             let residual = d - target;
             if residual.norm() < UNDISTORT_TOLERANCE {
-                return Ok(xy);
+                return if valid(xy, &dd) {
+                    Ok(xy)
+                } else {
+                    Err(diverged())
+                };
             }
             let step = dd.try_inverse().ok_or_else(diverged)? * residual;
             xy -= step;
@@ -140,8 +148,8 @@ impl CameraModel {
                 return Err(diverged());
             }
         }
-        let (d, _) = self.distort(xy);
-        if (d - target).norm() < UNDISTORT_TOLERANCE {
+        let (d, dd) = self.distort(xy);
+        if (d - target).norm() < UNDISTORT_TOLERANCE && valid(xy, &dd) {
             Ok(xy)
         } else {
             Err(diverged())
