@@ -355,10 +355,37 @@ fn solve_all(
         }
         _ => 0.0,
     };
-    // The initialiser's best fit lies behind the camera: whatever fits in front is a poorer
-    // explanation of the pixels, and a refusal should say why.
-    let behind_best = starts.first().map_or(0, |s| count_behind(s, marker));
+    // The initialiser's best fit lies behind the camera and explains the pixels within the
+    // limit: whatever fits in front is a poorer explanation, and a refusal should say why.
+    let behind_best = starts
+        .first()
+        .filter(|s| rms_through_the_centre(camera, marker, image, s) <= options.max_rms_px)
+        .map_or(0, |s| count_behind(s, marker));
     finish(best, marker, options, ambiguity_ratio, behind_best)
+}
+
+/// The reprojection RMS of a pose by the projection equations alone, which hold for points
+/// behind the camera too (a central projection does not know which side it looks at).
+fn rms_through_the_centre(
+    camera: &CameraModel,
+    marker: &[Vec3],
+    image: &[Vector2<f64>],
+    pose: &Pose,
+) -> f64 {
+    let mut sum = 0.0;
+    for (x, uv) in marker.iter().zip(image) {
+        let p = pose * nalgebra::Point3::from(*x);
+        if p.z == 0.0 {
+            return f64::INFINITY;
+        }
+        let (d, _) = camera.distort(Vector2::new(p.x / p.z, p.y / p.z));
+        let proj = Vector2::new(
+            camera.fx_px * d.x + camera.cx_px,
+            camera.fy_px * d.y + camera.cy_px,
+        );
+        sum += (proj - uv).norm_squared();
+    }
+    (sum / marker.len() as f64).sqrt()
 }
 
 fn same_pose(a: &Pose, b: &Pose) -> bool {

@@ -5,6 +5,7 @@ mod alarms;
 mod helpers;
 mod history;
 mod ingest_errors;
+mod observations;
 mod openapi;
 #[path = "../common/paper.rs"]
 mod paper;
