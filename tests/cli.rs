@@ -83,6 +83,9 @@ fn help_lists_only_working_subcommands() {
             "backup",
             "replay",
             "healthcheck",
+            "simulate",
+            "calibrate",
+            "demo",
             "hash-token",
             "help"
         ]
@@ -121,4 +124,228 @@ fn the_container_installation_is_the_default_with_container_paths() {
             "{line}: {l}"
         );
     }
+}
+
+#[test]
+fn simulate_writes_observations_or_samples_with_the_ground_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run.ndjson");
+    let truth = dir.path().join("truth.ndjson");
+    let run = brokenray(&[
+        "simulate",
+        "--scenario",
+        "tunnel",
+        "--duration",
+        "2s",
+        "--rate",
+        "10",
+        "--start",
+        "2026-11-21T10:00:00Z",
+        "--out",
+        out.to_str().unwrap(),
+        "--truth",
+        truth.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&out)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    // 20 groups of the three camera-marker links.
+    assert_eq!(lines.len(), 60);
+    assert_eq!(lines[0]["time"], "2026-11-21T10:00:00Z");
+    assert_eq!(lines[59]["time"], "2026-11-21T10:00:01.9Z");
+    assert_eq!(lines[1]["points_px"].as_array().unwrap().len(), 7);
+    let truth_lines: Vec<serde_json::Value> = std::fs::read_to_string(&truth)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(truth_lines.len(), 20);
+    // Tunnel creep moves the target: 20 um/s over 1.9 s.
+    let t = |k: usize, i: usize| truth_lines[k]["targets"]["G"]["t_mm"][i].as_f64().unwrap();
+    let moved = ((t(19, 0) - t(0, 0)).powi(2)
+        + (t(19, 1) - t(0, 1)).powi(2)
+        + (t(19, 2) - t(0, 2)).powi(2))
+    .sqrt();
+    assert!(moved > 0.01 && moved < 0.2, "{moved}");
+
+    // The same file is not overwritten.
+    let again = brokenray(&[
+        "simulate",
+        "--duration",
+        "1s",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("must not exist"));
+
+    let samples = dir.path().join("samples.ndjson");
+    let run = brokenray(&[
+        "simulate",
+        "--emit",
+        "samples",
+        "--duration",
+        "1s",
+        "--rate",
+        "5",
+        "--out",
+        samples.to_str().unwrap(),
+    ]);
+    assert!(run.status.success());
+    let first: serde_json::Value = serde_json::from_str(
+        std::fs::read_to_string(&samples)
+            .unwrap()
+            .lines()
+            .next()
+            .unwrap(),
+    )
+    .unwrap();
+    assert_eq!(first["link"], "C1_from_B");
+    assert_eq!(first["covariance"].as_array().unwrap().len(), 36);
+    assert!(first["quality"]["reprojection_rms_px"].as_f64().unwrap() < 0.5);
+}
+
+#[test]
+fn calibrate_solves_a_file_of_motions_and_refuses_parallel_axes() {
+    let dir = tempfile::tempdir().unwrap();
+    // X: 90 degrees about z and (10, 20, 30) mm; B_i about x, y and z; A_i = X B_i X^-1.
+    // For these three the conjugates are written out: X maps x to y, y to -x.
+    let pose = |t: [f64; 3], axis: [f64; 3], deg: f64| {
+        let h = (deg.to_radians() / 2.0).sin();
+        let c = (deg.to_radians() / 2.0).cos();
+        serde_json::json!({"t_mm": t, "q_wxyz": [c, axis[0] * h, axis[1] * h, axis[2] * h]})
+    };
+    let x_t = [10.0, 20.0, 30.0];
+    let conj = |bt: [f64; 3], axis: [f64; 3], deg: f64| {
+        // R_X = Rz(90): (x, y, z) -> (-y, x, z). A = X B X^-1: R_A = R_X R_B R_X^T,
+        // t_A = R_X t_B + t_X - R_A t_X.
+        let rx = |v: [f64; 3]| [-v[1], v[0], v[2]];
+        let a_axis = rx(axis);
+        let (s, c) = deg.to_radians().sin_cos();
+        let k = a_axis;
+        let v = x_t;
+        let kxv = [
+            k[1] * v[2] - k[2] * v[1],
+            k[2] * v[0] - k[0] * v[2],
+            k[0] * v[1] - k[1] * v[0],
+        ];
+        let kdv = k[0] * v[0] + k[1] * v[1] + k[2] * v[2];
+        let rv: Vec<f64> = (0..3)
+            .map(|i| v[i] * c + kxv[i] * s + k[i] * kdv * (1.0 - c))
+            .collect();
+        let rb = rx(bt);
+        let t = [
+            rb[0] + v[0] - rv[0],
+            rb[1] + v[1] - rv[1],
+            rb[2] + v[2] - rv[2],
+        ];
+        pose(t, a_axis, deg)
+    };
+    let motions = [
+        ([50.0, 0.0, 0.0], [1.0, 0.0, 0.0], 30.0),
+        ([0.0, 80.0, 10.0], [0.0, 1.0, 0.0], 25.0),
+        ([5.0, -5.0, 60.0], [0.0, 0.0, 1.0], 40.0),
+    ];
+    let pairs: Vec<serde_json::Value> = motions
+        .iter()
+        .map(|(t, axis, deg)| serde_json::json!({"a": conj(*t, *axis, *deg), "b": pose(*t, *axis, *deg)}))
+        .collect();
+    let input = dir.path().join("motions.json");
+    std::fs::write(&input, serde_json::json!({ "pairs": pairs }).to_string()).unwrap();
+    let result = dir.path().join("x.json");
+    let out = brokenray(&[
+        "calibrate",
+        "--input",
+        input.to_str().unwrap(),
+        "--out",
+        result.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let x: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    for (k, expected) in x_t.iter().enumerate() {
+        assert!(
+            (x["x"]["t_mm"][k].as_f64().unwrap() - expected).abs() < 1e-6,
+            "{x}"
+        );
+    }
+    assert!(
+        (x["x"]["euler_deg"][2].as_f64().unwrap() - 90.0).abs() < 1e-6,
+        "{x}"
+    );
+
+    let same_axis: Vec<serde_json::Value> = [20.0, 30.0, 40.0]
+        .iter()
+        .map(|deg| serde_json::json!({"a": conj([1.0, 2.0, 3.0], [0.0, 0.0, 1.0], *deg), "b": pose([1.0, 2.0, 3.0], [0.0, 0.0, 1.0], *deg)}))
+        .collect();
+    std::fs::write(
+        &input,
+        serde_json::json!({ "pairs": same_axis }).to_string(),
+    )
+    .unwrap();
+    let out = brokenray(&["calibrate", "--input", input.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("motions.json") && err.contains("nearly parallel"),
+        "{err}"
+    );
+}
+
+#[test]
+fn demo_serves_the_simulated_installation_and_records_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("demo.toml");
+    let text = String::from_utf8(brokenray(&["default-config"]).stdout)
+        .unwrap()
+        .replace("listen = \"127.0.0.1:7878\"", "listen = \"127.0.0.1:0\"")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", dir.path().join("demo.db").display()),
+        )
+        .replace(
+            "recordings_dir = \"recordings\"",
+            &format!("recordings_dir = \"{}\"", dir.path().join("rec").display()),
+        );
+    std::fs::write(&config, text).unwrap();
+    let out = brokenray(&[
+        "demo",
+        "--config",
+        config.to_str().unwrap(),
+        "--duration",
+        "6s",
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.contains("demo stopped after 150 groups (450 observations, 0 refused)"),
+        "{stdout}"
+    );
+    let recordings: Vec<_> = std::fs::read_dir(dir.path().join("rec")).unwrap().collect();
+    assert_eq!(recordings.len(), 1);
+    // The reference was set after 5 s: the stored history has deformation to show.
+    let db = rusqlite::Connection::open(dir.path().join("demo.db")).unwrap();
+    let samples: i64 = db
+        .query_row("select count(*) from samples", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(samples, 450);
+    let references: i64 = db
+        .query_row("select count(*) from target_references", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(references, 1);
 }
