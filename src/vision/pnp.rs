@@ -332,13 +332,32 @@ fn solve_all(
         .collect::<Result<Vec<_>, _>>()?;
     let starts = initial_from_normalized(marker, &normalized)?;
     // Refine the two best starts that put the marker in front of the camera.
-    let mut refined: Vec<Refinement> = starts
-        .iter()
-        .filter(|s| count_behind(s, marker) == 0)
-        .take(2)
-        .filter_map(|s| refine(camera, marker, image, s, options.max_iterations))
-        .collect();
+    let refine_starts = |starts: &[Pose]| -> Vec<Refinement> {
+        starts
+            .iter()
+            .filter(|s| count_behind(s, marker) == 0)
+            .take(2)
+            .filter_map(|s| refine(camera, marker, image, s, options.max_iterations))
+            .collect()
+    };
+    let mut refined = refine_starts(&starts);
     refined.sort_by(|a, b| a.cost_px2.total_cmp(&b.cost_px2));
+    // A planar marker of few points, some nearly in line, can give IPPE a homography too poor
+    // to start from: when its best is over the limit, SQPnP's minima are tried as well.
+    let over_limit = |r: &[Refinement]| {
+        r.first()
+            .is_none_or(|b| rms(b.cost_px2, marker.len()) > options.max_rms_px)
+    };
+    if over_limit(&refined) && shape(marker).is_ok_and(|s| s.planar) {
+        let centroid = marker.iter().fold(Vec3::zeros(), |a, p| a + p) / marker.len() as f64;
+        let centred: Vec<Vec3> = marker.iter().map(|p| p - centroid).collect();
+        let more: Vec<Pose> = sqpnp::minima(&centred, &normalized)
+            .iter()
+            .map(|m| pose_of(&m.rotation, &(m.t_mm - m.rotation * centroid)))
+            .collect();
+        refined.extend(refine_starts(&more));
+        refined.sort_by(|a, b| a.cost_px2.total_cmp(&b.cost_px2));
+    }
     let Some(best) = refined.first().copied() else {
         let behind = starts
             .first()
