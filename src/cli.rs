@@ -341,13 +341,31 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             if !installation.rerun.enabled() {
                 installation.rerun.save = true;
             }
+            let scenario: crate::sim::Scenario = scenario.parse().map_err(anyhow::Error::msg)?;
+            let model = filter_model_for(scenario);
+            for spec in &mut installation.links {
+                if let LinkKind::Measured(m) = &mut spec.kind
+                    && m.tuning.model != model
+                {
+                    m.tuning = crate::filter::FilterTuning {
+                        gate_probability: m.tuning.gate_probability,
+                        reinit_after_outliers: m.tuning.reinit_after_outliers,
+                        ..crate::filter::FilterTuning::default_for(model)
+                    };
+                }
+            }
+            writeln!(
+                out,
+                "measured links filtered with the `{}` model, the one the {scenario:?} scenario calls for",
+                model.name()
+            )?;
             let duration_s = duration
                 .as_deref()
                 .map(crate::feed::parse_duration_s)
                 .transpose()
                 .map_err(anyhow::Error::msg)?;
             let settings = crate::sim::SimSettings {
-                scenario: scenario.parse().map_err(anyhow::Error::msg)?,
+                scenario,
                 rate_hz: rate,
                 start_ns: now_ns(),
                 duration_s,
@@ -495,6 +513,18 @@ pub fn healthcheck(listen: std::net::SocketAddr, timeout_s: f64) -> anyhow::Resu
 }
 
 /// 32 random bytes from the operating system, as hex.
+/// The filter model a scenario's motion calls for: hull flexure oscillates, drift and creep
+/// move steadily, the rest stands still.
+fn filter_model_for(scenario: crate::sim::Scenario) -> crate::filter::MotionModel {
+    use crate::filter::MotionModel;
+    use crate::sim::Scenario;
+    match scenario {
+        Scenario::Ship => MotionModel::Oscillatory,
+        Scenario::Drift | Scenario::Tunnel => MotionModel::ConstantVelocity,
+        Scenario::Static | Scenario::Bump => MotionModel::Static,
+    }
+}
+
 fn now_ns() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)

@@ -344,6 +344,18 @@ fn demo_serves_the_simulated_installation_and_records_it() {
         .query_row("select count(*) from samples", [], |r| r.get(0))
         .unwrap();
     assert_eq!(samples, 450);
+    // The ship scenario is filtered with the oscillatory model: the hull's motion is followed,
+    // not rejected (0.2 % of the observations are simulated outliers).
+    assert!(
+        stdout.contains("filtered with the `oscillatory` model"),
+        "{stdout}"
+    );
+    let outliers: i64 = db
+        .query_row("select count(*) from samples where outlier = 1", [], |r| {
+            r.get(0)
+        })
+        .unwrap();
+    assert!(outliers <= 5, "{outliers} of 450 samples flagged");
     let references: i64 = db
         .query_row("select count(*) from target_references", [], |r| r.get(0))
         .unwrap();
