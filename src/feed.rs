@@ -62,27 +62,18 @@ pub fn sample_items(group: &SimGroup, observer: &Observer) -> Vec<Value> {
 
 /// One line of the ground-truth file: every target's and measured link's true pose.
 pub fn truth_line(group: &SimGroup) -> Value {
-    let targets: serde_json::Map<String, Value> = group
-        .truth
-        .iter()
-        .map(|(name, p)| {
-            (
-                name.clone(),
-                serde_json::to_value(PoseOut::from(p)).unwrap_or(Value::Null),
-            )
-        })
-        .collect();
-    let links: serde_json::Map<String, Value> = group
-        .link_truth
-        .iter()
-        .map(|(name, p)| {
-            (
-                name.clone(),
-                serde_json::to_value(PoseOut::from(p)).unwrap_or(Value::Null),
-            )
-        })
-        .collect();
-    json!({"time": format_ns(group.time_ns), "targets": targets, "links": links})
+    let poses = |named: &[(String, crate::geometry::Pose)]| -> serde_json::Map<String, Value> {
+        named
+            .iter()
+            .map(|(name, p)| {
+                (
+                    name.clone(),
+                    serde_json::to_value(PoseOut::from(p)).unwrap_or(Value::Null),
+                )
+            })
+            .collect()
+    };
+    json!({"time": format_ns(group.time_ns), "targets": poses(&group.truth), "links": poses(&group.link_truth)})
 }
 
 /// Where a run goes.

@@ -558,43 +558,25 @@ fn solve_ransac(
     if best.len() < needed {
         return Err(no_consensus());
     }
-    // Refine on the consensus, then take the consensus of the refined pose and refine again.
+    // Refine on the consensus, then take the consensus of the refined pose and refine again,
+    // until it settles (three rounds at most).
     let mut kept = best;
-    for _ in 0..2 {
+    let plain = PnpOptions {
+        robust: false,
+        ..*options
+    };
+    for round in 0..3 {
         let m: Vec<Vec3> = kept.iter().map(|&i| marker[i]).collect();
         let px: Vec<Vector2<f64>> = kept.iter().map(|&i| image[i]).collect();
-        let solution = solve_all(
-            camera,
-            &m,
-            &px,
-            &PnpOptions {
-                robust: false,
-                ..*options
-            },
-        )?;
+        let solution = solve_all(camera, &m, &px, &plain)?;
         let again = inliers_of(&solution.camera_from_marker);
-        if again == kept || again.len() < needed {
-            let rejected = (0..n).filter(|i| !kept.contains(i)).collect();
+        if round == 2 || again == kept || again.len() < needed {
             return Ok(PnpSolution {
-                rejected_points: rejected,
+                rejected_points: (0..n).filter(|i| !kept.contains(i)).collect(),
                 ..solution
             });
         }
         kept = again;
     }
-    let m: Vec<Vec3> = kept.iter().map(|&i| marker[i]).collect();
-    let px: Vec<Vector2<f64>> = kept.iter().map(|&i| image[i]).collect();
-    let solution = solve_all(
-        camera,
-        &m,
-        &px,
-        &PnpOptions {
-            robust: false,
-            ..*options
-        },
-    )?;
-    Ok(PnpSolution {
-        rejected_points: (0..n).filter(|i| !kept.contains(i)).collect(),
-        ..solution
-    })
+    Err(no_consensus())
 }
