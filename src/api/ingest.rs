@@ -350,6 +350,21 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
     Ok(items)
 }
 
+/// Refuses an empty batch (422) and one over the limit (413); `what` names the items.
+pub fn check_batch_size(what: &str, len: usize, limit: usize) -> Result<(), ApiError> {
+    if len == 0 {
+        return Err(ApiError::invalid_field(what, "the batch is empty"));
+    }
+    if len > limit {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "batch_too_large",
+            format!("the batch has {len} {what}, more than the limit of {limit}; split it"),
+        ));
+    }
+    Ok(())
+}
+
 /// `POST /api/v1/samples`.
 #[utoipa::path(post, path = "/samples", tag = "ingest",
     request_body(content(
@@ -375,20 +390,7 @@ pub async fn post_samples(
         ApiError::bad_request("malformed_json", format!("the body is not UTF-8: {e}"))
     })?;
     let items = parse_batch(text, is_ndjson(&headers))?;
-    if items.is_empty() {
-        return Err(ApiError::invalid_field("samples", "the batch is empty"));
-    }
-    if items.len() > app.limits.max_batch_samples {
-        return Err(ApiError::new(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            "batch_too_large",
-            format!(
-                "the batch has {} samples, more than the limit of {}; split it",
-                items.len(),
-                app.limits.max_batch_samples
-            ),
-        ));
-    }
+    check_batch_size("samples", items.len(), app.limits.max_batch_samples)?;
     let n = items.len();
     let valid = validate_samples(app.service.installation(), items).map_err(|p| {
         invalid(

@@ -5,7 +5,7 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, invalid, time_schema};
 use super::error::{ApiError, ErrorBody};
-use super::ingest::{IngestResponse, read_body};
+use super::ingest::{IngestResponse, Problems, check_batch_size, read_body};
 use super::parse_json_body;
 use super::time::{format_ns, parse_json_time};
 use crate::filter::{MeasurementUncertainty, Sample};
@@ -97,28 +97,14 @@ pub async fn post_observations(
 ) -> Result<Json<ObservationsResponse>, ApiError> {
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     let batch: ObservationsBatch = parse_json_body(&bytes)?;
-    if batch.observations.is_empty() {
-        return Err(ApiError::invalid_field(
-            "observations",
-            "the batch is empty",
-        ));
-    }
-    if batch.observations.len() > app.limits.max_batch_samples {
-        return Err(ApiError::new(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            "batch_too_large",
-            format!(
-                "the batch has {} observations, more than the limit of {}; split it",
-                batch.observations.len(),
-                app.limits.max_batch_samples
-            ),
-        ));
-    }
+    check_batch_size(
+        "observations",
+        batch.observations.len(),
+        app.limits.max_batch_samples,
+    )?;
     let observer = app.service.observer();
     // PnP is CPU work (tens of microseconds per observation): off the async workers.
-    let solved = tokio::task::spawn_blocking(move || solve_batch(&observer, &batch.observations))
-        .await
-        .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))?;
+    let solved = blocking(move || solve_batch(&observer, &batch.observations)).await?;
     let (items, poses) = solved.map_err(|problems| {
         invalid(
             format!(
@@ -135,7 +121,14 @@ pub async fn post_observations(
     }))
 }
 
-type Problems = Vec<(Option<usize>, (String, String))>;
+/// Runs CPU work on the blocking pool; a panic in it is a 500.
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))
+}
 
 /// Solves every observation, or lists every problem.
 fn solve_batch(
@@ -389,10 +382,6 @@ pub async fn post_hand_eye(
 ) -> Result<Json<HandEyeOut>, ApiError> {
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     let input: HandEyeIn = parse_json_body(&bytes)?;
-    let out = tokio::task::spawn_blocking(move || input.solve())
-        .await
-        .map_err(|e| {
-            ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string())
-        })??;
+    let out = blocking(move || input.solve()).await??;
     Ok(Json(out))
 }
