@@ -107,11 +107,21 @@ impl CameraModel {
         let inv_z = 1.0 / p.z;
         let xy = Vector2::new(p.x * inv_z, p.y * inv_z);
         let (d, dd) = self.distort(xy);
-        let uv = Vector2::new(self.fx_px * d.x + self.cx_px, self.fy_px * d.y + self.cy_px);
+        let uv = self.pixel_of_distorted(d);
         // d(x, y)/dp = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
         let dn = Matrix2x3::new(inv_z, 0.0, -xy.x * inv_z, 0.0, inv_z, -xy.y * inv_z);
         let scale = Matrix2::new(self.fx_px, 0.0, 0.0, self.fy_px);
         Some((uv, scale * dd * dn))
+    }
+
+    /// The pixel of normalized coordinates `(X/Z, Y/Z)`, whatever the sign of Z (the central
+    /// projection's equations alone).
+    pub fn pixel_of_normalized(&self, xy: Vector2<f64>) -> Vector2<f64> {
+        self.pixel_of_distorted(self.distort(xy).0)
+    }
+
+    fn pixel_of_distorted(&self, d: Vector2<f64>) -> Vector2<f64> {
+        Vector2::new(self.fx_px * d.x + self.cx_px, self.fy_px * d.y + self.cy_px)
     }
 
     /// The normalized, undistorted coordinates `(X/Z, Y/Z)` of a measured pixel.

@@ -10,11 +10,15 @@ use crate::chain::LinkId;
 use crate::config::{Installation, LinkKind};
 use crate::geometry::Vec3;
 use nalgebra::Vector2;
-use std::collections::HashMap;
+use std::borrow::Cow;
 
 /// A camera-marker pair that forms a measured link.
 #[derive(Debug, Clone)]
 pub struct ObservedLink {
+    /// The camera's frame.
+    pub camera_frame: String,
+    /// The marker's frame.
+    pub marker_frame: String,
     /// The link `<camera>_from_<marker>`.
     pub link: LinkId,
     /// Its name.
@@ -52,7 +56,8 @@ impl ObservationError {
 /// Solves observations of an installation's markers.
 #[derive(Debug, Clone, Default)]
 pub struct Observer {
-    by_pair: HashMap<(String, String), ObservedLink>,
+    /// A handful per installation: a scan finds one without building a key.
+    links: Vec<ObservedLink>,
     cameras: Vec<String>,
     markers: Vec<String>,
 }
@@ -60,7 +65,7 @@ pub struct Observer {
 impl Observer {
     /// Every camera-marker link of the installation.
     pub fn new(installation: &Installation) -> Self {
-        let mut by_pair = HashMap::new();
+        let mut links = Vec::new();
         for spec in &installation.links {
             if !matches!(spec.kind, LinkKind::Measured(_)) {
                 continue;
@@ -78,21 +83,20 @@ impl Observer {
                     inlier_threshold_px: installation.pnp.inlier_threshold_px,
                     ..PnpOptions::default()
                 };
-                by_pair.insert(
-                    (parent, child),
-                    ObservedLink {
-                        link: spec.id,
-                        name: spec.name.clone(),
-                        camera: CameraModel::from(camera),
-                        points_mm: marker.points_mm.iter().map(|p| Vec3::from(*p)).collect(),
-                        ids: marker.ids.clone(),
-                        options,
-                    },
-                );
+                links.push(ObservedLink {
+                    camera_frame: parent,
+                    marker_frame: child,
+                    link: spec.id,
+                    name: spec.name.clone(),
+                    camera: CameraModel::from(camera),
+                    points_mm: marker.points_mm.iter().map(|p| Vec3::from(*p)).collect(),
+                    ids: marker.ids.clone(),
+                    options,
+                });
             }
         }
         Self {
-            by_pair,
+            links,
             cameras: installation
                 .cameras
                 .iter()
@@ -108,7 +112,7 @@ impl Observer {
 
     /// The observable links.
     pub fn links(&self) -> impl Iterator<Item = &ObservedLink> {
-        self.by_pair.values()
+        self.links.iter()
     }
 
     /// The link a camera and a marker form.
@@ -131,8 +135,9 @@ impl Observer {
                 ),
             ));
         }
-        self.by_pair
-            .get(&(camera.to_owned(), marker.to_owned()))
+        self.links
+            .iter()
+            .find(|l| l.camera_frame == camera && l.marker_frame == marker)
             .ok_or_else(|| {
                 ObservationError::new(
                     "marker",
@@ -150,7 +155,7 @@ impl Observer {
         ids: Option<&[u32]>,
     ) -> Result<(&ObservedLink, PnpSolution), ObservationError> {
         let link = self.link(camera, marker)?;
-        let marker_points: Vec<Vec3> = match ids {
+        let marker_points: Cow<'_, [Vec3]> = match ids {
             None => {
                 if points_px.len() != link.points_mm.len() {
                     return Err(ObservationError::new(
@@ -162,7 +167,7 @@ impl Observer {
                         ),
                     ));
                 }
-                link.points_mm.clone()
+                Cow::Borrowed(&link.points_mm)
             }
             Some(ids) => {
                 if ids.len() != points_px.len() {
@@ -188,7 +193,7 @@ impl Observer {
                     })?;
                     out.push(link.points_mm[k]);
                 }
-                out
+                Cow::Owned(out)
             }
         };
         let pixels: Vec<Vector2<f64>> =

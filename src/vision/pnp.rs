@@ -91,11 +91,22 @@ pub fn solve_pnp(
     options: &PnpOptions,
 ) -> Result<PnpSolution, VisionError> {
     check_input(marker_points_mm, image_points_px)?;
-    let first = solve_all(camera, marker_points_mm, image_points_px, options);
+    let normalized = undistort_all(camera, image_points_px)?;
+    let first = solve_all(
+        camera,
+        marker_points_mm,
+        image_points_px,
+        &normalized,
+        options,
+    );
     match first {
-        Err(VisionError::ReprojectionTooLarge { .. }) if options.robust => {
-            solve_ransac(camera, marker_points_mm, image_points_px, options)
-        }
+        Err(VisionError::ReprojectionTooLarge { .. }) if options.robust => solve_ransac(
+            camera,
+            marker_points_mm,
+            image_points_px,
+            &normalized,
+            options,
+        ),
         other => other,
     }
 }
@@ -170,11 +181,15 @@ pub fn initial_poses(
     image_points_px: &[Vector2<f64>],
 ) -> Result<Vec<Pose>, VisionError> {
     check_input(marker_points_mm, image_points_px)?;
-    let normalized = image_points_px
-        .iter()
-        .map(|p| camera.undistort(*p))
-        .collect::<Result<Vec<_>, _>>()?;
-    initial_from_normalized(marker_points_mm, &normalized)
+    initial_from_normalized(marker_points_mm, &undistort_all(camera, image_points_px)?)
+}
+
+/// The normalized rays `(X/Z, Y/Z)` of measured pixels.
+fn undistort_all(
+    camera: &CameraModel,
+    image: &[Vector2<f64>],
+) -> Result<Vec<Vector2<f64>>, VisionError> {
+    image.iter().map(|p| camera.undistort(*p)).collect()
 }
 
 fn initial_from_normalized(
@@ -319,18 +334,15 @@ fn rms(cost_px2: f64, n: usize) -> f64 {
     (cost_px2 / n as f64).sqrt()
 }
 
-/// Solves with every point.
+/// Solves with every point (`normalized`: the pixels undistorted).
 fn solve_all(
     camera: &CameraModel,
     marker: &[Vec3],
     image: &[Vector2<f64>],
+    normalized: &[Vector2<f64>],
     options: &PnpOptions,
 ) -> Result<PnpSolution, VisionError> {
-    let normalized = image
-        .iter()
-        .map(|p| camera.undistort(*p))
-        .collect::<Result<Vec<_>, _>>()?;
-    let starts = initial_from_normalized(marker, &normalized)?;
+    let starts = initial_from_normalized(marker, normalized)?;
     // Refine the two best starts that put the marker in front of the camera.
     let refine_starts = |starts: &[Pose]| -> Vec<Refinement> {
         starts
@@ -351,7 +363,7 @@ fn solve_all(
     if over_limit(&refined) && shape(marker).is_ok_and(|s| s.planar) {
         let centroid = marker.iter().fold(Vec3::zeros(), |a, p| a + p) / marker.len() as f64;
         let centred: Vec<Vec3> = marker.iter().map(|p| p - centroid).collect();
-        let more: Vec<Pose> = sqpnp::minima(&centred, &normalized)
+        let more: Vec<Pose> = sqpnp::minima(&centred, normalized)
             .iter()
             .map(|m| pose_of(&m.rotation, &(m.t_mm - m.rotation * centroid)))
             .collect();
@@ -397,11 +409,7 @@ fn rms_through_the_centre(
         if p.z == 0.0 {
             return f64::INFINITY;
         }
-        let (d, _) = camera.distort(Vector2::new(p.x / p.z, p.y / p.z));
-        let proj = Vector2::new(
-            camera.fx_px * d.x + camera.cx_px,
-            camera.fy_px * d.y + camera.cy_px,
-        );
+        let proj = camera.pixel_of_normalized(Vector2::new(p.x / p.z, p.y / p.z));
         sum += (proj - uv).norm_squared();
     }
     (sum / marker.len() as f64).sqrt()
@@ -503,6 +511,7 @@ fn solve_ransac(
     camera: &CameraModel,
     marker: &[Vec3],
     image: &[Vector2<f64>],
+    normalized: &[Vector2<f64>],
     options: &PnpOptions,
 ) -> Result<PnpSolution, VisionError> {
     let n = marker.len();
@@ -515,10 +524,6 @@ fn solve_ransac(
     if n <= MIN_POINTS {
         return Err(no_consensus());
     }
-    let normalized = image
-        .iter()
-        .map(|p| camera.undistort(*p))
-        .collect::<Result<Vec<_>, _>>()?;
     let threshold2 = options.inlier_threshold_px * options.inlier_threshold_px;
     let inliers_of = |pose: &Pose| -> Vec<usize> {
         (0..n)
@@ -561,14 +566,11 @@ fn solve_ransac(
     // Refine on the consensus, then take the consensus of the refined pose and refine again,
     // until it settles (three rounds at most).
     let mut kept = best;
-    let plain = PnpOptions {
-        robust: false,
-        ..*options
-    };
     for round in 0..3 {
         let m: Vec<Vec3> = kept.iter().map(|&i| marker[i]).collect();
         let px: Vec<Vector2<f64>> = kept.iter().map(|&i| image[i]).collect();
-        let solution = solve_all(camera, &m, &px, &plain)?;
+        let rays: Vec<Vector2<f64>> = kept.iter().map(|&i| normalized[i]).collect();
+        let solution = solve_all(camera, &m, &px, &rays, options)?;
         let again = inliers_of(&solution.camera_from_marker);
         if round == 2 || again == kept || again.len() < needed {
             return Ok(PnpSolution {
