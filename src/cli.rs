@@ -565,20 +565,10 @@ async fn simulate(
     feed: crate::feed::FeedSettings,
 ) -> anyhow::Result<crate::feed::FeedSummary> {
     let mut sim = crate::sim::Simulator::new(installation, settings)?;
-    let observer = crate::vision::Observer::new(installation);
     let stop = Box::pin(async {
         let _ = tokio::signal::ctrl_c().await;
     });
-    crate::feed::feed(
-        &mut sim,
-        &observer,
-        sink,
-        truth,
-        feed,
-        stop,
-        async |_, _| Ok(()),
-    )
-    .await
+    crate::feed::feed(&mut sim, sink, truth, feed, stop, async |_, _| Ok(())).await
 }
 
 /// `brokenray demo`: the service and the simulator in one process, talking HTTP.
@@ -595,7 +585,6 @@ async fn demo(
     let recordings = installation.rerun.recordings_dir.clone();
     let database = installation.server.database.clone();
     let mut sim = crate::sim::Simulator::new(&installation, settings)?;
-    let observer = crate::vision::Observer::new(&installation);
     let app = crate::api::App::build(installation).await?;
     let addr = app.local_addr()?;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
@@ -627,7 +616,6 @@ async fn demo(
     let mut reference_set = false;
     let result = crate::feed::feed(
         &mut sim,
-        &observer,
         crate::feed::Sink::Http(client),
         None,
         crate::feed::FeedSettings {

@@ -7,6 +7,7 @@
 
 use crate::api::dto::PoseOut;
 use crate::api::time::format_ns;
+use crate::api::vision::ObservationIn;
 use crate::sim::{SimGroup, Simulator};
 use crate::vision::Observer;
 use anyhow::{Context as _, bail};
@@ -23,14 +24,21 @@ pub enum Emit {
     Samples,
 }
 
-/// The observations of a group, as `/observations` items.
+/// The observations of a group, as `/observations` items (the API's own type).
 pub fn observation_items(group: &SimGroup) -> Vec<Value> {
+    let time = Value::String(format_ns(group.time_ns));
     group
         .observations
         .iter()
-        .map(|o| {
-            json!({"camera": o.camera, "marker": o.marker, "time": format_ns(group.time_ns),
-                   "points_px": o.points_px})
+        .filter_map(|o| {
+            serde_json::to_value(ObservationIn {
+                camera: o.camera.clone(),
+                marker: o.marker.clone(),
+                time: time.clone(),
+                points_px: o.points_px.clone(),
+                ids: None,
+            })
+            .ok()
         })
         .collect()
 }
@@ -167,7 +175,6 @@ pub struct FeedSummary {
 /// resolves. `on_group` sees every group after it is sent (the demo sets its reference there).
 pub async fn feed(
     sim: &mut Simulator,
-    observer: &Observer,
     mut sink: Sink,
     mut truth: Option<std::io::BufWriter<std::fs::File>>,
     settings: FeedSettings,
@@ -199,7 +206,7 @@ pub async fn feed(
         let group = sim.next_group();
         let items = match settings.emit {
             Emit::Observations => observation_items(&group),
-            Emit::Samples => sample_items(&group, observer),
+            Emit::Samples => sample_items(&group, sim.observer()),
         };
         if let Some(t) = truth.as_mut() {
             writeln!(t, "{}", truth_line(&group)).context("cannot write the truth file")?;

@@ -30,7 +30,7 @@ pub use motion::GaussMarkov2;
 use crate::chain::FrameId;
 use crate::config::{Installation, LinkKind};
 use crate::geometry::{ARCSEC_PER_RAD, Pose, ReportedSigmas, Twist, se3_exp};
-use crate::vision::Observer;
+use crate::vision::{ObservedLink, Observer};
 use nalgebra::Point3;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -159,6 +159,18 @@ enum Role {
     Station,
 }
 
+/// A measured link as the simulator sees it: its frames, its default noise, and how a camera
+/// observes it (resolved once, at construction).
+#[derive(Debug, Clone)]
+struct SimLink {
+    name: String,
+    parent: FrameId,
+    child: FrameId,
+    sigma: ReportedSigmas,
+    /// The camera-marker pair, when the installation has both models; a pose sample otherwise.
+    observed: Option<ObservedLink>,
+}
+
 /// Generates groups of an installation, one after another.
 pub struct Simulator {
     settings: SimSettings,
@@ -166,10 +178,9 @@ pub struct Simulator {
     world_from_frame0: Vec<Pose>,
     frame_body: Vec<usize>,
     bodies: Vec<Body>,
-    measured: Vec<(String, FrameId, FrameId, Option<ReportedSigmas>)>,
+    measured: Vec<SimLink>,
     targets: Vec<(String, FrameId, FrameId)>,
     bumped: Option<usize>,
-    frame_names: Vec<String>,
     rng: StdRng,
     index: u64,
     last_t_s: f64,
@@ -302,18 +313,20 @@ impl Simulator {
         let bumped = (settings.scenario == Scenario::Bump)
             .then(|| bodies.iter().position(|b| b.role == Role::Station))
             .flatten();
+        let observer = Observer::new(installation);
         let measured = installation
             .links
             .iter()
             .filter_map(|spec| match &spec.kind {
                 LinkKind::Measured(m) => {
                     let ends = topo.link(spec.id);
-                    Some((
-                        spec.name.clone(),
-                        ends.parent,
-                        ends.child,
-                        Some(m.default_sigmas),
-                    ))
+                    Some(SimLink {
+                        name: spec.name.clone(),
+                        parent: ends.parent,
+                        child: ends.child,
+                        sigma: m.default_sigmas,
+                        observed: observer.links().find(|l| l.link == spec.id).cloned(),
+                    })
                 }
                 LinkKind::Calibrated { .. } => None,
             })
@@ -325,14 +338,13 @@ impl Simulator {
             .collect();
         Ok(Self {
             settings,
-            observer: Observer::new(installation),
+            observer,
             world_from_frame0,
             frame_body,
             bodies,
             measured,
             targets,
             bumped,
-            frame_names: topo.frames().to_vec(),
             rng,
             index: 0,
             last_t_s: 0.0,
@@ -407,7 +419,7 @@ impl Simulator {
         let link_truth: Vec<(String, Pose)> = self
             .measured
             .iter()
-            .map(|(name, p, c, _)| (name.clone(), world(*p).inverse() * world(*c)))
+            .map(|l| (l.name.clone(), world(l.parent).inverse() * world(l.child)))
             .collect();
         let truth = self
             .targets
@@ -416,10 +428,8 @@ impl Simulator {
             .collect();
         let mut observations = Vec::new();
         let mut samples = Vec::new();
-        for ((name, p, c, sigma), (_, camera_from_marker)) in self.measured.iter().zip(&link_truth)
-        {
-            let topo_names = (self.frame_name(*p), self.frame_name(*c));
-            if let Ok(link) = self.observer.link(&topo_names.0, &topo_names.1) {
+        for (simulated, (_, camera_from_marker)) in self.measured.iter().zip(&link_truth) {
+            if let Some(link) = &simulated.observed {
                 let sigma_px = self
                     .settings
                     .pixel_sigma_px
@@ -447,12 +457,13 @@ impl Simulator {
                     })
                     .collect();
                 observations.push(SimObservation {
-                    camera: topo_names.0,
-                    marker: topo_names.1,
+                    camera: link.camera_frame.clone(),
+                    marker: link.marker_frame.clone(),
                     points_px,
                     outlier,
                 });
-            } else if let Some(sigma) = sigma {
+            } else {
+                let sigma = &simulated.sigma;
                 let r = sigma.rotation_arcsec.map(|s| s / ARCSEC_PER_RAD);
                 let t = sigma.translation_mm;
                 let mut draw = || self.rng.sample::<f64, _>(StandardNormal);
@@ -465,7 +476,7 @@ impl Simulator {
                     r[2] * draw(),
                 );
                 samples.push(SimSample {
-                    link: name.clone(),
+                    link: simulated.name.clone(),
                     pose: se3_exp(&xi) * camera_from_marker,
                     sigma: *sigma,
                 });
@@ -480,7 +491,8 @@ impl Simulator {
         }
     }
 
-    fn frame_name(&self, f: FrameId) -> String {
-        self.frame_names[f.0].clone()
+    /// The installation's camera-marker links (to solve the observations it generates).
+    pub fn observer(&self) -> &Observer {
+        &self.observer
     }
 }
