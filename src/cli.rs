@@ -171,10 +171,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         Command::DefaultConfig => out.write_all(config::DEFAULT_INSTALLATION_TOML.as_bytes())?,
         Command::Serve { config } => {
             let installation = config::load_or_default(config.as_deref())?;
-            let runtime = tokio::runtime::Builder::new_multi_thread()
-                .enable_all()
-                .build()
-                .context("cannot start the async runtime")?;
+            let runtime = runtime(true)?;
             runtime.block_on(serve(installation))?;
         }
         Command::Backup {
@@ -190,10 +187,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 out_file.display()
             )?;
             out.flush()?;
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-                .context("cannot start the async runtime")?;
+            let runtime = runtime(false)?;
             let started = std::time::Instant::now();
             let bytes = runtime
                 .block_on(crate::store::backup(&database, &out_file))
@@ -276,10 +270,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 .map(|p| create_new(p).map(std::io::BufWriter::new))
                 .transpose()?;
             let real_time = to.is_some() && !fast;
-            let runtime = tokio::runtime::Builder::new_multi_thread()
-                .enable_all()
-                .build()
-                .context("cannot start the async runtime")?;
+            let runtime = runtime(true)?;
             let summary = runtime.block_on(simulate(
                 &installation,
                 settings,
@@ -373,10 +364,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 outlier_rate: 0.002,
                 seed: 1,
             };
-            let runtime = tokio::runtime::Builder::new_multi_thread()
-                .enable_all()
-                .build()
-                .context("cannot start the async runtime")?;
+            let runtime = runtime(true)?;
             runtime.block_on(demo(installation, settings, out))?;
         }
         Command::HashToken { token } => {
@@ -432,10 +420,7 @@ fn replay(
         database.display()
     );
     let installation = std::sync::Arc::new(installation);
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the async runtime")?;
+    let runtime = runtime(false)?;
     runtime.block_on(async {
         let (store, write) = crate::store::open(&installation, crate::service::now_ns())
             .await
@@ -523,6 +508,19 @@ fn filter_model_for(scenario: crate::sim::Scenario) -> crate::filter::MotionMode
         Scenario::Drift | Scenario::Tunnel => MotionModel::ConstantVelocity,
         Scenario::Static | Scenario::Bump => MotionModel::Static,
     }
+}
+
+/// The async runtime of a subcommand: all cores for the service, one thread for a tool.
+fn runtime(multi_thread: bool) -> anyhow::Result<tokio::runtime::Runtime> {
+    let mut builder = if multi_thread {
+        tokio::runtime::Builder::new_multi_thread()
+    } else {
+        tokio::runtime::Builder::new_current_thread()
+    };
+    builder
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")
 }
 
 fn now_ns() -> i64 {
