@@ -4,7 +4,7 @@
 mod common;
 
 use approx::assert_relative_eq;
-use brokenray::chain::{Topology, chi_square_quantile, compose_path, fuse};
+use brokenray::chain::{Topology, compose_path, fuse};
 use brokenray::geometry::{
     ARCSEC_PER_RAD, Mat3, Mat6, Pose, PoseCov, Twist, Vec3, rotation_from_euler, se3_log,
 };
@@ -117,14 +117,7 @@ fn propagated_covariance_agrees_with_a_monte_carlo_of_the_chain() {
         nees_sum += (e.transpose() * info * e)[(0, 0)];
     }
     // The summed NEES is chi-square with 6 * trials degrees of freedom.
-    let dof = 6 * trials;
-    let lower = chi_square_quantile(dof, 0.005);
-    let upper = chi_square_quantile(dof, 0.995);
-    assert!(
-        (lower..=upper).contains(&nees_sum),
-        "summed NEES {nees_sum:.0} outside its 99 % bounds [{lower:.0}, {upper:.0}] (mean {:.3}, expected 6)",
-        nees_sum / trials as f64
-    );
+    common::assert_summed_nees_within(nees_sum, trials, 0.005);
 }
 
 /// A straight chain of n links, each `i+1_from_i` a translation of L along z, composed and read

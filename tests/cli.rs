@@ -9,6 +9,15 @@ fn brokenray(args: &[&str]) -> std::process::Output {
         .expect("the binary runs")
 }
 
+/// Every line of an NDJSON file.
+fn read_ndjson(path: &std::path::Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
 #[test]
 fn check_config_prints_the_built_in_topology_with_link_directions() {
     let out = brokenray(&["check-config"]);
@@ -151,21 +160,13 @@ fn simulate_writes_observations_or_samples_with_the_ground_truth() {
         "{}",
         String::from_utf8_lossy(&run.stderr)
     );
-    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&out)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = read_ndjson(&out);
     // 20 groups of the three camera-marker links.
     assert_eq!(lines.len(), 60);
     assert_eq!(lines[0]["time"], "2026-11-21T10:00:00Z");
     assert_eq!(lines[59]["time"], "2026-11-21T10:00:01.9Z");
     assert_eq!(lines[1]["points_px"].as_array().unwrap().len(), 7);
-    let truth_lines: Vec<serde_json::Value> = std::fs::read_to_string(&truth)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let truth_lines = read_ndjson(&truth);
     assert_eq!(truth_lines.len(), 20);
     // Tunnel creep moves the target: 20 um/s over 1.9 s.
     let t = |k: usize, i: usize| truth_lines[k]["targets"]["G"]["t_mm"][i].as_f64().unwrap();
@@ -199,14 +200,7 @@ fn simulate_writes_observations_or_samples_with_the_ground_truth() {
         samples.to_str().unwrap(),
     ]);
     assert!(run.status.success());
-    let first: serde_json::Value = serde_json::from_str(
-        std::fs::read_to_string(&samples)
-            .unwrap()
-            .lines()
-            .next()
-            .unwrap(),
-    )
-    .unwrap();
+    let first = read_ndjson(&samples).swap_remove(0);
     assert_eq!(first["link"], "C1_from_B");
     assert_eq!(first["covariance"].as_array().unwrap().len(), 36);
     assert!(first["quality"]["reprojection_rms_px"].as_f64().unwrap() < 0.5);

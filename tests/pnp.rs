@@ -3,9 +3,9 @@
 
 mod common;
 
-use brokenray::chain::chi_square_quantile;
-use brokenray::geometry::{Mat6, Pose, Rotation, Vec3, se3_log};
+use brokenray::geometry::{Pose, Rotation, Vec3};
 use brokenray::vision::{CameraModel, PnpOptions, VisionError, solve_pnp};
+use common::{assert_summed_nees_within, nees};
 use nalgebra::{Point3, Translation3, Vector2};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -71,11 +71,6 @@ fn project_all(camera: &CameraModel, pose: &Pose, points: &[Vec3]) -> Vec<Vector
                 .expect("the synthetic marker is in front of the camera")
         })
         .collect()
-}
-
-/// The left-perturbation error `Log(estimate * truth^-1)`.
-fn error_of(estimate: &Pose, truth: &Pose) -> nalgebra::Vector6<f64> {
-    se3_log(&(estimate * truth.inverse()))
 }
 
 struct Case {
@@ -184,19 +179,9 @@ fn with_pixel_noise_the_error_lies_within_the_reported_covariance() {
             .map(|p| p + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng)))
             .collect();
         let s = solve_pnp(&camera, &points, &pixels, &options).expect("solvable");
-        let e = error_of(&s.camera_from_marker, &truth);
-        let info: Mat6 = s.covariance.try_inverse().expect("invertible covariance");
-        nees_sum += (e.transpose() * info * e)[(0, 0)];
+        nees_sum += nees(&s.camera_from_marker, &truth, &s.covariance);
     }
-    let dof = 6 * trials;
-    let (lower, upper) = (
-        chi_square_quantile(dof, 0.005),
-        chi_square_quantile(dof, 0.995),
-    );
-    assert!(
-        (lower..=upper).contains(&nees_sum),
-        "summed NEES {nees_sum:.1} outside the 99 % bounds [{lower:.1}, {upper:.1}] of chi2({dof})"
-    );
+    assert_summed_nees_within(nees_sum, trials, 0.005);
 }
 
 #[test]

@@ -46,3 +46,24 @@ pub fn sample_twist(rng: &mut StdRng, cov: &Mat6) -> Twist {
 pub fn perturb(rng: &mut StdRng, pose: &Pose, cov: &Mat6) -> Pose {
     se3_exp(&sample_twist(rng, cov)) * pose
 }
+
+/// The normalized estimation error squared of an estimate against the truth:
+/// `e^T cov^-1 e` with `e = Log(estimate * truth^-1)`, the left perturbation of the covariance.
+pub fn nees(estimate: &Pose, truth: &Pose, cov: &Mat6) -> f64 {
+    let e = brokenray::geometry::se3_log(&(estimate * truth.inverse()));
+    let info = cov.try_inverse().expect("an invertible covariance");
+    (e.transpose() * info * e)[(0, 0)]
+}
+
+/// Asserts that a NEES summed over `trials` 6-dof estimates lies between the chi-square
+/// quantiles `tail` and `1 - tail` of `6 * trials` degrees of freedom.
+pub fn assert_summed_nees_within(nees_sum: f64, trials: usize, tail: f64) {
+    let dof = 6 * trials;
+    let lower = brokenray::chain::chi_square_quantile(dof, tail);
+    let upper = brokenray::chain::chi_square_quantile(dof, 1.0 - tail);
+    assert!(
+        (lower..=upper).contains(&nees_sum),
+        "summed NEES {nees_sum:.1} outside [{lower:.1}, {upper:.1}] of chi2({dof}) (mean {:.3}, expected 6)",
+        nees_sum / trials as f64
+    );
+}
