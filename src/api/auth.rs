@@ -2,7 +2,9 @@
 //! configuration, each with scopes `read`, `ingest`, `admin`. Without configured tokens every
 //! request is accepted (the server then listens on loopback only; see [`crate::api::App`]).
 //! `/healthz` is open to all: health checks carry no token, and it tells only whether the
-//! service works.
+//! service works. So are the dashboard's page and files (`/`, `/assets/...`): a browser cannot
+//! put a token on a page load, and they hold no data (the page sends the token with its API
+//! calls).
 
 use super::error::ApiError;
 use crate::config::{Scope, TokenSpec};
@@ -40,7 +42,8 @@ pub async fn require_token(
     request: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
-    if tokens.is_empty() || request.uri().path() == "/healthz" {
+    let path = request.uri().path();
+    if tokens.is_empty() || path == "/healthz" || super::dashboard::is_dashboard_path(path) {
         return Ok(next.run(request).await);
     }
     let given = request

@@ -7,6 +7,7 @@
 
 pub mod alarms;
 pub mod auth;
+pub mod dashboard;
 pub mod dto;
 pub mod error;
 pub mod events;
@@ -156,6 +157,7 @@ async fn api_not_found(uri: axum::http::Uri) -> ApiError {
         (name = "alarms", description = "Alarm transitions"),
         (name = "events", description = "Live results and alarms"),
         (name = "operations", description = "Health, metrics, this document"),
+        (name = "dashboard", description = "The web dashboard's page and files (open: they hold no data)"),
     )
 )]
 struct ApiDoc;
@@ -209,6 +211,8 @@ fn routes() -> OpenApiRouter<AppState> {
         .nest("/api/v1", api)
         .routes(routes!(healthz))
         .routes(routes!(metrics::get_metrics))
+        .routes(routes!(dashboard::get_index))
+        .routes(routes!(dashboard::get_asset))
 }
 
 /// The document, set by the first [`router`] (or [`openapi`]) from the same registrations.

@@ -43,6 +43,27 @@ pub struct PathOut {
     pub steps: Vec<StepOut>,
     /// The product it computes, `G_from_C3 * ... * C1_from_B`.
     pub product: String,
+    /// The frames it passes, from the base to the target (one more than the steps: step `i`
+    /// joins `frames[i]` and `frames[i + 1]`).
+    pub frames: Vec<String>,
+}
+
+/// A target's deformation thresholds (`null` where not checked): against the magnitude of the
+/// deformation's rotation and translation.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ThresholdsOut {
+    /// Warn at this rotation magnitude (arc-seconds).
+    pub warn_rotation_arcsec: Option<f64>,
+    /// Alarm at this rotation magnitude (arc-seconds).
+    pub alarm_rotation_arcsec: Option<f64>,
+    /// Warn at this translation magnitude (mm).
+    pub warn_translation_mm: Option<f64>,
+    /// Alarm at this translation magnitude (mm).
+    pub alarm_translation_mm: Option<f64>,
+    /// Alarm at this rate of rotation (arc-seconds per second).
+    pub rate_rotation_arcsec_per_s: Option<f64>,
+    /// Alarm at this rate of translation (mm per second).
+    pub rate_translation_mm_per_s: Option<f64>,
 }
 
 /// A target as listed.
@@ -60,6 +81,8 @@ pub struct TargetOut {
     pub paths: Vec<PathOut>,
     /// Further paths sharing a link with one above (not fused).
     pub dependent_paths: Vec<PathOut>,
+    /// Its alarm thresholds.
+    pub alarms: ThresholdsOut,
 }
 
 /// `GET /api/v1/targets`.
@@ -71,6 +94,7 @@ pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
     let snapshot = app.service.snapshot();
     let topo = &inst.topology;
     let path_out = |p: &crate::chain::Path| PathOut {
+        frames: path_frames(topo, p),
         steps: p
             .steps
             .iter()
@@ -97,10 +121,36 @@ pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
                     time: latest.map(|l| format_ns(l.time_ns)),
                     paths: t.resolution.paths.iter().map(path_out).collect(),
                     dependent_paths: t.resolution.dependent_paths.iter().map(path_out).collect(),
+                    alarms: ThresholdsOut {
+                        warn_rotation_arcsec: t.alarms.warn_rotation_arcsec,
+                        alarm_rotation_arcsec: t.alarms.alarm_rotation_arcsec,
+                        warn_translation_mm: t.alarms.warn_translation_mm,
+                        alarm_translation_mm: t.alarms.alarm_translation_mm,
+                        rate_rotation_arcsec_per_s: t.alarms.rate_rotation_arcsec_per_s,
+                        rate_translation_mm_per_s: t.alarms.rate_translation_mm_per_s,
+                    },
                 }
             })
             .collect(),
     )
+}
+
+/// The frames a path passes from its base: a forward step `parent_from_child` goes from its
+/// child to its parent, an inverted one back.
+fn path_frames(topo: &crate::chain::Topology, p: &crate::chain::Path) -> Vec<String> {
+    let mut frames = Vec::with_capacity(p.steps.len() + 1);
+    for (i, s) in p.steps.iter().enumerate() {
+        let link = topo.link(s.link);
+        let (from, to) = match s.direction {
+            Direction::Forward => (link.child, link.parent),
+            Direction::Inverse => (link.parent, link.child),
+        };
+        if i == 0 {
+            frames.push(topo.frame_name(from).to_owned());
+        }
+        frames.push(topo.frame_name(to).to_owned());
+    }
+    frames
 }
 
 /// A reference as answered.

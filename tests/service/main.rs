@@ -2,6 +2,7 @@
 
 mod access;
 mod alarms;
+mod dashboard;
 mod helpers;
 mod history;
 mod ingest_errors;

@@ -31,7 +31,7 @@ fn concrete(path: &str) -> String {
     } else {
         "C1_from_B"
     };
-    path.replace("{name}", name)
+    path.replace("{name}", name).replace("{file}", "app.js")
 }
 
 /// The status, and the JSON body unless the answer is an event stream (which never ends).

@@ -1,0 +1,203 @@
+// Drives the dashboard in Chromium against a running service that already holds history.
+//
+//   node dashboard.mjs BASE_URL LIVE_JSON ARTIFACT_DIR
+//
+// LIVE_JSON: groups of observations without times ([[{camera, marker, points_px}, ...], ...]),
+// posted here with the current time to play a live measurement. Each check that fails throws
+// with what it saw; the exit status is 0 only when every check passed. Run by
+// tests/service/dashboard.rs, which starts the service and writes the files.
+import { chromium } from 'playwright-core';
+import { readFileSync, mkdirSync } from 'node:fs';
+import { join } from 'node:path';
+
+const [base, liveFile, artifacts] = process.argv.slice(2);
+if (!base || !liveFile || !artifacts) {
+  console.error('usage: node dashboard.mjs BASE_URL LIVE_JSON ARTIFACT_DIR');
+  process.exit(2);
+}
+const liveGroups = JSON.parse(readFileSync(liveFile, 'utf8'));
+mkdirSync(artifacts, { recursive: true });
+
+const executablePath = process.env.BROKENRAY_CHROMIUM || '/usr/bin/chromium';
+const browser = await chromium.launch({
+  executablePath,
+  args: ['--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
+    '--disable-background-networking', '--disable-component-update', '--disable-sync'],
+});
+
+const problems = [];
+const log = (...a) => console.log('dashboard:', ...a);
+function check(ok, what) {
+  if (!ok) throw new Error(what);
+  log('ok -', what);
+}
+
+try {
+  const context = await browser.newContext({ viewport: { width: 1440, height: 900 }, acceptDownloads: true });
+  const page = await context.newPage();
+  page.on('console', (m) => {
+    if (m.type() === 'error' || m.type() === 'warning') problems.push(`console ${m.type()}: ${m.text()}`);
+  });
+  page.on('pageerror', (e) => problems.push('page error: ' + e.message));
+  const historyRequests = [];
+  page.on('request', (r) => {
+    if (r.url().includes('/history?')) historyRequests.push(new URL(r.url()));
+  });
+
+  // 1. The page loads, and the card shows the current compensation.
+  await page.goto(base + '/', { waitUntil: 'load' });
+  await page.waitForSelector('article.card[data-target="G"]:not([data-time=""])[data-time]', { timeout: 15000 });
+  const defX = await page.textContent('[data-target="G"] [data-f="def-r-x"]');
+  check(Number.isFinite(Number(defX)), `the card shows a deformation: rotation x is "${defX}"`);
+  const refBefore = Number(await page.getAttribute('[data-target="G"] [data-f="ref"]', 'data-version'));
+  check(refBefore === 1, `the card shows the reference set before the page opened: version ${refBefore}`);
+
+  // 2. The plots draw data: pixels of the series colours on both canvases.
+  await page.waitForFunction(() => Number(document.body.dataset.historyLoads || 0) >= 1, null, { timeout: 15000 });
+  const seriesPixels = (selector) => page.evaluate((sel) => {
+    const canvas = document.querySelector(sel + ' canvas');
+    if (!canvas) return -1;
+    const style = getComputedStyle(document.documentElement);
+    const colours = ['--x', '--y', '--z'].map((v) => {
+      const hex = style.getPropertyValue(v).trim();
+      return [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16));
+    });
+    const { data } = canvas.getContext('2d').getImageData(0, 0, canvas.width, canvas.height);
+    let n = 0;
+    for (let i = 0; i < data.length; i += 4) {
+      for (const c of colours) {
+        if (Math.abs(data[i] - c[0]) + Math.abs(data[i + 1] - c[1]) + Math.abs(data[i + 2] - c[2]) < 60 && data[i + 3] > 200) {
+          n++;
+          break;
+        }
+      }
+    }
+    return n;
+  }, selector);
+  const rotPixels = await seriesPixels('#plot-rot');
+  const trPixels = await seriesPixels('#plot-tr');
+  check(rotPixels > 300 && trPixels > 300,
+    `the plots draw series: ${rotPixels} and ${trPixels} pixels of the series colours`);
+  const emptyShown = await page.isVisible('#empty-rot');
+  check(!emptyShown, 'the rotation plot has no "no data" notice');
+
+  // 3. Live: a new result changes the card.
+  const before = {
+    time: await page.getAttribute('[data-target="G"]', 'data-time'),
+    pose: await page.textContent('[data-target="G"] [data-f="pose-t-x"]'),
+  };
+  for (const group of liveGroups) {
+    const time = new Date().toISOString();
+    const response = await fetch(base + '/api/v1/observations', {
+      method: 'POST',
+      headers: { 'Content-Type': 'application/json' },
+      body: JSON.stringify({ observations: group.map((o) => Object.assign({ time }, o)) }),
+    });
+    if (!response.ok) throw new Error('posting a live observation: ' + response.status + ' ' + await response.text());
+    await new Promise((r) => setTimeout(r, 40));
+  }
+  await page.waitForFunction((t) => document.querySelector('[data-target="G"]').dataset.time !== t,
+    before.time, { timeout: 10000 });
+  const after = {
+    time: await page.getAttribute('[data-target="G"]', 'data-time'),
+    pose: await page.textContent('[data-target="G"] [data-f="pose-t-x"]'),
+  };
+  check(Date.parse(after.time.slice(0, 23) + 'Z') > Date.parse(before.time.slice(0, 23) + 'Z') && after.pose !== before.pose,
+    `the card follows the live results: ${before.time} ${before.pose} mm -> ${after.time} ${after.pose} mm`);
+
+  // 4. The range picker asks for the chosen range.
+  const loads = async () => Number(await page.getAttribute('body', 'data-history-loads'));
+  let n0 = await loads();
+  let r0 = historyRequests.length;
+  await page.click('button[data-range="3600"]');
+  await page.waitForFunction((n) => Number(document.body.dataset.historyLoads) > n, n0, { timeout: 10000 });
+  const hourRequests = historyRequests.slice(r0);
+  const spans = hourRequests.map((u) => (Date.parse(u.searchParams.get('to')) - Date.parse(u.searchParams.get('from'))) / 1000);
+  check(hourRequests.length >= 2 && spans.every((s) => Math.abs(s - 3600) < 5),
+    `"1 h" asks for an hour of raw and filtered history: spans ${spans.join(', ')} s`);
+  const pressed = await page.getAttribute('button[data-range="3600"]', 'aria-pressed');
+  check(pressed === 'true', 'the "1 h" button shows as pressed');
+
+  // 5. Zoom: a drag over the plot selects a window; "Zoom in" asks for it at a finer resolution.
+  const hourBucket = await page.evaluate(() => document.getElementById('history-info').textContent);
+  const over = await page.locator('#plot-rot .u-over').boundingBox();
+  const dragTo = async (fromFrac, toFrac) => {
+    await page.mouse.move(over.x + over.width * fromFrac, over.y + over.height / 2);
+    await page.mouse.down();
+    await page.mouse.move(over.x + over.width * ((fromFrac + toFrac) / 2), over.y + over.height / 2, { steps: 4 });
+    await page.mouse.move(over.x + over.width * toFrac, over.y + over.height / 2, { steps: 4 });
+    await page.mouse.up();
+  };
+  await dragTo(0.97, 0.995);
+  await page.waitForSelector('#selection:not([hidden])', { timeout: 5000 });
+  n0 = await loads();
+  r0 = historyRequests.length;
+  const zoomResponse = page.waitForResponse((r) => r.url().includes('/history?') && r.url().includes('source=filtered'));
+  await page.click('#selection-zoom');
+  const zoomed = await (await zoomResponse).json();
+  await page.waitForFunction((n) => Number(document.body.dataset.historyLoads) > n, n0, { timeout: 10000 });
+  const zoomSpan = historyRequests.slice(r0).map((u) => (Date.parse(u.searchParams.get('to')) - Date.parse(u.searchParams.get('from'))) / 1000);
+  check(zoomSpan.length >= 2 && zoomSpan.every((s) => s > 30 && s < 200),
+    `zooming in asks for the selected window: spans ${zoomSpan.join(', ')} s`);
+  check(zoomed.bucket_s < 0.5 && zoomed.resolution_s === null,
+    `the zoomed history is finer: buckets of ${zoomed.bucket_s} s from the results (1 h: ${hourBucket})`);
+  check(!(await page.isDisabled('#zoom-out')), 'zoom out is offered');
+  const zoomedPixels = await seriesPixels('#plot-rot');
+  check(zoomedPixels > 300, `the zoomed plot draws data: ${zoomedPixels} pixels`);
+
+  // 6. The reference, from a window selected on the plot, updates the card.
+  await dragTo(0.3, 0.7);
+  await page.waitForSelector('#selection:not([hidden])', { timeout: 5000 });
+  await page.click('#selection-reference');
+  const windowFrom = await page.inputValue('#reference-from');
+  const windowTo = await page.inputValue('#reference-to');
+  await page.click('#reference-submit');
+  await page.waitForFunction((v) => Number(document.querySelector('[data-target="G"] [data-f="ref"]').dataset.version) > v,
+    refBefore, { timeout: 10000 });
+  const refText = await page.textContent('[data-target="G"] [data-f="ref"]');
+  const result = await page.textContent('#reference-result');
+  check(refText.startsWith('v2 '), `the card shows the new reference: "${refText}" (${result}; window ${windowFrom} to ${windowTo})`);
+
+  // 7. CSV of the shown range.
+  const downloadEvent = page.waitForEvent('download');
+  await page.click('#csv-filtered');
+  const download = await downloadEvent;
+  const csvPath = join(artifacts, 'dashboard-history.csv');
+  await download.saveAs(csvPath);
+  const csv = readFileSync(csvPath, 'utf8').split('\n').filter((l) => l);
+  check(csv[0].startsWith('time,count,euler_x_deg_min') && csv.length > 10,
+    `the CSV download holds the shown range: ${csv.length - 1} rows`);
+
+  // 8. Keyboard: the range buttons, toggles and reference form are reached with Tab.
+  await page.click('h1');
+  const reached = new Set();
+  for (let i = 0; i < 40; i++) {
+    await page.keyboard.press('Tab');
+    reached.add(await page.evaluate(() => {
+      const a = document.activeElement;
+      return a.id || a.dataset.range || a.dataset.show || a.textContent.trim();
+    }));
+  }
+  for (const want of ['3600', 'custom', 'x', 'band', 'csv-raw']) {
+    check(reached.has(want), `"${want}" is reached with the keyboard: ${[...reached].join(', ')}`);
+  }
+
+  await page.click('button[data-range="300"]');
+  await page.waitForTimeout(1500);
+  await page.screenshot({ path: join(artifacts, 'dashboard.png'), fullPage: true });
+  await page.setViewportSize({ width: 1366, height: 768 });
+  await page.waitForTimeout(500);
+  await page.screenshot({ path: join(artifacts, 'dashboard-laptop.png') });
+  await page.setViewportSize({ width: 2560, height: 1440 });
+  await page.waitForTimeout(500);
+  await page.screenshot({ path: join(artifacts, 'dashboard-control-room.png') });
+
+  check(problems.length === 0, `no console errors or warnings: ${problems.join(' | ')}`);
+  log('all checks passed; screenshots in', artifacts);
+} catch (e) {
+  console.error('dashboard: FAILED -', e.message);
+  if (problems.length) console.error('dashboard: console:', problems.join(' | '));
+  process.exitCode = 1;
+} finally {
+  await browser.close();
+}

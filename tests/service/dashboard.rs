@@ -1,0 +1,285 @@
+//! The web dashboard: its files served open, cacheable and under a strict content policy; and the
+//! page itself driven in Chromium (`tests/browser/dashboard.mjs`, playwright-core) against a
+//! service holding a simulated ship's history.
+
+use super::access::with_tokens;
+use super::helpers::TestApp;
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use brokenray::api::time::format_ns;
+use brokenray::config::DEFAULT_INSTALLATION_TOML;
+use brokenray::feed::observation_items;
+use brokenray::sim::{Scenario, SimSettings, Simulator};
+use http_body_util::BodyExt;
+use serde_json::{Value, json};
+use std::path::{Path, PathBuf};
+use tower::ServiceExt;
+
+/// Status, headers and body of a GET, with an optional `If-None-Match`.
+async fn fetch(
+    app: &TestApp,
+    uri: &str,
+    if_none_match: Option<&str>,
+) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    let mut builder = Request::builder().uri(uri);
+    if let Some(tag) = if_none_match {
+        builder = builder.header(header::IF_NONE_MATCH, tag);
+    }
+    let resp = app
+        .router
+        .clone()
+        .oneshot(builder.body(Body::empty()).expect("request"))
+        .await
+        .expect("response");
+    let status = resp.status();
+    let headers = resp.headers().clone();
+    let body = resp.into_body().collect().await.expect("body").to_bytes();
+    (status, headers, body.to_vec())
+}
+
+#[tokio::test]
+async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags() {
+    // Tokens configured: the API needs one, the dashboard's files do not.
+    let app = TestApp::start(Some(&with_tokens())).await;
+    let (status, headers, body) = fetch(&app, "/", None).await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(headers[header::CONTENT_TYPE], "text/html; charset=utf-8");
+    let csp = headers[header::CONTENT_SECURITY_POLICY]
+        .to_str()
+        .expect("ascii");
+    assert!(
+        csp.contains("script-src 'self'") && csp.contains("connect-src 'self'"),
+        "{csp}"
+    );
+    let page = String::from_utf8(body).expect("utf-8");
+    assert_eq!(
+        page.as_bytes(),
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("web/index.html"))
+            .expect("web/index.html"),
+        "the page served is web/index.html"
+    );
+
+    // Every file the page refers to is served, with its type, and revalidates to 304.
+    let referred: Vec<&str> = page
+        .split("\"/assets/")
+        .skip(1)
+        .map(|rest| &rest[..rest.find('"').expect("closing quote")])
+        .collect();
+    for want in [
+        "app.js",
+        "style.css",
+        "uPlot.iife.min.js",
+        "uPlot.min.css",
+        "favicon.svg",
+        "uPlot.LICENSE",
+    ] {
+        assert!(
+            referred.contains(&want),
+            "the page does not load `{want}`: {referred:?}"
+        );
+    }
+    for file in &referred {
+        let uri = format!("/assets/{file}");
+        let (status, headers, body) = fetch(&app, &uri, None).await;
+        assert_eq!(status, StatusCode::OK, "{uri}");
+        assert!(!body.is_empty(), "{uri} is empty");
+        let kind = headers[header::CONTENT_TYPE].to_str().expect("ascii");
+        let expected = match file.rsplit('.').next() {
+            Some("js") => "text/javascript",
+            Some("css") => "text/css",
+            Some("svg") => "image/svg+xml",
+            _ => "text/plain",
+        };
+        assert!(kind.starts_with(expected), "{uri}: {kind}");
+        let etag = headers[header::ETAG].to_str().expect("ascii").to_owned();
+        let (again, _, body) = fetch(&app, &uri, Some(&etag)).await;
+        assert_eq!(again, StatusCode::NOT_MODIFIED, "{uri} with its ETag");
+        assert!(body.is_empty());
+        let (changed, _, _) = fetch(&app, &uri, Some("\"something-else\"")).await;
+        assert_eq!(changed, StatusCode::OK, "{uri} with another ETag");
+    }
+
+    // The charting library is the vendored, pinned one, and its licence ships with it.
+    let (_, _, uplot) = fetch(&app, "/assets/uPlot.iife.min.js", None).await;
+    assert!(uplot.starts_with(b"/*! https://github.com/leeoniya/uPlot (v1.6.32) */"));
+    let (_, _, licence) = fetch(&app, "/assets/uPlot.LICENSE", None).await;
+    assert!(String::from_utf8_lossy(&licence).contains("MIT License"));
+
+    // An unknown file is named; the API still needs a token.
+    let (status, _, body) = fetch(&app, "/assets/nothing.js", None).await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    let body: Value = serde_json::from_slice(&body).expect("error body");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("`nothing.js`")),
+        "{body}"
+    );
+    let (status, _, _) = fetch(&app, "/assets/index.html", None).await;
+    assert_eq!(
+        status,
+        StatusCode::NOT_FOUND,
+        "the page is served at / only"
+    );
+    let (status, _, _) = fetch(&app, "/api/v1/targets", None).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+}
+
+/// What the browser test needs: Node.js, playwright-core under `tests/browser`, and Chromium.
+struct Browser {
+    node: PathBuf,
+    chromium: PathBuf,
+    dir: PathBuf,
+}
+
+fn on_path(name: &str) -> Option<PathBuf> {
+    std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|p| p.join(name))
+            .find(|p| p.is_file())
+    })
+}
+
+/// Finds the browser tools, or says what is missing and how `scripts/test` installs it.
+fn browser() -> Browser {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/browser");
+    let node = on_path("node").expect(
+        "the dashboard test needs Node.js (`node`): `scripts/test` installs it (Debian: nodejs npm)",
+    );
+    assert!(
+        dir.join("node_modules/playwright-core/package.json")
+            .is_file(),
+        "the dashboard test needs playwright-core: `scripts/test` installs it \
+         (`npm ci --prefix tests/browser`)"
+    );
+    let chromium = std::env::var_os("BROKENRAY_CHROMIUM")
+        .map(PathBuf::from)
+        .or_else(|| on_path("chromium"))
+        .or_else(|| on_path("chromium-browser"))
+        .expect(
+            "the dashboard test needs Chromium: `scripts/test` installs it (Debian: chromium), \
+             or set BROKENRAY_CHROMIUM to a Chromium executable",
+        );
+    Browser {
+        node,
+        chromium,
+        dir,
+    }
+}
+
+/// The built-in installation with the oscillatory model a ship's flexure needs.
+fn ship_installation() -> String {
+    DEFAULT_INSTALLATION_TOML.replace("model = \"static\"", "model = \"oscillatory\"")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_works_in_a_real_browser() {
+    let tools = browser();
+    let app = TestApp::start(Some(&ship_installation())).await;
+    let inst = app.service.installation().clone();
+
+    // 150 s of a ship at 10 Hz, ending now; the reference set over the first 15 s.
+    let now_ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("clock")
+        .as_nanos() as i64;
+    let (rate_hz, span_s) = (10.0, 150.0);
+    let start_ns = now_ns - (span_s * 1e9) as i64;
+    let mut sim = Simulator::new(
+        &inst,
+        SimSettings {
+            scenario: Scenario::Ship,
+            rate_hz,
+            start_ns,
+            duration_s: None,
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed: 8,
+        },
+    )
+    .expect("simulator");
+    let groups = (rate_hz * span_s) as usize;
+    let mut posted = 0;
+    while posted < groups {
+        let mut items = Vec::new();
+        for _ in 0..50 {
+            items.extend(observation_items(&sim.next_group()));
+        }
+        posted += 50;
+        let (status, body) = app
+            .post_json("/api/v1/observations", &json!({ "observations": items }))
+            .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        if posted == 200 {
+            let window =
+                json!({"from": format_ns(start_ns), "to": format_ns(start_ns + 15_000_000_000)});
+            let (status, body) = app.post_json("/api/v1/targets/G/reference", &window).await;
+            assert_eq!(status, StatusCode::CREATED, "{body}");
+        }
+    }
+    // The live part, posted by the browser script with the current time.
+    let live: Vec<Vec<Value>> = (0..25)
+        .map(|_| {
+            observation_items(&sim.next_group())
+                .into_iter()
+                .map(|mut o| {
+                    o.as_object_mut().expect("object").remove("time");
+                    o
+                })
+                .collect()
+        })
+        .collect();
+    let live_file = app.dir.path().join("live.json");
+    std::fs::write(&live_file, serde_json::to_vec(&live).expect("json")).expect("live file");
+
+    // The router on a real port for the browser.
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let base = format!("http://{}", listener.local_addr().expect("address"));
+    let router = app.router.clone();
+    let server = tokio::spawn(async move { axum::serve(listener, router).await });
+
+    let artifacts = artifacts_dir();
+    for shot in [
+        "dashboard.png",
+        "dashboard-laptop.png",
+        "dashboard-control-room.png",
+    ] {
+        let _ = std::fs::remove_file(artifacts.join(shot));
+    }
+    let output = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(&tools.node)
+            .arg(tools.dir.join("dashboard.mjs"))
+            .arg(&base)
+            .arg(&live_file)
+            .arg(&artifacts)
+            .env("BROKENRAY_CHROMIUM", &tools.chromium)
+            .current_dir(&tools.dir)
+            .output()
+            .expect("node runs")
+    })
+    .await
+    .expect("browser task");
+    server.abort();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    println!("{stdout}");
+    assert!(
+        output.status.success(),
+        "the dashboard failed in the browser:\n{stdout}\n{stderr}"
+    );
+    assert!(stdout.contains("all checks passed"), "{stdout}");
+    for shot in [
+        "dashboard.png",
+        "dashboard-laptop.png",
+        "dashboard-control-room.png",
+    ] {
+        let bytes = std::fs::metadata(artifacts_dir().join(shot)).map_or(0, |m| m.len());
+        assert!(bytes > 20_000, "screenshot {shot}: {bytes} bytes");
+    }
+}
+
+fn artifacts_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/artifacts")
+}
