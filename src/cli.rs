@@ -592,7 +592,7 @@ async fn demo(
     }));
     writeln!(
         out,
-        "brokenray demo: API http://{addr}/api/v1 (described at /api/v1/openapi.json)\n  database {}, Rerun recordings in {}/\n  scenario {:?} at {} Hz; the reference is set after 5 s; Ctrl-C stops",
+        "brokenray demo: dashboard http://{addr}/\n  API http://{addr}/api/v1 (described at /api/v1/openapi.json)\n  database {}, Rerun recordings in {}/\n  scenario {:?} at {} Hz; the reference is set after 5 s; Ctrl-C stops",
         database.display(),
         recordings.display(),
         settings.scenario,
@@ -680,7 +680,7 @@ async fn serve(installation: Installation) -> anyhow::Result<()> {
         installation = %source,
         links = n_links,
         targets = ?targets,
-        "brokenray serving on http://{addr}/api/v1"
+        "brokenray serving on http://{addr}/api/v1, dashboard http://{addr}/"
     );
     app.run_until(crate::api::shutdown_signal()).await?;
     tracing::info!("stopped: every acknowledged write is on disk");

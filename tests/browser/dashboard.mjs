@@ -6,9 +6,9 @@
 // posted here with the current time to play a live measurement. Each check that fails throws
 // with what it saw; the exit status is 0 only when every check passed. Run by
 // tests/service/dashboard.rs, which starts the service and writes the files.
-import { chromium } from 'playwright-core';
 import { readFileSync, mkdirSync } from 'node:fs';
 import { join } from 'node:path';
+import { check, run, watch } from './lib.mjs';
 
 const [base, liveFile, artifacts] = process.argv.slice(2);
 if (!base || !liveFile || !artifacts) {
@@ -18,27 +18,10 @@ if (!base || !liveFile || !artifacts) {
 const liveGroups = JSON.parse(readFileSync(liveFile, 'utf8'));
 mkdirSync(artifacts, { recursive: true });
 
-const executablePath = process.env.BROKENRAY_CHROMIUM || '/usr/bin/chromium';
-const browser = await chromium.launch({
-  executablePath,
-  args: ['--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
-    '--disable-background-networking', '--disable-component-update', '--disable-sync'],
-});
-
-const problems = [];
-const log = (...a) => console.log('dashboard:', ...a);
-function check(ok, what) {
-  if (!ok) throw new Error(what);
-  log('ok -', what);
-}
-
-try {
+await run(async (browser) => {
   const context = await browser.newContext({ viewport: { width: 1440, height: 900 }, acceptDownloads: true });
   const page = await context.newPage();
-  page.on('console', (m) => {
-    if (m.type() === 'error' || m.type() === 'warning') problems.push(`console ${m.type()}: ${m.text()}`);
-  });
-  page.on('pageerror', (e) => problems.push('page error: ' + e.message));
+  const problems = watch(page);
   const historyRequests = [];
   page.on('request', (r) => {
     if (r.url().includes('/history?')) historyRequests.push(new URL(r.url()));
@@ -193,11 +176,4 @@ try {
   await page.screenshot({ path: join(artifacts, 'dashboard-control-room.png') });
 
   check(problems.length === 0, `no console errors or warnings: ${problems.join(' | ')}`);
-  log('all checks passed; screenshots in', artifacts);
-} catch (e) {
-  console.error('dashboard: FAILED -', e.message);
-  if (problems.length) console.error('dashboard: console:', problems.join(' | '));
-  process.exitCode = 1;
-} finally {
-  await browser.close();
-}
+});

@@ -179,10 +179,7 @@ async fn the_dashboard_works_in_a_real_browser() {
     let inst = app.service.installation().clone();
 
     // 150 s of a ship at 10 Hz, ending now; the reference set over the first 15 s.
-    let now_ns = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .expect("clock")
-        .as_nanos() as i64;
+    let now_ns = now_ns();
     let (rate_hz, span_s) = (10.0, 150.0);
     let start_ns = now_ns - (span_s * 1e9) as i64;
     let mut sim = Simulator::new(
@@ -232,13 +229,7 @@ async fn the_dashboard_works_in_a_real_browser() {
     let live_file = app.dir.path().join("live.json");
     std::fs::write(&live_file, serde_json::to_vec(&live).expect("json")).expect("live file");
 
-    // The router on a real port for the browser.
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let base = format!("http://{}", listener.local_addr().expect("address"));
-    let router = app.router.clone();
-    let server = tokio::spawn(async move { axum::serve(listener, router).await });
+    let (base, server) = serve(&app).await;
 
     let artifacts = artifacts_dir();
     for shot in [
@@ -248,28 +239,17 @@ async fn the_dashboard_works_in_a_real_browser() {
     ] {
         let _ = std::fs::remove_file(artifacts.join(shot));
     }
-    let output = tokio::task::spawn_blocking(move || {
-        std::process::Command::new(&tools.node)
-            .arg(tools.dir.join("dashboard.mjs"))
-            .arg(&base)
-            .arg(&live_file)
-            .arg(&artifacts)
-            .env("BROKENRAY_CHROMIUM", &tools.chromium)
-            .current_dir(&tools.dir)
-            .output()
-            .expect("node runs")
-    })
-    .await
-    .expect("browser task");
+    run_script(
+        tools,
+        "dashboard.mjs",
+        vec![
+            base.into(),
+            live_file.into_os_string(),
+            artifacts.clone().into_os_string(),
+        ],
+    )
+    .await;
     server.abort();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    println!("{stdout}");
-    assert!(
-        output.status.success(),
-        "the dashboard failed in the browser:\n{stdout}\n{stderr}"
-    );
-    assert!(stdout.contains("all checks passed"), "{stdout}");
     for shot in [
         "dashboard.png",
         "dashboard-laptop.png",
@@ -278,6 +258,93 @@ async fn the_dashboard_works_in_a_real_browser() {
         let bytes = std::fs::metadata(artifacts_dir().join(shot)).map_or(0, |m| m.len());
         assert!(bytes > 20_000, "screenshot {shot}: {bytes} bytes");
     }
+}
+
+/// Runs a script of `tests/browser` with Node.js, prints what it said, and fails the test unless
+/// every check of the script passed.
+async fn run_script(tools: Browser, script: &str, args: Vec<std::ffi::OsString>) {
+    let path = tools.dir.join(script);
+    let output = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(&tools.node)
+            .arg(&path)
+            .args(&args)
+            .env("BROKENRAY_CHROMIUM", &tools.chromium)
+            .current_dir(&tools.dir)
+            .output()
+            .expect("node runs")
+    })
+    .await
+    .expect("browser task");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    println!("{stdout}");
+    assert!(
+        output.status.success() && stdout.contains("all checks passed"),
+        "{script} failed in the browser:\n{stdout}\n{stderr}"
+    );
+}
+
+/// The router of `app` on a free loopback port: its base URL and the server task.
+async fn serve(app: &TestApp) -> (String, tokio::task::JoinHandle<std::io::Result<()>>) {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let base = format!("http://{}", listener.local_addr().expect("address"));
+    let router = app.router.clone();
+    (
+        base,
+        tokio::spawn(async move { axum::serve(listener, router).await }),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_tokens_the_dashboard_asks_for_one_and_sends_it() {
+    let tools = browser();
+    let app = TestApp::start(Some(&with_tokens())).await;
+    let inst = app.service.installation().clone();
+    let mut sim = Simulator::new(
+        &inst,
+        SimSettings {
+            scenario: Scenario::Static,
+            rate_hz: 10.0,
+            start_ns: now_ns() - 5_000_000_000,
+            duration_s: None,
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed: 3,
+        },
+    )
+    .expect("simulator");
+    let items: Vec<Value> = (0..40)
+        .flat_map(|_| observation_items(&sim.next_group()))
+        .collect();
+    let (status, body) = app
+        .request(
+            "POST",
+            "/api/v1/observations",
+            Some((
+                "application/json",
+                json!({ "observations": items }).to_string(),
+            )),
+            Some("pipeline-secret"),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (base, server) = serve(&app).await;
+    run_script(
+        tools,
+        "token.mjs",
+        vec![base.into(), "viewer-secret".into()],
+    )
+    .await;
+    server.abort();
+}
+
+fn now_ns() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("clock")
+        .as_nanos() as i64
 }
 
 fn artifacts_dir() -> PathBuf {
