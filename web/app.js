@@ -490,7 +490,8 @@
       const { left, top, width, height } = u.bbox;
       const [ymin, ymax] = [u.scales.y.min, u.scales.y.max];
       ctx.save();
-      ctx.font = `${Math.round(11 * devicePixelRatio)}px system-ui, sans-serif`;
+      const fontPx = parseFloat(getComputedStyle(document.documentElement).fontSize) * 0.75;
+      ctx.font = `${Math.round(fontPx * devicePixelRatio)}px system-ui, sans-serif`;
       ctx.textAlign = 'left';
       let above = [];
       for (const t of thresholdsOf(kind)) {
@@ -513,7 +514,7 @@
       }
       if (above.length) {
         ctx.fillStyle = cssVar('--muted');
-        ctx.fillText(`${above.join(', ')} ↑ above`, left + 6 * devicePixelRatio, top + 14 * devicePixelRatio);
+        ctx.fillText(`${above.join(', ')} ↑ above`, left + 6 * devicePixelRatio, top + (fontPx + 4) * devicePixelRatio);
       }
       ctx.restore();
       void height;
@@ -570,7 +571,14 @@
     if (old) old.destroy();
     container.textContent = '';
     const lay = layout(d, kind);
-    const axis = { stroke: cssVar('--muted'), grid: { stroke: cssVar('--grid') }, ticks: { stroke: cssVar('--grid') } };
+    // Tick labels follow the page's font size (larger on a control-room screen).
+    const fontPx = Math.round(parseFloat(getComputedStyle(document.documentElement).fontSize) * 0.8);
+    const axis = {
+      stroke: cssVar('--muted'),
+      grid: { stroke: cssVar('--grid') },
+      ticks: { stroke: cssVar('--grid') },
+      font: `${fontPx}px system-ui, sans-serif`,
+    };
     const opts = {
       width: plotWidth(),
       height: plotHeight(),
@@ -594,7 +602,10 @@
           },
         },
       },
-      axes: [Object.assign({}, axis, { values: timeTicks, space: 70 }), Object.assign({}, axis, { size: 64 })],
+      axes: [
+        Object.assign({}, axis, { values: timeTicks, space: fontPx * 6, size: fontPx * 3.5 }),
+        Object.assign({}, axis, { size: fontPx * 5.5 }),
+      ],
       series: lay.series,
       bands: lay.bands,
       hooks: {
@@ -1084,9 +1095,8 @@
   let resizeTimer = 0;
   window.addEventListener('resize', () => {
     clearTimeout(resizeTimer);
-    resizeTimer = setTimeout(() => {
-      for (const p of Object.values(state.plots)) if (p) p.setSize({ width: plotWidth(), height: plotHeight() });
-    }, 150);
+    // Rebuilt rather than resized: the tick font follows the page's font size.
+    resizeTimer = setTimeout(renderPlots, 150);
   });
 
   start();
