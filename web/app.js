@@ -24,6 +24,7 @@
     show: { x: true, y: true, z: true, mag: true, raw: true, band: true },
     history: null, // {window: [from, to] ms, rot: data, tr: data, info}
     plots: { rot: null, tr: null },
+    layouts: { rot: null, tr: null },
     historyAbort: null,
     refreshTimer: null,
     token: sessionStorage.getItem(TOKEN_KEY) || '',
@@ -565,12 +566,12 @@
     return { series, data, bands, keys, digits, unit };
   }
 
-  function makePlot(kind, d) {
+  function makePlot(kind, lay) {
     const container = $(kind === 'rot' ? 'plot-rot' : 'plot-tr');
     const old = state.plots[kind];
     if (old) old.destroy();
     container.textContent = '';
-    const lay = layout(d, kind);
+    state.layouts[kind] = lay;
     // Tick labels follow the page's font size (larger on a control-room screen).
     const fontPx = Math.round(parseFloat(getComputedStyle(document.documentElement).fontSize) * 0.8);
     const axis = {
@@ -611,10 +612,11 @@
       hooks: {
         draw: [drawThresholds(kind)],
         setSelect: [(u) => onSelect(u, kind)],
-        setCursor: [(u) => readout(u, kind, lay)],
+        setCursor: [(u) => readout(u, kind, state.layouts[kind])],
       },
     };
     const plot = new uPlot(opts, lay.data, container);
+    plot.brokenrayKeys = lay.keys.join();
     state.plots[kind] = plot;
     return plot;
   }
@@ -666,11 +668,20 @@
     for (const p of Object.values(state.plots)) if (p) p.setSelect({ left: 0, width: 0, top: 0, height: 0 }, false);
   }
 
-  function renderPlots() {
+  // New data goes into the existing plots (a drag in progress survives a live refresh); the
+  // plots are rebuilt when the series shown or the page's size change.
+  function renderPlots(rebuild) {
     const h = state.history;
     if (!h) return;
     for (const kind of ['rot', 'tr']) {
-      makePlot(kind, h[kind]);
+      const plot = state.plots[kind];
+      const lay = layout(h[kind], kind);
+      if (!rebuild && plot && plot.brokenrayKeys === lay.keys.join()) {
+        state.layouts[kind] = lay;
+        plot.setData(lay.data);
+      } else {
+        makePlot(kind, lay);
+      }
       const empty = $(kind === 'rot' ? 'empty-rot' : 'empty-tr');
       if (h[kind].count === 0) {
         empty.textContent = 'No results between ' + fmtTime(h.window[0]) + ' and ' + fmtTime(h.window[1]) + ' UTC' +
@@ -708,6 +719,7 @@
       $('history-info').textContent = `${fmtTime(win[0])} – ${fmtTime(win[1])} UTC · ` +
         `${merged.rot.count} buckets of ${fmtSpan(filtered.bucket_s)} from ${res}`;
       document.body.dataset.historyLoads = String(Number(document.body.dataset.historyLoads || 0) + 1);
+      document.body.dataset.historyWindowS = String((win[1] - win[0]) / 1000);
       renderPlots();
       clearMessage('history');
     } catch (e) {
@@ -795,7 +807,7 @@
   for (const box of document.querySelectorAll('[data-show]')) {
     box.addEventListener('change', () => {
       state.show[box.dataset.show] = box.checked;
-      renderPlots();
+      renderPlots(true);
     });
   }
 
@@ -1096,7 +1108,7 @@
   window.addEventListener('resize', () => {
     clearTimeout(resizeTimer);
     // Rebuilt rather than resized: the tick font follows the page's font size.
-    resizeTimer = setTimeout(renderPlots, 150);
+    resizeTimer = setTimeout(() => renderPlots(true), 150);
   });
 
   start();
