@@ -165,3 +165,64 @@ async fn retention_prunes_old_rows_and_keeps_rollups() {
         .await;
     assert_eq!(before["count"], after["count"]);
 }
+
+/// Each camera posting on its own: the samples of one time arrive in separate requests, and the
+/// filtered result at that time is computed again with each. The rollups must count it once,
+/// with its last value, as the results table does.
+#[tokio::test]
+async fn a_result_recomputed_at_the_same_time_counts_once_in_the_rollups() {
+    use brokenray::feed::sample_items;
+    use brokenray::sim::{Scenario, SimSettings, Simulator};
+    let app = TestApp::start(None).await;
+    let inst = app.service.installation().clone();
+    let mut sim = Simulator::new(
+        &inst,
+        SimSettings {
+            scenario: Scenario::Drift,
+            rate_hz: 0.5,
+            start_ns: T0_NS,
+            duration_s: None,
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed: 5,
+        },
+    )
+    .unwrap();
+    let groups = 40;
+    for _ in 0..groups {
+        let group = sim.next_group();
+        for item in sample_items(&group, sim.observer()) {
+            let (status, body) = app
+                .post_json("/api/v1/samples", &serde_json::json!({ "samples": [item] }))
+                .await;
+            assert_eq!(status, StatusCode::OK, "{body}");
+        }
+    }
+    // From the results themselves (buckets under 1 s), and from the 10 s rollups.
+    let (_, fine) = app.get("/api/v1/targets/G/history?max_points=100000").await;
+    assert_eq!(fine["resolution_s"], serde_json::Value::Null);
+    let (_, coarse) = app.get("/api/v1/targets/G/history?max_points=4").await;
+    assert_eq!(coarse["resolution_s"], 10);
+    let total = |h: &serde_json::Value| -> i64 {
+        h["count"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c.as_i64().unwrap())
+            .sum()
+    };
+    assert_eq!(total(&fine), groups, "one filtered result per time");
+    assert_eq!(total(&coarse), groups, "the rollups count each result once");
+    // The mean over everything, from either.
+    let mean = |h: &serde_json::Value| -> f64 {
+        let counts = h["count"].as_array().unwrap();
+        let means = h["series"]["t_x_mm"]["mean"].as_array().unwrap();
+        counts
+            .iter()
+            .zip(means)
+            .map(|(c, m)| c.as_f64().unwrap() * m.as_f64().unwrap())
+            .sum::<f64>()
+            / groups as f64
+    };
+    approx::assert_abs_diff_eq!(mean(&fine), mean(&coarse), epsilon = 1e-9);
+}
