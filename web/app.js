@@ -1111,5 +1111,8 @@
     resizeTimer = setTimeout(() => renderPlots(true), 150);
   });
 
+  // The plots take their colours from the style sheet when built: rebuild on a theme change.
+  window.matchMedia('(prefers-color-scheme: dark)').addEventListener('change', () => renderPlots(true));
+
   start();
 })();

@@ -195,5 +195,14 @@ await run(async (browser) => {
   await page.waitForTimeout(500);
   await page.screenshot({ path: join(artifacts, 'dashboard-control-room.png') });
 
+  // Dark, as a control room's system may ask: the plots are drawn in the dark palette.
+  await page.emulateMedia({ colorScheme: 'dark' });
+  await page.waitForTimeout(500);
+  const darkPixels = await seriesPixels('#plot-rot');
+  await page.setViewportSize({ width: 1920, height: 1080 });
+  await page.waitForTimeout(500);
+  check(darkPixels > 300, `the plots draw in the dark palette: ${darkPixels} pixels of its series colours`);
+  await page.screenshot({ path: join(artifacts, 'dashboard-dark.png') });
+
   check(problems.length === 0, `no console errors or warnings: ${problems.join(' | ')}`);
 });
