@@ -10,6 +10,7 @@
   const $ = (id) => document.getElementById(id);
   const AXES = ['x', 'y', 'z'];
   const TOKEN_KEY = 'brokenray.token';
+  const ALARMS_SHOWN = 500;
 
   const state = {
     targets: [],
@@ -906,14 +907,15 @@
   }
 
   async function loadAlarms(win) {
-    const answer = await api(`/api/v1/alarms?from=${encodeURIComponent(iso(win[0]))}&to=${encodeURIComponent(iso(win[1]))}&limit=1000`);
-    state.alarms = answer.alarms.slice().reverse();
+    const answer = await api(`/api/v1/alarms?from=${encodeURIComponent(iso(win[0]))}&to=${encodeURIComponent(iso(win[1]))}&limit=${ALARMS_SHOWN}&order=desc`);
+    state.alarms = answer.alarms;
     renderAlarms();
   }
 
   function acceptAlarm(a) {
     if (state.range.kind === 'last') {
       state.alarms.unshift(a);
+      state.alarms.length = Math.min(state.alarms.length, ALARMS_SHOWN);
       renderAlarms();
     }
     if (a.to === 'alarm') showMessage('alarm-' + a.target, `${fmtTime(parseTime(a.time))}: ${a.target}: ${a.message}`, 'error');

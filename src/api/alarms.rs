@@ -55,20 +55,23 @@ pub struct AlarmsQuery {
     pub to: Option<String>,
     /// At most this many (default 1000, at most 100000).
     pub limit: Option<i64>,
+    /// `asc` (default): the oldest first; `desc`: the newest first, so that `limit` keeps the
+    /// latest transitions.
+    pub order: Option<String>,
 }
 
 /// `GET .../alarms`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct AlarmsOut {
-    /// Transitions, oldest first.
+    /// Transitions, oldest first (newest first with `order=desc`).
     pub alarms: Vec<AlarmOut>,
 }
 
-/// `GET /api/v1/alarms?target=&from=&to=&limit=`.
+/// `GET /api/v1/alarms?target=&from=&to=&limit=&order=`.
 #[utoipa::path(get, path = "/alarms", tag = "alarms",
     params(AlarmsQuery),
     responses(
-        (status = 200, description = "Alarm transitions, oldest first", body = AlarmsOut),
+        (status = 200, description = "Alarm transitions, oldest first (or newest first with `order=desc`)", body = AlarmsOut),
         (status = 404, description = "Unknown target", body = ErrorBody),
         (status = 422, description = "Invalid query", body = ErrorBody),
     ),
@@ -84,7 +87,21 @@ pub async fn list_alarms(
     };
     let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let limit = super::query_count("limit", q.limit, 1000)?;
-    let stored = app.service.store().alarms(target, from, to, limit).await?;
+    let newest_first = match q.order.as_deref() {
+        None | Some("asc") => false,
+        Some("desc") => true,
+        Some(other) => {
+            return Err(ApiError::invalid_field(
+                "order",
+                format!("`{other}` is not `asc` or `desc`"),
+            ));
+        }
+    };
+    let stored = app
+        .service
+        .store()
+        .alarms(target, from, to, limit, newest_first)
+        .await?;
     Ok(Json(AlarmsOut {
         alarms: stored
             .iter()

@@ -410,26 +410,33 @@ pub struct StoredAlarm {
 }
 
 impl Store {
-    /// Alarm transitions in `[from_ns, to_ns]`, of one target or all, oldest first, at most
-    /// `limit`.
+    /// Alarm transitions in `[from_ns, to_ns]`, of one target or all, at most `limit`: the
+    /// oldest first, or with `newest_first` the newest (so a limit keeps the latest ones).
     pub async fn alarms(
         &self,
         target: Option<usize>,
         from_ns: i64,
         to_ns: i64,
         limit: i64,
+        newest_first: bool,
     ) -> StoreResult<Vec<StoredAlarm>> {
-        let rows: Vec<(i64, i64, String, String, String, f64, String)> = sqlx::query_as(
+        let sql = if newest_first {
             "select target_id, time_ns, kind, from_level, to_level, value, message from alarms \
-             where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? order by time_ns, target_id limit ?",
-        )
-        .bind(target.map(|t| self.target_ids[t]))
-        .bind(target.map(|t| self.target_ids[t]))
-        .bind(from_ns)
-        .bind(to_ns)
-        .bind(limit)
-        .fetch_all(&self.pool)
-        .await?;
+             where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? \
+             order by time_ns desc, target_id desc limit ?"
+        } else {
+            "select target_id, time_ns, kind, from_level, to_level, value, message from alarms \
+             where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? \
+             order by time_ns, target_id limit ?"
+        };
+        let rows: Vec<(i64, i64, String, String, String, f64, String)> = sqlx::query_as(sql)
+            .bind(target.map(|t| self.target_ids[t]))
+            .bind(target.map(|t| self.target_ids[t]))
+            .bind(from_ns)
+            .bind(to_ns)
+            .bind(limit)
+            .fetch_all(&self.pool)
+            .await?;
         rows.into_iter()
             .map(|(tid, time_ns, kind, from, to, value, message)| {
                 let malformed =

@@ -195,7 +195,10 @@ pub async fn replay(
     }
 
     for &t in &targets {
-        for a in store.alarms(Some(t), from_ns, to_ns, i64::MAX).await? {
+        for a in store
+            .alarms(Some(t), from_ns, to_ns, i64::MAX, false)
+            .await?
+        {
             logger.log(&Record::Alarm {
                 target: a.target,
                 transition: a.transition,

@@ -68,6 +68,12 @@ await run(async (browser) => {
   const trPixels = await seriesPixels('#plot-tr');
   check(rotPixels > 300 && trPixels > 300,
     `the plots draw series: ${rotPixels} and ${trPixels} pixels of the series colours`);
+  // The alarm list: the transitions of the shown range, newest first.
+  await page.waitForSelector('#alarms tbody tr');
+  const alarmTimes = await page.$$eval('#alarms tbody tr:not(.empty) td:first-child', (cells) => cells.map((c) => c.textContent));
+  const sorted = alarmTimes.every((t, i) => i === 0 || alarmTimes[i - 1] >= t);
+  check(alarmTimes.length >= 1 && sorted, `the alarm list shows ${alarmTimes.length} transitions, newest first: ${alarmTimes.slice(0, 3).join(', ')}`);
+
   // The axis toggles hide and show their series.
   for (const a of ['x', 'y', 'z']) await page.uncheck(`input[data-show="${a}"]`);
   const hiddenPixels = await seriesPixels('#plot-rot');

@@ -75,6 +75,17 @@ async fn a_deformation_ramp_stores_exactly_its_transitions() {
     ]
     .map(|(f, t)| ("deformation".to_owned(), f.to_owned(), t.to_owned()));
     assert_eq!(steps, expected);
+    // Newest first, with a limit: the latest two, in reverse order.
+    let (status, latest) = app.get("/api/v1/alarms?target=G&order=desc&limit=2").await;
+    assert_eq!(status, StatusCode::OK);
+    let latest = latest["alarms"].as_array().unwrap();
+    let all = list["alarms"].as_array().unwrap();
+    assert_eq!(latest.len(), 2);
+    assert_eq!(latest[0], all[3]);
+    assert_eq!(latest[1], all[2]);
+    let (status, body) = app.get("/api/v1/alarms?order=newest").await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert!(body["error"].to_string().contains("order"), "{body}");
     let (_, c) = app.get("/api/v1/targets/G/compensation").await;
     assert_eq!(c["alarm"], "none");
     // The level survives a restart: the next ramp starts from where the last one ended.
