@@ -707,7 +707,9 @@
     state.historyAbort = abort;
     const maxPoints = Math.min(2000, Math.round(plotWidth()));
     const q = `from=${encodeURIComponent(iso(win[0]))}&to=${encodeURIComponent(iso(win[1]))}&max_points=${maxPoints}`;
-    const base = '/api/v1/targets/' + encodeURIComponent(target) + '/history?';
+    // Only the deformation: a third of the history's components.
+    const components = ['r', 't'].flatMap((k) => AXES.map((a) => `def_${k}${a}_${k === 'r' ? 'arcsec' : 'mm'}`));
+    const base = '/api/v1/targets/' + encodeURIComponent(target) + '/history?components=' + components.join(',') + '&';
     try {
       const [filtered, raw] = await Promise.all([
         api(base + 'source=filtered&' + q, { signal: abort.signal }),

@@ -30,6 +30,7 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
+use tower_http::compression::CompressionLayer;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 use utoipa_axum::router::OpenApiRouter;
@@ -247,6 +248,9 @@ pub fn router(state: AppState) -> Router {
         .layer((
             TraceLayer::new_for_http(),
             TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, Duration::from_secs(60)),
+            // gzip when the client accepts it (history JSON shrinks about threefold); never the
+            // event stream, whose events must not wait in a compressor's buffer.
+            CompressionLayer::new(),
         ))
         .with_state(state)
 }

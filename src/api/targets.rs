@@ -724,6 +724,8 @@ pub struct HistoryQuery {
     pub max_points: Option<usize>,
     /// `json` (default) or `csv`.
     pub format: Option<String>,
+    /// Only these components, comma-separated (`def_rx_arcsec,def_ry_arcsec`); all without it.
+    pub components: Option<String>,
 }
 
 /// One component's series.
@@ -801,6 +803,24 @@ pub async fn get_history(
             ));
         }
     };
+    let chosen: Vec<usize> = match q.components.as_deref() {
+        None => (0..N_COMPONENTS).collect(),
+        Some(list) => list
+            .split(',')
+            .map(|name| {
+                let name = name.trim();
+                COMPONENTS.iter().position(|c| *c == name).ok_or_else(|| {
+                    ApiError::invalid_field(
+                        "components",
+                        format!(
+                            "`{name}` is not a component; they are {}",
+                            COMPONENTS.join(", ")
+                        ),
+                    )
+                })
+            })
+            .collect::<Result<_, _>>()?,
+    };
     let store = app.service.store();
     let bounds = store.result_bounds(ti, filtered).await?;
     let (from, to) = match bounds {
@@ -857,13 +877,15 @@ pub async fn get_history(
     };
     if csv {
         let mut header = String::from("time,count");
-        for c in COMPONENTS {
+        for &i in &chosen {
+            let c = COMPONENTS[i];
             header.push_str(&format!(",{c}_min,{c}_mean,{c}_max"));
         }
         header.push('\n');
+        let columns = chosen.clone();
         let lines = std::iter::once(header).chain(buckets.values().map(move |b| {
             let mut line = format!("{},{}", format_ns(b.start_ns), b.n);
-            for i in 0..N_COMPONENTS {
+            for &i in &columns {
                 for which in 0..3 {
                     match value(b, i, which) {
                         Some(v) => line.push_str(&format!(",{v}")),
@@ -892,9 +914,9 @@ pub async fn get_history(
             .into_response());
     }
     let mut series = std::collections::BTreeMap::new();
-    for (i, c) in COMPONENTS.iter().enumerate() {
+    for &i in &chosen {
         series.insert(
-            *c,
+            COMPONENTS[i],
             SeriesOut {
                 min: buckets.values().map(|b| value(b, i, 0)).collect(),
                 mean: buckets.values().map(|b| value(b, i, 1)).collect(),

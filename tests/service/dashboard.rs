@@ -125,6 +125,55 @@ async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags(
     assert_eq!(status, StatusCode::UNAUTHORIZED);
 }
 
+#[tokio::test]
+async fn answers_are_gzipped_when_asked_but_the_event_stream_is_not() {
+    let app = TestApp::start(None).await;
+    let call = |uri: &'static str, gzip: bool| {
+        let mut builder = Request::builder().uri(uri);
+        if gzip {
+            builder = builder.header(header::ACCEPT_ENCODING, "gzip");
+        }
+        app.router
+            .clone()
+            .oneshot(builder.body(Body::empty()).expect("request"))
+    };
+    let plain = call("/assets/uPlot.iife.min.js", false)
+        .await
+        .expect("answer");
+    assert!(!plain.headers().contains_key(header::CONTENT_ENCODING));
+    let plain_len = plain
+        .into_body()
+        .collect()
+        .await
+        .expect("body")
+        .to_bytes()
+        .len();
+    let zipped = call("/assets/uPlot.iife.min.js", true)
+        .await
+        .expect("answer");
+    assert_eq!(zipped.headers()[header::CONTENT_ENCODING], "gzip");
+    let zipped_len = zipped
+        .into_body()
+        .collect()
+        .await
+        .expect("body")
+        .to_bytes()
+        .len();
+    assert!(
+        zipped_len * 2 < plain_len,
+        "gzip: {zipped_len} of {plain_len} bytes"
+    );
+    let targets = call("/api/v1/targets", true).await.expect("answer");
+    assert_eq!(targets.headers()[header::CONTENT_ENCODING], "gzip");
+    let events = call("/api/v1/events", true).await.expect("answer");
+    assert!(
+        events.headers()[header::CONTENT_TYPE]
+            .as_bytes()
+            .starts_with(b"text/event-stream")
+    );
+    assert!(!events.headers().contains_key(header::CONTENT_ENCODING));
+}
+
 /// What the browser test needs: Node.js, playwright-core under `tests/browser`, and Chromium.
 struct Browser {
     node: PathBuf,

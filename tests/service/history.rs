@@ -128,6 +128,28 @@ async fn a_month_of_results_downsamples_without_losing_a_spike() {
         text.lines().count(),
         n["time"].as_array().unwrap().len() + 1
     );
+    // Only the components asked for, with the same values.
+    let (status, some) = app
+        .get(&format!("{narrow}&components=t_x_mm,sigma_rz_arcsec"))
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    let keys: Vec<&String> = some["series"].as_object().unwrap().keys().collect();
+    assert_eq!(keys, ["sigma_rz_arcsec", "t_x_mm"]);
+    assert_eq!(some["series"]["t_x_mm"], n["series"]["t_x_mm"]);
+    assert_eq!(some["count"], n["count"]);
+    let (_, csv) = app
+        .get(&format!("{narrow}&components=t_x_mm&format=csv"))
+        .await;
+    let header = csv.as_str().unwrap().lines().next().unwrap().to_owned();
+    assert_eq!(header, "time,count,t_x_mm_min,t_x_mm_mean,t_x_mm_max");
+    let (status, body) = app
+        .get(&format!("{narrow}&components=t_x_mm,tilt_deg"))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert!(
+        body.to_string().contains("`tilt_deg` is not a component"),
+        "{body}"
+    );
 }
 
 #[tokio::test]
