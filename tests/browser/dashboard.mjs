@@ -68,6 +68,14 @@ await run(async (browser) => {
   const trPixels = await seriesPixels('#plot-tr');
   check(rotPixels > 300 && trPixels > 300,
     `the plots draw series: ${rotPixels} and ${trPixels} pixels of the series colours`);
+  // The relay chain: base, two stations, target, and the three measured rays between them.
+  const stations = await page.$$eval('#topology .station text.name', (t) => t.map((e) => e.textContent));
+  const rays = await page.$$eval('#topology .ray', (r) => r.map((e) => e.dataset.link));
+  check(stations.join(' | ') === 'B | C1 · C2 | M · C3 | G' && rays.join(' ') === 'C1_from_B C2_from_M C3_from_G',
+    `the relay chain is drawn as stations: ${stations.join(' | ')}; rays ${rays.join(' ')}`);
+  const linkRows = await page.$$eval('#links tbody tr', (r) => r.map((e) => e.dataset.link));
+  check(linkRows.length === 5, `the link table lists the five links: ${linkRows.join(', ')}`);
+
   // The alarm list: the transitions of the shown range, newest first.
   await page.waitForSelector('#alarms tbody tr');
   const alarmTimes = await page.$$eval('#alarms tbody tr:not(.empty) td:first-child', (cells) => cells.map((c) => c.textContent));

@@ -174,6 +174,55 @@ async fn answers_are_gzipped_when_asked_but_the_event_stream_is_not() {
     assert!(!events.headers().contains_key(header::CONTENT_ENCODING));
 }
 
+/// What the page draws the relay chain and the threshold lines from.
+#[tokio::test]
+async fn targets_answer_each_paths_frames_and_the_thresholds() {
+    let app = TestApp::start(None).await;
+    let (status, targets) = app.get("/api/v1/targets").await;
+    assert_eq!(status, StatusCode::OK);
+    let g = &targets[0];
+    let path = &g["paths"][0];
+    let frames: Vec<&str> = path["frames"]
+        .as_array()
+        .expect("frames")
+        .iter()
+        .map(|f| f.as_str().expect("name"))
+        .collect();
+    assert_eq!(frames, ["B", "C1", "C2", "M", "C3", "G"]);
+    // Each step joins its two frames, in the direction it states.
+    let steps = path["steps"].as_array().expect("steps");
+    assert_eq!(steps.len() + 1, frames.len());
+    for (i, step) in steps.iter().enumerate() {
+        let link = step["link"].as_str().expect("link");
+        let (parent, child) = link.split_once("_from_").expect("parent_from_child");
+        let expected = match step["direction"].as_str() {
+            Some("forward") => (child, parent),
+            Some("inverted") => (parent, child),
+            other => panic!("direction {other:?}"),
+        };
+        assert_eq!((frames[i], frames[i + 1]), expected, "step {i}: {link}");
+    }
+    let thresholds = &g["alarms"];
+    let spec = &app.service.installation().targets[0].alarms;
+    assert_eq!(
+        thresholds["warn_rotation_arcsec"],
+        json!(spec.warn_rotation_arcsec)
+    );
+    assert_eq!(
+        thresholds["alarm_rotation_arcsec"],
+        json!(spec.alarm_rotation_arcsec)
+    );
+    assert_eq!(
+        thresholds["warn_translation_mm"],
+        json!(spec.warn_translation_mm)
+    );
+    assert_eq!(
+        thresholds["alarm_translation_mm"],
+        json!(spec.alarm_translation_mm)
+    );
+    assert_eq!(thresholds["warn_rotation_arcsec"], json!(60.0));
+}
+
 /// What the browser test needs: Node.js, playwright-core under `tests/browser`, and Chromium.
 struct Browser {
     node: PathBuf,
