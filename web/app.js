@@ -22,6 +22,7 @@
     zoomStack: [],
     selection: null, // {from, to} in ms
     alarms: [],
+    references: [], // every reference version of the selected target, newest first
     show: { x: true, y: true, z: true, mag: true, raw: true, band: true },
     history: null, // {window: [from, to] ms, rot: data, tr: data, info}
     plots: { rot: null, tr: null },
@@ -514,6 +515,7 @@
         ctx.fillStyle = t.color;
         ctx.fillText(`${t.label} ${t.v}`, left + 6 * devicePixelRatio, y - 4 * devicePixelRatio);
       }
+      drawMarkers(u, fontPx);
       if (above.length) {
         ctx.fillStyle = cssVar('--muted');
         ctx.fillText(`${above.join(', ')} ↑ above`, left + 6 * devicePixelRatio, top + (fontPx + 4) * devicePixelRatio);
@@ -521,6 +523,36 @@
       ctx.restore();
       void height;
     };
+  }
+
+  // Vertical marks: alarm transitions (coloured by the level entered) and reference changes.
+  function drawMarkers(u, fontPx) {
+    const ctx = u.ctx;
+    const { left, top, width, height } = u.bbox;
+    const [xmin, xmax] = [u.scales.x.min, u.scales.x.max];
+    const mark = (ms, colour, dash, label) => {
+      const x = ms / 1000;
+      if (!(x >= xmin && x <= xmax)) return;
+      const px = Math.round(u.valToPos(x, 'x', true)) + 0.5;
+      ctx.strokeStyle = colour;
+      ctx.lineWidth = devicePixelRatio;
+      ctx.setLineDash(dash.map((d) => d * devicePixelRatio));
+      ctx.beginPath();
+      ctx.moveTo(px, top);
+      ctx.lineTo(px, top + height);
+      ctx.stroke();
+      if (label) {
+        ctx.fillStyle = colour;
+        ctx.fillText(label, Math.min(px + 4 * devicePixelRatio, left + width - 40 * devicePixelRatio),
+          top + height - 6 * devicePixelRatio);
+      }
+    };
+    const levelColour = { alarm: cssVar('--alarm'), warn: cssVar('--warn'), none: cssVar('--ok') };
+    for (const a of state.alarms) {
+      if (a.target === state.selected) mark(parseTime(a.time), levelColour[a.to] || cssVar('--muted'), [2, 3], '');
+    }
+    for (const r of state.references) mark(parseTime(r.since), cssVar('--ref'), [], `ref v${r.version}`);
+    void fontPx;
   }
 
   // The uPlot series and data columns the toggles ask for.
@@ -856,6 +888,25 @@
       `t ${r.t_mm.map((v) => v.toFixed(3)).join(', ')} mm · Euler ${r.euler_deg.map((v) => v.toFixed(5)).join(', ')} °`));
   }
 
+  async function loadReferences(target) {
+    const answer = await api('/api/v1/targets/' + encodeURIComponent(target) + '/references');
+    if (target !== state.selected) return;
+    state.references = answer.references.slice().reverse();
+    const body = $('references').tBodies[0];
+    body.textContent = '';
+    for (const r of state.references.slice(0, 20)) {
+      const w = r.window;
+      body.append(el('tr', {},
+        el('td', { class: 'num', text: String(r.version) }),
+        el('td', { text: fmtTime(parseTime(r.since)) }),
+        el('td', { text: w ? `mean of ${w.count} from ${fmtTime(parseTime(w.from))} to ${fmtTime(parseTime(w.to), false)}` : r.origin })));
+    }
+    if (!state.references.length) {
+      body.append(el('tr', { class: 'empty' }, el('td', { colspan: '3', text: 'None yet.' })));
+    }
+    redrawMarks();
+  }
+
   $('reference-form').addEventListener('submit', async (e) => {
     e.preventDefault();
     const target = state.selected;
@@ -876,6 +927,7 @@
       result.textContent = `Reference version ${r.version} set for ${target}` +
         (r.window ? ` from ${r.window.count} results.` : '.');
       await loadCompensation(target);
+      loadReferences(target).catch(() => {});
       loadHistory();
     } catch (err) {
       result.textContent = err.status === 403
@@ -912,6 +964,11 @@
     const answer = await api(`/api/v1/alarms?from=${encodeURIComponent(iso(win[0]))}&to=${encodeURIComponent(iso(win[1]))}&limit=${ALARMS_SHOWN}&order=desc`);
     state.alarms = answer.alarms;
     renderAlarms();
+    redrawMarks();
+  }
+
+  function redrawMarks() {
+    for (const p of Object.values(state.plots)) if (p) p.redraw(false, false);
   }
 
   function acceptAlarm(a) {
@@ -919,6 +976,7 @@
       state.alarms.unshift(a);
       state.alarms.length = Math.min(state.alarms.length, ALARMS_SHOWN);
       renderAlarms();
+      redrawMarks();
     }
     if (a.to === 'alarm') showMessage('alarm-' + a.target, `${fmtTime(parseTime(a.time))}: ${a.target}: ${a.message}`, 'error');
     else if (a.to === 'none') clearMessage('alarm-' + a.target);
@@ -1045,7 +1103,9 @@
     $('history-target').textContent = name;
     for (const [n, c] of cards) c.root.setAttribute('aria-current', String(n === name));
     state.history = null;
+    state.references = [];
     renderReferencePanel();
+    loadReferences(name).catch((e) => { if (e.status !== 401) showMessage('references', 'References: ' + e.message); });
     renderTopology();
     if (!$('reference-from').value) {
       const [from, to] = windowMs();

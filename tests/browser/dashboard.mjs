@@ -174,6 +174,9 @@ await run(async (browser) => {
   const refText = await page.textContent('[data-target="G"] [data-f="ref"]');
   const result = await page.textContent('#reference-result');
   check(refText.startsWith('v2 '), `the card shows the new reference: "${refText}" (${result}; window ${windowFrom} to ${windowTo})`);
+  await page.waitForFunction(() => document.querySelectorAll('#references tbody tr').length === 2, null, { timeout: 5000 });
+  const versions = await page.$$eval('#references tbody tr td:first-child', (c) => c.map((e) => e.textContent));
+  check(versions.join(',') === '2,1', `the reference versions are listed newest first: ${versions.join(', ')}`);
 
   // 7. CSV of the shown range.
   const downloadEvent = page.waitForEvent('download');
