@@ -87,16 +87,12 @@ pub async fn list_alarms(
     };
     let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let limit = super::query_count("limit", q.limit, 1000)?;
-    let newest_first = match q.order.as_deref() {
-        None | Some("asc") => false,
-        Some("desc") => true,
-        Some(other) => {
-            return Err(ApiError::invalid_field(
-                "order",
-                format!("`{other}` is not `asc` or `desc`"),
-            ));
-        }
-    };
+    let newest_first = super::query_choice(
+        "order",
+        q.order.as_deref(),
+        false,
+        &[("asc", false), ("desc", true)],
+    )?;
     let stored = app
         .service
         .store()

@@ -136,6 +136,33 @@ pub fn query_count(field: &str, value: Option<i64>, default: i64) -> Result<i64,
     Ok(n)
 }
 
+/// A query parameter with a few allowed values (`source=raw|filtered`, `format=json|csv`, ...):
+/// `default` when absent, else the value of the matching name; any other is refused, naming the
+/// field and the choices.
+pub fn query_choice<T: Copy>(
+    field: &str,
+    value: Option<&str>,
+    default: T,
+    choices: &[(&str, T)],
+) -> Result<T, ApiError> {
+    let Some(value) = value else {
+        return Ok(default);
+    };
+    if let Some((_, v)) = choices.iter().find(|(name, _)| *name == value) {
+        return Ok(*v);
+    }
+    let names: Vec<String> = choices.iter().map(|(n, _)| format!("`{n}`")).collect();
+    let listed = match names.split_last() {
+        Some((last, [])) => last.clone(),
+        Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+        None => String::new(),
+    };
+    Err(ApiError::invalid_field(
+        field,
+        format!("`{value}` is not {listed}"),
+    ))
+}
+
 async fn api_not_found(uri: axum::http::Uri) -> ApiError {
     ApiError::not_found(format!("no endpoint at `{}`", uri.path()))
 }

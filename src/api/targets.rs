@@ -500,16 +500,12 @@ pub struct WindowQuery {
 /// Parses `from`, `to` and `source` of a window query.
 pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
     let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
-    let filtered = match q.source.as_deref() {
-        None | Some("filtered") => true,
-        Some("raw") => false,
-        Some(other) => {
-            return Err(ApiError::invalid_field(
-                "source",
-                format!("`{other}` is not `raw` or `filtered`"),
-            ));
-        }
-    };
+    let filtered = super::query_choice(
+        "source",
+        q.source.as_deref(),
+        true,
+        &[("raw", false), ("filtered", true)],
+    )?;
     Ok((from, to, filtered))
 }
 
@@ -793,16 +789,12 @@ pub async fn get_history(
         q.max_points.map(|n| i64::try_from(n).unwrap_or(i64::MAX)),
         1000,
     )? as usize;
-    let csv = match q.format.as_deref() {
-        None | Some("json") => false,
-        Some("csv") => true,
-        Some(other) => {
-            return Err(ApiError::invalid_field(
-                "format",
-                format!("`{other}` is not `json` or `csv`"),
-            ));
-        }
-    };
+    let csv = super::query_choice(
+        "format",
+        q.format.as_deref(),
+        false,
+        &[("json", false), ("csv", true)],
+    )?;
     let chosen: Vec<usize> = match q.components.as_deref() {
         None => (0..N_COMPONENTS).collect(),
         Some(list) => list

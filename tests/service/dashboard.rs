@@ -15,15 +15,15 @@ use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 use tower::ServiceExt;
 
-/// Status, headers and body of a GET, with an optional `If-None-Match`.
+/// Status, headers and body of a GET with the given request headers.
 async fn fetch(
     app: &TestApp,
     uri: &str,
-    if_none_match: Option<&str>,
+    headers: &[(header::HeaderName, &str)],
 ) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
     let mut builder = Request::builder().uri(uri);
-    if let Some(tag) = if_none_match {
-        builder = builder.header(header::IF_NONE_MATCH, tag);
+    for (name, value) in headers {
+        builder = builder.header(name, *value);
     }
     let resp = app
         .router
@@ -41,7 +41,7 @@ async fn fetch(
 async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags() {
     // Tokens configured: the API needs one, the dashboard's files do not.
     let app = TestApp::start(Some(&with_tokens())).await;
-    let (status, headers, body) = fetch(&app, "/", None).await;
+    let (status, headers, body) = fetch(&app, "/", &[]).await;
     assert_eq!(status, StatusCode::OK);
     assert_eq!(headers[header::CONTENT_TYPE], "text/html; charset=utf-8");
     let csp = headers[header::CONTENT_SECURITY_POLICY]
@@ -80,7 +80,7 @@ async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags(
     }
     for file in &referred {
         let uri = format!("/assets/{file}");
-        let (status, headers, body) = fetch(&app, &uri, None).await;
+        let (status, headers, body) = fetch(&app, &uri, &[]).await;
         assert_eq!(status, StatusCode::OK, "{uri}");
         assert!(!body.is_empty(), "{uri} is empty");
         let kind = headers[header::CONTENT_TYPE].to_str().expect("ascii");
@@ -92,21 +92,22 @@ async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags(
         };
         assert!(kind.starts_with(expected), "{uri}: {kind}");
         let etag = headers[header::ETAG].to_str().expect("ascii").to_owned();
-        let (again, _, body) = fetch(&app, &uri, Some(&etag)).await;
+        let (again, _, body) = fetch(&app, &uri, &[(header::IF_NONE_MATCH, &etag)]).await;
         assert_eq!(again, StatusCode::NOT_MODIFIED, "{uri} with its ETag");
         assert!(body.is_empty());
-        let (changed, _, _) = fetch(&app, &uri, Some("\"something-else\"")).await;
+        let (changed, _, _) =
+            fetch(&app, &uri, &[(header::IF_NONE_MATCH, "\"something-else\"")]).await;
         assert_eq!(changed, StatusCode::OK, "{uri} with another ETag");
     }
 
     // The charting library is the vendored, pinned one, and its licence ships with it.
-    let (_, _, uplot) = fetch(&app, "/assets/uPlot.iife.min.js", None).await;
+    let (_, _, uplot) = fetch(&app, "/assets/uPlot.iife.min.js", &[]).await;
     assert!(uplot.starts_with(b"/*! https://github.com/leeoniya/uPlot (v1.6.32) */"));
-    let (_, _, licence) = fetch(&app, "/assets/uPlot.LICENSE", None).await;
+    let (_, _, licence) = fetch(&app, "/assets/uPlot.LICENSE", &[]).await;
     assert!(String::from_utf8_lossy(&licence).contains("MIT License"));
 
     // An unknown file is named; the API still needs a token.
-    let (status, _, body) = fetch(&app, "/assets/nothing.js", None).await;
+    let (status, _, body) = fetch(&app, "/assets/nothing.js", &[]).await;
     assert_eq!(status, StatusCode::NOT_FOUND);
     let body: Value = serde_json::from_slice(&body).expect("error body");
     assert!(
@@ -115,57 +116,45 @@ async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags(
             .is_some_and(|m| m.contains("`nothing.js`")),
         "{body}"
     );
-    let (status, _, _) = fetch(&app, "/assets/index.html", None).await;
+    let (status, _, _) = fetch(&app, "/assets/index.html", &[]).await;
     assert_eq!(
         status,
         StatusCode::NOT_FOUND,
         "the page is served at / only"
     );
-    let (status, _, _) = fetch(&app, "/api/v1/targets", None).await;
+    let (status, _, _) = fetch(&app, "/api/v1/targets", &[]).await;
     assert_eq!(status, StatusCode::UNAUTHORIZED);
 }
 
 #[tokio::test]
 async fn answers_are_gzipped_when_asked_but_the_event_stream_is_not() {
     let app = TestApp::start(None).await;
-    let call = |uri: &'static str, gzip: bool| {
-        let mut builder = Request::builder().uri(uri);
-        if gzip {
-            builder = builder.header(header::ACCEPT_ENCODING, "gzip");
-        }
-        app.router
-            .clone()
-            .oneshot(builder.body(Body::empty()).expect("request"))
-    };
-    let plain = call("/assets/uPlot.iife.min.js", false)
-        .await
-        .expect("answer");
-    assert!(!plain.headers().contains_key(header::CONTENT_ENCODING));
-    let plain_len = plain
-        .into_body()
-        .collect()
-        .await
-        .expect("body")
-        .to_bytes()
-        .len();
-    let zipped = call("/assets/uPlot.iife.min.js", true)
-        .await
-        .expect("answer");
-    assert_eq!(zipped.headers()[header::CONTENT_ENCODING], "gzip");
-    let zipped_len = zipped
-        .into_body()
-        .collect()
-        .await
-        .expect("body")
-        .to_bytes()
-        .len();
+    let gzip = [(header::ACCEPT_ENCODING, "gzip")];
+    let (_, plain_headers, plain) = fetch(&app, "/assets/uPlot.iife.min.js", &[]).await;
+    assert!(!plain_headers.contains_key(header::CONTENT_ENCODING));
+    let (_, zipped_headers, zipped) = fetch(&app, "/assets/uPlot.iife.min.js", &gzip).await;
+    assert_eq!(zipped_headers[header::CONTENT_ENCODING], "gzip");
     assert!(
-        zipped_len * 2 < plain_len,
-        "gzip: {zipped_len} of {plain_len} bytes"
+        zipped.len() * 2 < plain.len(),
+        "gzip: {} of {} bytes",
+        zipped.len(),
+        plain.len()
     );
-    let targets = call("/api/v1/targets", true).await.expect("answer");
-    assert_eq!(targets.headers()[header::CONTENT_ENCODING], "gzip");
-    let events = call("/api/v1/events", true).await.expect("answer");
+    let (_, targets, _) = fetch(&app, "/api/v1/targets", &gzip).await;
+    assert_eq!(targets[header::CONTENT_ENCODING], "gzip");
+    // The event stream never ends: look at its headers only.
+    let events = app
+        .router
+        .clone()
+        .oneshot(
+            Request::builder()
+                .uri("/api/v1/events")
+                .header(header::ACCEPT_ENCODING, "gzip")
+                .body(Body::empty())
+                .expect("request"),
+        )
+        .await
+        .expect("answer");
     assert!(
         events.headers()[header::CONTENT_TYPE]
             .as_bytes()

@@ -150,6 +150,20 @@ async fn a_month_of_results_downsamples_without_losing_a_spike() {
         body.to_string().contains("`tilt_deg` is not a component"),
         "{body}"
     );
+    // A choice out of its values is refused naming the field and the choices.
+    for (query, field, message) in [
+        (
+            "source=fused",
+            "source",
+            "`fused` is not `raw` or `filtered`",
+        ),
+        ("format=xml", "format", "`xml` is not `json` or `csv`"),
+    ] {
+        let (status, body) = app.get(&format!("{narrow}&{query}")).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{query}");
+        assert_eq!(body["error"]["details"][0]["field"], field, "{body}");
+        assert_eq!(body["error"]["details"][0]["message"], message, "{body}");
+    }
 }
 
 #[tokio::test]
