@@ -21,43 +21,38 @@ struct Asset {
     bytes: &'static [u8],
 }
 
-/// The page and what it loads.
+/// One [`Asset`] from a file of `web/`.
+macro_rules! asset {
+    ($name:literal, $path:literal, $content_type:literal) => {
+        Asset {
+            name: $name,
+            content_type: $content_type,
+            bytes: include_bytes!(concat!("../../web/", $path)),
+        }
+    };
+}
+
+/// The page and what it loads: (name under `/assets/`, file of `web/`, content type).
 const ASSETS: &[Asset] = &[
-    Asset {
-        name: "index.html",
-        content_type: "text/html; charset=utf-8",
-        bytes: include_bytes!("../../web/index.html"),
-    },
-    Asset {
-        name: "app.js",
-        content_type: "text/javascript; charset=utf-8",
-        bytes: include_bytes!("../../web/app.js"),
-    },
-    Asset {
-        name: "style.css",
-        content_type: "text/css; charset=utf-8",
-        bytes: include_bytes!("../../web/style.css"),
-    },
-    Asset {
-        name: "uPlot.iife.min.js",
-        content_type: "text/javascript; charset=utf-8",
-        bytes: include_bytes!("../../web/vendor/uplot/uPlot.iife.min.js"),
-    },
-    Asset {
-        name: "uPlot.min.css",
-        content_type: "text/css; charset=utf-8",
-        bytes: include_bytes!("../../web/vendor/uplot/uPlot.min.css"),
-    },
-    Asset {
-        name: "uPlot.LICENSE",
-        content_type: "text/plain; charset=utf-8",
-        bytes: include_bytes!("../../web/vendor/uplot/LICENSE"),
-    },
-    Asset {
-        name: "favicon.svg",
-        content_type: "image/svg+xml",
-        bytes: include_bytes!("../../web/favicon.svg"),
-    },
+    asset!("index.html", "index.html", "text/html; charset=utf-8"),
+    asset!("app.js", "app.js", "text/javascript; charset=utf-8"),
+    asset!("style.css", "style.css", "text/css; charset=utf-8"),
+    asset!(
+        "uPlot.iife.min.js",
+        "vendor/uplot/uPlot.iife.min.js",
+        "text/javascript; charset=utf-8"
+    ),
+    asset!(
+        "uPlot.min.css",
+        "vendor/uplot/uPlot.min.css",
+        "text/css; charset=utf-8"
+    ),
+    asset!(
+        "uPlot.LICENSE",
+        "vendor/uplot/LICENSE",
+        "text/plain; charset=utf-8"
+    ),
+    asset!("favicon.svg", "favicon.svg", "image/svg+xml"),
 ];
 
 /// Scripts, styles, images and connections from this origin only; no framing. uPlot sets
