@@ -11,6 +11,8 @@
   const AXES = ['x', 'y', 'z'];
   const TOKEN_KEY = 'brokenray.token';
   const ALARMS_SHOWN = 500;
+  const LATE_WARN_S = 5; // a result older than this: the age turns amber
+  const LATE_ALARM_S = 60; // and red
 
   const state = {
     targets: [],
@@ -305,7 +307,11 @@
     const entry = state.comp.get(name);
     if (!card || !entry) return;
     const c = entry.data;
-    card.fields.age.textContent = c.time ? fmtAge(c.age_s + (performance.now() - entry.receivedAt) / 1000) : '—';
+    // The service works in measurement time: when every link stops, no new result says so.
+    // The age keeps counting here, and turns amber, then red, as results stop arriving.
+    const age = c.age_s + (performance.now() - entry.receivedAt) / 1000;
+    card.fields.age.textContent = c.time ? fmtAge(age) : '—';
+    card.fields.age.className = !c.time ? '' : age > LATE_ALARM_S ? 'over-alarm' : age > LATE_WARN_S ? 'over-warn' : '';
   }
 
   function acceptCompensation(c) {

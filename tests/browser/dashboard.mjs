@@ -202,6 +202,12 @@ await run(async (browser) => {
     check(reached.has(want), `"${want}" is reached with the keyboard: ${[...reached].join(', ')}`);
   }
 
+  // No new result for a while (the live posts stopped): the age counts on and turns amber.
+  await page.waitForFunction(() => document.querySelector('[data-target="G"] [data-f="age"]').className === 'over-warn',
+    null, { timeout: 15000 });
+  const age = await page.textContent('[data-target="G"] [data-f="age"]');
+  check(parseFloat(age) >= 5, `the age of the newest result counts on and warns: ${age}`);
+
   await page.click('button[data-range="300"]');
   await page.waitForTimeout(1500);
   await page.screenshot({ path: join(artifacts, 'dashboard.png'), fullPage: true });
