@@ -246,9 +246,16 @@
     const fields = {};
     for (const f of root.querySelectorAll('[data-f]')) fields[f.dataset.f] = f;
     const a = target.alarms || {};
-    fields.thresholds.textContent =
-      `warn ${fmt(a.warn_rotation_arcsec, 0)}″ / ${fmt(a.warn_translation_mm, 2)} mm, ` +
-      `alarm ${fmt(a.alarm_rotation_arcsec, 0)}″ / ${fmt(a.alarm_translation_mm, 2)} mm`;
+    const level = (name, r, t) => {
+      const parts = [];
+      if (Number.isFinite(r)) parts.push(`${fmt(r, 0)}″`);
+      if (Number.isFinite(t)) parts.push(`${fmt(t, 2)} mm`);
+      return parts.length ? `${name} ${parts.join(' / ')}` : '';
+    };
+    fields.thresholds.textContent = [
+      level('warn', a.warn_rotation_arcsec, a.warn_translation_mm),
+      level('alarm', a.alarm_rotation_arcsec, a.alarm_translation_mm),
+    ].filter((x) => x).join(', ') || 'none';
     return { root, fields, target };
   }
 
@@ -643,7 +650,7 @@
         },
       },
       axes: [
-        Object.assign({}, axis, { values: timeTicks, space: fontPx * 6, size: fontPx * 3.5 }),
+        Object.assign({}, axis, { values: timeTicks, space: fontPx * 6, size: fontPx * 4.2 }),
         Object.assign({}, axis, { size: fontPx * 5.5 }),
       ],
       series: lay.series,
@@ -757,8 +764,9 @@
       const merged = merge(filtered, raw);
       state.history = { window: win, rot: merged.rot, tr: merged.tr, info: filtered };
       const res = filtered.resolution_s ? `${filtered.resolution_s} s rollups` : 'the results';
-      $('history-info').textContent = `${fmtTime(win[0])} – ${fmtTime(win[1])} UTC · ` +
-        `${merged.rot.count} buckets of ${fmtSpan(filtered.bucket_s)} from ${res}`;
+      $('history-info').textContent = `${fmtTime(win[0])} – ${fmtTime(win[1])} UTC · ` + (merged.rot.count
+        ? `${merged.rot.count} buckets of ${fmtSpan(filtered.bucket_s)} from ${res}`
+        : 'no results');
       document.body.dataset.historyLoads = String(Number(document.body.dataset.historyLoads || 0) + 1);
       document.body.dataset.historyWindowS = String((win[1] - win[0]) / 1000);
       renderPlots();
@@ -1032,7 +1040,9 @@
       const width = stations.length * boxW + (stations.length - 1) * gap + 20;
       const height = top + boxH + 16;
       const root = svg('svg', { viewBox: `0 0 ${width} ${height}`, role: 'img', 'aria-label': `${label}: ${p.product}` });
-      root.style.maxWidth = width * 1.2 + 'px';
+      // At its natural size (the same scale for every path), shrunk to fit a narrow screen.
+      root.setAttribute('width', String(width));
+      root.setAttribute('height', String(height));
       root.append(svg('defs', {}, svg('marker', { id: 'arrow', viewBox: '0 0 10 10', refX: '10', refY: '5', markerWidth: '7', markerHeight: '7', orient: 'auto-start-reverse' },
         svg('path', { d: 'M0,0 L10,5 L0,10 z' }))));
       const title = svg('text', { x: '10', y: '14', class: 'path-label' });
