@@ -165,19 +165,11 @@ pub fn solve_hand_eye(
             }
         })
         .collect();
-    let n = residuals.len() as f64;
-    let rms_rotation_arcsec = (residuals
-        .iter()
-        .map(|r| r.rotation_arcsec.powi(2))
-        .sum::<f64>()
-        / n)
-        .sqrt();
-    let rms_translation_mm = (residuals
-        .iter()
-        .map(|r| r.translation_mm.powi(2))
-        .sum::<f64>()
-        / n)
-        .sqrt();
+    let rms = |of: fn(&PairResidual) -> f64| {
+        (residuals.iter().map(|r| of(r).powi(2)).sum::<f64>() / residuals.len() as f64).sqrt()
+    };
+    let rms_rotation_arcsec = rms(|r| r.rotation_arcsec);
+    let rms_translation_mm = rms(|r| r.translation_mm);
     Ok(HandEyeSolution {
         x,
         covariance,

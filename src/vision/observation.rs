@@ -115,35 +115,40 @@ impl Observer {
         self.links.iter()
     }
 
-    /// The link a camera and a marker form.
+    /// The link a camera and a marker form. The names are checked against the configuration
+    /// only when no link matches, to say which one is wrong.
     pub fn link(&self, camera: &str, marker: &str) -> Result<&ObservedLink, ObservationError> {
-        if !self.cameras.iter().any(|c| c == camera) {
-            return Err(ObservationError::new(
+        if let Some(link) = self
+            .links
+            .iter()
+            .find(|l| l.camera_frame == camera && l.marker_frame == marker)
+        {
+            return Ok(link);
+        }
+        Err(if !self.cameras.iter().any(|c| c == camera) {
+            ObservationError::new(
                 "camera",
                 format!(
                     "unknown camera `{camera}` (configured: {})",
                     self.cameras.join(", ")
                 ),
-            ));
-        }
-        if !self.markers.iter().any(|m| m == marker) {
-            return Err(ObservationError::new(
+            )
+        } else if !self.markers.iter().any(|m| m == marker) {
+            ObservationError::new(
                 "marker",
                 format!(
                     "unknown marker `{marker}` (configured: {})",
                     self.markers.join(", ")
                 ),
-            ));
-        }
-        self.links
-            .iter()
-            .find(|l| l.camera_frame == camera && l.marker_frame == marker)
-            .ok_or_else(|| {
-                ObservationError::new(
-                    "marker",
-                    format!("no measured link `{camera}_from_{marker}`: camera {camera} is not configured to see marker {marker}"),
-                )
-            })
+            )
+        } else {
+            ObservationError::new(
+                "marker",
+                format!(
+                    "no measured link `{camera}_from_{marker}`: camera {camera} is not configured to see marker {marker}"
+                ),
+            )
+        })
     }
 
     /// Solves one observation: `points_px` in the marker's point order, or paired with `ids`.
