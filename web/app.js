@@ -108,7 +108,6 @@
   }
   const fmt = (v, digits) => (v === null || v === undefined || !Number.isFinite(v) ? '—' : v.toFixed(digits));
   const norm3 = (v) => (v ? Math.hypot(v[0], v[1], v[2]) : NaN);
-  const cssVar = (name) => getComputedStyle(document.documentElement).getPropertyValue(name).trim();
   function el(tag, attrs, ...children) {
     const e = document.createElement(tag);
     for (const [k, v] of Object.entries(attrs || {})) {
@@ -433,6 +432,28 @@
 
   // ---------------------------------------------------------------- history
 
+  // `from=..&to=..` of a window (ms).
+  const windowQuery = (win) => `from=${encodeURIComponent(iso(win[0]))}&to=${encodeURIComponent(iso(win[1]))}`;
+
+  // A history request of the selected target over `win`, one bucket a pixel of plot width.
+  function historyUrl(target, source, win, extra) {
+    const maxPoints = Math.min(2000, Math.round(plotWidth()));
+    return '/api/v1/targets/' + encodeURIComponent(target) + `/history?source=${source}&` +
+      `${windowQuery(win)}&max_points=${maxPoints}` + (extra ? '&' + extra : '');
+  }
+
+  // The page's colours and font size, read from the style sheet when the plots are built (they
+  // are rebuilt when the theme or the size changes), not at every draw.
+  let palette = null;
+  function readPalette() {
+    const v = (name) => getComputedStyle(document.documentElement).getPropertyValue(name).trim();
+    palette = {
+      x: v('--x'), y: v('--y'), z: v('--z'), mag: v('--mag'), ref: v('--ref'),
+      ok: v('--ok'), warn: v('--warn'), alarm: v('--alarm'), muted: v('--muted'), grid: v('--grid'),
+      fontPx: parseFloat(getComputedStyle(document.documentElement).fontSize),
+    };
+  }
+
   function windowMs() {
     if (state.range.kind === 'abs') return [state.range.from, state.range.to];
     const end = Math.max(Date.now(), state.newestMs);
@@ -493,10 +514,10 @@
     const t = state.targets.find((q) => q.name === state.selected);
     const a = (t && t.alarms) || {};
     return kind === 'rot'
-      ? [{ v: a.warn_rotation_arcsec, label: 'warn', color: cssVar('--warn') },
-        { v: a.alarm_rotation_arcsec, label: 'alarm', color: cssVar('--alarm') }]
-      : [{ v: a.warn_translation_mm, label: 'warn', color: cssVar('--warn') },
-        { v: a.alarm_translation_mm, label: 'alarm', color: cssVar('--alarm') }];
+      ? [{ v: a.warn_rotation_arcsec, label: 'warn', color: palette.warn },
+        { v: a.alarm_rotation_arcsec, label: 'alarm', color: palette.alarm }]
+      : [{ v: a.warn_translation_mm, label: 'warn', color: palette.warn },
+        { v: a.alarm_translation_mm, label: 'alarm', color: palette.alarm }];
   }
 
   // Warn and alarm lines of the magnitude; a threshold above the plot is named at its top edge.
@@ -506,7 +527,7 @@
       const { left, top, width, height } = u.bbox;
       const [ymin, ymax] = [u.scales.y.min, u.scales.y.max];
       ctx.save();
-      const fontPx = parseFloat(getComputedStyle(document.documentElement).fontSize) * 0.75;
+      const fontPx = palette.fontPx * 0.75;
       ctx.font = `${Math.round(fontPx * devicePixelRatio)}px system-ui, sans-serif`;
       ctx.textAlign = 'left';
       let above = [];
@@ -530,7 +551,7 @@
       }
       drawMarkers(u, fontPx);
       if (above.length) {
-        ctx.fillStyle = cssVar('--muted');
+        ctx.fillStyle = palette.muted;
         ctx.fillText(`${above.join(', ')} ↑ above`, left + 6 * devicePixelRatio, top + (fontPx + 4) * devicePixelRatio);
       }
       ctx.restore();
@@ -560,17 +581,17 @@
           top + height - 6 * devicePixelRatio);
       }
     };
-    const levelColour = { alarm: cssVar('--alarm'), warn: cssVar('--warn'), none: cssVar('--ok') };
+    const levelColour = { alarm: palette.alarm, warn: palette.warn, none: palette.ok };
     for (const a of state.alarms) {
-      if (a.target === state.selected) mark(parseTime(a.time), levelColour[a.to] || cssVar('--muted'), [2, 3], '');
+      if (a.target === state.selected) mark(parseTime(a.time), levelColour[a.to] || palette.muted, [2, 3], '');
     }
-    for (const r of state.references) mark(parseTime(r.since), cssVar('--ref'), [], `ref v${r.version}`);
+    for (const r of state.references) mark(parseTime(r.since), palette.ref, [], `ref v${r.version}`);
     void fontPx;
   }
 
   // The uPlot series and data columns the toggles ask for.
   function layout(d, kind) {
-    const colors = { x: cssVar('--x'), y: cssVar('--y'), z: cssVar('--z') };
+    const colors = { x: palette.x, y: palette.y, z: palette.z };
     const unit = kind === 'rot' ? '″' : ' mm';
     const digits = kind === 'rot' ? 1 : 3;
     const series = [{}];
@@ -585,7 +606,7 @@
       keys.push('f' + a);
     }
     if (state.show.mag) {
-      series.push({ label: 'magnitude', stroke: cssVar('--mag'), width: 1.5, dash: [4, 3], value, points: { show: false } });
+      series.push({ label: 'magnitude', stroke: palette.mag, width: 1.5, dash: [4, 3], value, points: { show: false } });
       data.push(d.mag);
       keys.push('mag');
     }
@@ -619,11 +640,11 @@
     container.textContent = '';
     state.layouts[kind] = lay;
     // Tick labels follow the page's font size (larger on a control-room screen).
-    const fontPx = Math.round(parseFloat(getComputedStyle(document.documentElement).fontSize) * 0.8);
+    const fontPx = Math.round(palette.fontPx * 0.8);
     const axis = {
-      stroke: cssVar('--muted'),
-      grid: { stroke: cssVar('--grid') },
-      ticks: { stroke: cssVar('--grid') },
+      stroke: palette.muted,
+      grid: { stroke: palette.grid },
+      ticks: { stroke: palette.grid },
       font: `${fontPx}px system-ui, sans-serif`,
     };
     const opts = {
@@ -719,6 +740,7 @@
   function renderPlots(rebuild) {
     const h = state.history;
     if (!h) return;
+    if (rebuild || !palette) readPalette();
     for (const kind of ['rot', 'tr']) {
       const plot = state.plots[kind];
       const lay = layout(h[kind], kind);
@@ -750,15 +772,12 @@
     if (state.historyAbort) state.historyAbort.abort();
     const abort = new AbortController();
     state.historyAbort = abort;
-    const maxPoints = Math.min(2000, Math.round(plotWidth()));
-    const q = `from=${encodeURIComponent(iso(win[0]))}&to=${encodeURIComponent(iso(win[1]))}&max_points=${maxPoints}`;
     // Only the deformation: a third of the history's components.
-    const components = ['r', 't'].flatMap((k) => AXES.map((a) => `def_${k}${a}_${k === 'r' ? 'arcsec' : 'mm'}`));
-    const base = '/api/v1/targets/' + encodeURIComponent(target) + '/history?components=' + components.join(',') + '&';
+    const components = 'components=' + ['r', 't'].flatMap((k) => AXES.map((a) => `def_${k}${a}_${k === 'r' ? 'arcsec' : 'mm'}`)).join(',');
     try {
       const [filtered, raw] = await Promise.all([
-        api(base + 'source=filtered&' + q, { signal: abort.signal }),
-        api(base + 'source=raw&' + q, { signal: abort.signal }),
+        api(historyUrl(target, 'filtered', win, components), { signal: abort.signal }),
+        api(historyUrl(target, 'raw', win, components), { signal: abort.signal }),
       ]);
       if (abort.signal.aborted || target !== state.selected) return;
       const merged = merge(filtered, raw);
@@ -863,10 +882,9 @@
   async function downloadCsv(source) {
     const target = state.selected;
     if (!target) return;
-    const [from, to] = state.history ? state.history.window : windowMs();
-    const maxPoints = Math.min(2000, Math.round(plotWidth()));
-    const url = '/api/v1/targets/' + encodeURIComponent(target) + '/history?format=csv&source=' + source +
-      `&from=${encodeURIComponent(iso(from))}&to=${encodeURIComponent(iso(to))}&max_points=${maxPoints}`;
+    const win = state.history ? state.history.window : windowMs();
+    const from = win[0];
+    const url = historyUrl(target, source, win, 'format=csv');
     try {
       const response = await api(url, { raw: true });
       const blob = await response.blob();
@@ -975,7 +993,7 @@
   }
 
   async function loadAlarms(win) {
-    const answer = await api(`/api/v1/alarms?from=${encodeURIComponent(iso(win[0]))}&to=${encodeURIComponent(iso(win[1]))}&limit=${ALARMS_SHOWN}&order=desc`);
+    const answer = await api(`/api/v1/alarms?${windowQuery(win)}&limit=${ALARMS_SHOWN}&order=desc`);
     state.alarms = answer.alarms;
     renderAlarms();
     redrawMarks();
