@@ -84,29 +84,57 @@ impl Accumulator {
 
 /// Table 4/5 statistics of a series of `G_from_B` poses; `None` for an empty series.
 pub fn pose_stats<'a>(poses: impl IntoIterator<Item = &'a Pose>) -> Option<PoseStats> {
-    let mut angles = Accumulator::new();
-    let mut translations = Accumulator::new();
-    let mut first: Option<[f64; 3]> = None;
+    let mut acc = PoseStatsAccumulator::default();
     for pose in poses {
+        acc.push(pose);
+    }
+    acc.finish()
+}
+
+/// [`pose_stats`] one pose at a time, for a series read as a stream: constant memory.
+#[derive(Debug, Clone, Copy)]
+pub struct PoseStatsAccumulator {
+    angles: Accumulator,
+    translations: Accumulator,
+    first: Option<[f64; 3]>,
+}
+
+impl Default for PoseStatsAccumulator {
+    fn default() -> Self {
+        Self {
+            angles: Accumulator::new(),
+            translations: Accumulator::new(),
+            first: None,
+        }
+    }
+}
+
+impl PoseStatsAccumulator {
+    /// Adds one pose.
+    pub fn push(&mut self, pose: &Pose) {
         let e = euler_from_rotation(&pose.rotation).to_degrees();
-        let reference = *first.get_or_insert(e);
+        let reference = *self.first.get_or_insert(e);
         let unwrapped = [0, 1, 2].map(|i| reference[i] + wrap_deg(e[i] - reference[i]));
-        angles.push(unwrapped);
-        translations.push(pose.translation.vector.into());
+        self.angles.push(unwrapped);
+        self.translations.push(pose.translation.vector.into());
     }
-    if angles.n == 0 {
-        return None;
+
+    /// The statistics of the poses added, `None` when there were none.
+    pub fn finish(&self) -> Option<PoseStats> {
+        if self.angles.n == 0 {
+            return None;
+        }
+        let mut euler_deg = self.angles.finish();
+        euler_deg.mean = euler_deg.mean.map(|m| {
+            let w = wrap_deg(m);
+            if w == -180.0 { 180.0 } else { w }
+        });
+        Some(PoseStats {
+            count: self.angles.n,
+            euler_deg,
+            t_mm: self.translations.finish(),
+        })
     }
-    let mut euler_deg = angles.finish();
-    euler_deg.mean = euler_deg.mean.map(|m| {
-        let w = wrap_deg(m);
-        if w == -180.0 { 180.0 } else { w }
-    });
-    Some(PoseStats {
-        count: angles.n,
-        euler_deg,
-        t_mm: translations.finish(),
-    })
 }
 
 #[cfg(test)]

@@ -78,6 +78,7 @@ fn start(config: &std::path::Path) -> Server {
     std::thread::spawn(move || {
         let mut sent = false;
         for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            eprintln!("server: {line}");
             if !sent && let Some(rest) = line.split("serving on http://").nth(1) {
                 let addr = rest.split('/').next().unwrap().to_owned();
                 let _ = tx.send(addr);
@@ -345,4 +346,361 @@ fn healthcheck_answers_for_a_running_service_and_fails_without_one() {
         "{}",
         String::from_utf8_lossy(&down.stderr)
     );
+}
+
+/// A site whose database lives in `db_dir`, with `server_extra` added to `[server]`.
+fn site_at(
+    dir: &std::path::Path,
+    db_dir: &std::path::Path,
+    server_extra: &str,
+) -> std::path::PathBuf {
+    let config = dir.join("site.toml");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("127.0.0.1:7878", "127.0.0.1:0")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!(
+                "database = \"{}\"\n{server_extra}",
+                db_dir.join("db.sqlite").display()
+            ),
+        );
+    std::fs::write(&config, text).unwrap();
+    config
+}
+
+/// Posts group `k`; its status.
+async fn try_group(client: &reqwest::Client, base: &str, k: i64) -> reqwest::StatusCode {
+    client
+        .post(format!("{base}/api/v1/samples"))
+        .json(&group(k))
+        .send()
+        .await
+        .unwrap()
+        .status()
+}
+
+async fn health(client: &reqwest::Client, base: &str) -> (reqwest::StatusCode, Value) {
+    let r = client.get(format!("{base}/healthz")).send().await.unwrap();
+    let status = r.status();
+    (status, r.json().await.unwrap())
+}
+
+/// SIGTERM and the exit status with everything the process wrote to stderr afterwards.
+fn terminate(mut server: Server) -> std::process::ExitStatus {
+    let status = Command::new("kill")
+        .args(["-TERM", &server.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    for _ in 0..300 {
+        if let Some(exit) = server.child.try_wait().unwrap() {
+            return exit;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    server.child.kill().unwrap();
+    panic!("the service did not exit within 30 s of SIGTERM");
+}
+
+/// Writes go on until the disk is full: every acknowledged group is stored, every refused one
+/// is absent, the health check says what is wrong while it is, and the writer recovers by
+/// itself once there is room again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_refuses_writes_honestly_and_recovers() {
+    let dir = tempfile::tempdir().unwrap();
+    let mount = dir.path().join("small");
+    std::fs::create_dir(&mount).unwrap();
+    let mounted = Command::new("mount")
+        .args([
+            "-t",
+            "tmpfs",
+            "-o",
+            "size=4m",
+            "tmpfs",
+            mount.to_str().unwrap(),
+        ])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !mounted {
+        eprintln!("skipped: mounting a tmpfs needs root (this test runs in CI as root)");
+        return;
+    }
+    struct Unmount(std::path::PathBuf);
+    impl Drop for Unmount {
+        fn drop(&mut self) {
+            let _ = Command::new("umount").arg("-l").arg(&self.0).status();
+        }
+    }
+    let _unmount = Unmount(mount.clone());
+    // Room to free later (each commit appends some 50 KB of pages to the WAL).
+    std::fs::write(mount.join("ballast"), vec![7u8; 2 * 1024 * 1024]).unwrap();
+    let config = site_at(dir.path(), &mount, "");
+    let client = reqwest::Client::new();
+    let server = start(&config);
+    let mut acked = Vec::new();
+    let mut refused = Vec::new();
+    let mut k = 0;
+    while refused.len() < 20 {
+        match try_group(&client, &server.base, k).await {
+            s if s.is_success() => acked.push(k),
+            s => {
+                assert_eq!(s, reqwest::StatusCode::SERVICE_UNAVAILABLE);
+                refused.push(k);
+            }
+        }
+        k += 1;
+        assert!(k < 100_000, "the disk never filled");
+    }
+    let (status, body) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert_eq!(body["writer"], false, "{body}");
+    assert!(
+        body["problem"].as_str().is_some_and(|p| !p.is_empty()),
+        "{body}"
+    );
+    // Room again: the next commit succeeds and the health check clears.
+    std::fs::remove_file(mount.join("ballast")).unwrap();
+    for j in 0..10 {
+        let k = 1_000_000 + j;
+        assert!(
+            try_group(&client, &server.base, k).await.is_success(),
+            "after freeing space"
+        );
+        acked.push(k);
+    }
+    let (status, body) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::OK, "{body}");
+    let exit = terminate(server);
+    assert!(exit.success(), "{exit}");
+    // After a restart: exactly the acknowledged groups.
+    let server = start(&config);
+    let stored: std::collections::BTreeSet<i64> = stored_times(&client, &server.base, "C1_from_B")
+        .await
+        .into_iter()
+        .collect();
+    let expected: std::collections::BTreeSet<i64> = acked.iter().map(|k| group_time(*k)).collect();
+    assert_eq!(
+        stored, expected,
+        "stored groups differ from the acknowledged ones"
+    );
+    server.kill();
+}
+
+/// The WAL made unwritable for a while (as by `chattr +i`): refusals, never a false
+/// acknowledgement, and recovery when it is writable again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_unwritable_wal_never_gives_a_false_acknowledgement() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = site_at(dir.path(), dir.path(), "");
+    let wal = dir.path().join("db.sqlite-wal");
+    let client = reqwest::Client::new();
+    let server = start(&config);
+    let mut acked = Vec::new();
+    for k in 0..20 {
+        assert!(try_group(&client, &server.base, k).await.is_success());
+        acked.push(k);
+    }
+    let locked = Command::new("chattr")
+        .arg("+i")
+        .arg(&wal)
+        .status()
+        .is_ok_and(|s| s.success());
+    if !locked {
+        server.kill();
+        eprintln!("skipped: chattr +i needs root and a file system with attributes");
+        return;
+    }
+    let mut refused = 0;
+    for k in 20..60 {
+        let s = try_group(&client, &server.base, k).await;
+        if s.is_success() {
+            acked.push(k);
+        } else {
+            assert_eq!(s, reqwest::StatusCode::SERVICE_UNAVAILABLE);
+            refused += 1;
+        }
+    }
+    assert!(refused > 0, "an immutable WAL refused nothing");
+    let (status, body) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert!(
+        Command::new("chattr")
+            .arg("-i")
+            .arg(&wal)
+            .status()
+            .unwrap()
+            .success()
+    );
+    for k in 100..140 {
+        assert!(
+            try_group(&client, &server.base, k).await.is_success(),
+            "after the WAL is writable"
+        );
+        acked.push(k);
+    }
+    let (status, _) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::OK);
+    server.kill();
+    let server = start(&config);
+    let stored: std::collections::BTreeSet<i64> = stored_times(&client, &server.base, "C3_from_G")
+        .await
+        .into_iter()
+        .collect();
+    let expected: std::collections::BTreeSet<i64> = acked.iter().map(|k| group_time(*k)).collect();
+    assert_eq!(
+        stored, expected,
+        "stored groups differ from the acknowledged ones"
+    );
+    server.kill();
+}
+
+/// The database file deleted under the running service: writes are refused, the health check
+/// says so, and the stop says the data went with the file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_deleted_database_file_stops_writes_and_says_so() {
+    let (dir, config) = site();
+    let client = reqwest::Client::new();
+    let server = start(&config);
+    for k in 0..10 {
+        post_group(&client, &server.base, k).await;
+    }
+    std::fs::remove_file(dir.path().join("db.sqlite")).unwrap();
+    assert_eq!(
+        try_group(&client, &server.base, 10).await,
+        reqwest::StatusCode::SERVICE_UNAVAILABLE
+    );
+    let (status, body) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert_eq!(body["database"], false, "{body}");
+    assert!(
+        body["problem"]
+            .as_str()
+            .unwrap()
+            .contains("removed or replaced"),
+        "{body}"
+    );
+    let exit = terminate(server);
+    assert!(!exit.success(), "a stop after losing the file is not clean");
+}
+
+/// After a clean stop the database file alone holds everything (the WAL is checkpointed).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn after_a_clean_stop_the_database_file_alone_is_complete() {
+    let (dir, config) = site();
+    let client = reqwest::Client::new();
+    let server = start(&config);
+    for k in 0..40 {
+        post_group(&client, &server.base, k).await;
+    }
+    let exit = terminate(server);
+    assert!(exit.success(), "{exit}");
+    let copy = dir.path().join("copy");
+    std::fs::create_dir(&copy).unwrap();
+    std::fs::copy(dir.path().join("db.sqlite"), copy.join("db.sqlite")).unwrap();
+    let conn = rusqlite::Connection::open(copy.join("db.sqlite")).unwrap();
+    let n: i64 = conn
+        .query_row("select count(*) from samples", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(n, 120);
+}
+
+/// Another program's SQLite file is refused, the file named once; nothing is written to it.
+#[test]
+fn another_programs_database_is_refused_and_named_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = site_at(dir.path(), dir.path(), "");
+    let db = dir.path().join("db.sqlite");
+    {
+        let conn = rusqlite::Connection::open(&db).unwrap();
+        conn.execute_batch("create table invoices (id integer primary key, total real); insert into invoices (total) values (12.5);")
+            .unwrap();
+    }
+    let out = brokenray(&["serve", "--config", config.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("is not a brokenray database"), "{stderr}");
+    assert_eq!(stderr.matches(db.to_str().unwrap()).count(), 1, "{stderr}");
+    let conn = rusqlite::Connection::open(&db).unwrap();
+    let tables: i64 = conn
+        .query_row(
+            "select count(*) from sqlite_master where type = 'table'",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert_eq!(tables, 1, "nothing was migrated into the foreign file");
+}
+
+/// Idle and slow clients are closed after the header timeout, connections past the limit are
+/// closed on arrival, and SIGTERM ends the process with an event stream and a drip-feeding
+/// client connected.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_and_slow_clients_cannot_hold_the_service() {
+    use std::io::{Read, Write};
+    let dir = tempfile::tempdir().unwrap();
+    let config = site_at(
+        dir.path(),
+        dir.path(),
+        "max_connections = 20\nheader_timeout_s = 1\nshutdown_grace_s = 2",
+    );
+    let client = reqwest::Client::new();
+    let server = start(&config);
+    let addr = server.base.trim_start_matches("http://").to_owned();
+    // Twenty idle connections fill the limit.
+    let idle: Vec<std::net::TcpStream> = (0..20)
+        .map(|_| std::net::TcpStream::connect(&addr).unwrap())
+        .collect();
+    std::thread::sleep(Duration::from_millis(200));
+    let mut extra = std::net::TcpStream::connect(&addr).unwrap();
+    extra
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let _ = extra.write_all(b"GET /healthz HTTP/1.1\r\nhost: 127.0.0.1\r\n\r\n");
+    let mut answer = Vec::new();
+    match extra.read_to_end(&mut answer) {
+        Ok(_) => assert!(
+            answer.is_empty(),
+            "a connection past the limit got an answer"
+        ),
+        Err(e) => assert_eq!(e.kind(), std::io::ErrorKind::ConnectionReset, "{e}"),
+    }
+    // The idle ones are closed by the header timeout (within 5 s: the timeout is 1 s); then
+    // the service answers again.
+    for mut s in idle {
+        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let mut rest = Vec::new();
+        if let Err(e) = s.read_to_end(&mut rest) {
+            assert_eq!(
+                e.kind(),
+                std::io::ErrorKind::ConnectionReset,
+                "an idle connection stayed open: {e}"
+            );
+        }
+    }
+    let (status, _) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::OK);
+    // A live event stream and a client that drip-feeds header lines, then SIGTERM.
+    let events = client
+        .get(format!("{}/api/v1/events", server.base))
+        .send()
+        .await
+        .unwrap();
+    assert!(events.status().is_success());
+    let drip_addr = addr.clone();
+    std::thread::spawn(move || {
+        let mut s = std::net::TcpStream::connect(drip_addr).unwrap();
+        let _ = s.write_all(b"GET /healthz HTTP/1.1\r\n");
+        for i in 0..100 {
+            std::thread::sleep(Duration::from_millis(300));
+            if s.write_all(format!("x-drip-{i}: 1\r\n").as_bytes())
+                .is_err()
+            {
+                return;
+            }
+        }
+    });
+    std::thread::sleep(Duration::from_millis(500));
+    let exit = terminate(server);
+    assert!(exit.success(), "{exit}");
+    drop(events);
 }

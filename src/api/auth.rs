@@ -50,7 +50,11 @@ pub async fn require_token(
         .headers()
         .get(header::AUTHORIZATION)
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
+        .and_then(|v| {
+            // The scheme is case-insensitive (RFC 9110, section 11.1).
+            let (scheme, token) = v.trim_start().split_once(' ')?;
+            scheme.eq_ignore_ascii_case("bearer").then_some(token)
+        })
         .map(str::trim);
     let Some(given) = given else {
         return Err(ApiError::new(
@@ -84,4 +88,154 @@ pub async fn require_token(
         ));
     }
     Ok(next.run(request).await)
+}
+
+/// The guard of a service without tokens, which then listens on loopback only. A web page in
+/// the operator's browser can still reach loopback: it could post a `text/plain` form (no CORS
+/// preflight) or, through DNS rebinding, read answers under a name of its own. So, without
+/// tokens: a request's `Host` must be `localhost`, an IP address or a configured name
+/// (`[server] allowed_hosts`); an `Origin`, when sent, must name such a host too; and writes
+/// must be JSON or NDJSON, which a page cannot send cross-site without a preflight.
+#[derive(Debug, Clone)]
+pub struct LocalOnly {
+    allowed_hosts: Vec<String>,
+}
+
+impl LocalOnly {
+    /// The guard, with extra host names (with or without a port) from the configuration.
+    pub fn new(allowed_hosts: &[String]) -> Self {
+        Self {
+            allowed_hosts: allowed_hosts
+                .iter()
+                .map(|h| host_name(h).to_ascii_lowercase())
+                .collect(),
+        }
+    }
+
+    /// True for a host (without port) this service answers to.
+    fn allows(&self, host: &str) -> bool {
+        let host = host.to_ascii_lowercase();
+        let bare = host.trim_start_matches('[').trim_end_matches(']');
+        host == "localhost"
+            || bare.parse::<std::net::IpAddr>().is_ok()
+            || self.allowed_hosts.iter().any(|h| *h == host)
+    }
+}
+
+/// The host part of `host[:port]` or `[v6]:port`.
+fn host_name(authority: &str) -> &str {
+    let authority = authority.trim();
+    if let Some(rest) = authority.strip_prefix('[') {
+        return rest.split(']').next().unwrap_or(rest);
+    }
+    match authority.rsplit_once(':') {
+        Some((host, port)) if port.chars().all(|c| c.is_ascii_digit()) && !host.contains(':') => {
+            host
+        }
+        _ => authority,
+    }
+}
+
+/// Applies [`LocalOnly`] when it is given (no tokens configured).
+pub async fn local_only(
+    guard: Option<Arc<LocalOnly>>,
+    request: Request,
+    next: Next,
+) -> Result<Response, ApiError> {
+    let Some(guard) = guard else {
+        return Ok(next.run(request).await);
+    };
+    let headers = request.headers();
+    let host = headers
+        .get(header::HOST)
+        .and_then(|v| v.to_str().ok())
+        .map(host_name)
+        .or_else(|| request.uri().host());
+    if let Some(host) = host
+        && !guard.allows(host)
+    {
+        return Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "host_not_allowed",
+            format!(
+                "`Host: {host}` is not a name of this service; without tokens it answers only to \
+                 localhost, IP addresses and `[server] allowed_hosts`"
+            ),
+        ));
+    }
+    if let Some(origin) = headers.get(header::ORIGIN) {
+        let text = origin.to_str().unwrap_or("");
+        let origin_host = text
+            .split_once("://")
+            .map(|(_, rest)| host_name(rest.split('/').next().unwrap_or("")));
+        if !origin_host.is_some_and(|h| guard.allows(h)) {
+            return Err(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "origin_not_allowed",
+                format!(
+                    "requests from the web origin `{text}` are refused: without tokens only pages \
+                     of this service may call it"
+                ),
+            ));
+        }
+    }
+    let is_write = matches!(
+        *request.method(),
+        Method::POST | Method::PUT | Method::DELETE | Method::PATCH
+    );
+    if is_write {
+        let content_type = headers
+            .get(header::CONTENT_TYPE)
+            .and_then(|v| v.to_str().ok())
+            .map(|v| v.split(';').next().unwrap_or("").trim().to_ascii_lowercase());
+        let has_body = headers.contains_key(header::TRANSFER_ENCODING)
+            || headers
+                .get(header::CONTENT_LENGTH)
+                .and_then(|v| v.to_str().ok())
+                .is_some_and(|v| v.trim() != "0");
+        // A body must be declared JSON; a write without a body (and without a type) passes
+        // (a browser sends an `Origin` with it, checked above).
+        let refused = match content_type.as_deref() {
+            Some(t) => !matches!(
+                t,
+                "application/json" | "application/x-ndjson" | "application/jsonl"
+            ),
+            None => has_body,
+        };
+        if refused {
+            return Err(ApiError::new(
+                StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                "unsupported_media_type",
+                format!(
+                    "a write must be sent as `Content-Type: application/json` (or \
+                     application/x-ndjson), not `{}`",
+                    content_type.unwrap_or_else(|| "none".into())
+                ),
+            ));
+        }
+    }
+    Ok(next.run(request).await)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn host_names_are_taken_from_authorities() {
+        assert_eq!(host_name("localhost:7878"), "localhost");
+        assert_eq!(host_name("[::1]:7878"), "::1");
+        assert_eq!(host_name("127.0.0.1"), "127.0.0.1");
+        assert_eq!(host_name("ship.example:80"), "ship.example");
+    }
+
+    #[test]
+    fn only_local_and_configured_hosts_are_allowed() {
+        let g = LocalOnly::new(&["bridge.local:7878".to_owned()]);
+        assert!(g.allows("localhost"));
+        assert!(g.allows("127.0.0.1"));
+        assert!(g.allows("::1"));
+        assert!(g.allows("bridge.local"));
+        assert!(!g.allows("evil.example"));
+    }
 }

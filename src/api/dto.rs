@@ -3,9 +3,9 @@
 
 use super::error::{ApiError, ErrorDetail};
 use crate::geometry::{
-    ARCSEC_PER_RAD, Mat6, Pose, PoseCov, ReportedSigmas, check_covariance, euler_from_rotation,
-    pose_from_parts, quaternion_wxyz, rotation_from_euler, rotation_from_matrix,
-    rotation_from_quaternion_wxyz,
+    ARCSEC_PER_RAD, MAX_ROTATION_SIGMA_ARCSEC, MAX_TRANSLATION_SIGMA_MM, Mat6, Pose, PoseCov,
+    ReportedSigmas, check_covariance, euler_from_rotation, pose_from_parts, quaternion_wxyz,
+    rotation_from_euler, rotation_from_matrix, rotation_from_quaternion_wxyz,
 };
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -108,6 +108,15 @@ pub fn sigma_schema() -> utoipa::openapi::schema::Schema {
         .into()
 }
 
+/// At most the first 80 characters of an offending value, for an error message (a message
+/// never echoes a whole junk value back).
+pub fn clip(text: &str) -> String {
+    match text.char_indices().nth(80) {
+        Some((i, _)) => format!("{}...", &text[..i]),
+        None => text.to_owned(),
+    }
+}
+
 /// A problem found while converting one field.
 pub type FieldProblem = (String, String);
 
@@ -168,7 +177,8 @@ impl PoseIn {
     }
 }
 
-fn scalar_or_3(field: &str, v: &Value) -> Result<[f64; 3], FieldProblem> {
+/// A sigma as sent: a positive number or three, each at most `max`.
+fn scalar_or_3(field: &str, v: &Value, max: f64) -> Result<[f64; 3], FieldProblem> {
     let values = match v {
         Value::Number(n) => {
             let x = n
@@ -182,7 +192,7 @@ fn scalar_or_3(field: &str, v: &Value) -> Result<[f64; 3], FieldProblem> {
                 out[i] = item.as_f64().ok_or_else(|| {
                     (
                         format!("{field}[{i}]"),
-                        format!("must be a number, not {item}"),
+                        format!("must be a number, not {}", clip(&item.to_string())),
                     )
                 })?;
             }
@@ -191,7 +201,10 @@ fn scalar_or_3(field: &str, v: &Value) -> Result<[f64; 3], FieldProblem> {
         other => {
             return Err((
                 field.to_owned(),
-                format!("must be a number or three numbers, not {other}"),
+                format!(
+                    "must be a number or three numbers, not {}",
+                    clip(&other.to_string())
+                ),
             ));
         }
     };
@@ -200,6 +213,12 @@ fn scalar_or_3(field: &str, v: &Value) -> Result<[f64; 3], FieldProblem> {
             return Err((
                 format!("{field}[{i}]"),
                 format!("must be a positive number, not {x}"),
+            ));
+        }
+        if *x > max {
+            return Err((
+                format!("{field}[{i}]"),
+                format!("{x:e} is beyond the plausible limit of {max:e}"),
             ));
         }
     }
@@ -213,8 +232,13 @@ impl SigmaIn {
             rotation_arcsec: scalar_or_3(
                 &format!("{prefix}.rotation_arcsec"),
                 &self.rotation_arcsec,
+                MAX_ROTATION_SIGMA_ARCSEC,
             )?,
-            translation_mm: scalar_or_3(&format!("{prefix}.translation_mm"), &self.translation_mm)?,
+            translation_mm: scalar_or_3(
+                &format!("{prefix}.translation_mm"),
+                &self.translation_mm,
+                MAX_TRANSLATION_SIGMA_MM,
+            )?,
         })
     }
 }
@@ -230,6 +254,24 @@ pub fn covariance_from(field: &str, values: &[f64]) -> Result<Mat6, FieldProblem
     finite(field, values)?;
     let m = Mat6::from_row_slice(values);
     check_covariance(&m).map_err(|e| (field.to_owned(), e.to_string()))?;
+    // Plausibility of the variances (the off-diagonal entries follow from them).
+    let max_rotation_rad = MAX_ROTATION_SIGMA_ARCSEC / ARCSEC_PER_RAD;
+    for i in 0..6 {
+        let (max_sigma, unit) = if i < 3 {
+            (MAX_TRANSLATION_SIGMA_MM, "mm")
+        } else {
+            (max_rotation_rad, "rad")
+        };
+        if m[(i, i)] > max_sigma * max_sigma {
+            return Err((
+                format!("{field}[{}]", i * 7),
+                format!(
+                    "a variance of {:e} is beyond the plausible limit of ({max_sigma:e} {unit})^2",
+                    m[(i, i)]
+                ),
+            ));
+        }
+    }
     if m.cholesky().is_none() {
         return Err((
             field.to_owned(),

@@ -30,6 +30,13 @@ impl From<ItemProblem> for ErrorDetail {
     }
 }
 
+/// At most this many details are listed in an error answer; the rest are counted
+/// (`details_omitted`), so that a body of junk cannot make an answer larger than itself.
+pub const MAX_DETAILS: usize = 100;
+
+/// The longest detail message (characters); a longer one is cut (it may quote a value sent).
+const MAX_DETAIL_CHARS: usize = 300;
+
 /// An error answer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ApiError {
@@ -39,8 +46,10 @@ pub struct ApiError {
     pub code: &'static str,
     /// A sentence for people.
     pub message: String,
-    /// The items and fields concerned.
+    /// The items and fields concerned (at most [`MAX_DETAILS`]).
     pub details: Vec<ErrorDetail>,
+    /// Details left out past [`MAX_DETAILS`].
+    pub details_omitted: usize,
 }
 
 /// The body of every error answer.
@@ -57,8 +66,15 @@ pub struct ErrorContent {
     pub code: String,
     /// A sentence for people.
     pub message: String,
-    /// The items and fields concerned.
+    /// The items and fields concerned: the first hundred.
     pub details: Vec<ErrorDetail>,
+    /// How many details were left out past the first hundred (absent when none).
+    #[serde(skip_serializing_if = "is_zero")]
+    pub details_omitted: usize,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 impl ApiError {
@@ -69,11 +85,23 @@ impl ApiError {
             code,
             message: message.into(),
             details: Vec::new(),
+            details_omitted: 0,
         }
     }
 
-    /// Adds details.
-    pub fn with_details(mut self, details: Vec<ErrorDetail>) -> Self {
+    /// Adds details: the first [`MAX_DETAILS`], each message cut to a few hundred characters;
+    /// the others are counted.
+    pub fn with_details(mut self, mut details: Vec<ErrorDetail>) -> Self {
+        if details.len() > MAX_DETAILS {
+            self.details_omitted += details.len() - MAX_DETAILS;
+            details.truncate(MAX_DETAILS);
+        }
+        for d in &mut details {
+            if let Some((i, _)) = d.message.char_indices().nth(MAX_DETAIL_CHARS) {
+                d.message.truncate(i);
+                d.message.push_str("...");
+            }
+        }
         self.details = details;
         self
     }
@@ -120,8 +148,9 @@ impl ApiError {
     }
 }
 
-/// Refused requests since start, by status code (400, 401, 403, 404, 408, 409, 413, 422, 5xx).
-pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 9] = [
+/// Refused requests since start, by status code (400, 401, 403, 404, 408, 409, 413, 415, 422,
+/// 5xx).
+pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 10] = [
     (400, std::sync::atomic::AtomicU64::new(0)),
     (401, std::sync::atomic::AtomicU64::new(0)),
     (403, std::sync::atomic::AtomicU64::new(0)),
@@ -129,6 +158,7 @@ pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 9] = [
     (408, std::sync::atomic::AtomicU64::new(0)),
     (409, std::sync::atomic::AtomicU64::new(0)),
     (413, std::sync::atomic::AtomicU64::new(0)),
+    (415, std::sync::atomic::AtomicU64::new(0)),
     (422, std::sync::atomic::AtomicU64::new(0)),
     (500, std::sync::atomic::AtomicU64::new(0)),
 ];
@@ -163,6 +193,7 @@ impl IntoResponse for ApiError {
                     code: self.code.to_owned(),
                     message,
                     details: self.details,
+                    details_omitted: self.details_omitted,
                 },
             }),
         )
@@ -186,6 +217,14 @@ impl From<ServiceError> for ApiError {
                 StatusCode::SERVICE_UNAVAILABLE,
                 "storage_unavailable",
                 e.to_string(),
+            ),
+            ServiceError::CommitFailed(m) => {
+                ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "storage_unavailable", m)
+            }
+            ServiceError::WriterStopped => ApiError::new(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "writer_stopped",
+                "the writer stopped before answering",
             ),
             ServiceError::Viz(e) => ApiError::new(
                 StatusCode::INTERNAL_SERVER_ERROR,

@@ -19,8 +19,15 @@ pub async fn get_events(
     State(app): State<AppState>,
 ) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let rx = app.service.subscribe();
-    let stream = futures::stream::unfold((rx, app), |(mut rx, app)| async move {
-        match rx.recv().await {
+    let stop = app.service.stopping();
+    let stream = futures::stream::unfold((rx, app, stop), |(mut rx, app, mut stop)| async move {
+        // The stream ends when shutdown begins, so that an open dashboard never holds the
+        // process.
+        let received = tokio::select! {
+            r = rx.recv() => r,
+            _ = stop.wait_for(|s| *s) => return None,
+        };
+        match received {
             Ok(LiveEvent::Result {
                 target,
                 estimate,
@@ -33,7 +40,7 @@ pub async fn get_events(
                     .event("result")
                     .json_data(body)
                     .unwrap_or_else(|_| Event::default().event("error").data("unencodable result"));
-                Some((Ok(event), (rx, app)))
+                Some((Ok(event), (rx, app, stop)))
             }
             Ok(LiveEvent::Alarm { target, transition }) => {
                 let name = app.service.installation().targets[target].name.clone();
@@ -42,7 +49,7 @@ pub async fn get_events(
                     .event("alarm")
                     .json_data(body)
                     .unwrap_or_else(|_| Event::default().event("error").data("unencodable alarm"));
-                Some((Ok(event), (rx, app)))
+                Some((Ok(event), (rx, app, stop)))
             }
             // Too slow: drop the client rather than hold anything back.
             Err(RecvError::Lagged(_)) | Err(RecvError::Closed) => None,

@@ -9,7 +9,7 @@ use super::AppState;
 use super::dto::{SampleIn, covariance_from, invalid};
 use super::error::{ApiError, ErrorBody, ErrorDetail};
 use super::jsonpath::{item_index, offset_of, path_at};
-use super::time::parse_json_time;
+use super::time::{latest_accepted_ns, parse_measurement_time};
 use crate::config::{Installation, LinkKind};
 use crate::filter::{MeasurementUncertainty, Sample};
 use crate::service::{IngestItem, IngestReport};
@@ -66,11 +66,98 @@ pub struct SamplesBatch {
     pub samples: Vec<SampleIn>,
 }
 
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct BatchIn<'a> {
-    #[serde(borrow)]
-    samples: Vec<&'a RawValue>,
+/// What a batch's slow path collected: the items that parsed, the first
+/// [`super::error::MAX_DETAILS`] problems, and how many there were in all.
+#[derive(Default)]
+struct Collected {
+    items: Vec<(usize, SampleIn)>,
+    problems: Vec<ErrorDetail>,
+    n_problems: usize,
+}
+
+impl Collected {
+    fn take(&mut self, index: usize, parsed: Result<SampleIn, (String, String)>) {
+        match parsed {
+            Ok(s) => {
+                if self.n_problems == 0 {
+                    self.items.push((index, s));
+                }
+            }
+            Err((field, message)) => self.problem(ErrorDetail {
+                index: Some(index),
+                field: Some(field).filter(|f| !f.is_empty()),
+                message,
+            }),
+        }
+    }
+
+    fn problem(&mut self, detail: ErrorDetail) {
+        self.n_problems += 1;
+        // Once a problem is found the batch is refused: the items are no longer needed.
+        self.items = Vec::new();
+        if self.problems.len() < super::error::MAX_DETAILS {
+            self.problems.push(detail);
+        }
+    }
+}
+
+/// `{"samples": [...]}` read item by item: each is parsed as it is met, so a body of junk
+/// costs no more memory than its first problems (nothing is held per bad item).
+struct BatchSeed<'c>(&'c mut Collected);
+
+impl<'de> serde::de::DeserializeSeed<'de> for BatchSeed<'_> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_map(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for BatchSeed<'_> {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("{\"samples\": [...]}")
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        let mut seen = false;
+        while let Some(key) = map.next_key::<std::borrow::Cow<'de, str>>()? {
+            if key != "samples" {
+                return Err(serde::de::Error::unknown_field(&key, &["samples"]));
+            }
+            if seen {
+                return Err(serde::de::Error::duplicate_field("samples"));
+            }
+            seen = true;
+            map.next_value_seed(ItemsSeed(&mut *self.0))?;
+        }
+        if !seen {
+            return Err(serde::de::Error::missing_field("samples"));
+        }
+        Ok(())
+    }
+}
+
+struct ItemsSeed<'c>(&'c mut Collected);
+
+impl<'de> serde::de::DeserializeSeed<'de> for ItemsSeed<'_> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_seq(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for ItemsSeed<'_> {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("an array of samples")
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        let mut index = 0;
+        while let Some(raw) = seq.next_element::<&'de RawValue>()? {
+            self.0.take(index, parse_item(raw.get()));
+            index += 1;
+        }
+        Ok(())
+    }
 }
 
 /// Reads the body up to the limit: 413 past it.
@@ -151,6 +238,7 @@ pub type Problems = Vec<(Option<usize>, (String, String))>;
 pub fn validate_samples(
     installation: &Installation,
     items: Vec<(usize, SampleIn)>,
+    latest_ns: i64,
 ) -> Result<Vec<IngestItem>, Problems> {
     let mut problems = Vec::new();
     let mut out = Vec::with_capacity(items.len());
@@ -174,7 +262,7 @@ pub fn validate_samples(
             }
             Some(spec) => Some(spec.id),
         };
-        let time_ns = match parse_json_time(&s.time) {
+        let time_ns = match parse_measurement_time(&s.time, latest_ns) {
             Ok(t) => Some(t),
             Err(m) => {
                 item_problems.push(("time".to_owned(), m));
@@ -279,29 +367,22 @@ fn is_ndjson(headers: &HeaderMap) -> bool {
         })
 }
 
-/// Parses a request body into items, every problem listed.
+/// Parses a request body into items, every problem listed (the first
+/// [`super::error::MAX_DETAILS`] of them in the details, with the count in the message).
 pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, ApiError> {
-    let mut items = Vec::new();
-    let mut problems: Vec<ErrorDetail> = Vec::new();
+    let mut c = Collected::default();
     if ndjson {
         for (index, line) in text.lines().filter(|l| !l.trim().is_empty()).enumerate() {
             if let Err(e) = serde_json::from_str::<&RawValue>(line) {
                 let (_, field, message) = syntax_problem(line, &e, "");
-                problems.push(ErrorDetail {
+                c.problem(ErrorDetail {
                     index: Some(index),
                     field: Some(field).filter(|f| !f.is_empty()),
                     message,
                 });
                 continue;
             }
-            match parse_item(line) {
-                Ok(s) => items.push((index, s)),
-                Err((field, message)) => problems.push(ErrorDetail {
-                    index: Some(index),
-                    field: Some(field).filter(|f| !f.is_empty()),
-                    message,
-                }),
-            }
+            c.take(index, parse_item(line));
         }
     } else {
         // Fast path: one typed pass. Only a batch with a problem takes the slower path that
@@ -309,7 +390,10 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
         if let Ok(batch) = serde_json::from_str::<SamplesBatch>(text) {
             return Ok(batch.samples.into_iter().enumerate().collect());
         }
-        let batch: BatchIn = serde_json::from_str(text).map_err(|e| {
+        let mut de = serde_json::Deserializer::from_str(text);
+        let read = serde::de::DeserializeSeed::deserialize(BatchSeed(&mut c), &mut de)
+            .and_then(|()| de.end());
+        read.map_err(|e| {
             if e.is_syntax() || e.is_eof() {
                 let (index, field, message) = syntax_problem(text, &e, "");
                 ApiError::bad_request("malformed_json", message).with_details(vec![ErrorDetail {
@@ -325,29 +409,22 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
                 )
             }
         })?;
-        for (index, raw) in batch.samples.into_iter().enumerate() {
-            match parse_item(raw.get()) {
-                Ok(s) => items.push((index, s)),
-                Err((field, message)) => problems.push(ErrorDetail {
-                    index: Some(index),
-                    field: Some(field).filter(|f| !f.is_empty()),
-                    message,
-                }),
-            }
-        }
     }
-    if !problems.is_empty() {
-        return Err(ApiError::new(
+    if c.n_problems > 0 {
+        let listed = c.problems.len();
+        let mut e = ApiError::new(
             StatusCode::UNPROCESSABLE_ENTITY,
             "invalid_samples",
             format!(
                 "{} sample(s) could not be read; nothing was stored",
-                problems.len()
+                c.n_problems
             ),
         )
-        .with_details(problems));
+        .with_details(c.problems);
+        e.details_omitted += c.n_problems - listed;
+        return Err(e);
     }
-    Ok(items)
+    Ok(c.items)
 }
 
 /// Refuses an empty batch (422) and one over the limit (413); `what` names the items.
@@ -392,7 +469,8 @@ pub async fn post_samples(
     let items = parse_batch(text, is_ndjson(&headers))?;
     check_batch_size("samples", items.len(), app.limits.max_batch_samples)?;
     let n = items.len();
-    let valid = validate_samples(app.service.installation(), items).map_err(|p| {
+    let latest = latest_accepted_ns(app.service.installation().server.max_future_s);
+    let valid = validate_samples(app.service.installation(), items, latest).map_err(|p| {
         invalid(
             format!("{} problem(s) in the batch; nothing was stored", p.len()),
             p,

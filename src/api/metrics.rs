@@ -61,6 +61,11 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             &m.commits_failed,
         ),
         (
+            "brokenray_connections_refused_total",
+            "Connections closed on arrival because `max_connections` were open.",
+            &super::server::CONNECTIONS_REFUSED,
+        ),
+        (
             "brokenray_rerun_queued_total",
             "Records queued for the Rerun logger.",
             &viz.queued,
@@ -93,6 +98,13 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
     ] {
         single(&mut out, name, "counter", help, Metrics::get(counter));
     }
+    single(
+        &mut out,
+        "brokenray_connections_open",
+        "gauge",
+        "Client connections open now.",
+        Metrics::get(&super::server::CONNECTIONS_OPEN),
+    );
     family(
         &mut out,
         "brokenray_requests_rejected_total",

@@ -15,6 +15,7 @@ pub mod ingest;
 pub mod jsonpath;
 pub mod links;
 pub mod metrics;
+pub mod server;
 pub mod targets;
 pub mod time;
 pub mod vision;
@@ -79,8 +80,11 @@ pub struct HealthOut {
     pub status: &'static str,
     /// The database answers.
     pub database: bool,
-    /// The single writer (the pipeline task) runs.
+    /// The single writer (the pipeline task) runs and its last commit succeeded.
     pub writer: bool,
+    /// What is wrong, when something is (a failing commit, a removed database file, ...).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub problem: Option<String>,
 }
 
 /// `GET /healthz`: open to all (no token), for container health checks and load balancers; it
@@ -88,15 +92,22 @@ pub struct HealthOut {
 #[utoipa::path(get, path = "/healthz", tag = "operations",
     responses(
         (status = 200, description = "The database answers and the writer runs", body = HealthOut),
-        (status = 503, description = "The database or the writer is down", body = HealthOut),
+        (status = 503, description = "The database or the writer is in trouble (the last commit failed, the database file was removed or replaced, it does not answer); `problem` says what", body = HealthOut),
     ),
     security(()))]
 async fn healthz(
     axum::extract::State(app): axum::extract::State<AppState>,
 ) -> (StatusCode, axum::Json<HealthOut>) {
-    let database = app.service.store().ping().await;
-    let writer = app.service.pipeline_alive();
+    let health = app.service.store().health().await;
+    let alive = app.service.pipeline_alive();
+    let database = health.reachable;
+    let writer = alive && health.writer_ok;
     let ok = database && writer;
+    let problem = if alive {
+        health.problem
+    } else {
+        Some("the writer is not running".to_owned())
+    };
     (
         if ok {
             StatusCode::OK
@@ -107,6 +118,7 @@ async fn healthz(
             status: if ok { "ok" } else { "unavailable" },
             database,
             writer,
+            problem,
         }),
     )
 }
@@ -264,6 +276,11 @@ fn openapi_text() -> &'static str {
 /// The router of the whole service.
 pub fn router(state: AppState) -> Router {
     let tokens = Arc::new(state.service.installation().auth.tokens.clone());
+    let local_only = tokens.is_empty().then(|| {
+        Arc::new(auth::LocalOnly::new(
+            &state.service.installation().server.allowed_hosts,
+        ))
+    });
     let (router, doc) = routes().split_for_parts();
     // The routes are the same every time: keep the first document.
     let _ = DOC.set(doc);
@@ -271,6 +288,9 @@ pub fn router(state: AppState) -> Router {
         .fallback(api_not_found)
         .layer(axum::middleware::from_fn(move |req, next| {
             auth::require_token(Arc::clone(&tokens), req, next)
+        }))
+        .layer(axum::middleware::from_fn(move |req, next| {
+            auth::local_only(local_only.clone(), req, next)
         }))
         .layer((
             TraceLayer::new_for_http(),
@@ -345,25 +365,48 @@ impl App {
         &self.service
     }
 
-    /// Serves until `shutdown` resolves, then stops accepting, finishes in-flight requests and
-    /// the queued writes, and closes the database.
+    /// Serves until `shutdown` resolves, then stops accepting, ends live event streams, lets
+    /// requests in progress finish (for `[server] shutdown_grace_s`, then cuts them off),
+    /// commits the queued writes, checkpoints and closes the database. An error says that the
+    /// stop was not clean (the writer failed or the database file was replaced): the last
+    /// writes may not be where they belong.
     pub async fn run_until(
         self,
         shutdown: impl Future<Output = ()> + Send + 'static,
     ) -> std::io::Result<()> {
+        let settings = &self.service.installation().server;
+        let limits = server::ServerLimits {
+            max_connections: settings.max_connections,
+            header_timeout: Duration::from_secs_f64(settings.header_timeout_s),
+            shutdown_grace: Duration::from_secs_f64(settings.shutdown_grace_s),
+        };
         let state = AppState {
             service: self.service.clone(),
             limits: self.limits,
         };
         let store = self.service.store().clone();
-        axum::serve(self.listener, router(state))
-            .with_graceful_shutdown(shutdown)
-            .await?;
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let service = self.service.clone();
+        tokio::spawn(async move {
+            shutdown.await;
+            service.begin_shutdown();
+            let _ = stop_tx.send(true);
+        });
+        server::serve(self.listener, router(state), limits, stop_rx).await;
         // Handlers are done: dropping the last service handle closes the job queue, and the
         // pipeline commits what is queued before it stops.
         drop(self.service);
-        self.pipeline.finished().await;
+        let finished = self.pipeline.finished().await;
+        let health = store.health().await;
         store.close().await;
+        finished.map_err(std::io::Error::other)?;
+        if !health.reachable {
+            return Err(std::io::Error::other(
+                health
+                    .problem
+                    .unwrap_or_else(|| "the database is not reachable".into()),
+            ));
+        }
         Ok(())
     }
 }

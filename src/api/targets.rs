@@ -10,7 +10,6 @@ use crate::deformation::{Deformation, ReferenceOrigin};
 use crate::filter::{TargetEstimate, TargetStatus};
 use crate::geometry::{PoseCov, se3_exp, se3_log};
 use crate::service::{CurrentReference, ReferenceRequest};
-use crate::stats::pose_stats;
 use axum::Json;
 use axum::extract::{Path, Query, State};
 use axum::http::StatusCode;
@@ -541,9 +540,6 @@ pub struct StatsOut {
     pub t_mm: Option<ComponentsOut>,
 }
 
-/// The most results one statistics request reads.
-const MAX_STATS_RESULTS: i64 = 50_000_000;
-
 /// `GET /api/v1/targets/{name}/stats?from=&to=&source=raw|filtered`.
 #[utoipa::path(get, path = "/targets/{name}/stats", tag = "targets",
     params(("name" = String, Path, description = "Target frame"), WindowQuery),
@@ -560,12 +556,12 @@ pub async fn get_stats(
 ) -> Result<Json<StatsOut>, ApiError> {
     let (ti, spec) = target_index(&app, &name)?;
     let (from, to, filtered) = parse_window(&q)?;
-    let results = app
+    let _permit = app.service.heavy_read().await;
+    let (stats, first_last) = app
         .service
         .store()
-        .results(ti, filtered, from, to, MAX_STATS_RESULTS)
+        .pose_stats(ti, filtered, from, to)
         .await?;
-    let stats = pose_stats(results.iter().map(|r| &r.estimate.pose));
     let comp = |c: crate::stats::ComponentStats| ComponentsOut {
         min: c.min,
         max: c.max,
@@ -576,12 +572,8 @@ pub async fn get_stats(
         target: spec.name,
         source: if filtered { "filtered" } else { "raw" },
         count: stats.map_or(0, |s| s.count),
-        from: results
-            .first()
-            .map(|r| format_ns(if from == i64::MIN { r.time_ns } else { from })),
-        to: results
-            .last()
-            .map(|r| format_ns(if to == i64::MAX { r.time_ns } else { to })),
+        from: first_last.map(|(first, _)| format_ns(if from == i64::MIN { first } else { from })),
+        to: first_last.map(|(_, last)| format_ns(if to == i64::MAX { last } else { to })),
         euler_deg: stats.map(|s| comp(s.euler_deg)),
         t_mm: stats.map(|s| comp(s.t_mm)),
     }))
@@ -824,6 +816,8 @@ pub async fn get_history(
     };
     let mut buckets: std::collections::BTreeMap<i64, Bucket> = std::collections::BTreeMap::new();
     let (mut width_ns, mut resolution_s) = (1i64, None);
+    // Reading every result of a long window is heavy: at most `max_heavy_reads` at once.
+    let _permit = app.service.heavy_read().await;
     if bounds.is_some() && from <= to {
         let span = (to as i128 - from as i128 + 1) as f64;
         let wanted_ns = (span / max_points as f64).ceil().max(1.0) as i64;
@@ -835,7 +829,7 @@ pub async fn get_history(
         let (rows, start) = match level {
             Some(w) => {
                 let level_ns = w * 1_000_000_000;
-                let start = from.div_euclid(level_ns) * level_ns;
+                let start = crate::store::rollup::floor_to(from, level_ns);
                 // The aligned span may be one level bucket longer: widen to stay within max_points.
                 let aligned = (to as i128 - start as i128 + 1) as f64;
                 width_ns = ((aligned / max_points as f64 / level_ns as f64).ceil() as i64).max(1)
@@ -848,12 +842,16 @@ pub async fn get_history(
             }
             None => {
                 width_ns = wanted_ns;
-                (store.result_buckets(ti, filtered, from, to).await?, from)
+                (
+                    store
+                        .result_buckets(ti, filtered, from, to, from, width_ns)
+                        .await?,
+                    from,
+                )
             }
         };
         for row in rows {
-            let index = (row.start_ns - start).div_euclid(width_ns);
-            let bucket_start = start + index * width_ns;
+            let bucket_start = crate::store::rollup::align(row.start_ns, start, width_ns);
             buckets
                 .entry(bucket_start)
                 .or_insert_with(|| Bucket::empty(bucket_start))

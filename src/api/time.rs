@@ -24,6 +24,25 @@ pub fn parse_json_time(v: &serde_json::Value) -> Result<i64, String> {
     }
 }
 
+/// Parses a measurement time (as [`parse_json_time`]) and refuses one later than
+/// `latest_ns`: the server's clock plus `[server] max_future_s`.
+pub fn parse_measurement_time(v: &serde_json::Value, latest_ns: i64) -> Result<i64, String> {
+    let t = parse_json_time(v)?;
+    if t > latest_ns {
+        return Err(format!(
+            "{} is in the future: the server's clock allows times up to {} (`[server] max_future_s`); check the sender's clock",
+            format_ns(t),
+            format_ns(latest_ns)
+        ));
+    }
+    Ok(t)
+}
+
+/// The latest measurement time the server accepts now: its clock plus `max_future_s`.
+pub fn latest_accepted_ns(max_future_s: f64) -> i64 {
+    crate::service::now_ns().saturating_add((max_future_s * 1e9) as i64)
+}
+
 /// Parses a query-string time: RFC 3339 text, or integer nanoseconds.
 pub fn parse_query_time(text: &str) -> Result<i64, String> {
     if let Ok(ns) = text.parse::<i64>() {

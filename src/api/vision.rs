@@ -7,7 +7,7 @@ use super::dto::{PoseIn, PoseOut, SigmaOut, invalid, time_schema};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, Problems, check_batch_size, read_body};
 use super::parse_json_body;
-use super::time::{format_ns, parse_json_time};
+use super::time::format_ns;
 use crate::filter::{MeasurementUncertainty, Sample};
 use crate::geometry::{Pose, PoseCov};
 use crate::service::IngestItem;
@@ -104,7 +104,8 @@ pub async fn post_observations(
     )?;
     let observer = app.service.observer();
     // PnP is CPU work (tens of microseconds per observation): off the async workers.
-    let solved = blocking(move || solve_batch(&observer, &batch.observations)).await?;
+    let latest = super::time::latest_accepted_ns(app.service.installation().server.max_future_s);
+    let solved = blocking(move || solve_batch(&observer, &batch.observations, latest)).await?;
     let (items, poses) = solved.map_err(|problems| {
         invalid(
             format!(
@@ -134,13 +135,14 @@ async fn blocking<T: Send + 'static>(
 fn solve_batch(
     observer: &crate::vision::Observer,
     observations: &[ObservationIn],
+    latest_ns: i64,
 ) -> Result<(Vec<IngestItem>, Vec<ObservedPoseOut>), Problems> {
     let mut problems: Problems = Vec::new();
     let mut items = Vec::with_capacity(observations.len());
     let mut poses = Vec::with_capacity(observations.len());
     let mut seen = HashSet::new();
     for (index, o) in observations.iter().enumerate() {
-        let time_ns = match parse_json_time(&o.time) {
+        let time_ns = match super::time::parse_measurement_time(&o.time, latest_ns) {
             Ok(t) => t,
             Err(m) => {
                 problems.push((Some(index), ("time".to_owned(), m)));

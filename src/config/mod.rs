@@ -93,6 +93,25 @@ pub struct ServerSettings {
     pub max_batch_samples: usize,
     /// Most live result events per target and second of measurement time.
     pub events_max_hz: f64,
+    /// A sample, observation or frame stamped more than this ahead of the server's clock is
+    /// refused (s).
+    pub max_future_s: f64,
+    /// Skew allowed between the measurement pipeline's clock and the server's when judging
+    /// staleness (s).
+    pub clock_tolerance_s: f64,
+    /// Host names (with or without port) accepted in the `Host` header besides the listen
+    /// address, `localhost` and the loopback addresses; checked when no token is configured.
+    pub allowed_hosts: Vec<String>,
+    /// Most open client connections; more are closed as they arrive.
+    pub max_connections: usize,
+    /// A client must send a request's headers within this time of connecting or of its
+    /// previous answer (s): idle and slow connections are closed after it.
+    pub header_timeout_s: f64,
+    /// At shutdown, requests in progress get this long to finish before their connections are
+    /// cut (s).
+    pub shutdown_grace_s: f64,
+    /// Most statistics and fine-history reads (each streams over many rows) at once; more wait.
+    pub max_heavy_reads: usize,
 }
 
 /// Rerun settings: which sinks, where, and how much goes to them.
@@ -644,7 +663,41 @@ impl Validator {
                     return None;
                 }
             },
+            max_future_s: self.seconds("server.max_future_s", raw.server.max_future_s, 5.0)?,
+            clock_tolerance_s: self.seconds(
+                "server.clock_tolerance_s",
+                raw.server.clock_tolerance_s,
+                2.0,
+            )?,
+            allowed_hosts: raw.server.allowed_hosts.clone().unwrap_or_default(),
+            max_connections: raw.server.max_connections.unwrap_or(4096).max(16),
+            header_timeout_s: self.seconds(
+                "server.header_timeout_s",
+                raw.server.header_timeout_s,
+                10.0,
+            )?,
+            shutdown_grace_s: self.seconds(
+                "server.shutdown_grace_s",
+                raw.server.shutdown_grace_s,
+                10.0,
+            )?,
+            max_heavy_reads: raw.server.max_heavy_reads.unwrap_or(2).max(1),
         })
+    }
+
+    /// A non-negative, finite number of seconds with a default.
+    fn seconds(&mut self, key: &str, value: Option<f64>, default: f64) -> Option<f64> {
+        match value {
+            None => Some(default),
+            Some(s) if s.is_finite() && s >= 0.0 && s <= 1e6 => Some(s),
+            Some(s) => {
+                self.problem(
+                    0,
+                    format!("{key} must be a number of seconds from 0 to 1e6, not {s}"),
+                );
+                None
+            }
+        }
     }
 
     fn rerun(&mut self, raw: &RawFile) -> Option<RerunSettings> {
@@ -1241,6 +1294,16 @@ impl Validator {
                         ),
                     ),
                 }
+            }
+            if t.scopes.is_empty() {
+                self.problem(
+                    at,
+                    format!(
+                        "token `{}`: no scopes; give at least one of read, ingest, admin",
+                        t.name
+                    ),
+                );
+                continue;
             }
             tokens.push(TokenSpec {
                 name: t.name.clone(),

@@ -82,6 +82,13 @@ pub(super) struct RawServer {
     pub max_body_bytes: Option<usize>,
     pub max_batch_samples: Option<usize>,
     pub events_max_hz: Option<f64>,
+    pub max_future_s: Option<f64>,
+    pub clock_tolerance_s: Option<f64>,
+    pub allowed_hosts: Option<Vec<String>>,
+    pub max_connections: Option<usize>,
+    pub header_timeout_s: Option<f64>,
+    pub shutdown_grace_s: Option<f64>,
+    pub max_heavy_reads: Option<usize>,
 }
 
 #[derive(Debug, Default, Deserialize)]

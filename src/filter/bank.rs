@@ -69,6 +69,10 @@ pub struct SampleOutcome {
     pub measurement: PoseCov,
     /// Raw results completed by this sample.
     pub raw_results: Vec<RawResult>,
+    /// True when the sample is older than every measurement group still assembled in memory
+    /// (a backfill after an outage): its group can only be completed from the stored samples
+    /// of its time, with [`FilterBank::raw_results_of_group`].
+    pub needs_stored_group: bool,
     /// Filtered results: for each target whose every link has now reached a newer time, the
     /// target evaluated at that time.
     pub filtered_results: Vec<TargetEstimate>,
@@ -476,7 +480,10 @@ impl FilterBank {
                 .last_time_ns
                 .map_or(sample.time_ns, |t| t.max(sample.time_ns)),
         );
-        let raw_results = self.add_to_group(link, sample.time_ns, z);
+        let (raw_results, needs_stored_group) = match self.add_to_group(link, sample.time_ns, z) {
+            Some(r) => (r, false),
+            None => (Vec::new(), true),
+        };
         let mut filtered_results = Vec::new();
         for ti in self.targets_of_link[link.0].clone() {
             let Some(frontier) = self.frontier(ti) else {
@@ -496,6 +503,7 @@ impl FilterBank {
             disposition,
             measurement: z,
             raw_results,
+            needs_stored_group,
             filtered_results,
         })
     }
@@ -527,24 +535,62 @@ impl FilterBank {
         self.frontier_ns[target]
     }
 
-    fn add_to_group(&mut self, link: LinkId, time_ns: i64, z: PoseCov) -> Vec<RawResult> {
+    /// Adds a sample to its measurement group and returns the raw results it completes, or
+    /// `None` when the sample is older than every group kept in memory.
+    fn add_to_group(&mut self, link: LinkId, time_ns: i64, z: PoseCov) -> Option<Vec<RawResult>> {
         let n_targets = self.installation.targets.len();
         let oldest_kept = self.groups.keys().next().copied();
         if self.groups.len() >= self.settings.group_window
             && oldest_kept.is_some_and(|o| time_ns < o)
         {
-            // Older than every group still assembled: it cannot complete one.
-            return Vec::new();
+            // Older than every group still assembled: only the store can complete it.
+            return None;
         }
         let group = self.groups.entry(time_ns).or_insert_with(|| Group {
             samples: HashMap::new(),
             emitted: vec![false; n_targets],
         });
         group.samples.insert(link, z);
+        let group = &self.groups[&time_ns];
+        let out = self.compose_group(link, time_ns, &group.samples, &group.emitted);
+        if let Some(g) = self.groups.get_mut(&time_ns) {
+            for r in &out {
+                g.emitted[r.target] = true;
+            }
+        }
+        while self.groups.len() > self.settings.group_window {
+            self.groups.pop_first();
+        }
+        Some(out)
+    }
+
+    /// The raw results of a measurement group given all its samples (`samples`: the
+    /// measurements of every link at `time_ns`, as [`Self::measurement`] makes them), for the
+    /// targets on `link`'s paths that the group completes. For groups too old for memory
+    /// ([`SampleOutcome::needs_stored_group`]): the caller reads the other links' samples of
+    /// that time from the store.
+    pub fn raw_results_of_group(
+        &self,
+        link: LinkId,
+        time_ns: i64,
+        samples: &HashMap<LinkId, PoseCov>,
+    ) -> Vec<RawResult> {
+        let none = vec![false; self.installation.targets.len()];
+        self.compose_group(link, time_ns, samples, &none)
+    }
+
+    /// Composes, for each target on `link`'s paths not yet `emitted`, the raw result of a
+    /// group whose every path is complete in `samples`.
+    fn compose_group(
+        &self,
+        link: LinkId,
+        time_ns: i64,
+        samples: &HashMap<LinkId, PoseCov>,
+        emitted: &[bool],
+    ) -> Vec<RawResult> {
         let mut out = Vec::new();
         for &ti in &self.targets_of_link[link.0] {
-            let group = &self.groups[&time_ns];
-            if group.emitted[ti] {
+            if emitted[ti] {
                 continue;
             }
             let target = &self.installation.targets[ti];
@@ -554,7 +600,7 @@ impl FilterBank {
                 let mut missing = false;
                 let composed = compose_path(path, |l| match self.calibration_at(l, time_ns) {
                     Some(c) => c,
-                    None => match group.samples.get(&l) {
+                    None => match samples.get(&l) {
                         Some(s) => *s,
                         None => {
                             missing = true;
@@ -579,12 +625,6 @@ impl FilterBank {
                     consistency: f.consistency,
                 });
             }
-            if let Some(g) = self.groups.get_mut(&time_ns) {
-                g.emitted[ti] = true;
-            }
-        }
-        while self.groups.len() > self.settings.group_window {
-            self.groups.pop_first();
         }
         out
     }

@@ -17,6 +17,21 @@ pub const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
 /// How far `R^T R` may be from the identity (max abs entry) for a matrix to count as a rotation.
 pub const ROTATION_ORTHOGONALITY_TOLERANCE: f64 = 1e-6;
 
+/// The largest translation component a pose may have (mm): 100 km. Every structure this
+/// service measures is far smaller; a larger number is a unit mistake or garbage, and letting
+/// it in would overflow sums of squares in statistics and rollups.
+pub const MAX_TRANSLATION_MM: f64 = 1e8;
+
+/// The largest Euler angle accepted as input (degrees): two full turns either way.
+pub const MAX_EULER_DEG: f64 = 720.0;
+
+/// The largest rotation sigma accepted as input (arc-seconds): about 4.8 rad, past any
+/// meaningful rotation uncertainty.
+pub const MAX_ROTATION_SIGMA_ARCSEC: f64 = 1e6;
+
+/// The largest translation sigma accepted as input (mm), the same as the largest translation.
+pub const MAX_TRANSLATION_SIGMA_MM: f64 = MAX_TRANSLATION_MM;
+
 /// Below this `cos(Ay)` the Euler angles are treated as degenerate (gimbal lock).
 const GIMBAL_LOCK_COS: f64 = 1e-9;
 
@@ -31,6 +46,25 @@ pub fn validate_finite(what: &str, values: &[f64]) -> Result<(), GeometryError> 
         }
     }
     Ok(())
+}
+
+/// Checks that every number's magnitude is at most `limit` (plausibility: see
+/// [`MAX_TRANSLATION_MM`]); `what` names the quantity in the error.
+pub fn check_magnitude(
+    what: &str,
+    values: &[f64],
+    limit: f64,
+    unit: &'static str,
+) -> Result<(), GeometryError> {
+    match values.iter().enumerate().find(|(_, v)| v.abs() > limit) {
+        Some((i, &value)) => Err(GeometryError::Implausible {
+            what: format!("{what}[{i}]"),
+            value,
+            limit,
+            unit,
+        }),
+        None => Ok(()),
+    }
 }
 
 /// A unit quaternion from `[w, x, y, z]`; normalised when its norm is within 1e-3 of 1.
@@ -99,6 +133,15 @@ impl EulerAngles {
 /// The rotation `Rz(Az) * Ry(Ay) * Rx(Ax)` for `[Ax, Ay, Az]` in radians.
 pub fn rotation_from_euler(angles_rad: [f64; 3]) -> Result<Rotation, GeometryError> {
     validate_finite("euler", &angles_rad)?;
+    let limit = MAX_EULER_DEG.to_radians();
+    if let Some((i, &value)) = angles_rad.iter().enumerate().find(|(_, a)| a.abs() > limit) {
+        return Err(GeometryError::Implausible {
+            what: format!("euler[{i}]"),
+            value: value.to_degrees(),
+            limit: MAX_EULER_DEG,
+            unit: "degrees",
+        });
+    }
     let [ax, ay, az] = angles_rad;
     Ok(Rotation::from_euler_angles(ax, ay, az))
 }
@@ -139,6 +182,7 @@ pub fn euler_from_rotation(rotation: &Rotation) -> EulerAngles {
 /// A pose from a translation (mm) and a rotation, the translation checked for finiteness.
 pub fn pose_from_parts(t_mm: [f64; 3], rotation: Rotation) -> Result<Pose, GeometryError> {
     validate_finite("t_mm", &t_mm)?;
+    check_magnitude("t_mm", &t_mm, MAX_TRANSLATION_MM, "mm")?;
     Ok(Pose::from_parts(
         Translation3::from(Vec3::from(t_mm)),
         rotation,

@@ -11,6 +11,18 @@ pub enum GeometryError {
         /// The offending value.
         value: f64,
     },
+    /// A finite number too large to be a measurement (a unit mistake or garbage).
+    #[error("{what} is {value:e} {unit}, beyond the plausible limit of {limit:e} {unit}")]
+    Implausible {
+        /// Which quantity (for example `t_mm[2]`).
+        what: String,
+        /// The offending value.
+        value: f64,
+        /// The largest magnitude accepted.
+        limit: f64,
+        /// The unit of both.
+        unit: &'static str,
+    },
     /// A quaternion whose norm is too far from 1 to be a rotation written with rounding error.
     #[error("quaternion norm is {norm:.6}, more than {tolerance} away from 1")]
     QuaternionNotUnit {

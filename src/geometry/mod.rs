@@ -23,8 +23,10 @@ mod mean;
 mod uncertain;
 
 pub use convert::{
-    ARCSEC_PER_RAD, EulerAngles, euler_from_rotation, pose_from_parts, quaternion_wxyz,
-    rotation_from_euler, rotation_from_matrix, rotation_from_quaternion_wxyz, validate_finite,
+    ARCSEC_PER_RAD, EulerAngles, MAX_EULER_DEG, MAX_ROTATION_SIGMA_ARCSEC, MAX_TRANSLATION_MM,
+    MAX_TRANSLATION_SIGMA_MM, check_magnitude, euler_from_rotation, pose_from_parts,
+    quaternion_wxyz, rotation_from_euler, rotation_from_matrix, rotation_from_quaternion_wxyz,
+    validate_finite,
 };
 pub use error::GeometryError;
 pub use lie::{

@@ -61,8 +61,14 @@ pub enum ServiceError {
     #[error("{0}")]
     NotFound(String),
     /// The store failed; nothing of the request was stored.
-    #[error("storage failed: {0}")]
+    #[error(transparent)]
     Storage(#[from] StoreError),
+    /// The transaction holding the request did not commit; nothing of it was stored.
+    #[error("{0}")]
+    CommitFailed(String),
+    /// The writer stopped before it answered (a defect): the request's fate is unknown.
+    #[error("the writer stopped before answering")]
+    WriterStopped,
     /// The pipeline is not running (the service is shutting down).
     #[error("the service is shutting down")]
     ShuttingDown,
@@ -197,6 +203,11 @@ struct Inner {
     viz_counters: Arc<crate::viz::VizCounters>,
     /// Solves marker observations into link samples.
     observer: Arc<crate::vision::Observer>,
+    /// Turns true when shutdown begins: live event streams end on it.
+    stopping: tokio::sync::watch::Sender<bool>,
+    /// Bounds the reads that stream over many rows (statistics, fine history), so that they
+    /// cannot take every read connection.
+    heavy_reads: Arc<tokio::sync::Semaphore>,
 }
 
 /// The running service: a handle that request handlers clone.
@@ -207,21 +218,31 @@ pub struct Service {
 
 /// The pipeline task, to await at shutdown (it finishes the jobs already queued), and the
 /// Rerun logger behind it.
-pub struct PipelineHandle(tokio::task::JoinHandle<()>, crate::viz::VizThread);
+pub struct PipelineHandle(
+    tokio::task::JoinHandle<Result<(), String>>,
+    crate::viz::VizThread,
+);
 
 impl PipelineHandle {
-    /// Waits until every queued job is committed and answered, then (for a bounded time) until
-    /// the Rerun logger has written out what it was given and closed its recordings.
-    pub async fn finished(self) {
-        if let Err(e) = self.0.await {
-            tracing::error!(error = %e, "the pipeline task panicked");
-        }
+    /// Waits until every queued job is committed and answered and the database is checkpointed
+    /// and closed, then (for a bounded time) until the Rerun logger has written out what it was
+    /// given and closed its recordings. An error says what kept the stop from being clean.
+    pub async fn finished(self) -> Result<(), String> {
+        let outcome = match self.0.await {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => Err(e),
+            Err(e) => {
+                tracing::error!(error = %e, "the pipeline task panicked");
+                Err(format!("the pipeline task panicked: {e}"))
+            }
+        };
         let viz = self.1;
         let finish =
             tokio::task::spawn_blocking(move || viz.finish(std::time::Duration::from_secs(10)));
         if let Err(e) = finish.await {
             tracing::error!(error = %e, "the Rerun logger panicked");
         }
+        outcome
     }
 }
 
@@ -333,6 +354,10 @@ impl Service {
             metrics: Arc::clone(&metrics),
             viz_counters,
             observer: Arc::new(crate::vision::Observer::new(&installation)),
+            stopping: tokio::sync::watch::channel(false).0,
+            heavy_reads: Arc::new(tokio::sync::Semaphore::new(
+                installation.server.max_heavy_reads,
+            )),
         });
         let task = tokio::spawn(pipeline::run(
             pipeline::Pipeline::new(write, bank, targets, digest, metrics, events, viz),
@@ -386,6 +411,25 @@ impl Service {
         }
     }
 
+    /// Waits for a turn at a heavy read (`[server] max_heavy_reads` run at once); the turn
+    /// lasts as long as the permit is held.
+    pub async fn heavy_read(&self) -> Option<tokio::sync::OwnedSemaphorePermit> {
+        Arc::clone(&self.inner.heavy_reads)
+            .acquire_owned()
+            .await
+            .ok()
+    }
+
+    /// Marks the start of shutdown: live event streams end.
+    pub fn begin_shutdown(&self) {
+        self.inner.stopping.send_replace(true);
+    }
+
+    /// Turns true when shutdown begins.
+    pub fn stopping(&self) -> tokio::sync::watch::Receiver<bool> {
+        self.inner.stopping.subscribe()
+    }
+
     /// Subscribes to live events.
     pub fn subscribe(&self) -> tokio::sync::broadcast::Receiver<LiveEvent> {
         self.inner.events.subscribe()
@@ -421,7 +465,7 @@ impl Service {
             .send(make(reply))
             .await
             .map_err(|_| ServiceError::ShuttingDown)?;
-        answer.await.map_err(|_| ServiceError::ShuttingDown)?
+        answer.await.map_err(|_| ServiceError::WriterStopped)?
     }
 
     /// Ingests validated samples atomically: all are durably stored (or were already, as
@@ -445,7 +489,7 @@ impl Service {
     }
 
     /// Deletes samples and results older than the retention ages (counted back from the newest
-    /// result); rollups stay. Returns how many `(samples, results)` were deleted.
+    /// result, or from the server's clock when that is earlier); rollups stay. Returns how many `(samples, results)` were deleted.
     pub async fn prune(&self) -> ServiceResult<(u64, u64)> {
         let retention = self.inner.installation.retention;
         self.submit(|reply| Job::Prune { retention, reply }).await

@@ -82,6 +82,64 @@ enum Pending {
     ),
 }
 
+/// What a job asks the transaction to do; its reply waits in a [`Pending`].
+enum Work {
+    Ingest(Vec<IngestItem>),
+    SetReference {
+        target: usize,
+        request: ReferenceRequest,
+    },
+    Prune(crate::config::RetentionSettings),
+    AddCalibration {
+        link: LinkId,
+        valid_from_ns: i64,
+        parent_from_child: crate::geometry::PoseCov,
+    },
+}
+
+/// The result of a job not applied (yet): what it answers if the transaction fails first.
+fn unapplied<T>() -> ServiceResult<T> {
+    Err(ServiceError::CommitFailed(
+        "the transaction failed before this request was applied".into(),
+    ))
+}
+
+impl Job {
+    /// The reply, with an "unapplied" result until the job is done, and the work. Taken apart
+    /// before the transaction begins, so that every requester is answered whatever fails.
+    fn split(self) -> (Pending, Work) {
+        match self {
+            Job::Ingest { items, reply } => {
+                (Pending::Ingest(reply, unapplied()), Work::Ingest(items))
+            }
+            Job::SetReference {
+                target,
+                request,
+                reply,
+            } => (
+                Pending::Reference(reply, unapplied()),
+                Work::SetReference { target, request },
+            ),
+            Job::Prune { retention, reply } => {
+                (Pending::Prune(reply, unapplied()), Work::Prune(retention))
+            }
+            Job::AddCalibration {
+                link,
+                valid_from_ns,
+                parent_from_child,
+                reply,
+            } => (
+                Pending::Calibration(reply, unapplied()),
+                Work::AddCalibration {
+                    link,
+                    valid_from_ns,
+                    parent_from_child,
+                },
+            ),
+        }
+    }
+}
+
 impl Pending {
     fn answer(self) {
         // A requester that gave up (closed connection) no longer listens: nothing to do.
@@ -94,7 +152,7 @@ impl Pending {
     }
 
     fn fail(self, message: &str) {
-        let err = || ServiceError::Storage(StoreError::Malformed(message.to_owned()));
+        let err = || ServiceError::CommitFailed(message.to_owned());
         let _ = match self {
             Pending::Ingest(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Reference(tx, _) => tx.send(Err(err())).map_err(|_| ()),
@@ -195,7 +253,8 @@ impl Pipeline {
         let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
         let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
         let mut viz_records: Vec<crate::viz::Record> = Vec::new();
-        let mut pending: Vec<Pending> = Vec::with_capacity(jobs.len());
+        let (mut pending, work): (Vec<Pending>, Vec<Work>) =
+            jobs.into_iter().map(Job::split).unzip();
         let record_viz = self.viz.enabled();
         let Pipeline {
             viz,
@@ -207,23 +266,19 @@ impl Pipeline {
         } = self;
         let outcome: Result<BankRecord, StoreError> = async {
             let mut tx = write.begin().await?;
-            for job in jobs {
-                match job {
-                    Job::Ingest { items, reply } => {
+            for (work, slot) in work.into_iter().zip(pending.iter_mut()) {
+                match (work, slot) {
+                    (Work::Ingest(items), Pending::Ingest(_, result)) => {
                         let mut t = Vec::new();
                         let collect = record_viz.then_some(VizCollect {
                             sender: &mut *viz,
                             records: &mut viz_records,
                         });
-                        let r = ingest(&mut tx, bank, targets, items, now, &mut t, collect).await?;
+                        *result =
+                            ingest(&mut tx, bank, targets, items, now, &mut t, collect).await?;
                         transitions.extend(t);
-                        pending.push(Pending::Ingest(reply, r));
                     }
-                    Job::SetReference {
-                        target,
-                        request,
-                        reply,
-                    } => {
+                    (Work::SetReference { target, request }, Pending::Reference(_, result)) => {
                         let r = set_reference(&mut tx, targets, target, request, now).await?;
                         if record_viz && let Ok(current) = &r {
                             viz_records.push(crate::viz::Record::Reference {
@@ -232,13 +287,17 @@ impl Pipeline {
                                 g0_from_b: current.reference.g0_from_b.pose,
                             });
                         }
-                        pending.push(Pending::Reference(reply, r));
+                        *result = r;
                     }
-                    Job::Prune { retention, reply } => {
+                    (Work::Prune(retention), Pending::Prune(_, result)) => {
+                        // Counted back from the newest result, but never from later than the
+                        // server's clock: one result stamped in the future must not make the
+                        // real history look old.
                         let newest = targets
                             .iter()
                             .filter_map(|t| t.latest.as_ref().map(|l| l.time_ns))
-                            .max();
+                            .max()
+                            .map(|n| n.min(now));
                         let r = match newest {
                             Some(n) => {
                                 let days = |d: f64| (d * 86_400e9) as i64;
@@ -250,30 +309,30 @@ impl Pipeline {
                             }
                             None => (0, 0),
                         };
-                        pending.push(Pending::Prune(reply, Ok(r)));
+                        *result = Ok(r);
                     }
-                    Job::AddCalibration {
-                        link,
-                        valid_from_ns,
-                        parent_from_child,
-                        reply,
-                    } => {
+                    (
+                        Work::AddCalibration {
+                            link,
+                            valid_from_ns,
+                            parent_from_child,
+                        },
+                        Pending::Calibration(_, result),
+                    ) => {
                         let version = tx
                             .insert_calibration(link, valid_from_ns, &parent_from_child, now)
                             .await?;
-                        if bank.add_calibration(link, valid_from_ns, parent_from_child) {
+                        *result = if bank.add_calibration(link, valid_from_ns, parent_from_child) {
                             added_calibrations.push((link, valid_from_ns));
-                            pending.push(Pending::Calibration(reply, Ok(version)));
+                            Ok(version)
                         } else {
-                            pending.push(Pending::Calibration(
-                                reply,
-                                Err(ServiceError::Invalid {
-                                    message: "only calibrated links take calibrations".into(),
-                                    problems: Vec::new(),
-                                }),
-                            ));
-                        }
+                            Err(ServiceError::Invalid {
+                                message: "only calibrated links take calibrations".into(),
+                                problems: Vec::new(),
+                            })
+                        };
                     }
+                    _ => unreachable!("a job's work and reply are split together"),
                 }
             }
             let record = bank.record();
@@ -287,6 +346,7 @@ impl Pipeline {
         .await;
         match outcome {
             Ok(record) => {
+                self.write.health().record_ok();
                 self.committed_state = record;
                 use std::sync::atomic::Ordering::Relaxed;
                 let m = &self.metrics;
@@ -320,6 +380,7 @@ impl Pipeline {
             }
             Err(e) => {
                 tracing::error!(error = %e, "a commit failed; its requests are refused and the filters roll back");
+                self.write.health().record_failure(&e);
                 self.metrics
                     .commits_failed
                     .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -330,8 +391,9 @@ impl Pipeline {
                     self.bank.remove_calibration(link, valid_from);
                 }
                 self.targets = targets_before;
+                let message = format!("the database did not accept the write: {e}");
                 for p in pending {
-                    p.fail("the database did not accept the write");
+                    p.fail(&message);
                 }
                 false
             }
@@ -339,8 +401,13 @@ impl Pipeline {
     }
 }
 
-/// Runs the pipeline until every sender is gone, then closes the write connection.
-pub(super) async fn run(mut p: Pipeline, mut rx: mpsc::Receiver<Job>, publish: impl Fn(Snapshot)) {
+/// Runs the pipeline until every sender is gone, then checkpoints and closes the write
+/// connection. An error says the stop was not clean.
+pub(super) async fn run(
+    mut p: Pipeline,
+    mut rx: mpsc::Receiver<Job>,
+    publish: impl Fn(Snapshot),
+) -> Result<(), String> {
     while let Some(first) = rx.recv().await {
         let mut jobs = vec![first];
         while jobs.len() < MAX_JOBS_PER_COMMIT {
@@ -353,8 +420,14 @@ pub(super) async fn run(mut p: Pipeline, mut rx: mpsc::Receiver<Job>, publish: i
             publish(p.snapshot());
         }
     }
+    let last = p.write.health().problem();
     if let Err(e) = p.write.close().await {
         tracing::error!(error = %e, "closing the database failed");
+        return Err(format!("closing the database failed: {e}"));
+    }
+    match last {
+        Some(problem) => Err(problem),
+        None => Ok(()),
     }
 }
 
@@ -387,6 +460,27 @@ fn deformation_of(
         r.version,
         Deformation::new(&r.reference, estimate).deformation(),
     ))
+}
+
+/// The row of a raw result.
+fn raw_row(
+    raw: &crate::filter::RawResult,
+    deformation: Option<(i64, crate::deformation::SmallMotion)>,
+) -> NewResult {
+    NewResult {
+        target: raw.target,
+        filtered: false,
+        time_ns: raw.time_ns,
+        estimate: raw.target_from_base,
+        status: if raw.consistency.is_some_and(|c| !c.is_consistent()) {
+            "degraded"
+        } else {
+            "ok"
+        },
+        age_s: 0.0,
+        chi2: raw.consistency.map(|c| c.chi2),
+        deformation,
+    }
 }
 
 /// Where an ingest job puts what it shows in Rerun: the sender decides (decimation) before a
@@ -485,6 +579,10 @@ async fn ingest(
     let mut result_rows: BTreeMap<(usize, bool, i64), NewResult> = BTreeMap::new();
     let mut latest: HashMap<usize, TargetEstimate> = HashMap::new();
     let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
+    // Samples too old for the groups kept in memory (a backfill): their groups are completed
+    // from the store after the loop. This job's own measurements by time, for the same.
+    let mut stored_groups: Vec<(LinkId, i64)> = Vec::new();
+    let mut job_groups: HashMap<i64, HashMap<LinkId, crate::geometry::PoseCov>> = HashMap::new();
     for (item, values, z) in fresh {
         let outcome = match bank.ingest_measurement(&item.sample, z) {
             Ok(o) => o,
@@ -496,6 +594,13 @@ async fn ingest(
             }
         };
         let d = outcome.disposition;
+        job_groups
+            .entry(item.sample.time_ns)
+            .or_default()
+            .insert(item.sample.link, z);
+        if outcome.needs_stored_group {
+            stored_groups.push((item.sample.link, item.sample.time_ns));
+        }
         report.stored += 1;
         match d {
             Disposition::Outlier { .. } => report.outliers += 1,
@@ -541,23 +646,7 @@ async fn ingest(
                     deformation: deformation.map(|(_, d)| d),
                 });
             }
-            result_rows.insert(
-                (raw.target, false, raw.time_ns),
-                NewResult {
-                    target: raw.target,
-                    filtered: false,
-                    time_ns: raw.time_ns,
-                    estimate: raw.target_from_base,
-                    status: if raw.consistency.is_some_and(|c| !c.is_consistent()) {
-                        "degraded"
-                    } else {
-                        "ok"
-                    },
-                    age_s: 0.0,
-                    chi2: raw.consistency.map(|c| c.chi2),
-                    deformation,
-                },
-            );
+            result_rows.insert((raw.target, false, raw.time_ns), raw_row(raw, deformation));
         }
         for est in outcome.filtered_results {
             let Some(pose) = est.target_from_base else {
@@ -600,6 +689,34 @@ async fn ingest(
                 transitions.push((est.target, t));
             }
             latest.insert(est.target, est);
+        }
+    }
+    // Backfilled groups: the other links' samples of the same time come from this job or the
+    // store. A group completes once, when its last sample arrives.
+    for (link, time_ns) in stored_groups {
+        let mut group = job_groups.get(&time_ns).cloned().unwrap_or_default();
+        for (l, spec) in bank.installation().links.iter().enumerate() {
+            let l = LinkId(l);
+            if group.contains_key(&l) || !matches!(spec.kind, crate::config::LinkKind::Measured(_))
+            {
+                continue;
+            }
+            if let Some((_, v)) = tx.existing_samples(l, time_ns, time_ns).await?.first() {
+                let sample = crate::filter::Sample {
+                    link: l,
+                    time_ns,
+                    parent_from_child: v.pose,
+                    uncertainty: v.uncertainty.into(),
+                };
+                if let Ok(z) = bank.measurement(&sample) {
+                    group.insert(l, z);
+                }
+            }
+        }
+        for raw in bank.raw_results_of_group(link, time_ns, &group) {
+            report.raw_results += 1;
+            let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
+            result_rows.insert((raw.target, false, raw.time_ns), raw_row(&raw, deformation));
         }
     }
     tx.insert_samples(&sample_rows).await?;

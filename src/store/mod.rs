@@ -39,13 +39,143 @@ pub static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!();
 pub enum StoreError {
     /// The database failed.
     #[error("database error: {0}")]
-    Database(#[from] sqlx::Error),
+    Database(sqlx::Error),
     /// A migration failed.
     #[error("migration failed: {0}")]
-    Migration(#[from] sqlx::migrate::MigrateError),
+    Migration(sqlx::migrate::MigrateError),
+    /// The database could not be opened or prepared at start-up.
+    #[error("cannot open the database {}: {message}", path.display())]
+    Open {
+        /// The configured file.
+        path: PathBuf,
+        /// Why.
+        message: String,
+    },
+    /// The file is an SQLite database of another program.
+    #[error(
+        "{} is not a brokenray database (it holds tables of another program); \
+         choose another `[server] database`", path.display()
+    )]
+    Foreign {
+        /// The configured file.
+        path: PathBuf,
+    },
+    /// The configured file was removed or replaced while the service ran: writes would go to a
+    /// file nobody can find again, so none is accepted.
+    #[error(
+        "the database file {} was removed or replaced while the service ran; no write is \
+         accepted until the service is restarted", path.display()
+    )]
+    FileReplaced {
+        /// The configured file.
+        path: PathBuf,
+    },
+    /// A value about to be written is not finite (a defect upstream; nothing is written).
+    #[error("refusing to store a non-finite {what}")]
+    NonFinite {
+        /// The column or quantity.
+        what: String,
+    },
     /// A stored value could not be decoded (a corrupted or foreign database).
     #[error("stored data is malformed: {0}")]
     Malformed(String),
+}
+
+// By hand rather than `#[from]`: the message already carries the cause, and a `source` would
+// print it a second time in an error chain.
+impl From<sqlx::Error> for StoreError {
+    fn from(e: sqlx::Error) -> Self {
+        StoreError::Database(e)
+    }
+}
+
+impl From<sqlx::migrate::MigrateError> for StoreError {
+    fn from(e: sqlx::migrate::MigrateError) -> Self {
+        StoreError::Migration(e)
+    }
+}
+
+/// The SQLite `application_id` of a brokenray database ("BRRY"): a file with another id is
+/// another program's and is never migrated into.
+pub const APPLICATION_ID: i64 = 0x4252_5259;
+
+/// Device and inode of a file: the identity the open database must keep.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct FileIdentity {
+    dev: u64,
+    ino: u64,
+}
+
+impl FileIdentity {
+    /// The identity of the file at `path`, or `None` when there is none.
+    pub(crate) fn of(path: &Path) -> Option<FileIdentity> {
+        let meta = std::fs::metadata(path).ok()?;
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::MetadataExt;
+            Some(FileIdentity {
+                dev: meta.dev(),
+                ino: meta.ino(),
+            })
+        }
+        #[cfg(not(unix))]
+        {
+            let _ = meta;
+            Some(FileIdentity { dev: 0, ino: 0 })
+        }
+    }
+}
+
+/// What the health check knows of the writer: whether its last commit failed, and why.
+#[derive(Debug, Default)]
+pub struct WriterHealth {
+    failing: std::sync::atomic::AtomicBool,
+    consecutive_failures: std::sync::atomic::AtomicU64,
+    last_error: std::sync::Mutex<Option<String>>,
+}
+
+impl WriterHealth {
+    /// Records a commit that succeeded: the writer is healthy again.
+    pub fn record_ok(&self) {
+        use std::sync::atomic::Ordering::Relaxed;
+        self.failing.store(false, Relaxed);
+        self.consecutive_failures.store(0, Relaxed);
+    }
+
+    /// Records a failed commit.
+    pub fn record_failure(&self, error: &StoreError) {
+        use std::sync::atomic::Ordering::Relaxed;
+        self.failing.store(true, Relaxed);
+        self.consecutive_failures.fetch_add(1, Relaxed);
+        if let Ok(mut last) = self.last_error.lock() {
+            *last = Some(error.to_string());
+        }
+    }
+
+    /// The last failure, while the writer has not committed since.
+    pub fn problem(&self) -> Option<String> {
+        use std::sync::atomic::Ordering::Relaxed;
+        if !self.failing.load(Relaxed) {
+            return None;
+        }
+        let last = self.last_error.lock().ok().and_then(|l| l.clone());
+        Some(format!(
+            "the last {} commit(s) failed: {}",
+            self.consecutive_failures.load(Relaxed),
+            last.unwrap_or_default()
+        ))
+    }
+}
+
+/// The state of the database as the health check sees it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DatabaseHealth {
+    /// The configured file is the one open, and answers a query on the health connection.
+    pub reachable: bool,
+    /// The writer's last commit succeeded (or none was tried).
+    pub writer_ok: bool,
+    /// What is wrong, when something is.
+    pub problem: Option<String>,
 }
 
 /// Result alias of the store.
@@ -55,7 +185,11 @@ pub type StoreResult<T> = Result<T, StoreError>;
 #[derive(Debug, Clone)]
 pub struct Store {
     pool: SqlitePool,
+    /// A connection of its own for the health check, so that busy readers cannot fail it.
+    health_conn: std::sync::Arc<tokio::sync::Mutex<Option<sqlx::SqliteConnection>>>,
     path: PathBuf,
+    identity: FileIdentity,
+    writer: std::sync::Arc<WriterHealth>,
     /// Database ids of the installation's links, indexed by `LinkId`.
     link_ids: Vec<i64>,
     /// Database ids of the installation's targets, indexed by target index.
@@ -73,9 +207,39 @@ fn options(path: &Path) -> SqliteConnectOptions {
         .disable_statement_logging()
 }
 
+/// Refuses a file that is another program's SQLite database, and marks a new (or an older
+/// brokenray) database with [`APPLICATION_ID`].
+async fn claim(conn: &mut sqlx::SqliteConnection, path: &Path) -> StoreResult<()> {
+    let (id,): (i64,) = sqlx::query_as("pragma application_id")
+        .fetch_one(&mut *conn)
+        .await?;
+    if id == APPLICATION_ID {
+        return Ok(());
+    }
+    let tables: Vec<(String,)> = sqlx::query_as(
+        "select name from sqlite_master where type = 'table' and name not like 'sqlite_%'",
+    )
+    .fetch_all(&mut *conn)
+    .await?;
+    let names: std::collections::HashSet<&str> = tables.iter().map(|(n,)| n.as_str()).collect();
+    // A brokenray database written before the id was set has these.
+    let ours = ["_sqlx_migrations", "samples", "results", "filter_state"]
+        .iter()
+        .all(|t| names.contains(t));
+    if id != 0 || !(names.is_empty() || ours) {
+        return Err(StoreError::Foreign {
+            path: path.to_owned(),
+        });
+    }
+    sqlx::query(&format!("pragma application_id = {APPLICATION_ID}"))
+        .execute(&mut *conn)
+        .await?;
+    Ok(())
+}
+
 /// Opens (creating if needed) the installation's database (`server.database`), applies
 /// migrations and registers the names of its links and targets. Returns the read side and the
-/// one write connection.
+/// one write connection. Every error names the file.
 pub async fn open(
     installation: &crate::config::Installation,
     now_ns: i64,
@@ -83,11 +247,32 @@ pub async fn open(
     let path = installation.server.database.as_path();
     let link_names: Vec<&String> = installation.links.iter().map(|l| &l.name).collect();
     let target_names: Vec<&String> = installation.targets.iter().map(|t| &t.name).collect();
+    let opened = open_inner(path, &link_names, &target_names, now_ns).await;
+    opened.map_err(|e| match e {
+        e @ (StoreError::Foreign { .. } | StoreError::Open { .. }) => e,
+        other => StoreError::Open {
+            path: path.to_owned(),
+            message: other.to_string(),
+        },
+    })
+}
+
+async fn open_inner(
+    path: &Path,
+    link_names: &[&String],
+    target_names: &[&String],
+    now_ns: i64,
+) -> StoreResult<(Store, WriteConn)> {
     let mut conn = options(path).connect().await?;
+    claim(&mut conn, path).await?;
     MIGRATOR.run(&mut conn).await?;
+    let identity = FileIdentity::of(path).ok_or_else(|| StoreError::Open {
+        path: path.to_owned(),
+        message: "the file vanished while it was opened".into(),
+    })?;
     let mut tx = conn.begin().await?;
     let mut link_ids = Vec::with_capacity(link_names.len());
-    for name in link_names {
+    for name in link_names.iter().copied() {
         sqlx::query(
             "insert into links (name, created_ns) values (?, ?) on conflict (name) do nothing",
         )
@@ -102,7 +287,7 @@ pub async fn open(
         link_ids.push(id);
     }
     let mut target_ids = Vec::with_capacity(target_names.len());
-    for name in target_names {
+    for name in target_names.iter().copied() {
         sqlx::query(
             "insert into targets (name, created_ns) values (?, ?) on conflict (name) do nothing",
         )
@@ -121,14 +306,19 @@ pub async fn open(
         .max_connections(4)
         .connect_with(options(path).read_only(true))
         .await?;
+    let health_conn = options(path).read_only(true).connect().await?;
+    let writer = std::sync::Arc::new(WriterHealth::default());
     Ok((
         Store {
             pool,
+            health_conn: std::sync::Arc::new(tokio::sync::Mutex::new(Some(health_conn))),
             path: path.to_owned(),
+            identity,
+            writer: std::sync::Arc::clone(&writer),
             link_ids: link_ids.clone(),
             target_ids: target_ids.clone(),
         },
-        WriteConn::new(conn, link_ids, target_ids),
+        WriteConn::new(conn, path, identity, writer, link_ids, target_ids),
     ))
 }
 
@@ -138,14 +328,68 @@ impl Store {
         &self.path
     }
 
-    /// True when the database answers a trivial query.
-    pub async fn ping(&self) -> bool {
-        sqlx::query("select 1").execute(&self.pool).await.is_ok()
+    /// The health of the database and the writer, on the health check's own connection: the
+    /// configured file must still be the one open, answer a query, and the writer's last commit
+    /// must have succeeded.
+    pub async fn health(&self) -> DatabaseHealth {
+        let writer_problem = self.writer.problem();
+        let file_problem = if FileIdentity::of(&self.path) == Some(self.identity) {
+            None
+        } else {
+            Some(
+                StoreError::FileReplaced {
+                    path: self.path.clone(),
+                }
+                .to_string(),
+            )
+        };
+        let query_problem = {
+            let mut guard = self.health_conn.lock().await;
+            if guard.is_none() {
+                *guard = options(&self.path)
+                    .create_if_missing(false)
+                    .read_only(true)
+                    .connect()
+                    .await
+                    .ok();
+            }
+            match guard.as_mut() {
+                None => Some(format!("cannot open {}", self.path.display())),
+                Some(conn) => {
+                    let answer = tokio::time::timeout(
+                        Duration::from_secs(2),
+                        sqlx::query("select count(*) from sqlite_master").execute(&mut *conn),
+                    )
+                    .await;
+                    match answer {
+                        Ok(Ok(_)) => None,
+                        Ok(Err(e)) => {
+                            *guard = None;
+                            Some(format!("the database does not answer: {e}"))
+                        }
+                        Err(_) => {
+                            *guard = None;
+                            Some("the database did not answer within 2 s".to_owned())
+                        }
+                    }
+                }
+            }
+        };
+        let reachable = file_problem.is_none() && query_problem.is_none();
+        let problem = file_problem.or(query_problem).or(writer_problem.clone());
+        DatabaseHealth {
+            reachable,
+            writer_ok: writer_problem.is_none(),
+            problem,
+        }
     }
 
-    /// Closes the read pool.
+    /// Closes the read pool and the health connection.
     pub async fn close(&self) {
         self.pool.close().await;
+        if let Some(conn) = self.health_conn.lock().await.take() {
+            let _ = conn.close().await;
+        }
     }
 }
 

@@ -251,6 +251,36 @@ impl Store {
         rows.into_iter().map(ResultRow::into_result).collect()
     }
 
+    /// The paper's statistics (Table 4/5) of a target's results in `[from_ns, to_ns]`, with the
+    /// times of the first and last result. The rows are streamed and folded one by one: memory
+    /// does not grow with the window.
+    pub async fn pose_stats(
+        &self,
+        target: usize,
+        filtered: bool,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<(Option<crate::stats::PoseStats>, Option<(i64, i64)>)> {
+        use futures::TryStreamExt as _;
+        type PoseRow = (i64, f64, f64, f64, f64, f64, f64, f64);
+        let mut rows = sqlx::query_as::<_, PoseRow>(
+            "select time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz from results \
+             where target_id = ? and source = ? and time_ns >= ? and time_ns <= ? order by time_ns",
+        )
+        .bind(self.target_ids[target])
+        .bind(i64::from(filtered))
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch(&self.pool);
+        let mut acc = crate::stats::PoseStatsAccumulator::default();
+        let mut span: Option<(i64, i64)> = None;
+        while let Some((t, tx, ty, tz, qw, qx, qy, qz)) = rows.try_next().await? {
+            acc.push(&pose_from_columns([tx, ty, tz, qw, qx, qy, qz]));
+            span = Some((span.map_or(t, |(first, _)| first), t));
+        }
+        Ok((acc.finish(), span))
+    }
+
     /// How many results of a target are stored in `[from_ns, to_ns]`.
     pub async fn count_results(
         &self,

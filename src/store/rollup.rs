@@ -1,7 +1,7 @@
 //! Rollups: per bucket, the count and min, sum and max of every result component, so a history
 //! at any scale reads a bounded number of rows and a spike survives downsampling.
 
-use super::{NewResult, Store, StoreResult, StoredResult};
+use super::{NewResult, Store, StoreResult};
 use crate::geometry::{PoseCov, ReportedSigmas, euler_from_rotation};
 use std::collections::HashMap;
 
@@ -249,7 +249,7 @@ impl Store {
         .bind(self.target_ids[target])
         .bind(i64::from(filtered))
         .bind(width_s)
-        .bind(from_ns.div_euclid(width_ns) * width_ns)
+        .bind(floor_to(from_ns, width_ns))
         .bind(to_ns)
         .fetch_all(&self.pool)
         .await?;
@@ -258,30 +258,61 @@ impl Store {
             .collect()
     }
 
-    /// Every result in `[from_ns, to_ns]` as a one-result bucket, oldest first (for history
-    /// finer than the finest rollup).
+    /// The results in `[from_ns, to_ns]` merged into buckets of `width_ns` aligned on
+    /// `start_ns`, oldest first (for history finer than the finest rollup). The rows are
+    /// streamed: memory is that of the buckets, however many results the window holds.
     pub async fn result_buckets(
         &self,
         target: usize,
         filtered: bool,
         from_ns: i64,
         to_ns: i64,
+        start_ns: i64,
+        width_ns: i64,
     ) -> StoreResult<Vec<Bucket>> {
-        let results: Vec<StoredResult> = self
-            .results(target, filtered, from_ns, to_ns, i64::MAX)
-            .await?;
-        Ok(results
-            .iter()
-            .map(|r| {
-                let (values, has_def) = components(
-                    &r.estimate,
-                    &r.estimate.reported_sigmas(),
-                    r.deformation.map(|(_, rot, t)| (rot, t)),
-                );
-                let mut b = Bucket::empty(r.time_ns);
-                b.add(&values, has_def);
-                b
-            })
-            .collect())
+        use futures::TryStreamExt as _;
+        let mut buckets: std::collections::BTreeMap<i64, Bucket> =
+            std::collections::BTreeMap::new();
+        let mut rows =
+            sqlx::query_as::<_, super::read::ResultRow>(super::read::RESULT_SELECT_BY_RANGE)
+                .bind(self.target_ids[target])
+                .bind(i64::from(filtered))
+                .bind(from_ns)
+                .bind(to_ns)
+                .bind(i64::MAX)
+                .fetch(&self.pool);
+        while let Some(row) = rows.try_next().await? {
+            let r = row.into_result()?;
+            let (values, has_def) = components(
+                &r.estimate,
+                &r.estimate.reported_sigmas(),
+                r.deformation.map(|(_, rot, t)| (rot, t)),
+            );
+            let bucket_start = align(r.time_ns, start_ns, width_ns);
+            buckets
+                .entry(bucket_start)
+                .or_insert_with(|| Bucket::empty(bucket_start))
+                .add(&values, has_def);
+        }
+        Ok(buckets.into_values().collect())
     }
+}
+
+/// The start of the bucket of width `width_ns` (aligned on `start_ns`) that holds `time_ns`;
+/// computed wide so that no time, however far from `start_ns`, overflows.
+pub fn align(time_ns: i64, start_ns: i64, width_ns: i64) -> i64 {
+    let (t, s, w) = (
+        i128::from(time_ns),
+        i128::from(start_ns),
+        i128::from(width_ns.max(1)),
+    );
+    let aligned = s + (t - s).div_euclid(w) * w;
+    aligned.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64
+}
+
+/// `time_ns` rounded down to a multiple of `width_ns`, saturating at the ends of time.
+pub fn floor_to(time_ns: i64, width_ns: i64) -> i64 {
+    let w = i128::from(width_ns.max(1));
+    let floored = i128::from(time_ns).div_euclid(w) * w;
+    floored.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64
 }

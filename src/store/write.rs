@@ -1,11 +1,24 @@
 //! The write connection and the statements of one transaction.
 
+//!
+//! Transactions are plain `BEGIN IMMEDIATE` / `COMMIT` statements, not the driver's nested
+//! transaction objects: SQLite rolls a transaction back by itself when a commit fails on a
+//! full disk or an I/O error, and the driver's bookkeeping does not follow, so later "commits"
+//! would only release savepoints of a transaction that never commits. Instead, any transaction
+//! that did not commit (a failed statement, a failed commit, a cancelled task) leaves the
+//! connection marked unclean, and the next [`WriteConn::begin`] replaces it with a fresh one:
+//! whatever happened, the writer starts from a known state. Before it begins and after it
+//! commits, the writer checks that the configured file is still the one open (device and
+//! inode), so a deleted or replaced file is never written to in silence.
+
 use super::codec::{encode_mat6, pose_columns};
-use super::{SampleValues, StoreResult};
+use super::{FileIdentity, SampleValues, StoreError, StoreResult, WriterHealth};
 use crate::chain::LinkId;
 use crate::deformation::SmallMotion;
 use crate::geometry::{PoseCov, ReportedSigmas};
-use sqlx::{Connection, QueryBuilder, Sqlite, SqliteConnection, Transaction};
+use sqlx::{ConnectOptions, Connection, QueryBuilder, Sqlite, SqliteConnection};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// A stored rollup row: key, counts, statistics blob.
 type RollupRow = (i64, i64, i64, i64, i64, i64, Vec<u8>);
@@ -56,48 +69,140 @@ pub struct NewResult {
 /// The one connection that writes.
 #[derive(Debug)]
 pub struct WriteConn {
-    conn: SqliteConnection,
+    /// `None` after a failure until the next [`WriteConn::begin`] reconnects.
+    conn: Option<SqliteConnection>,
+    /// False from `BEGIN` until a successful `COMMIT`: the connection's state is then unknown.
+    clean: bool,
+    path: PathBuf,
+    identity: FileIdentity,
+    health: Arc<WriterHealth>,
     link_ids: Vec<i64>,
     target_ids: Vec<i64>,
 }
 
-/// One write transaction.
+/// One write transaction. Dropped without [`WriteTx::commit`], it is rolled back (the next
+/// transaction starts on a fresh connection).
 pub struct WriteTx<'c> {
-    tx: Transaction<'c, Sqlite>,
+    conn: &'c mut SqliteConnection,
+    clean: &'c mut bool,
+    path: &'c Path,
+    identity: FileIdentity,
     link_ids: &'c [i64],
     target_ids: &'c [i64],
 }
 
+/// Refuses a value that is not finite before it reaches a row.
+fn finite(what: &str, values: &[f64]) -> StoreResult<()> {
+    if values.iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(StoreError::NonFinite {
+            what: what.to_owned(),
+        })
+    }
+}
+
+fn check_identity(path: &Path, identity: FileIdentity) -> StoreResult<()> {
+    if FileIdentity::of(path) == Some(identity) {
+        Ok(())
+    } else {
+        Err(StoreError::FileReplaced {
+            path: path.to_owned(),
+        })
+    }
+}
+
 impl WriteConn {
-    pub(super) fn new(conn: SqliteConnection, link_ids: Vec<i64>, target_ids: Vec<i64>) -> Self {
+    pub(super) fn new(
+        conn: SqliteConnection,
+        path: &Path,
+        identity: FileIdentity,
+        health: Arc<WriterHealth>,
+        link_ids: Vec<i64>,
+        target_ids: Vec<i64>,
+    ) -> Self {
         Self {
-            conn,
+            conn: Some(conn),
+            clean: true,
+            path: path.to_owned(),
+            identity,
+            health,
             link_ids,
             target_ids,
         }
     }
 
-    /// Starts a transaction.
+    /// What the health check sees of this writer; the service records each commit's outcome.
+    pub fn health(&self) -> &WriterHealth {
+        &self.health
+    }
+
+    /// Starts a transaction (`BEGIN IMMEDIATE`), on a fresh connection when the last one did
+    /// not commit. Fails when the configured file is no longer the one opened at start.
     pub async fn begin(&mut self) -> StoreResult<WriteTx<'_>> {
+        check_identity(&self.path, self.identity)?;
+        if !self.clean || self.conn.is_none() {
+            if let Some(old) = self.conn.take() {
+                // Closing rolls back whatever transaction the connection still had.
+                if let Err(e) = old.close().await {
+                    tracing::warn!(error = %e, "closing the failed write connection");
+                }
+            }
+            let fresh = super::options(&self.path)
+                .create_if_missing(false)
+                .connect()
+                .await?;
+            self.conn = Some(fresh);
+            self.clean = true;
+            tracing::info!("the writer reconnected to the database after a failed transaction");
+        }
+        let Some(conn) = self.conn.as_mut() else {
+            unreachable!("connected above")
+        };
+        self.clean = false;
+        sqlx::query("begin immediate").execute(&mut *conn).await?;
         Ok(WriteTx {
-            tx: self.conn.begin().await?,
+            conn,
+            clean: &mut self.clean,
+            path: &self.path,
+            identity: self.identity,
             link_ids: &self.link_ids,
             target_ids: &self.target_ids,
         })
     }
 
-    /// Closes the connection (checkpointing the WAL).
+    /// Checkpoints the WAL into the database file (so that the file alone is complete) and
+    /// closes the connection.
     pub async fn close(self) -> StoreResult<()> {
-        self.conn.close().await?;
+        let Some(mut conn) = self.conn else {
+            return Ok(());
+        };
+        if !self.clean {
+            let _ = sqlx::query("rollback").execute(&mut conn).await;
+        }
+        let (busy, _, _): (i64, i64, i64) = sqlx::query_as("pragma wal_checkpoint(truncate)")
+            .fetch_one(&mut conn)
+            .await?;
+        if busy != 0 {
+            tracing::warn!(
+                "a reader kept the WAL checkpoint from completing; the -wal file is still needed"
+            );
+        }
+        conn.close().await?;
         Ok(())
     }
 }
 
 impl WriteTx<'_> {
-    /// Commits: everything written in this transaction is on disk when this returns.
+    /// Commits: everything written in this transaction is on disk, in the configured file,
+    /// when this returns `Ok`. On an error nothing of it is committed (or, when the file was
+    /// replaced meanwhile, it went to a file that is no longer the configured one): the caller
+    /// must not acknowledge it.
     pub async fn commit(self) -> StoreResult<()> {
-        self.tx.commit().await?;
-        Ok(())
+        check_identity(self.path, self.identity)?;
+        sqlx::query("commit").execute(&mut *self.conn).await?;
+        *self.clean = true;
+        check_identity(self.path, self.identity)
     }
 
     /// The stored samples of a link with times in `[from_ns, to_ns]` (this transaction's
@@ -113,7 +218,7 @@ impl WriteTx<'_> {
             .bind(from_ns)
             .bind(to_ns)
             .bind(i64::MAX)
-            .fetch_all(&mut *self.tx)
+            .fetch_all(&mut *self.conn)
             .await?;
         rows.into_iter()
             .map(|r| Ok((r.time_ns, r.values()?)))
@@ -122,6 +227,16 @@ impl WriteTx<'_> {
 
     /// Inserts samples (keys must be new).
     pub async fn insert_samples(&mut self, samples: &[NewSample]) -> StoreResult<()> {
+        for s in samples {
+            finite("sample pose", &pose_columns(&s.values.pose))?;
+            finite(
+                "sample quality",
+                &[s.values.quality.reprojection_rms_px.unwrap_or(0.0)],
+            )?;
+            if let Some(nis) = s.nis {
+                finite("sample NIS", &[nis])?;
+            }
+        }
         for chunk in samples.chunks(ROWS_PER_STATEMENT) {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
                 "insert into samples (link_id, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, \
@@ -143,7 +258,7 @@ impl WriteTx<'_> {
                     .push_bind(s.nis)
                     .push_bind(s.received_ns);
             });
-            qb.build().execute(&mut *self.tx).await?;
+            qb.build().execute(&mut *self.conn).await?;
         }
         Ok(())
     }
@@ -157,6 +272,17 @@ impl WriteTx<'_> {
             .iter()
             .map(|r| r.estimate.reported_sigmas())
             .collect();
+        for (r, s) in results.iter().zip(&sigmas) {
+            finite("result pose", &pose_columns(&r.estimate.pose))?;
+            finite("result covariance", r.estimate.cov.as_slice())?;
+            finite("result sigma", &s.rotation_arcsec)?;
+            finite("result sigma", &s.translation_mm)?;
+            finite("result age", &[r.age_s])?;
+            if let Some((_, d)) = &r.deformation {
+                finite("result deformation", &d.rotation_arcsec)?;
+                finite("result deformation", &d.translation_mm)?;
+            }
+        }
         for (chunk, chunk_sigmas) in results
             .chunks(ROWS_PER_STATEMENT / 2)
             .zip(sigmas.chunks(ROWS_PER_STATEMENT / 2))
@@ -194,7 +320,7 @@ impl WriteTx<'_> {
                     }
                 }
             });
-            qb.build().execute(&mut *self.tx).await?;
+            qb.build().execute(&mut *self.conn).await?;
         }
         self.update_rollups(results, &sigmas).await
     }
@@ -239,7 +365,7 @@ impl WriteTx<'_> {
                     .push_unseparated(")");
             }
             qb.push(")");
-            let rows: Vec<RollupRow> = qb.build_query_as().fetch_all(&mut *self.tx).await?;
+            let rows: Vec<RollupRow> = qb.build_query_as().fetch_all(&mut *self.conn).await?;
             for (t, s, w, b, n, n_def, stats) in rows {
                 existing.insert((t, s, w, b), decode_bucket(b, n, n_def, &stats)?);
             }
@@ -262,7 +388,7 @@ impl WriteTx<'_> {
                     .push_bind(bucket.n_def)
                     .push_bind(encode_stats(bucket));
             });
-            qb.build().execute(&mut *self.tx).await?;
+            qb.build().execute(&mut *self.conn).await?;
         }
         Ok(())
     }
@@ -288,7 +414,7 @@ impl WriteTx<'_> {
                     .push_bind(t.message.clone())
                     .push_bind(now_ns);
             });
-            qb.build().execute(&mut *self.tx).await?;
+            qb.build().execute(&mut *self.conn).await?;
         }
         Ok(())
     }
@@ -302,12 +428,12 @@ impl WriteTx<'_> {
     ) -> StoreResult<(u64, u64)> {
         let samples = sqlx::query("delete from samples where time_ns < ?")
             .bind(samples_before_ns)
-            .execute(&mut *self.tx)
+            .execute(&mut *self.conn)
             .await?
             .rows_affected();
         let results = sqlx::query("delete from results where time_ns < ?")
             .bind(results_before_ns)
-            .execute(&mut *self.tx)
+            .execute(&mut *self.conn)
             .await?
             .rows_affected();
         Ok((samples, results))
@@ -326,7 +452,7 @@ impl WriteTx<'_> {
             .bind(from_ns)
             .bind(to_ns)
             .bind(i64::MAX)
-            .fetch_all(&mut *self.tx)
+            .fetch_all(&mut *self.conn)
             .await?;
         rows.into_iter()
             .map(|r| r.into_result().map(|r| r.estimate))
@@ -344,10 +470,12 @@ impl WriteTx<'_> {
         let (max,): (Option<i64>,) =
             sqlx::query_as("select max(version) from target_references where target_id = ?")
                 .bind(target_id)
-                .fetch_one(&mut *self.tx)
+                .fetch_one(&mut *self.conn)
                 .await?;
         let version = max.unwrap_or(0) + 1;
         let p = pose_columns(&reference.g0_from_b.pose);
+        finite("reference pose", &p)?;
+        finite("reference covariance", reference.g0_from_b.cov.as_slice())?;
         let (origin, from, to, count) = match reference.origin {
             crate::deformation::ReferenceOrigin::Explicit => ("explicit", None, None, None),
             crate::deformation::ReferenceOrigin::Window {
@@ -376,7 +504,7 @@ impl WriteTx<'_> {
         .bind(to)
         .bind(count)
         .bind(now_ns)
-        .execute(&mut *self.tx)
+        .execute(&mut *self.conn)
         .await?;
         Ok(version)
     }
@@ -393,10 +521,12 @@ impl WriteTx<'_> {
         let (max,): (Option<i64>,) =
             sqlx::query_as("select max(version) from calibrations where link_id = ?")
                 .bind(link_id)
-                .fetch_one(&mut *self.tx)
+                .fetch_one(&mut *self.conn)
                 .await?;
         let version = max.unwrap_or(0) + 1;
         let p = pose_columns(&parent_from_child.pose);
+        finite("calibration pose", &p)?;
+        finite("calibration covariance", parent_from_child.cov.as_slice())?;
         sqlx::query(
             "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns) \
              values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -413,7 +543,7 @@ impl WriteTx<'_> {
         .bind(p[6])
         .bind(encode_mat6(&parent_from_child.cov))
         .bind(now_ns)
-        .execute(&mut *self.tx)
+        .execute(&mut *self.conn)
         .await?;
         Ok(version)
     }
@@ -433,7 +563,7 @@ impl WriteTx<'_> {
         .bind(digest)
         .bind(state_json)
         .bind(now_ns)
-        .execute(&mut *self.tx)
+        .execute(&mut *self.conn)
         .await?;
         Ok(())
     }

@@ -64,7 +64,7 @@ impl TestApp {
         let store = self.service.store().clone();
         drop(self.router);
         drop(self.service);
-        pipeline.finished().await;
+        pipeline.finished().await.expect("a clean stop");
         store.close().await;
         let inst = installation(&self.dir, text);
         Self::start_with(self.dir, inst).await

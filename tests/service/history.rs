@@ -172,10 +172,13 @@ async fn retention_prunes_old_rows_and_keeps_rollups() {
         "{ONE_LINK}\n[retention]\nsamples_days = 1\nresults_days = 2\n"
     )))
     .await;
-    // Five days of samples, one an hour.
+    // Five days of samples, one an hour, ending an hour ago (later ones would be in the
+    // future, which the service refuses).
+    let hour = 3_600_000_000_000i64;
+    let start = (brokenray::service::now_ns() / hour - 121) * hour;
     let samples: Vec<serde_json::Value> = (0..120)
         .map(|h| {
-            serde_json::json!({"link": "G_from_B", "time": T0_NS + h * 3_600_000_000_000i64,
+            serde_json::json!({"link": "G_from_B", "time": start + h * hour,
                                "pose": {"t_mm": [1.0, 2.0, 3.0], "q_wxyz": [1, 0, 0, 0]}})
         })
         .collect();

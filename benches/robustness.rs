@@ -1,0 +1,238 @@
+//! What hostile or heavy requests cost the running service (the release binary, its own
+//! process, on loopback):
+//!
+//! 1. the peak memory of a `max_body_bytes` (32 MiB) body of invalid samples, and its answer;
+//! 2. `/stats` over `RESULTS` (default 4,000,000) stored results: time and peak memory above
+//!    idle;
+//! 3. `/healthz` latency with `IDLE` (default 2000) idle connections open.
+//!
+//! Memory is the server's `VmHWM` (peak resident set) from `/proc`, read before and after.
+//!
+//! Run: `cargo bench --bench robustness` (Linux).
+
+use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
+use brokenray::store::{self, NewResult};
+use nalgebra::Translation3;
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const T0: i64 = 1_795_255_200_000_000_000;
+const PERIOD_NS: i64 = 40_000_000;
+
+struct Server {
+    child: Child,
+    base: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start(config: &std::path::Path) -> Server {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args(["serve", "--config", config.to_str().unwrap()])
+        .env("RUST_LOG", "warn,brokenray=info")
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("the binary starts");
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("serving on http://").nth(1) {
+                let _ = tx.send(rest.split('/').next().unwrap().to_owned());
+            }
+        }
+    });
+    let addr = rx
+        .recv_timeout(Duration::from_secs(120))
+        .expect("the server says where it listens");
+    Server {
+        child,
+        base: format!("http://{addr}"),
+    }
+}
+
+/// (current, peak) resident set of a process, MB.
+fn rss_mb(pid: u32) -> (f64, f64) {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    let field = |name: &str| {
+        status
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(f64::NAN)
+            / 1024.0
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
+fn config(dir: &std::path::Path, extra: &str) -> std::path::PathBuf {
+    let text = format!(
+        "[server]\nlisten = \"127.0.0.1:0\"\ndatabase = \"{}\"\nheader_timeout_s = 120\n{extra}\n\
+         [[links]]\nname = \"G_from_B\"\nkind = \"measured\"\n\
+         sigma = {{ rotation_arcsec = 30.0, translation_mm = 1.0 }}\nexpected_rate_hz = 25.0\n\
+         [[targets]]\nname = \"G\"\nbase = \"B\"\n",
+        dir.join("robustness.sqlite").display()
+    );
+    let path = dir.join("robustness.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// Fills the database with `n` filtered results (one target, 25 Hz).
+async fn fill(config: &std::path::Path, n: i64) {
+    let text = std::fs::read_to_string(config).unwrap();
+    let inst = brokenray::config::parse("bench.toml", &text).expect("config");
+    let (store, mut write) = store::open(&inst, 0).await.expect("open");
+    let chunk = 200_000;
+    for start in (0..n).step_by(chunk) {
+        let rows: Vec<NewResult> = (start..(start + chunk as i64).min(n))
+            .map(|k| {
+                let t = k as f64 / 25.0;
+                NewResult {
+                    target: 0,
+                    filtered: true,
+                    time_ns: T0 + k * PERIOD_NS,
+                    estimate: PoseCov {
+                        pose: Pose::from_parts(
+                            Translation3::new((t / 8.0).sin(), -2952.0, 532.0 + (t / 15.0).cos()),
+                            rotation_from_euler([-0.0718, 0.026, 2.87 + 1e-5 * (t / 8.0).sin()])
+                                .expect("rotation"),
+                        ),
+                        cov: Mat6::identity() * 1e-6,
+                    },
+                    status: "ok",
+                    age_s: 0.0,
+                    chi2: None,
+                    deformation: None,
+                }
+            })
+            .collect();
+        let mut tx = write.begin().await.expect("begin");
+        tx.insert_results(&rows).await.expect("insert");
+        tx.commit().await.expect("commit");
+    }
+    write.close().await.expect("close");
+    store.close().await;
+}
+
+fn main() {
+    if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
+        println!("robustness bench: run with `cargo bench --bench robustness`");
+        return;
+    }
+    let n: i64 = std::env::var("RESULTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(4_000_000);
+    let idle: usize = std::env::var("IDLE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2000);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let client = reqwest::Client::new();
+
+    // 1. A 32 MiB body of junk, on an empty database.
+    let junk_dir = tempfile::tempdir().unwrap();
+    let junk_config = config(junk_dir.path(), "");
+    {
+        let server = start(&junk_config);
+        std::thread::sleep(Duration::from_millis(500));
+        let (idle_mb, _) = rss_mb(server.child.id());
+        let limit = 32 * 1024 * 1024;
+        let item = "{\"link\": 1},";
+        let mut body = String::with_capacity(limit);
+        body.push_str("{\"samples\": [");
+        while body.len() + item.len() + 16 < limit {
+            body.push_str(item);
+        }
+        body.push_str("{\"link\": 1}]}");
+        let items = body.matches("link").count();
+        let t = Instant::now();
+        let (status, answer_len) = runtime.block_on(async {
+            let r = client
+                .post(format!("{}/api/v1/samples", server.base))
+                .header("content-type", "application/json")
+                .body(body)
+                .send()
+                .await
+                .unwrap();
+            let status = r.status();
+            (status, r.bytes().await.unwrap().len())
+        });
+        let elapsed = t.elapsed();
+        let (now_mb, peak_mb) = rss_mb(server.child.id());
+        println!(
+            "junk body: 32 MiB, {items} invalid items: {status}, answer {answer_len} bytes in {:.2} s; \
+             server RSS idle {idle_mb:.0} MB, peak {peak_mb:.0} MB (+{:.0} MB), after {now_mb:.0} MB",
+            elapsed.as_secs_f64(),
+            peak_mb - idle_mb
+        );
+    }
+
+    // 2. /stats over n results.
+    let dir = tempfile::tempdir().unwrap();
+    let stats_config = config(dir.path(), "");
+    let build = Instant::now();
+    runtime.block_on(fill(&stats_config, n));
+    println!(
+        "built {n} filtered results in {:.1} s",
+        build.elapsed().as_secs_f64()
+    );
+    let server = start(&stats_config);
+    std::thread::sleep(Duration::from_millis(500));
+    // Warm the page cache and the connections once, as a running service would be.
+    let url = format!("{}/api/v1/targets/G/stats?source=filtered", server.base);
+    let (idle_mb, _) = rss_mb(server.child.id());
+    for round in 0..3 {
+        let t = Instant::now();
+        let answer: serde_json::Value = runtime
+            .block_on(async { client.get(&url).send().await.unwrap().json().await.unwrap() });
+        let (_, peak_mb) = rss_mb(server.child.id());
+        println!(
+            "stats over {} results (round {round}): {:.2} s; server RSS idle {idle_mb:.0} MB, peak {peak_mb:.0} MB (+{:.0} MB)",
+            answer["count"],
+            t.elapsed().as_secs_f64(),
+            peak_mb - idle_mb
+        );
+    }
+
+    // 3. /healthz with many idle connections open.
+    let addr = server.base.trim_start_matches("http://").to_owned();
+    let conns: Vec<std::net::TcpStream> = (0..idle)
+        .filter_map(|_| std::net::TcpStream::connect(&addr).ok())
+        .collect();
+    std::thread::sleep(Duration::from_millis(500));
+    let mut times: Vec<f64> = (0..50)
+        .map(|_| {
+            let t = Instant::now();
+            let ok = runtime.block_on(async {
+                reqwest::Client::new()
+                    .get(format!("{}/healthz", server.base))
+                    .send()
+                    .await
+                    .is_ok_and(|r| r.status().is_success())
+            });
+            assert!(ok, "healthz failed with {} idle connections", conns.len());
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    times.sort_by(f64::total_cmp);
+    println!(
+        "healthz with {} idle connections open: median {:.2} ms, max {:.2} ms (50 requests, each on a new connection)",
+        conns.len(),
+        times[25],
+        times[49]
+    );
+    drop(conns);
+}
