@@ -118,7 +118,7 @@ impl LocalOnly {
         let bare = host.trim_start_matches('[').trim_end_matches(']');
         host == "localhost"
             || bare.parse::<std::net::IpAddr>().is_ok()
-            || self.allowed_hosts.iter().any(|h| *h == host)
+            || self.allowed_hosts.contains(&host)
     }
 }
 
@@ -187,7 +187,13 @@ pub async fn local_only(
         let content_type = headers
             .get(header::CONTENT_TYPE)
             .and_then(|v| v.to_str().ok())
-            .map(|v| v.split(';').next().unwrap_or("").trim().to_ascii_lowercase());
+            .map(|v| {
+                v.split(';')
+                    .next()
+                    .unwrap_or("")
+                    .trim()
+                    .to_ascii_lowercase()
+            });
         let has_body = headers.contains_key(header::TRANSFER_ENCODING)
             || headers
                 .get(header::CONTENT_LENGTH)

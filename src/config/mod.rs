@@ -689,7 +689,7 @@ impl Validator {
     fn seconds(&mut self, key: &str, value: Option<f64>, default: f64) -> Option<f64> {
         match value {
             None => Some(default),
-            Some(s) if s.is_finite() && s >= 0.0 && s <= 1e6 => Some(s),
+            Some(s) if (0.0..=1e6).contains(&s) => Some(s),
             Some(s) => {
                 self.problem(
                     0,

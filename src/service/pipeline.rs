@@ -83,6 +83,10 @@ enum Pending {
 }
 
 /// What a job asks the transaction to do; its reply waits in a [`Pending`].
+#[allow(
+    clippy::large_enum_variant,
+    reason = "one per request in a commit group; boxing buys nothing"
+)]
 enum Work {
     Ingest(Vec<IngestItem>),
     SetReference {
