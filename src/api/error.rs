@@ -245,3 +245,81 @@ impl From<crate::store::StoreError> for ApiError {
         ServiceError::Storage(e).into()
     }
 }
+
+/// The stable code of an error status that a layer below the handlers answered.
+fn code_of(status: StatusCode) -> &'static str {
+    match status.as_u16() {
+        400 => "bad_request",
+        404 => "not_found",
+        405 => "method_not_allowed",
+        408 => "request_timeout",
+        413 => "payload_too_large",
+        415 => "unsupported_media_type",
+        422 => "invalid_request",
+        431 => "headers_too_large",
+        s if s >= 500 => "internal",
+        _ => "error",
+    }
+}
+
+/// Puts every error answer into the one envelope: answers of the framework and its layers
+/// (a query string that does not parse, a method not allowed, a body over the limit, a request
+/// timeout) come with a plain-text or empty body; this rewrites them as `{"error": {...}}`,
+/// naming the query field where the text names one, and counts them like any refusal.
+pub async fn json_envelope(
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    let response = next.run(request).await;
+    let status = response.status();
+    let is_json = response
+        .headers()
+        .get(axum::http::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return response;
+    }
+    let allow = response.headers().get(axum::http::header::ALLOW).cloned();
+    // These bodies are short texts written by the framework.
+    let text = match axum::body::to_bytes(response.into_body(), 64 * 1024).await {
+        Ok(b) => String::from_utf8_lossy(&b).trim().to_owned(),
+        Err(_) => String::new(),
+    };
+    let message = if text.is_empty() {
+        status
+            .canonical_reason()
+            .unwrap_or("the request failed")
+            .to_owned()
+    } else {
+        text.clone()
+    };
+    let mut error = ApiError::new(status, code_of(status), message);
+    // "Failed to deserialize query string: limit: invalid digit found in string"
+    if let Some(rest) = text.strip_prefix("Failed to deserialize query string: ") {
+        error.status = StatusCode::UNPROCESSABLE_ENTITY;
+        error.code = "invalid_request";
+        if let Some((field, why)) = rest.split_once(": ") {
+            error = error.with_details(vec![ErrorDetail {
+                index: None,
+                field: Some(field.trim().to_owned()),
+                message: why.trim().to_owned(),
+            }]);
+        }
+    }
+    if status == StatusCode::METHOD_NOT_ALLOWED {
+        let allowed = allow
+            .as_ref()
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("")
+            .to_owned();
+        error.message = format!("this path does not take that method (allowed: {allowed})");
+    }
+    let mut response = error.into_response();
+    if let Some(allow) = allow {
+        response
+            .headers_mut()
+            .insert(axum::http::header::ALLOW, allow);
+    }
+    response
+}

@@ -292,9 +292,17 @@ pub fn router(state: AppState) -> Router {
         .layer(axum::middleware::from_fn(move |req, next| {
             auth::local_only(local_only.clone(), req, next)
         }))
+        .layer(axum::extract::DefaultBodyLimit::max(
+            state.limits.max_body_bytes,
+        ))
+        .layer(TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            Duration::from_secs(60),
+        ))
+        // Outside the timeout, so that its 408 gets the envelope too.
+        .layer(axum::middleware::from_fn(error::json_envelope))
         .layer((
             TraceLayer::new_for_http(),
-            TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, Duration::from_secs(60)),
             // gzip when the client accepts it (history JSON shrinks about threefold); never the
             // event stream, whose events must not wait in a compressor's buffer.
             CompressionLayer::new(),

@@ -461,3 +461,34 @@ async fn the_bearer_scheme_is_case_insensitive_and_tokens_need_a_scope() {
     let err = brokenray::config::parse("scopes.toml", &no_scopes).expect_err("refused");
     assert!(err.to_string().contains("no scopes"), "{err}");
 }
+
+#[tokio::test]
+async fn every_refusal_speaks_the_error_envelope() {
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("[server]", "[server]\nmax_body_bytes = 4096");
+    let app = TestApp::start(Some(&text)).await;
+    // A query string that does not parse names its field.
+    let (status, body) = app.get("/api/v1/alarms?limit=abc").await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["error"]["code"], "invalid_request", "{body}");
+    assert_field(&body, "limit");
+    // A method the path does not take.
+    let (status, body) = app.request("DELETE", "/api/v1/targets", None, None).await;
+    assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED);
+    assert_eq!(body["error"]["code"], "method_not_allowed", "{body}");
+    // Every write honours max_body_bytes, with the envelope.
+    let big = json!({"pose": {"t_mm": [0.0, 0.0, 0.0], "q_wxyz": [1, 0, 0, 0]},
+                     "note": "x".repeat(10_000)})
+    .to_string();
+    for (method, uri) in [
+        ("POST", "/api/v1/targets/G/reference"),
+        ("PUT", "/api/v1/links/C2_from_C1/calibration"),
+        ("POST", "/api/v1/samples"),
+    ] {
+        let (status, body) = app
+            .request(method, uri, Some(("application/json", big.clone())), None)
+            .await;
+        assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE, "{uri}: {body}");
+        assert!(body["error"]["code"].is_string(), "{uri}: {body}");
+    }
+}
