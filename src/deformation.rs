@@ -43,6 +43,25 @@ pub struct Reference {
     pub origin: ReferenceOrigin,
 }
 
+/// The covariance of a window's mean: the filter's own (time-correlated) uncertainty, which
+/// averaging correlated poses does not reduce, widened on each axis where the scatter of the
+/// mean is larger. Each axis is compared in its own units (mm^2 or rad^2; adding the two, as a
+/// trace does, lets the translation decide alone): the own covariance is scaled by
+/// `D = diag(d_i)` with `d_i^2 = max(1, scatter_ii / own_ii)`, so the result is positive
+/// semi-definite, keeps the own correlations, and no axis reports less than either source.
+pub fn window_covariance(
+    scatter: &crate::geometry::Mat6,
+    own: &crate::geometry::Mat6,
+) -> crate::geometry::Mat6 {
+    if (0..6).any(|i| own[(i, i)] <= 0.0) {
+        // No own uncertainty to scale on some axis: the sum holds both sources.
+        return scatter + own;
+    }
+    let d = nalgebra::Vector6::from_fn(|i, _| (scatter[(i, i)] / own[(i, i)]).max(1.0).sqrt());
+    let d = crate::geometry::Mat6::from_diagonal(&d);
+    d * own * d
+}
+
 impl Reference {
     /// An explicit reference pose (exact).
     pub fn explicit(g0_from_b: Pose) -> Self {
@@ -64,13 +83,7 @@ impl Reference {
             .iter()
             .fold(crate::geometry::Mat6::zeros(), |acc, p| acc + p.cov)
             / n;
-        // Whichever is larger per the trace: the scatter of the mean, or the filter's own
-        // (time-correlated) uncertainty, which averaging correlated poses does not reduce.
-        let cov = if mean.mean.cov.trace() >= mean_own_cov.trace() {
-            mean.mean.cov
-        } else {
-            mean_own_cov
-        };
+        let cov = window_covariance(&mean.mean.cov, &mean_own_cov);
         Ok(Self {
             g0_from_b: PoseCov {
                 pose: mean.mean.pose,

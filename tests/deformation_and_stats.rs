@@ -162,3 +162,48 @@ fn a_window_reference_is_the_mean_and_adds_its_uncertainty() {
     let d_exact = Deformation::new(&Reference::explicit(reference.g0_from_b.pose), &poses[0]);
     assert!(d_est.g0_from_g.cov.trace() > d_exact.g0_from_g.cov.trace());
 }
+
+/// A window whose poses scatter a lot in translation while the filter's own rotation
+/// uncertainty is large: each block of the reference's covariance reports at least the larger
+/// of the two sources, compared in its own units (mm for translation, arcsec for rotation).
+#[test]
+fn a_window_reference_compares_translation_and_rotation_each_in_its_own_units() {
+    let own_rotation_arcsec = 100.0;
+    let own_translation_mm = 0.001;
+    let mut own = Mat6::zeros();
+    for i in 0..3 {
+        own[(i, i)] = own_translation_mm * own_translation_mm;
+        own[(i + 3, i + 3)] = (own_rotation_arcsec / ARCSEC_PER_RAD).powi(2);
+    }
+    // 200 poses: translation scattered by +-10 mm, rotation the same.
+    let poses: Vec<PoseCov> = (0..200)
+        .map(|k| {
+            let x = if k % 2 == 0 { 10.0 } else { -10.0 };
+            PoseCov {
+                pose: pose_from_parts(
+                    [x, 0.0, 3000.0],
+                    rotation_from_euler([0.0, 0.0, 0.1]).unwrap(),
+                )
+                .unwrap(),
+                cov: own,
+            }
+        })
+        .collect();
+    let r = Reference::from_window(&poses, 0, 1).unwrap();
+    let s = r.g0_from_b.reported_sigmas();
+    // The rotation keeps the filter's own uncertainty (the translation scatter must not hide it).
+    for axis in 0..3 {
+        assert!(
+            s.rotation_arcsec[axis] >= own_rotation_arcsec * 0.999,
+            "rotation sigma {:?} under the filter's own {own_rotation_arcsec}",
+            s.rotation_arcsec
+        );
+    }
+    // The translation shows the scatter of the mean in x: 10 mm / sqrt(200) = 0.707 mm.
+    assert!(
+        s.translation_mm[0] >= 0.7,
+        "translation sigma {:?} under the scatter of the mean",
+        s.translation_mm
+    );
+    assert!(own_translation_mm < 0.7);
+}
