@@ -3,7 +3,8 @@
 //!
 //! Run: `cargo bench --bench ingest` (options through the environment: `CLIENTS` (4),
 //! `BATCHES` (300), `BATCH` (1000 samples), `SSE_CLIENTS` (0): that many clients reading
-//! `/api/v1/events` while the batches go in).
+//! `/api/v1/events` while the batches go in; `BROKENRAY_BIN`: another build of the binary to
+//! measure, for A/B comparisons).
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
@@ -181,7 +182,9 @@ fn main() {
 
     println!("preparing {batches} batches of {n} samples ...");
     let bodies: Arc<Vec<String>> = Arc::new((0..batches).map(|b| batch_body(b, n)).collect());
-    let mut child = Command::new(env!("CARGO_BIN_EXE_brokenray"))
+    let binary =
+        std::env::var("BROKENRAY_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_brokenray").into());
+    let mut child = Command::new(binary)
         .args(["serve", "--config", config.to_str().expect("utf-8 path")])
         .env("RUST_LOG", "warn,brokenray=info")
         .stderr(Stdio::piped())
