@@ -78,6 +78,64 @@ impl AlarmKind {
     }
 }
 
+/// The unit of a transition's deciding value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ValueUnit {
+    /// Arc-seconds (a deformation rotation).
+    Arcsec,
+    /// Millimetres (a deformation translation).
+    Mm,
+    /// Arc-seconds per second (a rotation rate).
+    ArcsecPerS,
+    /// Millimetres per second (a translation rate).
+    MmPerS,
+    /// No value (stale data).
+    None,
+}
+
+impl ValueUnit {
+    /// The name on the wire and in the database.
+    pub fn name(self) -> &'static str {
+        match self {
+            ValueUnit::Arcsec => "arcsec",
+            ValueUnit::Mm => "mm",
+            ValueUnit::ArcsecPerS => "arcsec_per_s",
+            ValueUnit::MmPerS => "mm_per_s",
+            ValueUnit::None => "none",
+        }
+    }
+
+    /// Parses a name.
+    pub fn parse(s: &str) -> Option<ValueUnit> {
+        [
+            ValueUnit::Arcsec,
+            ValueUnit::Mm,
+            ValueUnit::ArcsecPerS,
+            ValueUnit::MmPerS,
+            ValueUnit::None,
+        ]
+        .into_iter()
+        .find(|u| u.name() == s)
+    }
+}
+
+/// Of a rotation and a translation measure against their thresholds, the one that decides: the
+/// larger fraction of its nearest threshold (a component without thresholds never decides
+/// unless neither has any).
+fn deciding(
+    rotation: (f64, Option<f64>, Option<f64>, ValueUnit),
+    translation: (f64, Option<f64>, Option<f64>, ValueUnit),
+) -> (f64, ValueUnit) {
+    let fraction = |(v, warn, alarm, _): (f64, Option<f64>, Option<f64>, ValueUnit)| {
+        warn.or(alarm).map_or(f64::NEG_INFINITY, |t| v / t)
+    };
+    if fraction(translation) > fraction(rotation) {
+        (translation.0, translation.3)
+    } else {
+        (rotation.0, rotation.3)
+    }
+}
+
 /// A change of level.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Transition {
@@ -89,8 +147,11 @@ pub struct Transition {
     pub from: Level,
     /// The level after.
     pub to: Level,
-    /// The value that decided it (arc-seconds, mm, per second for rates; 0 for stale).
+    /// The value that decided it, in `unit`: the rotation or the translation, whichever is the
+    /// larger fraction of its threshold (0 for stale).
     pub value: f64,
+    /// The unit of `value`.
+    pub unit: ValueUnit,
     /// A sentence for people.
     pub message: String,
 }
@@ -238,12 +299,27 @@ impl AlarmMonitor {
                 t.hysteresis,
             ));
             if let Some((from, to)) = self.deformation.step(candidate, time_ns, dwell_ns) {
+                let (value, unit) = deciding(
+                    (
+                        rot,
+                        t.warn_rotation_arcsec,
+                        t.alarm_rotation_arcsec,
+                        ValueUnit::Arcsec,
+                    ),
+                    (
+                        tr,
+                        t.warn_translation_mm,
+                        t.alarm_translation_mm,
+                        ValueUnit::Mm,
+                    ),
+                );
                 out.push(Transition {
                     kind: AlarmKind::Deformation,
                     time_ns,
                     from,
                     to,
-                    value: rot,
+                    value,
+                    unit,
                     message: format!(
                         "deformation {} -> {}: {rot:.1} arcsec, {tr:.3} mm",
                         from.name(),
@@ -276,12 +352,27 @@ impl AlarmMonitor {
                 t.hysteresis,
             ));
             if let Some((from, to)) = self.rate.step(candidate, time_ns, dwell_ns) {
+                let (value, unit) = deciding(
+                    (
+                        rot_rate,
+                        None,
+                        t.rate_rotation_arcsec_per_s,
+                        ValueUnit::ArcsecPerS,
+                    ),
+                    (
+                        tr_rate,
+                        None,
+                        t.rate_translation_mm_per_s,
+                        ValueUnit::MmPerS,
+                    ),
+                );
                 out.push(Transition {
                     kind: AlarmKind::Rate,
                     time_ns,
                     from,
                     to,
-                    value: rot_rate,
+                    value,
+                    unit,
                     message: format!(
                         "rate of change {} -> {}: {rot_rate:.1} arcsec/s, {tr_rate:.3} mm/s",
                         from.name(),
@@ -299,6 +390,7 @@ impl AlarmMonitor {
                 from,
                 to,
                 value: 0.0,
+                unit: ValueUnit::None,
                 message: if is_stale {
                     "a link stopped delivering samples at its expected rate".into()
                 } else {
@@ -378,6 +470,27 @@ mod tests {
     fn a_short_excursion_shorter_than_the_dwell_is_not_an_alarm() {
         let out = run((0..(10 * 25)).map(|k| if (100..110).contains(&k) { 200.0 } else { 0.0 }));
         assert!(out.is_empty(), "{out:?}");
+    }
+
+    #[test]
+    fn a_transition_decided_by_translation_reports_the_translation() {
+        let mut t = thresholds();
+        t.warn_translation_mm = Some(1.0);
+        t.alarm_translation_mm = Some(2.0);
+        t.dwell_s = 0.0;
+        let mut m = AlarmMonitor::new(t, Level::None, Level::None, Level::None);
+        let pose = Pose::identity();
+        // 10 arcsec (a sixth of the rotation's warn) and 1.5 mm (over the translation's warn).
+        let out = m.update(0, false, &pose, Some((10.0, 1.5)));
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].to, Level::Warn);
+        assert_eq!((out[0].value, out[0].unit), (1.5, ValueUnit::Mm));
+        // Rotation over its alarm threshold decides the next one.
+        let out = m.update(40_000_000, false, &pose, Some((130.0, 1.5)));
+        assert_eq!(
+            (out[0].to, out[0].value, out[0].unit),
+            (Level::Alarm, 130.0, ValueUnit::Arcsec)
+        );
     }
 
     #[test]

@@ -21,8 +21,11 @@ pub struct AlarmOut {
     pub from: &'static str,
     /// Level after.
     pub to: &'static str,
-    /// The deciding value (arcsec, arcsec/s; 0 for stale).
+    /// The deciding value, in `unit`: of the rotation and the translation, the one that is the
+    /// larger fraction of its threshold (0 for stale).
     pub value: f64,
+    /// `arcsec`, `mm` (deformation), `arcsec_per_s`, `mm_per_s` (rate) or `none` (stale).
+    pub unit: &'static str,
     /// A sentence.
     pub message: String,
 }
@@ -37,6 +40,7 @@ impl AlarmOut {
             from: t.from.name(),
             to: t.to.name(),
             value: t.value,
+            unit: t.unit.name(),
             message: t.message.clone(),
         }
     }

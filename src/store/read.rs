@@ -451,15 +451,25 @@ impl Store {
         newest_first: bool,
     ) -> StoreResult<Vec<StoredAlarm>> {
         let sql = if newest_first {
-            "select target_id, time_ns, kind, from_level, to_level, value, message from alarms \
+            "select target_id, time_ns, kind, from_level, to_level, value, message, unit from alarms \
              where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? \
              order by time_ns desc, target_id desc limit ?"
         } else {
-            "select target_id, time_ns, kind, from_level, to_level, value, message from alarms \
+            "select target_id, time_ns, kind, from_level, to_level, value, message, unit from alarms \
              where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? \
              order by time_ns, target_id limit ?"
         };
-        let rows: Vec<(i64, i64, String, String, String, f64, String)> = sqlx::query_as(sql)
+        type AlarmRow = (
+            i64,
+            i64,
+            String,
+            String,
+            String,
+            f64,
+            String,
+            Option<String>,
+        );
+        let rows: Vec<AlarmRow> = sqlx::query_as(sql)
             .bind(target.map(|t| self.target_ids[t]))
             .bind(target.map(|t| self.target_ids[t]))
             .bind(from_ns)
@@ -468,9 +478,20 @@ impl Store {
             .fetch_all(&self.pool)
             .await?;
         rows.into_iter()
-            .map(|(tid, time_ns, kind, from, to, value, message)| {
+            .map(|(tid, time_ns, kind, from, to, value, message, unit)| {
+                use crate::alarms::{AlarmKind, ValueUnit};
                 let malformed =
                     || super::StoreError::Malformed(format!("alarm row of kind `{kind}`"));
+                let kind = AlarmKind::parse(&kind).ok_or_else(malformed)?;
+                let unit = match unit {
+                    Some(u) => ValueUnit::parse(&u).ok_or_else(malformed)?,
+                    // Rows from before units were stored held the rotation.
+                    None => match kind {
+                        AlarmKind::Deformation => ValueUnit::Arcsec,
+                        AlarmKind::Rate => ValueUnit::ArcsecPerS,
+                        AlarmKind::Stale => ValueUnit::None,
+                    },
+                };
                 Ok(StoredAlarm {
                     target: self
                         .target_ids
@@ -478,11 +499,12 @@ impl Store {
                         .position(|t| *t == tid)
                         .ok_or_else(malformed)?,
                     transition: crate::alarms::Transition {
-                        kind: crate::alarms::AlarmKind::parse(&kind).ok_or_else(malformed)?,
+                        kind,
                         time_ns,
                         from: crate::alarms::Level::parse(&from).ok_or_else(malformed)?,
                         to: crate::alarms::Level::parse(&to).ok_or_else(malformed)?,
                         value,
+                        unit,
                         message,
                     },
                 })

@@ -400,9 +400,12 @@ impl WriteTx<'_> {
         transitions: &[crate::alarms::Transition],
         now_ns: i64,
     ) -> StoreResult<()> {
+        for t in transitions {
+            finite("alarm value", &[t.value])?;
+        }
         for chunk in transitions.chunks(ROWS_PER_STATEMENT) {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
-                "insert or replace into alarms (target_id, time_ns, kind, from_level, to_level, value, message, created_ns) ",
+                "insert or replace into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns) ",
             );
             qb.push_values(chunk, |mut b, t| {
                 b.push_bind(self.target_ids[target])
@@ -411,6 +414,7 @@ impl WriteTx<'_> {
                     .push_bind(t.from.name())
                     .push_bind(t.to.name())
                     .push_bind(t.value)
+                    .push_bind(t.unit.name())
                     .push_bind(t.message.clone())
                     .push_bind(now_ns);
             });

@@ -93,3 +93,38 @@ async fn a_deformation_ramp_stores_exactly_its_transitions() {
     let (_, again) = app.get("/api/v1/alarms").await;
     assert_eq!(again["alarms"].as_array().unwrap().len(), 4);
 }
+
+/// A deformation alarm raised by the translation reports the translation, in mm, over HTTP
+/// (the rotation, far under its threshold, used to be reported whatever decided).
+#[tokio::test]
+async fn an_alarm_decided_by_translation_reports_millimetres() {
+    let config = ONE_LINK.replace(
+        "hysteresis = 0.1",
+        "warn_translation_mm = 1.0\nalarm_translation_mm = 2.0\nhysteresis = 0.1",
+    );
+    let app = TestApp::start(Some(&config)).await;
+    let (status, _) = app
+        .post_json(
+            "/api/v1/targets/G/reference",
+            &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED);
+    // 1.5 mm along x for 5 s, no rotation.
+    let samples: Vec<_> = (0..125)
+        .map(|k| {
+            json!({"link": "G_from_B", "time": T0_NS + k * 40_000_000,
+                   "pose": {"t_mm": [1.5, 0, 3000], "q_wxyz": [1, 0, 0, 0]}})
+        })
+        .collect();
+    let (status, body) = app
+        .post_json("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, list) = app.get("/api/v1/alarms?target=G").await;
+    let first = &list["alarms"][0];
+    assert_eq!(first["to"], "warn", "{list}");
+    assert_eq!(first["unit"], "mm", "{list}");
+    let value = first["value"].as_f64().unwrap();
+    assert!((1.0..2.0).contains(&value), "{list}");
+}
