@@ -259,8 +259,8 @@ pub struct CompensationOut {
     pub base: String,
     /// Time of the result.
     pub time: Option<String>,
-    /// Seconds since the newest sample behind the result.
-    pub age_s: f64,
+    /// Seconds since the newest sample behind the result; absent (null) before any result.
+    pub age_s: Option<f64>,
     /// `ok`, `stale`, `degraded`, `initializing` or `predicted`.
     pub status: &'static str,
     /// Where the value comes from: `live` (newest filtered result), `predicted` (filters
@@ -287,7 +287,7 @@ pub struct CompensationOut {
 struct Evaluated {
     time_ns: Option<i64>,
     status: TargetStatus,
-    age_s: f64,
+    age_s: Option<f64>,
     source: &'static str,
     estimate: Option<PoseCov>,
     consistency: Option<crate::chain::Consistency>,
@@ -297,7 +297,7 @@ fn evaluated(e: &TargetEstimate, source: &'static str) -> Evaluated {
     Evaluated {
         time_ns: Some(e.time_ns),
         status: e.status,
-        age_s: e.age_s,
+        age_s: Some(e.age_s),
         source,
         estimate: e.target_from_base,
         consistency: e.consistency,
@@ -419,7 +419,7 @@ pub async fn get_compensation(
                 Evaluated {
                     time_ns: None,
                     status: TargetStatus::Initializing,
-                    age_s: 0.0,
+                    age_s: None,
                     source: "live",
                     estimate: None,
                     consistency: None,
@@ -474,7 +474,7 @@ pub async fn get_compensation(
         Evaluated {
             time_ns: Some(at_ns),
             status: crate::service::parse_status(&before.status),
-            age_s: before.age_s,
+            age_s: Some(before.age_s),
             source: "history",
             estimate: Some(estimate),
             consistency: None,

@@ -492,3 +492,13 @@ async fn every_refusal_speaks_the_error_envelope() {
         assert!(body["error"]["code"].is_string(), "{uri}: {body}");
     }
 }
+
+#[tokio::test]
+async fn a_target_without_results_has_no_age() {
+    let app = TestApp::start(None).await;
+    let (status, body) = app.get("/api/v1/targets/G/compensation").await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["status"], "initializing", "{body}");
+    assert!(body["age_s"].is_null(), "age before any result: {body}");
+    assert!(body["time"].is_null(), "{body}");
+}
