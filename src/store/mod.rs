@@ -76,6 +76,9 @@ pub enum StoreError {
         /// The column or quantity.
         what: String,
     },
+    /// A long scan (through rusqlite) failed.
+    #[error("database error while scanning: {0}")]
+    Scan(String),
     /// A stored value could not be decoded (a corrupted or foreign database).
     #[error("stored data is malformed: {0}")]
     Malformed(String),

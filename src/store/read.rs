@@ -252,8 +252,10 @@ impl Store {
     }
 
     /// The paper's statistics (Table 4/5) of a target's results in `[from_ns, to_ns]`, with the
-    /// times of the first and last result. The rows are streamed and folded one by one: memory
-    /// does not grow with the window.
+    /// times of the first and last result. The rows are streamed and folded one by one on a
+    /// blocking thread, through a read-only rusqlite connection of its own (the pool's driver
+    /// costs several microseconds a row, which over millions of results is many seconds):
+    /// memory does not grow with the window.
     pub async fn pose_stats(
         &self,
         target: usize,
@@ -261,24 +263,43 @@ impl Store {
         from_ns: i64,
         to_ns: i64,
     ) -> StoreResult<(Option<crate::stats::PoseStats>, Option<(i64, i64)>)> {
-        use futures::TryStreamExt as _;
-        type PoseRow = (i64, f64, f64, f64, f64, f64, f64, f64);
-        let mut rows = sqlx::query_as::<_, PoseRow>(
-            "select time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz from results \
-             where target_id = ? and source = ? and time_ns >= ? and time_ns <= ? order by time_ns",
-        )
-        .bind(self.target_ids[target])
-        .bind(i64::from(filtered))
-        .bind(from_ns)
-        .bind(to_ns)
-        .fetch(&self.pool);
-        let mut acc = crate::stats::PoseStatsAccumulator::default();
-        let mut span: Option<(i64, i64)> = None;
-        while let Some((t, tx, ty, tz, qw, qx, qy, qz)) = rows.try_next().await? {
-            acc.push(&pose_from_columns([tx, ty, tz, qw, qx, qy, qz]));
-            span = Some((span.map_or(t, |(first, _)| first), t));
-        }
-        Ok((acc.finish(), span))
+        let path = self.path.clone();
+        let target_id = self.target_ids[target];
+        let scan = move || -> rusqlite::Result<_> {
+            use rusqlite::OpenFlags;
+            let conn = rusqlite::Connection::open_with_flags(
+                &path,
+                OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+            )?;
+            conn.busy_timeout(std::time::Duration::from_secs(10))?;
+            let mut stmt = conn.prepare(
+                "select time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz from results \
+                 where target_id = ?1 and source = ?2 and time_ns >= ?3 and time_ns <= ?4 \
+                 order by time_ns",
+            )?;
+            let mut rows = stmt.query(rusqlite::params![
+                target_id,
+                i64::from(filtered),
+                from_ns,
+                to_ns
+            ])?;
+            let mut acc = crate::stats::PoseStatsAccumulator::default();
+            let mut span: Option<(i64, i64)> = None;
+            while let Some(row) = rows.next()? {
+                let t: i64 = row.get(0)?;
+                let mut c = [0.0; 7];
+                for (i, v) in c.iter_mut().enumerate() {
+                    *v = row.get(i + 1)?;
+                }
+                acc.push(&pose_from_columns(c));
+                span = Some((span.map_or(t, |(first, _)| first), t));
+            }
+            Ok((acc.finish(), span))
+        };
+        tokio::task::spawn_blocking(scan)
+            .await
+            .map_err(|e| super::StoreError::Scan(e.to_string()))?
+            .map_err(|e| super::StoreError::Scan(e.to_string()))
     }
 
     /// How many results of a target are stored in `[from_ns, to_ns]`.
