@@ -584,9 +584,8 @@ async fn ingest(
     let mut latest: HashMap<usize, TargetEstimate> = HashMap::new();
     let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
     // Samples too old for the groups kept in memory (a backfill): their groups are completed
-    // from the store after the loop. This job's own measurements by time, for the same.
-    let mut stored_groups: Vec<(LinkId, i64)> = Vec::new();
-    let mut job_groups: HashMap<i64, HashMap<LinkId, crate::geometry::PoseCov>> = HashMap::new();
+    // from this job's samples and the store's after the loop.
+    let mut stored_groups: Vec<(LinkId, i64, crate::geometry::PoseCov)> = Vec::new();
     for (item, values, z) in fresh {
         let outcome = match bank.ingest_measurement(&item.sample, z) {
             Ok(o) => o,
@@ -598,12 +597,8 @@ async fn ingest(
             }
         };
         let d = outcome.disposition;
-        job_groups
-            .entry(item.sample.time_ns)
-            .or_default()
-            .insert(item.sample.link, z);
         if outcome.needs_stored_group {
-            stored_groups.push((item.sample.link, item.sample.time_ns));
+            stored_groups.push((item.sample.link, item.sample.time_ns, z));
         }
         report.stored += 1;
         match d {
@@ -697,8 +692,14 @@ async fn ingest(
     }
     // Backfilled groups: the other links' samples of the same time come from this job or the
     // store. A group completes once, when its last sample arrives.
-    for (link, time_ns) in stored_groups {
-        let mut group = job_groups.get(&time_ns).cloned().unwrap_or_default();
+    // This job's samples of each such time (all of them needed the store too: a group's samples
+    // are adjacent in time order, so the bank decided the same for each), then the store's.
+    let mut by_time: HashMap<i64, HashMap<LinkId, crate::geometry::PoseCov>> = HashMap::new();
+    for (link, time_ns, z) in &stored_groups {
+        by_time.entry(*time_ns).or_default().insert(*link, *z);
+    }
+    for &(link, time_ns, _) in &stored_groups {
+        let mut group = by_time.get(&time_ns).cloned().unwrap_or_default();
         for (l, spec) in bank.installation().links.iter().enumerate() {
             let l = LinkId(l);
             if group.contains_key(&l) || !matches!(spec.kind, crate::config::LinkKind::Measured(_))

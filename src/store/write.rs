@@ -1,7 +1,7 @@
 //! The write connection and the statements of one transaction.
 
 //!
-//! Transactions are plain `BEGIN IMMEDIATE` / `COMMIT` statements, not the driver's nested
+//! Transactions are plain `BEGIN` / `COMMIT` statements, not the driver's nested
 //! transaction objects: SQLite rolls a transaction back by itself when a commit fails on a
 //! full disk or an I/O error, and the driver's bookkeeping does not follow, so later "commits"
 //! would only release savepoints of a transaction that never commits. Instead, any transaction
@@ -137,7 +137,7 @@ impl WriteConn {
         &self.health
     }
 
-    /// Starts a transaction (`BEGIN IMMEDIATE`), on a fresh connection when the last one did
+    /// Starts a transaction (`BEGIN`), on a fresh connection when the last one did
     /// not commit. Fails when the configured file is no longer the one opened at start.
     pub async fn begin(&mut self) -> StoreResult<WriteTx<'_>> {
         check_identity(&self.path, self.identity)?;
@@ -160,7 +160,7 @@ impl WriteConn {
             unreachable!("connected above")
         };
         self.clean = false;
-        sqlx::query("begin immediate").execute(&mut *conn).await?;
+        sqlx::query("begin").execute(&mut *conn).await?;
         Ok(WriteTx {
             conn,
             clean: &mut self.clean,
