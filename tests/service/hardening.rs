@@ -415,24 +415,13 @@ async fn configured_names_are_served_without_tokens() {
         "[server]\nallowed_hosts = [\"bridge.ship.local\"]",
     );
     let app = TestApp::start(Some(&text)).await;
-    let (status, body) = send(
-        &app,
-        "GET",
-        "/api/v1/targets",
-        &[("host", "bridge.ship.local:7878")],
-        "",
-    )
-    .await;
-    assert_eq!(status, StatusCode::OK, "{body}");
-    let (status, _) = send(
-        &app,
-        "GET",
-        "/api/v1/targets",
-        &[("host", "other.ship.local:7878")],
-        "",
-    )
-    .await;
-    assert_eq!(status, StatusCode::FORBIDDEN);
+    for (host, expected) in [
+        ("bridge.ship.local:7878", StatusCode::OK),
+        ("other.ship.local:7878", StatusCode::FORBIDDEN),
+    ] {
+        let (status, body) = send(&app, "GET", "/api/v1/targets", &[("host", host)], "").await;
+        assert_eq!(status, expected, "{host}: {body}");
+    }
 }
 
 #[tokio::test]
