@@ -49,18 +49,91 @@ pub struct LinkOut {
     /// `ok`, `stale` (behind the newest link by more than its staleness limit), `no_data`, or
     /// `calibrated`.
     pub status: &'static str,
+    /// The newest manual restart of the link's filter, if any.
+    pub last_reset: Option<LinkResetOut>,
+}
+
+/// A manual restart of a link's filter.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct LinkResetOut {
+    /// The link.
+    pub link: String,
+    /// When it was asked for (server clock).
+    pub at: String,
+    /// Who asked, as they said.
+    pub by: Option<String>,
+    /// Why, as they said.
+    pub note: Option<String>,
+}
+
+/// Body of `POST .../reset` (optional).
+#[derive(Debug, Default, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LinkResetIn {
+    /// Who asks (a name for the record).
+    pub by: Option<String>,
+    /// Why (for the record).
+    pub note: Option<String>,
+}
+
+/// `POST /api/v1/links/{name}/reset`: restarts a measured link's filter from its next sample,
+/// whatever that sample's time: the way back from a sample stamped far ahead (after which every
+/// correct sample is out of order) or from a station that moved. Recorded, and listed with the
+/// link.
+#[utoipa::path(post, path = "/links/{name}/reset", tag = "links",
+    params(("name" = String, Path, description = "Measured link name")),
+    request_body(content = LinkResetIn, description = "Optional: who asks and why"),
+    responses(
+        (status = 200, description = "The filter restarts from the next sample", body = LinkResetOut),
+        (status = 404, description = "Unknown link", body = ErrorBody),
+        (status = 422, description = "A calibrated link, or a malformed body", body = ErrorBody),
+    ),
+    security(("bearer" = ["admin"])))]
+pub async fn post_reset(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    body: axum::body::Bytes,
+) -> Result<Json<LinkResetOut>, ApiError> {
+    let spec = link_spec(&app, &name)?;
+    if !matches!(spec.kind, LinkKind::Measured(_)) {
+        return Err(ApiError::invalid_field(
+            "name",
+            format!("`{name}` is a calibrated link: it has no filter to reset"),
+        ));
+    }
+    let r: LinkResetIn = if body.iter().all(u8::is_ascii_whitespace) {
+        LinkResetIn::default()
+    } else {
+        super::parse_json_body(&body)?
+    };
+    for (field, text) in [("by", &r.by), ("note", &r.note)] {
+        if text.as_ref().is_some_and(|t| t.chars().count() > 1000) {
+            return Err(ApiError::invalid_field(field, "at most 1000 characters"));
+        }
+    }
+    let at = app
+        .service
+        .reset_link(spec.id, r.by.clone(), r.note.clone())
+        .await?;
+    Ok(Json(LinkResetOut {
+        link: spec.name,
+        at: format_ns(at),
+        by: r.by,
+        note: r.note,
+    }))
 }
 
 /// `GET /api/v1/links`.
 #[utoipa::path(get, path = "/links", tag = "links",
     responses((status = 200, description = "Every link with its counters, rate and status", body = [LinkOut])),
     security(("bearer" = ["read"])))]
-pub async fn list_links(State(app): State<AppState>) -> Json<Vec<LinkOut>> {
+pub async fn list_links(State(app): State<AppState>) -> Result<Json<Vec<LinkOut>>, ApiError> {
     let inst = app.service.installation();
+    let resets = app.service.store().last_link_resets().await?;
     let snapshot = app.service.snapshot();
     let bank = &snapshot.bank;
     let newest = bank.newest_sample_ns();
-    Json(
+    Ok(Json(
         inst.links
             .iter()
             .map(|l| {
@@ -96,10 +169,19 @@ pub async fn list_links(State(app): State<AppState>) -> Json<Vec<LinkOut>> {
                     rate_hz: bank.observed_rate_hz(l.id),
                     expected_rate_hz: expected,
                     status,
+                    last_reset: resets
+                        .iter()
+                        .find(|r| r.0 == l.id)
+                        .map(|(_, at, by, note)| LinkResetOut {
+                            link: l.name.clone(),
+                            at: format_ns(*at),
+                            by: by.clone(),
+                            note: note.clone(),
+                        }),
                 }
             })
             .collect(),
-    )
+    ))
 }
 
 /// Query of `samples`.

@@ -245,6 +245,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(links::list_links))
         .routes(routes!(links::list_samples))
         .routes(routes!(links::put_calibration))
+        .routes(routes!(links::post_reset))
         .routes(routes!(links::list_calibrations))
         .routes(routes!(openapi_json));
     OpenApiRouter::with_openapi(<ApiDoc as utoipa::OpenApi>::openapi())

@@ -679,6 +679,26 @@ impl FilterBank {
             .max()
     }
 
+    /// Restarts a measured link's filter: it starts again from the link's next sample, whatever
+    /// its time (recovery from a sample stamped far ahead, after which every correct sample is
+    /// out of order, or from a station that moved). The link's newest time, the frontiers of
+    /// the targets on its paths and the measurement groups kept in memory are forgotten with
+    /// it; its counters stay. `false` for a calibrated link.
+    pub fn reset_link(&mut self, link: LinkId) -> bool {
+        let Some(slot) = self.measured[link.0].as_mut() else {
+            return false;
+        };
+        slot.filter = LinkFilter::new(*slot.filter.tuning());
+        slot.history.clear();
+        slot.recent_times.clear();
+        self.status[link.0].last_time_ns = None;
+        for &ti in &self.targets_of_link[link.0] {
+            self.frontier_ns[ti] = None;
+        }
+        self.groups.clear();
+        true
+    }
+
     /// The bank's state as plain records (filters, counters, frontiers), for persistence.
     pub fn record(&self) -> BankRecord {
         let links = &self.installation.links;

@@ -185,6 +185,12 @@ pub(crate) enum Job {
         parent_from_child: PoseCov,
         reply: oneshot::Sender<ServiceResult<i64>>,
     },
+    ResetLink {
+        link: crate::chain::LinkId,
+        by: Option<String>,
+        note: Option<String>,
+        reply: oneshot::Sender<ServiceResult<i64>>,
+    },
 }
 
 struct Inner {
@@ -493,6 +499,24 @@ impl Service {
     pub async fn prune(&self) -> ServiceResult<(u64, u64)> {
         let retention = self.inner.installation.retention;
         self.submit(|reply| Job::Prune { retention, reply }).await
+    }
+
+    /// Restarts a measured link's filter from its next sample (see
+    /// [`crate::filter::FilterBank::reset_link`]), recorded with who asked and why; returns when
+    /// (ns, wall clock).
+    pub async fn reset_link(
+        &self,
+        link: crate::chain::LinkId,
+        by: Option<String>,
+        note: Option<String>,
+    ) -> ServiceResult<i64> {
+        self.submit(|reply| Job::ResetLink {
+            link,
+            by,
+            note,
+            reply,
+        })
+        .await
     }
 
     /// Stores a new calibration of a calibrated link, valid from `valid_from_ns`; returns its

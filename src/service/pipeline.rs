@@ -76,6 +76,7 @@ enum Pending {
         ServiceResult<CurrentReference>,
     ),
     Calibration(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
+    Reset(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
     Prune(
         oneshot::Sender<ServiceResult<(u64, u64)>>,
         ServiceResult<(u64, u64)>,
@@ -98,6 +99,11 @@ enum Work {
         link: LinkId,
         valid_from_ns: i64,
         parent_from_child: crate::geometry::PoseCov,
+    },
+    ResetLink {
+        link: LinkId,
+        by: Option<String>,
+        note: Option<String>,
     },
 }
 
@@ -127,6 +133,15 @@ impl Job {
             Job::Prune { retention, reply } => {
                 (Pending::Prune(reply, unapplied()), Work::Prune(retention))
             }
+            Job::ResetLink {
+                link,
+                by,
+                note,
+                reply,
+            } => (
+                Pending::Reset(reply, unapplied()),
+                Work::ResetLink { link, by, note },
+            ),
             Job::AddCalibration {
                 link,
                 valid_from_ns,
@@ -151,6 +166,7 @@ impl Pending {
             Pending::Ingest(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Reference(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Calibration(tx, r) => tx.send(r).map_err(|_| ()),
+            Pending::Reset(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Prune(tx, r) => tx.send(r).map_err(|_| ()),
         };
     }
@@ -161,6 +177,7 @@ impl Pending {
             Pending::Ingest(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Reference(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Calibration(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+            Pending::Reset(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Prune(tx, _) => tx.send(Err(err())).map_err(|_| ()),
         };
     }
@@ -332,6 +349,18 @@ impl Pipeline {
                         } else {
                             Err(ServiceError::Invalid {
                                 message: "only calibrated links take calibrations".into(),
+                                problems: Vec::new(),
+                            })
+                        };
+                    }
+                    (Work::ResetLink { link, by, note }, Pending::Reset(_, result)) => {
+                        *result = if bank.reset_link(link) {
+                            tx.insert_link_reset(link, by.as_deref(), note.as_deref(), now)
+                                .await?;
+                            Ok(now)
+                        } else {
+                            Err(ServiceError::Invalid {
+                                message: "only measured links have a filter to reset".into(),
                                 problems: Vec::new(),
                             })
                         };

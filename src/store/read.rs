@@ -441,6 +441,27 @@ impl Store {
             .collect()
     }
 
+    /// The newest manual restart of each link's filter: when (ns, wall clock), who, why.
+    pub async fn last_link_resets(
+        &self,
+    ) -> StoreResult<Vec<(LinkId, i64, Option<String>, Option<String>)>> {
+        let rows: Vec<(i64, i64, Option<String>, Option<String>)> = sqlx::query_as(
+            "select r.link_id, r.created_ns, r.by_name, r.note from link_resets r \
+             where r.created_ns = (select max(created_ns) from link_resets where link_id = r.link_id)",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        Ok(rows
+            .into_iter()
+            .filter_map(|(id, t, by, note)| {
+                self.link_ids
+                    .iter()
+                    .position(|l| *l == id)
+                    .map(|i| (LinkId(i), t, by, note))
+            })
+            .collect())
+    }
+
     /// The persisted filter state: `(installation digest, state)`.
     pub async fn filter_state(&self) -> StoreResult<Option<(String, String)>> {
         Ok(

@@ -552,6 +552,26 @@ impl WriteTx<'_> {
         Ok(version)
     }
 
+    /// Records a manual restart of a link's filter.
+    pub async fn insert_link_reset(
+        &mut self,
+        link: LinkId,
+        by: Option<&str>,
+        note: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "insert or replace into link_resets (link_id, created_ns, by_name, note) values (?, ?, ?, ?)",
+        )
+        .bind(self.link_ids[link.0])
+        .bind(now_ns)
+        .bind(by)
+        .bind(note)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+
     /// Saves the filter bank's state.
     pub async fn save_filter_state(
         &mut self,

@@ -491,3 +491,86 @@ async fn a_target_without_results_has_no_age() {
     assert!(body["age_s"].is_null(), "age before any result: {body}");
     assert!(body["time"].is_null(), "{body}");
 }
+
+/// One sample stamped an hour ahead (a wrong clock, inside a generous `max_future_s`) makes
+/// every correct sample of its link out of order; a reset of that link's filter recovers it
+/// from the next sample, is recorded and listed with the link, and survives a restart.
+#[tokio::test]
+async fn a_link_reset_recovers_from_a_sample_stamped_ahead() {
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("[server]", "[server]\nmax_future_s = 1000000");
+    let app = TestApp::start(Some(&text)).await;
+    let start = now_ns() - 60_000_000_000;
+    let group = |k: i64| {
+        let samples: Vec<Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
+            .iter()
+            .map(|l| json!({"link": l, "time": start + k * 40_000_000, "pose": nominal_pose()}))
+            .collect();
+        json!({ "samples": samples })
+    };
+    for k in 0..20 {
+        let (status, body) = app.post_json("/api/v1/samples", &group(k)).await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+    }
+    let ahead = now_ns() + 3_600_000_000_000;
+    let (status, body) = app
+        .post_json(
+            "/api/v1/samples",
+            &sample("C1_from_B", json!(ahead), nominal_pose()),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, body) = app.post_json("/api/v1/samples", &group(20)).await;
+    assert_eq!(
+        body["out_of_order"], 1,
+        "the correct sample is refused by the filter: {body}"
+    );
+    let (_, stuck) = app.get("/api/v1/targets/G/compensation").await;
+
+    // Only measured links have a filter; unknown links are not found.
+    let (status, _) = app
+        .request("POST", "/api/v1/links/C2_from_C1/reset", None, None)
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    let (status, _) = app
+        .request("POST", "/api/v1/links/X_from_Y/reset", None, None)
+        .await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+
+    let (status, reset) = app
+        .post_json(
+            "/api/v1/links/C1_from_B/reset",
+            &json!({"by": "operator", "note": "camera clock was an hour ahead"}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{reset}");
+    assert_eq!(reset["link"], "C1_from_B");
+    for k in 21..40 {
+        let (status, body) = app.post_json("/api/v1/samples", &group(k)).await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        assert_eq!(body["out_of_order"], 0, "group {k} after the reset: {body}");
+    }
+    let (_, live) = app.get("/api/v1/targets/G/compensation").await;
+    assert_ne!(live["time"], stuck["time"], "{live}");
+    assert_eq!(
+        brokenray::api::time::parse_rfc3339_ns(live["time"].as_str().unwrap()).unwrap(),
+        start + 39 * 40_000_000,
+        "{live}"
+    );
+    let (_, links) = app.get("/api/v1/links").await;
+    let c1 = links
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|l| l["name"] == "C1_from_B")
+        .unwrap();
+    assert_eq!(c1["last_reset"]["by"], "operator", "{c1}");
+    assert_eq!(c1["last_reset"]["note"], "camera clock was an hour ahead");
+    // The reset state was committed with the filters: a restart continues from it.
+    let app = app.restart(Some(&text)).await;
+    let (status, body) = app.post_json("/api/v1/samples", &group(40)).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["out_of_order"], 0, "{body}");
+    let (_, links) = app.get("/api/v1/links").await;
+    assert!(links.to_string().contains("camera clock was an hour ahead"));
+}
