@@ -174,7 +174,7 @@ fn straight_chain_error_growth_matches_the_closed_form() {
         assert_relative_eq!(ours, closed, max_relative = 1e-9);
         assert!(
             (ours - printed).abs() < 0.005,
-            "n = {n}: {ours:.3} mm, method.md prints {printed}"
+            "n = {n}: {ours:.3} mm, the tabulated value is {printed}"
         );
     }
 }

@@ -1,5 +1,5 @@
 //! Request and response bodies, and their conversion to and from domain types. Only the API
-//! knows these shapes (`interface.md` section 2); field names carry their units.
+//! knows these shapes (README, "HTTP API" and "Conventions"); field names carry their units.
 
 use super::error::{ApiError, ErrorDetail};
 use crate::geometry::{

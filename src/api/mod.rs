@@ -1,4 +1,4 @@
-//! The HTTP API (`/api/v1`, `interface.md` section 2): routes, request and response bodies,
+//! The HTTP API (`/api/v1`, the README's "HTTP API"): routes, request and response bodies,
 //! errors, authentication, and the server's start and graceful stop.
 //!
 //! Handlers are thin: read the request, convert it to domain types ([`dto`]), call the

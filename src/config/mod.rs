@@ -1,7 +1,7 @@
 //! The installation file (TOML) parsed into validated domain types.
 //!
 //! One file describes one installation: frames, cameras, markers, links, targets, and the
-//! server, Rerun and auth settings (`interface.md` section 1). Without a file the built-in
+//! server, Rerun and auth settings (README, "Configuration"). Without a file the built-in
 //! default describes the paper's laboratory setup (base B, station C1-C2, station M-C3,
 //! target G; about 3 m per hop), see [`default_installation`].
 //!

@@ -1,6 +1,6 @@
 //! Per-link error-state Kalman filters on SE(3), and the bank that evaluates targets.
 //!
-//! Each measured link has its own filter (`method.md` section 7), because each link has its own
+//! Each measured link has its own filter (the README's "Filtering"), because each link has its own
 //! camera, rate and noise. The state is the link pose on SE(3) (and, for the dynamic models,
 //! rates); the error state is a left perturbation as everywhere in the core:
 //!

@@ -2,7 +2,7 @@
 //!
 //! The chordal L2 mean of rotations minimises `sum_i ||R - R_i||_F^2`: the arithmetic mean of
 //! the matrices projected back onto SO(3) by SVD (Hartley et al. 2013, "Rotation averaging").
-//! Translations are averaged arithmetically (`method.md` section 8).
+//! Translations are averaged arithmetically (see [`crate::deformation`]).
 
 use super::{GeometryError, Mat3, Mat6, Pose, PoseCov, Rotation, Twist, se3_log};
 use nalgebra::{Rotation3, Translation3};
