@@ -18,17 +18,21 @@ use std::sync::Arc;
 /// The scope a request needs: `ingest` to post samples, `admin` to change references and
 /// calibrations, `read` for the rest.
 pub fn required_scope(method: &Method, path: &str) -> Scope {
-    let is_write = matches!(
-        *method,
-        Method::POST | Method::PUT | Method::DELETE | Method::PATCH
-    );
-    if !is_write {
+    if !is_write(method) {
         Scope::Read
     } else if path.ends_with("/samples") || path.ends_with("/observations") {
         Scope::Ingest
     } else {
         Scope::Admin
     }
+}
+
+/// True for the methods that change something.
+fn is_write(method: &Method) -> bool {
+    matches!(
+        *method,
+        Method::POST | Method::PUT | Method::DELETE | Method::PATCH
+    )
 }
 
 /// The lowercase hex SHA-256 of a token.
@@ -179,11 +183,7 @@ pub async fn local_only(
             ));
         }
     }
-    let is_write = matches!(
-        *request.method(),
-        Method::POST | Method::PUT | Method::DELETE | Method::PATCH
-    );
-    if is_write {
+    if is_write(request.method()) {
         let content_type = headers
             .get(header::CONTENT_TYPE)
             .and_then(|v| v.to_str().ok())

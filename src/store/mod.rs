@@ -129,6 +129,17 @@ impl FileIdentity {
     }
 }
 
+/// Fails unless the file at `path` is still the one with `identity`.
+pub(crate) fn check_identity(path: &Path, identity: FileIdentity) -> StoreResult<()> {
+    if FileIdentity::of(path) == Some(identity) {
+        Ok(())
+    } else {
+        Err(StoreError::FileReplaced {
+            path: path.to_owned(),
+        })
+    }
+}
+
 /// What the health check knows of the writer: whether its last commit failed, and why.
 #[derive(Debug, Default)]
 pub struct WriterHealth {
@@ -336,16 +347,9 @@ impl Store {
     /// must have succeeded.
     pub async fn health(&self) -> DatabaseHealth {
         let writer_problem = self.writer.problem();
-        let file_problem = if FileIdentity::of(&self.path) == Some(self.identity) {
-            None
-        } else {
-            Some(
-                StoreError::FileReplaced {
-                    path: self.path.clone(),
-                }
-                .to_string(),
-            )
-        };
+        let file_problem = check_identity(&self.path, self.identity)
+            .err()
+            .map(|e| e.to_string());
         let query_problem = {
             let mut guard = self.health_conn.lock().await;
             if guard.is_none() {

@@ -7,12 +7,12 @@
 //! would only release savepoints of a transaction that never commits. Instead, any transaction
 //! that did not commit (a failed statement, a failed commit, a cancelled task) leaves the
 //! connection marked unclean, and the next [`WriteConn::begin`] replaces it with a fresh one:
-//! whatever happened, the writer starts from a known state. Before it begins and after it
+//! whatever happened, the writer starts from a known state. When it begins and after it
 //! commits, the writer checks that the configured file is still the one open (device and
 //! inode), so a deleted or replaced file is never written to in silence.
 
 use super::codec::{encode_mat6, pose_columns};
-use super::{FileIdentity, SampleValues, StoreError, StoreResult, WriterHealth};
+use super::{FileIdentity, SampleValues, StoreError, StoreResult, WriterHealth, check_identity};
 use crate::chain::LinkId;
 use crate::deformation::SmallMotion;
 use crate::geometry::{PoseCov, ReportedSigmas};
@@ -98,16 +98,6 @@ fn finite(what: &str, values: &[f64]) -> StoreResult<()> {
     } else {
         Err(StoreError::NonFinite {
             what: what.to_owned(),
-        })
-    }
-}
-
-fn check_identity(path: &Path, identity: FileIdentity) -> StoreResult<()> {
-    if FileIdentity::of(path) == Some(identity) {
-        Ok(())
-    } else {
-        Err(StoreError::FileReplaced {
-            path: path.to_owned(),
         })
     }
 }
@@ -199,7 +189,6 @@ impl WriteTx<'_> {
     /// replaced meanwhile, it went to a file that is no longer the configured one): the caller
     /// must not acknowledge it.
     pub async fn commit(self) -> StoreResult<()> {
-        check_identity(self.path, self.identity)?;
         sqlx::query("commit").execute(&mut *self.conn).await?;
         *self.clean = true;
         check_identity(self.path, self.identity)
