@@ -85,6 +85,7 @@ pub struct LinkResetIn {
     request_body(content = LinkResetIn, description = "Optional: who asks and why"),
     responses(
         (status = 200, description = "The filter restarts from the next sample", body = LinkResetOut),
+        (status = 400, description = "Malformed JSON", body = ErrorBody),
         (status = 404, description = "Unknown link", body = ErrorBody),
         (status = 422, description = "A calibrated link, or a malformed body", body = ErrorBody),
     ),

@@ -2,11 +2,8 @@
 //! never stored, never breaking what comes after.
 
 use super::helpers::{T0_NS, TestApp, nominal_group, time_text};
-use axum::body::Body;
-use axum::http::{Request, StatusCode};
-use http_body_util::BodyExt;
+use axum::http::StatusCode;
 use serde_json::{Value, json};
-use tower::ServiceExt;
 
 fn now_ns() -> i64 {
     brokenray::service::now_ns()
@@ -312,22 +309,8 @@ async fn send(
     headers: &[(&str, &str)],
     body: &str,
 ) -> (StatusCode, Value) {
-    let mut builder = Request::builder().method(method).uri(uri);
-    for (k, v) in headers {
-        builder = builder.header(*k, *v);
-    }
-    let resp = app
-        .router
-        .clone()
-        .oneshot(builder.body(Body::from(body.to_owned())).unwrap())
+    app.request_with_headers(method, uri, headers, body.to_owned())
         .await
-        .unwrap();
-    let status = resp.status();
-    let bytes = resp.into_body().collect().await.unwrap().to_bytes();
-    (
-        status,
-        serde_json::from_slice(&bytes).unwrap_or(Value::Null),
-    )
 }
 
 #[tokio::test]

@@ -77,17 +77,34 @@ impl TestApp {
         body: Option<(&str, String)>,
         token: Option<&str>,
     ) -> (StatusCode, Value) {
+        let authorization = token.map(|t| format!("Bearer {t}"));
+        let mut headers: Vec<(&str, &str)> = Vec::new();
+        if let Some(a) = &authorization {
+            headers.push(("authorization", a));
+        }
+        let text = match body {
+            Some((content_type, text)) => {
+                headers.push(("content-type", content_type));
+                text
+            }
+            None => String::new(),
+        };
+        self.request_with_headers(method, uri, &headers, text).await
+    }
+
+    /// A request with exactly the given headers (none added).
+    pub async fn request_with_headers(
+        &self,
+        method: &str,
+        uri: &str,
+        headers: &[(&str, &str)],
+        body: String,
+    ) -> (StatusCode, Value) {
         let mut builder = Request::builder().method(method).uri(uri);
-        if let Some(t) = token {
-            builder = builder.header("authorization", format!("Bearer {t}"));
+        for (k, v) in headers {
+            builder = builder.header(*k, *v);
         }
-        let req = match body {
-            Some((content_type, text)) => builder
-                .header("content-type", content_type)
-                .body(Body::from(text)),
-            None => builder.body(Body::empty()),
-        }
-        .expect("request");
+        let req = builder.body(Body::from(body)).expect("request");
         let resp = self.router.clone().oneshot(req).await.expect("response");
         let status = resp.status();
         let bytes = resp.into_body().collect().await.expect("body").to_bytes();
