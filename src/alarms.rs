@@ -6,10 +6,14 @@
 //!   threshold, and left only when the magnitude falls below `(1 - hysteresis)` of it.
 //! * Rate: the change of `target_from_base` between consecutive results (rotation angle per
 //!   second, translation per second) against its limits: level `alarm` or `none`.
-//! * Stale: `alarm` while the result's status is `stale`.
+//! * Stale: `alarm` while a link on the target's paths has delivered nothing for longer than
+//!   its staleness limit, judged on the server's clock by [`AlarmMonitor::liveness`] (results
+//!   stop coming exactly when it matters, so this track cannot wait for them). It is entered when
+//!   the age reaches the limit and left when it falls below `(1 - hysteresis)` of it.
 //!
-//! A new level must hold for `dwell_s` of measurement time before it becomes a transition, so
-//! noise around a threshold does not flap (stale data switches at once).
+//! A new level must hold for `dwell_s` before it becomes a transition (measurement time for
+//! the deformation and rate, the server's clock for staleness), so noise around a threshold
+//! does not flap.
 
 use crate::config::AlarmThresholds;
 use crate::geometry::{ARCSEC_PER_RAD, Pose, so3_log};
@@ -89,7 +93,9 @@ pub enum ValueUnit {
     ArcsecPerS,
     /// Millimetres per second (a translation rate).
     MmPerS,
-    /// No value (stale data).
+    /// Seconds (the age of a link's newest sample).
+    S,
+    /// No value (stale transitions stored before ages were recorded).
     None,
 }
 
@@ -101,6 +107,7 @@ impl ValueUnit {
             ValueUnit::Mm => "mm",
             ValueUnit::ArcsecPerS => "arcsec_per_s",
             ValueUnit::MmPerS => "mm_per_s",
+            ValueUnit::S => "s",
             ValueUnit::None => "none",
         }
     }
@@ -112,6 +119,7 @@ impl ValueUnit {
             ValueUnit::Mm,
             ValueUnit::ArcsecPerS,
             ValueUnit::MmPerS,
+            ValueUnit::S,
             ValueUnit::None,
         ]
         .into_iter()
@@ -141,14 +149,14 @@ fn deciding(
 pub struct Transition {
     /// What it is about.
     pub kind: AlarmKind,
-    /// When (ns, measurement time).
+    /// When (ns): measurement time for deformation and rate, the server's clock for stale.
     pub time_ns: i64,
     /// The level before.
     pub from: Level,
     /// The level after.
     pub to: Level,
     /// The value that decided it, in `unit`: the rotation or the translation, whichever is the
-    /// larger fraction of its threshold (0 for stale).
+    /// larger fraction of its threshold; for stale, the age of the oldest link (s).
     pub value: f64,
     /// The unit of `value`.
     pub unit: ValueUnit,
@@ -270,12 +278,11 @@ impl AlarmMonitor {
             .max(self.stale.level)
     }
 
-    /// Feeds one result: its time, whether it is stale, `target_from_base`, and the deformation
-    /// magnitudes (rotation arcsec, translation mm) when the target has a reference.
+    /// Feeds one result: its time, `target_from_base`, and the deformation magnitudes (rotation
+    /// arcsec, translation mm) when the target has a reference.
     pub fn update(
         &mut self,
         time_ns: i64,
-        is_stale: bool,
         target_from_base: &Pose,
         deformation: Option<(f64, f64)>,
     ) -> Vec<Transition> {
@@ -382,23 +389,43 @@ impl AlarmMonitor {
             }
         }
         self.last_pose = Some((time_ns, *target_from_base));
-        let candidate = if is_stale { Level::Alarm } else { Level::None };
-        if let Some((from, to)) = self.stale.step(candidate, time_ns, 0) {
-            out.push(Transition {
-                kind: AlarmKind::Stale,
-                time_ns,
-                from,
-                to,
-                value: 0.0,
-                unit: ValueUnit::None,
-                message: if is_stale {
-                    "a link stopped delivering samples at its expected rate".into()
-                } else {
-                    "every link delivers again".into()
-                },
-            });
-        }
         out
+    }
+
+    /// Judges staleness at `now_ns` on the server's clock: `age_s` is how long the link that is
+    /// furthest behind (`link`, relative to its limit) has delivered nothing, `limit_s` its
+    /// staleness limit. Called periodically, whether results come or not.
+    pub fn liveness(
+        &mut self,
+        now_ns: i64,
+        link: &str,
+        age_s: f64,
+        limit_s: f64,
+    ) -> Option<Transition> {
+        let t = self.thresholds;
+        let candidate = level_of(
+            age_s / limit_s,
+            None,
+            Some(1.0),
+            self.stale.level,
+            t.hysteresis,
+        );
+        let (from, to) = self
+            .stale
+            .step(candidate, now_ns, (t.dwell_s * 1e9) as i64)?;
+        Some(Transition {
+            kind: AlarmKind::Stale,
+            time_ns: now_ns,
+            from,
+            to,
+            value: age_s,
+            unit: ValueUnit::S,
+            message: if to > Level::None {
+                format!("no sample from link {link} for {age_s:.1} s (limit {limit_s:.1} s)")
+            } else {
+                format!("every link delivers again ({link}: last sample {age_s:.1} s ago)")
+            },
+        })
     }
 }
 
@@ -425,7 +452,7 @@ mod tests {
         let mut out = Vec::new();
         for (k, v) in values.enumerate() {
             let t = k as i64 * 40_000_000;
-            for tr in m.update(t, false, &Pose::identity(), Some((v, 0.0))) {
+            for tr in m.update(t, &Pose::identity(), Some((v, 0.0))) {
                 out.push((t as f64 / 1e9, tr.from, tr.to));
             }
         }
@@ -481,12 +508,12 @@ mod tests {
         let mut m = AlarmMonitor::new(t, Level::None, Level::None, Level::None);
         let pose = Pose::identity();
         // 10 arcsec (a sixth of the rotation's warn) and 1.5 mm (over the translation's warn).
-        let out = m.update(0, false, &pose, Some((10.0, 1.5)));
+        let out = m.update(0, &pose, Some((10.0, 1.5)));
         assert_eq!(out.len(), 1);
         assert_eq!(out[0].to, Level::Warn);
         assert_eq!((out[0].value, out[0].unit), (1.5, ValueUnit::Mm));
         // Rotation over its alarm threshold decides the next one.
-        let out = m.update(40_000_000, false, &pose, Some((130.0, 1.5)));
+        let out = m.update(40_000_000, &pose, Some((130.0, 1.5)));
         assert_eq!(
             (out[0].to, out[0].value, out[0].unit),
             (Level::Alarm, 130.0, ValueUnit::Arcsec)
@@ -494,7 +521,7 @@ mod tests {
     }
 
     #[test]
-    fn a_fast_change_raises_the_rate_alarm_and_stale_data_its_own() {
+    fn a_fast_change_raises_the_rate_alarm() {
         let mut t = thresholds();
         t.rate_rotation_arcsec_per_s = Some(30.0);
         t.dwell_s = 0.0;
@@ -506,20 +533,44 @@ mod tests {
                     .unwrap(),
             )
         };
-        assert!(m.update(0, false, &turn(0.0), None).is_empty());
+        assert!(m.update(0, &turn(0.0), None).is_empty());
         // 10 arcsec in 40 ms is 250 arcsec/s.
-        let out = m.update(40_000_000, false, &turn(10.0), None);
+        let out = m.update(40_000_000, &turn(10.0), None);
         assert_eq!(out.len(), 1);
         assert_eq!((out[0].kind, out[0].to), (AlarmKind::Rate, Level::Alarm));
-        let out = m.update(80_000_000, true, &turn(10.0), None);
-        let kinds: Vec<_> = out.iter().map(|t| (t.kind, t.to)).collect();
-        assert_eq!(
-            kinds,
-            [
-                (AlarmKind::Rate, Level::None),
-                (AlarmKind::Stale, Level::Alarm)
-            ]
-        );
         assert_eq!(m.level(), Level::Alarm);
+        let out = m.update(80_000_000, &turn(10.0), None);
+        assert_eq!((out[0].kind, out[0].to), (AlarmKind::Rate, Level::None));
+    }
+
+    #[test]
+    fn staleness_holds_for_the_dwell_and_clears_below_the_hysteresis() {
+        // Dwell 1 s, hysteresis 0.1, limit 2 s: checked every 0.25 s of the server's clock.
+        let mut m = AlarmMonitor::new(thresholds(), Level::None, Level::None, Level::None);
+        let s = |x: f64| (x * 1e9) as i64;
+        let mut at = |now: f64, age: f64| m.liveness(s(now), "C1_from_B", age, 2.0);
+        // The feed stops at 0: the age passes the limit at 2 s, the alarm comes after the dwell.
+        for k in 0..12 {
+            let now = k as f64 * 0.25;
+            assert_eq!(at(now, now), None, "at {now} s");
+        }
+        let on = at(3.0, 3.0).expect("stale after the limit and the dwell");
+        assert_eq!(
+            (on.kind, on.from, on.to),
+            (AlarmKind::Stale, Level::None, Level::Alarm)
+        );
+        assert_eq!((on.value, on.unit, on.time_ns), (3.0, ValueUnit::S, s(3.0)));
+        assert!(on.message.contains("C1_from_B"), "{}", on.message);
+        // Samples again: an age of 1.9 s is under the limit but within the hysteresis band.
+        assert_eq!(at(10.0, 1.9), None);
+        assert_eq!(at(12.0, 1.9), None);
+        // Well under it: cleared once the dwell has passed.
+        assert_eq!(at(13.0, 0.1), None);
+        let off = at(14.0, 0.1).expect("cleared after the dwell");
+        assert_eq!((off.from, off.to), (Level::Alarm, Level::None));
+        // A single late check that crosses the limit briefly does not raise it.
+        assert_eq!(at(20.0, 2.5), None);
+        assert_eq!(at(20.5, 0.1), None);
+        assert_eq!(at(22.0, 0.1), None);
     }
 }

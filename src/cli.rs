@@ -1,6 +1,7 @@
 //! The command line: subcommands and their output. `main.rs` only parses and dispatches here.
 
 use crate::chain::Direction;
+use crate::clock::wall_now_ns as now_ns;
 use crate::config::{self, Installation, LinkKind};
 use crate::geometry::{euler_from_rotation, quaternion_wxyz};
 use anyhow::Context as _;
@@ -422,7 +423,7 @@ fn replay(
     let installation = std::sync::Arc::new(installation);
     let runtime = runtime(false)?;
     runtime.block_on(async {
-        let (store, write) = crate::store::open(&installation, crate::service::now_ns())
+        let (store, write) = crate::store::open(&installation, now_ns())
             .await
             .with_context(|| format!("cannot open {}", database.display()))?;
         drop(write);
@@ -521,12 +522,6 @@ fn runtime(multi_thread: bool) -> anyhow::Result<tokio::runtime::Runtime> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")
-}
-
-fn now_ns() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
 }
 
 fn create_new(path: &std::path::Path) -> anyhow::Result<std::fs::File> {

@@ -24,6 +24,7 @@
 //!   station): ground truth and what the cameras see.
 //! * [`feed`]: the simulator's output as request bodies and NDJSON, and the HTTP client that
 //!   feeds a service with it.
+//! * [`clock`]: the server's clock (wall time for liveness and stamps), settable in tests.
 //! * [`cli`]: the command line (the binary in `main.rs` only calls it).
 //!
 //! The numerical core (`geometry`, `chain`, `filter`, `deformation`, `stats`) is pure and synchronous: no IO, no clock, no async
@@ -35,6 +36,7 @@ pub mod alarms;
 pub mod api;
 pub mod chain;
 pub mod cli;
+pub mod clock;
 pub mod config;
 pub mod deformation;
 pub mod feed;

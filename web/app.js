@@ -1004,6 +1004,8 @@
   }
 
   function acceptAlarm(a) {
+    // A transition can change the target's status (a stale link) without a new result.
+    loadCompensation(a.target).catch(() => {});
     if (state.range.kind === 'last') {
       state.alarms.unshift(a);
       state.alarms.length = Math.min(state.alarms.length, ALARMS_SHOWN);

@@ -34,8 +34,13 @@ pub async fn get_events(
                 reference,
             }) => {
                 let spec = app.service.installation().targets[target].clone();
-                let body =
-                    super::targets::live_compensation(&app, &spec, &estimate, reference.as_ref());
+                let body = super::targets::live_compensation(
+                    &app,
+                    &spec,
+                    target,
+                    &estimate,
+                    reference.as_ref(),
+                );
                 let event = Event::default()
                     .event("result")
                     .json_data(body)

@@ -469,7 +469,10 @@ pub async fn post_samples(
     let items = parse_batch(text, is_ndjson(&headers))?;
     check_batch_size("samples", items.len(), app.limits.max_batch_samples)?;
     let n = items.len();
-    let latest = latest_accepted_ns(app.service.installation().server.max_future_s);
+    let latest = latest_accepted_ns(
+        app.service.now_ns(),
+        app.service.installation().server.max_future_s,
+    );
     let valid = validate_samples(app.service.installation(), items, latest).map_err(|p| {
         invalid(
             format!("{} problem(s) in the batch; nothing was stored", p.len()),

@@ -42,12 +42,17 @@ pub struct LinkOut {
     pub n_reinitializations: u64,
     /// Newest sample time.
     pub last_time: Option<String>,
+    /// Seconds from the newest sample's time to now on the server's clock (negative when the
+    /// sender's clock is ahead); absent before any sample.
+    pub age_s: Option<f64>,
     /// Observed rate over recent samples (Hz).
     pub rate_hz: Option<f64>,
     /// Configured rate (Hz).
     pub expected_rate_hz: Option<f64>,
-    /// `ok`, `stale` (behind the newest link by more than its staleness limit), `no_data`, or
-    /// `calibrated`.
+    /// `ok`; `stale` when its newest sample is older than its staleness limit
+    /// (`stale_after_periods` of its expected period) on the server's clock, plus `[server]
+    /// clock_tolerance_s`, or behind the newest link's sample by more than the limit;
+    /// `no_data` before its first sample (and after a reset); `calibrated`.
     pub status: &'static str,
     /// The newest manual restart of the link's filter, if any.
     pub last_reset: Option<LinkResetOut>,
@@ -133,29 +138,22 @@ pub async fn list_links(State(app): State<AppState>) -> Result<Json<Vec<LinkOut>
     let resets = app.service.store().last_link_resets().await?;
     let snapshot = app.service.snapshot();
     let bank = &snapshot.bank;
-    let newest = bank.newest_sample_ns();
+    let now_ns = app.service.now_ns();
+    let tolerance_s = inst.server.clock_tolerance_s;
     Ok(Json(
         inst.links
             .iter()
             .map(|l| {
                 let ends = inst.topology.link(l.id);
                 let st = bank.link_status(l.id);
-                let (kind, model, expected, status) = match &l.kind {
-                    LinkKind::Calibrated { .. } => ("calibrated", None, None, "calibrated"),
-                    LinkKind::Measured(m) => {
-                        let lag = newest.and_then(|n| bank.link_lag(l.id, n));
-                        let status = match (st.last_time_ns, lag) {
-                            (None, _) => "no_data",
-                            (_, Some(lag)) if lag.stale => "stale",
-                            _ => "ok",
-                        };
-                        (
-                            "measured",
-                            Some(m.tuning.model.name()),
-                            Some(m.expected_rate_hz),
-                            status,
-                        )
-                    }
+                let status = snapshot.link_state(l.id, now_ns, tolerance_s).name();
+                let (kind, model, expected) = match &l.kind {
+                    LinkKind::Calibrated { .. } => ("calibrated", None, None),
+                    LinkKind::Measured(m) => (
+                        "measured",
+                        Some(m.tuning.model.name()),
+                        Some(m.expected_rate_hz),
+                    ),
                 };
                 LinkOut {
                     name: l.name.clone(),
@@ -167,6 +165,7 @@ pub async fn list_links(State(app): State<AppState>) -> Result<Json<Vec<LinkOut>
                     n_outliers: st.n_outliers,
                     n_reinitializations: st.n_reinitializations,
                     last_time: st.last_time_ns.map(format_ns),
+                    age_s: st.last_time_ns.map(|t| (now_ns - t) as f64 / 1e9),
                     rate_hz: bank.observed_rate_hz(l.id),
                     expected_rate_hz: expected,
                     status,
@@ -370,7 +369,7 @@ pub async fn put_calibration(
     };
     let valid_from_ns = match &c.valid_from {
         Some(v) => parse_json_time(v).map_err(|m| ApiError::invalid_field("valid_from", m))?,
-        None => crate::service::now_ns(),
+        None => app.service.now_ns(),
     };
     let version = app
         .service
@@ -384,7 +383,7 @@ pub async fn put_calibration(
             valid_from: Some(format_ns(valid_from_ns)),
             pose: Some((&pose).into()),
             sigma: Some((&PoseCov { pose, cov }).into()),
-            created: Some(format_ns(crate::service::now_ns())),
+            created: Some(format_ns(app.service.now_ns())),
         }),
     ))
 }

@@ -153,6 +153,8 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
     let snapshot = service.snapshot();
     let bank = &snapshot.bank;
     let newest = bank.newest_sample_ns();
+    let now_ns = service.now_ns();
+    let tolerance_s = inst.server.clock_tolerance_s;
     family(
         &mut out,
         "brokenray_link_samples_total",
@@ -179,9 +181,15 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
     );
     family(
         &mut out,
+        "brokenray_link_age_seconds",
+        "gauge",
+        "Seconds from a link's newest sample to now on the server's clock.",
+    );
+    family(
+        &mut out,
         "brokenray_link_stale",
         "gauge",
-        "1 when a link is behind by more than its staleness limit.",
+        "1 when a link's newest sample is older than its staleness limit on the server's clock (or behind the newest link by more than it).",
     );
     for l in &inst.links {
         if !matches!(l.kind, LinkKind::Measured(_)) {
@@ -208,10 +216,18 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
                 "brokenray_link_behind_seconds{{link=\"{name}\"}} {}",
                 lag.behind_s
             );
+        }
+        if let Some(last) = st.last_time_ns {
+            let _ = writeln!(
+                out,
+                "brokenray_link_age_seconds{{link=\"{name}\"}} {}",
+                (now_ns - last) as f64 / 1e9
+            );
+            let state = snapshot.link_state(l.id, now_ns, tolerance_s);
             let _ = writeln!(
                 out,
                 "brokenray_link_stale{{link=\"{name}\"}} {}",
-                u8::from(lag.stale)
+                u8::from(state == crate::service::LinkState::Stale)
             );
         }
     }
@@ -219,16 +235,16 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         &mut out,
         "brokenray_target_age_seconds",
         "gauge",
-        "Age of a target's newest filtered result.",
+        "Seconds from a target's newest filtered result to now on the server's clock, labelled with its status now.",
     );
     for (i, t) in inst.targets.iter().enumerate() {
-        if let Some(l) = &snapshot.targets[i].latest {
+        let now = snapshot.target_now(i, now_ns, tolerance_s);
+        if let Some(age_s) = now.age_s {
             let _ = writeln!(
                 out,
-                "brokenray_target_age_seconds{{target=\"{}\",status=\"{}\"}} {}",
+                "brokenray_target_age_seconds{{target=\"{}\",status=\"{}\"}} {age_s}",
                 t.name,
-                l.status.name(),
-                l.age_s
+                now.status.name(),
             );
         }
     }

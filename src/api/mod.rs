@@ -85,6 +85,19 @@ pub struct HealthOut {
     /// What is wrong, when something is (a failing commit, a removed database file, ...).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub problem: Option<String>,
+    /// Each target's status and age now, by name. A stale target does not make the service
+    /// unhealthy (the answer stays 200): alert on `targets.*.status == "stale"` or on
+    /// `brokenray_target_age_seconds` instead.
+    pub targets: std::collections::BTreeMap<String, TargetHealthOut>,
+}
+
+/// A target in `/healthz`.
+#[derive(Debug, serde::Serialize, utoipa::ToSchema)]
+pub struct TargetHealthOut {
+    /// As in the target's compensation: `ok`, `stale`, `degraded`, `initializing`, ...
+    pub status: &'static str,
+    /// Seconds from its newest result to now on the server's clock; null before any result.
+    pub age_s: Option<f64>,
 }
 
 /// `GET /healthz`: open to all (no token), for container health checks and load balancers; it
@@ -108,6 +121,24 @@ async fn healthz(
     } else {
         Some("the writer is not running".to_owned())
     };
+    let snapshot = app.service.snapshot();
+    let now_ns = app.service.now_ns();
+    let inst = app.service.installation();
+    let targets = inst
+        .targets
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let now = snapshot.target_now(i, now_ns, inst.server.clock_tolerance_s);
+            (
+                t.name.clone(),
+                TargetHealthOut {
+                    status: now.status.name(),
+                    age_s: now.age_s,
+                },
+            )
+        })
+        .collect();
     (
         if ok {
             StatusCode::OK
@@ -119,6 +150,7 @@ async fn healthz(
             database,
             writer,
             problem,
+            targets,
         }),
     )
 }

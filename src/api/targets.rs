@@ -259,7 +259,8 @@ pub struct CompensationOut {
     pub base: String,
     /// Time of the result.
     pub time: Option<String>,
-    /// Seconds since the newest sample behind the result; absent (null) before any result.
+    /// Live: seconds from the result's time to now on the server's clock. For a time asked
+    /// for: seconds from the newest sample behind it to that time. Null before any result.
     pub age_s: Option<f64>,
     /// `ok`, `stale`, `degraded`, `initializing` or `predicted`.
     pub status: &'static str,
@@ -368,14 +369,31 @@ fn compensation_out(
     }
 }
 
-/// The compensation JSON of a live result (for the event stream).
+/// A live result judged now on the server's clock (status `stale` when a link of the target
+/// stopped, the age from the result's time to now).
+fn live(app: &AppState, ti: usize, estimate: &TargetEstimate) -> Evaluated {
+    let now = app.service.snapshot().judge(
+        ti,
+        Some(estimate),
+        app.service.now_ns(),
+        app.service.installation().server.clock_tolerance_s,
+    );
+    Evaluated {
+        status: now.status,
+        age_s: now.age_s,
+        ..evaluated(estimate, "live")
+    }
+}
+
+/// The compensation JSON of a live result of target `ti` (for the event stream).
 pub fn live_compensation(
     app: &AppState,
     spec: &TargetSpec,
+    ti: usize,
     estimate: &TargetEstimate,
     reference: Option<&CurrentReference>,
 ) -> CompensationOut {
-    compensation_out(app, spec, evaluated(estimate, "live"), reference)
+    compensation_out(app, spec, live(app, ti, estimate), reference)
 }
 
 /// Query of `compensation`.
@@ -408,7 +426,7 @@ pub async fn get_compensation(
     let Some(at) = q.at else {
         return Ok(Json(match &view.latest {
             Some(l) => {
-                let mut out = compensation_out(&app, &spec, evaluated(l, "live"), reference);
+                let mut out = compensation_out(&app, &spec, live(&app, ti, l), reference);
                 // Live: the alarm state with its hysteresis, dwell, rate and stale tracks.
                 out.alarm = view.alarms.level().name();
                 out

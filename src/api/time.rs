@@ -38,9 +38,10 @@ pub fn parse_measurement_time(v: &serde_json::Value, latest_ns: i64) -> Result<i
     Ok(t)
 }
 
-/// The latest measurement time the server accepts now: its clock plus `max_future_s`.
-pub fn latest_accepted_ns(max_future_s: f64) -> i64 {
-    crate::service::now_ns().saturating_add((max_future_s * 1e9) as i64)
+/// The latest measurement time the server accepts at `now_ns` (its clock): plus
+/// `max_future_s`.
+pub fn latest_accepted_ns(now_ns: i64, max_future_s: f64) -> i64 {
+    now_ns.saturating_add((max_future_s * 1e9) as i64)
 }
 
 /// Parses a query-string time: RFC 3339 text, or integer nanoseconds.

@@ -104,7 +104,10 @@ pub async fn post_observations(
     )?;
     let observer = app.service.observer();
     // PnP is CPU work (tens of microseconds per observation): off the async workers.
-    let latest = super::time::latest_accepted_ns(app.service.installation().server.max_future_s);
+    let latest = super::time::latest_accepted_ns(
+        app.service.now_ns(),
+        app.service.installation().server.max_future_s,
+    );
     let solved = blocking(move || solve_batch(&observer, &batch.observations, latest)).await?;
     let (items, poses) = solved.map_err(|problems| {
         invalid(

@@ -143,8 +143,20 @@ pub struct LinkStatus {
 pub struct LinkLag {
     /// Seconds between the link's newest sample and the time asked about.
     pub behind_s: f64,
-    /// More than the link's staleness limit.
+    /// The limit it was judged against (s).
+    pub limit_s: f64,
+    /// `behind_s` is more than `limit_s`.
     pub stale: bool,
+}
+
+/// A target's liveness at a time (see [`FilterBank::target_liveness`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TargetLiveness {
+    /// A measured link on the target's paths is behind by more than its limit.
+    pub stale: bool,
+    /// The link with the largest `behind_s / limit_s`, and its lag; `None` before any link of
+    /// the target has a sample.
+    pub worst: Option<(LinkId, LinkLag)>,
 }
 
 /// A measured link's filtered pose at a time.
@@ -380,15 +392,49 @@ impl FilterBank {
     /// than its staleness limit (`stale_after_periods` of its expected period). `None` for a
     /// calibrated link, or before its first sample.
     pub fn link_lag(&self, link: LinkId, time_ns: i64) -> Option<LinkLag> {
+        self.link_lag_with(link, time_ns, 0.0)
+    }
+
+    /// [`Self::link_lag`] with `tolerance_s` added to the limit: judged against the server's
+    /// clock, the tolerance covers the delay and skew between the measuring computer and the
+    /// server.
+    pub fn link_lag_with(&self, link: LinkId, time_ns: i64, tolerance_s: f64) -> Option<LinkLag> {
         let LinkKind::Measured(m) = &self.installation.links[link.0].kind else {
             return None;
         };
         let last = self.status[link.0].last_time_ns?;
         let behind_s = (time_ns - last) as f64 / NS_PER_S;
+        let limit_s = self.settings.stale_after_periods / m.expected_rate_hz + tolerance_s;
         Some(LinkLag {
             behind_s,
-            stale: behind_s > self.settings.stale_after_periods / m.expected_rate_hz,
+            limit_s,
+            stale: behind_s > limit_s,
         })
+    }
+
+    /// A target's liveness at `time_ns` (the server's clock, for what is current): stale when
+    /// any measured link on any of its paths is behind by more than its limit plus
+    /// `tolerance_s`. Links without a sample yet are not stale (they have no data, which the
+    /// target's status says).
+    pub fn target_liveness(&self, target: usize, time_ns: i64, tolerance_s: f64) -> TargetLiveness {
+        let mut worst: Option<(LinkId, LinkLag)> = None;
+        let Some(spec) = self.installation.targets.get(target) else {
+            return TargetLiveness {
+                stale: false,
+                worst,
+            };
+        };
+        for l in spec.resolution.paths.iter().flat_map(|p| p.links()) {
+            if let Some(lag) = self.link_lag_with(l, time_ns, tolerance_s)
+                && worst.is_none_or(|(_, w)| lag.behind_s / lag.limit_s > w.behind_s / w.limit_s)
+            {
+                worst = Some((l, lag));
+            }
+        }
+        TargetLiveness {
+            stale: worst.is_some_and(|(_, w)| w.stale),
+            worst,
+        }
     }
 
     /// The measurement covariance of a sample: its own, else the link's default.

@@ -31,7 +31,7 @@ mod tuning;
 
 pub use bank::{
     BankRecord, FilterBank, LinkEstimate, LinkLag, LinkStatus, MeasurementUncertainty, RawResult,
-    Sample, SampleOutcome, TargetEstimate, TargetStatus,
+    Sample, SampleOutcome, TargetEstimate, TargetLiveness, TargetStatus,
 };
 pub use link::{CV_RATE_PRIOR_S, Disposition, LinkFilter, LinkFilterRecord, OutlierRecord};
 pub use tuning::{BankSettings, FilterTuning, MotionModel, OscillationTuning};

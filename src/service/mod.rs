@@ -147,6 +147,101 @@ pub struct Snapshot {
     pub bank: FilterBank,
 }
 
+/// A target as it stands at a time of the server's clock.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TargetNow {
+    /// The newest result's status, or `stale` when a link on the target's paths has delivered
+    /// nothing for longer than its limit; `initializing` before any result.
+    pub status: TargetStatus,
+    /// Seconds from the newest result's time to now (never negative); `None` before any
+    /// result.
+    pub age_s: Option<f64>,
+    /// The link furthest behind its limit.
+    pub liveness: crate::filter::TargetLiveness,
+}
+
+/// A link's state at a time of the server's clock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkState {
+    /// A calibrated link: no samples to wait for.
+    Calibrated,
+    /// A measured link without a sample yet (or since a reset).
+    NoData,
+    /// A measured link whose newest sample is older than its staleness limit on the server's
+    /// clock (plus `[server] clock_tolerance_s`), or behind the newest link's sample by more
+    /// than the limit in measurement time.
+    Stale,
+    /// A measured link that delivers.
+    Ok,
+}
+
+impl LinkState {
+    /// The name on the wire.
+    pub fn name(self) -> &'static str {
+        match self {
+            LinkState::Calibrated => "calibrated",
+            LinkState::NoData => "no_data",
+            LinkState::Stale => "stale",
+            LinkState::Ok => "ok",
+        }
+    }
+}
+
+impl Snapshot {
+    /// Target `ti` at `now_ns` on the server's clock, with `tolerance_s` of skew allowed: its
+    /// newest result judged by [`Self::judge`].
+    pub fn target_now(&self, ti: usize, now_ns: i64, tolerance_s: f64) -> TargetNow {
+        let latest = self.targets.get(ti).and_then(|t| t.latest.as_ref());
+        self.judge(ti, latest, now_ns, tolerance_s)
+    }
+
+    /// A live result of target `ti` judged at `now_ns` on the server's clock: `stale` when a
+    /// link on the target's paths has delivered nothing for longer than its limit (plus
+    /// `tolerance_s`), and its age from the result's time to now.
+    pub fn judge(
+        &self,
+        ti: usize,
+        result: Option<&TargetEstimate>,
+        now_ns: i64,
+        tolerance_s: f64,
+    ) -> TargetNow {
+        let liveness = self.bank.target_liveness(ti, now_ns, tolerance_s);
+        let status = match result {
+            None => TargetStatus::Initializing,
+            Some(_) if liveness.stale => TargetStatus::Stale,
+            Some(r) => r.status,
+        };
+        TargetNow {
+            status,
+            age_s: result.map(|r| ((now_ns - r.time_ns) as f64 / 1e9).max(0.0)),
+            liveness,
+        }
+    }
+
+    /// A link's state at `now_ns` on the server's clock, with `tolerance_s` of skew allowed.
+    pub fn link_state(
+        &self,
+        link: crate::chain::LinkId,
+        now_ns: i64,
+        tolerance_s: f64,
+    ) -> LinkState {
+        let bank = &self.bank;
+        if !matches!(
+            bank.installation().links[link.0].kind,
+            crate::config::LinkKind::Measured(_)
+        ) {
+            return LinkState::Calibrated;
+        }
+        let by_clock = bank.link_lag_with(link, now_ns, tolerance_s);
+        let behind_newest = bank.newest_sample_ns().and_then(|n| bank.link_lag(link, n));
+        match (by_clock, behind_newest) {
+            (None, _) => LinkState::NoData,
+            (Some(c), l) if c.stale || l.is_some_and(|l| l.stale) => LinkState::Stale,
+            _ => LinkState::Ok,
+        }
+    }
+}
+
 /// How a reference is set.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ReferenceRequest {
@@ -191,6 +286,9 @@ pub(crate) enum Job {
         note: Option<String>,
         reply: oneshot::Sender<ServiceResult<i64>>,
     },
+    CheckLiveness {
+        reply: oneshot::Sender<ServiceResult<usize>>,
+    },
 }
 
 struct Inner {
@@ -211,6 +309,8 @@ struct Inner {
     observer: Arc<crate::vision::Observer>,
     /// Turns true when shutdown begins: live event streams end on it.
     stopping: tokio::sync::watch::Sender<bool>,
+    /// The server's clock.
+    clock: crate::clock::SharedClock,
     /// Bounds the reads that stream over many rows (statistics, fine history), so that they
     /// cannot take every read connection.
     heavy_reads: Arc<tokio::sync::Semaphore>,
@@ -252,13 +352,8 @@ impl PipelineHandle {
     }
 }
 
-/// Wall-clock time (ns since the Unix epoch), for receipt and creation stamps only.
-pub fn now_ns() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
-        .unwrap_or(0)
-}
+/// How often staleness is judged on the server's clock.
+pub const LIVENESS_CHECK_S: f64 = 1.0;
 
 /// A short fingerprint of the parts of an installation that the filter state depends on.
 fn installation_digest(inst: &Installation) -> String {
@@ -278,8 +373,18 @@ impl Service {
     /// Opens the store, restores the filters, references and calibrations, and starts the
     /// pipeline. The handle must be awaited after the last request, at shutdown.
     pub async fn start(installation: Installation) -> ServiceResult<(Service, PipelineHandle)> {
+        Self::start_with_clock(installation, crate::clock::system()).await
+    }
+
+    /// Starts the service with the given clock as the server's (a test sets it instead of
+    /// sleeping). Measurement times are unaffected: the clock judges liveness and the future
+    /// limit of ingest, and stamps what the server records.
+    pub async fn start_with_clock(
+        installation: Installation,
+        clock: crate::clock::SharedClock,
+    ) -> ServiceResult<(Service, PipelineHandle)> {
         let installation = Arc::new(installation);
-        let (store, write) = store::open(&installation, now_ns()).await?;
+        let (store, write) = store::open(&installation, clock.now_ns()).await?;
 
         let mut bank = FilterBank::shared(Arc::clone(&installation));
         for spec in &installation.links {
@@ -361,12 +466,24 @@ impl Service {
             viz_counters,
             observer: Arc::new(crate::vision::Observer::new(&installation)),
             stopping: tokio::sync::watch::channel(false).0,
+            clock: Arc::clone(&clock),
             heavy_reads: Arc::new(tokio::sync::Semaphore::new(
                 installation.server.max_heavy_reads,
             )),
         });
         let task = tokio::spawn(pipeline::run(
-            pipeline::Pipeline::new(write, bank, targets, digest, metrics, events, viz),
+            pipeline::Pipeline::new(
+                write,
+                bank,
+                targets,
+                digest,
+                pipeline::Outlets {
+                    metrics,
+                    events,
+                    viz,
+                    clock,
+                },
+            ),
             rx,
             move |s: Snapshot| match slot.write() {
                 Ok(mut guard) => *guard = Arc::new(s),
@@ -391,7 +508,35 @@ impl Service {
                 }
             }
         });
+        // Staleness is judged every second on the server's clock, whether data comes or not.
+        let weak = Arc::downgrade(&service.inner);
+        tokio::spawn(async move {
+            let mut every =
+                tokio::time::interval(std::time::Duration::from_secs_f64(LIVENESS_CHECK_S));
+            every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                every.tick().await;
+                let Some(inner) = weak.upgrade() else { return };
+                if *inner.stopping.borrow() {
+                    return;
+                }
+                if let Err(e) = (Service { inner }).check_liveness().await {
+                    tracing::warn!(error = %e, "the liveness check failed");
+                }
+            }
+        });
         Ok((service, PipelineHandle(task, viz_thread)))
+    }
+
+    /// The server's clock now (ns since the Unix epoch).
+    pub fn now_ns(&self) -> i64 {
+        self.inner.clock.now_ns()
+    }
+
+    /// Judges every target's staleness now (the service does so every second by itself);
+    /// returns how many stale alarms changed level, each stored and sent live.
+    pub async fn check_liveness(&self) -> ServiceResult<usize> {
+        self.submit(|reply| Job::CheckLiveness { reply }).await
     }
 
     /// The installation.

@@ -2,7 +2,7 @@
 
 use super::{
     CurrentReference, ItemProblem, Job, ReferenceRequest, ServiceError, ServiceResult, Snapshot,
-    TargetView, now_ns,
+    TargetView,
 };
 use crate::chain::LinkId;
 use crate::deformation::{Deformation, Reference};
@@ -60,6 +60,8 @@ pub(super) struct Pipeline {
     last_event_ns: Vec<Option<i64>>,
     /// What goes to Rerun (never waits).
     viz: crate::viz::VizSender,
+    /// The server's clock: receipt stamps, retention, liveness.
+    clock: crate::clock::SharedClock,
 }
 
 #[allow(
@@ -81,6 +83,7 @@ enum Pending {
         oneshot::Sender<ServiceResult<(u64, u64)>>,
         ServiceResult<(u64, u64)>,
     ),
+    Liveness(oneshot::Sender<ServiceResult<usize>>, ServiceResult<usize>),
 }
 
 /// What a job asks the transaction to do; its reply waits in a [`Pending`].
@@ -105,6 +108,7 @@ enum Work {
         by: Option<String>,
         note: Option<String>,
     },
+    Liveness,
 }
 
 /// The result of a job not applied (yet): what it answers if the transaction fails first.
@@ -133,6 +137,7 @@ impl Job {
             Job::Prune { retention, reply } => {
                 (Pending::Prune(reply, unapplied()), Work::Prune(retention))
             }
+            Job::CheckLiveness { reply } => (Pending::Liveness(reply, unapplied()), Work::Liveness),
             Job::ResetLink {
                 link,
                 by,
@@ -168,6 +173,7 @@ impl Pending {
             Pending::Calibration(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Reset(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Prune(tx, r) => tx.send(r).map_err(|_| ()),
+            Pending::Liveness(tx, r) => tx.send(r).map_err(|_| ()),
         };
     }
 
@@ -179,8 +185,17 @@ impl Pending {
             Pending::Calibration(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Reset(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Prune(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+            Pending::Liveness(tx, _) => tx.send(Err(err())).map_err(|_| ()),
         };
     }
+}
+
+/// Where the pipeline's work goes besides the database, and the clock it reads.
+pub(super) struct Outlets {
+    pub metrics: std::sync::Arc<super::Metrics>,
+    pub events: tokio::sync::broadcast::Sender<super::LiveEvent>,
+    pub viz: crate::viz::VizSender,
+    pub clock: crate::clock::SharedClock,
 }
 
 impl Pipeline {
@@ -189,13 +204,18 @@ impl Pipeline {
         bank: FilterBank,
         targets: Vec<TargetView>,
         digest: String,
-        metrics: std::sync::Arc<super::Metrics>,
-        events: tokio::sync::broadcast::Sender<super::LiveEvent>,
-        viz: crate::viz::VizSender,
+        outlets: Outlets,
     ) -> Self {
+        let Outlets {
+            metrics,
+            events,
+            viz,
+            clock,
+        } = outlets;
         let committed_state = bank.record();
         let last_event_ns = vec![None; targets.len()];
         Self {
+            clock,
             viz,
             events,
             last_event_ns,
@@ -268,7 +288,21 @@ impl Pipeline {
 
     /// Applies a group of jobs in one transaction and answers them after the commit.
     async fn commit_group(&mut self, jobs: Vec<Job>) -> bool {
-        let now = now_ns();
+        let now = self.clock.now_ns();
+        // Liveness checks alone write only when a stale alarm changes: judged first on a copy,
+        // and without a transaction when nothing changes (the usual case, every second).
+        if jobs.iter().all(|j| matches!(j, Job::CheckLiveness { .. })) {
+            let mut probe = self.targets.clone();
+            if judge_liveness(&self.bank, &mut probe, now).is_empty() {
+                self.targets = probe;
+                for j in jobs {
+                    if let Job::CheckLiveness { reply } = j {
+                        let _ = reply.send(Ok(0));
+                    }
+                }
+                return false;
+            }
+        }
         let started = std::time::Instant::now();
         let targets_before = self.targets.clone();
         let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
@@ -352,6 +386,15 @@ impl Pipeline {
                                 problems: Vec::new(),
                             })
                         };
+                    }
+                    (Work::Liveness, Pending::Liveness(_, result)) => {
+                        let t = judge_liveness(bank, targets, now);
+                        for (target, transition) in &t {
+                            tx.insert_alarms(*target, std::slice::from_ref(transition), now)
+                                .await?;
+                        }
+                        *result = Ok(t.len());
+                        transitions.extend(t);
                     }
                     (Work::ResetLink { link, by, note }, Pending::Reset(_, result)) => {
                         *result = if bank.reset_link(link) {
@@ -462,6 +505,32 @@ pub(super) async fn run(
         Some(problem) => Err(problem),
         None => Ok(()),
     }
+}
+
+/// Steps every target's stale track at `now_ns` (the server's clock) with the link furthest
+/// behind its staleness limit (plus `[server] clock_tolerance_s`); returns the transitions.
+fn judge_liveness(
+    bank: &FilterBank,
+    targets: &mut [TargetView],
+    now_ns: i64,
+) -> Vec<(usize, crate::alarms::Transition)> {
+    let inst = bank.installation();
+    let tolerance_s = inst.server.clock_tolerance_s;
+    let mut out = Vec::new();
+    for (ti, view) in targets.iter_mut().enumerate() {
+        let Some((link, lag)) = bank.target_liveness(ti, now_ns, tolerance_s).worst else {
+            continue;
+        };
+        if let Some(t) = view.alarms.liveness(
+            now_ns,
+            &inst.links[link.0].name,
+            lag.behind_s.max(0.0),
+            lag.limit_s,
+        ) {
+            out.push((ti, t));
+        }
+    }
+    out
 }
 
 fn disposition_name(d: &Disposition) -> &'static str {
@@ -708,12 +777,10 @@ async fn ingest(
             );
             let magnitudes = deformation
                 .map(|(_, d)| (d.rotation_magnitude_arcsec(), d.translation_magnitude_mm()));
-            for t in targets[est.target].alarms.update(
-                est.time_ns,
-                est.status == crate::filter::TargetStatus::Stale,
-                &pose.pose,
-                magnitudes,
-            ) {
+            for t in targets[est.target]
+                .alarms
+                .update(est.time_ns, &pose.pose, magnitudes)
+            {
                 transitions.push((est.target, t));
             }
             latest.insert(est.target, est);

@@ -98,7 +98,7 @@ impl Logger {
     /// combined; all share one recording id, so a viewer merges them.
     pub fn live(inst: &Arc<Installation>, counters: Arc<VizCounters>) -> Result<Self, VizError> {
         let s = &inst.rerun;
-        let recording_id = format!("brokenray-{}", crate::service::now_ns());
+        let recording_id = format!("brokenray-{}", crate::clock::wall_now_ns());
         let builder = || {
             RecordingStreamBuilder::new(APPLICATION_ID)
                 .recording_id(recording_id.clone())

@@ -252,7 +252,7 @@ async fn events_stream_new_results_and_drop_a_client_that_lags() {
     // last, so none is held back by the 10-a-second limit. The idle subscriber lags and is told
     // so; every request was answered meanwhile.
     for i in 1..=300 {
-        let (status, _) = app.post_json("/api/v1/samples", &group(10 * i)).await;
+        let (status, _) = app.post_live("/api/v1/samples", &group(10 * i)).await;
         assert_eq!(status, StatusCode::OK);
     }
     let mut lagged = false;

@@ -49,7 +49,7 @@ async fn a_deformation_ramp_stores_exactly_its_transitions() {
     }
     for chunk in samples.chunks(250) {
         let (status, body) = app
-            .post_json("/api/v1/samples", &json!({"samples": chunk}))
+            .post_live("/api/v1/samples", &json!({"samples": chunk}))
             .await;
         assert_eq!(status, StatusCode::OK, "{body}");
     }

@@ -41,6 +41,7 @@ async fn fetch(
 async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags() {
     // Tokens configured: the API needs one, the dashboard's files do not.
     let app = TestApp::start(Some(&with_tokens())).await;
+    follow_real_time(&app);
     let (status, headers, body) = fetch(&app, "/", &[]).await;
     assert_eq!(status, StatusCode::OK);
     assert_eq!(headers[header::CONTENT_TYPE], "text/html; charset=utf-8");
@@ -263,6 +264,7 @@ fn ship_installation() -> String {
 async fn the_dashboard_works_in_a_real_browser() {
     let tools = browser();
     let app = TestApp::start(Some(&ship_installation())).await;
+    follow_real_time(&app);
     let inst = app.service.installation().clone();
 
     // 150 s of a ship at 10 Hz, ending now; the reference set over the first 15 s.
@@ -388,6 +390,7 @@ async fn serve(app: &TestApp) -> (String, tokio::task::JoinHandle<std::io::Resul
 async fn with_tokens_the_dashboard_asks_for_one_and_sends_it() {
     let tools = browser();
     let app = TestApp::start(Some(&with_tokens())).await;
+    follow_real_time(&app);
     let inst = app.service.installation().clone();
     let mut sim = Simulator::new(
         &inst,
@@ -425,6 +428,19 @@ async fn with_tokens_the_dashboard_asks_for_one_and_sends_it() {
     )
     .await;
     server.abort();
+}
+
+/// The browser reads the real clock, and posts at its times: the service's clock follows it
+/// (until the test ends).
+fn follow_real_time(app: &TestApp) {
+    let clock = app.clock.clone();
+    clock.set_ns(now_ns());
+    tokio::spawn(async move {
+        loop {
+            clock.set_ns(now_ns());
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    });
 }
 
 fn now_ns() -> i64 {

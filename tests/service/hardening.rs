@@ -5,10 +5,6 @@ use super::helpers::{T0_NS, TestApp, nominal_group, time_text};
 use axum::http::StatusCode;
 use serde_json::{Value, json};
 
-fn now_ns() -> i64 {
-    brokenray::service::now_ns()
-}
-
 fn sample(link: &str, time: Value, pose: Value) -> Value {
     json!({"samples": [{"link": link, "time": time, "pose": pose}]})
 }
@@ -29,7 +25,7 @@ fn assert_field(body: &Value, field: &str) {
 #[tokio::test]
 async fn a_time_ahead_of_the_server_clock_is_refused() {
     let app = TestApp::start(None).await;
-    let ahead = now_ns() + 60_000_000_000;
+    let ahead = app.service.now_ns() + 60_000_000_000;
     let (status, body) = app
         .post_json(
             "/api/v1/samples",
@@ -53,7 +49,11 @@ async fn a_time_ahead_of_the_server_clock_is_refused() {
     let (status, body) = app
         .post_json(
             "/api/v1/samples",
-            &sample("C1_from_B", json!(now_ns() + 2_000_000_000), nominal_pose()),
+            &sample(
+                "C1_from_B",
+                json!(app.service.now_ns() + 2_000_000_000),
+                nominal_pose(),
+            ),
         )
         .await;
     assert_eq!(status, StatusCode::OK, "{body}");
@@ -199,7 +199,7 @@ async fn retention_counts_back_from_the_server_clock_not_from_a_future_result() 
             .unwrap()
     )))
     .await;
-    let real_start = now_ns() - 3_600_000_000_000;
+    let real_start = app.service.now_ns() - 3_600_000_000_000;
     let group = |t: i64| {
         let samples: Vec<Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
             .iter()
@@ -217,7 +217,7 @@ async fn retention_counts_back_from_the_server_clock_not_from_a_future_result() 
     let (status, body) = app
         .post_json(
             "/api/v1/samples",
-            &group(now_ns() + 10 * 86_400_000_000_000),
+            &group(app.service.now_ns() + 10 * 86_400_000_000_000),
         )
         .await;
     assert_eq!(status, StatusCode::OK, "{body}");
@@ -232,7 +232,7 @@ async fn a_backfilled_group_gets_its_raw_result() {
     let app = TestApp::start(None).await;
     // Live data first, far more groups than are assembled in memory.
     for k in 1000..1200 {
-        let (status, body) = app.post_json("/api/v1/samples", &nominal_group(k)).await;
+        let (status, body) = app.post_live("/api/v1/samples", &nominal_group(k)).await;
         assert_eq!(status, StatusCode::OK, "{body}");
     }
     // Then the buffer of an outage: each link's samples in its own request, oldest last.
@@ -483,7 +483,7 @@ async fn a_link_reset_recovers_from_a_sample_stamped_ahead() {
     let text = brokenray::config::DEFAULT_INSTALLATION_TOML
         .replace("[server]", "[server]\nmax_future_s = 1000000");
     let app = TestApp::start(Some(&text)).await;
-    let start = now_ns() - 60_000_000_000;
+    let start = app.service.now_ns() - 60_000_000_000;
     let group = |k: i64| {
         let samples: Vec<Value> = ["C1_from_B", "C2_from_M", "C3_from_G"]
             .iter()
@@ -495,7 +495,7 @@ async fn a_link_reset_recovers_from_a_sample_stamped_ahead() {
         let (status, body) = app.post_json("/api/v1/samples", &group(k)).await;
         assert_eq!(status, StatusCode::OK, "{body}");
     }
-    let ahead = now_ns() + 3_600_000_000_000;
+    let ahead = app.service.now_ns() + 3_600_000_000_000;
     let (status, body) = app
         .post_json(
             "/api/v1/samples",

@@ -4,6 +4,7 @@ use axum::Router;
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
 use brokenray::api::{AppState, Limits, router};
+use brokenray::clock::{Clock as _, ManualClock};
 use brokenray::config::{self, Installation};
 use brokenray::service::{PipelineHandle, Service};
 use http_body_util::BodyExt;
@@ -11,6 +12,8 @@ use serde_json::Value;
 use tower::ServiceExt;
 
 pub struct TestApp {
+    /// The service's clock: it reads [`START_NS`] until a test moves it.
+    pub clock: ManualClock,
     pub dir: tempfile::TempDir,
     pub service: Service,
     pub pipeline: Option<PipelineHandle>,
@@ -41,16 +44,28 @@ impl TestApp {
     }
 
     pub async fn start_with(dir: tempfile::TempDir, inst: Installation) -> TestApp {
+        Self::start_with_clock(dir, inst, ManualClock::new(START_NS)).await
+    }
+
+    pub async fn start_with_clock(
+        dir: tempfile::TempDir,
+        inst: Installation,
+        clock: ManualClock,
+    ) -> TestApp {
         let limits = Limits {
             max_body_bytes: inst.server.max_body_bytes,
             max_batch_samples: inst.server.max_batch_samples,
         };
-        let (service, pipeline) = Service::start(inst).await.expect("service starts");
+        let (service, pipeline) =
+            Service::start_with_clock(inst, std::sync::Arc::new(clock.clone()))
+                .await
+                .expect("service starts");
         let router = router(AppState {
             service: service.clone(),
             limits,
         });
         TestApp {
+            clock,
             dir,
             service,
             pipeline: Some(pipeline),
@@ -67,7 +82,7 @@ impl TestApp {
         pipeline.finished().await.expect("a clean stop");
         store.close().await;
         let inst = installation(&self.dir, text);
-        Self::start_with(self.dir, inst).await
+        Self::start_with_clock(self.dir, inst, self.clock).await
     }
 
     pub async fn request(
@@ -131,6 +146,24 @@ impl TestApp {
         .await
     }
 
+    /// Posts a batch of samples or observations the way a live feed delivers it: the clock
+    /// first moves on to the batch's newest time (never back), so that the data is current
+    /// and none of it lies in the future.
+    pub async fn post_live(&self, uri: &str, body: &Value) -> (StatusCode, Value) {
+        let newest = ["samples", "observations"]
+            .iter()
+            .filter_map(|k| body[k].as_array())
+            .flatten()
+            .filter_map(|item| brokenray::api::time::parse_json_time(&item["time"]).ok())
+            .max();
+        if let Some(t) = newest
+            && t > self.clock.now_ns()
+        {
+            self.clock.set_ns(t);
+        }
+        self.post_json(uri, body).await
+    }
+
     pub async fn post_text(
         &self,
         uri: &str,
@@ -149,6 +182,10 @@ pub fn time_text(k: i64) -> String {
 
 /// 2026-11-21T10:00:00Z in nanoseconds.
 pub const T0_NS: i64 = 1_795_255_200_000_000_000;
+
+/// Where a test service's clock starts: 2 s after [`T0_NS`]. Samples up to `max_future_s` (5 s)
+/// later are accepted, and a feed that starts at `T0_NS` is current.
+pub const START_NS: i64 = T0_NS + 2_000_000_000;
 
 pub fn pose_json(p: &brokenray::geometry::Pose) -> Value {
     let q = brokenray::geometry::quaternion_wxyz(&p.rotation);

@@ -175,7 +175,7 @@ async fn retention_prunes_old_rows_and_keeps_rollups() {
     // Five days of samples, one an hour, ending an hour ago (later ones would be in the
     // future, which the service refuses).
     let hour = 3_600_000_000_000i64;
-    let start = (brokenray::service::now_ns() / hour - 121) * hour;
+    let start = (app.service.now_ns() / hour - 121) * hour;
     let samples: Vec<serde_json::Value> = (0..120)
         .map(|h| {
             serde_json::json!({"link": "G_from_B", "time": start + h * hour,
@@ -232,7 +232,7 @@ async fn a_result_recomputed_at_the_same_time_counts_once_in_the_rollups() {
         let group = sim.next_group();
         for item in sample_items(&group, sim.observer()) {
             let (status, body) = app
-                .post_json("/api/v1/samples", &serde_json::json!({ "samples": [item] }))
+                .post_live("/api/v1/samples", &serde_json::json!({ "samples": [item] }))
                 .await;
             assert_eq!(status, StatusCode::OK, "{body}");
         }

@@ -7,6 +7,7 @@ mod hardening;
 mod helpers;
 mod history;
 mod ingest_errors;
+mod liveness;
 mod observations;
 mod openapi;
 #[path = "../common/paper.rs"]

@@ -41,7 +41,7 @@ async fn the_laboratory_replica_repeats_like_the_paper_and_filtering_steadies_it
             items.extend(observation_items(&g));
         }
         let (status, body) = app
-            .post_json("/api/v1/observations", &json!({ "observations": items }))
+            .post_live("/api/v1/observations", &json!({ "observations": items }))
             .await;
         assert_eq!(status, StatusCode::OK, "{body}");
         assert_eq!(body["accepted"], 30);

@@ -224,7 +224,7 @@ async fn an_absent_viewer_never_holds_up_ingest() {
             })
             .collect();
         let (s, body) = app
-            .post_json("/api/v1/samples", &json!({ "samples": samples }))
+            .post_live("/api/v1/samples", &json!({ "samples": samples }))
             .await;
         assert_eq!(s, StatusCode::OK, "batch {batch}: {body}");
         assert_eq!(body["stored"], 150);

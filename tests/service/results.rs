@@ -110,7 +110,7 @@ async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
         }
     }
     let (status, body) = app
-        .post_json("/api/v1/samples", &json!({"samples": samples}))
+        .post_live("/api/v1/samples", &json!({"samples": samples}))
         .await;
     assert_eq!(status, StatusCode::OK, "{body}");
     let (_, c) = app.get("/api/v1/targets/G/compensation").await;
@@ -289,7 +289,7 @@ async fn a_window_reference_gives_deformation_and_correction() {
     for k in 10..400 {
         samples.extend(group(k, &moved));
     }
-    app.post_json("/api/v1/samples", &json!({"samples": samples}))
+    app.post_live("/api/v1/samples", &json!({"samples": samples}))
         .await;
     let (_, c) = app.get("/api/v1/targets/G/compensation").await;
     let def: Vec<f64> =
