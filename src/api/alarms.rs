@@ -3,17 +3,19 @@
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
 use super::time::format_ns;
-use crate::alarms::Transition;
+use crate::store::StoredAlarm;
 use axum::Json;
-use axum::extract::{Query, State};
+use axum::extract::{Path, Query, State};
 use serde::{Deserialize, Serialize};
 
 /// An alarm transition as answered.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct AlarmOut {
+    /// Its id (for `POST /api/v1/alarms/{id}/ack`).
+    pub id: i64,
     /// Target.
     pub target: String,
-    /// When (measurement time).
+    /// When: measurement time for `deformation` and `rate`, the server's clock for `stale`.
     pub time: String,
     /// `deformation`, `rate` or `stale`.
     pub kind: &'static str,
@@ -22,18 +24,27 @@ pub struct AlarmOut {
     /// Level after.
     pub to: &'static str,
     /// The deciding value, in `unit`: of the rotation and the translation, the one that is the
-    /// larger fraction of its threshold (0 for stale).
+    /// larger fraction of its threshold; for stale, the age of the oldest link.
     pub value: f64,
-    /// `arcsec`, `mm` (deformation), `arcsec_per_s`, `mm_per_s` (rate) or `none` (stale).
+    /// `arcsec`, `mm` (deformation), `arcsec_per_s`, `mm_per_s` (rate), `s` (stale), or `none`
+    /// (stale transitions stored before ages were).
     pub unit: &'static str,
     /// A sentence.
     pub message: String,
+    /// Who acknowledged it; null until someone does.
+    pub acknowledged_by: Option<String>,
+    /// When it was acknowledged (server clock); null until then.
+    pub acknowledged_at: Option<String>,
+    /// The acknowledgement's note, if one was given.
+    pub note: Option<String>,
 }
 
 impl AlarmOut {
-    /// From a transition.
-    pub fn new(target: String, t: &Transition) -> Self {
+    /// From a stored transition of the target named `target`.
+    pub fn new(target: String, a: &StoredAlarm) -> Self {
+        let t = &a.transition;
         Self {
+            id: a.id,
             target,
             time: format_ns(t.time_ns),
             kind: t.kind.name(),
@@ -42,6 +53,9 @@ impl AlarmOut {
             value: t.value,
             unit: t.unit.name(),
             message: t.message.clone(),
+            acknowledged_by: a.ack.as_ref().map(|k| k.by.clone()),
+            acknowledged_at: a.ack.as_ref().map(|k| format_ns(k.at_ns)),
+            note: a.ack.as_ref().and_then(|k| k.note.clone()),
         }
     }
 }
@@ -105,7 +119,58 @@ pub async fn list_alarms(
     Ok(Json(AlarmsOut {
         alarms: stored
             .iter()
-            .map(|a| AlarmOut::new(inst.targets[a.target].name.clone(), &a.transition))
+            .map(|a| AlarmOut::new(inst.targets[a.target].name.clone(), a))
             .collect(),
     }))
+}
+
+/// Body of `POST /api/v1/alarms/{id}/ack`.
+#[derive(Debug, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct AckIn {
+    /// Who acknowledges (a name for the record).
+    pub by: String,
+    /// What was seen or done (optional).
+    pub note: Option<String>,
+}
+
+/// `POST /api/v1/alarms/{id}/ack`: records that someone has seen an alarm transition (who,
+/// when, a note). The same acknowledgement again is accepted (a retry); a different one of an
+/// acknowledged alarm is a conflict.
+#[utoipa::path(post, path = "/alarms/{id}/ack", tag = "alarms",
+    params(("id" = i64, Path, description = "The alarm's id")),
+    request_body(content = AckIn, description = "Who acknowledges, and a note"),
+    responses(
+        (status = 200, description = "The alarm, acknowledged", body = AlarmOut),
+        (status = 400, description = "Malformed JSON", body = ErrorBody),
+        (status = 404, description = "No such alarm", body = ErrorBody),
+        (status = 409, description = "Already acknowledged by someone else or with another note", body = ErrorBody),
+        (status = 422, description = "No `by`, a text too long, or a transition back to `none`", body = ErrorBody),
+    ),
+    security(("bearer" = ["admin"])))]
+pub async fn post_ack(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    body: axum::body::Bytes,
+) -> Result<Json<AlarmOut>, ApiError> {
+    let id: i64 = id
+        .parse()
+        .map_err(|_| ApiError::invalid_field("id", format!("`{id}` is not an alarm id")))?;
+    let ack: AckIn = super::parse_json_body(&body)?;
+    if ack.by.trim().is_empty() {
+        return Err(ApiError::invalid_field("by", "say who acknowledges"));
+    }
+    for (field, text) in [("by", Some(&ack.by)), ("note", ack.note.as_ref())] {
+        if text.is_some_and(|t| t.chars().count() > 1000) {
+            return Err(ApiError::invalid_field(field, "at most 1000 characters"));
+        }
+    }
+    let stored = app
+        .service
+        .acknowledge_alarm(id, ack.by, ack.note)
+        .await?;
+    let name = app.service.installation().targets[stored.target]
+        .name
+        .clone();
+    Ok(Json(AlarmOut::new(name, &stored)))
 }

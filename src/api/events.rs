@@ -47,9 +47,9 @@ pub async fn get_events(
                     .unwrap_or_else(|_| Event::default().event("error").data("unencodable result"));
                 Some((Ok(event), (rx, app, stop)))
             }
-            Ok(LiveEvent::Alarm { target, transition }) => {
-                let name = app.service.installation().targets[target].name.clone();
-                let body = super::alarms::AlarmOut::new(name, &transition);
+            Ok(LiveEvent::Alarm(alarm)) => {
+                let name = app.service.installation().targets[alarm.target].name.clone();
+                let body = super::alarms::AlarmOut::new(name, &alarm);
                 let event = Event::default()
                     .event("alarm")
                     .json_data(body)

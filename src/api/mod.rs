@@ -274,6 +274,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(targets::list_references))
         .routes(routes!(events::get_events))
         .routes(routes!(alarms::list_alarms))
+        .routes(routes!(alarms::post_ack))
         .routes(routes!(links::list_links))
         .routes(routes!(links::list_samples))
         .routes(routes!(links::put_calibration))

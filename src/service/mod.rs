@@ -126,13 +126,8 @@ pub enum LiveEvent {
         /// The reference in force.
         reference: Option<CurrentReference>,
     },
-    /// An alarm transition.
-    Alarm {
-        /// Target index.
-        target: usize,
-        /// The transition.
-        transition: crate::alarms::Transition,
-    },
+    /// An alarm transition, as stored (with its id).
+    Alarm(crate::store::StoredAlarm),
 }
 
 /// How many events a live subscriber may fall behind before it is dropped.
@@ -288,6 +283,12 @@ pub(crate) enum Job {
     },
     CheckLiveness {
         reply: oneshot::Sender<ServiceResult<usize>>,
+    },
+    AcknowledgeAlarm {
+        id: i64,
+        by: String,
+        note: Option<String>,
+        reply: oneshot::Sender<ServiceResult<()>>,
     },
 }
 
@@ -662,6 +663,29 @@ impl Service {
             reply,
         })
         .await
+    }
+
+    /// Acknowledges alarm transition `id`: who, and an optional note, recorded with the server's
+    /// time. The same acknowledgement again is accepted (a retry); a different one of an
+    /// acknowledged alarm is a conflict; a transition back to `none` has nothing to acknowledge.
+    pub async fn acknowledge_alarm(
+        &self,
+        id: i64,
+        by: String,
+        note: Option<String>,
+    ) -> ServiceResult<crate::store::StoredAlarm> {
+        self.submit(|reply| Job::AcknowledgeAlarm {
+            id,
+            by,
+            note,
+            reply,
+        })
+        .await?;
+        self.inner
+            .store
+            .alarm(id)
+            .await?
+            .ok_or_else(|| ServiceError::NotFound(format!("no alarm {id}")))
     }
 
     /// Stores a new calibration of a calibrated link, valid from `valid_from_ns`; returns its

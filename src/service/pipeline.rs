@@ -8,7 +8,9 @@ use crate::chain::LinkId;
 use crate::deformation::{Deformation, Reference};
 use crate::filter::{BankRecord, Disposition, FilterBank, Sample, TargetEstimate};
 use crate::store::write_tx::WriteTx;
-use crate::store::{NewResult, NewSample, Quality, SampleValues, StoreError, WriteConn};
+use crate::store::{
+    NewResult, NewSample, Quality, SampleValues, StoreError, StoredAlarm, WriteConn,
+};
 use crate::viz::Series;
 use std::collections::{BTreeMap, HashMap};
 use tokio::sync::{mpsc, oneshot};
@@ -84,6 +86,7 @@ enum Pending {
         ServiceResult<(u64, u64)>,
     ),
     Liveness(oneshot::Sender<ServiceResult<usize>>, ServiceResult<usize>),
+    Acknowledge(oneshot::Sender<ServiceResult<()>>, ServiceResult<()>),
 }
 
 /// What a job asks the transaction to do; its reply waits in a [`Pending`].
@@ -109,6 +112,11 @@ enum Work {
         note: Option<String>,
     },
     Liveness,
+    Acknowledge {
+        id: i64,
+        by: String,
+        note: Option<String>,
+    },
 }
 
 /// The result of a job not applied (yet): what it answers if the transaction fails first.
@@ -138,6 +146,15 @@ impl Job {
                 (Pending::Prune(reply, unapplied()), Work::Prune(retention))
             }
             Job::CheckLiveness { reply } => (Pending::Liveness(reply, unapplied()), Work::Liveness),
+            Job::AcknowledgeAlarm {
+                id,
+                by,
+                note,
+                reply,
+            } => (
+                Pending::Acknowledge(reply, unapplied()),
+                Work::Acknowledge { id, by, note },
+            ),
             Job::ResetLink {
                 link,
                 by,
@@ -174,6 +191,7 @@ impl Pending {
             Pending::Reset(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Prune(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Liveness(tx, r) => tx.send(r).map_err(|_| ()),
+            Pending::Acknowledge(tx, r) => tx.send(r).map_err(|_| ()),
         };
     }
 
@@ -186,6 +204,7 @@ impl Pending {
             Pending::Reset(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Prune(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Liveness(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+            Pending::Acknowledge(tx, _) => tx.send(Err(err())).map_err(|_| ()),
         };
     }
 }
@@ -306,7 +325,7 @@ impl Pipeline {
         let started = std::time::Instant::now();
         let targets_before = self.targets.clone();
         let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
-        let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
+        let mut transitions: Vec<StoredAlarm> = Vec::new();
         let mut viz_records: Vec<crate::viz::Record> = Vec::new();
         let (mut pending, work): (Vec<Pending>, Vec<Work>) =
             jobs.into_iter().map(Job::split).unzip();
@@ -388,13 +407,43 @@ impl Pipeline {
                         };
                     }
                     (Work::Liveness, Pending::Liveness(_, result)) => {
-                        let t = judge_liveness(bank, targets, now);
-                        for (target, transition) in &t {
-                            tx.insert_alarms(*target, std::slice::from_ref(transition), now)
-                                .await?;
-                        }
+                        let t = store_alarms(&mut tx, judge_liveness(bank, targets, now), now)
+                            .await?;
                         *result = Ok(t.len());
                         transitions.extend(t);
+                    }
+                    (Work::Acknowledge { id, by, note }, Pending::Acknowledge(_, result)) => {
+                        *result = match tx.alarm_ack_state(id).await? {
+                            None => Err(ServiceError::NotFound(format!("no alarm {id}"))),
+                            Some((to, ..)) if to == crate::alarms::Level::None.name() => {
+                                Err(ServiceError::Invalid {
+                                    message: format!(
+                                        "alarm {id} is a return to `none`: there is nothing to acknowledge"
+                                    ),
+                                    problems: vec![ItemProblem {
+                                        index: None,
+                                        field: Some("id".into()),
+                                        message: "a transition back to `none`".into(),
+                                    }],
+                                })
+                            }
+                            Some((_, Some(prev_by), prev_note)) => {
+                                if prev_by == by && prev_note == note {
+                                    Ok(())
+                                } else {
+                                    Err(ServiceError::Conflict {
+                                        message: format!(
+                                            "alarm {id} was already acknowledged by `{prev_by}`"
+                                        ),
+                                        problems: Vec::new(),
+                                    })
+                                }
+                            }
+                            Some(_) => {
+                                tx.acknowledge_alarm(id, &by, note.as_deref(), now).await?;
+                                Ok(())
+                            }
+                        };
                     }
                     (Work::ResetLink { link, by, note }, Pending::Reset(_, result)) => {
                         *result = if bank.reset_link(link) {
@@ -440,16 +489,14 @@ impl Pipeline {
                     p.answer();
                 }
                 self.publish_events();
-                for (target, transition) in &transitions {
+                for a in &transitions {
                     viz_records.push(crate::viz::Record::Alarm {
-                        target: *target,
-                        transition: transition.clone(),
+                        target: a.target,
+                        transition: a.transition.clone(),
                     });
                 }
-                for (target, transition) in transitions {
-                    let _ = self
-                        .events
-                        .send(super::LiveEvent::Alarm { target, transition });
+                for a in transitions {
+                    let _ = self.events.send(super::LiveEvent::Alarm(a));
                 }
                 self.publish_viz(viz_records);
                 true
@@ -505,6 +552,24 @@ pub(super) async fn run(
         Some(problem) => Err(problem),
         None => Ok(()),
     }
+}
+
+/// Stores alarm transitions `(target, transition)`; returns them with their ids.
+async fn store_alarms(
+    tx: &mut WriteTx<'_>,
+    raised: Vec<(usize, crate::alarms::Transition)>,
+    now: i64,
+) -> Result<Vec<StoredAlarm>, StoreError> {
+    let mut out = Vec::with_capacity(raised.len());
+    for (target, transition) in raised {
+        out.push(StoredAlarm {
+            id: tx.insert_alarm(target, &transition, now).await?,
+            target,
+            transition,
+            ack: None,
+        });
+    }
+    Ok(out)
 }
 
 /// Steps every target's stale track at `now_ns` (the server's clock) with the link furthest
@@ -600,7 +665,7 @@ async fn ingest(
     targets: &mut [TargetView],
     items: Vec<IngestItem>,
     now: i64,
-    new_transitions: &mut Vec<(usize, crate::alarms::Transition)>,
+    new_transitions: &mut Vec<StoredAlarm>,
     mut viz: Option<VizCollect<'_>>,
 ) -> Result<ServiceResult<IngestReport>, StoreError> {
     // Check every measurement before the bank sees any of them.
@@ -823,11 +888,7 @@ async fn ingest(
     tx.insert_samples(&sample_rows).await?;
     let rows: Vec<NewResult> = result_rows.into_values().collect();
     tx.insert_results(&rows).await?;
-    for (target, t) in &transitions {
-        tx.insert_alarms(*target, std::slice::from_ref(t), now)
-            .await?;
-    }
-    *new_transitions = transitions;
+    *new_transitions = store_alarms(tx, transitions, now).await?;
     for (t, est) in latest {
         targets[t].latest = Some(est);
     }

@@ -21,7 +21,7 @@ pub mod write_tx {
 }
 
 pub use codec::{Quality, SampleValues, StoredUncertainty};
-pub use read::{StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample};
+pub use read::{Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample};
 pub use write::{NewResult, NewSample, WriteConn};
 
 use sqlx::sqlite::{
@@ -427,4 +427,90 @@ pub async fn backup(database: &Path, out: &Path) -> StoreResult<u64> {
         .await?;
     conn.close().await?;
     Ok(std::fs::metadata(out).map(|m| m.len()).unwrap_or(0))
+}
+
+#[cfg(test)]
+mod tests {
+    /// The migration that gives alarms ids keeps every row and its values, numbers them in time
+    /// order, and leaves them unacknowledged.
+    #[test]
+    fn alarm_ids_are_given_to_existing_rows_in_time_order() {
+        let db = rusqlite::Connection::open_in_memory().expect("memory database");
+        for sql in [
+            include_str!("../../migrations/0001_initial.sql"),
+            include_str!("../../migrations/0002_rollups.sql"),
+            include_str!("../../migrations/0003_alarms.sql"),
+            include_str!("../../migrations/0004_alarm_units.sql"),
+            include_str!("../../migrations/0005_link_resets.sql"),
+        ] {
+            db.execute_batch(sql).expect("older migration");
+        }
+        db.execute_batch(
+            "insert into targets values (1, 'G', 0), (2, 'H', 0);
+             insert into alarms (target_id, time_ns, kind, from_level, to_level, value, message, created_ns, unit) values
+               (2, 300, 'rate', 'none', 'alarm', 40.5, 'c', 9, 'mm_per_s'),
+               (1, 100, 'deformation', 'none', 'warn', 61.0, 'a', 7, null),
+               (1, 200, 'stale', 'none', 'alarm', 0.0, 'b', 8, 'none');",
+        )
+        .expect("old rows");
+        db.execute_batch(include_str!(
+            "../../migrations/0006_alarm_ids_and_acks.sql"
+        ))
+        .expect("migration 0006");
+        let mut q = db
+            .prepare(
+                "select alarm_id, target_id, time_ns, kind, value, unit, message, created_ns, \
+                 acknowledged_by, acknowledged_ns, ack_note from alarms order by alarm_id",
+            )
+            .expect("query");
+        type Row = (
+            i64,
+            i64,
+            i64,
+            String,
+            f64,
+            Option<String>,
+            String,
+            i64,
+            Option<String>,
+            Option<i64>,
+            Option<String>,
+        );
+        let rows: Vec<Row> = q
+            .query_map([], |r| {
+                Ok((
+                    r.get(0)?,
+                    r.get(1)?,
+                    r.get(2)?,
+                    r.get(3)?,
+                    r.get(4)?,
+                    r.get(5)?,
+                    r.get(6)?,
+                    r.get(7)?,
+                    r.get(8)?,
+                    r.get(9)?,
+                    r.get(10)?,
+                ))
+            })
+            .expect("rows")
+            .collect::<Result<_, _>>()
+            .expect("readable");
+        let times: Vec<i64> = rows.iter().map(|r| r.2).collect();
+        assert_eq!(times, [100, 200, 300]);
+        let ids: Vec<i64> = rows.iter().map(|r| r.0).collect();
+        assert!(ids.windows(2).all(|w| w[0] < w[1]), "{ids:?}");
+        assert_eq!(
+            (rows[2].1, rows[2].3.as_str(), rows[2].4, rows[2].5.as_deref()),
+            (2, "rate", 40.5, Some("mm_per_s"))
+        );
+        assert_eq!((rows[0].5.as_deref(), rows[0].6.as_str(), rows[0].7), (None, "a", 7));
+        assert!(rows.iter().all(|r| r.8.is_none() && r.9.is_none() && r.10.is_none()));
+        // The old key stays unique.
+        let again = db.execute(
+            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, message, created_ns) \
+             values (1, 100, 'deformation', 'warn', 'none', 1.0, 'd', 10)",
+            [],
+        );
+        assert!(again.is_err(), "the (target, time, kind) key is unique");
+    }
 }

@@ -475,10 +475,94 @@ impl Store {
 /// A stored alarm transition.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoredAlarm {
+    /// Its id.
+    pub id: i64,
     /// Target index in the installation.
     pub target: usize,
     /// The transition.
     pub transition: crate::alarms::Transition,
+    /// Its acknowledgement, once given.
+    pub ack: Option<Acknowledgement>,
+}
+
+/// Someone's acknowledgement of an alarm transition.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Acknowledgement {
+    /// Who, as they said.
+    pub by: String,
+    /// When (ns, server clock).
+    pub at_ns: i64,
+    /// Why or what was done, as they said.
+    pub note: Option<String>,
+}
+
+/// The columns of an alarm row, in [`ALARM_COLUMNS`] order.
+type AlarmRow = (
+    i64,
+    i64,
+    i64,
+    String,
+    String,
+    String,
+    f64,
+    String,
+    Option<String>,
+    Option<String>,
+    Option<i64>,
+    Option<String>,
+);
+
+/// What an alarm read selects.
+const ALARM_COLUMNS: &str = "alarm_id, target_id, time_ns, kind, from_level, to_level, value, \
+     message, unit, acknowledged_by, acknowledged_ns, ack_note";
+
+impl Store {
+    fn alarm_of_row(&self, row: AlarmRow) -> StoreResult<StoredAlarm> {
+        use crate::alarms::{AlarmKind, Level, ValueUnit};
+        let (id, tid, time_ns, kind, from, to, value, message, unit, by, at_ns, note) = row;
+        let malformed = || super::StoreError::Malformed(format!("alarm {id} of kind `{kind}`"));
+        let kind_ = AlarmKind::parse(&kind).ok_or_else(malformed)?;
+        let unit = match unit {
+            Some(u) => ValueUnit::parse(&u).ok_or_else(malformed)?,
+            // Rows from before units were stored held the rotation.
+            None => match kind_ {
+                AlarmKind::Deformation => ValueUnit::Arcsec,
+                AlarmKind::Rate => ValueUnit::ArcsecPerS,
+                AlarmKind::Stale => ValueUnit::None,
+            },
+        };
+        Ok(StoredAlarm {
+            id,
+            target: self
+                .target_ids
+                .iter()
+                .position(|t| *t == tid)
+                .ok_or_else(malformed)?,
+            transition: crate::alarms::Transition {
+                kind: kind_,
+                time_ns,
+                from: Level::parse(&from).ok_or_else(malformed)?,
+                to: Level::parse(&to).ok_or_else(malformed)?,
+                value,
+                unit,
+                message,
+            },
+            ack: match (by, at_ns) {
+                (Some(by), Some(at_ns)) => Some(Acknowledgement { by, at_ns, note }),
+                _ => None,
+            },
+        })
+    }
+
+    /// One alarm transition by id.
+    pub async fn alarm(&self, id: i64) -> StoreResult<Option<StoredAlarm>> {
+        let row: Option<AlarmRow> =
+            sqlx::query_as(&format!("select {ALARM_COLUMNS} from alarms where alarm_id = ?"))
+                .bind(id)
+                .fetch_optional(&self.pool)
+                .await?;
+        row.map(|r| self.alarm_of_row(r)).transpose()
+    }
 }
 
 impl Store {
@@ -492,66 +576,24 @@ impl Store {
         limit: i64,
         newest_first: bool,
     ) -> StoreResult<Vec<StoredAlarm>> {
-        let sql = if newest_first {
-            "select target_id, time_ns, kind, from_level, to_level, value, message, unit from alarms \
-             where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? \
-             order by time_ns desc, target_id desc limit ?"
+        let order = if newest_first {
+            "time_ns desc, target_id desc, kind desc"
         } else {
-            "select target_id, time_ns, kind, from_level, to_level, value, message, unit from alarms \
-             where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? \
-             order by time_ns, target_id limit ?"
+            "time_ns, target_id, kind"
         };
-        type AlarmRow = (
-            i64,
-            i64,
-            String,
-            String,
-            String,
-            f64,
-            String,
-            Option<String>,
-        );
-        let rows: Vec<AlarmRow> = sqlx::query_as(sql)
-            .bind(target.map(|t| self.target_ids[t]))
-            .bind(target.map(|t| self.target_ids[t]))
-            .bind(from_ns)
-            .bind(to_ns)
-            .bind(limit)
-            .fetch_all(&self.pool)
-            .await?;
-        rows.into_iter()
-            .map(|(tid, time_ns, kind, from, to, value, message, unit)| {
-                use crate::alarms::{AlarmKind, ValueUnit};
-                let malformed =
-                    || super::StoreError::Malformed(format!("alarm row of kind `{kind}`"));
-                let kind = AlarmKind::parse(&kind).ok_or_else(malformed)?;
-                let unit = match unit {
-                    Some(u) => ValueUnit::parse(&u).ok_or_else(malformed)?,
-                    // Rows from before units were stored held the rotation.
-                    None => match kind {
-                        AlarmKind::Deformation => ValueUnit::Arcsec,
-                        AlarmKind::Rate => ValueUnit::ArcsecPerS,
-                        AlarmKind::Stale => ValueUnit::None,
-                    },
-                };
-                Ok(StoredAlarm {
-                    target: self
-                        .target_ids
-                        .iter()
-                        .position(|t| *t == tid)
-                        .ok_or_else(malformed)?,
-                    transition: crate::alarms::Transition {
-                        kind,
-                        time_ns,
-                        from: crate::alarms::Level::parse(&from).ok_or_else(malformed)?,
-                        to: crate::alarms::Level::parse(&to).ok_or_else(malformed)?,
-                        value,
-                        unit,
-                        message,
-                    },
-                })
-            })
-            .collect()
+        let rows: Vec<AlarmRow> = sqlx::query_as(&format!(
+            "select {ALARM_COLUMNS} from alarms \
+             where (? is null or target_id = ?) and time_ns >= ? and time_ns <= ? \
+             order by {order} limit ?"
+        ))
+        .bind(target.map(|t| self.target_ids[t]))
+        .bind(target.map(|t| self.target_ids[t]))
+        .bind(from_ns)
+        .bind(to_ns)
+        .bind(limit)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.into_iter().map(|r| self.alarm_of_row(r)).collect()
     }
 
     /// The level each alarm kind of a target was last left at (`none` when never raised).

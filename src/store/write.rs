@@ -382,33 +382,69 @@ impl WriteTx<'_> {
         Ok(())
     }
 
-    /// Stores alarm transitions of a target.
-    pub async fn insert_alarms(
+    /// Stores an alarm transition of `target`; returns its id. A transition recomputed at the
+    /// same time and of the same kind (after a rolled-back commit) replaces the values and
+    /// keeps the id and any acknowledgement.
+    pub async fn insert_alarm(
         &mut self,
         target: usize,
-        transitions: &[crate::alarms::Transition],
+        t: &crate::alarms::Transition,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        finite("alarm value", &[t.value])?;
+        let (id,): (i64,) = sqlx::query_as(
+            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?) \
+             on conflict (target_id, time_ns, kind) do update set from_level = excluded.from_level, \
+             to_level = excluded.to_level, value = excluded.value, unit = excluded.unit, \
+             message = excluded.message, created_ns = excluded.created_ns \
+             returning alarm_id",
+        )
+        .bind(self.target_ids[target])
+        .bind(t.time_ns)
+        .bind(t.kind.name())
+        .bind(t.from.name())
+        .bind(t.to.name())
+        .bind(t.value)
+        .bind(t.unit.name())
+        .bind(t.message.clone())
+        .bind(now_ns)
+        .fetch_one(&mut *self.conn)
+        .await?;
+        Ok(id)
+    }
+
+    /// An alarm's new level and acknowledgement, read inside the transaction:
+    /// `(to_level, acknowledged_by, ack_note)`; `None` when there is no such alarm.
+    pub async fn alarm_ack_state(
+        &mut self,
+        id: i64,
+    ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
+        Ok(sqlx::query_as(
+            "select to_level, acknowledged_by, ack_note from alarms where alarm_id = ?",
+        )
+        .bind(id)
+        .fetch_optional(&mut *self.conn)
+        .await?)
+    }
+
+    /// Records an acknowledgement of alarm `id`.
+    pub async fn acknowledge_alarm(
+        &mut self,
+        id: i64,
+        by: &str,
+        note: Option<&str>,
         now_ns: i64,
     ) -> StoreResult<()> {
-        for t in transitions {
-            finite("alarm value", &[t.value])?;
-        }
-        for chunk in transitions.chunks(ROWS_PER_STATEMENT) {
-            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
-                "insert or replace into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns) ",
-            );
-            qb.push_values(chunk, |mut b, t| {
-                b.push_bind(self.target_ids[target])
-                    .push_bind(t.time_ns)
-                    .push_bind(t.kind.name())
-                    .push_bind(t.from.name())
-                    .push_bind(t.to.name())
-                    .push_bind(t.value)
-                    .push_bind(t.unit.name())
-                    .push_bind(t.message.clone())
-                    .push_bind(now_ns);
-            });
-            qb.build().execute(&mut *self.conn).await?;
-        }
+        sqlx::query(
+            "update alarms set acknowledged_by = ?, acknowledged_ns = ?, ack_note = ? where alarm_id = ?",
+        )
+        .bind(by)
+        .bind(now_ns)
+        .bind(note)
+        .bind(id)
+        .execute(&mut *self.conn)
+        .await?;
         Ok(())
     }
 

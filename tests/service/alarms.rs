@@ -128,3 +128,107 @@ async fn an_alarm_decided_by_translation_reports_millimetres() {
     let value = first["value"].as_f64().unwrap();
     assert!((1.0..2.0).contains(&value), "{list}");
 }
+
+/// Alarms carry ids; an acknowledgement (admin) records who, when and a note, is shown with
+/// the alarm, accepts its own retry, refuses a different second one and a return to `none`,
+/// and survives a restart; the migration gave older rows ids too.
+#[tokio::test]
+async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note() {
+    let config = ONE_LINK.replace("dwell_s = 1.0", "dwell_s = 0.0");
+    let app = TestApp::start(Some(&config)).await;
+    let (status, _) = app
+        .post_json(
+            "/api/v1/targets/G/reference",
+            &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED);
+    let mut events = app.service.subscribe();
+    // 200 arcsec about x for 2 s, then back to 0: up to `alarm` and back to `none`.
+    let samples: Vec<_> = (0..100)
+        .map(|k| {
+            let arcsec = if k < 50 { 200.0f64 } else { 0.0 };
+            let half = (arcsec / 3600.0).to_radians() / 2.0;
+            json!({"link": "G_from_B", "time": T0_NS + k * 40_000_000,
+                   "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}})
+        })
+        .collect();
+    let (status, body) = app
+        .post_live("/api/v1/samples", &json!({ "samples": samples }))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, list) = app.get("/api/v1/alarms?target=G").await;
+    let alarms = list["alarms"].as_array().unwrap().clone();
+    let raised = alarms.iter().find(|a| a["to"] == "alarm").expect("raised");
+    let cleared = alarms.iter().find(|a| a["to"] == "none").expect("cleared");
+    assert!(raised["acknowledged_by"].is_null() && raised["acknowledged_at"].is_null());
+    let ids: Vec<i64> = alarms.iter().map(|a| a["id"].as_i64().unwrap()).collect();
+    let mut unique = ids.clone();
+    unique.dedup();
+    assert_eq!(unique.len(), ids.len(), "ids are distinct: {ids:?}");
+    // The live event carries the same id.
+    let mut live_ids = Vec::new();
+    while let Ok(e) = events.try_recv() {
+        if let brokenray::service::LiveEvent::Alarm(a) = e {
+            live_ids.push(a.id);
+        }
+    }
+    assert_eq!(live_ids, ids);
+
+    let id = raised["id"].as_i64().unwrap();
+    let uri = format!("/api/v1/alarms/{id}/ack");
+    let ack = json!({"by": "watch officer", "note": "hatch cover moved, checked"});
+    let (status, a) = app.post_json(&uri, &ack).await;
+    assert_eq!(status, StatusCode::OK, "{a}");
+    assert_eq!(a["id"], id);
+    assert_eq!(a["acknowledged_by"], "watch officer");
+    assert_eq!(a["note"], "hatch cover moved, checked");
+    assert_eq!(
+        brokenray::api::time::parse_rfc3339_ns(a["acknowledged_at"].as_str().unwrap()).unwrap(),
+        app.service.now_ns(),
+        "stamped with the server's clock"
+    );
+    // The same again (a retry) is fine; another is a conflict and changes nothing.
+    let (status, again) = app.post_json(&uri, &ack).await;
+    assert_eq!((status, &again), (StatusCode::OK, &a));
+    let (status, body) = app
+        .post_json(&uri, &json!({"by": "someone else"}))
+        .await;
+    assert_eq!(status, StatusCode::CONFLICT, "{body}");
+    assert!(body.to_string().contains("watch officer"), "{body}");
+    // Nothing to acknowledge, nothing found, nothing said.
+    let (status, body) = app
+        .post_json(
+            &format!("/api/v1/alarms/{}/ack", cleared["id"]),
+            &json!({"by": "x"}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    let (status, _) = app
+        .post_json("/api/v1/alarms/999999/ack", &json!({"by": "x"}))
+        .await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    for (body, field) in [
+        (json!({"note": "who?"}), "by"),
+        (json!({"by": "  "}), "by"),
+        (json!({"by": "x".repeat(1001)}), "by"),
+    ] {
+        let (status, e) = app.post_json(&uri, &body).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{e}");
+        assert!(e["error"].to_string().contains(field), "{e}");
+    }
+    let (status, e) = app.post_json("/api/v1/alarms/abc/ack", &ack).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{e}");
+    assert_eq!(e["error"]["details"][0]["field"], "id", "{e}");
+    // Listed with the alarm, and kept across a restart.
+    let app = app.restart(Some(&config)).await;
+    let (_, list) = app.get("/api/v1/alarms?target=G").await;
+    let shown = list["alarms"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|x| x["id"] == id)
+        .unwrap()
+        .clone();
+    assert_eq!(shown, a);
+}

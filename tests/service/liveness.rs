@@ -142,7 +142,7 @@ async fn a_feed_that_stops_goes_stale_everywhere_and_raises_then_clears_the_alar
     // Sent live.
     let sent = loop {
         match events.try_recv() {
-            Ok(LiveEvent::Alarm { transition, .. }) => break transition,
+            Ok(LiveEvent::Alarm(a)) => break a.transition,
             Ok(_) => continue,
             Err(e) => panic!("no live alarm: {e:?}"),
         }
