@@ -6,7 +6,7 @@
 
 use axum::body::Body;
 use axum::http::Request;
-use brokenray::api::{AppState, Limits, router};
+use brokenray::api::{AppState, router};
 use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
 use brokenray::service::Service;
 use brokenray::store::{self, NewResult};
@@ -83,12 +83,8 @@ fn main() {
             build.elapsed().as_secs_f64()
         );
 
-        let limits = Limits {
-            max_body_bytes: inst.server.max_body_bytes,
-            max_batch_samples: inst.server.max_batch_samples,
-        };
         let (service, _pipeline) = Service::start(inst).await.expect("service");
-        let app = router(AppState { service, limits });
+        let app = router(AppState::new(service));
         let last = T0 + (n - 1) * PERIOD_NS;
         let day = 86_400 * 1_000_000_000i64;
         for (label, uri) in [

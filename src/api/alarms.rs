@@ -165,10 +165,7 @@ pub async fn post_ack(
             return Err(ApiError::invalid_field(field, "at most 1000 characters"));
         }
     }
-    let stored = app
-        .service
-        .acknowledge_alarm(id, ack.by, ack.note)
-        .await?;
+    let stored = app.service.acknowledge_alarm(id, ack.by, ack.note).await?;
     let name = app.service.installation().targets[stored.target]
         .name
         .clone();

@@ -48,7 +48,9 @@ pub async fn get_events(
                 Some((Ok(event), (rx, app, stop)))
             }
             Ok(LiveEvent::Alarm(alarm)) => {
-                let name = app.service.installation().targets[alarm.target].name.clone();
+                let name = app.service.installation().targets[alarm.target]
+                    .name
+                    .clone();
                 let body = super::alarms::AlarmOut::new(name, &alarm);
                 let event = Event::default()
                     .event("alarm")

@@ -56,6 +56,11 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             &m.filter_restarts,
         ),
         (
+            "brokenray_alarm_notifications_dropped_total",
+            "Alarm transitions not handed to the webhooks (their queue was full).",
+            &m.alarm_feed_dropped,
+        ),
+        (
             "brokenray_commits_failed_total",
             "Transactions that failed; their requests were refused.",
             &m.commits_failed,
@@ -248,6 +253,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             );
         }
     }
+    app.webhooks.metrics(&mut out);
     (
         [(
             header::CONTENT_TYPE,

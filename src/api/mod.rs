@@ -19,6 +19,7 @@ pub mod server;
 pub mod targets;
 pub mod time;
 pub mod vision;
+pub mod webhooks;
 
 pub use error::{ApiError, ErrorDetail};
 
@@ -53,6 +54,25 @@ pub struct AppState {
     pub service: Service,
     /// Size limits.
     pub limits: Limits,
+    /// Alarm notifications.
+    pub webhooks: webhooks::Webhooks,
+}
+
+impl AppState {
+    /// The state of the HTTP adapter over `service`: starts delivering alarm transitions to the
+    /// configured webhooks.
+    pub fn new(service: Service) -> Self {
+        let server = &service.installation().server;
+        let limits = Limits {
+            max_body_bytes: server.max_body_bytes,
+            max_batch_samples: server.max_batch_samples,
+        };
+        Self {
+            webhooks: webhooks::Webhooks::start(&service),
+            service,
+            limits,
+        }
+    }
 }
 
 /// Parses a JSON body, naming the field of any problem (400 for malformed JSON, 422 for a
@@ -275,6 +295,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(events::get_events))
         .routes(routes!(alarms::list_alarms))
         .routes(routes!(alarms::post_ack))
+        .routes(routes!(webhooks::list_webhooks))
         .routes(routes!(links::list_links))
         .routes(routes!(links::list_samples))
         .routes(routes!(links::put_calibration))
@@ -371,7 +392,6 @@ pub struct App {
     listener: tokio::net::TcpListener,
     service: Service,
     pipeline: PipelineHandle,
-    limits: Limits,
 }
 
 impl App {
@@ -381,10 +401,6 @@ impl App {
         if installation.auth.tokens.is_empty() && !addr.ip().is_loopback() {
             return Err(StartError::UnauthenticatedNonLoopback(addr));
         }
-        let limits = Limits {
-            max_body_bytes: installation.server.max_body_bytes,
-            max_batch_samples: installation.server.max_batch_samples,
-        };
         let listener = tokio::net::TcpListener::bind(addr)
             .await
             .map_err(|source| StartError::Bind { addr, source })?;
@@ -393,7 +409,6 @@ impl App {
             listener,
             service,
             pipeline,
-            limits,
         })
     }
 
@@ -422,10 +437,8 @@ impl App {
             header_timeout: Duration::from_secs_f64(settings.header_timeout_s),
             shutdown_grace: Duration::from_secs_f64(settings.shutdown_grace_s),
         };
-        let state = AppState {
-            service: self.service.clone(),
-            limits: self.limits,
-        };
+        let state = AppState::new(self.service.clone());
+        let webhooks = state.webhooks.clone();
         let store = self.service.store().clone();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let service = self.service.clone();
@@ -439,6 +452,8 @@ impl App {
         // pipeline commits what is queued before it stops.
         drop(self.service);
         let finished = self.pipeline.finished().await;
+        // The pipeline has stopped: the webhooks get what it raised last.
+        webhooks.finish(limits.shutdown_grace).await;
         let health = store.health().await;
         store.close().await;
         finished.map_err(std::io::Error::other)?;

@@ -52,6 +52,8 @@ pub struct Installation {
     pub targets: Vec<TargetSpec>,
     /// Bearer tokens.
     pub auth: AuthSettings,
+    /// Where alarm transitions are sent.
+    pub notify: NotifySettings,
     /// Settings of the filter bank.
     pub filter: BankSettings,
     /// How long raw samples and results are kept (rollups are kept for good).
@@ -283,6 +285,72 @@ pub struct TokenSpec {
     pub scopes: Vec<Scope>,
 }
 
+/// Where alarm transitions are sent (`[[notify.webhooks]]`).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct NotifySettings {
+    /// Webhooks, in file order.
+    pub webhooks: Vec<WebhookSpec>,
+}
+
+/// The lowest alarm level a webhook is told about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum NotifyLevel {
+    /// Transitions to or from `warn` or `alarm`.
+    Warn,
+    /// Transitions to or from `alarm`.
+    Alarm,
+}
+
+impl NotifyLevel {
+    /// The name in the file.
+    pub fn name(self) -> &'static str {
+        match self {
+            NotifyLevel::Warn => "warn",
+            NotifyLevel::Alarm => "alarm",
+        }
+    }
+}
+
+/// One webhook: alarm transitions are POSTed to `url`, signed with `secret`.
+#[derive(Clone, PartialEq)]
+pub struct WebhookSpec {
+    /// `http://` or `https://` URL.
+    pub url: String,
+    /// The HMAC-SHA256 key of the signature header.
+    pub secret: String,
+    /// Transitions whose higher level (before or after) is below this are not sent.
+    pub min_level: NotifyLevel,
+    /// Each attempt's time limit (s).
+    pub timeout_s: f64,
+    /// Attempts before a delivery is given up (counted and logged).
+    pub max_attempts: u32,
+}
+
+impl WebhookSpec {
+    /// `host[:port]` of the URL: what logs and metrics name (a URL may carry credentials or a
+    /// token in its path or query).
+    pub fn host(&self) -> &str {
+        let rest = self
+            .url
+            .split_once("://")
+            .map_or(self.url.as_str(), |(_, r)| r);
+        let authority = rest.split(['/', '?', '#']).next().unwrap_or(rest);
+        authority.rsplit('@').next().unwrap_or(authority)
+    }
+}
+
+impl std::fmt::Debug for WebhookSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WebhookSpec")
+            .field("host", &self.host())
+            .field("secret", &"<redacted>")
+            .field("min_level", &self.min_level)
+            .field("timeout_s", &self.timeout_s)
+            .field("max_attempts", &self.max_attempts)
+            .finish()
+    }
+}
+
 /// Authentication settings.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct AuthSettings {
@@ -504,6 +572,7 @@ impl Validator {
         let (topology, links) = self.links(&raw);
         let targets = self.targets(&raw, &topology);
         let auth = self.auth(&raw);
+        let notify = self.notify(&raw);
         let filter = self.bank_settings(&raw);
         let retention = self.retention(&raw);
         let pnp = self.pnp(&raw);
@@ -537,6 +606,7 @@ impl Validator {
             links,
             targets,
             auth,
+            notify,
             filter: filter?,
             retention: retention?,
             pnp: pnp?,
@@ -1258,6 +1328,68 @@ impl Validator {
             rate_rotation_arcsec_per_s: a.rate_rotation_arcsec_per_s,
             rate_translation_mm_per_s: a.rate_translation_mm_per_s,
         }
+    }
+
+    fn notify(&mut self, raw: &RawFile) -> NotifySettings {
+        let mut webhooks = Vec::new();
+        for (i, spanned) in raw.notify.webhooks.iter().enumerate() {
+            let at = spanned.span().start;
+            let w = spanned.get_ref();
+            let what = format!("notify.webhooks[{i}]");
+            let mut ok = true;
+            let scheme_ok = ["http://", "https://"]
+                .iter()
+                .any(|p| w.url.len() > p.len() && w.url[..p.len()].eq_ignore_ascii_case(p));
+            if !scheme_ok || w.url.chars().any(char::is_whitespace) {
+                self.problem(
+                    at,
+                    format!(
+                        "{what}.url must be an http:// or https:// URL, not `{}`",
+                        w.url
+                    ),
+                );
+                ok = false;
+            }
+            if w.secret.is_empty() {
+                self.problem(
+                    at,
+                    format!("{what}.secret is empty: the receiver checks the signature with it"),
+                );
+                ok = false;
+            }
+            let min_level = match w.min_level.as_deref() {
+                None | Some("warn") => NotifyLevel::Warn,
+                Some("alarm") => NotifyLevel::Alarm,
+                Some(other) => {
+                    self.problem(
+                        at,
+                        format!("{what}.min_level `{other}` is not one of warn, alarm"),
+                    );
+                    ok = false;
+                    NotifyLevel::Warn
+                }
+            };
+            let timeout_s = w.timeout_s.unwrap_or(10.0);
+            ok &= self.positive(at, &format!("{what}.timeout_s"), timeout_s);
+            let max_attempts = w.max_attempts.unwrap_or(8);
+            if !(1..=100).contains(&max_attempts) {
+                self.problem(
+                    at,
+                    format!("{what}.max_attempts must be from 1 to 100, not {max_attempts}"),
+                );
+                ok = false;
+            }
+            if ok {
+                webhooks.push(WebhookSpec {
+                    url: w.url.clone(),
+                    secret: w.secret.clone(),
+                    min_level,
+                    timeout_s,
+                    max_attempts,
+                });
+            }
+        }
+        NotifySettings { webhooks }
     }
 
     fn auth(&mut self, raw: &RawFile) -> AuthSettings {

@@ -22,6 +22,8 @@ pub(super) struct RawFile {
     pub targets: Vec<Spanned<RawTarget>>,
     #[serde(default)]
     pub auth: RawAuth,
+    #[serde(default)]
+    pub notify: RawNotify,
     pub filter: Option<Spanned<RawFilter>>,
     pub retention: Option<Spanned<RawRetention>>,
     pub pnp: Option<Spanned<RawPnp>>,
@@ -223,4 +225,21 @@ pub(super) struct RawToken {
     pub name: String,
     pub sha256: String,
     pub scopes: Vec<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawNotify {
+    #[serde(default)]
+    pub webhooks: Vec<Spanned<RawWebhook>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawWebhook {
+    pub url: String,
+    pub secret: String,
+    pub min_level: Option<String>,
+    pub timeout_s: Option<f64>,
+    pub max_attempts: Option<u32>,
 }

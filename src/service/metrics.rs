@@ -24,6 +24,8 @@ pub struct Metrics {
     pub commit_micros_sum: AtomicU64,
     /// Longest commit (microseconds).
     pub commit_micros_max: AtomicU64,
+    /// Alarm transitions the notification queue had no room for (never sent).
+    pub alarm_feed_dropped: AtomicU64,
 }
 
 impl Metrics {

@@ -130,6 +130,10 @@ pub enum LiveEvent {
     Alarm(crate::store::StoredAlarm),
 }
 
+/// How many stored alarm transitions may wait for the notifier (see
+/// [`Service::take_alarm_feed`]) before new ones are dropped, counted.
+pub const ALARM_FEED_CAPACITY: usize = 10_000;
+
 /// How many events a live subscriber may fall behind before it is dropped.
 pub const EVENT_BUFFER: usize = 256;
 
@@ -312,6 +316,9 @@ struct Inner {
     stopping: tokio::sync::watch::Sender<bool>,
     /// The server's clock.
     clock: crate::clock::SharedClock,
+    /// Every stored alarm transition, in commit order, for the notifier (when webhooks are
+    /// configured): taken once.
+    alarm_feed: std::sync::Mutex<Option<mpsc::Receiver<crate::store::StoredAlarm>>>,
     /// Bounds the reads that stream over many rows (statistics, fine history), so that they
     /// cannot take every read connection.
     heavy_reads: Arc<tokio::sync::Semaphore>,
@@ -457,6 +464,12 @@ impl Service {
         let slot = Arc::new(RwLock::new(snapshot));
         let metrics = Arc::new(Metrics::default());
         let (events, _) = tokio::sync::broadcast::channel(EVENT_BUFFER);
+        let (alarm_tx, alarm_rx) = if installation.notify.webhooks.is_empty() {
+            (None, None)
+        } else {
+            let (tx, rx) = mpsc::channel(ALARM_FEED_CAPACITY);
+            (Some(tx), Some(rx))
+        };
         let inner = Arc::new(Inner {
             events: events.clone(),
             installation: Arc::clone(&installation),
@@ -468,6 +481,7 @@ impl Service {
             observer: Arc::new(crate::vision::Observer::new(&installation)),
             stopping: tokio::sync::watch::channel(false).0,
             clock: Arc::clone(&clock),
+            alarm_feed: std::sync::Mutex::new(alarm_rx),
             heavy_reads: Arc::new(tokio::sync::Semaphore::new(
                 installation.server.max_heavy_reads,
             )),
@@ -483,6 +497,7 @@ impl Service {
                     events,
                     viz,
                     clock,
+                    alarm_feed: alarm_tx,
                 },
             ),
             rx,
@@ -527,6 +542,21 @@ impl Service {
             }
         });
         Ok((service, PipelineHandle(task, viz_thread)))
+    }
+
+    /// Every alarm transition stored from now on, in commit order, for the notifier: `Some` to
+    /// the first caller when webhooks are configured. Sending into it never waits; when the
+    /// notifier falls [`ALARM_FEED_CAPACITY`] behind, transitions are dropped and counted.
+    pub fn take_alarm_feed(&self) -> Option<mpsc::Receiver<crate::store::StoredAlarm>> {
+        match self.inner.alarm_feed.lock() {
+            Ok(mut g) => g.take(),
+            Err(poisoned) => poisoned.into_inner().take(),
+        }
+    }
+
+    /// The server's clock.
+    pub fn clock(&self) -> crate::clock::SharedClock {
+        Arc::clone(&self.inner.clock)
     }
 
     /// The server's clock now (ns since the Unix epoch).

@@ -64,6 +64,8 @@ pub(super) struct Pipeline {
     viz: crate::viz::VizSender,
     /// The server's clock: receipt stamps, retention, liveness.
     clock: crate::clock::SharedClock,
+    /// Stored alarm transitions for the notifier (never waits).
+    alarm_feed: Option<mpsc::Sender<StoredAlarm>>,
 }
 
 #[allow(
@@ -215,6 +217,7 @@ pub(super) struct Outlets {
     pub events: tokio::sync::broadcast::Sender<super::LiveEvent>,
     pub viz: crate::viz::VizSender,
     pub clock: crate::clock::SharedClock,
+    pub alarm_feed: Option<mpsc::Sender<StoredAlarm>>,
 }
 
 impl Pipeline {
@@ -230,10 +233,12 @@ impl Pipeline {
             events,
             viz,
             clock,
+            alarm_feed,
         } = outlets;
         let committed_state = bank.record();
         let last_event_ns = vec![None; targets.len()];
         Self {
+            alarm_feed,
             clock,
             viz,
             events,
@@ -496,6 +501,14 @@ impl Pipeline {
                     });
                 }
                 for a in transitions {
+                    if let Some(feed) = &self.alarm_feed
+                        && let Err(e) = feed.try_send(a.clone())
+                    {
+                        self.metrics
+                            .alarm_feed_dropped
+                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        tracing::error!(alarm = a.id, error = %e, "an alarm transition cannot be queued for the webhooks; it will not be sent");
+                    }
                     let _ = self.events.send(super::LiveEvent::Alarm(a));
                 }
                 self.publish_viz(viz_records);

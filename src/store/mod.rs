@@ -21,7 +21,9 @@ pub mod write_tx {
 }
 
 pub use codec::{Quality, SampleValues, StoredUncertainty};
-pub use read::{Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample};
+pub use read::{
+    Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample,
+};
 pub use write::{NewResult, NewSample, WriteConn};
 
 use sqlx::sqlite::{
@@ -453,10 +455,8 @@ mod tests {
                (1, 200, 'stale', 'none', 'alarm', 0.0, 'b', 8, 'none');",
         )
         .expect("old rows");
-        db.execute_batch(include_str!(
-            "../../migrations/0006_alarm_ids_and_acks.sql"
-        ))
-        .expect("migration 0006");
+        db.execute_batch(include_str!("../../migrations/0006_alarm_ids_and_acks.sql"))
+            .expect("migration 0006");
         let mut q = db
             .prepare(
                 "select alarm_id, target_id, time_ns, kind, value, unit, message, created_ns, \
@@ -500,11 +500,22 @@ mod tests {
         let ids: Vec<i64> = rows.iter().map(|r| r.0).collect();
         assert!(ids.windows(2).all(|w| w[0] < w[1]), "{ids:?}");
         assert_eq!(
-            (rows[2].1, rows[2].3.as_str(), rows[2].4, rows[2].5.as_deref()),
+            (
+                rows[2].1,
+                rows[2].3.as_str(),
+                rows[2].4,
+                rows[2].5.as_deref()
+            ),
             (2, "rate", 40.5, Some("mm_per_s"))
         );
-        assert_eq!((rows[0].5.as_deref(), rows[0].6.as_str(), rows[0].7), (None, "a", 7));
-        assert!(rows.iter().all(|r| r.8.is_none() && r.9.is_none() && r.10.is_none()));
+        assert_eq!(
+            (rows[0].5.as_deref(), rows[0].6.as_str(), rows[0].7),
+            (None, "a", 7)
+        );
+        assert!(
+            rows.iter()
+                .all(|r| r.8.is_none() && r.9.is_none() && r.10.is_none())
+        );
         // The old key stays unique.
         let again = db.execute(
             "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, message, created_ns) \

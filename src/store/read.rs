@@ -556,11 +556,12 @@ impl Store {
 
     /// One alarm transition by id.
     pub async fn alarm(&self, id: i64) -> StoreResult<Option<StoredAlarm>> {
-        let row: Option<AlarmRow> =
-            sqlx::query_as(&format!("select {ALARM_COLUMNS} from alarms where alarm_id = ?"))
-                .bind(id)
-                .fetch_optional(&self.pool)
-                .await?;
+        let row: Option<AlarmRow> = sqlx::query_as(&format!(
+            "select {ALARM_COLUMNS} from alarms where alarm_id = ?"
+        ))
+        .bind(id)
+        .fetch_optional(&self.pool)
+        .await?;
         row.map(|r| self.alarm_of_row(r)).transpose()
     }
 }

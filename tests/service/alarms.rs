@@ -191,9 +191,7 @@ async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note() {
     // The same again (a retry) is fine; another is a conflict and changes nothing.
     let (status, again) = app.post_json(&uri, &ack).await;
     assert_eq!((status, &again), (StatusCode::OK, &a));
-    let (status, body) = app
-        .post_json(&uri, &json!({"by": "someone else"}))
-        .await;
+    let (status, body) = app.post_json(&uri, &json!({"by": "someone else"})).await;
     assert_eq!(status, StatusCode::CONFLICT, "{body}");
     assert!(body.to_string().contains("watch officer"), "{body}");
     // Nothing to acknowledge, nothing found, nothing said.

@@ -3,7 +3,7 @@
 use axum::Router;
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
-use brokenray::api::{AppState, Limits, router};
+use brokenray::api::{AppState, router};
 use brokenray::clock::{Clock as _, ManualClock};
 use brokenray::config::{self, Installation};
 use brokenray::service::{PipelineHandle, Service};
@@ -52,18 +52,11 @@ impl TestApp {
         inst: Installation,
         clock: ManualClock,
     ) -> TestApp {
-        let limits = Limits {
-            max_body_bytes: inst.server.max_body_bytes,
-            max_batch_samples: inst.server.max_batch_samples,
-        };
         let (service, pipeline) =
             Service::start_with_clock(inst, std::sync::Arc::new(clock.clone()))
                 .await
                 .expect("service starts");
-        let router = router(AppState {
-            service: service.clone(),
-            limits,
-        });
+        let router = router(AppState::new(service.clone()));
         TestApp {
             clock,
             dir,

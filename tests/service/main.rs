@@ -14,3 +14,4 @@ mod openapi;
 mod paper;
 mod recordings;
 mod results;
+mod webhooks;
