@@ -972,21 +972,70 @@
 
   // ---------------------------------------------------------------- alarms
 
+  // Who acts, remembered on this computer for the next acknowledgement or reset.
+  const OPERATOR_KEY = 'brokenray.operator';
+  const operator = () => { try { return localStorage.getItem(OPERATOR_KEY) || ''; } catch (_) { return ''; } };
+  const rememberOperator = (name) => { try { localStorage.setItem(OPERATOR_KEY, name); } catch (_) { /* private mode */ } };
+
+  // The acknowledgement cell: who and when once acknowledged; a button on a raised level.
+  function ackCell(a) {
+    const cell = el('td', { class: 'ack' });
+    if (a.acknowledged_by) {
+      cell.append(el('span', { text: a.acknowledged_by }),
+        el('div', { class: 'muted small', text: fmtTime(parseTime(a.acknowledged_at)) }));
+      if (a.note) cell.append(el('div', { class: 'muted small', text: a.note }));
+      return cell;
+    }
+    if (a.to === 'none' || a.id === undefined) return cell;
+    const button = el('button', { type: 'button', class: 'ghost', 'data-ack': String(a.id), text: 'Acknowledge' });
+    button.addEventListener('click', () => {
+      const by = el('input', { type: 'text', name: 'by', placeholder: 'your name', 'aria-label': 'Acknowledged by', required: '', value: operator() });
+      const note = el('input', { type: 'text', name: 'note', placeholder: 'note (optional)', 'aria-label': 'Note' });
+      const save = el('button', { type: 'submit', text: 'Save' });
+      const said = el('span', { class: 'muted small', role: 'status' });
+      const form = el('form', { class: 'ack-form' }, by, note, save, said);
+      form.addEventListener('submit', async (e) => {
+        e.preventDefault();
+        if (!by.value.trim()) { said.textContent = 'Say who acknowledges.'; return; }
+        save.disabled = true;
+        try {
+          const done = await api('/api/v1/alarms/' + a.id + '/ack', {
+            method: 'POST',
+            json: note.value.trim() ? { by: by.value.trim(), note: note.value.trim() } : { by: by.value.trim() },
+          });
+          rememberOperator(by.value.trim());
+          const i = state.alarms.findIndex((x) => x.id === a.id);
+          if (i >= 0) state.alarms[i] = done;
+          renderAlarms();
+        } catch (err) {
+          said.textContent = err.status === 403 ? 'Refused: this token lacks the admin scope.' : 'Refused: ' + err.message;
+          save.disabled = false;
+        }
+      });
+      cell.textContent = '';
+      cell.append(form);
+      by.focus();
+    });
+    cell.append(button);
+    return cell;
+  }
+
   function alarmRow(a) {
-    return el('tr', {},
+    return el('tr', { 'data-alarm': a.id === undefined ? '' : String(a.id) },
       el('td', { text: fmtTime(parseTime(a.time)) }),
       el('td', { text: a.target }),
       el('td', { text: a.kind }),
       el('td', {}, el('span', { class: 'badge ' + a.from, text: a.from }), ' → ', el('span', { class: 'badge ' + a.to, text: a.to })),
-      el('td', { class: 'num', text: Number.isFinite(a.value) ? a.value.toFixed(1) : '' }),
-      el('td', { class: 'message', text: a.message }));
+      el('td', { class: 'num', text: Number.isFinite(a.value) ? a.value.toFixed(1) + (a.unit && a.unit !== 'none' ? ' ' + a.unit.replace(/_per_/g, '/') : '') : '' }),
+      el('td', { class: 'message', text: a.message }),
+      ackCell(a));
   }
 
   function renderAlarms() {
     const body = $('alarms').tBodies[0];
     body.textContent = '';
     if (!state.alarms.length) {
-      body.append(el('tr', { class: 'empty' }, el('td', { colspan: '6', text: 'No alarm transitions in the shown range.' })));
+      body.append(el('tr', { class: 'empty' }, el('td', { colspan: '7', text: 'No alarm transitions in the shown range.' })));
       return;
     }
     for (const a of state.alarms) body.append(alarmRow(a));
@@ -1120,7 +1169,63 @@
         el('td', { class: 'num', text: String(l.n_samples) }),
         el('td', { class: 'num', text: l.n_outliers + share }),
         el('td', { class: 'num', text: String(l.n_reinitializations) }),
-        el('td', {}, el('span', { class: 'badge ' + l.status, text: l.status.replace('_', ' ') }))));
+        el('td', {}, el('span', { class: 'badge ' + l.status, text: l.status.replace('_', ' ') })),
+        resetCell(l)));
+    }
+  }
+
+  // A measured link that is stale or full of outliers can have its filter restarted (after a
+  // sample stamped far ahead, every correct one is refused as out of order). Two clicks: the
+  // first asks to confirm.
+  const OUTLIER_SHARE_FOR_RESET = 0.1;
+  let resetAsked = { link: null, until: 0 };
+  function resetCell(l) {
+    const cell = el('td', {});
+    if (l.last_reset) {
+      cell.title = `Last reset ${fmtTime(parseTime(l.last_reset.at))}` + (l.last_reset.by ? ' by ' + l.last_reset.by : '') +
+        (l.last_reset.note ? ': ' + l.last_reset.note : '');
+    }
+    const troubled = l.kind === 'measured' &&
+      (l.status === 'stale' || (l.n_samples > 0 && l.n_outliers / l.n_samples >= OUTLIER_SHARE_FOR_RESET));
+    if (!troubled) return cell;
+    const confirming = resetAsked.link === l.name && Date.now() < resetAsked.until;
+    const button = el('button', { type: 'button', class: confirming ? 'danger' : 'ghost', 'data-reset': l.name,
+      text: confirming ? 'Confirm reset' : 'Reset filter',
+      title: 'Restart this link\'s filter from its next sample' });
+    button.addEventListener('click', async () => {
+      if (!(resetAsked.link === l.name && Date.now() < resetAsked.until)) {
+        resetAsked = { link: l.name, until: Date.now() + 10000 };
+        renderLinks();
+        return;
+      }
+      resetAsked = { link: null, until: 0 };
+      button.disabled = true;
+      try {
+        const who = operator();
+        await api('/api/v1/links/' + encodeURIComponent(l.name) + '/reset', {
+          method: 'POST',
+          json: Object.assign({ note: `from the dashboard: the link was ${l.status.replace('_', ' ')}` }, who ? { by: who } : {}),
+        });
+        clearMessage('reset');
+        await loadLinks();
+      } catch (err) {
+        showMessage('reset', `Resetting ${l.name} was refused: ` + (err.status === 403 ? 'this token lacks the admin scope.' : err.message));
+        button.disabled = false;
+      }
+    });
+    cell.append(button);
+    return cell;
+  }
+
+  // Webhooks that fail are said on the page: alarms may not be reaching people.
+  async function loadWebhooks() {
+    const hooks = await api('/api/v1/webhooks');
+    const failing = hooks.filter((h) => h.failing || h.dropped > 0);
+    if (failing.length) {
+      showMessage('webhooks', 'Alarm notifications are failing: ' +
+        failing.map((h) => `${h.host} (${h.last_error || h.dropped + ' dropped'})`).join('; '));
+    } else {
+      clearMessage('webhooks');
     }
   }
 
@@ -1191,7 +1296,9 @@
     if (!started) {
       started = true;
       linksTimer = setInterval(() => {
-        if (!document.hidden) loadLinks().catch((e) => { if (e.status !== 401) showMessage('links', 'Links: ' + e.message); });
+        if (document.hidden) return;
+        loadLinks().catch((e) => { if (e.status !== 401) showMessage('links', 'Links: ' + e.message); });
+        loadWebhooks().catch((e) => { if (e.status !== 401) showMessage('webhooks', 'Webhooks: ' + e.message); });
       }, 2000);
       void linksTimer;
     }

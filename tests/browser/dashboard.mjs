@@ -209,6 +209,42 @@ await run(async (browser) => {
   check(parseFloat(age) >= 5, `the age of the newest result counts on and warns: ${age}`);
 
   await page.click('button[data-range="300"]');
+
+  // 9. The feed has stopped: by the server's clock the target turns stale and the stale alarm
+  // is raised; it is acknowledged from its row, with who and a note, and the service has it.
+  await page.waitForFunction(() => document.querySelector('[data-target="G"] [data-f="status"]').textContent === 'stale',
+    null, { timeout: 15000 });
+  check(true, 'the card says "stale" once the feed has stopped (judged on the server\'s clock)');
+  const staleRowId = () => {
+    const row = [...document.querySelectorAll('#alarms tbody tr')]
+      .find((r) => r.children[2] && r.children[2].textContent === 'stale' && r.querySelector('button[data-ack]'));
+    return row ? row.dataset.alarm : null;
+  };
+  const staleId = await (await page.waitForFunction(staleRowId, null, { timeout: 15000 })).jsonValue();
+  check(staleId !== null, `the stale alarm is listed with an "Acknowledge" button: alarm ${staleId}`);
+  const row = `#alarms tbody tr[data-alarm="${staleId}"]`;
+  await page.click(`${row} button[data-ack]`);
+  await page.fill(`${row} input[name="by"]`, 'test operator');
+  await page.fill(`${row} input[name="note"]`, 'feed stopped on purpose');
+  await page.click(`${row} .ack-form button[type="submit"]`);
+  await page.waitForFunction((sel) => (document.querySelector(sel)?.textContent || '').includes('test operator'), row, { timeout: 10000 });
+  const stored = await (await fetch(base + '/api/v1/alarms?order=desc&limit=100')).json();
+  const acked = stored.alarms.find((a) => String(a.id) === staleId);
+  check(acked && acked.acknowledged_by === 'test operator' && acked.note === 'feed stopped on purpose' && acked.acknowledged_at,
+    `the acknowledgement is stored: ${JSON.stringify(acked && { by: acked.acknowledged_by, at: acked.acknowledged_at, note: acked.note })}`);
+
+  // 10. A stale link offers a reset of its filter; two clicks (ask, confirm) restart it.
+  const reset = '#links button[data-reset="C1_from_B"]';
+  await page.waitForSelector(reset, { timeout: 10000 });
+  await page.click(reset);
+  await page.waitForSelector(reset + '.danger', { timeout: 5000 });
+  await page.click(reset);
+  await page.waitForFunction(() => document.querySelector('#links tr[data-link="C1_from_B"] .badge')?.textContent === 'no data',
+    null, { timeout: 10000 });
+  const links = await (await fetch(base + '/api/v1/links')).json();
+  const c1 = links.find((l) => l.name === 'C1_from_B');
+  check(c1.status === 'no_data' && c1.last_reset && c1.last_reset.by === 'test operator' && /dashboard/.test(c1.last_reset.note),
+    `the reset is recorded with who asked: ${JSON.stringify(c1.last_reset)}`);
   await page.waitForTimeout(1500);
   await page.screenshot({ path: join(artifacts, 'dashboard.png'), fullPage: true });
   await page.setViewportSize({ width: 1366, height: 768 });
