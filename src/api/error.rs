@@ -148,20 +148,42 @@ impl ApiError {
     }
 }
 
-/// Refused requests since start, by status code (400, 401, 403, 404, 408, 409, 413, 415, 422,
-/// 5xx).
-pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 10] = [
+/// Refused requests since start, by status code (400, 401, 403, 404, 405, 408, 409, 413, 415,
+/// 422, 431, 5xx).
+pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 12] = [
     (400, std::sync::atomic::AtomicU64::new(0)),
     (401, std::sync::atomic::AtomicU64::new(0)),
     (403, std::sync::atomic::AtomicU64::new(0)),
     (404, std::sync::atomic::AtomicU64::new(0)),
+    (405, std::sync::atomic::AtomicU64::new(0)),
     (408, std::sync::atomic::AtomicU64::new(0)),
     (409, std::sync::atomic::AtomicU64::new(0)),
     (413, std::sync::atomic::AtomicU64::new(0)),
     (415, std::sync::atomic::AtomicU64::new(0)),
     (422, std::sync::atomic::AtomicU64::new(0)),
+    (431, std::sync::atomic::AtomicU64::new(0)),
     (500, std::sync::atomic::AtomicU64::new(0)),
 ];
+
+/// A whole HTTP/1.1 response carrying the error envelope, for the answers the connection
+/// layer writes itself (before any handler runs), closing the connection; counted like every
+/// refusal.
+pub fn raw_response(status: StatusCode, code: &str, message: &str, field: Option<&str>) -> Vec<u8> {
+    count_rejection(status);
+    let body = serde_json::json!({"error": {
+        "code": code,
+        "message": message,
+        "details": field.map_or_else(Vec::new, |f| vec![serde_json::json!({"field": f, "message": message})]),
+    }})
+    .to_string();
+    format!(
+        "HTTP/1.1 {} {}\r\ncontent-type: application/json\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
+        status.as_str(),
+        status.canonical_reason().unwrap_or(""),
+        body.len()
+    )
+    .into_bytes()
+}
 
 fn count_rejection(status: StatusCode) {
     let code = if status.is_server_error() {
