@@ -5,7 +5,7 @@
 // LIVE_JSON: groups of observations without times ([[{camera, marker, points_px}, ...], ...]),
 // posted here with the current time to play a live measurement. Each check that fails throws
 // with what it saw; the exit status is 0 only when every check passed. Run by
-// tests/service/dashboard.rs, which starts the service and writes the files.
+// tests/suite/service/dashboard.rs, which starts the service and writes the files.
 import { readFileSync, mkdirSync } from 'node:fs';
 import { join } from 'node:path';
 import { check, run, watch } from './lib.mjs';

@@ -3,7 +3,7 @@
 //
 //   node token.mjs BASE_URL READ_TOKEN
 //
-// Run by tests/service/dashboard.rs. The only console errors allowed are the browser's own
+// Run by tests/suite/service/dashboard.rs. The only console errors allowed are the browser's own
 // reports of the 401 before the token is given and of the 403 the reference gets.
 import { check, run, watch } from './lib.mjs';
 

@@ -4,7 +4,7 @@
 //! Truth is simulated independently of the filter's discretisation: the random walk exactly,
 //! the dynamic models by Euler-Maruyama with 1 ms substeps.
 
-mod common;
+use crate::common;
 
 use brokenray::chain::chi_square_quantile;
 use brokenray::filter::{CV_RATE_PRIOR_S, Disposition, FilterTuning, LinkFilter, MotionModel};

@@ -1,7 +1,7 @@
 //! Chain composition and its uncertainty, checked against the paper's equations, a Monte Carlo
 //! of the same chain, the straight-chain closed form, and redundant-path fusion.
 
-mod common;
+use crate::common;
 
 use approx::assert_relative_eq;
 use brokenray::chain::{Topology, compose_path, fuse};

@@ -2,7 +2,7 @@
 //! calibrations, restarts.
 
 use super::helpers::{ONE_LINK, T0_NS, TestApp, pose_json, time_text};
-use super::paper::{self, TABLE_4, TABLE_5};
+use crate::common::paper::{self, TABLE_4, TABLE_5};
 use axum::http::StatusCode;
 use brokenray::config::{self, LinkKind};
 use brokenray::geometry::{

@@ -1,6 +1,6 @@
 //! Deformation and correction, and the paper's Table 4/5 statistics.
 
-mod common;
+use crate::common;
 
 use approx::assert_relative_eq;
 use brokenray::deformation::{Deformation, Reference};

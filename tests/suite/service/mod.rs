@@ -10,8 +10,6 @@ mod ingest_errors;
 mod liveness;
 mod observations;
 mod openapi;
-#[path = "../common/paper.rs"]
-mod paper;
 mod recordings;
 mod results;
 mod webhooks;

@@ -1,7 +1,7 @@
 //! PnP on synthetic cameras and markers: exact recovery without noise, a covariance that
 //! describes the error with noise, and every refusal.
 
-mod common;
+use crate::common;
 
 use brokenray::geometry::{Pose, Rotation, Vec3};
 use brokenray::vision::{CameraModel, PnpOptions, VisionError, solve_pnp};

@@ -1,7 +1,7 @@
 //! Station calibration `A_i X = X B_i`: recovery from noisy synthetic motions within the
 //! reported uncertainty, and the refusals.
 
-mod common;
+use crate::common;
 
 use brokenray::geometry::{ARCSEC_PER_RAD, Pose, Rotation, Twist, Vec3, se3_exp};
 use brokenray::vision::{HandEyeOptions, VisionError, solve_hand_eye};
