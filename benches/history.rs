@@ -65,7 +65,7 @@ fn main() {
                             ),
                             cov: Mat6::identity() * 1e-6,
                         },
-                        status: "ok",
+                        status: brokenray::filter::TargetStatus::Ok,
                         age_s: 0.0,
                         chi2: None,
                         deformation: None,

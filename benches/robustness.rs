@@ -108,7 +108,7 @@ async fn fill(config: &std::path::Path, n: i64) {
                         ),
                         cov: Mat6::identity() * 1e-6,
                     },
-                    status: "ok",
+                    status: brokenray::filter::TargetStatus::Ok,
                     age_s: 0.0,
                     chi2: None,
                     deformation: None,

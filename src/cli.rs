@@ -245,7 +245,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             let duration_s =
                 crate::feed::parse_duration_s(&duration).map_err(anyhow::Error::msg)?;
             let start_ns = match &start {
-                Some(t) => crate::api::time::parse_query_time(t)
+                Some(t) => crate::clock::parse_query_time(t)
                     .map_err(|e| anyhow::anyhow!("--start: {e}"))?,
                 None => now_ns(),
             };
@@ -395,7 +395,7 @@ fn replay(
     out_file: &std::path::Path,
 ) -> anyhow::Result<crate::viz::replay::ReplaySummary> {
     let time = |name: &str, text: &str| {
-        crate::api::time::parse_query_time(text).map_err(|e| anyhow::anyhow!("--{name}: {e}"))
+        crate::clock::parse_query_time(text).map_err(|e| anyhow::anyhow!("--{name}: {e}"))
     };
     let (from_ns, to_ns) = (time("from", from)?, time("to", to)?);
     anyhow::ensure!(from_ns <= to_ns, "--to is before --from");
@@ -625,8 +625,8 @@ async fn demo(
                 if let crate::feed::Sink::Http(c) = sink {
                     for t in &targets {
                         let body = serde_json::json!({
-                            "from": crate::api::time::format_ns(settings.start_ns + 1_000_000_000),
-                            "to": crate::api::time::format_ns(group.time_ns),
+                            "from": crate::clock::format_ns(settings.start_ns + 1_000_000_000),
+                            "to": crate::clock::format_ns(group.time_ns),
                         });
                         c.post(&format!("/api/v1/targets/{t}/reference"), &body)
                             .await?;

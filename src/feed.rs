@@ -6,8 +6,8 @@
 //! `POST /api/v1/samples`, as a pose-producing pipeline would.
 
 use crate::api::dto::PoseOut;
-use crate::api::time::format_ns;
 use crate::api::vision::ObservationIn;
+use crate::clock::format_ns;
 use crate::sim::{SimGroup, Simulator};
 use crate::vision::Observer;
 use anyhow::{Context as _, bail};

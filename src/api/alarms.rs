@@ -2,7 +2,7 @@
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
-use super::time::format_ns;
+use crate::clock::format_ns;
 use crate::store::StoredAlarm;
 use axum::Json;
 use axum::extract::{Path, Query, State};
@@ -103,7 +103,7 @@ pub async fn list_alarms(
         Some(name) => Some(super::targets::target_index(&app, name)?.0),
         None => None,
     };
-    let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
+    let (from, to) = super::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let limit = super::query_count("limit", q.limit, 1000)?;
     let newest_first = super::query_choice(
         "order",

@@ -1,10 +1,11 @@
 //! Bearer tokens: `Authorization: Bearer <token>`, checked against the SHA-256 hashes of the
 //! configuration, each with scopes `read`, `ingest`, `admin`. Without configured tokens every
 //! request is accepted (the server then listens on loopback only; see [`crate::api::App`]).
-//! `/healthz` is open to all: health checks carry no token, and it tells only whether the
-//! service works. So are the dashboard's page and files (`/`, `/assets/...`): a browser cannot
-//! put a token on a page load, and they hold no data (the page sends the token with its API
-//! calls).
+//! The scope each route needs is declared once, in its OpenAPI annotation, and enforced from
+//! the document ([`ScopeTable`]). `/healthz` is open to all (`security(())`): health checks carry
+//! no token, and it tells only whether the service works and how old each target's data is. So
+//! are the dashboard's page and files (`/`, `/assets/...`): a browser cannot put a token on a
+//! page load, and they hold no data (the page sends the token with its API calls).
 
 use super::error::ApiError;
 use crate::config::{Scope, TokenSpec};
@@ -15,15 +16,89 @@ use axum::response::Response;
 use sha2::{Digest, Sha256};
 use std::sync::Arc;
 
-/// The scope a request needs: `ingest` to post samples, `admin` to change references and
-/// calibrations, `read` for the rest.
-pub fn required_scope(method: &Method, path: &str) -> Scope {
-    if !is_write(method) {
-        Scope::Read
-    } else if path.ends_with("/samples") || path.ends_with("/observations") {
-        Scope::Ingest
-    } else {
-        Scope::Admin
+/// The scope of every operation, read from the OpenAPI document: each handler declares its
+/// scope once, in its `#[utoipa::path(security(...))]`, and this table is what the middleware
+/// enforces (`security(())` means open to all: the health check and the dashboard's files).
+#[derive(Debug, Clone, Default)]
+pub struct ScopeTable {
+    /// Method, path template split into segments (`None` for a `{parameter}`), and the scope
+    /// (`None`: open).
+    routes: Vec<(Method, Vec<Option<String>>, Option<Scope>)>,
+}
+
+impl ScopeTable {
+    /// The table of an OpenAPI document (as JSON). An operation whose scope is not one of
+    /// `read`, `ingest`, `admin` is a defect of its declaration: it needs `admin`.
+    pub fn from_openapi(doc: &serde_json::Value) -> Self {
+        let mut routes = Vec::new();
+        let Some(paths) = doc["paths"].as_object() else {
+            return Self::default();
+        };
+        for (template, item) in paths {
+            let segments: Vec<Option<String>> = template
+                .split('/')
+                .map(|seg| (!seg.starts_with('{')).then(|| seg.to_owned()))
+                .collect();
+            let Some(ops) = item.as_object() else {
+                continue;
+            };
+            for (method, op) in ops {
+                let Ok(method) = method.to_ascii_uppercase().parse::<Method>() else {
+                    continue;
+                };
+                let declared: Vec<&str> = op["security"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .filter_map(|req| req.as_object())
+                    .flat_map(|req| req.values())
+                    .filter_map(|scopes| scopes.as_array())
+                    .flatten()
+                    .filter_map(|v| v.as_str())
+                    .collect();
+                let open = op["security"].as_array().is_some_and(|reqs| {
+                    reqs.iter()
+                        .any(|r| r.as_object().is_some_and(|o| o.is_empty()))
+                });
+                let scope = if open && declared.is_empty() {
+                    None
+                } else {
+                    Some(match declared.first().copied() {
+                        Some("read") => Scope::Read,
+                        Some("ingest") => Scope::Ingest,
+                        _ => Scope::Admin,
+                    })
+                };
+                routes.push((method, segments.clone(), scope));
+            }
+        }
+        Self { routes }
+    }
+
+    /// The scope a request needs; `None` when it is open to all. A path no operation has (a
+    /// 404 to come) needs `read`, or `admin` to change something.
+    pub fn required(&self, method: &Method, path: &str) -> Option<Scope> {
+        let parts: Vec<&str> = path.split('/').collect();
+        let matches = |segments: &[Option<String>]| {
+            segments.len() == parts.len()
+                && segments.iter().zip(&parts).all(|(s, p)| match s {
+                    Some(literal) => literal == p,
+                    None => !p.is_empty(),
+                })
+        };
+        if let Some((_, _, scope)) = self
+            .routes
+            .iter()
+            .find(|(m, segments, _)| m == method && matches(segments))
+        {
+            return *scope;
+        }
+        // A method the path does not have (405 to come) or an unknown path (404).
+        Some(if is_write(method) {
+            Scope::Admin
+        } else {
+            Scope::Read
+        })
     }
 }
 
@@ -43,13 +118,14 @@ pub fn sha256_hex(token: &str) -> String {
 /// Checks the bearer token of a request against the configured tokens.
 pub async fn require_token(
     tokens: Arc<Vec<TokenSpec>>,
+    scopes: Arc<ScopeTable>,
     request: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
-    let path = request.uri().path();
-    if tokens.is_empty() || path == "/healthz" || super::dashboard::is_dashboard_path(path) {
+    let needed = scopes.required(request.method(), request.uri().path());
+    let Some(needed) = needed.filter(|_| !tokens.is_empty()) else {
         return Ok(next.run(request).await);
-    }
+    };
     let given = request
         .headers()
         .get(header::AUTHORIZATION)
@@ -75,7 +151,6 @@ pub async fn require_token(
             "the token is not known",
         ));
     };
-    let needed = required_scope(request.method(), request.uri().path());
     if !token.scopes.contains(&needed) && !token.scopes.contains(&Scope::Admin) {
         return Err(ApiError::new(
             StatusCode::FORBIDDEN,
@@ -233,6 +308,47 @@ mod tests {
         assert_eq!(host_name("[::1]:7878"), "::1");
         assert_eq!(host_name("127.0.0.1"), "127.0.0.1");
         assert_eq!(host_name("ship.example:80"), "ship.example");
+    }
+
+    #[test]
+    fn the_scope_table_follows_the_declarations_of_the_document() {
+        let doc = serde_json::json!({"paths": {
+            "/healthz": {"get": {"security": [{}]}},
+            "/api/v1/samples": {"post": {"security": [{"bearer": ["ingest"]}]}},
+            "/api/v1/targets/{name}/reference": {
+                "get": {"security": [{"bearer": ["read"]}]},
+                "post": {"security": [{"bearer": ["admin"]}]}
+            },
+            "/api/v1/odd": {"get": {"security": [{"bearer": ["superuser"]}]}}
+        }});
+        let t = ScopeTable::from_openapi(&doc);
+        assert_eq!(t.required(&Method::GET, "/healthz"), None);
+        assert_eq!(
+            t.required(&Method::POST, "/api/v1/samples"),
+            Some(Scope::Ingest)
+        );
+        assert_eq!(
+            t.required(&Method::GET, "/api/v1/targets/G/reference"),
+            Some(Scope::Read)
+        );
+        assert_eq!(
+            t.required(&Method::POST, "/api/v1/targets/G/reference"),
+            Some(Scope::Admin)
+        );
+        // A parameter is one non-empty segment.
+        assert_eq!(
+            t.required(&Method::GET, "/api/v1/targets//reference"),
+            Some(Scope::Read)
+        );
+        assert_eq!(
+            t.required(&Method::POST, "/api/v1/targets//reference"),
+            Some(Scope::Admin),
+            "an unknown path that changes something needs admin"
+        );
+        // Not in the document: read to look, admin to change; an unknown scope is admin's.
+        assert_eq!(t.required(&Method::GET, "/nowhere"), Some(Scope::Read));
+        assert_eq!(t.required(&Method::DELETE, "/healthz"), Some(Scope::Admin));
+        assert_eq!(t.required(&Method::GET, "/api/v1/odd"), Some(Scope::Admin));
     }
 
     #[test]

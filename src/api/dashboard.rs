@@ -76,11 +76,6 @@ fn etags() -> &'static [HeaderValue] {
     })
 }
 
-/// Whether a request path is one of the dashboard's (open without a token).
-pub fn is_dashboard_path(path: &str) -> bool {
-    path == "/" || path.starts_with("/assets/")
-}
-
 fn serve(index: usize, headers: &HeaderMap) -> Response {
     let asset = &ASSETS[index];
     let etag = &etags()[index];

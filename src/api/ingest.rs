@@ -9,7 +9,7 @@ use super::AppState;
 use super::dto::{SampleIn, covariance_from, invalid};
 use super::error::{ApiError, ErrorBody, ErrorDetail};
 use super::jsonpath::{item_index, offset_of, path_at};
-use super::time::{latest_accepted_ns, parse_measurement_time};
+use crate::clock::{latest_accepted_ns, parse_measurement_time};
 use crate::config::{Installation, LinkKind};
 use crate::filter::{MeasurementUncertainty, Sample};
 use crate::service::{IngestItem, IngestReport};

@@ -3,8 +3,8 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use super::error::{ApiError, ErrorBody};
-use super::time::{format_ns, parse_json_time};
 use crate::chain::LinkId;
+use crate::clock::{format_ns, parse_json_time};
 use crate::config::{LinkKind, LinkSpec};
 use crate::geometry::PoseCov;
 use crate::store::StoredUncertainty;
@@ -246,7 +246,7 @@ pub async fn list_samples(
     Query(q): Query<SamplesQuery>,
 ) -> Result<Json<SamplesOut>, ApiError> {
     let spec = link_spec(&app, &name)?;
-    let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
+    let (from, to) = super::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let limit = super::query_count("limit", q.limit, 1000)?;
     let stored = app
         .service

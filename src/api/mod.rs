@@ -17,7 +17,6 @@ pub mod links;
 pub mod metrics;
 pub mod server;
 pub mod targets;
-pub mod time;
 pub mod vision;
 pub mod webhooks;
 
@@ -188,6 +187,31 @@ async fn openapi_json() -> axum::response::Response {
         .into_response()
 }
 
+/// Parses the optional `from` and `to` of a query into `[from, to]` (open ends unbounded),
+/// refusing a `to` before `from`.
+pub fn parse_query_range(
+    from: Option<&str>,
+    to: Option<&str>,
+) -> Result<(i64, i64), error::ApiError> {
+    use error::ApiError;
+    let from = match from {
+        Some(f) => {
+            crate::clock::parse_query_time(f).map_err(|m| ApiError::invalid_field("from", m))?
+        }
+        None => i64::MIN,
+    };
+    let to = match to {
+        Some(t) => {
+            crate::clock::parse_query_time(t).map_err(|m| ApiError::invalid_field("to", m))?
+        }
+        None => i64::MAX,
+    };
+    if from > to {
+        return Err(ApiError::invalid_field("to", "`to` is before `from`"));
+    }
+    Ok((from, to))
+}
+
 /// A count of a query (`limit`, `max_points`): `default` when absent, else 1 to 100000.
 pub fn query_count(field: &str, value: Option<i64>, default: i64) -> Result<i64, ApiError> {
     let n = value.unwrap_or(default);
@@ -339,10 +363,14 @@ pub fn router(state: AppState) -> Router {
     let (router, doc) = routes().split_for_parts();
     // The routes are the same every time: keep the first document.
     let _ = DOC.set(doc);
+    // Each operation's scope as its annotation declares it: the one source of truth.
+    let scopes = Arc::new(auth::ScopeTable::from_openapi(
+        &serde_json::to_value(openapi()).unwrap_or_default(),
+    ));
     router
         .fallback(api_not_found)
         .layer(axum::middleware::from_fn(move |req, next| {
-            auth::require_token(Arc::clone(&tokens), req, next)
+            auth::require_token(Arc::clone(&tokens), Arc::clone(&scopes), req, next)
         }))
         .layer(axum::middleware::from_fn(move |req, next| {
             auth::local_only(local_only.clone(), req, next)

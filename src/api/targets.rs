@@ -3,8 +3,8 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::{ApiError, ErrorBody};
-use super::time::{format_ns, parse_query_time};
 use crate::chain::Direction;
+use crate::clock::{format_ns, parse_query_time};
 use crate::config::TargetSpec;
 use crate::deformation::{Deformation, ReferenceOrigin};
 use crate::filter::{TargetEstimate, TargetStatus};
@@ -491,7 +491,7 @@ pub async fn get_compensation(
         &spec,
         Evaluated {
             time_ns: Some(at_ns),
-            status: crate::service::parse_status(&before.status),
+            status: before.status,
             age_s: Some(before.age_s),
             source: "history",
             estimate: Some(estimate),
@@ -516,7 +516,7 @@ pub struct WindowQuery {
 
 /// Parses `from`, `to` and `source` of a window query.
 pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
-    let (from, to) = super::time::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
+    let (from, to) = super::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let filtered = super::query_choice(
         "source",
         q.source.as_deref(),
@@ -635,10 +635,10 @@ pub async fn post_reference(
                 .map_err(|(f, m)| ApiError::invalid_field(&f, m))?,
         ),
         (None, Some(from), Some(to)) => {
-            let from_ns = super::time::parse_json_time(&from)
+            let from_ns = crate::clock::parse_json_time(&from)
                 .map_err(|m| ApiError::invalid_field("from", m))?;
             let to_ns =
-                super::time::parse_json_time(&to).map_err(|m| ApiError::invalid_field("to", m))?;
+                crate::clock::parse_json_time(&to).map_err(|m| ApiError::invalid_field("to", m))?;
             if from_ns > to_ns {
                 return Err(ApiError::invalid_field("to", "`to` is before `from`"));
             }

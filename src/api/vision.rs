@@ -7,7 +7,7 @@ use super::dto::{PoseIn, PoseOut, SigmaOut, invalid, time_schema};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, Problems, check_batch_size, read_body};
 use super::parse_json_body;
-use super::time::format_ns;
+use crate::clock::format_ns;
 use crate::filter::{MeasurementUncertainty, Sample};
 use crate::geometry::{Pose, PoseCov};
 use crate::service::IngestItem;
@@ -104,7 +104,7 @@ pub async fn post_observations(
     )?;
     let observer = app.service.observer();
     // PnP is CPU work (tens of microseconds per observation): off the async workers.
-    let latest = super::time::latest_accepted_ns(
+    let latest = crate::clock::latest_accepted_ns(
         app.service.now_ns(),
         app.service.installation().server.max_future_s,
     );
@@ -145,7 +145,7 @@ fn solve_batch(
     let mut poses = Vec::with_capacity(observations.len());
     let mut seen = HashSet::new();
     for (index, o) in observations.iter().enumerate() {
-        let time_ns = match super::time::parse_measurement_time(&o.time, latest_ns) {
+        let time_ns = match crate::clock::parse_measurement_time(&o.time, latest_ns) {
             Ok(t) => t,
             Err(m) => {
                 problems.push((Some(index), ("time".to_owned(), m)));

@@ -14,7 +14,7 @@
 
 use super::AppState;
 use super::alarms::AlarmOut;
-use super::time::format_ns;
+use crate::clock::format_ns;
 use crate::config::{NotifyLevel, WebhookSpec};
 use crate::service::Service;
 use crate::store::StoredAlarm;

@@ -94,7 +94,16 @@ pub enum TargetStatus {
 }
 
 impl TargetStatus {
-    /// The name used on the wire.
+    /// Every status.
+    pub const ALL: [TargetStatus; 5] = [
+        TargetStatus::Ok,
+        TargetStatus::Stale,
+        TargetStatus::Degraded,
+        TargetStatus::Initializing,
+        TargetStatus::Predicted,
+    ];
+
+    /// The name used on the wire and in the database.
     pub fn name(self) -> &'static str {
         match self {
             TargetStatus::Ok => "ok",
@@ -103,6 +112,11 @@ impl TargetStatus {
             TargetStatus::Initializing => "initializing",
             TargetStatus::Predicted => "predicted",
         }
+    }
+
+    /// The status of a name; `None` for anything else.
+    pub fn parse(name: &str) -> Option<TargetStatus> {
+        Self::ALL.into_iter().find(|s| s.name() == name)
     }
 }
 

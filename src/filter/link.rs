@@ -48,6 +48,17 @@ pub enum Disposition {
 }
 
 impl Disposition {
+    /// The name stored with the sample and shown on the wire.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Disposition::Initialized => "initialized",
+            Disposition::Fused { .. } => "fused",
+            Disposition::Outlier { .. } => "outlier",
+            Disposition::Reinitialized { .. } => "reinitialized",
+            Disposition::OutOfOrder { .. } => "out_of_order",
+        }
+    }
+
     /// True when the sample was flagged as an outlier (it may still have triggered a restart).
     pub fn is_outlier(&self) -> bool {
         matches!(

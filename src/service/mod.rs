@@ -435,7 +435,7 @@ impl Service {
                 .map(|r| TargetEstimate {
                     target: ti,
                     time_ns: r.time_ns,
-                    status: parse_status(&r.status),
+                    status: r.status,
                     target_from_base: Some(r.estimate),
                     age_s: r.age_s,
                     consistency: None,
@@ -733,16 +733,5 @@ impl Service {
             reply,
         })
         .await
-    }
-}
-
-/// Parses a stored status name.
-pub fn parse_status(s: &str) -> TargetStatus {
-    match s {
-        "ok" => TargetStatus::Ok,
-        "stale" => TargetStatus::Stale,
-        "degraded" => TargetStatus::Degraded,
-        "predicted" => TargetStatus::Predicted,
-        _ => TargetStatus::Initializing,
     }
 }

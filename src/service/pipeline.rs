@@ -611,16 +611,6 @@ fn judge_liveness(
     out
 }
 
-fn disposition_name(d: &Disposition) -> &'static str {
-    match d {
-        Disposition::Initialized => "initialized",
-        Disposition::Fused { .. } => "fused",
-        Disposition::Outlier { .. } => "outlier",
-        Disposition::Reinitialized { .. } => "reinitialized",
-        Disposition::OutOfOrder { .. } => "out_of_order",
-    }
-}
-
 fn nis_of(d: &Disposition) -> Option<f64> {
     match d {
         Disposition::Fused { nis }
@@ -653,9 +643,9 @@ fn raw_row(
         time_ns: raw.time_ns,
         estimate: raw.target_from_base,
         status: if raw.consistency.is_some_and(|c| !c.is_consistent()) {
-            "degraded"
+            crate::filter::TargetStatus::Degraded
         } else {
-            "ok"
+            crate::filter::TargetStatus::Ok
         },
         age_s: 0.0,
         chi2: raw.consistency.map(|c| c.chi2),
@@ -802,7 +792,7 @@ async fn ingest(
             link: item.sample.link,
             time_ns: item.sample.time_ns,
             values,
-            disposition: disposition_name(&d),
+            disposition: d.name(),
             outlier: d.is_outlier(),
             nis: nis_of(&d),
             received_ns: now,
@@ -847,7 +837,7 @@ async fn ingest(
                     filtered: true,
                     time_ns: est.time_ns,
                     estimate: pose,
-                    status: est.status.name(),
+                    status: est.status,
                     age_s: est.age_s,
                     chi2: est.consistency.map(|c| c.chi2),
                     deformation,

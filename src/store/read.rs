@@ -115,7 +115,12 @@ impl ResultRow {
                 ]),
                 cov: decode_mat6(&self.cov)?,
             },
-            status: self.status,
+            status: crate::filter::TargetStatus::parse(&self.status).ok_or_else(|| {
+                super::StoreError::Malformed(format!(
+                    "a result at {} has the unknown status `{}`",
+                    self.time_ns, self.status
+                ))
+            })?,
             age_s: self.age_s,
             chi2: self.chi2,
             deformation,
@@ -131,7 +136,7 @@ pub struct StoredResult {
     /// `target_from_base` with covariance.
     pub estimate: PoseCov,
     /// Its status.
-    pub status: String,
+    pub status: crate::filter::TargetStatus,
     /// Age of the newest sample behind it (s).
     pub age_s: f64,
     /// Chi-square of redundant paths.

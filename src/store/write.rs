@@ -56,8 +56,8 @@ pub struct NewResult {
     pub time_ns: i64,
     /// `target_from_base` with covariance.
     pub estimate: PoseCov,
-    /// `ok`, `stale`, ...
-    pub status: &'static str,
+    /// Its status.
+    pub status: crate::filter::TargetStatus,
     /// Age of the newest sample behind it (s).
     pub age_s: f64,
     /// Chi-square of redundant paths, where there were several.
@@ -293,7 +293,9 @@ impl WriteTx<'_> {
                 for v in s.rotation_arcsec.iter().chain(&s.translation_mm) {
                     b.push_bind(*v);
                 }
-                b.push_bind(r.status).push_bind(r.age_s).push_bind(r.chi2);
+                b.push_bind(r.status.name())
+                    .push_bind(r.age_s)
+                    .push_bind(r.chi2);
                 match &r.deformation {
                     Some((version, d)) => {
                         b.push_bind(Some(*version));

@@ -83,8 +83,8 @@ pub async fn replay(
     }
     let name = format!(
         "brokenray replay {} .. {}",
-        crate::api::time::format_ns(from_ns),
-        crate::api::time::format_ns(to_ns)
+        crate::clock::format_ns(from_ns),
+        crate::clock::format_ns(to_ns)
     );
     let mut logger = Logger::to_file(inst, out, &name, Arc::new(VizCounters::default()))?;
     let mut summary = ReplaySummary::default();

@@ -163,7 +163,7 @@ async fn stored_times(client: &reqwest::Client, base: &str, link: &str) -> Vec<i
         .as_array()
         .unwrap()
         .iter()
-        .map(|s| brokenray::api::time::parse_rfc3339_ns(s["time"].as_str().unwrap()).unwrap())
+        .map(|s| brokenray::clock::parse_rfc3339_ns(s["time"].as_str().unwrap()).unwrap())
         .collect()
 }
 

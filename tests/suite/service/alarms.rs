@@ -184,7 +184,7 @@ async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note() {
     assert_eq!(a["acknowledged_by"], "watch officer");
     assert_eq!(a["note"], "hatch cover moved, checked");
     assert_eq!(
-        brokenray::api::time::parse_rfc3339_ns(a["acknowledged_at"].as_str().unwrap()).unwrap(),
+        brokenray::clock::parse_rfc3339_ns(a["acknowledged_at"].as_str().unwrap()).unwrap(),
         app.service.now_ns(),
         "stamped with the server's clock"
     );

@@ -6,7 +6,7 @@ use super::access::with_tokens;
 use super::helpers::TestApp;
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
-use brokenray::api::time::format_ns;
+use brokenray::clock::format_ns;
 use brokenray::config::DEFAULT_INSTALLATION_TOML;
 use brokenray::feed::observation_items;
 use brokenray::sim::{Scenario, SimSettings, Simulator};

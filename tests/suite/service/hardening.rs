@@ -536,7 +536,7 @@ async fn a_link_reset_recovers_from_a_sample_stamped_ahead() {
     let (_, live) = app.get("/api/v1/targets/G/compensation").await;
     assert_ne!(live["time"], stuck["time"], "{live}");
     assert_eq!(
-        brokenray::api::time::parse_rfc3339_ns(live["time"].as_str().unwrap()).unwrap(),
+        brokenray::clock::parse_rfc3339_ns(live["time"].as_str().unwrap()).unwrap(),
         start + 39 * 40_000_000,
         "{live}"
     );

@@ -147,7 +147,7 @@ impl TestApp {
             .iter()
             .filter_map(|k| body[k].as_array())
             .flatten()
-            .filter_map(|item| brokenray::api::time::parse_json_time(&item["time"]).ok())
+            .filter_map(|item| brokenray::clock::parse_json_time(&item["time"]).ok())
             .max();
         if let Some(t) = newest
             && t > self.clock.now_ns()
@@ -170,7 +170,7 @@ impl TestApp {
 
 /// RFC 3339 text of a time `k * 40 ms` after 2026-11-21T10:00:00Z.
 pub fn time_text(k: i64) -> String {
-    brokenray::api::time::format_ns(T0_NS + k * 40_000_000)
+    brokenray::clock::format_ns(T0_NS + k * 40_000_000)
 }
 
 /// 2026-11-21T10:00:00Z in nanoseconds.

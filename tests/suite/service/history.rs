@@ -30,7 +30,7 @@ fn result(k: i64) -> NewResult {
             pose,
             cov: Mat6::identity() * 1e-6,
         },
-        status: "ok",
+        status: brokenray::filter::TargetStatus::Ok,
         age_s: 0.0,
         chi2: None,
         deformation: None,
@@ -70,7 +70,7 @@ async fn a_month_of_results_downsamples_without_losing_a_spike() {
     let width_ns = (h["bucket_s"].as_f64().unwrap() * 1e9).round() as i64;
     let starts: Vec<i64> = times
         .iter()
-        .map(|t| brokenray::api::time::parse_rfc3339_ns(t.as_str().unwrap()).unwrap())
+        .map(|t| brokenray::clock::parse_rfc3339_ns(t.as_str().unwrap()).unwrap())
         .collect();
     let x_min: Vec<f64> = serde_json::from_value(h["series"]["t_x_mm"]["min"].clone()).unwrap();
     let x_max: Vec<f64> = serde_json::from_value(h["series"]["t_x_mm"]["max"].clone()).unwrap();

@@ -47,7 +47,7 @@ async fn the_laboratory_replica_repeats_like_the_paper_and_filtering_steadies_it
         assert_eq!(body["accepted"], 30);
         assert_eq!(body["poses"].as_array().expect("poses").len(), 30);
     }
-    let t = |k: i64| brokenray::api::time::format_ns(T0_NS + k * 40_000_000);
+    let t = |k: i64| brokenray::clock::format_ns(T0_NS + k * 40_000_000);
     let window = format!("from={}&to={}", t(200), t(299));
     let (_, raw) = app
         .get(&format!("/api/v1/targets/G/stats?{window}&source=raw"))

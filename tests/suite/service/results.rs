@@ -214,7 +214,7 @@ async fn compensation_at_a_past_time_is_interpolated_and_a_later_one_predicted()
         .await;
     assert_eq!(status, StatusCode::OK);
     let at = |k: i64, frac: f64| {
-        brokenray::api::time::format_ns(T0_NS + k * 40_000_000 + (frac * 40e6) as i64)
+        brokenray::clock::format_ns(T0_NS + k * 40_000_000 + (frac * 40e6) as i64)
     };
     let (s3, c3) = app
         .get(&format!("/api/v1/targets/G/compensation?at={}", at(3, 0.0)))
