@@ -649,13 +649,10 @@ async fn demo(
     Ok(())
 }
 
+/// 256 random bits as hex, from the thread's generator (a cryptographically secure generator
+/// seeded by the operating system), on any platform.
 fn random_token() -> anyhow::Result<String> {
-    use std::io::Read as _;
-    let mut bytes = [0u8; 32];
-    std::fs::File::open("/dev/urandom")
-        .and_then(|mut f| f.read_exact(&mut bytes))
-        .context("cannot read random bytes from /dev/urandom")?;
-    Ok(hex::encode(bytes))
+    Ok(hex::encode(rand::random::<[u8; 32]>()))
 }
 
 async fn serve(installation: Installation) -> anyhow::Result<()> {

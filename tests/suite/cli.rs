@@ -355,3 +355,34 @@ fn demo_serves_the_simulated_installation_and_records_it() {
         .unwrap();
     assert_eq!(references, 1);
 }
+
+/// `hash-token` without a token makes one: 64 hex digits, different each time, printed with
+/// its SHA-256 (checked against an independent hash) and the configuration block.
+#[test]
+fn hash_token_generates_a_fresh_token_and_its_hash() {
+    use sha2::Digest as _;
+    let made = |_: usize| {
+        let out = brokenray(&["hash-token"]);
+        assert!(out.status.success(), "{out:?}");
+        let text = String::from_utf8(out.stdout).unwrap();
+        let field = |name: &str| {
+            text.lines()
+                .find_map(|l| l.strip_prefix(name))
+                .map(|v| v.trim().to_owned())
+                .unwrap_or_else(|| panic!("no `{name}` in {text}"))
+        };
+        let (token, hash) = (field("token:"), field("sha256:"));
+        assert!(
+            token.len() == 64 && token.chars().all(|c| c.is_ascii_hexdigit()),
+            "{token}"
+        );
+        assert_eq!(hash, hex::encode(sha2::Sha256::digest(token.as_bytes())));
+        assert!(text.contains(&format!("sha256 = \"{hash}\"")), "{text}");
+        token
+    };
+    let tokens: Vec<String> = (0..3).map(made).collect();
+    assert!(
+        tokens[0] != tokens[1] && tokens[1] != tokens[2] && tokens[0] != tokens[2],
+        "{tokens:?}"
+    );
+}
