@@ -215,7 +215,7 @@ pub struct SampleOut {
     /// Flagged as an outlier.
     pub outlier: bool,
     /// What the filter did: `initialized`, `fused`, `outlier`, `reinitialized`, `out_of_order`.
-    pub disposition: String,
+    pub disposition: &'static str,
     /// Normalised innovation squared.
     pub nis: Option<f64>,
     /// When the service received it.
@@ -273,7 +273,7 @@ pub async fn list_samples(
                     reprojection_rms_px: s.values.quality.reprojection_rms_px,
                     points: s.values.quality.points,
                     outlier: s.outlier,
-                    disposition: s.disposition,
+                    disposition: s.disposition.name(),
                     nis: s.nis,
                     received: format_ns(s.received_ns),
                 }

@@ -47,15 +47,57 @@ pub enum Disposition {
     },
 }
 
-impl Disposition {
+/// What the filter did with a sample, without the numbers: what is stored with it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DispositionKind {
+    /// The first sample.
+    Initialized,
+    /// Fused.
+    Fused,
+    /// Over the gate, not fused.
+    Outlier,
+    /// The filter restarted from a run of consistent outliers.
+    Reinitialized,
+    /// Older than the filter's time, not fused.
+    OutOfOrder,
+}
+
+impl DispositionKind {
+    /// Every kind.
+    pub const ALL: [DispositionKind; 5] = [
+        DispositionKind::Initialized,
+        DispositionKind::Fused,
+        DispositionKind::Outlier,
+        DispositionKind::Reinitialized,
+        DispositionKind::OutOfOrder,
+    ];
+
     /// The name stored with the sample and shown on the wire.
-    pub fn name(&self) -> &'static str {
+    pub fn name(self) -> &'static str {
         match self {
-            Disposition::Initialized => "initialized",
-            Disposition::Fused { .. } => "fused",
-            Disposition::Outlier { .. } => "outlier",
-            Disposition::Reinitialized { .. } => "reinitialized",
-            Disposition::OutOfOrder { .. } => "out_of_order",
+            DispositionKind::Initialized => "initialized",
+            DispositionKind::Fused => "fused",
+            DispositionKind::Outlier => "outlier",
+            DispositionKind::Reinitialized => "reinitialized",
+            DispositionKind::OutOfOrder => "out_of_order",
+        }
+    }
+
+    /// The kind of a name; `None` for anything else.
+    pub fn parse(name: &str) -> Option<DispositionKind> {
+        Self::ALL.into_iter().find(|k| k.name() == name)
+    }
+}
+
+impl Disposition {
+    /// Its kind.
+    pub fn kind(&self) -> DispositionKind {
+        match self {
+            Disposition::Initialized => DispositionKind::Initialized,
+            Disposition::Fused { .. } => DispositionKind::Fused,
+            Disposition::Outlier { .. } => DispositionKind::Outlier,
+            Disposition::Reinitialized { .. } => DispositionKind::Reinitialized,
+            Disposition::OutOfOrder { .. } => DispositionKind::OutOfOrder,
         }
     }
 

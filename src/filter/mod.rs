@@ -33,7 +33,9 @@ pub use bank::{
     BankRecord, FilterBank, LinkEstimate, LinkLag, LinkStatus, MeasurementUncertainty, RawResult,
     Sample, SampleOutcome, TargetEstimate, TargetLiveness, TargetStatus,
 };
-pub use link::{CV_RATE_PRIOR_S, Disposition, LinkFilter, LinkFilterRecord, OutlierRecord};
+pub use link::{
+    CV_RATE_PRIOR_S, Disposition, DispositionKind, LinkFilter, LinkFilterRecord, OutlierRecord,
+};
 pub use tuning::{BankSettings, FilterTuning, MotionModel, OscillationTuning};
 
 /// Errors of the filtering layer.
@@ -70,3 +72,26 @@ pub enum FilterError {
 
 /// Nanoseconds per second.
 pub const NS_PER_S: f64 = 1e9;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every stored name reads back as what was stored, and nothing else reads at all.
+    #[test]
+    fn stored_vocabularies_round_trip_and_refuse_unknown_names() {
+        for s in TargetStatus::ALL {
+            assert_eq!(TargetStatus::parse(s.name()), Some(s));
+        }
+        for k in DispositionKind::ALL {
+            assert_eq!(DispositionKind::parse(k.name()), Some(k));
+        }
+        let names: std::collections::HashSet<_> =
+            TargetStatus::ALL.iter().map(|s| s.name()).collect();
+        assert_eq!(names.len(), TargetStatus::ALL.len(), "names are distinct");
+        for unknown in ["", "OK", "fine", "out-of-order"] {
+            assert_eq!(TargetStatus::parse(unknown), None);
+            assert_eq!(DispositionKind::parse(unknown), None);
+        }
+    }
+}

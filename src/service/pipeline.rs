@@ -792,7 +792,7 @@ async fn ingest(
             link: item.sample.link,
             time_ns: item.sample.time_ns,
             values,
-            disposition: d.name(),
+            disposition: d.kind(),
             outlier: d.is_outlier(),
             nis: nis_of(&d),
             received_ns: now,

@@ -59,7 +59,7 @@ pub struct StoredSample {
     /// Its values as given.
     pub values: SampleValues,
     /// What the filter did with it.
-    pub disposition: String,
+    pub disposition: crate::filter::DispositionKind,
     /// Flagged as an outlier.
     pub outlier: bool,
     /// Normalised innovation squared.
@@ -227,7 +227,14 @@ impl Store {
                 Ok(StoredSample {
                     time_ns: r.time_ns,
                     values: r.values()?,
-                    disposition: r.disposition,
+                    disposition: crate::filter::DispositionKind::parse(&r.disposition).ok_or_else(
+                        || {
+                            super::StoreError::Malformed(format!(
+                                "a sample at {} has the unknown disposition `{}`",
+                                r.time_ns, r.disposition
+                            ))
+                        },
+                    )?,
                     outlier: r.outlier,
                     nis: r.nis,
                     received_ns: r.received_ns,

@@ -36,7 +36,7 @@ pub struct NewSample {
     /// Its values as given.
     pub values: SampleValues,
     /// What the filter did with it (`fused`, `outlier`, ...).
-    pub disposition: &'static str,
+    pub disposition: crate::filter::DispositionKind,
     /// True when flagged as an outlier.
     pub outlier: bool,
     /// Normalised innovation squared, where the filter computed one.
@@ -242,7 +242,7 @@ impl WriteTx<'_> {
                     .push_bind(blob)
                     .push_bind(s.values.quality.reprojection_rms_px)
                     .push_bind(s.values.quality.points.map(i64::from))
-                    .push_bind(s.disposition)
+                    .push_bind(s.disposition.name())
                     .push_bind(s.outlier)
                     .push_bind(s.nis)
                     .push_bind(s.received_ns);
