@@ -27,8 +27,11 @@
 //! * [`clock`]: the server's clock (wall time for liveness and stamps), settable in tests.
 //! * [`cli`]: the command line (the binary in `main.rs` only calls it).
 //!
-//! The numerical core (`geometry`, `chain`, `filter`, `deformation`, `stats`) is pure and synchronous: no IO, no clock, no async
-//! runtime. Conventions are in the module docs of [`geometry`].
+//! The core (`geometry`, `chain`, `filter`, `deformation`, `stats`, `alarms`, `vision`, `sim`)
+//! is pure and synchronous: no IO, no clock (times are passed in; the server's clock is
+//! [`clock`]'s), no async runtime. Adapters (`config`, `store`, `service`, `api`, `viz`, `feed`,
+//! `cli`) do the IO around it; ARCHITECTURE.md has the map. Conventions are in the module docs
+//! of [`geometry`], the mathematics in `docs/method.md`.
 
 #![warn(clippy::unwrap_used, clippy::expect_used)]
 
