@@ -1,6 +1,6 @@
 //! Orchestration: ingest -> filter -> store, references, calibrations, and what readers see.
 //!
-//! The only place that sequences IO. One pipeline task ([`pipeline`]) owns the database's write
+//! The only place that sequences IO. One pipeline task (`pipeline`) owns the database's write
 //! connection and the filter bank. Requests reach it as jobs on a queue; it takes every job
 //! waiting, applies them in order inside one transaction (conflict checks against the store,
 //! filtering, results), persists the bank's state in the same transaction, commits, and only
