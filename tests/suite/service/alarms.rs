@@ -1,6 +1,6 @@
 //! Alarms through the service: a deformation ramp stores exactly its transitions.
 
-use super::helpers::{T0_NS, TestApp};
+use super::helpers::{T0_NS, TestApp, turned_sample};
 use axum::http::StatusCode;
 use serde_json::json;
 
@@ -25,13 +25,7 @@ dwell_s = 1.0
 #[tokio::test]
 async fn a_deformation_ramp_stores_exactly_its_transitions() {
     let app = TestApp::start(Some(ONE_LINK)).await;
-    let (status, _) = app
-        .post_json(
-            "/api/v1/targets/G/reference",
-            &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
-        )
-        .await;
-    assert_eq!(status, StatusCode::CREATED);
+    app.set_straight_reference().await;
     // Rotation about x: up to 150 arcsec at 5 arcsec/s, 10 s there, back down; 25 Hz.
     let mut samples = Vec::new();
     for k in 0..(70 * 25) {
@@ -43,9 +37,7 @@ async fn a_deformation_ramp_stores_exactly_its_transitions() {
         } else {
             (150.0 - (t - 40.0) * 5.0).max(0.0)
         };
-        let half = (v / 3600.0f64).to_radians() / 2.0;
-        samples.push(json!({"link": "G_from_B", "time": T0_NS + k * 40_000_000,
-                            "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}}));
+        samples.push(turned_sample(T0_NS + k * 40_000_000, v));
     }
     for chunk in samples.chunks(250) {
         let (status, body) = app
@@ -103,13 +95,7 @@ async fn an_alarm_decided_by_translation_reports_millimetres() {
         "warn_translation_mm = 1.0\nalarm_translation_mm = 2.0\nhysteresis = 0.1",
     );
     let app = TestApp::start(Some(&config)).await;
-    let (status, _) = app
-        .post_json(
-            "/api/v1/targets/G/reference",
-            &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
-        )
-        .await;
-    assert_eq!(status, StatusCode::CREATED);
+    app.set_straight_reference().await;
     // 1.5 mm along x for 5 s, no rotation.
     let samples: Vec<_> = (0..125)
         .map(|k| {
@@ -136,22 +122,11 @@ async fn an_alarm_decided_by_translation_reports_millimetres() {
 async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note() {
     let config = ONE_LINK.replace("dwell_s = 1.0", "dwell_s = 0.0");
     let app = TestApp::start(Some(&config)).await;
-    let (status, _) = app
-        .post_json(
-            "/api/v1/targets/G/reference",
-            &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
-        )
-        .await;
-    assert_eq!(status, StatusCode::CREATED);
+    app.set_straight_reference().await;
     let mut events = app.service.subscribe();
     // 200 arcsec about x for 2 s, then back to 0: up to `alarm` and back to `none`.
     let samples: Vec<_> = (0..100)
-        .map(|k| {
-            let arcsec = if k < 50 { 200.0f64 } else { 0.0 };
-            let half = (arcsec / 3600.0).to_radians() / 2.0;
-            json!({"link": "G_from_B", "time": T0_NS + k * 40_000_000,
-                   "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}})
-        })
+        .map(|k| turned_sample(T0_NS + k * 40_000_000, if k < 50 { 200.0 } else { 0.0 }))
         .collect();
     let (status, body) = app
         .post_live("/api/v1/samples", &json!({ "samples": samples }))

@@ -157,6 +157,18 @@ impl TestApp {
         self.post_json(uri, body).await
     }
 
+    /// Sets target G's reference to `G_from_B` = 3 m along z, unrotated (the pose the alarm
+    /// tests turn away from); must be accepted.
+    pub async fn set_straight_reference(&self) {
+        let (status, body) = self
+            .post_json(
+                "/api/v1/targets/G/reference",
+                &serde_json::json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
+            )
+            .await;
+        assert_eq!(status, StatusCode::CREATED, "{body}");
+    }
+
     pub async fn post_text(
         &self,
         uri: &str,
@@ -184,6 +196,13 @@ pub fn pose_json(p: &brokenray::geometry::Pose) -> Value {
     let q = brokenray::geometry::quaternion_wxyz(&p.rotation);
     let t = p.translation.vector;
     serde_json::json!({"t_mm": [t.x, t.y, t.z], "q_wxyz": q})
+}
+
+/// A sample of `G_from_B` at `time_ns`: 3 m along z, turned by `arcsec` about x.
+pub fn turned_sample(time_ns: i64, arcsec: f64) -> Value {
+    let half = (arcsec / 3600.0).to_radians() / 2.0;
+    serde_json::json!({"link": "G_from_B", "time": time_ns,
+                       "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}})
 }
 
 /// A one-link installation: `G_from_B` measured directly, target G from base B.

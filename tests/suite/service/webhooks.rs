@@ -2,7 +2,7 @@
 //! `GET /api/v1/alarms` shows it, the signature checks out with the secret, `min_level` filters,
 //! a failing receiver is retried, a refusing one is given up, and all of it is counted.
 
-use super::helpers::{T0_NS, TestApp};
+use super::helpers::{T0_NS, TestApp, turned_sample};
 use axum::http::{HeaderMap, StatusCode};
 use hmac::Mac as _;
 use serde_json::{Value, json};
@@ -128,20 +128,14 @@ async fn until(mut done: impl FnMut() -> bool) {
 async fn alarm_transitions_reach_webhooks_signed_filtered_and_retried() {
     let (base, got) = receiver().await;
     let app = TestApp::start(Some(&installation(&base))).await;
-    let (status, _) = app
-        .post_json(
-            "/api/v1/targets/G/reference",
-            &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
-        )
-        .await;
-    assert_eq!(status, StatusCode::CREATED);
+    app.set_straight_reference().await;
     // 80 arcsec (warn), back to 0, 200 arcsec (alarm), back to 0: four transitions.
     let samples: Vec<Value> = (0..100)
         .map(|k| {
-            let arcsec = [80.0f64, 0.0, 200.0, 0.0][k / 25];
-            let half = (arcsec / 3600.0).to_radians() / 2.0;
-            json!({"link": "G_from_B", "time": T0_NS + k as i64 * 40_000_000,
-                   "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}})
+            turned_sample(
+                T0_NS + k as i64 * 40_000_000,
+                [80.0, 0.0, 200.0, 0.0][k / 25],
+            )
         })
         .collect();
     let (status, body) = app
@@ -255,17 +249,11 @@ async fn a_webhook_that_cannot_be_reached_is_given_up_after_its_attempts_and_sai
             "[[notify.webhooks]]\nurl = \"http://user:pw@127.0.0.1:{port}/hook?token=t\"\nsecret = \"s\"\nmax_attempts = 2\ntimeout_s = 2\n"
         );
     let app = TestApp::start(Some(&text)).await;
-    app.post_json(
-        "/api/v1/targets/G/reference",
-        &json!({"pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}),
-    )
-    .await;
-    let half = (200.0f64 / 3600.0).to_radians() / 2.0;
+    app.set_straight_reference().await;
     let (status, _) = app
         .post_live(
             "/api/v1/samples",
-            &json!({"samples": [{"link": "G_from_B", "time": T0_NS,
-                "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}}]}),
+            &json!({"samples": [turned_sample(T0_NS, 200.0)]}),
         )
         .await;
     assert_eq!(
