@@ -160,11 +160,7 @@ pub async fn post_ack(
     if ack.by.trim().is_empty() {
         return Err(ApiError::invalid_field("by", "say who acknowledges"));
     }
-    for (field, text) in [("by", Some(&ack.by)), ("note", ack.note.as_ref())] {
-        if text.is_some_and(|t| t.chars().count() > 1000) {
-            return Err(ApiError::invalid_field(field, "at most 1000 characters"));
-        }
-    }
+    super::check_texts(&[("by", Some(&ack.by)), ("note", ack.note.as_deref())])?;
     let stored = app.service.acknowledge_alarm(id, ack.by, ack.note).await?;
     let name = app.service.installation().targets[stored.target]
         .name

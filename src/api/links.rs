@@ -112,11 +112,7 @@ pub async fn post_reset(
     } else {
         super::parse_json_body(&body)?
     };
-    for (field, text) in [("by", &r.by), ("note", &r.note)] {
-        if text.as_ref().is_some_and(|t| t.chars().count() > 1000) {
-            return Err(ApiError::invalid_field(field, "at most 1000 characters"));
-        }
-    }
+    super::check_texts(&[("by", r.by.as_deref()), ("note", r.note.as_deref())])?;
     let at = app
         .service
         .reset_link(spec.id, r.by.clone(), r.note.clone())

@@ -9,7 +9,7 @@ use axum::http::header;
 use axum::response::IntoResponse;
 use std::fmt::Write as _;
 
-fn family(out: &mut String, name: &str, kind: &str, help: &str) {
+pub(super) fn family(out: &mut String, name: &str, kind: &str, help: &str) {
     let _ = writeln!(out, "# HELP {name} {help}");
     let _ = writeln!(out, "# TYPE {name} {kind}");
 }

@@ -212,6 +212,17 @@ pub fn parse_query_range(
     Ok((from, to))
 }
 
+/// Refuses free texts a person gave (who, a note) longer than 1000 characters, naming the
+/// field.
+pub fn check_texts(texts: &[(&str, Option<&str>)]) -> Result<(), ApiError> {
+    for (field, text) in texts {
+        if text.is_some_and(|t| t.chars().count() > 1000) {
+            return Err(ApiError::invalid_field(field, "at most 1000 characters"));
+        }
+    }
+    Ok(())
+}
+
 /// A count of a query (`limit`, `max_points`): `default` when absent, else 1 to 100000.
 pub fn query_count(field: &str, value: Option<i64>, default: i64) -> Result<i64, ApiError> {
     let n = value.unwrap_or(default);

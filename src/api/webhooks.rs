@@ -208,13 +208,16 @@ impl Webhooks {
 
     /// The metrics lines of the webhooks (appended to `/metrics`).
     pub fn metrics(&self, out: &mut String) {
+        use super::metrics::family;
         use std::fmt::Write as _;
         if self.hooks.is_empty() {
             return;
         }
-        let _ = writeln!(
+        family(
             out,
-            "# HELP brokenray_webhook_deliveries_total Alarm notifications by outcome: delivered, failed (given up or refused), dropped (queue full).\n# TYPE brokenray_webhook_deliveries_total counter"
+            "brokenray_webhook_deliveries_total",
+            "counter",
+            "Alarm notifications by outcome: delivered, failed (given up or refused), dropped (queue full).",
         );
         for (i, h) in self.hooks.iter().enumerate() {
             let c = &h.counters;
@@ -231,9 +234,11 @@ impl Webhooks {
                 );
             }
         }
-        let _ = writeln!(
+        family(
             out,
-            "# HELP brokenray_webhook_attempts_failed_total Attempts that failed (each retried or given up).\n# TYPE brokenray_webhook_attempts_failed_total counter"
+            "brokenray_webhook_attempts_failed_total",
+            "counter",
+            "Attempts that failed (each retried or given up).",
         );
         for (i, h) in self.hooks.iter().enumerate() {
             let _ = writeln!(
@@ -243,9 +248,11 @@ impl Webhooks {
                 h.counters.attempts_failed.load(Relaxed)
             );
         }
-        let _ = writeln!(
+        family(
             out,
-            "# HELP brokenray_webhook_queued Alarm notifications waiting or being retried.\n# TYPE brokenray_webhook_queued gauge"
+            "brokenray_webhook_queued",
+            "gauge",
+            "Alarm notifications waiting or being retried.",
         );
         for (i, h) in self.hooks.iter().enumerate() {
             let _ = writeln!(
