@@ -7,16 +7,13 @@
 use axum::body::Body;
 use axum::http::Request;
 use brokenray::api::{AppState, router};
-use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
 use brokenray::service::Service;
-use brokenray::store::{self, NewResult};
 use http_body_util::BodyExt;
-use nalgebra::Translation3;
 use std::time::Instant;
+use support::{PERIOD_NS, T0};
 use tower::ServiceExt;
 
-const T0: i64 = 1_795_255_200_000_000_000;
-const PERIOD_NS: i64 = 40_000_000;
+mod support;
 
 fn main() {
     if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
@@ -39,45 +36,7 @@ fn main() {
         .expect("runtime");
     runtime.block_on(async {
         let build = Instant::now();
-        let (store, mut write) = store::open(&inst, 0).await.expect("open");
-        let chunk = 200_000;
-        for start in (0..n).step_by(chunk) {
-            let rows: Vec<NewResult> = (start..(start + chunk as i64).min(n))
-                .map(|k| {
-                    let t = k as f64 / 25.0;
-                    NewResult {
-                        target: 0,
-                        filtered: true,
-                        time_ns: T0 + k * PERIOD_NS,
-                        estimate: PoseCov {
-                            pose: Pose::from_parts(
-                                Translation3::new(
-                                    (t / 8.0).sin(),
-                                    -2952.0,
-                                    532.0 + (t / 15.0).cos(),
-                                ),
-                                rotation_from_euler([
-                                    -0.0718,
-                                    0.026,
-                                    2.87 + 1e-5 * (t / 8.0).sin(),
-                                ])
-                                .expect("rotation"),
-                            ),
-                            cov: Mat6::identity() * 1e-6,
-                        },
-                        status: brokenray::filter::TargetStatus::Ok,
-                        age_s: 0.0,
-                        chi2: None,
-                        deformation: None,
-                    }
-                })
-                .collect();
-            let mut tx = write.begin().await.expect("begin");
-            tx.insert_results(&rows).await.expect("insert");
-            tx.commit().await.expect("commit");
-        }
-        write.close().await.expect("close");
-        store.close().await;
+        support::fill_filtered_results(&inst, n).await;
         println!(
             "built {n} filtered results in {:.1} s",
             build.elapsed().as_secs_f64()
