@@ -2,11 +2,10 @@
 //!
 //! Run: `cargo bench --bench filter`.
 
-use brokenray::config;
-use brokenray::filter::{
-    FilterBank, FilterTuning, LinkFilter, MeasurementUncertainty, MotionModel, Sample,
-};
+use brokenray::bank::{FilterBank, MeasurementUncertainty, Sample};
+use brokenray::filter::{FilterTuning, LinkFilter, MotionModel};
 use brokenray::geometry::{ARCSEC_PER_RAD, Mat6, Pose, PoseCov, Twist, se3_exp};
+use brokenray::{config, model};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use std::hint::black_box;
 
@@ -82,14 +81,14 @@ fn bench_update(c: &mut Criterion) {
 
 fn bench_evaluate(c: &mut Criterion) {
     let inst = config::default_installation();
-    let mut bank = FilterBank::new(&inst);
+    let mut bank = FilterBank::new(&inst.model);
     let names = ["C1_from_B", "C2_from_M", "C3_from_G"];
     for k in 0..50i64 {
         for name in names {
-            let id = inst.topology.link_id(name).expect("link");
-            let pose: Pose = match &inst.link(id).kind {
-                config::LinkKind::Measured(m) => m.nominal.expect("nominal"),
-                config::LinkKind::Calibrated { .. } => unreachable!("measured"),
+            let id = inst.model.topology.link_id(name).expect("link");
+            let pose: Pose = match &inst.model.link(id).kind {
+                model::LinkKind::Measured(m) => m.nominal.expect("nominal"),
+                model::LinkKind::Calibrated { .. } => unreachable!("measured"),
             };
             bank.ingest(&Sample {
                 link: id,

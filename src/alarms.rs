@@ -15,8 +15,28 @@
 //! the deformation and rate, the server's clock for staleness), so noise around a threshold
 //! does not flap.
 
-use crate::config::AlarmThresholds;
 use crate::geometry::{ARCSEC_PER_RAD, Pose, so3_log};
+
+/// Deformation thresholds of a target (absent ones are not checked).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AlarmThresholds {
+    /// Warn above this rotation magnitude (arc-seconds).
+    pub warn_rotation_arcsec: Option<f64>,
+    /// Alarm above this rotation magnitude (arc-seconds).
+    pub alarm_rotation_arcsec: Option<f64>,
+    /// Warn above this translation magnitude (mm).
+    pub warn_translation_mm: Option<f64>,
+    /// Alarm above this translation magnitude (mm).
+    pub alarm_translation_mm: Option<f64>,
+    /// A level is left only below `(1 - hysteresis)` of its threshold.
+    pub hysteresis: f64,
+    /// A new level must hold this long (s, measurement time) to become a transition.
+    pub dwell_s: f64,
+    /// Alarm above this rate of rotation of the target (arc-seconds per second).
+    pub rate_rotation_arcsec_per_s: Option<f64>,
+    /// Alarm above this rate of translation of the target (mm per second).
+    pub rate_translation_mm_per_s: Option<f64>,
+}
 
 /// An alarm level.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]

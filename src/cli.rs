@@ -2,12 +2,14 @@
 
 use crate::chain::Direction;
 use crate::clock::wall_now_ns as now_ns;
-use crate::config::{self, Installation, LinkKind};
+use crate::config::{self, Installation};
 use crate::geometry::{euler_from_rotation, quaternion_wxyz};
+use crate::model::LinkKind;
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use std::fmt::Write as _;
 use std::path::PathBuf;
+use std::sync::Arc;
 
 /// Broken-ray videometrics: deformation of large structures measured through relay stations.
 #[derive(Debug, Parser)]
@@ -335,7 +337,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             }
             let scenario: crate::sim::Scenario = scenario.parse().map_err(anyhow::Error::msg)?;
             let model = filter_model_for(scenario);
-            for spec in &mut installation.links {
+            for spec in &mut Arc::make_mut(&mut installation.model).links {
                 if let LinkKind::Measured(m) = &mut spec.kind
                     && m.tuning.model != model
                 {
@@ -403,6 +405,7 @@ fn replay(
         None => Vec::new(),
         Some(name) => vec![
             installation
+                .model
                 .targets
                 .iter()
                 .position(|t| t.name == name)
@@ -557,7 +560,7 @@ async fn simulate(
     truth: Option<std::io::BufWriter<std::fs::File>>,
     feed: crate::feed::FeedSettings,
 ) -> anyhow::Result<crate::feed::FeedSummary> {
-    let mut sim = crate::sim::Simulator::new(installation, settings)?;
+    let mut sim = crate::sim::Simulator::new(&installation.model, settings)?;
     let stop = Box::pin(async {
         let _ = tokio::signal::ctrl_c().await;
     });
@@ -571,13 +574,14 @@ async fn demo(
     out: &mut impl std::io::Write,
 ) -> anyhow::Result<()> {
     let targets: Vec<String> = installation
+        .model
         .targets
         .iter()
         .map(|t| t.name.clone())
         .collect();
     let recordings = installation.rerun.recordings_dir.clone();
     let database = installation.server.database.clone();
-    let mut sim = crate::sim::Simulator::new(&installation, settings)?;
+    let mut sim = crate::sim::Simulator::new(&installation.model, settings)?;
     let app = crate::api::App::build(installation).await?;
     let addr = app.local_addr()?;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
@@ -659,11 +663,12 @@ async fn serve(installation: Installation) -> anyhow::Result<()> {
     let source = installation.source.clone();
     let database = installation.server.database.clone();
     let targets: Vec<String> = installation
+        .model
         .targets
         .iter()
         .map(|t| t.name.clone())
         .collect();
-    let n_links = installation.links.len();
+    let n_links = installation.model.links.len();
     let app = crate::api::App::build(installation).await?;
     let addr = app.local_addr()?;
     tracing::info!(
@@ -687,7 +692,7 @@ fn fmt3(v: [f64; 3], decimals: usize) -> String {
 /// A human-readable report of a validated installation.
 pub fn describe_installation(inst: &Installation) -> String {
     let mut s = String::new();
-    let topo = &inst.topology;
+    let topo = &inst.model.topology;
     let _ = writeln!(s, "installation: {} (valid)", inst.source);
     let _ = writeln!(
         s,
@@ -695,20 +700,25 @@ pub fn describe_installation(inst: &Installation) -> String {
         topo.frames().len(),
         topo.frames().join(", ")
     );
-    let _ = writeln!(s, "cameras ({}):", inst.cameras.len());
-    for c in &inst.cameras {
+    let _ = writeln!(s, "cameras ({}):", inst.model.cameras.len());
+    for c in &inst.model.cameras {
         let _ = writeln!(
             s,
             "  {:<6} {}x{} px, fx {} fy {} px, pixel sigma {} px",
-            c.frame, c.width_px, c.height_px, c.fx_px, c.fy_px, c.pixel_sigma_px
+            c.frame,
+            c.intrinsics.width_px,
+            c.intrinsics.height_px,
+            c.intrinsics.fx_px,
+            c.intrinsics.fy_px,
+            c.pixel_sigma_px
         );
     }
-    let _ = writeln!(s, "markers ({}):", inst.markers.len());
-    for m in &inst.markers {
+    let _ = writeln!(s, "markers ({}):", inst.model.markers.len());
+    for m in &inst.model.markers {
         let _ = writeln!(s, "  {:<6} {} points", m.frame, m.points_mm.len());
     }
-    let _ = writeln!(s, "links ({}):", inst.links.len());
-    for l in &inst.links {
+    let _ = writeln!(s, "links ({}):", inst.model.links.len());
+    for l in &inst.model.links {
         match &l.kind {
             LinkKind::Calibrated { parent_from_child } => {
                 let sig = parent_from_child.reported_sigmas();
@@ -738,8 +748,8 @@ pub fn describe_installation(inst: &Installation) -> String {
             }
         }
     }
-    let _ = writeln!(s, "targets ({}):", inst.targets.len());
-    for t in &inst.targets {
+    let _ = writeln!(s, "targets ({}):", inst.model.targets.len());
+    for t in &inst.model.targets {
         let r = &t.resolution;
         let _ = writeln!(
             s,
@@ -800,7 +810,7 @@ fn nominal_of_path(
     path: &crate::chain::Path,
 ) -> Option<crate::geometry::Pose> {
     let mut known = true;
-    let composed = crate::chain::compose_path(path, |id| match &inst.link(id).kind {
+    let composed = crate::chain::compose_path(path, |id| match &inst.model.link(id).kind {
         LinkKind::Calibrated { parent_from_child } => *parent_from_child,
         LinkKind::Measured(m) => match m.nominal {
             Some(p) => crate::geometry::PoseCov::exact(p),

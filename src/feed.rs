@@ -8,8 +8,8 @@
 use crate::api::dto::PoseOut;
 use crate::api::vision::ObservationIn;
 use crate::clock::format_ns;
+use crate::model::Observer;
 use crate::sim::{SimGroup, Simulator};
-use crate::vision::Observer;
 use anyhow::{Context as _, bail};
 use serde_json::{Value, json};
 use std::io::Write;

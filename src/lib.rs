@@ -8,35 +8,36 @@
 //!
 //! # Layout
 //!
+//! The core, bottom up (a module uses only the layers below it; `tests/suite/architecture.rs`
+//! checks this and that the core does no IO):
+//!
 //! * [`geometry`]: SE(3) poses, Exp/Log, adjoint, rotation conversions, covariance, averaging.
 //! * [`chain`]: the frame/link graph, path resolution, composition with covariance, fusion of
-//!   redundant paths with a consistency statistic.
-//! * [`config`]: the TOML installation file, parsed into validated domain types, and the
-//!   built-in laboratory installation.
-//! * [`filter`]: per-link error-state Kalman filters on SE(3) (static, constant-velocity,
-//!   oscillatory), outlier gating, and the bank that evaluates targets at a time.
-//! * [`deformation`]: references, deformation `G0_from_G` and correction `G_from_G0`.
-//! * [`alarms`]: alarm levels of a target with hysteresis, dwell, rate of change and stale data.
-//! * [`stats`]: the paper's Table 4/5 statistics over a set of results.
-//! * [`vision`]: the camera model, PnP (IPPE / SQPnP + Levenberg-Marquardt) and hand-eye
-//!   station calibration.
+//!   redundant paths with a consistency statistic. [`deformation`]: references, deformation
+//!   `G0_from_G` and correction `G_from_G0`. [`stats`]: the paper's Table 4/5 statistics.
+//! * [`filter`]: one measured link's error-state Kalman filter on SE(3) (static,
+//!   constant-velocity, oscillatory) with outlier gating. [`vision`]: the camera model, PnP
+//!   (IPPE / SQPnP + Levenberg-Marquardt) and hand-eye station calibration. [`alarms`]: alarm
+//!   levels of a target with hysteresis, dwell, rate of change and stale data.
+//! * [`model`]: an installation's measurement model (frames, links, targets, cameras, markers,
+//!   filter and PnP settings) and the camera-marker links that solve observations.
+//! * [`bank`]: one filter per measured link of a model; targets evaluated at a time, raw
+//!   results from measurement groups, liveness.
 //! * [`sim`]: the scenario simulator (static, drift, ship flexure, tunnel creep, a bumped
 //!   station): ground truth and what the cameras see.
-//! * [`feed`]: the simulator's output as request bodies and NDJSON, and the HTTP client that
-//!   feeds a service with it.
-//! * [`clock`]: the server's clock (wall time for liveness and stamps), settable in tests.
-//! * [`cli`]: the command line (the binary in `main.rs` only calls it).
 //!
-//! The core (`geometry`, `chain`, `filter`, `deformation`, `stats`, `alarms`, `vision`, `sim`)
-//! is pure and synchronous: no IO, no clock (times are passed in; the server's clock is
-//! [`clock`]'s), no async runtime. Adapters (`config`, `store`, `service`, `api`, `viz`, `feed`,
-//! `cli`) do the IO around it; ARCHITECTURE.md has the map. Conventions are in the module docs
-//! of [`geometry`], the mathematics in `docs/method.md`.
+//! [`clock`] is the one home of the server's clock and of time text; the core never reads it
+//! (times are passed in). The adapters do the IO around the core: [`config`] (the installation
+//! file: the model plus deployment settings), [`store`] (SQLite), [`service`] (the single
+//! writer), [`api`] (HTTP), [`viz`] (Rerun), [`feed`] (the simulator's HTTP client) and [`cli`]
+//! (the binary in `main.rs` only calls it). ARCHITECTURE.md has the map; conventions are in the
+//! module docs of [`geometry`], the mathematics in `docs/method.md`.
 
 #![warn(clippy::unwrap_used, clippy::expect_used)]
 
 pub mod alarms;
 pub mod api;
+pub mod bank;
 pub mod chain;
 pub mod cli;
 pub mod clock;
@@ -45,6 +46,7 @@ pub mod deformation;
 pub mod feed;
 pub mod filter;
 pub mod geometry;
+pub mod model;
 pub mod service;
 pub mod sim;
 pub mod stats;

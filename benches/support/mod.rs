@@ -31,7 +31,7 @@ pub async fn fill_filtered_results(inst: &Installation, n: i64) {
                         ),
                         cov: Mat6::identity() * 1e-6,
                     },
-                    status: brokenray::filter::TargetStatus::Ok,
+                    status: brokenray::bank::TargetStatus::Ok,
                     age_s: 0.0,
                     chi2: None,
                     deformation: None,

@@ -119,7 +119,7 @@ pub async fn list_alarms(
     Ok(Json(AlarmsOut {
         alarms: stored
             .iter()
-            .map(|a| AlarmOut::new(inst.targets[a.target].name.clone(), a))
+            .map(|a| AlarmOut::new(inst.model.targets[a.target].name.clone(), a))
             .collect(),
     }))
 }
@@ -162,7 +162,7 @@ pub async fn post_ack(
     }
     super::check_texts(&[("by", Some(&ack.by)), ("note", ack.note.as_deref())])?;
     let stored = app.service.acknowledge_alarm(id, ack.by, ack.note).await?;
-    let name = app.service.installation().targets[stored.target]
+    let name = app.service.installation().model.targets[stored.target]
         .name
         .clone();
     Ok(Json(AlarmOut::new(name, &stored)))

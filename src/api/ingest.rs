@@ -9,9 +9,10 @@ use super::AppState;
 use super::dto::{SampleIn, covariance_from, invalid};
 use super::error::{ApiError, ErrorBody, ErrorDetail};
 use super::jsonpath::{item_index, offset_of, path_at};
+use crate::bank::{MeasurementUncertainty, Sample};
 use crate::clock::{latest_accepted_ns, parse_measurement_time};
-use crate::config::{Installation, LinkKind};
-use crate::filter::{MeasurementUncertainty, Sample};
+use crate::config::Installation;
+use crate::model::LinkKind;
 use crate::service::{IngestItem, IngestReport};
 use crate::store::Quality;
 use axum::Json;
@@ -245,7 +246,7 @@ pub fn validate_samples(
     let mut seen: HashSet<(usize, i64)> = HashSet::new();
     for (index, s) in items {
         let mut item_problems = Vec::new();
-        let link = match installation.link_by_name(&s.link) {
+        let link = match installation.model.link_by_name(&s.link) {
             None => {
                 item_problems.push(("link".to_owned(), format!("unknown link `{}`", s.link)));
                 None

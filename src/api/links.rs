@@ -5,8 +5,8 @@ use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use super::error::{ApiError, ErrorBody};
 use crate::chain::LinkId;
 use crate::clock::{format_ns, parse_json_time};
-use crate::config::{LinkKind, LinkSpec};
 use crate::geometry::PoseCov;
+use crate::model::{LinkKind, LinkSpec};
 use crate::store::StoredUncertainty;
 use axum::Json;
 use axum::extract::{Path, Query, State};
@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 fn link_spec(app: &AppState, name: &str) -> Result<LinkSpec, ApiError> {
     app.service
         .installation()
+        .model
         .link_by_name(name)
         .cloned()
         .ok_or_else(|| ApiError::not_found(format!("unknown link `{name}`")))
@@ -137,10 +138,11 @@ pub async fn list_links(State(app): State<AppState>) -> Result<Json<Vec<LinkOut>
     let now_ns = app.service.now_ns();
     let tolerance_s = inst.server.clock_tolerance_s;
     Ok(Json(
-        inst.links
+        inst.model
+            .links
             .iter()
             .map(|l| {
-                let ends = inst.topology.link(l.id);
+                let ends = inst.model.topology.link(l.id);
                 let st = bank.link_status(l.id);
                 let status = snapshot.link_state(l.id, now_ns, tolerance_s).name();
                 let (kind, model, expected) = match &l.kind {
@@ -154,8 +156,8 @@ pub async fn list_links(State(app): State<AppState>) -> Result<Json<Vec<LinkOut>
                 LinkOut {
                     name: l.name.clone(),
                     kind,
-                    parent: inst.topology.frame_name(ends.parent).to_owned(),
-                    child: inst.topology.frame_name(ends.child).to_owned(),
+                    parent: inst.model.topology.frame_name(ends.parent).to_owned(),
+                    child: inst.model.topology.frame_name(ends.child).to_owned(),
                     model,
                     n_samples: st.n_samples,
                     n_outliers: st.n_outliers,

@@ -2,7 +2,7 @@
 
 use super::AppState;
 use super::error::REJECTED;
-use crate::config::LinkKind;
+use crate::model::LinkKind;
 use crate::service::Metrics;
 use axum::extract::State;
 use axum::http::header;
@@ -196,7 +196,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         "gauge",
         "1 when a link's newest sample is older than its staleness limit on the server's clock (or behind the newest link by more than it).",
     );
-    for l in &inst.links {
+    for l in &inst.model.links {
         if !matches!(l.kind, LinkKind::Measured(_)) {
             continue;
         }
@@ -242,7 +242,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         "gauge",
         "Seconds from a target's newest filtered result to now on the server's clock, labelled with its status now.",
     );
-    for (i, t) in inst.targets.iter().enumerate() {
+    for (i, t) in inst.model.targets.iter().enumerate() {
         let now = snapshot.target_now(i, now_ns, tolerance_s);
         if let Some(age_s) = now.age_s {
             let _ = writeln!(

@@ -144,6 +144,7 @@ async fn healthz(
     let now_ns = app.service.now_ns();
     let inst = app.service.installation();
     let targets = inst
+        .model
         .targets
         .iter()
         .enumerate()

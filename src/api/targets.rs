@@ -3,12 +3,12 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::{ApiError, ErrorBody};
+use crate::bank::{TargetEstimate, TargetStatus};
 use crate::chain::Direction;
 use crate::clock::{format_ns, parse_query_time};
-use crate::config::TargetSpec;
 use crate::deformation::{Deformation, ReferenceOrigin};
-use crate::filter::{TargetEstimate, TargetStatus};
 use crate::geometry::{PoseCov, se3_exp, se3_log};
+use crate::model::TargetSpec;
 use crate::service::{CurrentReference, ReferenceRequest};
 use axum::Json;
 use axum::extract::{Path, Query, State};
@@ -18,6 +18,7 @@ use serde::{Deserialize, Serialize};
 pub(super) fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetSpec), ApiError> {
     app.service
         .installation()
+        .model
         .targets
         .iter()
         .enumerate()
@@ -91,7 +92,7 @@ pub struct TargetOut {
 pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
     let inst = app.service.installation();
     let snapshot = app.service.snapshot();
-    let topo = &inst.topology;
+    let topo = &inst.model.topology;
     let path_out = |p: &crate::chain::Path| PathOut {
         frames: path_frames(topo, p),
         steps: p
@@ -108,7 +109,8 @@ pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
         product: topo.describe_product(p),
     };
     Json(
-        inst.targets
+        inst.model
+            .targets
             .iter()
             .enumerate()
             .map(|(i, t)| {
@@ -326,7 +328,7 @@ fn compensation_out(
     };
     CompensationOut {
         target: spec.name.clone(),
-        base: inst.topology.frame_name(spec.base).to_owned(),
+        base: inst.model.topology.frame_name(spec.base).to_owned(),
         time: time_ns.map(format_ns),
         age_s,
         status: status.name(),

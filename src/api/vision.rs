@@ -7,8 +7,8 @@ use super::dto::{PoseIn, PoseOut, SigmaOut, invalid, time_schema};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, Problems, check_batch_size, read_body};
 use super::parse_json_body;
+use crate::bank::{MeasurementUncertainty, Sample};
 use crate::clock::format_ns;
-use crate::filter::{MeasurementUncertainty, Sample};
 use crate::geometry::{Pose, PoseCov};
 use crate::service::IngestItem;
 use crate::store::Quality;
@@ -136,7 +136,7 @@ async fn blocking<T: Send + 'static>(
 
 /// Solves every observation, or lists every problem.
 fn solve_batch(
-    observer: &crate::vision::Observer,
+    observer: &crate::model::Observer,
     observations: &[ObservationIn],
     latest_ns: i64,
 ) -> Result<(Vec<IngestItem>, Vec<ObservedPoseOut>), Problems> {

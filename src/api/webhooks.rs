@@ -138,6 +138,7 @@ impl Webhooks {
         }
         let names: Vec<String> = service
             .installation()
+            .model
             .targets
             .iter()
             .map(|t| t.name.clone())

@@ -1,7 +1,9 @@
 //! The installation file (TOML) parsed into validated domain types.
 //!
-//! One file describes one installation: frames, cameras, markers, links, targets, and the
-//! server, Rerun and auth settings (README, "Configuration"). Without a file the built-in
+//! One file describes one installation: its measurement model (frames, cameras, markers,
+//! links, targets, filter and PnP settings: [`crate::model::Model`], all the core sees) and the
+//! deployment settings only the adapters read (server, Rerun, auth, notifications, retention;
+//! README, "Configuration"). Without a file the built-in
 //! default describes the paper's laboratory setup (base B, station C1-C2, station M-C3,
 //! target G; about 3 m per hop), see [`default_installation`].
 //!
@@ -14,16 +16,22 @@ mod raw;
 
 pub use error::{ConfigError, ConfigProblem};
 
-use crate::chain::{ChainError, FrameId, LinkId, Resolution, Topology};
+use crate::alarms::AlarmThresholds;
+use crate::chain::{ChainError, Topology};
 use crate::filter::{BankSettings, FilterTuning, MotionModel};
 use crate::geometry::{
     Pose, PoseCov, ReportedSigmas, Rotation, pose_from_parts, rotation_from_euler,
     rotation_from_matrix, rotation_from_quaternion_wxyz, validate_finite,
 };
+use crate::model::{
+    Camera, LinkKind, LinkSpec, Marker, MeasuredLink, Model, PnpSettings, TargetSpec,
+};
+use crate::vision::CameraModel;
 use error::LineIndex;
 use raw::{RawFile, RawPose, RawSigma};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// The built-in installation, as a file users can copy (`brokenray default-config`).
 pub const DEFAULT_INSTALLATION_TOML: &str = include_str!("default.toml");
@@ -36,41 +44,18 @@ pub const DEFAULT_SOURCE_NAME: &str = "<built-in default>";
 pub struct Installation {
     /// Where it came from: a file path or [`DEFAULT_SOURCE_NAME`].
     pub source: String,
+    /// What the core needs: frames, links, targets, cameras, markers, filter and PnP settings.
+    pub model: Arc<Model>,
     /// HTTP server settings.
     pub server: ServerSettings,
     /// Rerun settings.
     pub rerun: RerunSettings,
-    /// Cameras, by frame.
-    pub cameras: Vec<Camera>,
-    /// Cooperative markers, by frame.
-    pub markers: Vec<Marker>,
-    /// The frame/link graph.
-    pub topology: Topology,
-    /// Link settings, indexed by [`LinkId`].
-    pub links: Vec<LinkSpec>,
-    /// The targets and how each is reached.
-    pub targets: Vec<TargetSpec>,
     /// Bearer tokens.
     pub auth: AuthSettings,
     /// Where alarm transitions are sent.
     pub notify: NotifySettings,
-    /// Settings of the filter bank.
-    pub filter: BankSettings,
     /// How long raw samples and results are kept (rollups are kept for good).
     pub retention: RetentionSettings,
-    /// How marker observations are solved (`POST /observations`, the simulator).
-    pub pnp: PnpSettings,
-}
-
-/// Pose estimation of marker observations.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct PnpSettings {
-    /// A solution with a larger reprojection RMS is refused (px).
-    pub max_reprojection_rms_px: f64,
-    /// Retry a refused observation by RANSAC, leaving out points off the consensus.
-    pub robust: bool,
-    /// RANSAC: a point within this reprojection error supports a pose (px).
-    pub inlier_threshold_px: f64,
 }
 
 /// How long raw samples and results are kept, counted back from the newest result.
@@ -151,116 +136,6 @@ impl RerunSettings {
     pub fn enabled(&self) -> bool {
         self.save || self.connect || self.serve
     }
-}
-
-/// A pinhole camera with Brown-Conrady distortion (OpenCV's `k1 k2 p1 p2 k3`).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Camera {
-    /// The camera's frame.
-    pub frame: String,
-    /// Image width (px).
-    pub width_px: u32,
-    /// Image height (px).
-    pub height_px: u32,
-    /// Focal length along x (px).
-    pub fx_px: f64,
-    /// Focal length along y (px).
-    pub fy_px: f64,
-    /// Principal point x (px).
-    pub cx_px: f64,
-    /// Principal point y (px).
-    pub cy_px: f64,
-    /// `[k1, k2, p1, p2, k3]`.
-    pub distortion: [f64; 5],
-    /// Standard deviation of a measured image point (px).
-    pub pixel_sigma_px: f64,
-}
-
-/// A cooperative marker: known points in its own frame.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Marker {
-    /// The marker's frame.
-    pub frame: String,
-    /// The points (mm, in the marker frame).
-    pub points_mm: Vec<[f64; 3]>,
-    /// Point ids, one per point (defaults to 0, 1, 2, ...).
-    pub ids: Vec<u32>,
-}
-
-/// A link of the installation.
-#[derive(Debug, Clone)]
-pub struct LinkSpec {
-    /// Its id in the topology.
-    pub id: LinkId,
-    /// `<parent>_from_<child>`.
-    pub name: String,
-    /// Calibrated or measured.
-    pub kind: LinkKind,
-}
-
-/// What kind of link.
-#[derive(Debug, Clone)]
-#[allow(
-    clippy::large_enum_variant,
-    reason = "a handful of links per installation; boxing buys nothing"
-)]
-pub enum LinkKind {
-    /// A rigid connection inside a station, calibrated once.
-    Calibrated {
-        /// The calibrated pose with its uncertainty.
-        parent_from_child: PoseCov,
-    },
-    /// A camera seeing a marker, measured continuously.
-    Measured(MeasuredLink),
-}
-
-/// Settings of a measured link.
-#[derive(Debug, Clone)]
-pub struct MeasuredLink {
-    /// The filter model and its tuning.
-    pub tuning: FilterTuning,
-    /// Measurement noise used when a sample carries none.
-    pub default_sigmas: ReportedSigmas,
-    /// How often samples are expected (Hz).
-    pub expected_rate_hz: f64,
-    /// The designed pose, where known (simulation, visualisation before the first sample).
-    pub nominal: Option<Pose>,
-}
-
-/// Deformation thresholds of a target (absent ones are not checked).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct AlarmThresholds {
-    /// Warn above this rotation magnitude (arc-seconds).
-    pub warn_rotation_arcsec: Option<f64>,
-    /// Alarm above this rotation magnitude (arc-seconds).
-    pub alarm_rotation_arcsec: Option<f64>,
-    /// Warn above this translation magnitude (mm).
-    pub warn_translation_mm: Option<f64>,
-    /// Alarm above this translation magnitude (mm).
-    pub alarm_translation_mm: Option<f64>,
-    /// A level is left only below `(1 - hysteresis)` of its threshold.
-    pub hysteresis: f64,
-    /// A new level must hold this long (s, measurement time) to become a transition.
-    pub dwell_s: f64,
-    /// Alarm above this rate of rotation of the target (arc-seconds per second).
-    pub rate_rotation_arcsec_per_s: Option<f64>,
-    /// Alarm above this rate of translation of the target (mm per second).
-    pub rate_translation_mm_per_s: Option<f64>,
-}
-
-/// A target: a frame whose pose relative to its base is monitored.
-#[derive(Debug, Clone)]
-pub struct TargetSpec {
-    /// The target's name (its frame).
-    pub name: String,
-    /// The target frame.
-    pub frame: FrameId,
-    /// The base frame.
-    pub base: FrameId,
-    /// How it is reached.
-    pub resolution: Resolution,
-    /// Deformation thresholds.
-    pub alarms: AlarmThresholds,
 }
 
 /// What a bearer token may do.
@@ -356,33 +231,6 @@ impl std::fmt::Debug for WebhookSpec {
 pub struct AuthSettings {
     /// The tokens; none means the server accepts everything (loopback only).
     pub tokens: Vec<TokenSpec>,
-}
-
-impl Installation {
-    /// The settings of a link.
-    pub fn link(&self, id: LinkId) -> &LinkSpec {
-        &self.links[id.0]
-    }
-
-    /// The link with this name.
-    pub fn link_by_name(&self, name: &str) -> Option<&LinkSpec> {
-        self.topology.link_id(name).map(|id| self.link(id))
-    }
-
-    /// The target with this name.
-    pub fn target(&self, name: &str) -> Option<&TargetSpec> {
-        self.targets.iter().find(|t| t.name == name)
-    }
-
-    /// The camera on this frame.
-    pub fn camera(&self, frame: &str) -> Option<&Camera> {
-        self.cameras.iter().find(|c| c.frame == frame)
-    }
-
-    /// The marker on this frame.
-    pub fn marker(&self, frame: &str) -> Option<&Marker> {
-        self.markers.iter().find(|m| m.frame == frame)
-    }
 }
 
 /// The built-in laboratory installation.
@@ -600,16 +448,18 @@ impl Validator {
             source: source.to_owned(),
             server: server?,
             rerun: rerun?,
-            cameras,
-            markers,
-            topology,
-            links,
-            targets,
+            model: Arc::new(Model {
+                cameras,
+                markers,
+                topology,
+                links,
+                targets,
+                filter: filter?,
+                pnp: pnp?,
+            }),
             auth,
             notify,
-            filter: filter?,
             retention: retention?,
-            pnp: pnp?,
         })
     }
 
@@ -891,13 +741,15 @@ impl Validator {
             if ok {
                 out.push(Camera {
                     frame: c.frame.clone(),
-                    width_px: c.width,
-                    height_px: c.height,
-                    fx_px: c.fx,
-                    fy_px: c.fy,
-                    cx_px: c.cx,
-                    cy_px: c.cy,
-                    distortion: c.distortion,
+                    intrinsics: CameraModel {
+                        fx_px: c.fx,
+                        fy_px: c.fy,
+                        cx_px: c.cx,
+                        cy_px: c.cy,
+                        distortion: c.distortion,
+                        width_px: c.width,
+                        height_px: c.height,
+                    },
                     pixel_sigma_px: c.pixel_sigma,
                 });
             }

@@ -1,4 +1,5 @@
-//! Per-link error-state Kalman filters on SE(3), and the bank that evaluates targets.
+//! Per-link error-state Kalman filters on SE(3) (the bank that evaluates targets from them is
+//! [`crate::bank`]).
 //!
 //! Each measured link has its own filter (the README's "Filtering"), because each link has its own
 //! camera, rate and noise. The state is the link pose on SE(3) (and, for the dynamic models,
@@ -24,15 +25,10 @@
 //!
 //! Time is integer nanoseconds of the measurement, never the wall clock.
 
-mod bank;
 mod kalman;
 mod link;
 mod tuning;
 
-pub use bank::{
-    BankRecord, FilterBank, LinkEstimate, LinkLag, LinkStatus, MeasurementUncertainty, RawResult,
-    Sample, SampleOutcome, TargetEstimate, TargetLiveness, TargetStatus,
-};
 pub use link::{
     CV_RATE_PRIOR_S, Disposition, DispositionKind, LinkFilter, LinkFilterRecord, OutlierRecord,
 };
@@ -76,6 +72,7 @@ pub const NS_PER_S: f64 = 1e9;
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bank::TargetStatus;
 
     /// Every stored name reads back as what was stored, and nothing else reads at all.
     #[test]

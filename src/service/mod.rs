@@ -19,9 +19,9 @@ pub use metrics::Metrics;
 
 pub use pipeline::{IngestItem, IngestReport};
 
+use crate::bank::{FilterBank, TargetEstimate, TargetStatus};
 use crate::config::Installation;
 use crate::deformation::{Deformation, Reference};
-use crate::filter::{FilterBank, TargetEstimate, TargetStatus};
 use crate::geometry::{Pose, PoseCov};
 use crate::store::{self, Store, StoreError};
 use std::sync::{Arc, RwLock};
@@ -156,7 +156,7 @@ pub struct TargetNow {
     /// result.
     pub age_s: Option<f64>,
     /// The link furthest behind its limit.
-    pub liveness: crate::filter::TargetLiveness,
+    pub liveness: crate::bank::TargetLiveness,
 }
 
 /// A link's state at a time of the server's clock.
@@ -226,8 +226,8 @@ impl Snapshot {
     ) -> LinkState {
         let bank = &self.bank;
         if !matches!(
-            bank.installation().links[link.0].kind,
-            crate::config::LinkKind::Measured(_)
+            bank.model().links[link.0].kind,
+            crate::model::LinkKind::Measured(_)
         ) {
             return LinkState::Calibrated;
         }
@@ -311,7 +311,7 @@ struct Inner {
     /// What went to Rerun.
     viz_counters: Arc<crate::viz::VizCounters>,
     /// Solves marker observations into link samples.
-    observer: Arc<crate::vision::Observer>,
+    observer: Arc<crate::model::Observer>,
     /// Turns true when shutdown begins: live event streams end on it.
     stopping: tokio::sync::watch::Sender<bool>,
     /// The server's clock.
@@ -366,11 +366,12 @@ pub const LIVENESS_CHECK_S: f64 = 1.0;
 /// A short fingerprint of the parts of an installation that the filter state depends on.
 fn installation_digest(inst: &Installation) -> String {
     let mut parts: Vec<String> = inst
+        .model
         .links
         .iter()
         .map(|l| match &l.kind {
-            crate::config::LinkKind::Measured(m) => format!("{}:{}", l.name, m.tuning.model.name()),
-            crate::config::LinkKind::Calibrated { .. } => format!("{}:calibrated", l.name),
+            crate::model::LinkKind::Measured(m) => format!("{}:{}", l.name, m.tuning.model.name()),
+            crate::model::LinkKind::Calibrated { .. } => format!("{}:calibrated", l.name),
         })
         .collect();
     parts.sort();
@@ -394,9 +395,9 @@ impl Service {
         let installation = Arc::new(installation);
         let (store, write) = store::open(&installation, clock.now_ns()).await?;
 
-        let mut bank = FilterBank::shared(Arc::clone(&installation));
-        for spec in &installation.links {
-            if matches!(spec.kind, crate::config::LinkKind::Calibrated { .. }) {
+        let mut bank = FilterBank::shared(Arc::clone(&installation.model));
+        for spec in &installation.model.links {
+            if matches!(spec.kind, crate::model::LinkKind::Calibrated { .. }) {
                 for c in store.calibrations(spec.id).await? {
                     bank.add_calibration(spec.id, c.valid_from_ns, c.parent_from_child);
                 }
@@ -411,7 +412,7 @@ impl Service {
                     "the installation's links changed since the filter state was saved; restoring what still fits"
                 );
             }
-            match serde_json::from_str::<crate::filter::BankRecord>(&state) {
+            match serde_json::from_str::<crate::bank::BankRecord>(&state) {
                 Ok(record) => {
                     for skipped in bank.restore(&record) {
                         tracing::warn!(%skipped, "filter state not restored");
@@ -422,8 +423,8 @@ impl Service {
                 }
             }
         }
-        let mut targets = Vec::with_capacity(installation.targets.len());
-        for (ti, _) in installation.targets.iter().enumerate() {
+        let mut targets = Vec::with_capacity(installation.model.targets.len());
+        for (ti, _) in installation.model.targets.iter().enumerate() {
             let reference = store.references(ti).await?.pop().map(|r| CurrentReference {
                 version: r.version,
                 reference: r.reference,
@@ -443,7 +444,7 @@ impl Service {
                 });
             let [deformation, rate, stale] = store.alarm_levels(ti).await?;
             let alarms = crate::alarms::AlarmMonitor::new(
-                installation.targets[ti].alarms,
+                installation.model.targets[ti].alarms,
                 deformation,
                 rate,
                 stale,
@@ -478,7 +479,7 @@ impl Service {
             snapshot: Arc::clone(&slot),
             metrics: Arc::clone(&metrics),
             viz_counters,
-            observer: Arc::new(crate::vision::Observer::new(&installation)),
+            observer: Arc::new(crate::model::Observer::new(&installation.model)),
             stopping: tokio::sync::watch::channel(false).0,
             clock: Arc::clone(&clock),
             alarm_feed: std::sync::Mutex::new(alarm_rx),
@@ -498,6 +499,8 @@ impl Service {
                     viz,
                     clock,
                     alarm_feed: alarm_tx,
+                    events_max_hz: installation.server.events_max_hz,
+                    clock_tolerance_s: installation.server.clock_tolerance_s,
                 },
             ),
             rx,
@@ -576,7 +579,7 @@ impl Service {
     }
 
     /// The installation's camera-marker links, for solving observations.
-    pub fn observer(&self) -> Arc<crate::vision::Observer> {
+    pub fn observer(&self) -> Arc<crate::model::Observer> {
         Arc::clone(&self.inner.observer)
     }
 
@@ -678,7 +681,7 @@ impl Service {
     }
 
     /// Restarts a measured link's filter from its next sample (see
-    /// [`crate::filter::FilterBank::reset_link`]), recorded with who asked and why; returns when
+    /// [`crate::bank::FilterBank::reset_link`]), recorded with who asked and why; returns when
     /// (ns, wall clock).
     pub async fn reset_link(
         &self,

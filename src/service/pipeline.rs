@@ -4,9 +4,10 @@ use super::{
     CurrentReference, ItemProblem, Job, ReferenceRequest, ServiceError, ServiceResult, Snapshot,
     TargetView,
 };
+use crate::bank::{BankRecord, FilterBank, Sample, TargetEstimate};
 use crate::chain::LinkId;
 use crate::deformation::{Deformation, Reference};
-use crate::filter::{BankRecord, Disposition, FilterBank, Sample, TargetEstimate};
+use crate::filter::Disposition;
 use crate::store::write_tx::WriteTx;
 use crate::store::{
     NewResult, NewSample, Quality, SampleValues, StoreError, StoredAlarm, WriteConn,
@@ -66,6 +67,10 @@ pub(super) struct Pipeline {
     clock: crate::clock::SharedClock,
     /// Stored alarm transitions for the notifier (never waits).
     alarm_feed: Option<mpsc::Sender<StoredAlarm>>,
+    /// `[server] events_max_hz`: most live results per target and second of measurement time.
+    events_max_hz: f64,
+    /// `[server] clock_tolerance_s`: skew allowed when judging staleness (s).
+    clock_tolerance_s: f64,
 }
 
 #[allow(
@@ -218,6 +223,10 @@ pub(super) struct Outlets {
     pub viz: crate::viz::VizSender,
     pub clock: crate::clock::SharedClock,
     pub alarm_feed: Option<mpsc::Sender<StoredAlarm>>,
+    /// `[server] events_max_hz`.
+    pub events_max_hz: f64,
+    /// `[server] clock_tolerance_s`.
+    pub clock_tolerance_s: f64,
 }
 
 impl Pipeline {
@@ -234,6 +243,8 @@ impl Pipeline {
             viz,
             clock,
             alarm_feed,
+            events_max_hz,
+            clock_tolerance_s,
         } = outlets;
         let committed_state = bank.record();
         let last_event_ns = vec![None; targets.len()];
@@ -249,13 +260,15 @@ impl Pipeline {
             digest,
             committed_state,
             metrics,
+            events_max_hz,
+            clock_tolerance_s,
         }
     }
 
     /// Sends each target's newest result to live subscribers, at most `events_max_hz` per
     /// target in measurement time. Never waits: with no subscriber the send just fails.
     fn publish_events(&mut self) {
-        let min_interval_ns = (1e9 / self.bank.installation().server.events_max_hz) as i64;
+        let min_interval_ns = (1e9 / self.events_max_hz) as i64;
         for (ti, view) in self.targets.iter().enumerate() {
             let Some(latest) = &view.latest else { continue };
             if self.last_event_ns[ti].is_some_and(|t| latest.time_ns < t + min_interval_ns) {
@@ -287,7 +300,7 @@ impl Pipeline {
         if let Some(t) = newest
             && self.viz.keep(Series::Scene, t)
         {
-            let link_poses = (0..self.bank.installation().links.len())
+            let link_poses = (0..self.bank.model().links.len())
                 .map(|l| {
                     self.bank
                         .link_estimate(LinkId(l), t)
@@ -317,7 +330,7 @@ impl Pipeline {
         // and without a transaction when nothing changes (the usual case, every second).
         if jobs.iter().all(|j| matches!(j, Job::CheckLiveness { .. })) {
             let mut probe = self.targets.clone();
-            if judge_liveness(&self.bank, &mut probe, now).is_empty() {
+            if judge_liveness(&self.bank, &mut probe, now, self.clock_tolerance_s).is_empty() {
                 self.targets = probe;
                 for j in jobs {
                     if let Job::CheckLiveness { reply } = j {
@@ -335,6 +348,7 @@ impl Pipeline {
         let (mut pending, work): (Vec<Pending>, Vec<Work>) =
             jobs.into_iter().map(Job::split).unzip();
         let record_viz = self.viz.enabled();
+        let tolerance_s = self.clock_tolerance_s;
         let Pipeline {
             viz,
             write,
@@ -412,7 +426,7 @@ impl Pipeline {
                         };
                     }
                     (Work::Liveness, Pending::Liveness(_, result)) => {
-                        let t = store_alarms(&mut tx, judge_liveness(bank, targets, now), now)
+                        let t = store_alarms(&mut tx, judge_liveness(bank, targets, now, tolerance_s), now)
                             .await?;
                         *result = Ok(t.len());
                         transitions.extend(t);
@@ -591,9 +605,9 @@ fn judge_liveness(
     bank: &FilterBank,
     targets: &mut [TargetView],
     now_ns: i64,
+    tolerance_s: f64,
 ) -> Vec<(usize, crate::alarms::Transition)> {
-    let inst = bank.installation();
-    let tolerance_s = inst.server.clock_tolerance_s;
+    let model = bank.model();
     let mut out = Vec::new();
     for (ti, view) in targets.iter_mut().enumerate() {
         let Some((link, lag)) = bank.target_liveness(ti, now_ns, tolerance_s).worst else {
@@ -601,7 +615,7 @@ fn judge_liveness(
         };
         if let Some(t) = view.alarms.liveness(
             now_ns,
-            &inst.links[link.0].name,
+            &model.links[link.0].name,
             lag.behind_s.max(0.0),
             lag.limit_s,
         ) {
@@ -634,7 +648,7 @@ fn deformation_of(
 
 /// The row of a raw result.
 fn raw_row(
-    raw: &crate::filter::RawResult,
+    raw: &crate::bank::RawResult,
     deformation: Option<(i64, crate::deformation::SmallMotion)>,
 ) -> NewResult {
     NewResult {
@@ -643,9 +657,9 @@ fn raw_row(
         time_ns: raw.time_ns,
         estimate: raw.target_from_base,
         status: if raw.consistency.is_some_and(|c| !c.is_consistent()) {
-            crate::filter::TargetStatus::Degraded
+            crate::bank::TargetStatus::Degraded
         } else {
-            crate::filter::TargetStatus::Ok
+            crate::bank::TargetStatus::Ok
         },
         age_s: 0.0,
         chi2: raw.consistency.map(|c| c.chi2),
@@ -728,7 +742,7 @@ async fn ingest(
                 field: Some("time".into()),
                 message: format!(
                     "a different sample of `{}` at this time is already stored",
-                    bank.installation().links[item.sample.link.0].name
+                    bank.model().links[item.sample.link.0].name
                 ),
             }),
             None => fresh.push((item, values, z)),
@@ -864,14 +878,13 @@ async fn ingest(
     }
     for &(link, time_ns, _) in &stored_groups {
         let mut group = by_time.get(&time_ns).cloned().unwrap_or_default();
-        for (l, spec) in bank.installation().links.iter().enumerate() {
+        for (l, spec) in bank.model().links.iter().enumerate() {
             let l = LinkId(l);
-            if group.contains_key(&l) || !matches!(spec.kind, crate::config::LinkKind::Measured(_))
-            {
+            if group.contains_key(&l) || !matches!(spec.kind, crate::model::LinkKind::Measured(_)) {
                 continue;
             }
             if let Some((_, v)) = tx.existing_samples(l, time_ns, time_ns).await?.first() {
-                let sample = crate::filter::Sample {
+                let sample = crate::bank::Sample {
                     link: l,
                     time_ns,
                     parent_from_child: v.pose,

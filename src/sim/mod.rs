@@ -28,9 +28,8 @@ mod motion;
 pub use motion::GaussMarkov2;
 
 use crate::chain::FrameId;
-use crate::config::{Installation, LinkKind};
 use crate::geometry::{ARCSEC_PER_RAD, Pose, ReportedSigmas, Twist, se3_exp};
-use crate::vision::{ObservedLink, Observer};
+use crate::model::{LinkKind, Model, ObservedLink, Observer};
 use nalgebra::Point3;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -87,7 +86,7 @@ pub struct SimSettings {
     pub seed: u64,
 }
 
-/// Why a simulation cannot run on an installation.
+/// Why a simulation cannot run on an model.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SimError {
     /// A link without a pose to place its frames.
@@ -188,7 +187,7 @@ pub struct Simulator {
 
 impl Simulator {
     /// Places the installation's frames and prepares the scenario.
-    pub fn new(installation: &Installation, settings: SimSettings) -> Result<Self, SimError> {
+    pub fn new(model: &Model, settings: SimSettings) -> Result<Self, SimError> {
         if !(settings.rate_hz.is_finite() && settings.rate_hz > 0.0) {
             return Err(SimError::Settings(format!(
                 "the rate must be a positive number of groups per second, not {}",
@@ -201,13 +200,13 @@ impl Simulator {
                 settings.outlier_rate
             )));
         }
-        let topo = &installation.topology;
-        let first = installation.targets.first().ok_or(SimError::NoTarget)?;
+        let topo = &model.topology;
+        let first = model.targets.first().ok_or(SimError::NoTarget)?;
         let n_frames = topo.frames().len();
         // Place frames by walking the links from the base.
         let mut world: Vec<Option<Pose>> = vec![None; n_frames];
         world[first.base.0] = Some(Pose::identity());
-        let link_pose = |spec: &crate::config::LinkSpec| -> Option<Pose> {
+        let link_pose = |spec: &crate::model::LinkSpec| -> Option<Pose> {
             match &spec.kind {
                 LinkKind::Calibrated { parent_from_child } => Some(parent_from_child.pose),
                 LinkKind::Measured(m) => m.nominal,
@@ -215,7 +214,7 @@ impl Simulator {
         };
         loop {
             let mut progressed = false;
-            for spec in &installation.links {
+            for spec in &model.links {
                 let ends = topo.link(spec.id);
                 let (p, c) = (ends.parent.0, ends.child.0);
                 if world[p].is_some() == world[c].is_some() {
@@ -246,7 +245,7 @@ impl Simulator {
             }
             i
         }
-        for spec in &installation.links {
+        for spec in &model.links {
             if matches!(spec.kind, LinkKind::Calibrated { .. }) {
                 let ends = topo.link(spec.id);
                 let (a, b) = (
@@ -278,12 +277,8 @@ impl Simulator {
             bodies[b].frames.push(FrameId(f));
             frame_body[f] = b;
         }
-        let bases: Vec<usize> = installation
-            .targets
-            .iter()
-            .map(|t| frame_body[t.base.0])
-            .collect();
-        for t in &installation.targets {
+        let bases: Vec<usize> = model.targets.iter().map(|t| frame_body[t.base.0]).collect();
+        for t in &model.targets {
             bodies[frame_body[t.frame.0]].role = Role::Target;
         }
         for b in bases {
@@ -313,8 +308,8 @@ impl Simulator {
         let bumped = (settings.scenario == Scenario::Bump)
             .then(|| bodies.iter().position(|b| b.role == Role::Station))
             .flatten();
-        let observer = Observer::new(installation);
-        let measured = installation
+        let observer = Observer::new(model);
+        let measured = model
             .links
             .iter()
             .filter_map(|spec| match &spec.kind {
@@ -331,7 +326,7 @@ impl Simulator {
                 LinkKind::Calibrated { .. } => None,
             })
             .collect();
-        let targets = installation
+        let targets = model
             .targets
             .iter()
             .map(|t| (t.name.clone(), t.frame, t.base))

@@ -1,7 +1,7 @@
 //! Conversions between domain values and columns.
 
 use super::StoreError;
-use crate::filter::MeasurementUncertainty;
+use crate::bank::MeasurementUncertainty;
 use crate::geometry::{Mat6, Pose, ReportedSigmas};
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 

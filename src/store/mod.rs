@@ -261,8 +261,8 @@ pub async fn open(
     now_ns: i64,
 ) -> StoreResult<(Store, WriteConn)> {
     let path = installation.server.database.as_path();
-    let link_names: Vec<&String> = installation.links.iter().map(|l| &l.name).collect();
-    let target_names: Vec<&String> = installation.targets.iter().map(|t| &t.name).collect();
+    let link_names: Vec<&String> = installation.model.links.iter().map(|l| &l.name).collect();
+    let target_names: Vec<&String> = installation.model.targets.iter().map(|t| &t.name).collect();
     let opened = open_inner(path, &link_names, &target_names, now_ns).await;
     opened.map_err(|e| match e {
         e @ (StoreError::Foreign { .. } | StoreError::Open { .. }) => e,

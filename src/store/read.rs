@@ -115,7 +115,7 @@ impl ResultRow {
                 ]),
                 cov: decode_mat6(&self.cov)?,
             },
-            status: crate::filter::TargetStatus::parse(&self.status).ok_or_else(|| {
+            status: crate::bank::TargetStatus::parse(&self.status).ok_or_else(|| {
                 super::StoreError::Malformed(format!(
                     "a result at {} has the unknown status `{}`",
                     self.time_ns, self.status
@@ -136,7 +136,7 @@ pub struct StoredResult {
     /// `target_from_base` with covariance.
     pub estimate: PoseCov,
     /// Its status.
-    pub status: crate::filter::TargetStatus,
+    pub status: crate::bank::TargetStatus,
     /// Age of the newest sample behind it (s).
     pub age_s: f64,
     /// Chi-square of redundant paths.

@@ -57,7 +57,7 @@ pub struct NewResult {
     /// `target_from_base` with covariance.
     pub estimate: PoseCov,
     /// Its status.
-    pub status: crate::filter::TargetStatus,
+    pub status: crate::bank::TargetStatus,
     /// Age of the newest sample behind it (s).
     pub age_s: f64,
     /// Chi-square of redundant paths, where there were several.

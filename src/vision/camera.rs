@@ -12,7 +12,6 @@
 //! by Newton's method and reports when it does not converge.
 
 use super::VisionError;
-use crate::config::Camera;
 use crate::geometry::Vec3;
 use nalgebra::{Matrix2, Matrix2x3, Vector2};
 
@@ -38,20 +37,6 @@ pub struct CameraModel {
     pub width_px: u32,
     /// Image height (px).
     pub height_px: u32,
-}
-
-impl From<&Camera> for CameraModel {
-    fn from(c: &Camera) -> Self {
-        Self {
-            fx_px: c.fx_px,
-            fy_px: c.fy_px,
-            cx_px: c.cx_px,
-            cy_px: c.cy_px,
-            distortion: c.distortion,
-            width_px: c.width_px,
-            height_px: c.height_px,
-        }
-    }
 }
 
 impl CameraModel {

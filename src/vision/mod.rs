@@ -10,8 +10,6 @@
 //!   or collinear points, points behind the camera and a fit over the RMS limit; optionally
 //!   robust (RANSAC) against a mislabelled point.
 //! * [`solve_hand_eye`]: a rigid station's calibrated link from motions `A_i X = X B_i`.
-//! * [`Observer`]: an installation's camera-marker links, solving raw observations into link
-//!   samples.
 //!
 //! Pure and synchronous, like the rest of the core; one error type, [`VisionError`].
 
@@ -19,7 +17,6 @@ mod camera;
 mod error;
 mod handeye;
 mod ippe;
-mod observation;
 mod pnp;
 mod sqpnp;
 
@@ -28,5 +25,4 @@ pub use error::VisionError;
 pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
 };
-pub use observation::{ObservationError, ObservedLink, Observer};
 pub use pnp::{MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, refine, solve_pnp};

@@ -3,7 +3,8 @@
 //! the alarm lanes and log. The time panel follows the measurement timeline.
 
 use super::TIMELINE;
-use crate::config::{Installation, LinkKind};
+use crate::config::Installation;
+use crate::model::LinkKind;
 use rerun::blueprint::{
     Blueprint, ContainerLike, Horizontal, Spatial3DView, StateTimelineView, Tabs, TextLogView,
     TimePanel, TimeSeriesView, Vertical,
@@ -12,6 +13,7 @@ use rerun::blueprint::{
 /// The blueprint of an installation's recordings.
 pub fn blueprint(inst: &Installation) -> Blueprint {
     let per_target: Vec<ContainerLike> = inst
+        .model
         .targets
         .iter()
         .map(|t| {
@@ -29,6 +31,7 @@ pub fn blueprint(inst: &Installation) -> Blueprint {
         .collect();
     let mut right: Vec<ContainerLike> = vec![Tabs::new(per_target).into()];
     if inst
+        .model
         .links
         .iter()
         .any(|l| matches!(l.kind, LinkKind::Measured(_)))

@@ -17,8 +17,9 @@
 
 use super::{Record, TIMELINE, VizCounters, VizError};
 use crate::chain::chi_square_quantile;
-use crate::config::{Installation, LinkKind};
+use crate::config::Installation;
 use crate::geometry::Pose;
+use crate::model::LinkKind;
 use rerun::{RecordingStream, RecordingStreamBuilder};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -193,11 +194,13 @@ impl Logger {
     ) -> Self {
         let frames = frame_tree(inst);
         let target_base = inst
+            .model
             .targets
             .iter()
             .map(|t| frames[t.base.0].path.clone())
             .collect();
         let gates = inst
+            .model
             .links
             .iter()
             .map(|l| match &l.kind {
@@ -244,20 +247,20 @@ impl Logger {
                 &rerun::TransformAxes3D::new(150.0).with_show_frame(true),
             ));
         }
-        for c in &inst.cameras {
-            let Some(f) = inst.topology.frame_id(&c.frame) else {
+        for c in &inst.model.cameras {
+            let Some(f) = inst.model.topology.frame_id(&c.frame) else {
                 continue;
             };
             let pinhole = rerun::Pinhole::from_focal_length_and_resolution(
-                [c.fx_px as f32, c.fy_px as f32],
-                [c.width_px as f32, c.height_px as f32],
+                [c.intrinsics.fx_px as f32, c.intrinsics.fy_px as f32],
+                [c.intrinsics.width_px as f32, c.intrinsics.height_px as f32],
             )
-            .with_principal_point([c.cx_px as f32, c.cy_px as f32])
+            .with_principal_point([c.intrinsics.cx_px as f32, c.intrinsics.cy_px as f32])
             .with_image_plane_distance(300.0);
             self.count(rec.log_static(format!("{}/camera", self.frames[f.0].path), &pinhole));
         }
-        for m in &inst.markers {
-            let Some(f) = inst.topology.frame_id(&m.frame) else {
+        for m in &inst.model.markers {
+            let Some(f) = inst.model.topology.frame_id(&m.frame) else {
                 continue;
             };
             let points = rerun::Points3D::new(
@@ -274,7 +277,7 @@ impl Logger {
             let Some((link, inverted)) = node.link else {
                 continue;
             };
-            if let LinkKind::Calibrated { parent_from_child } = &inst.links[link].kind {
+            if let LinkKind::Calibrated { parent_from_child } = &inst.model.links[link].kind {
                 let tf = tree_transform(&parent_from_child.pose, inverted);
                 self.count(rec.log_static(self.frames[i].path.as_str(), &tf));
             }
@@ -284,7 +287,7 @@ impl Logger {
         let raw_colors = [rgb(255, 150, 150), rgb(150, 220, 150), rgb(150, 170, 255)];
         let colors = [rgb(220, 40, 40), rgb(30, 160, 30), rgb(40, 80, 230)];
         let band_colors = [rgb(240, 180, 180), rgb(180, 230, 180), rgb(180, 190, 250)];
-        for t in &inst.targets {
+        for t in &inst.model.targets {
             for (quantity, unit) in [("rotation_arcsec", "arcsec"), ("translation_mm", "mm")] {
                 let base = format!("plots/{}/{quantity}", t.name);
                 let names = |what: &str| axes.map(|a| format!("{a} {what} [{unit}]"));
@@ -336,7 +339,7 @@ impl Logger {
             if gate.is_none() {
                 continue;
             }
-            let name = &inst.links[l].name;
+            let name = &inst.model.links[l].name;
             let base = format!("plots/links/{name}");
             self.count(
                 rec.log_static(
@@ -445,7 +448,7 @@ impl Logger {
                 Record::Sample {
                     link, nis, outlier, ..
                 } => {
-                    let name = &inst.links[*link].name;
+                    let name = &inst.model.links[*link].name;
                     if let Some(nis) = nis {
                         let entity = if *outlier { "outliers" } else { "nis" };
                         out.scalar(format!("plots/links/{name}/{entity}"), t, &[*nis]);
@@ -463,7 +466,7 @@ impl Logger {
                     deformation,
                     ..
                 } => {
-                    let name = &inst.targets[*target].name;
+                    let name = &inst.model.targets[*target].name;
                     let which = if *filtered { "filtered" } else { "raw" };
                     out.transform(
                         format!("{}/{name}_{which}", self.target_base[*target]),
@@ -517,12 +520,12 @@ impl Logger {
             Record::Reference {
                 target, g0_from_b, ..
             } => {
-                let name = &inst.targets[*target].name;
+                let name = &inst.model.targets[*target].name;
                 let frame = format!("{}/{name}_reference", self.target_base[*target]);
                 self.count(rec.log(frame.as_str(), &tree_transform(g0_from_b, true)));
             }
             Record::Alarm { target, transition } => {
-                let name = &inst.targets[*target].name;
+                let name = &inst.model.targets[*target].name;
                 self.count(rec.log(
                     format!("alarms/{name}"),
                     &rerun::StateChange::single(transition.to.name()),
@@ -687,10 +690,16 @@ fn frame_parts(link_pose: &Pose, inverted: bool) -> ([f32; 3], [f32; 4]) {
 /// The entity tree of the frames: breadth first from each target's base (then from any frame
 /// not reached), each frame under the first frame it is linked to.
 fn frame_tree(inst: &Installation) -> Vec<FrameNode> {
-    let topo = &inst.topology;
+    let topo = &inst.model.topology;
     let n = topo.frames().len();
     let mut nodes: Vec<Option<FrameNode>> = vec![None; n];
-    let roots: Vec<usize> = inst.targets.iter().map(|t| t.base.0).chain(0..n).collect();
+    let roots: Vec<usize> = inst
+        .model
+        .targets
+        .iter()
+        .map(|t| t.base.0)
+        .chain(0..n)
+        .collect();
     for root in roots {
         if nodes[root].is_some() {
             continue;
@@ -746,7 +755,11 @@ mod tests {
     fn the_paper_chain_is_one_branch_from_the_base() {
         let inst = crate::config::default_installation();
         let tree = frame_tree(&inst);
-        let path = |name: &str| tree[inst.topology.frame_id(name).unwrap().0].path.clone();
+        let path = |name: &str| {
+            tree[inst.model.topology.frame_id(name).unwrap().0]
+                .path
+                .clone()
+        };
         assert_eq!(path("B"), "world/B");
         assert_eq!(path("G"), "world/B/C1/C2/M/C3/G");
     }

@@ -9,8 +9,9 @@
 
 use super::logger::Logger;
 use super::{Decimator, Record, VizCounters};
-use crate::config::{Installation, LinkKind};
+use crate::config::Installation;
 use crate::deformation::Deformation;
+use crate::model::LinkKind;
 use crate::store::Store;
 use std::path::Path;
 use std::sync::Arc;
@@ -57,16 +58,16 @@ pub async fn replay(
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<ReplaySummary, ReplayError> {
     let targets: Vec<usize> = if targets.is_empty() {
-        (0..inst.targets.len()).collect()
+        (0..inst.model.targets.len()).collect()
     } else {
         targets.to_vec()
     };
     let mut links: Vec<usize> = targets
         .iter()
-        .flat_map(|&t| inst.targets[t].resolution.paths.iter())
+        .flat_map(|&t| inst.model.targets[t].resolution.paths.iter())
         .flat_map(|p| p.links())
         .map(|l| l.0)
-        .filter(|&l| matches!(inst.links[l].kind, LinkKind::Measured(_)))
+        .filter(|&l| matches!(inst.model.links[l].kind, LinkKind::Measured(_)))
         .collect();
     links.sort_unstable();
     links.dedup();
@@ -143,11 +144,13 @@ pub async fn replay(
     // The links' samples, and the frame tree from them.
     // Links are read one after the other, so each has its own scene decimation.
     let mut scenes: Vec<Decimator> = inst
+        .model
         .links
         .iter()
         .map(|_| Decimator::new(inst.rerun.scene_hz, f64::INFINITY))
         .collect();
     let mut poses: Vec<Option<crate::geometry::Pose>> = inst
+        .model
         .links
         .iter()
         .map(|l| match &l.kind {

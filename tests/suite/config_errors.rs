@@ -1,6 +1,7 @@
 //! Every installation-file error names the file, the line and the problem.
 
-use brokenray::config::{self, LinkKind};
+use brokenray::config;
+use brokenray::model::LinkKind;
 
 const VALID: &str = r#"
 [[links]]
@@ -39,8 +40,8 @@ fn line_of(text: &str, needle: &str) -> usize {
 #[test]
 fn a_minimal_file_is_valid() {
     let inst = config::parse("site.toml", VALID).unwrap();
-    assert_eq!(inst.targets.len(), 1);
-    assert_eq!(inst.targets[0].resolution.paths[0].steps.len(), 2);
+    assert_eq!(inst.model.targets.len(), 1);
+    assert_eq!(inst.model.targets[0].resolution.paths[0].steps.len(), 2);
 }
 
 #[test]
@@ -50,21 +51,22 @@ fn the_built_in_installation_is_valid_and_resolves_the_papers_chain() {
         config::DEFAULT_INSTALLATION_TOML,
     )
     .unwrap();
-    assert_eq!(inst.cameras.len(), 3);
-    assert_eq!(inst.markers.len(), 3);
-    let g = inst.target("G").unwrap();
+    assert_eq!(inst.model.cameras.len(), 3);
+    assert_eq!(inst.model.markers.len(), 3);
+    let g = inst.model.target("G").unwrap();
     assert_eq!(
-        inst.topology.describe_product(&g.resolution.paths[0]),
+        inst.model.topology.describe_product(&g.resolution.paths[0]),
         "G_from_C3 * C3_from_M * M_from_C2 * C2_from_C1 * C1_from_B"
     );
     let sizes: Vec<(u32, u32)> = inst
+        .model
         .cameras
         .iter()
-        .map(|c| (c.width_px, c.height_px))
+        .map(|c| (c.intrinsics.width_px, c.intrinsics.height_px))
         .collect();
     assert!(sizes.contains(&(1280, 1024)) && sizes.contains(&(1392, 1040)));
     assert!(matches!(
-        inst.link_by_name("C2_from_C1").unwrap().kind,
+        inst.model.link_by_name("C2_from_C1").unwrap().kind,
         LinkKind::Calibrated { .. }
     ));
 }
@@ -243,7 +245,7 @@ fn filter_tuning_is_read_per_link_and_checked_against_the_model() {
         1,
     );
     let inst = config::parse("site.toml", &text).unwrap();
-    let LinkKind::Measured(m) = &inst.link_by_name("C1_from_B").unwrap().kind else {
+    let LinkKind::Measured(m) = &inst.model.link_by_name("C1_from_B").unwrap().kind else {
         panic!("measured");
     };
     assert_eq!(m.tuning.model, brokenray::filter::MotionModel::Oscillatory);
@@ -278,8 +280,8 @@ fn filter_section_values_are_checked_with_their_line() {
         "{VALID}\n[filter]\ngate_probability = 0.99\nreinit_after_outliers = 3\nstale_after_periods = 10\n"
     );
     let inst = config::parse("site.toml", &ok).unwrap();
-    assert_eq!(inst.filter.stale_after_periods, 10.0);
-    let LinkKind::Measured(m) = &inst.link_by_name("C1_from_B").unwrap().kind else {
+    assert_eq!(inst.model.filter.stale_after_periods, 10.0);
+    let LinkKind::Measured(m) = &inst.model.link_by_name("C1_from_B").unwrap().kind else {
         panic!("measured");
     };
     assert_eq!(m.tuning.reinit_after_outliers, 3);

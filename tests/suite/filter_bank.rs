@@ -1,15 +1,16 @@
 //! The filter bank on an installation: target evaluation, statuses, raw results.
 
 use approx::assert_relative_eq;
-use brokenray::config::{self, Installation, LinkKind};
-use brokenray::filter::{FilterBank, MeasurementUncertainty, Sample, TargetStatus};
+use brokenray::bank::{FilterBank, MeasurementUncertainty, Sample, TargetStatus};
+use brokenray::config::{self, Installation};
 use brokenray::geometry::{Pose, se3_log};
+use brokenray::model::LinkKind;
 
 const T0: i64 = 1_790_000_000_000_000_000;
 const PERIOD_NS: i64 = 40_000_000;
 
 fn nominal(inst: &Installation, name: &str) -> Pose {
-    match &inst.link_by_name(name).unwrap().kind {
+    match &inst.model.link_by_name(name).unwrap().kind {
         LinkKind::Measured(m) => m.nominal.unwrap(),
         LinkKind::Calibrated { parent_from_child } => parent_from_child.pose,
     }
@@ -17,7 +18,7 @@ fn nominal(inst: &Installation, name: &str) -> Pose {
 
 fn sample(inst: &Installation, name: &str, time_ns: i64, pose: Pose) -> Sample {
     Sample {
-        link: inst.topology.link_id(name).unwrap(),
+        link: inst.model.topology.link_id(name).unwrap(),
         time_ns,
         parent_from_child: pose,
         uncertainty: MeasurementUncertainty::Default,
@@ -29,7 +30,7 @@ const MEASURED: [&str; 3] = ["C1_from_B", "C2_from_M", "C3_from_G"];
 #[test]
 fn noise_free_nominal_samples_give_the_papers_chain_product() {
     let inst = config::default_installation();
-    let mut bank = FilterBank::new(&inst);
+    let mut bank = FilterBank::new(&inst.model);
     for k in 0..20 {
         for name in MEASURED {
             bank.ingest(&sample(
@@ -58,7 +59,7 @@ fn noise_free_nominal_samples_give_the_papers_chain_product() {
 #[test]
 fn a_group_with_every_measured_link_gives_one_raw_result() {
     let inst = config::default_installation();
-    let mut bank = FilterBank::new(&inst);
+    let mut bank = FilterBank::new(&inst.model);
     let t = T0;
     let a = bank
         .ingest(&sample(&inst, "C1_from_B", t, nominal(&inst, "C1_from_B")))
@@ -97,7 +98,7 @@ fn a_group_with_every_measured_link_gives_one_raw_result() {
 #[test]
 fn statuses_follow_the_data() {
     let inst = config::default_installation();
-    let mut bank = FilterBank::new(&inst);
+    let mut bank = FilterBank::new(&inst.model);
     assert_eq!(
         bank.evaluate(0, T0).unwrap().status,
         TargetStatus::Initializing
@@ -137,7 +138,7 @@ fn redundant_paths_that_disagree_degrade_the_target() {
         config::DEFAULT_INSTALLATION_TOML
     );
     let inst = config::parse("redundant.toml", &text).unwrap();
-    assert_eq!(inst.targets[0].resolution.paths.len(), 2);
+    assert_eq!(inst.model.targets[0].resolution.paths.len(), 2);
     let g_from_b = nominal(&inst, "C3_from_G").inverse()
         * nominal(&inst, "C3_from_M")
         * nominal(&inst, "C2_from_M").inverse()
@@ -148,7 +149,7 @@ fn redundant_paths_that_disagree_degrade_the_target() {
     ));
     let c4_from_g = c4_from_b * g_from_b.inverse();
     for (bump_deg, expected) in [(0.0_f64, TargetStatus::Ok), (1.0, TargetStatus::Degraded)] {
-        let mut bank = FilterBank::new(&inst);
+        let mut bank = FilterBank::new(&inst.model);
         let bump =
             brokenray::geometry::rotation_from_euler([0.0, bump_deg.to_radians(), 0.0]).unwrap();
         let bumped = Pose::from_parts(c4_from_g.translation, bump * c4_from_g.rotation);
@@ -171,7 +172,7 @@ fn redundant_paths_that_disagree_degrade_the_target() {
 #[test]
 fn a_sample_on_a_calibrated_link_is_refused() {
     let inst = config::default_installation();
-    let mut bank = FilterBank::new(&inst);
+    let mut bank = FilterBank::new(&inst.model);
     let err = bank
         .ingest(&sample(&inst, "C2_from_C1", T0, Pose::identity()))
         .unwrap_err();

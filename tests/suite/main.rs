@@ -2,6 +2,7 @@
 //! (the Rerun SDK included), so one binary builds in a fraction of the time of one per file.
 //! Run one part with a filter, e.g. `cargo test --test suite service::liveness`.
 
+mod architecture;
 mod chain_composition;
 mod cli;
 mod common;

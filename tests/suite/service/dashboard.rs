@@ -193,7 +193,7 @@ async fn targets_answer_each_paths_frames_and_the_thresholds() {
         assert_eq!((frames[i], frames[i + 1]), expected, "step {i}: {link}");
     }
     let thresholds = &g["alarms"];
-    let spec = &app.service.installation().targets[0].alarms;
+    let spec = &app.service.installation().model.targets[0].alarms;
     assert_eq!(
         thresholds["warn_rotation_arcsec"],
         json!(spec.warn_rotation_arcsec)
@@ -272,7 +272,7 @@ async fn the_dashboard_works_in_a_real_browser() {
     let (rate_hz, span_s) = (10.0, 150.0);
     let start_ns = now_ns - (span_s * 1e9) as i64;
     let mut sim = Simulator::new(
-        &inst,
+        &inst.model,
         SimSettings {
             scenario: Scenario::Ship,
             rate_hz,
@@ -393,7 +393,7 @@ async fn with_tokens_the_dashboard_asks_for_one_and_sends_it() {
     follow_real_time(&app);
     let inst = app.service.installation().clone();
     let mut sim = Simulator::new(
-        &inst,
+        &inst.model,
         SimSettings {
             scenario: Scenario::Static,
             rate_hz: 10.0,

@@ -30,7 +30,7 @@ fn result(k: i64) -> NewResult {
             pose,
             cov: Mat6::identity() * 1e-6,
         },
-        status: brokenray::filter::TargetStatus::Ok,
+        status: brokenray::bank::TargetStatus::Ok,
         age_s: 0.0,
         chi2: None,
         deformation: None,
@@ -215,7 +215,7 @@ async fn a_result_recomputed_at_the_same_time_counts_once_in_the_rollups() {
     let app = TestApp::start(None).await;
     let inst = app.service.installation().clone();
     let mut sim = Simulator::new(
-        &inst,
+        &inst.model,
         SimSettings {
             scenario: Scenario::Drift,
             rate_hz: 0.5,

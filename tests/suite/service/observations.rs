@@ -30,7 +30,7 @@ fn rms3(stats: &Value, key: &str) -> [f64; 3] {
 async fn the_laboratory_replica_repeats_like_the_paper_and_filtering_steadies_it() {
     let app = TestApp::start(None).await;
     let inst = app.service.installation().clone();
-    let mut sim = Simulator::new(&inst, settings(Scenario::Static, 0.1)).expect("simulator");
+    let mut sim = Simulator::new(&inst.model, settings(Scenario::Static, 0.1)).expect("simulator");
     let mut truth = Vec::new();
     // 300 groups (12 s at 25 Hz): the filter settles on the first 200, the last 100 are judged.
     for _ in 0..30 {
@@ -108,7 +108,7 @@ async fn the_laboratory_replica_repeats_like_the_paper_and_filtering_steadies_it
 async fn observations_answer_their_poses_and_stored_samples_carry_the_pnp_quality() {
     let app = TestApp::start(None).await;
     let inst = app.service.installation().clone();
-    let mut sim = Simulator::new(&inst, settings(Scenario::Ship, 0.1)).expect("simulator");
+    let mut sim = Simulator::new(&inst.model, settings(Scenario::Ship, 0.1)).expect("simulator");
     let g = sim.next_group();
     let (status, body) = app
         .post_json(
@@ -152,7 +152,7 @@ async fn observations_answer_their_poses_and_stored_samples_carry_the_pnp_qualit
 async fn invalid_observations_are_named_and_nothing_is_stored() {
     let app = TestApp::start(None).await;
     let inst = app.service.installation().clone();
-    let mut sim = Simulator::new(&inst, settings(Scenario::Static, 0.1)).expect("simulator");
+    let mut sim = Simulator::new(&inst.model, settings(Scenario::Static, 0.1)).expect("simulator");
     let mut items = observation_items(&sim.next_group());
     items[0]["camera"] = json!("C9");
     items[1]["points_px"] = json!([[1.0, 2.0], [3.0, 4.0]]);
@@ -288,8 +288,8 @@ async fn hand_eye_over_http_recovers_x_and_refuses_parallel_axes() {
 #[test]
 fn every_simulated_point_of_the_built_in_installation_lies_inside_its_image() {
     let inst = brokenray::config::default_installation();
-    let observer = brokenray::vision::Observer::new(&inst);
-    let mut sim = Simulator::new(&inst, settings(Scenario::Ship, 0.1)).expect("simulator");
+    let observer = brokenray::model::Observer::new(&inst.model);
+    let mut sim = Simulator::new(&inst.model, settings(Scenario::Ship, 0.1)).expect("simulator");
     for _ in 0..250 {
         for o in sim.next_group().observations {
             let link = observer.link(&o.camera, &o.marker).expect("observable");

@@ -4,10 +4,11 @@
 use super::helpers::{ONE_LINK, T0_NS, TestApp, pose_json, time_text};
 use crate::common::paper::{self, TABLE_4, TABLE_5};
 use axum::http::StatusCode;
-use brokenray::config::{self, LinkKind};
+use brokenray::config;
 use brokenray::geometry::{
     ARCSEC_PER_RAD, Pose, PoseCov, Twist, rotation_from_euler, se3_exp, se3_log,
 };
+use brokenray::model::LinkKind;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
@@ -22,7 +23,7 @@ fn truth() -> Vec<(String, Pose)> {
         .iter()
         .enumerate()
         .map(|(i, name)| {
-            let LinkKind::Measured(m) = &inst.link_by_name(name).unwrap().kind else {
+            let LinkKind::Measured(m) = &inst.model.link_by_name(name).unwrap().kind else {
                 panic!()
             };
             let f = i as f64 + 1.0;
@@ -35,7 +36,7 @@ fn truth() -> Vec<(String, Pose)> {
 fn g_from_b(links: &[(String, Pose)]) -> Pose {
     let inst = config::default_installation();
     let get = |n: &str| links.iter().find(|(k, _)| k == n).map(|(_, p)| *p).unwrap();
-    let cal = |n: &str| match &inst.link_by_name(n).unwrap().kind {
+    let cal = |n: &str| match &inst.model.link_by_name(n).unwrap().kind {
         LinkKind::Calibrated { parent_from_child } => parent_from_child.pose,
         _ => panic!(),
     };
@@ -99,7 +100,7 @@ async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
     let mut samples = Vec::new();
     for k in 0..250 {
         for (name, pose) in &links {
-            let LinkKind::Measured(m) = &inst.link_by_name(name).unwrap().kind else {
+            let LinkKind::Measured(m) = &inst.model.link_by_name(name).unwrap().kind else {
                 panic!()
             };
             let cov = PoseCov::from_reported_sigmas(*pose, &m.default_sigmas).cov;

@@ -1,10 +1,13 @@
-//! The filter bank: one filter per measured link; targets evaluated by composing the predicted
+//! The filter bank: one filter ([`crate::filter::LinkFilter`]) per measured link of a
+//! [`crate::model::Model`]; targets evaluated by composing the predicted
 //! links of their paths; raw results from measurement groups.
 
-use super::{BankSettings, Disposition, FilterError, LinkFilter, LinkFilterRecord, NS_PER_S};
 use crate::chain::{Consistency, LinkId, compose_path, fuse};
-use crate::config::{Installation, LinkKind};
+use crate::filter::{
+    BankSettings, Disposition, FilterError, LinkFilter, LinkFilterRecord, NS_PER_S,
+};
 use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas};
+use crate::model::{LinkKind, Model};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
 
@@ -46,7 +49,7 @@ pub struct Sample {
 /// A raw result: the composition of the raw samples of one measurement group.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RawResult {
-    /// Index of the target in the installation.
+    /// Index of the target in the model.
     pub target: usize,
     /// The group's time (ns).
     pub time_ns: i64,
@@ -123,7 +126,7 @@ impl TargetStatus {
 /// A target evaluated at a time.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TargetEstimate {
-    /// Index of the target in the installation.
+    /// Index of the target in the model.
     pub target: usize,
     /// The time evaluated (ns).
     pub time_ns: i64,
@@ -209,10 +212,10 @@ pub struct BankRecord {
     pub frontiers: Vec<(String, i64)>,
 }
 
-/// One filter per measured link of an installation.
+/// One filter per measured link of an model.
 #[derive(Debug, Clone)]
 pub struct FilterBank {
-    installation: Arc<Installation>,
+    model: Arc<Model>,
     settings: BankSettings,
     measured: Vec<Option<MeasuredSlot>>,
     /// Per calibrated link: its calibrations, `(valid_from_ns, pose)`, oldest first; the one in
@@ -227,16 +230,16 @@ pub struct FilterBank {
 }
 
 impl FilterBank {
-    /// A bank for the installation, every filter uninitialised.
-    pub fn new(installation: &Installation) -> Self {
-        Self::shared(Arc::new(installation.clone()))
+    /// A bank for the model, every filter uninitialised.
+    pub fn new(model: &Model) -> Self {
+        Self::shared(Arc::new(model.clone()))
     }
 
-    /// A bank sharing an installation, every filter uninitialised.
-    pub fn shared(installation: Arc<Installation>) -> Self {
-        let n = installation.links.len();
+    /// A bank sharing a model, every filter uninitialised.
+    pub fn shared(model: Arc<Model>) -> Self {
+        let n = model.links.len();
         let mut targets_of_link = vec![Vec::new(); n];
-        for (ti, t) in installation.targets.iter().enumerate() {
+        for (ti, t) in model.targets.iter().enumerate() {
             for path in &t.resolution.paths {
                 for l in path.links() {
                     if !targets_of_link[l.0].contains(&ti) {
@@ -246,8 +249,8 @@ impl FilterBank {
             }
         }
         Self {
-            settings: installation.filter,
-            measured: installation
+            settings: model.filter,
+            measured: model
                 .links
                 .iter()
                 .map(|l| match &l.kind {
@@ -259,7 +262,7 @@ impl FilterBank {
                     LinkKind::Calibrated { .. } => None,
                 })
                 .collect(),
-            calibrations: installation
+            calibrations: model
                 .links
                 .iter()
                 .map(|l| match &l.kind {
@@ -269,7 +272,7 @@ impl FilterBank {
                     LinkKind::Measured(_) => Vec::new(),
                 })
                 .collect(),
-            frontier_ns: vec![None; installation.targets.len()],
+            frontier_ns: vec![None; model.targets.len()],
             status: vec![
                 LinkStatus {
                     n_samples: 0,
@@ -281,7 +284,7 @@ impl FilterBank {
             ],
             groups: BTreeMap::new(),
             targets_of_link,
-            installation,
+            model,
         }
     }
 
@@ -289,7 +292,7 @@ impl FilterBank {
     /// pending measurement groups): cheap enough to publish after every commit.
     pub fn current_view(&self) -> Self {
         Self {
-            installation: Arc::clone(&self.installation),
+            model: Arc::clone(&self.model),
             settings: self.settings,
             measured: self
                 .measured
@@ -310,9 +313,9 @@ impl FilterBank {
         }
     }
 
-    /// The installation the bank filters.
-    pub fn installation(&self) -> &Installation {
-        &self.installation
+    /// The measurement model the bank filters.
+    pub fn model(&self) -> &Model {
+        &self.model
     }
 
     /// Adds a calibration of a calibrated link, valid from `valid_from_ns` (until a later one).
@@ -413,7 +416,7 @@ impl FilterBank {
     /// clock, the tolerance covers the delay and skew between the measuring computer and the
     /// server.
     pub fn link_lag_with(&self, link: LinkId, time_ns: i64, tolerance_s: f64) -> Option<LinkLag> {
-        let LinkKind::Measured(m) = &self.installation.links[link.0].kind else {
+        let LinkKind::Measured(m) = &self.model.links[link.0].kind else {
             return None;
         };
         let last = self.status[link.0].last_time_ns?;
@@ -432,7 +435,7 @@ impl FilterBank {
     /// target's status says).
     pub fn target_liveness(&self, target: usize, time_ns: i64, tolerance_s: f64) -> TargetLiveness {
         let mut worst: Option<(LinkId, LinkLag)> = None;
-        let Some(spec) = self.installation.targets.get(target) else {
+        let Some(spec) = self.model.targets.get(target) else {
             return TargetLiveness {
                 stale: false,
                 worst,
@@ -453,7 +456,7 @@ impl FilterBank {
 
     /// The measurement covariance of a sample: its own, else the link's default.
     pub fn measurement(&self, sample: &Sample) -> Result<PoseCov, FilterError> {
-        let spec = &self.installation.links[sample.link.0];
+        let spec = &self.model.links[sample.link.0];
         let LinkKind::Measured(m) = &spec.kind else {
             return Err(FilterError::NotMeasured(spec.name.clone()));
         };
@@ -501,7 +504,7 @@ impl FilterBank {
         let link = sample.link;
         let Some(slot) = self.measured[link.0].as_mut() else {
             return Err(FilterError::NotMeasured(
-                self.installation.links[link.0].name.clone(),
+                self.model.links[link.0].name.clone(),
             ));
         };
         let disposition = slot.filter.update(sample.time_ns, &z);
@@ -571,7 +574,7 @@ impl FilterBank {
     /// The time every measured link of the target's available paths has reached: the newest
     /// time at which the target can be evaluated from data rather than prediction.
     pub fn frontier(&self, target: usize) -> Option<i64> {
-        let spec = &self.installation.targets[target];
+        let spec = &self.model.targets[target];
         let mut frontier: Option<i64> = None;
         for path in &spec.resolution.paths {
             let mut path_min: Option<i64> = Some(i64::MAX);
@@ -598,7 +601,7 @@ impl FilterBank {
     /// Adds a sample to its measurement group and returns the raw results it completes, or
     /// `None` when the sample is older than every group kept in memory.
     fn add_to_group(&mut self, link: LinkId, time_ns: i64, z: PoseCov) -> Option<Vec<RawResult>> {
-        let n_targets = self.installation.targets.len();
+        let n_targets = self.model.targets.len();
         let oldest_kept = self.groups.keys().next().copied();
         if self.groups.len() >= self.settings.group_window
             && oldest_kept.is_some_and(|o| time_ns < o)
@@ -635,7 +638,7 @@ impl FilterBank {
         time_ns: i64,
         samples: &HashMap<LinkId, PoseCov>,
     ) -> Vec<RawResult> {
-        let none = vec![false; self.installation.targets.len()];
+        let none = vec![false; self.model.targets.len()];
         self.compose_group(link, time_ns, samples, &none)
     }
 
@@ -653,7 +656,7 @@ impl FilterBank {
             if emitted[ti] {
                 continue;
             }
-            let target = &self.installation.targets[ti];
+            let target = &self.model.targets[ti];
             let mut estimates = Vec::new();
             let mut complete = true;
             for path in &target.resolution.paths {
@@ -717,7 +720,7 @@ impl FilterBank {
         match source.and_then(|f| f.predict(time_ns)) {
             Some(Ok(p)) => Ok(Some(p)),
             _ => Err(FilterError::BeforeFilterTime {
-                link: self.installation.links[link.0].name.clone(),
+                link: self.model.links[link.0].name.clone(),
                 requested_ns: time_ns,
                 filter_ns: slot
                     .history
@@ -730,7 +733,7 @@ impl FilterBank {
 
     /// The newest time any filter of the target's paths has reached (ns).
     pub fn latest_time_ns(&self, target: usize) -> Option<i64> {
-        self.installation.targets[target]
+        self.model.targets[target]
             .resolution
             .paths
             .iter()
@@ -761,7 +764,7 @@ impl FilterBank {
 
     /// The bank's state as plain records (filters, counters, frontiers), for persistence.
     pub fn record(&self) -> BankRecord {
-        let links = &self.installation.links;
+        let links = &self.model.links;
         BankRecord {
             filters: self
                 .measured
@@ -792,7 +795,7 @@ impl FilterBank {
                 .frontier_ns
                 .iter()
                 .enumerate()
-                .filter_map(|(i, f)| f.map(|f| (self.installation.targets[i].name.clone(), f)))
+                .filter_map(|(i, f)| f.map(|f| (self.model.targets[i].name.clone(), f)))
                 .collect(),
         }
     }
@@ -802,7 +805,7 @@ impl FilterBank {
     pub fn restore(&mut self, record: &BankRecord) -> Vec<String> {
         let mut skipped = Vec::new();
         for (name, r) in &record.filters {
-            let Some(id) = self.installation.topology.link_id(name) else {
+            let Some(id) = self.model.topology.link_id(name) else {
                 skipped.push(format!("link `{name}` is no longer in the installation"));
                 continue;
             };
@@ -820,7 +823,7 @@ impl FilterBank {
             }
         }
         for (name, n, o, re, last) in &record.counters {
-            if let Some(id) = self.installation.topology.link_id(name) {
+            if let Some(id) = self.model.topology.link_id(name) {
                 self.status[id.0] = LinkStatus {
                     n_samples: *n,
                     n_outliers: *o,
@@ -830,12 +833,7 @@ impl FilterBank {
             }
         }
         for (name, f) in &record.frontiers {
-            if let Some(i) = self
-                .installation
-                .targets
-                .iter()
-                .position(|t| &t.name == name)
-            {
+            if let Some(i) = self.model.targets.iter().position(|t| &t.name == name) {
                 self.frontier_ns[i] = Some(*f);
             }
         }
@@ -846,7 +844,7 @@ impl FilterBank {
     /// time, composes each path with covariance and fuses the paths that have data.
     pub fn evaluate(&self, target: usize, time_ns: i64) -> Result<TargetEstimate, FilterError> {
         let spec = self
-            .installation
+            .model
             .targets
             .get(target)
             .ok_or_else(|| FilterError::UnknownTarget(target.to_string()))?;

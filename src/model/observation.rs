@@ -5,10 +5,10 @@
 //! configured camera and whose child frame a configured marker, the camera model, the marker's
 //! points and ids, and the PnP options (the camera's `pixel_sigma`, the `[pnp]` settings).
 
-use super::{CameraModel, PnpOptions, PnpSolution, solve_pnp};
+use super::{LinkKind, Model};
 use crate::chain::LinkId;
-use crate::config::{Installation, LinkKind};
 use crate::geometry::Vec3;
+use crate::vision::{CameraModel, PnpOptions, PnpSolution, solve_pnp};
 use nalgebra::Vector2;
 use std::borrow::Cow;
 
@@ -63,24 +63,24 @@ pub struct Observer {
 }
 
 impl Observer {
-    /// Every camera-marker link of the installation.
-    pub fn new(installation: &Installation) -> Self {
+    /// Every camera-marker link of the model.
+    pub fn new(model: &Model) -> Self {
         let mut links = Vec::new();
-        for spec in &installation.links {
+        for spec in &model.links {
             if !matches!(spec.kind, LinkKind::Measured(_)) {
                 continue;
             }
-            let link = installation.topology.link(spec.id);
-            let parent = installation.topology.frame_name(link.parent).to_owned();
-            let child = installation.topology.frame_name(link.child).to_owned();
-            let camera = installation.camera(&parent);
-            let marker = installation.marker(&child);
+            let link = model.topology.link(spec.id);
+            let parent = model.topology.frame_name(link.parent).to_owned();
+            let child = model.topology.frame_name(link.child).to_owned();
+            let camera = model.camera(&parent);
+            let marker = model.marker(&child);
             if let (Some(camera), Some(marker)) = (camera, marker) {
                 let options = PnpOptions {
                     pixel_sigma_px: camera.pixel_sigma_px,
-                    max_rms_px: installation.pnp.max_reprojection_rms_px,
-                    robust: installation.pnp.robust,
-                    inlier_threshold_px: installation.pnp.inlier_threshold_px,
+                    max_rms_px: model.pnp.max_reprojection_rms_px,
+                    robust: model.pnp.robust,
+                    inlier_threshold_px: model.pnp.inlier_threshold_px,
                     ..PnpOptions::default()
                 };
                 links.push(ObservedLink {
@@ -88,7 +88,7 @@ impl Observer {
                     marker_frame: child,
                     link: spec.id,
                     name: spec.name.clone(),
-                    camera: CameraModel::from(camera),
+                    camera: camera.intrinsics,
                     points_mm: marker.points_mm.iter().map(|p| Vec3::from(*p)).collect(),
                     ids: marker.ids.clone(),
                     options,
@@ -97,16 +97,8 @@ impl Observer {
         }
         Self {
             links,
-            cameras: installation
-                .cameras
-                .iter()
-                .map(|c| c.frame.clone())
-                .collect(),
-            markers: installation
-                .markers
-                .iter()
-                .map(|m| m.frame.clone())
-                .collect(),
+            cameras: model.cameras.iter().map(|c| c.frame.clone()).collect(),
+            markers: model.markers.iter().map(|m| m.frame.clone()).collect(),
         }
     }
 

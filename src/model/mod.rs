@@ -1,0 +1,154 @@
+//! The measurement model of an installation: what the core needs to know about it.
+//!
+//! Frames and links (the [`Topology`]), which links are calibrated and which measured (with
+//! each filter's tuning), the targets and how each is reached, the cameras and markers that
+//! form the measured links, and how marker observations are solved. Nothing here knows about
+//! files, servers, tokens or Rerun: the `config` adapter reads the installation file into a
+//! [`Model`] plus the deployment settings only the adapters see.
+//!
+//! [`Observer`] derives the camera-marker links from a model and solves raw observations of
+//! them into link samples.
+
+mod observation;
+
+pub use observation::{ObservationError, ObservedLink, Observer};
+
+use crate::alarms::AlarmThresholds;
+use crate::chain::{FrameId, LinkId, Resolution, Topology};
+use crate::filter::{BankSettings, FilterTuning};
+use crate::geometry::{Pose, PoseCov, ReportedSigmas};
+use crate::vision::CameraModel;
+
+/// The measurement model of one installation.
+#[derive(Debug, Clone)]
+pub struct Model {
+    /// Cameras, by frame.
+    pub cameras: Vec<Camera>,
+    /// Cooperative markers, by frame.
+    pub markers: Vec<Marker>,
+    /// The frame/link graph.
+    pub topology: Topology,
+    /// Link settings, indexed by [`LinkId`].
+    pub links: Vec<LinkSpec>,
+    /// The targets and how each is reached.
+    pub targets: Vec<TargetSpec>,
+    /// Settings of the filter bank.
+    pub filter: BankSettings,
+    /// How marker observations are solved.
+    pub pnp: PnpSettings,
+}
+
+/// A camera of the installation: its frame, its calibration and its pixel noise.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    /// The camera's frame.
+    pub frame: String,
+    /// Intrinsics, distortion and image size.
+    pub intrinsics: CameraModel,
+    /// Standard deviation of a measured image point (px).
+    pub pixel_sigma_px: f64,
+}
+
+/// A cooperative marker: known points in its own frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Marker {
+    /// The marker's frame.
+    pub frame: String,
+    /// The points (mm, in the marker frame).
+    pub points_mm: Vec<[f64; 3]>,
+    /// Point ids, one per point (defaults to 0, 1, 2, ...).
+    pub ids: Vec<u32>,
+}
+
+/// Pose estimation of marker observations.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PnpSettings {
+    /// A solution with a larger reprojection RMS is refused (px).
+    pub max_reprojection_rms_px: f64,
+    /// Retry a refused observation by RANSAC, leaving out points off the consensus.
+    pub robust: bool,
+    /// RANSAC: a point within this reprojection error supports a pose (px).
+    pub inlier_threshold_px: f64,
+}
+
+/// A link of the installation.
+#[derive(Debug, Clone)]
+pub struct LinkSpec {
+    /// Its id in the topology.
+    pub id: LinkId,
+    /// `<parent>_from_<child>`.
+    pub name: String,
+    /// Calibrated or measured.
+    pub kind: LinkKind,
+}
+
+/// What kind of link.
+#[derive(Debug, Clone)]
+#[allow(
+    clippy::large_enum_variant,
+    reason = "a handful of links per installation; boxing buys nothing"
+)]
+pub enum LinkKind {
+    /// A rigid connection inside a station, calibrated once.
+    Calibrated {
+        /// The calibrated pose with its uncertainty.
+        parent_from_child: PoseCov,
+    },
+    /// A camera seeing a marker, measured continuously.
+    Measured(MeasuredLink),
+}
+
+/// Settings of a measured link.
+#[derive(Debug, Clone)]
+pub struct MeasuredLink {
+    /// The filter model and its tuning.
+    pub tuning: FilterTuning,
+    /// Measurement noise used when a sample carries none.
+    pub default_sigmas: ReportedSigmas,
+    /// How often samples are expected (Hz).
+    pub expected_rate_hz: f64,
+    /// The designed pose, where known (simulation, visualisation before the first sample).
+    pub nominal: Option<Pose>,
+}
+
+/// A target: a frame whose pose relative to its base is monitored.
+#[derive(Debug, Clone)]
+pub struct TargetSpec {
+    /// The target's name (its frame).
+    pub name: String,
+    /// The target frame.
+    pub frame: FrameId,
+    /// The base frame.
+    pub base: FrameId,
+    /// How it is reached.
+    pub resolution: Resolution,
+    /// Deformation thresholds.
+    pub alarms: AlarmThresholds,
+}
+
+impl Model {
+    /// The settings of a link.
+    pub fn link(&self, id: LinkId) -> &LinkSpec {
+        &self.links[id.0]
+    }
+
+    /// The link with this name.
+    pub fn link_by_name(&self, name: &str) -> Option<&LinkSpec> {
+        self.topology.link_id(name).map(|id| self.link(id))
+    }
+
+    /// The target with this name.
+    pub fn target(&self, name: &str) -> Option<&TargetSpec> {
+        self.targets.iter().find(|t| t.name == name)
+    }
+
+    /// The camera on this frame.
+    pub fn camera(&self, frame: &str) -> Option<&Camera> {
+        self.cameras.iter().find(|c| c.frame == frame)
+    }
+
+    /// The marker on this frame.
+    pub fn marker(&self, frame: &str) -> Option<&Marker> {
+        self.markers.iter().find(|m| m.frame == frame)
+    }
+}

@@ -1,0 +1,182 @@
+//! ARCHITECTURE.md's layering, checked on the source: each core module refers only to core
+//! modules of lower layers, and no core module uses an IO crate, the file system, the network
+//! or the wall clock. (Test modules are not part of the layering and are skipped.)
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+/// The core, bottom up: a module may use the modules of lower layers only.
+const CORE_LAYERS: &[&[&str]] = &[
+    &["geometry"],
+    &["chain", "deformation", "stats"],
+    &["filter", "vision", "alarms"],
+    &["model"],
+    &["bank"],
+    &["sim"],
+];
+
+/// What the core never touches: IO, async runtimes, adapters' crates, the wall clock.
+const FORBIDDEN_IN_CORE: &[&str] = &[
+    "tokio::",
+    "sqlx::",
+    "axum::",
+    "hyper::",
+    "tower",
+    "reqwest::",
+    "rerun::",
+    "std::fs",
+    "std::net",
+    "std::env",
+    "std::io",
+    "SystemTime",
+    "Instant::now",
+    "tracing::",
+];
+
+fn src() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
+}
+
+/// The top-level modules of `src/`.
+fn modules() -> BTreeSet<String> {
+    std::fs::read_dir(src())
+        .expect("src/")
+        .filter_map(|e| {
+            let e = e.ok()?;
+            let name = e.file_name().into_string().ok()?;
+            if e.path().is_dir() {
+                Some(name)
+            } else {
+                let stem = name.strip_suffix(".rs")?;
+                (stem != "lib" && stem != "main").then(|| stem.to_owned())
+            }
+        })
+        .collect()
+}
+
+/// The code of a module's files: test modules and comments left out.
+fn code_of(module: &str) -> Vec<(PathBuf, String)> {
+    let dir = src().join(module);
+    let mut files = Vec::new();
+    if dir.is_dir() {
+        let mut stack = vec![dir];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d).expect("module folder").flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else if p.extension().is_some_and(|x| x == "rs") {
+                    files.push(p);
+                }
+            }
+        }
+    } else {
+        files.push(src().join(format!("{module}.rs")));
+    }
+    files
+        .into_iter()
+        .map(|p| {
+            let text = std::fs::read_to_string(&p).expect("source file");
+            let before_tests = text.split("#[cfg(test)]").next().unwrap_or("");
+            let code: Vec<&str> = before_tests
+                .lines()
+                .filter(|l| !l.trim_start().starts_with("//"))
+                .collect();
+            (p, code.join("\n"))
+        })
+        .collect()
+}
+
+/// The modules a piece of code names as `crate::m` or inside `crate::{...}`.
+fn referenced(code: &str, modules: &BTreeSet<String>) -> BTreeSet<String> {
+    let mut out = BTreeSet::new();
+    for (i, _) in code.match_indices("crate::") {
+        let rest = &code[i + "crate::".len()..];
+        let names: Vec<&str> = if let Some(group) = rest.strip_prefix('{') {
+            let end = group.find('}').unwrap_or(group.len());
+            group[..end]
+                .split(|c: char| !(c.is_ascii_alphanumeric() || c == '_' || c == ':'))
+                .filter_map(|path| path.split("::").next())
+                .collect()
+        } else {
+            let end = rest
+                .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+                .unwrap_or(rest.len());
+            vec![&rest[..end]]
+        };
+        out.extend(
+            names
+                .into_iter()
+                .filter(|n| modules.contains(*n))
+                .map(str::to_owned),
+        );
+    }
+    out
+}
+
+#[test]
+fn every_core_module_is_in_a_layer_and_exists() {
+    let modules = modules();
+    for layer in CORE_LAYERS {
+        for m in *layer {
+            assert!(modules.contains(*m), "core module `{m}` is not in src/");
+        }
+    }
+}
+
+#[test]
+fn core_modules_use_only_lower_core_layers() {
+    let modules = modules();
+    let mut violations = Vec::new();
+    for (level, layer) in CORE_LAYERS.iter().enumerate() {
+        let below: BTreeSet<&str> = CORE_LAYERS[..level]
+            .iter()
+            .flat_map(|l| l.iter().copied())
+            .collect();
+        for m in *layer {
+            for (path, code) in code_of(m) {
+                for r in referenced(&code, &modules) {
+                    if r != *m && !below.contains(r.as_str()) {
+                        violations.push(format!("{} uses `crate::{r}`", path.display()));
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        violations.is_empty(),
+        "the core must not reach up or sideways:\n{}",
+        violations.join("\n")
+    );
+}
+
+#[test]
+fn core_modules_do_no_io() {
+    let mut violations = Vec::new();
+    for m in CORE_LAYERS.iter().flat_map(|l| l.iter()) {
+        for (path, code) in code_of(m) {
+            for f in FORBIDDEN_IN_CORE {
+                if code.contains(f) {
+                    violations.push(format!("{} uses `{f}`", path.display()));
+                }
+            }
+        }
+    }
+    assert!(
+        violations.is_empty(),
+        "the core is pure:\n{}",
+        violations.join("\n")
+    );
+}
+
+/// The check itself can fail: an upward reference in a sample of code is found.
+#[test]
+fn the_reference_scan_finds_plain_and_grouped_paths() {
+    let modules: BTreeSet<String> = ["config", "geometry", "store"]
+        .iter()
+        .map(|s| (*s).to_owned())
+        .collect();
+    let code = "use crate::config::Installation;\nuse crate::{geometry::Pose, store::Store};";
+    let found: Vec<String> = referenced(code, &modules).into_iter().collect();
+    assert_eq!(found, ["config", "geometry", "store"]);
+}
