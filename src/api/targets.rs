@@ -7,7 +7,7 @@ use crate::bank::{TargetEstimate, TargetStatus};
 use crate::chain::Direction;
 use crate::clock::{format_ns, parse_query_time};
 use crate::deformation::{Deformation, ReferenceOrigin};
-use crate::geometry::{PoseCov, se3_exp, se3_log};
+use crate::geometry::PoseCov;
 use crate::model::TargetSpec;
 use crate::service::{CurrentReference, ReferenceRequest};
 use axum::Json;
@@ -478,13 +478,8 @@ pub async fn get_compensation(
     };
     let estimate = match after {
         Some(after) if before.time_ns < at_ns => {
-            // Interpolate on SE(3): T = Exp(a Log(T1 T0^-1)) T0; covariances linearly.
             let a = (at_ns - before.time_ns) as f64 / (after.time_ns - before.time_ns) as f64;
-            let d = se3_log(&(after.estimate.pose * before.estimate.pose.inverse()));
-            PoseCov {
-                pose: se3_exp(&(d * a)) * before.estimate.pose,
-                cov: before.estimate.cov * (1.0 - a) + after.estimate.cov * a,
-            }
+            before.estimate.interpolate(&after.estimate, a)
         }
         _ => before.estimate,
     };
@@ -788,7 +783,7 @@ pub async fn get_history(
     Path(name): Path<String>,
     Query(q): Query<HistoryQuery>,
 ) -> Result<axum::response::Response, ApiError> {
-    use crate::store::rollup::{Bucket, COMPONENTS, N_COMPONENTS, ROLLUP_WIDTHS_S};
+    use crate::store::rollup::{Bucket, COMPONENTS, N_COMPONENTS};
     use axum::response::IntoResponse;
     let (ti, spec) = target_index(&app, &name)?;
     let (from_q, to_q, filtered) = parse_window(&WindowQuery {
@@ -825,59 +820,14 @@ pub async fn get_history(
             })
             .collect::<Result<_, _>>()?,
     };
-    let store = app.service.store();
-    let bounds = store.result_bounds(ti, filtered).await?;
-    let (from, to) = match bounds {
-        Some((lo, hi)) => (
-            if from_q == i64::MIN { lo } else { from_q },
-            if to_q == i64::MAX { hi } else { to_q },
-        ),
-        None => (from_q, to_q),
-    };
-    let mut buckets: std::collections::BTreeMap<i64, Bucket> = std::collections::BTreeMap::new();
-    let (mut width_ns, mut resolution_s) = (1i64, None);
     // Reading every result of a long window is heavy: at most `max_heavy_reads` at once.
     let _permit = app.service.heavy_read().await;
-    if bounds.is_some() && from <= to {
-        let span = (to as i128 - from as i128 + 1) as f64;
-        let wanted_ns = (span / max_points as f64).ceil().max(1.0) as i64;
-        let level = ROLLUP_WIDTHS_S
-            .iter()
-            .rev()
-            .copied()
-            .find(|w| w * 1_000_000_000 <= wanted_ns);
-        let (rows, start) = match level {
-            Some(w) => {
-                let level_ns = w * 1_000_000_000;
-                let start = crate::store::rollup::floor_to(from, level_ns);
-                // The aligned span may be one level bucket longer: widen to stay within max_points.
-                let aligned = (to as i128 - start as i128 + 1) as f64;
-                width_ns = ((aligned / max_points as f64 / level_ns as f64).ceil() as i64).max(1)
-                    * level_ns;
-                resolution_s = Some(w);
-                (
-                    store.rollup_buckets(ti, filtered, w, from, to).await?,
-                    start,
-                )
-            }
-            None => {
-                width_ns = wanted_ns;
-                (
-                    store
-                        .result_buckets(ti, filtered, from, to, from, width_ns)
-                        .await?,
-                    from,
-                )
-            }
-        };
-        for row in rows {
-            let bucket_start = crate::store::rollup::align(row.start_ns, start, width_ns);
-            buckets
-                .entry(bucket_start)
-                .or_insert_with(|| Bucket::empty(bucket_start))
-                .merge(&row);
-        }
-    }
+    let history = app
+        .service
+        .store()
+        .history(ti, filtered, from_q, to_q, max_points)
+        .await?;
+    let buckets = &history.buckets;
     let value = |b: &Bucket, i: usize, which: u8| -> Option<f64> {
         match which {
             0 => b.has(i).then(|| b.min[i]),
@@ -893,7 +843,7 @@ pub async fn get_history(
         }
         header.push('\n');
         let columns = chosen.clone();
-        let lines = std::iter::once(header).chain(buckets.values().map(move |b| {
+        let lines = std::iter::once(header).chain(buckets.iter().map(move |b| {
             let mut line = format!("{},{}", format_ns(b.start_ns), b.n);
             for &i in &columns {
                 for which in 0..3 {
@@ -928,21 +878,21 @@ pub async fn get_history(
         series.insert(
             COMPONENTS[i],
             SeriesOut {
-                min: buckets.values().map(|b| value(b, i, 0)).collect(),
-                mean: buckets.values().map(|b| value(b, i, 1)).collect(),
-                max: buckets.values().map(|b| value(b, i, 2)).collect(),
+                min: buckets.iter().map(|b| value(b, i, 0)).collect(),
+                mean: buckets.iter().map(|b| value(b, i, 1)).collect(),
+                max: buckets.iter().map(|b| value(b, i, 2)).collect(),
             },
         );
     }
     Ok(Json(HistoryOut {
         target: spec.name,
         source: if filtered { "filtered" } else { "raw" },
-        from: bounds.map(|_| format_ns(from)),
-        to: bounds.map(|_| format_ns(to)),
-        bucket_s: width_ns as f64 / 1e9,
-        resolution_s,
-        time: buckets.keys().map(|t| format_ns(*t)).collect(),
-        count: buckets.values().map(|b| b.n).collect(),
+        from: history.window_ns.map(|(from, _)| format_ns(from)),
+        to: history.window_ns.map(|(_, to)| format_ns(to)),
+        bucket_s: history.bucket_ns as f64 / 1e9,
+        resolution_s: history.resolution_s,
+        time: buckets.iter().map(|b| format_ns(b.start_ns)).collect(),
+        count: buckets.iter().map(|b| b.n).collect(),
         series,
     })
     .into_response())

@@ -113,6 +113,17 @@ impl PoseCov {
         }
     }
 
+    /// The pose a fraction `a` of the way from `self` (at 0) to `later` (at 1) along the
+    /// geodesic of SE(3), `T = Exp(a Log(T1 T0^-1)) T0`, with the covariance interpolated
+    /// linearly (both are left perturbations, so they add in the same tangent space).
+    pub fn interpolate(&self, later: &PoseCov, a: f64) -> PoseCov {
+        let d = super::se3_log(&(later.pose * self.pose.inverse()));
+        PoseCov {
+            pose: super::se3_exp(&(d * a)) * self.pose,
+            cov: symmetrize(&(self.cov * (1.0 - a) + later.cov * a)),
+        }
+    }
+
     /// `self^-1`: `Sigma_inv = Ad(T^-1) Sigma Ad(T^-1)^T`.
     pub fn inverse(&self) -> PoseCov {
         let inv = self.pose.inverse();

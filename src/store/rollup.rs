@@ -198,7 +198,104 @@ pub(super) fn decode_bucket(
     Ok(b)
 }
 
+/// A target's history over a window, downsampled to at most a number of buckets.
+#[derive(Debug, Clone, PartialEq)]
+pub struct History {
+    /// The window actually covered: the asked-for ends, or the history's own where open; `None`
+    /// when the target has no history.
+    pub window_ns: Option<(i64, i64)>,
+    /// The width of each bucket (ns).
+    pub bucket_ns: i64,
+    /// What the buckets were built from: a rollup width (s), or `None` for the results.
+    pub resolution_s: Option<i64>,
+    /// The buckets that hold results, oldest first.
+    pub buckets: Vec<Bucket>,
+}
+
+/// How a window of `[from_ns, to_ns]` is read in at most `max_points` buckets: from the widest
+/// rollup no wider than the bucket the window needs (`Some(width_s)`), or from the results
+/// (`None`, when even the finest rollup is too coarse); the bucket width (ns) and the time the
+/// buckets are aligned on. A rollup-read bucket is a whole number of rollup buckets, aligned
+/// on the rollup grid, and the count stays within `max_points` after the alignment.
+pub fn history_plan(from_ns: i64, to_ns: i64, max_points: usize) -> (Option<i64>, i64, i64) {
+    let max_points = max_points.max(1) as f64;
+    let span = (to_ns as i128 - from_ns as i128 + 1) as f64;
+    let wanted_ns = (span / max_points).ceil().max(1.0) as i64;
+    let level = ROLLUP_WIDTHS_S
+        .iter()
+        .rev()
+        .copied()
+        .find(|w| w * 1_000_000_000 <= wanted_ns);
+    match level {
+        Some(w) => {
+            let level_ns = w * 1_000_000_000;
+            let start = floor_to(from_ns, level_ns);
+            // The aligned span may be one level bucket longer: widen to stay within max_points.
+            let aligned = (to_ns as i128 - start as i128 + 1) as f64;
+            let width_ns =
+                ((aligned / max_points / level_ns as f64).ceil() as i64).max(1) * level_ns;
+            (Some(w), width_ns, start)
+        }
+        None => (None, wanted_ns, from_ns),
+    }
+}
+
 impl Store {
+    /// A target's history in `[from_ns, to_ns]` (either end open: `i64::MIN`, `i64::MAX`) in at
+    /// most `max_points` buckets: read from the rollups when the buckets are at least as wide
+    /// as the finest rollup, otherwise from the results (streamed, memory that of the buckets).
+    pub async fn history(
+        &self,
+        target: usize,
+        filtered: bool,
+        from_ns: i64,
+        to_ns: i64,
+        max_points: usize,
+    ) -> StoreResult<History> {
+        let bounds = self.result_bounds(target, filtered).await?;
+        let Some((lo, hi)) = bounds else {
+            return Ok(History {
+                window_ns: None,
+                bucket_ns: 1,
+                resolution_s: None,
+                buckets: Vec::new(),
+            });
+        };
+        let from = if from_ns == i64::MIN { lo } else { from_ns };
+        let to = if to_ns == i64::MAX { hi } else { to_ns };
+        if from > to {
+            return Ok(History {
+                window_ns: Some((from, to)),
+                bucket_ns: 1,
+                resolution_s: None,
+                buckets: Vec::new(),
+            });
+        }
+        let (level, width_ns, start) = history_plan(from, to, max_points);
+        let rows = match level {
+            Some(w) => self.rollup_buckets(target, filtered, w, from, to).await?,
+            None => {
+                self.result_buckets(target, filtered, from, to, start, width_ns)
+                    .await?
+            }
+        };
+        let mut buckets: std::collections::BTreeMap<i64, Bucket> =
+            std::collections::BTreeMap::new();
+        for row in rows {
+            let bucket_start = align(row.start_ns, start, width_ns);
+            buckets
+                .entry(bucket_start)
+                .or_insert_with(|| Bucket::empty(bucket_start))
+                .merge(&row);
+        }
+        Ok(History {
+            window_ns: Some((from, to)),
+            bucket_ns: width_ns,
+            resolution_s: level,
+            buckets: buckets.into_values().collect(),
+        })
+    }
+
     /// The span of a target's history: from the finest rollup, which is kept when old results
     /// are pruned (its last bucket counts to its end), else from the results. Each end is its
     /// own indexed lookup (SQLite optimises a lone `min` or `max`, not both in one query).
@@ -315,4 +412,45 @@ pub fn floor_to(time_ns: i64, width_ns: i64) -> i64 {
     let w = i128::from(width_ns.max(1));
     let floored = i128::from(time_ns).div_euclid(w) * w;
     floored.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// However the window and the count fall, a plan never gives more than `max_points`
+    /// buckets, reads a rollup exactly when buckets of at least its width are wanted, and
+    /// covers the window's first time.
+    #[test]
+    fn history_plans_stay_within_max_points_and_pick_the_widest_fitting_rollup() {
+        let s = 1_000_000_000i64;
+        for &(from, to, max_points) in &[
+            (0i64, 10 * s, 1000usize),
+            (123_456_789, 3600 * s + 7, 1000),
+            (5 * s + 1, 86_400 * 30 * s, 500),
+            (-7 * s, 7 * s, 3),
+            (0, 599 * s, 1),
+            (17, 17, 10),
+        ] {
+            let (level, width_ns, start) = history_plan(from, to, max_points);
+            assert!(width_ns >= 1);
+            assert!(start <= from && from - start < width_ns.max(1));
+            let buckets = (align(to, start, width_ns) - start) / width_ns + 1;
+            assert!(
+                buckets as usize <= max_points,
+                "{buckets} buckets for {max_points} over [{from}, {to}]"
+            );
+            let wanted = ((to - from + 1) as f64 / max_points as f64).ceil() as i64;
+            let expected = ROLLUP_WIDTHS_S
+                .iter()
+                .rev()
+                .copied()
+                .find(|w| w * s <= wanted);
+            assert_eq!(level, expected);
+            if let Some(w) = level {
+                assert_eq!(width_ns % (w * s), 0, "a whole number of rollup buckets");
+                assert_eq!(start % (w * s), 0, "aligned on the rollup grid");
+            }
+        }
+    }
 }

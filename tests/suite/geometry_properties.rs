@@ -172,3 +172,59 @@ fn a_quarter_turn_about_z_maps_x_to_y() {
     let r = rotation_from_euler([0.0, 0.0, 90f64.to_radians()]).unwrap();
     assert_relative_eq!(r * Vec3::x(), Vec3::y(), epsilon = 1e-15);
 }
+
+/// `PoseCov::interpolate` against independent constructions: the ends are the two poses, a pure
+/// rotation about a fixed axis turns by the fraction of its angle about that axis (Rodrigues'
+/// angle read back from the quaternion), and interpolating halfway to the midpoint equals
+/// interpolating a quarter of the way (a geodesic at constant speed). Covariances mix linearly.
+mod interpolation {
+    use super::*;
+    use brokenray::geometry::{Mat6, PoseCov};
+
+    fn with_cov(pose: Pose, scale: f64) -> PoseCov {
+        PoseCov {
+            pose,
+            cov: Mat6::identity() * scale,
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn ends_and_constant_speed(t0 in pose_strategy(), t1 in pose_strategy(), a in 0.0..1.0f64) {
+            prop_assume!(so3_log(&(t1.rotation * t0.rotation.inverse())).norm() < 3.0);
+            let (p0, p1) = (with_cov(t0, 1.0), with_cov(t1, 3.0));
+            let start = p0.interpolate(&p1, 0.0);
+            let end = p0.interpolate(&p1, 1.0);
+            prop_assert!(se3_log(&(start.pose * t0.inverse())).norm() < 1e-9);
+            prop_assert!(se3_log(&(end.pose * t1.inverse())).norm() < 1e-6);
+            let quarter = p0.interpolate(&p1, 0.25);
+            let half_of_half = p0.interpolate(&p0.interpolate(&p1, 0.5), 0.5);
+            prop_assert!(se3_log(&(quarter.pose * half_of_half.pose.inverse())).norm() < 1e-6);
+            let mixed = p0.interpolate(&p1, a).cov;
+            prop_assert!((mixed - Mat6::identity() * (1.0 + 2.0 * a)).norm() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn a_pure_rotation_turns_by_the_fraction_of_its_angle() {
+        let axis = Vec3::new(1.0, -2.0, 0.5).normalize();
+        let angle = 0.8;
+        let t0 = Pose::from_parts(Translation3::new(10.0, 20.0, 30.0), Rotation::identity());
+        let turn = Pose::from_parts(
+            Translation3::identity(),
+            Rotation::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle),
+        );
+        let t1 = turn * t0;
+        let mid = with_cov(t0, 1.0).interpolate(&with_cov(t1, 1.0), 0.3).pose;
+        let delta = mid * t0.inverse();
+        let q = delta.rotation.into_inner();
+        let turned = 2.0 * q.imag().norm().atan2(q.w);
+        assert!((turned - 0.3 * angle).abs() < 1e-12, "turned {turned}");
+        assert!((q.imag().normalize() - axis).norm() < 1e-12);
+        // The point on the axis through the origin: turning about it moves the origin's image
+        // on the same rotation, so the translation is R(0.3 angle) applied to t0's.
+        let expected = Rotation::from_axis_angle(&nalgebra::Unit::new_normalize(axis), 0.3 * angle)
+            * Vec3::new(10.0, 20.0, 30.0);
+        assert!((mid.translation.vector - expected).norm() < 1e-9);
+    }
+}
