@@ -1,0 +1,1023 @@
+//! Validation of the installation file: every problem found, each with its line.
+//!
+//! [`Validator`] walks the raw file ([`super::raw`]) section by section, turning each into its
+//! domain type (the core's [`crate::model`] types, or the deployment settings of
+//! [`super`]) and collecting a [`ConfigProblem`] for everything wrong, so that one run of
+//! `check-config` lists them all.
+
+use super::error::LineIndex;
+use super::raw::{self, RawFile, RawPose, RawSigma};
+use super::{
+    AuthSettings, ConfigProblem, Installation, NotifyLevel, NotifySettings, RerunSettings,
+    RetentionSettings, Scope, ServerSettings, TokenSpec, WebhookSpec,
+};
+use crate::alarms::AlarmThresholds;
+use crate::chain::{ChainError, Topology};
+use crate::filter::{BankSettings, FilterTuning, MotionModel};
+use crate::geometry::{
+    Pose, PoseCov, ReportedSigmas, Rotation, pose_from_parts, rotation_from_euler,
+    rotation_from_matrix, rotation_from_quaternion_wxyz, validate_finite,
+};
+use crate::model::{
+    Camera, LinkKind, LinkSpec, Marker, MeasuredLink, Model, PnpSettings, TargetSpec,
+};
+use crate::vision::CameraModel;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// Splits `<parent>_from_<child>` into its frames.
+fn split_link_name(name: &str) -> Option<(&str, &str)> {
+    let mut parts = name.split("_from_");
+    match (parts.next(), parts.next(), parts.next()) {
+        (Some(parent), Some(child), None) if !parent.is_empty() && !child.is_empty() => {
+            Some((parent, child))
+        }
+        _ => None,
+    }
+}
+
+/// True for a frame name made of letters, digits, `-` and `_`.
+fn is_valid_frame_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        && !name.contains("_from_")
+}
+
+pub(super) struct Validator {
+    pub(super) lines: LineIndex,
+    pub(super) problems: Vec<ConfigProblem>,
+}
+
+impl Validator {
+    fn problem(&mut self, offset: usize, message: String) {
+        let (line, _) = self.lines.locate(offset);
+        self.problems.push(ConfigProblem {
+            line: Some(line),
+            column: None,
+            message,
+        });
+    }
+
+    fn finite(&mut self, at: usize, what: &str, values: &[f64]) -> bool {
+        match validate_finite(what, values) {
+            Ok(()) => true,
+            Err(e) => {
+                self.problem(at, e.to_string());
+                false
+            }
+        }
+    }
+
+    fn positive(&mut self, at: usize, what: &str, value: f64) -> bool {
+        if value.is_finite() && value > 0.0 {
+            true
+        } else {
+            self.problem(at, format!("{what} must be a positive number, not {value}"));
+            false
+        }
+    }
+
+    fn pose(&mut self, at: usize, what: &str, raw: &RawPose) -> Option<Pose> {
+        let forms = [
+            raw.q_wxyz.is_some(),
+            raw.euler_deg.is_some(),
+            raw.r.is_some(),
+        ]
+        .iter()
+        .filter(|&&b| b)
+        .count();
+        if forms != 1 {
+            self.problem(
+                at,
+                format!(
+                    "{what} needs exactly one rotation: `q_wxyz`, `euler_deg` or `r` (found {forms})"
+                ),
+            );
+            return None;
+        }
+        let rotation: Result<Rotation, _> = if let Some(q) = raw.q_wxyz {
+            rotation_from_quaternion_wxyz(q)
+        } else if let Some(e) = raw.euler_deg {
+            rotation_from_euler(e.map(f64::to_radians))
+        } else if let Some(r) = raw.r {
+            rotation_from_matrix(r)
+        } else {
+            return None;
+        };
+        match rotation.and_then(|r| pose_from_parts(raw.t_mm, r)) {
+            Ok(p) => Some(p),
+            Err(e) => {
+                self.problem(at, format!("{what}: {e}"));
+                None
+            }
+        }
+    }
+
+    fn sigmas(&mut self, at: usize, what: &str, raw: &RawSigma) -> Option<ReportedSigmas> {
+        let rotation_arcsec = raw.rotation_arcsec.per_axis();
+        let translation_mm = raw.translation_mm.per_axis();
+        let mut ok = true;
+        for (name, values) in [
+            ("rotation_arcsec", rotation_arcsec),
+            ("translation_mm", translation_mm),
+        ] {
+            for v in values {
+                ok &= self.positive(at, &format!("{what}.{name}"), v);
+            }
+        }
+        ok.then_some(ReportedSigmas {
+            rotation_arcsec,
+            translation_mm,
+        })
+    }
+
+    pub(super) fn installation(&mut self, source: &str, raw: RawFile) -> Option<Installation> {
+        let server = self.server(&raw);
+        let rerun = self.rerun(&raw);
+        let cameras = self.cameras(&raw);
+        let markers = self.markers(&raw);
+        let (topology, links) = self.links(&raw);
+        let targets = self.targets(&raw, &topology);
+        let auth = self.auth(&raw);
+        let notify = self.notify(&raw);
+        let filter = self.bank_settings(&raw);
+        let retention = self.retention(&raw);
+        let pnp = self.pnp(&raw);
+        let mut frames_seen = std::collections::HashSet::new();
+        for c in &raw.cameras {
+            if !frames_seen.insert(c.get_ref().frame.clone()) {
+                self.problem(
+                    c.span().start,
+                    format!("duplicate camera on frame `{}`", c.get_ref().frame),
+                );
+            }
+        }
+        for m in &raw.markers {
+            if !frames_seen.insert(m.get_ref().frame.clone()) {
+                self.problem(
+                    m.span().start,
+                    format!(
+                        "frame `{}` already has a camera or marker; a frame is one rigid body's, a station joins two with a calibrated link",
+                        m.get_ref().frame
+                    ),
+                );
+            }
+        }
+        Some(Installation {
+            source: source.to_owned(),
+            server: server?,
+            rerun: rerun?,
+            model: Arc::new(Model {
+                cameras,
+                markers,
+                topology,
+                links,
+                targets,
+                filter: filter?,
+                pnp: pnp?,
+            }),
+            auth,
+            notify,
+            retention: retention?,
+        })
+    }
+
+    fn pnp(&mut self, raw: &RawFile) -> Option<PnpSettings> {
+        let empty = raw::RawPnp::default();
+        let (at, r) = match &raw.pnp {
+            Some(s) => (s.span().start, s.get_ref()),
+            None => (0, &empty),
+        };
+        let max_reprojection_rms_px = r.max_reprojection_rms_px.unwrap_or(1.0);
+        let inlier_threshold_px = r.inlier_threshold_px.unwrap_or(2.0);
+        let ok = self.positive(at, "pnp.max_reprojection_rms_px", max_reprojection_rms_px)
+            & self.positive(at, "pnp.inlier_threshold_px", inlier_threshold_px);
+        ok.then_some(PnpSettings {
+            max_reprojection_rms_px,
+            robust: r.robust.unwrap_or(false),
+            inlier_threshold_px,
+        })
+    }
+
+    fn retention(&mut self, raw: &RawFile) -> Option<RetentionSettings> {
+        let empty = raw::RawRetention::default();
+        let (at, r) = match &raw.retention {
+            Some(s) => (s.span().start, s.get_ref()),
+            None => (0, &empty),
+        };
+        let samples_days = r.samples_days.unwrap_or(90.0);
+        let results_days = r.results_days.unwrap_or(90.0);
+        let ok = self.positive(at, "retention.samples_days", samples_days)
+            & self.positive(at, "retention.results_days", results_days);
+        ok.then_some(RetentionSettings {
+            samples_days,
+            results_days,
+        })
+    }
+
+    fn probability(
+        &mut self,
+        at: usize,
+        what: &str,
+        value: Option<f64>,
+        default: f64,
+    ) -> Option<f64> {
+        match value {
+            None => Some(default),
+            Some(p) if p > 0.5 && p < 1.0 => Some(p),
+            Some(p) => {
+                self.problem(
+                    at,
+                    format!("{what} must be a probability between 0.5 and 1 (exclusive), not {p}"),
+                );
+                None
+            }
+        }
+    }
+
+    /// The `[filter]` section.
+    fn bank_settings(&mut self, raw: &RawFile) -> Option<BankSettings> {
+        let empty = raw::RawFilter::default();
+        let (at, f) = match &raw.filter {
+            Some(s) => (s.span().start, s.get_ref()),
+            None => (0, &empty),
+        };
+        let defaults = BankSettings::default();
+        let consistency = self.probability(
+            at,
+            "filter.consistency_probability",
+            f.consistency_probability,
+            defaults.consistency_probability,
+        );
+        let gate = self.probability(at, "filter.gate_probability", f.gate_probability, 0.999);
+        let stale = f
+            .stale_after_periods
+            .unwrap_or(defaults.stale_after_periods);
+        let stale_ok = self.positive(at, "filter.stale_after_periods", stale);
+        if f.reinit_after_outliers == Some(0) {
+            self.problem(at, "filter.reinit_after_outliers must be at least 1".into());
+        }
+        gate?;
+        (stale_ok && f.reinit_after_outliers != Some(0)).then_some(BankSettings {
+            stale_after_periods: stale,
+            consistency_probability: consistency?,
+            ..defaults
+        })
+    }
+
+    fn server(&mut self, raw: &RawFile) -> Option<ServerSettings> {
+        let listen = match &raw.server.listen {
+            None => SocketAddr::from(([127, 0, 0, 1], 7878)),
+            Some(s) => match s.get_ref().parse() {
+                Ok(a) => a,
+                Err(_) => {
+                    self.problem(
+                        s.span().start,
+                        format!(
+                            "server.listen `{}` is not an address like 127.0.0.1:7878",
+                            s.get_ref()
+                        ),
+                    );
+                    return None;
+                }
+            },
+        };
+        Some(ServerSettings {
+            listen,
+            database: PathBuf::from(raw.server.database.as_deref().unwrap_or("brokenray.db")),
+            max_body_bytes: raw
+                .server
+                .max_body_bytes
+                .unwrap_or(32 * 1024 * 1024)
+                .max(1024),
+            max_batch_samples: raw.server.max_batch_samples.unwrap_or(100_000).max(1),
+            events_max_hz: match raw.server.events_max_hz {
+                None => 10.0,
+                Some(hz) if hz.is_finite() && hz > 0.0 => hz,
+                Some(hz) => {
+                    self.problem(
+                        0,
+                        format!("server.events_max_hz must be a positive number, not {hz}"),
+                    );
+                    return None;
+                }
+            },
+            max_future_s: self.seconds("server.max_future_s", raw.server.max_future_s, 5.0)?,
+            clock_tolerance_s: self.seconds(
+                "server.clock_tolerance_s",
+                raw.server.clock_tolerance_s,
+                2.0,
+            )?,
+            allowed_hosts: raw.server.allowed_hosts.clone().unwrap_or_default(),
+            max_connections: raw.server.max_connections.unwrap_or(4096).max(16),
+            header_timeout_s: self.seconds(
+                "server.header_timeout_s",
+                raw.server.header_timeout_s,
+                10.0,
+            )?,
+            shutdown_grace_s: self.seconds(
+                "server.shutdown_grace_s",
+                raw.server.shutdown_grace_s,
+                10.0,
+            )?,
+            max_heavy_reads: raw.server.max_heavy_reads.unwrap_or(2).max(1),
+        })
+    }
+
+    /// A non-negative, finite number of seconds with a default.
+    fn seconds(&mut self, key: &str, value: Option<f64>, default: f64) -> Option<f64> {
+        match value {
+            None => Some(default),
+            Some(s) if (0.0..=1e6).contains(&s) => Some(s),
+            Some(s) => {
+                self.problem(
+                    0,
+                    format!("{key} must be a number of seconds from 0 to 1e6, not {s}"),
+                );
+                None
+            }
+        }
+    }
+
+    fn rerun(&mut self, raw: &RawFile) -> Option<RerunSettings> {
+        let r = &raw.rerun;
+        let (mut save, mut connect, mut serve) = (false, false, false);
+        let mut ok = true;
+        if let Some(m) = &r.mode {
+            let names: Vec<&str> = match m.get_ref() {
+                raw::RawModes::One(s) => vec![s.as_str()],
+                raw::RawModes::Several(v) => v.iter().map(String::as_str).collect(),
+            };
+            for name in &names {
+                match *name {
+                    "off" if names.len() == 1 => {}
+                    "save" => save = true,
+                    "connect" => connect = true,
+                    "serve" => serve = true,
+                    other => {
+                        self.problem(
+                            m.span().start,
+                            if other == "off" {
+                                "rerun.mode `off` cannot be combined with other modes".to_owned()
+                            } else {
+                                format!(
+                                    "rerun.mode `{other}` is not one of off, save, connect, serve"
+                                )
+                            },
+                        );
+                        ok = false;
+                    }
+                }
+            }
+        }
+        let mut positive = |v: &Option<toml::Spanned<f64>>, name: &str, default: f64| match v {
+            None => Some(default),
+            Some(x) if x.get_ref().is_finite() && *x.get_ref() > 0.0 => Some(*x.get_ref()),
+            Some(x) => {
+                self.problem(
+                    x.span().start,
+                    format!(
+                        "rerun.{name} must be a positive number, not {}",
+                        x.get_ref()
+                    ),
+                );
+                None
+            }
+        };
+        let memory_mb = positive(&r.serve_memory_limit_mb, "serve_memory_limit_mb", 256.0);
+        let rotate_hours = positive(&r.rotate_hours, "rotate_hours", 24.0);
+        let rotate_max_mb = positive(&r.rotate_max_mb, "rotate_max_mb", 1024.0);
+        let scene_hz = positive(&r.scene_hz, "scene_hz", 2.0);
+        let series_hz = positive(&r.series_hz, "series_hz", 10.0);
+        let queue_capacity = match &r.queue_capacity {
+            None => Some(4096),
+            Some(q) if (1..=10_000_000).contains(q.get_ref()) => usize::try_from(*q.get_ref()).ok(),
+            Some(q) => {
+                self.problem(
+                    q.span().start,
+                    format!(
+                        "rerun.queue_capacity must be between 1 and 10000000, not {}",
+                        q.get_ref()
+                    ),
+                );
+                None
+            }
+        };
+        let serve_listen = match &r.serve_listen {
+            None => Some(SocketAddr::from(([127, 0, 0, 1], 9876))),
+            Some(a) => match a.get_ref().parse::<SocketAddr>() {
+                Ok(addr) => Some(addr),
+                Err(e) => {
+                    self.problem(
+                        a.span().start,
+                        format!(
+                            "rerun.serve_listen `{}` is not an address such as 127.0.0.1:9876: {e}",
+                            a.get_ref()
+                        ),
+                    );
+                    None
+                }
+            },
+        };
+        if !ok {
+            return None;
+        }
+        Some(RerunSettings {
+            save,
+            connect,
+            serve,
+            recordings_dir: PathBuf::from(r.recordings_dir.as_deref().unwrap_or("recordings")),
+            url: r
+                .url
+                .clone()
+                .unwrap_or_else(|| "rerun+http://127.0.0.1:9876/proxy".to_owned()),
+            serve_listen: serve_listen?,
+            serve_memory_limit_bytes: (memory_mb? * 1e6) as u64,
+            rotate_after_s: rotate_hours? * 3600.0,
+            rotate_max_bytes: (rotate_max_mb? * 1e6) as u64,
+            queue_capacity: queue_capacity?,
+            scene_hz: scene_hz?,
+            series_hz: series_hz?,
+        })
+    }
+
+    fn cameras(&mut self, raw: &RawFile) -> Vec<Camera> {
+        let mut out = Vec::new();
+        for spanned in &raw.cameras {
+            let at = spanned.span().start;
+            let c = spanned.get_ref();
+            let what = format!("camera `{}`", c.frame);
+            let mut ok = self.frame_name(at, &c.frame);
+            if c.width == 0 || c.height == 0 {
+                self.problem(at, format!("{what}: width and height must be positive"));
+                ok = false;
+            }
+            ok &= self.positive(at, &format!("{what}: fx"), c.fx);
+            ok &= self.positive(at, &format!("{what}: fy"), c.fy);
+            ok &= self.finite(at, &format!("{what}: principal point"), &[c.cx, c.cy]);
+            ok &= self.finite(at, &format!("{what}: distortion"), &c.distortion);
+            ok &= self.positive(at, &format!("{what}: pixel_sigma"), c.pixel_sigma);
+            if ok {
+                out.push(Camera {
+                    frame: c.frame.clone(),
+                    intrinsics: CameraModel {
+                        fx_px: c.fx,
+                        fy_px: c.fy,
+                        cx_px: c.cx,
+                        cy_px: c.cy,
+                        distortion: c.distortion,
+                        width_px: c.width,
+                        height_px: c.height,
+                    },
+                    pixel_sigma_px: c.pixel_sigma,
+                });
+            }
+        }
+        out
+    }
+
+    fn markers(&mut self, raw: &RawFile) -> Vec<Marker> {
+        let mut out = Vec::new();
+        for spanned in &raw.markers {
+            let at = spanned.span().start;
+            let m = spanned.get_ref();
+            let what = format!("marker `{}`", m.frame);
+            let mut ok = self.frame_name(at, &m.frame);
+            if m.points_mm.len() < 4 {
+                self.problem(
+                    at,
+                    format!("{what} needs at least 4 points, has {}", m.points_mm.len()),
+                );
+                ok = false;
+            }
+            for (i, p) in m.points_mm.iter().enumerate() {
+                ok &= self.finite(at, &format!("{what}: points_mm[{i}]"), p);
+            }
+            let ids = match &m.ids {
+                Some(ids) if ids.len() != m.points_mm.len() => {
+                    self.problem(
+                        at,
+                        format!(
+                            "{what} has {} ids for {} points",
+                            ids.len(),
+                            m.points_mm.len()
+                        ),
+                    );
+                    ok = false;
+                    Vec::new()
+                }
+                Some(ids) => {
+                    let unique: std::collections::HashSet<_> = ids.iter().collect();
+                    if unique.len() != ids.len() {
+                        self.problem(at, format!("{what} has duplicate point ids"));
+                        ok = false;
+                    }
+                    ids.clone()
+                }
+                None => (0..m.points_mm.len() as u32).collect(),
+            };
+            if ok {
+                out.push(Marker {
+                    frame: m.frame.clone(),
+                    points_mm: m.points_mm.clone(),
+                    ids,
+                });
+            }
+        }
+        out
+    }
+
+    fn frame_name(&mut self, at: usize, name: &str) -> bool {
+        if is_valid_frame_name(name) {
+            true
+        } else {
+            self.problem(
+                at,
+                format!(
+                    "frame name `{name}` must be 1 to 64 letters, digits, `-` or `_`, and must not contain `_from_`"
+                ),
+            );
+            false
+        }
+    }
+
+    fn links(&mut self, raw: &RawFile) -> (Topology, Vec<LinkSpec>) {
+        let mut topology = Topology::new();
+        // Frames of cameras and markers exist even when no link touches them.
+        for c in &raw.cameras {
+            if is_valid_frame_name(&c.get_ref().frame) {
+                topology.add_frame(&c.get_ref().frame);
+            }
+        }
+        for m in &raw.markers {
+            if is_valid_frame_name(&m.get_ref().frame) {
+                topology.add_frame(&m.get_ref().frame);
+            }
+        }
+        let mut specs = Vec::new();
+        let empty_filter = raw::RawFilter::default();
+        for spanned in &raw.links {
+            let at = spanned.span().start;
+            let l = spanned.get_ref();
+            let Some((parent, child)) = split_link_name(&l.name) else {
+                self.problem(
+                    at,
+                    format!(
+                        "link name `{}` is not of the form <parent>_from_<child>",
+                        l.name
+                    ),
+                );
+                continue;
+            };
+            let mut ok = self.frame_name(at, parent) & self.frame_name(at, child);
+            for (key, given, expected) in
+                [("parent", &l.parent, parent), ("child", &l.child, child)]
+            {
+                if let Some(given) = given
+                    && given != expected
+                {
+                    self.problem(
+                            at,
+                            format!(
+                                "link `{}` does not match its frames: its name says {key} `{expected}` but {key} = `{given}`",
+                                l.name
+                            ),
+                        );
+                    ok = false;
+                }
+            }
+            let kind = match l.kind.as_str() {
+                "calibrated" => self.calibrated(at, l),
+                "measured" => self.measured(
+                    at,
+                    l,
+                    raw.filter.as_ref().map_or(&empty_filter, |f| f.get_ref()),
+                ),
+                other => {
+                    self.problem(
+                        at,
+                        format!(
+                            "link `{}`: kind `{other}` is not one of calibrated, measured",
+                            l.name
+                        ),
+                    );
+                    None
+                }
+            };
+            let (Some(kind), true) = (kind, ok) else {
+                continue;
+            };
+            match topology.add_link(&l.name, parent, child) {
+                Ok(id) => specs.push(LinkSpec {
+                    id,
+                    name: l.name.clone(),
+                    kind,
+                }),
+                Err(e) => self.problem(at, e.to_string()),
+            }
+        }
+        (topology, specs)
+    }
+
+    fn calibrated(&mut self, at: usize, l: &raw::RawLink) -> Option<LinkKind> {
+        let what = format!("calibrated link `{}`", l.name);
+        for (key, present) in [
+            ("model", l.model.is_some()),
+            ("expected_rate_hz", l.expected_rate_hz.is_some()),
+            ("nominal", l.nominal.is_some()),
+            ("random_walk", l.random_walk.is_some()),
+            ("acceleration_noise", l.acceleration_noise.is_some()),
+            ("oscillation", l.oscillation.is_some()),
+        ] {
+            if present {
+                self.problem(
+                    at,
+                    format!("{what}: `{key}` applies to measured links only"),
+                );
+            }
+        }
+        let Some(raw_pose) = &l.pose else {
+            self.problem(at, format!("{what} needs `pose`"));
+            return None;
+        };
+        let Some(raw_sigma) = &l.sigma else {
+            self.problem(
+                at,
+                format!("{what} needs `sigma` (its calibration uncertainty; a calibration is never exact)"),
+            );
+            return None;
+        };
+        let pose = self.pose(at, &format!("{what}: pose"), raw_pose)?;
+        let sigmas = self.sigmas(at, &format!("{what}: sigma"), raw_sigma)?;
+        Some(LinkKind::Calibrated {
+            parent_from_child: PoseCov::from_reported_sigmas(pose, &sigmas),
+        })
+    }
+
+    fn tuning(
+        &mut self,
+        at: usize,
+        what: &str,
+        model: MotionModel,
+        l: &raw::RawLink,
+        raw_filter: &raw::RawFilter,
+    ) -> Option<FilterTuning> {
+        let mut t = FilterTuning::default_for(model);
+        let mut ok = true;
+        if let Some(rw) = l.random_walk {
+            if model == MotionModel::ConstantVelocity {
+                self.problem(
+                    at,
+                    format!("{what}: `random_walk` applies to the static and oscillatory models"),
+                );
+                ok = false;
+            }
+            ok &= self.positive(
+                at,
+                &format!("{what}: random_walk.rotation_arcsec_per_sqrt_s"),
+                rw.rotation_arcsec_per_sqrt_s,
+            );
+            ok &= self.positive(
+                at,
+                &format!("{what}: random_walk.translation_mm_per_sqrt_s"),
+                rw.translation_mm_per_sqrt_s,
+            );
+            t.random_walk_rotation_arcsec_per_sqrt_s = rw.rotation_arcsec_per_sqrt_s;
+            t.random_walk_translation_mm_per_sqrt_s = rw.translation_mm_per_sqrt_s;
+        }
+        if let Some(a) = l.acceleration_noise {
+            if model != MotionModel::ConstantVelocity {
+                self.problem(
+                    at,
+                    format!("{what}: `acceleration_noise` applies to the constant_velocity model"),
+                );
+                ok = false;
+            }
+            ok &= self.positive(
+                at,
+                &format!("{what}: acceleration_noise.rotation_arcsec_per_s_sqrt_s"),
+                a.rotation_arcsec_per_s_sqrt_s,
+            );
+            ok &= self.positive(
+                at,
+                &format!("{what}: acceleration_noise.translation_mm_per_s_sqrt_s"),
+                a.translation_mm_per_s_sqrt_s,
+            );
+            t.acceleration_rotation_arcsec_per_s_sqrt_s = a.rotation_arcsec_per_s_sqrt_s;
+            t.acceleration_translation_mm_per_s_sqrt_s = a.translation_mm_per_s_sqrt_s;
+        }
+        if let Some(o) = l.oscillation {
+            if model != MotionModel::Oscillatory {
+                self.problem(
+                    at,
+                    format!("{what}: `oscillation` applies to the oscillatory model"),
+                );
+                ok = false;
+            }
+            ok &= self.positive(at, &format!("{what}: oscillation.period_s"), o.period_s);
+            ok &= self.positive(
+                at,
+                &format!("{what}: oscillation.correlation_time_s"),
+                o.correlation_time_s,
+            );
+            for v in o.rotation_arcsec.per_axis() {
+                ok &= self.positive(at, &format!("{what}: oscillation.rotation_arcsec"), v);
+            }
+            for v in o.translation_mm.per_axis() {
+                ok &= self.positive(at, &format!("{what}: oscillation.translation_mm"), v);
+            }
+            t.oscillation = crate::filter::OscillationTuning {
+                period_s: o.period_s,
+                correlation_time_s: o.correlation_time_s,
+                rotation_arcsec: o.rotation_arcsec.per_axis(),
+                translation_mm: o.translation_mm.per_axis(),
+            };
+        }
+        if let Some(g) = raw_filter.gate_probability {
+            t.gate_probability = g;
+        }
+        if let Some(n) = raw_filter.reinit_after_outliers {
+            t.reinit_after_outliers = n.max(1);
+        }
+        ok.then_some(t)
+    }
+
+    fn measured(
+        &mut self,
+        at: usize,
+        l: &raw::RawLink,
+        raw_filter: &raw::RawFilter,
+    ) -> Option<LinkKind> {
+        let what = format!("measured link `{}`", l.name);
+        if l.pose.is_some() {
+            self.problem(
+                at,
+                format!("{what}: `pose` is for calibrated links; a measured link's designed pose is `nominal`"),
+            );
+        }
+        let model = match l.model.as_deref().unwrap_or("static") {
+            "static" => MotionModel::Static,
+            "constant_velocity" => MotionModel::ConstantVelocity,
+            "oscillatory" => MotionModel::Oscillatory,
+            other => {
+                self.problem(
+                    at,
+                    format!("{what}: model `{other}` is not one of static, constant_velocity, oscillatory"),
+                );
+                return None;
+            }
+        };
+        let Some(raw_sigma) = &l.sigma else {
+            self.problem(
+                at,
+                format!("{what} needs `sigma` (the default measurement noise)"),
+            );
+            return None;
+        };
+        let sigmas = self.sigmas(at, &format!("{what}: sigma"), raw_sigma)?;
+        let Some(rate) = l.expected_rate_hz else {
+            self.problem(at, format!("{what} needs `expected_rate_hz`"));
+            return None;
+        };
+        if !self.positive(at, &format!("{what}: expected_rate_hz"), rate) {
+            return None;
+        }
+        let nominal = match &l.nominal {
+            Some(p) => Some(self.pose(at, &format!("{what}: nominal"), p)?),
+            None => None,
+        };
+        let tuning = self.tuning(at, &what, model, l, raw_filter)?;
+        Some(LinkKind::Measured(MeasuredLink {
+            tuning,
+            default_sigmas: sigmas,
+            expected_rate_hz: rate,
+            nominal,
+        }))
+    }
+
+    fn targets(&mut self, raw: &RawFile, topology: &Topology) -> Vec<TargetSpec> {
+        let mut out: Vec<TargetSpec> = Vec::new();
+        if raw.targets.is_empty() {
+            // An empty or mistaken file would otherwise run a service that measures nothing.
+            self.problems.push(ConfigProblem {
+                line: None,
+                column: None,
+                message: "the installation has no [[targets]]: nothing would be measured \
+                          (see `brokenray default-config` for a complete file)"
+                    .to_owned(),
+            });
+        }
+        for spanned in &raw.targets {
+            let at = spanned.span().start;
+            let t = spanned.get_ref();
+            if out.iter().any(|o| o.name == t.name) {
+                self.problem(at, format!("duplicate target `{}`", t.name));
+                continue;
+            }
+            let alarms = self.alarms(at, &t.name, &t.alarms);
+            let resolution = match topology.resolve(&t.base, &t.name) {
+                Ok(r) => r,
+                Err(ChainError::UnknownFrame(f)) => {
+                    self.problem(
+                        at,
+                        format!("target `{}`: frame `{f}` is not introduced by any link, camera or marker", t.name),
+                    );
+                    continue;
+                }
+                Err(e) => {
+                    self.problem(at, e.to_string());
+                    continue;
+                }
+            };
+            out.push(TargetSpec {
+                name: t.name.clone(),
+                frame: resolution.target,
+                base: resolution.base,
+                resolution,
+                alarms,
+            });
+        }
+        out
+    }
+
+    fn alarms(&mut self, at: usize, target: &str, a: &raw::RawAlarms) -> AlarmThresholds {
+        let what = format!("target `{target}` alarms");
+        for (name, v) in [
+            ("warn_rotation_arcsec", a.warn_rotation_arcsec),
+            ("alarm_rotation_arcsec", a.alarm_rotation_arcsec),
+            ("warn_translation_mm", a.warn_translation_mm),
+            ("alarm_translation_mm", a.alarm_translation_mm),
+        ] {
+            if let Some(v) = v {
+                self.positive(at, &format!("{what}: {name}"), v);
+            }
+        }
+        for (kind, warn, alarm) in [
+            ("rotation", a.warn_rotation_arcsec, a.alarm_rotation_arcsec),
+            ("translation", a.warn_translation_mm, a.alarm_translation_mm),
+        ] {
+            if let (Some(w), Some(al)) = (warn, alarm)
+                && w >= al
+            {
+                self.problem(
+                    at,
+                    format!(
+                        "{what}: the {kind} warn level ({w}) must be below the alarm level ({al})"
+                    ),
+                );
+            }
+        }
+        let hysteresis = a.hysteresis.unwrap_or(0.1);
+        if !(0.0..0.5).contains(&hysteresis) {
+            self.problem(
+                at,
+                format!("{what}: hysteresis must be a fraction from 0 up to 0.5, not {hysteresis}"),
+            );
+        }
+        let dwell_s = a.dwell_s.unwrap_or(1.0);
+        if !(dwell_s.is_finite() && dwell_s >= 0.0) {
+            self.problem(
+                at,
+                format!("{what}: dwell_s must be zero or more seconds, not {dwell_s}"),
+            );
+        }
+        for (name, v) in [
+            ("rate_rotation_arcsec_per_s", a.rate_rotation_arcsec_per_s),
+            ("rate_translation_mm_per_s", a.rate_translation_mm_per_s),
+        ] {
+            if let Some(v) = v {
+                self.positive(at, &format!("{what}: {name}"), v);
+            }
+        }
+        AlarmThresholds {
+            warn_rotation_arcsec: a.warn_rotation_arcsec,
+            alarm_rotation_arcsec: a.alarm_rotation_arcsec,
+            warn_translation_mm: a.warn_translation_mm,
+            alarm_translation_mm: a.alarm_translation_mm,
+            hysteresis,
+            dwell_s,
+            rate_rotation_arcsec_per_s: a.rate_rotation_arcsec_per_s,
+            rate_translation_mm_per_s: a.rate_translation_mm_per_s,
+        }
+    }
+
+    fn notify(&mut self, raw: &RawFile) -> NotifySettings {
+        let mut webhooks = Vec::new();
+        for (i, spanned) in raw.notify.webhooks.iter().enumerate() {
+            let at = spanned.span().start;
+            let w = spanned.get_ref();
+            let what = format!("notify.webhooks[{i}]");
+            let mut ok = true;
+            let scheme_ok = ["http://", "https://"]
+                .iter()
+                .any(|p| w.url.len() > p.len() && w.url[..p.len()].eq_ignore_ascii_case(p));
+            if !scheme_ok || w.url.chars().any(char::is_whitespace) {
+                self.problem(
+                    at,
+                    format!(
+                        "{what}.url must be an http:// or https:// URL, not `{}`",
+                        w.url
+                    ),
+                );
+                ok = false;
+            }
+            if w.secret.is_empty() {
+                self.problem(
+                    at,
+                    format!("{what}.secret is empty: the receiver checks the signature with it"),
+                );
+                ok = false;
+            }
+            let min_level = match w.min_level.as_deref() {
+                None | Some("warn") => NotifyLevel::Warn,
+                Some("alarm") => NotifyLevel::Alarm,
+                Some(other) => {
+                    self.problem(
+                        at,
+                        format!("{what}.min_level `{other}` is not one of warn, alarm"),
+                    );
+                    ok = false;
+                    NotifyLevel::Warn
+                }
+            };
+            let timeout_s = w.timeout_s.unwrap_or(10.0);
+            ok &= self.positive(at, &format!("{what}.timeout_s"), timeout_s);
+            let max_attempts = w.max_attempts.unwrap_or(8);
+            if !(1..=100).contains(&max_attempts) {
+                self.problem(
+                    at,
+                    format!("{what}.max_attempts must be from 1 to 100, not {max_attempts}"),
+                );
+                ok = false;
+            }
+            if ok {
+                webhooks.push(WebhookSpec {
+                    url: w.url.clone(),
+                    secret: w.secret.clone(),
+                    min_level,
+                    timeout_s,
+                    max_attempts,
+                });
+            }
+        }
+        NotifySettings { webhooks }
+    }
+
+    fn auth(&mut self, raw: &RawFile) -> AuthSettings {
+        let mut tokens: Vec<TokenSpec> = Vec::new();
+        for spanned in &raw.auth.tokens {
+            let at = spanned.span().start;
+            let t = spanned.get_ref();
+            let hex = t.sha256.to_ascii_lowercase();
+            if hex.len() != 64 || !hex.chars().all(|c| c.is_ascii_hexdigit()) {
+                self.problem(
+                    at,
+                    format!("token `{}`: sha256 must be 64 hexadecimal digits", t.name),
+                );
+                continue;
+            }
+            if tokens.iter().any(|o| o.sha256_hex == hex) {
+                self.problem(
+                    at,
+                    format!("token `{}`: the same sha256 is listed twice", t.name),
+                );
+                continue;
+            }
+            let mut scopes = Vec::new();
+            for s in &t.scopes {
+                match s.as_str() {
+                    "read" => scopes.push(Scope::Read),
+                    "ingest" => scopes.push(Scope::Ingest),
+                    "admin" => scopes.push(Scope::Admin),
+                    other => self.problem(
+                        at,
+                        format!(
+                            "token `{}`: scope `{other}` is not one of read, ingest, admin",
+                            t.name
+                        ),
+                    ),
+                }
+            }
+            if t.scopes.is_empty() {
+                self.problem(
+                    at,
+                    format!(
+                        "token `{}`: no scopes; give at least one of read, ingest, admin",
+                        t.name
+                    ),
+                );
+                continue;
+            }
+            tokens.push(TokenSpec {
+                name: t.name.clone(),
+                sha256_hex: hex,
+                scopes,
+            });
+        }
+        AuthSettings { tokens }
+    }
+}
