@@ -1,0 +1,203 @@
+//! The commands that run on an async runtime: the service, the demo, the simulator's feed and
+//! replays into a Rerun recording.
+
+use super::{progress_bar, runtime};
+use crate::clock::wall_now_ns as now_ns;
+use crate::config::Installation;
+use anyhow::Context as _;
+
+/// `brokenray replay`: checks the arguments, then writes the recording with a progress bar
+/// (on standard error).
+pub(super) fn replay(
+    installation: Installation,
+    from: &str,
+    to: &str,
+    target: Option<&str>,
+    out_file: &std::path::Path,
+) -> anyhow::Result<crate::viz::replay::ReplaySummary> {
+    let time = |name: &str, text: &str| {
+        crate::clock::parse_query_time(text).map_err(|e| anyhow::anyhow!("--{name}: {e}"))
+    };
+    let (from_ns, to_ns) = (time("from", from)?, time("to", to)?);
+    anyhow::ensure!(from_ns <= to_ns, "--to is before --from");
+    let targets = match target {
+        None => Vec::new(),
+        Some(name) => vec![
+            installation
+                .model
+                .targets
+                .iter()
+                .position(|t| t.name == name)
+                .ok_or_else(|| anyhow::anyhow!("--target: unknown target `{name}`"))?,
+        ],
+    };
+    anyhow::ensure!(
+        !out_file.exists(),
+        "{} already exists; choose another --out",
+        out_file.display()
+    );
+    let database = installation.server.database.clone();
+    anyhow::ensure!(
+        database.exists(),
+        "no database at {}: nothing was stored yet (see `server.database`)",
+        database.display()
+    );
+    let installation = std::sync::Arc::new(installation);
+    let runtime = runtime(false)?;
+    runtime.block_on(async {
+        let (store, write) = crate::store::open(&installation, now_ns())
+            .await
+            .with_context(|| format!("cannot open {}", database.display()))?;
+        drop(write);
+        let bar = indicatif::ProgressBar::new(0).with_style(
+            indicatif::ProgressStyle::with_template(
+                "{msg} [{bar:40}] {pos}/{len} rows ({eta} left)",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        bar.set_message("replaying");
+        let summary = crate::viz::replay::replay(
+            &installation,
+            &store,
+            &targets,
+            from_ns,
+            to_ns,
+            out_file,
+            &mut |done, total| {
+                bar.set_length(total);
+                bar.set_position(done);
+            },
+        )
+        .await;
+        bar.finish_and_clear();
+        store.close().await;
+        summary.with_context(|| format!("replay to {} failed", out_file.display()))
+    })
+}
+
+/// `brokenray simulate`.
+pub(super) async fn simulate(
+    installation: &Installation,
+    settings: crate::sim::SimSettings,
+    sink: crate::feed::Sink,
+    truth: Option<std::io::BufWriter<std::fs::File>>,
+    feed: crate::feed::FeedSettings,
+) -> anyhow::Result<crate::feed::FeedSummary> {
+    let mut sim = crate::sim::Simulator::new(&installation.model, settings)?;
+    let stop = Box::pin(async {
+        let _ = tokio::signal::ctrl_c().await;
+    });
+    crate::feed::feed(&mut sim, sink, truth, feed, stop, async |_, _| Ok(())).await
+}
+
+/// `brokenray demo`: the service and the simulator in one process, talking HTTP.
+pub(super) async fn demo(
+    installation: Installation,
+    settings: crate::sim::SimSettings,
+    out: &mut impl std::io::Write,
+) -> anyhow::Result<()> {
+    let targets: Vec<String> = installation
+        .model
+        .targets
+        .iter()
+        .map(|t| t.name.clone())
+        .collect();
+    let recordings = installation.rerun.recordings_dir.clone();
+    let database = installation.server.database.clone();
+    let mut sim = crate::sim::Simulator::new(&installation.model, settings)?;
+    let app = crate::api::App::build(installation).await?;
+    let addr = app.local_addr()?;
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let mut server_stop = stop_rx.clone();
+    let server = tokio::spawn(app.run_until(async move {
+        let _ = server_stop.wait_for(|s| *s).await;
+    }));
+    writeln!(
+        out,
+        "brokenray demo: dashboard http://{addr}/\n  API http://{addr}/api/v1 (described at /api/v1/openapi.json)\n  database {}, Rerun recordings in {}/\n  scenario {:?} at {} Hz; the reference is set after 5 s; Ctrl-C stops",
+        database.display(),
+        recordings.display(),
+        settings.scenario,
+        settings.rate_hz
+    )?;
+    out.flush()?;
+    let client = crate::feed::Client::new(&format!("http://{addr}"), None)?;
+    let groups = settings
+        .duration_s
+        .map(|d| (d * settings.rate_hz).round() as u64);
+    let mut feed_stop = stop_rx.clone();
+    let stop = Box::pin(async move {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = feed_stop.wait_for(|s| *s) => {}
+        }
+    });
+    let reference_at = settings.start_ns + 5_000_000_000;
+    let mut reference_set = false;
+    let result = crate::feed::feed(
+        &mut sim,
+        crate::feed::Sink::Http(client),
+        None,
+        crate::feed::FeedSettings {
+            rate_hz: settings.rate_hz,
+            progress: progress_bar(groups),
+            emit: crate::feed::Emit::Observations,
+            groups,
+            real_time: true,
+            groups_per_request: 1,
+        },
+        stop,
+        async |group, sink| {
+            if !reference_set && group.time_ns >= reference_at {
+                if let crate::feed::Sink::Http(c) = sink {
+                    for t in &targets {
+                        let body = serde_json::json!({
+                            "from": crate::clock::format_ns(settings.start_ns + 1_000_000_000),
+                            "to": crate::clock::format_ns(group.time_ns),
+                        });
+                        c.post(&format!("/api/v1/targets/{t}/reference"), &body)
+                            .await?;
+                    }
+                }
+                reference_set = true;
+            }
+            Ok(())
+        },
+    )
+    .await;
+    let _ = stop_tx.send(true);
+    server.await.context("the server task failed")??;
+    let summary = result?;
+    writeln!(
+        out,
+        "demo stopped after {} groups ({} observations, {} refused); every acknowledged write is on disk",
+        summary.groups, summary.items, summary.refused
+    )?;
+    Ok(())
+}
+
+pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
+    let source = installation.source.clone();
+    let database = installation.server.database.clone();
+    let targets: Vec<String> = installation
+        .model
+        .targets
+        .iter()
+        .map(|t| t.name.clone())
+        .collect();
+    let n_links = installation.model.links.len();
+    let app = crate::api::App::build(installation).await?;
+    let addr = app.local_addr()?;
+    tracing::info!(
+        listen = %addr,
+        database = %database.display(),
+        installation = %source,
+        links = n_links,
+        targets = ?targets,
+        "brokenray serving on http://{addr}/api/v1, dashboard http://{addr}/"
+    );
+    app.run_until(crate::api::shutdown_signal()).await?;
+    tracing::info!("stopped: every acknowledged write is on disk");
+    Ok(())
+}
