@@ -1,25 +1,26 @@
-//! The HTTP API (`/api/v1`, the README's "HTTP API"): routes, request and response bodies,
+//! The HTTP API (`/api/v1`, `docs/interface.md`, "HTTP API"): routes, request and response bodies,
 //! errors, authentication, and the server's start and graceful stop.
 //!
 //! Handlers are thin: read the request, convert it to domain types ([`dto`]), call the
 //! [`crate::service`], convert the answer back. Every error is one [`ApiError`] with the body
 //! `{"error": {"code", "message", "details": [{"index", "field", "message"}]}}`.
 
-pub mod alarms;
-pub mod auth;
-pub mod dashboard;
-pub mod dto;
-pub mod error;
-pub mod events;
-pub mod ingest;
-pub mod jsonpath;
-pub mod links;
-pub mod metrics;
-pub mod server;
-pub mod targets;
-pub mod vision;
-pub mod webhooks;
+mod alarms;
+pub(crate) mod auth;
+mod dashboard;
+pub(crate) mod dto;
+mod error;
+mod events;
+mod ingest;
+mod jsonpath;
+mod links;
+mod metrics;
+mod server;
+mod targets;
+pub(crate) mod vision;
+mod webhooks;
 
+pub use auth::sha256_hex;
 pub use error::{ApiError, ErrorDetail};
 
 use crate::config::Installation;

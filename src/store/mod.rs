@@ -12,7 +12,7 @@
 
 mod codec;
 mod read;
-pub mod rollup;
+pub(crate) mod rollup;
 mod write;
 
 /// The statements of one write transaction.

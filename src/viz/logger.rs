@@ -176,15 +176,6 @@ impl Logger {
         Ok(Self::with_streams(inst, vec![rec], None, None, counters))
     }
 
-    /// Over streams made elsewhere (tests use a memory sink).
-    pub fn over(
-        inst: &Arc<Installation>,
-        streams: Vec<RecordingStream>,
-        counters: Arc<VizCounters>,
-    ) -> Self {
-        Self::with_streams(inst, streams, None, None, counters)
-    }
-
     fn with_streams(
         inst: &Arc<Installation>,
         streams: Vec<RecordingStream>,
@@ -585,11 +576,6 @@ impl Logger {
                 rotation.opened = Instant::now();
             }
         }
-    }
-
-    /// The file currently written, if any.
-    pub fn current_file(&self) -> Option<&Path> {
-        self.file.as_ref().map(|(_, r)| r.current.as_path())
     }
 
     /// Writes out what is buffered and closes the streams. A remote viewer gets a bounded

@@ -11,9 +11,9 @@
 //! The same [`logger::Logger`] writes the recordings `brokenray replay` rebuilds from the
 //! stored history ([`replay`]).
 
-pub mod blueprint;
-pub mod logger;
-pub mod replay;
+mod blueprint;
+mod logger;
+pub(crate) mod replay;
 
 use crate::alarms::Transition;
 use crate::config::{Installation, RerunSettings};

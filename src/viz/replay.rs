@@ -41,9 +41,6 @@ pub enum ReplayError {
     /// The recording could not be written.
     #[error(transparent)]
     Viz(#[from] super::VizError),
-    /// The target is not in the installation.
-    #[error("unknown target `{0}`")]
-    UnknownTarget(String),
 }
 
 /// Writes the period `[from_ns, to_ns]` of `targets` (indices; all when empty) to `out`.
