@@ -1,4 +1,4 @@
-//! References, deformation and correction (the README's "HTTP API": compensation and references).
+//! References, deformation and correction (`docs/interface.md`, "HTTP API": compensation and references).
 //!
 //! A target has a reference pose `G0_from_B` (its zero reading): set explicitly, or the mean of
 //! the filtered poses over a window (chordal L2 mean of the rotations, arithmetic mean of the

@@ -1,4 +1,4 @@
-//! The statistics of the paper's Table 4 and 5 (README, "HTTP API": `/stats`).
+//! The statistics of the paper's Table 4 and 5 (`docs/interface.md`, "HTTP API": `/stats`).
 //!
 //! Per component of the Euler angles (degrees) and of the translation (mm) of `G_from_B`:
 //! count, min, max, mean and rms, where rms is the **population standard deviation**

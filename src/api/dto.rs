@@ -1,5 +1,5 @@
 //! Request and response bodies, and their conversion to and from domain types. Only the API
-//! knows these shapes (README, "HTTP API" and "Conventions"); field names carry their units.
+//! knows these shapes (`docs/interface.md`, "HTTP API" and "Conventions"); field names carry their units.
 
 use super::error::{ApiError, ErrorDetail};
 use crate::geometry::{

@@ -3,7 +3,7 @@
 //! Frames (B, C1, C2, M, C3, G, ...) are the nodes; links `parent_from_child` are the edges.
 //! A target is resolved from its base by walking links forwards (`parent_from_child` takes us
 //! from the child frame to the parent) or inverted. Composing the steps of a path gives
-//! `target_from_base` with its covariance (the README's "Conventions" and "Filtering"). Where several
+//! `target_from_base` with its covariance (`docs/interface.md`, "Conventions" and "Filtering"). Where several
 //! link-disjoint paths reach a target, their estimates are independent and are fused by
 //! information weighting, with a chi-square statistic of their disagreement.
 

@@ -3,7 +3,7 @@
 //! One file describes one installation: its measurement model (frames, cameras, markers,
 //! links, targets, filter and PnP settings: [`crate::model::Model`], all the core sees) and the
 //! deployment settings only the adapters read (server, Rerun, auth, notifications, retention;
-//! README, "Configuration"). Without a file the built-in
+//! `docs/interface.md`, "Configuration"). Without a file the built-in
 //! default describes the paper's laboratory setup (base B, station C1-C2, station M-C3,
 //! target G; about 3 m per hop), see [`default_installation`].
 //!

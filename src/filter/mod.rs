@@ -1,7 +1,7 @@
 //! Per-link error-state Kalman filters on SE(3) (the bank that evaluates targets from them is
 //! [`crate::bank`]).
 //!
-//! Each measured link has its own filter (the README's "Filtering"), because each link has its own
+//! Each measured link has its own filter (`docs/interface.md`, "Filtering"), because each link has its own
 //! camera, rate and noise. The state is the link pose on SE(3) (and, for the dynamic models,
 //! rates); the error state is a left perturbation as everywhere in the core:
 //!

@@ -1,6 +1,6 @@
 //! Geometry core: rigid transforms on SE(3), their Lie-group maps, uncertainty and averaging.
 //!
-//! Conventions (the project's contract, stated for users in the README's "Conventions"):
+//! Conventions (the project's contract, stated for users in `docs/interface.md`, "Conventions"):
 //!
 //! * A [`Pose`] named `a_from_b` maps coordinates in frame b to frame a: `p_a = R p_b + t`.
 //!   Composition reads right to left, `a_from_c = a_from_b * b_from_c`.

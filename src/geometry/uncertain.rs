@@ -1,7 +1,7 @@
 //! Poses with uncertainty: composition, inversion and the sigmas users see.
 //!
 //! A [`PoseCov`] is a mean pose with the 6x6 covariance of a left perturbation,
-//! `T = Exp(xi) * T_mean`, `xi = [rho (mm); phi (rad)]` (the README's "Conventions"):
+//! `T = Exp(xi) * T_mean`, `xi = [rho (mm); phi (rad)]` (`docs/interface.md`, "Conventions"):
 //!
 //! * compose independent `T1 * T2`: `Sigma = Sigma1 + Ad(T1) Sigma2 Ad(T1)^T`;
 //! * invert: `Sigma_inv = Ad(T^-1) Sigma Ad(T^-1)^T`.

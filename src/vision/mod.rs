@@ -1,5 +1,5 @@
 //! The measurement pipeline's geometry: the camera model, pose estimation (PnP) and station
-//! calibration (hand-eye, `AX = XB`); the README's "HTTP API" describes both endpoints.
+//! calibration (hand-eye, `AX = XB`); `docs/interface.md`, "HTTP API" describes both endpoints.
 //!
 //! * [`CameraModel`]: pinhole with Brown-Conrady distortion (OpenCV's `k1 k2 p1 p2 k3`);
 //!   projection with its Jacobian, undistortion by Newton's method with a convergence check.

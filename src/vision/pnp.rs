@@ -6,7 +6,7 @@
 //!    full distortion model, perturbing the pose about the marker points' centroid; keep the best.
 //! 4. Check: every point in front of the camera, the RMS under the limit, a well-conditioned
 //!    information matrix. The covariance is `(J^T J)^-1 sigma_px^2`, of the left perturbation
-//!    `[rho (mm); phi (rad)]` (the README's "Conventions"), so it feeds the filter as is.
+//!    `[rho (mm); phi (rad)]` (`docs/interface.md`, "Conventions"), so it feeds the filter as is.
 //!
 //! In robust mode an observation that fails the RMS check is solved again by RANSAC over
 //! four-point subsets (a fixed pseudo-random sequence: the same input gives the same answer),

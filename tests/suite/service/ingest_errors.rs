@@ -201,7 +201,7 @@ async fn every_kind_of_bad_input_is_refused_with_its_item_and_field_and_nothing_
         )
         .await;
     }
-    // Every kind of invalid sample the README's "HTTP API" lists.
+    // Every kind of invalid sample `docs/interface.md`, "HTTP API" lists.
     let cases: [(&str, &str); 11] = [
         (
             r#"{"link": "C1_from_B", "time": "2026-11-21T10:00:01Z", "pose": {"t_mm": [0,0,0], "q_wxyz": [1,0,0,0], "euler_deg": [0, 0, 1]}}"#,
