@@ -32,10 +32,37 @@ macro_rules! asset {
     };
 }
 
-/// The page and what it loads: (name under `/assets/`, file of `web/`, content type).
+/// The page and what it loads: (name under `/assets/`, file of `web/`, content type). The
+/// script is ES modules (`js/app.js` imports the others by relative path, so all are served
+/// side by side under `/assets/`).
 const ASSETS: &[Asset] = &[
     asset!("index.html", "index.html", "text/html; charset=utf-8"),
-    asset!("app.js", "app.js", "text/javascript; charset=utf-8"),
+    asset!("app.js", "js/app.js", "text/javascript; charset=utf-8"),
+    asset!("util.js", "js/util.js", "text/javascript; charset=utf-8"),
+    asset!("api.js", "js/api.js", "text/javascript; charset=utf-8"),
+    asset!("cards.js", "js/cards.js", "text/javascript; charset=utf-8"),
+    asset!(
+        "events.js",
+        "js/events.js",
+        "text/javascript; charset=utf-8"
+    ),
+    asset!(
+        "history.js",
+        "js/history.js",
+        "text/javascript; charset=utf-8"
+    ),
+    asset!(
+        "reference.js",
+        "js/reference.js",
+        "text/javascript; charset=utf-8"
+    ),
+    asset!(
+        "alarms.js",
+        "js/alarms.js",
+        "text/javascript; charset=utf-8"
+    ),
+    asset!("chain.js", "js/chain.js", "text/javascript; charset=utf-8"),
+    asset!("links.js", "js/links.js", "text/javascript; charset=utf-8"),
     asset!("style.css", "style.css", "text/css; charset=utf-8"),
     asset!(
         "uPlot.iife.min.js",
@@ -125,7 +152,7 @@ pub async fn get_index(headers: HeaderMap) -> Response {
 
 /// `GET /assets/{file}`: a script, style sheet or licence of the dashboard.
 #[utoipa::path(get, path = "/assets/{file}", tag = "dashboard",
-    params(("file" = String, Path, description = "A file of the dashboard: `app.js`, `style.css`, `uPlot.iife.min.js`, `uPlot.min.css`, `uPlot.LICENSE`, `favicon.svg`")),
+    params(("file" = String, Path, description = "A file of the dashboard: `app.js` and the modules it imports, `style.css`, `uPlot.iife.min.js`, `uPlot.min.css`, `uPlot.LICENSE`, `favicon.svg`")),
     responses(
         (status = 200, description = "The file", content_type = "application/octet-stream", body = String),
         (status = 304, description = "Not modified since the ETag given in `If-None-Match`"),

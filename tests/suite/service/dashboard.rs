@@ -101,6 +101,29 @@ async fn the_page_and_its_files_are_served_open_with_a_content_policy_and_etags(
         assert_eq!(changed, StatusCode::OK, "{uri} with another ETag");
     }
 
+    // The script is ES modules: every module imported by a served one is served too.
+    let mut modules = vec!["app.js".to_owned()];
+    let mut seen = std::collections::BTreeSet::new();
+    while let Some(module) = modules.pop() {
+        if !seen.insert(module.clone()) {
+            continue;
+        }
+        let uri = format!("/assets/{module}");
+        let (status, headers, body) = fetch(&app, &uri, &[]).await;
+        assert_eq!(
+            status,
+            StatusCode::OK,
+            "{uri}, imported by the dashboard's script"
+        );
+        let kind = headers[header::CONTENT_TYPE].to_str().expect("ascii");
+        assert!(kind.starts_with("text/javascript"), "{uri}: {kind}");
+        let text = String::from_utf8(body).expect("utf-8");
+        for rest in text.split(" from './").skip(1) {
+            modules.push(rest[..rest.find('\'').expect("closing quote")].to_owned());
+        }
+    }
+    assert!(seen.len() > 5, "the script's modules: {seen:?}");
+
     // The charting library is the vendored, pinned one, and its licence ships with it.
     let (_, _, uplot) = fetch(&app, "/assets/uPlot.iife.min.js", &[]).await;
     assert!(uplot.starts_with(b"/*! https://github.com/leeoniya/uPlot (v1.6.32) */"));

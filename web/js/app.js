@@ -1,0 +1,99 @@
+// brokenray dashboard: compensation cards live from /api/v1/events, history plots (uPlot),
+// reference, alarms, relay chain and links. ES modules, no build step; served by the binary.
+// This module chooses the target and starts everything; the others each own one part of the page.
+//
+// Times are shown in UTC.
+
+import { $, clearMessage, el, fmtTime, parseTime, showMessage, state, toInput } from './util.js';
+import { api } from './api.js';
+import { buildCard, cards, loadCompensation, renderAge } from './cards.js';
+import { runEvents } from './events.js';
+import { loadHistory, renderPlots, scheduleRefresh, windowMs } from './history.js';
+import { loadReferences, renderReferencePanel } from './reference.js';
+import { renderTopology } from './chain.js';
+import { loadLinks, loadWebhooks } from './links.js';
+
+export function selectTarget(name, scroll) {
+  state.selected = name;
+  $('target-select').value = name;
+  $('history-target').textContent = name;
+  for (const [n, c] of cards) c.root.setAttribute('aria-current', String(n === name));
+  state.history = null;
+  state.references = [];
+  renderReferencePanel();
+  loadReferences(name).catch((e) => { if (e.status !== 401) showMessage('references', 'References: ' + e.message); });
+  renderTopology();
+  if (!$('reference-from').value) {
+    const [from, to] = windowMs();
+    $('reference-from').value = toInput(Math.floor(Math.max(from, to - 60000) / 1000) * 1000);
+    $('reference-to').value = toInput(Math.floor(to / 1000) * 1000);
+  }
+  loadHistory();
+  if (scroll) $('history').scrollIntoView({ behavior: 'smooth', block: 'start' });
+}
+$('target-select').addEventListener('change', () => selectTarget($('target-select').value, false));
+
+async function loadTargets() {
+  state.targets = await api('/api/v1/targets');
+  const select = $('target-select');
+  select.textContent = '';
+  $('cards').textContent = '';
+  cards.clear();
+  for (const t of state.targets) {
+    select.append(el('option', { value: t.name, text: `${t.name} from ${t.base}` }));
+    const card = buildCard(t);
+    cards.set(t.name, card);
+    $('cards').append(card.root);
+  }
+  for (const t of state.targets) {
+    if (t.time) state.newestMs = Math.max(state.newestMs, parseTime(t.time));
+  }
+}
+
+// start
+
+let started = false;
+let linksTimer = null;
+export async function start() {
+  clearMessage('start');
+  try {
+    await loadTargets();
+    await Promise.all(state.targets.map((t) => loadCompensation(t.name)));
+    await loadLinks();
+  } catch (e) {
+    if (e.status !== 401) showMessage('start', 'Cannot reach the service: ' + e.message);
+    return;
+  }
+  const keep = state.targets.some((t) => t.name === state.selected);
+  if (state.targets.length) selectTarget(keep ? state.selected : state.targets[0].name, false);
+  scheduleRefresh();
+  runEvents();
+  if (!started) {
+    started = true;
+    linksTimer = setInterval(() => {
+      if (document.hidden) return;
+      loadLinks().catch((e) => { if (e.status !== 401) showMessage('links', 'Links: ' + e.message); });
+      loadWebhooks().catch((e) => { if (e.status !== 401) showMessage('webhooks', 'Webhooks: ' + e.message); });
+    }, 2000);
+    void linksTimer;
+  }
+}
+
+function tick() {
+  $('clock').textContent = fmtTime(Date.now()) + ' UTC';
+  for (const name of cards.keys()) renderAge(name);
+}
+setInterval(tick, 500);
+tick();
+
+let resizeTimer = 0;
+window.addEventListener('resize', () => {
+  clearTimeout(resizeTimer);
+  // Rebuilt rather than resized: the tick font follows the page's font size.
+  resizeTimer = setTimeout(() => renderPlots(true), 150);
+});
+
+// The plots take their colours from the style sheet when built: rebuild on a theme change.
+window.matchMedia('(prefers-color-scheme: dark)').addEventListener('change', () => renderPlots(true));
+
+start();
