@@ -252,6 +252,38 @@ pub struct ConsistencyOut {
     pub threshold: f64,
 }
 
+/// Where a compensation's value comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum CompensationSource {
+    /// The newest filtered result.
+    Live,
+    /// The filters predicted to a later time.
+    Predicted,
+    /// Stored results, interpolated.
+    History,
+}
+
+/// Which results a statistic or a history is computed from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ResultSource {
+    /// Each measurement group composed as measured.
+    Raw,
+    /// The filtered results.
+    Filtered,
+}
+
+impl ResultSource {
+    fn of(filtered: bool) -> Self {
+        if filtered {
+            ResultSource::Filtered
+        } else {
+            ResultSource::Raw
+        }
+    }
+}
+
 /// `GET .../compensation`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct CompensationOut {
@@ -266,9 +298,8 @@ pub struct CompensationOut {
     pub age_s: Option<f64>,
     /// `ok`, `stale`, `degraded`, `initializing` or `predicted`.
     pub status: &'static str,
-    /// Where the value comes from: `live` (newest filtered result), `predicted` (filters
-    /// predicted to a later time) or `history` (stored results, interpolated).
-    pub source: &'static str,
+    /// Where the value comes from.
+    pub source: CompensationSource,
     /// `G_from_B`.
     pub pose: Option<PoseOut>,
     /// Its sigmas.
@@ -291,12 +322,12 @@ struct Evaluated {
     time_ns: Option<i64>,
     status: TargetStatus,
     age_s: Option<f64>,
-    source: &'static str,
+    source: CompensationSource,
     estimate: Option<PoseCov>,
     consistency: Option<crate::chain::Consistency>,
 }
 
-fn evaluated(e: &TargetEstimate, source: &'static str) -> Evaluated {
+fn evaluated(e: &TargetEstimate, source: CompensationSource) -> Evaluated {
     Evaluated {
         time_ns: Some(e.time_ns),
         status: e.status,
@@ -383,7 +414,7 @@ fn live(app: &AppState, ti: usize, estimate: &TargetEstimate) -> Evaluated {
     Evaluated {
         status: now.status,
         age_s: now.age_s,
-        ..evaluated(estimate, "live")
+        ..evaluated(estimate, CompensationSource::Live)
     }
 }
 
@@ -440,7 +471,7 @@ pub async fn get_compensation(
                     time_ns: None,
                     status: TargetStatus::Initializing,
                     age_s: None,
-                    source: "live",
+                    source: CompensationSource::Live,
                     estimate: None,
                     consistency: None,
                 },
@@ -458,9 +489,9 @@ pub async fn get_compensation(
             .evaluate(ti, at_ns)
             .map_err(|e| ApiError::invalid_field("at", e.to_string()))?;
         let source = if est.status == TargetStatus::Predicted {
-            "predicted"
+            CompensationSource::Predicted
         } else {
-            "live"
+            CompensationSource::Live
         };
         return Ok(Json(compensation_out(
             &app,
@@ -490,7 +521,7 @@ pub async fn get_compensation(
             time_ns: Some(at_ns),
             status: before.status,
             age_s: Some(before.age_s),
-            source: "history",
+            source: CompensationSource::History,
             estimate: Some(estimate),
             consistency: None,
         },
@@ -541,8 +572,8 @@ pub struct ComponentsOut {
 pub struct StatsOut {
     /// Target.
     pub target: String,
-    /// `raw` or `filtered`.
-    pub source: &'static str,
+    /// The results it is computed from.
+    pub source: ResultSource,
     /// Results in the window.
     pub count: usize,
     /// Window start (as asked, or the first result).
@@ -585,7 +616,7 @@ pub async fn get_stats(
     };
     Ok(Json(StatsOut {
         target: spec.name,
-        source: if filtered { "filtered" } else { "raw" },
+        source: ResultSource::of(filtered),
         count: stats.map_or(0, |s| s.count),
         from: first_last.map(|(first, _)| format_ns(if from == i64::MIN { first } else { from })),
         to: first_last.map(|(_, last)| format_ns(if to == i64::MAX { last } else { to })),
@@ -747,8 +778,8 @@ pub struct SeriesOut {
 pub struct HistoryOut {
     /// Target.
     pub target: String,
-    /// `raw` or `filtered`.
-    pub source: &'static str,
+    /// The results it is built from.
+    pub source: ResultSource,
     /// Window start.
     pub from: Option<String>,
     /// Window end.
@@ -886,7 +917,7 @@ pub async fn get_history(
     }
     Ok(Json(HistoryOut {
         target: spec.name,
-        source: if filtered { "filtered" } else { "raw" },
+        source: ResultSource::of(filtered),
         from: history.window_ns.map(|(from, _)| format_ns(from)),
         to: history.window_ns.map(|(_, to)| format_ns(to)),
         bucket_s: history.bucket_ns as f64 / 1e9,
