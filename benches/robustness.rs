@@ -10,48 +10,25 @@
 //!
 //! Run: `cargo bench --bench robustness` (Linux).
 
+#[path = "../tests/suite/common/process.rs"]
+#[allow(
+    dead_code,
+    reason = "the bench lets Drop stop the server; the tests kill it"
+)]
+mod process;
 mod support;
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use process::Server;
+
 use std::time::{Duration, Instant};
 
-struct Server {
-    child: Child,
-    base: String,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn start(config: &std::path::Path) -> Server {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_brokenray"))
-        .args(["serve", "--config", config.to_str().unwrap()])
-        .env("RUST_LOG", "warn,brokenray=info")
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("the binary starts");
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("serving on http://").nth(1) {
-                let _ = tx.send(rest.split('/').next().unwrap().to_owned());
-            }
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_secs(120))
-        .expect("the server says where it listens");
-    Server {
-        child,
-        base: format!("http://{addr}"),
-    }
+    process::start(
+        config,
+        "warn,brokenray=info",
+        false,
+        Duration::from_secs(120),
+    )
 }
 
 /// (current, peak) resident set of a process, MB.

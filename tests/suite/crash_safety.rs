@@ -1,26 +1,12 @@
 //! The binary on a real port, killed with SIGKILL mid-stream: nothing acknowledged is lost, and
 //! the compensation after a restart is the one before the kill.
 
+use crate::common::process::{self, Server};
 use serde_json::{Value, json};
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-struct Server {
-    child: Child,
-    base: String,
-}
-
-impl Server {
-    /// SIGKILL, and wait for the process to be gone.
-    fn kill(mut self) {
-        self.child.kill().expect("SIGKILL");
-        self.child.wait().expect("the killed process");
-    }
-}
-
-/// The time of group `k`: 2026-11-21T10:00:00Z plus `k` times 40 ms.
 fn group_time(k: i64) -> i64 {
     1_795_255_200_000_000_000 + k * 40_000_000
 }
@@ -66,33 +52,7 @@ async fn assert_stored(
 
 /// Starts `brokenray serve` and waits for the line that says where it listens.
 fn start(config: &std::path::Path) -> Server {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_brokenray"))
-        .args(["serve", "--config", config.to_str().unwrap()])
-        .env("RUST_LOG", "info")
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("the binary starts");
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut sent = false;
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            eprintln!("server: {line}");
-            if !sent && let Some(rest) = line.split("serving on http://").nth(1) {
-                let addr = rest.split('/').next().unwrap().to_owned();
-                let _ = tx.send(addr);
-                sent = true;
-            }
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_secs(30))
-        .expect("the server says where it listens");
-    Server {
-        child,
-        base: format!("http://{addr}"),
-    }
+    process::start(config, "info", true, Duration::from_secs(30))
 }
 
 /// A temporary directory with the built-in installation on port 0 and a database inside it.
