@@ -136,13 +136,7 @@ impl Webhooks {
                 service.clock(),
             )));
         }
-        let names: Vec<String> = service
-            .installation()
-            .model
-            .targets
-            .iter()
-            .map(|t| t.name.clone())
-            .collect();
+        let names: Vec<String> = service.installation().model.target_names();
         let dispatch_hooks = Arc::clone(&hooks);
         let clock = service.clock();
         tasks.push(tokio::spawn(async move {

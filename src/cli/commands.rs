@@ -97,12 +97,7 @@ pub(super) async fn demo(
     settings: crate::sim::SimSettings,
     out: &mut impl std::io::Write,
 ) -> anyhow::Result<()> {
-    let targets: Vec<String> = installation
-        .model
-        .targets
-        .iter()
-        .map(|t| t.name.clone())
-        .collect();
+    let targets: Vec<String> = installation.model.target_names();
     let recordings = installation.rerun.recordings_dir.clone();
     let database = installation.server.database.clone();
     let mut sim = crate::sim::Simulator::new(&installation.model, settings)?;
@@ -180,12 +175,7 @@ pub(super) async fn demo(
 pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
     let source = installation.source.clone();
     let database = installation.server.database.clone();
-    let targets: Vec<String> = installation
-        .model
-        .targets
-        .iter()
-        .map(|t| t.name.clone())
-        .collect();
+    let targets: Vec<String> = installation.model.target_names();
     let n_links = installation.model.links.len();
     let app = crate::api::App::build(installation).await?;
     let addr = app.local_addr()?;

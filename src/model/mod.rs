@@ -137,6 +137,11 @@ impl Model {
         self.topology.link_id(name).map(|id| self.link(id))
     }
 
+    /// The targets' names, in the installation's order.
+    pub fn target_names(&self) -> Vec<String> {
+        self.targets.iter().map(|t| t.name.clone()).collect()
+    }
+
     /// The target with this name.
     pub fn target(&self, name: &str) -> Option<&TargetSpec> {
         self.targets.iter().find(|t| t.name == name)
