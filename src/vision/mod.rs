@@ -9,20 +9,26 @@
 //!   perturbation of [`crate::geometry`], the RMS, and a planar-ambiguity ratio. Refuses too few
 //!   or collinear points, points behind the camera and a fit over the RMS limit; optionally
 //!   robust (RANSAC) against a mislabelled point.
+//! * [`detect`]: disc targets in a grey frame ([`GreyImage`]), each centre to a hundredth of a
+//!   pixel with its covariance.
 //! * [`solve_hand_eye`]: a rigid station's calibrated link from motions `A_i X = X B_i`.
 //!
 //! Pure and synchronous, like the rest of the core; one error type, [`VisionError`].
 
 mod camera;
+mod detect;
 mod error;
 mod handeye;
+mod image;
 mod ippe;
 mod pnp;
 mod sqpnp;
 
 pub use camera::CameraModel;
+pub use detect::{Blob, DetectSettings, Polarity, TILE_PX, detect};
 pub use error::VisionError;
 pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
 };
+pub use image::{BitDepth, GreyImage};
 pub use pnp::{MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, refine, solve_pnp};

@@ -9,6 +9,7 @@ mod common;
 mod config_errors;
 mod crash_safety;
 mod deformation_and_stats;
+mod detection;
 mod filter_bank;
 mod filter_behaviour;
 mod geometry_properties;
