@@ -173,6 +173,9 @@ pub(super) async fn demo(
 }
 
 pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
+    for w in &installation.warnings {
+        tracing::warn!(file = %installation.source, line = ?w.line, "{}", w.message);
+    }
     let source = installation.source.clone();
     let database = installation.server.database.clone();
     let targets: Vec<String> = installation.model.target_names();

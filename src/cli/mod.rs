@@ -179,6 +179,10 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         Command::CheckConfig { config } => {
             let installation = config::load_or_default(config.as_deref())?;
             out.write_all(describe_installation(&installation).as_bytes())?;
+            for w in &installation.warnings {
+                let line = w.line.map(|l| format!("{l}:")).unwrap_or_default();
+                writeln!(out, "warning: {}:{line} {}", installation.source, w.message)?;
+            }
         }
         Command::DefaultConfig => out.write_all(config::DEFAULT_INSTALLATION_TOML.as_bytes())?,
         Command::Serve { config } => {

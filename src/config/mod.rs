@@ -48,6 +48,9 @@ pub struct Installation {
     pub notify: NotifySettings,
     /// How long raw samples and results are kept (rollups are kept for good).
     pub retention: RetentionSettings,
+    /// What is valid but probably not meant, each with its line (`check-config` prints them,
+    /// `serve` logs them).
+    pub warnings: Vec<ConfigProblem>,
 }
 
 /// How long raw samples and results are kept, counted back from the newest result.
@@ -280,6 +283,8 @@ pub fn parse(source: &str, text: &str) -> Result<Installation, ConfigError> {
     let mut v = Validator {
         lines,
         problems: Vec::new(),
+        warnings: Vec::new(),
+        marker_at: std::collections::HashMap::new(),
     };
     let installation = v.installation(source, raw);
     if v.problems.is_empty()

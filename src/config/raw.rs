@@ -137,6 +137,17 @@ pub(super) struct RawMarker {
     pub frame: String,
     pub points_mm: Vec<[f64; 3]>,
     pub ids: Option<Vec<u32>>,
+    pub target: Option<RawDiscTarget>,
+    pub normals: Option<Vec<[f64; 3]>>,
+}
+
+/// What a marker's points are: `{ kind = "disc", diameter_mm, polarity }`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawDiscTarget {
+    pub kind: String,
+    pub diameter_mm: f64,
+    pub polarity: Option<String>,
 }
 
 /// A pose: translation and exactly one rotation form.

@@ -19,12 +19,15 @@ use crate::geometry::{
     rotation_from_matrix, rotation_from_quaternion_wxyz, validate_finite,
 };
 use crate::model::{
-    Camera, LinkKind, LinkSpec, Marker, MeasuredLink, Model, PnpSettings, TargetSpec,
+    Camera, DiscTarget, LinkKind, LinkSpec, Marker, MeasuredLink, Model, PnpSettings, TargetSpec,
 };
-use crate::vision::CameraModel;
+use crate::vision::{CameraModel, Polarity};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
+
+/// A disc imaging under this many pixels across is warned of.
+const MIN_TARGET_PX: f64 = 4.0;
 
 /// Splits `<parent>_from_<child>` into its frames.
 fn split_link_name(name: &str) -> Option<(&str, &str)> {
@@ -50,6 +53,10 @@ fn is_valid_frame_name(name: &str) -> bool {
 pub(super) struct Validator {
     pub(super) lines: LineIndex,
     pub(super) problems: Vec<ConfigProblem>,
+    /// What is valid but probably not meant (`check-config` prints them, `serve` logs them).
+    pub(super) warnings: Vec<ConfigProblem>,
+    /// Where each marker is declared, for warnings about it.
+    pub(super) marker_at: std::collections::HashMap<String, usize>,
 }
 
 impl Validator {
@@ -167,23 +174,68 @@ impl Validator {
                 );
             }
         }
+        let model = Model {
+            cameras,
+            markers,
+            topology,
+            links,
+            targets,
+            filter: filter?,
+            pnp: pnp?,
+        };
+        self.small_targets(&model);
         Some(Installation {
             source: source.to_owned(),
             server: server?,
             rerun: rerun?,
-            model: Arc::new(Model {
-                cameras,
-                markers,
-                topology,
-                links,
-                targets,
-                filter: filter?,
-                pnp: pnp?,
-            }),
+            model: Arc::new(model),
             auth,
             notify,
             retention: retention?,
+            warnings: std::mem::take(&mut self.warnings),
         })
+    }
+
+    /// Warns of disc targets that image under [`MIN_TARGET_PX`] across at a measured link's
+    /// nominal pose: too small to find reliably.
+    fn small_targets(&mut self, model: &Model) {
+        for spec in &model.links {
+            let LinkKind::Measured(m) = &spec.kind else {
+                continue;
+            };
+            let Some(nominal) = m.nominal else { continue };
+            let link = model.topology.link(spec.id);
+            let (parent, child) = (
+                model.topology.frame_name(link.parent),
+                model.topology.frame_name(link.child),
+            );
+            let (Some(camera), Some(marker)) = (model.camera(parent), model.marker(child)) else {
+                continue;
+            };
+            let Some(target) = marker.target else {
+                continue;
+            };
+            let smallest = marker
+                .points_mm
+                .iter()
+                .map(|p| {
+                    let z = (nominal * nalgebra::Point3::from(*p)).z;
+                    camera.intrinsics.fx_px.min(camera.intrinsics.fy_px) * target.diameter_mm / z
+                })
+                .fold(f64::INFINITY, f64::min);
+            if smallest < MIN_TARGET_PX {
+                let at = self.marker_at.get(child).copied().unwrap_or(0);
+                let (line, _) = self.lines.locate(at);
+                self.warnings.push(ConfigProblem {
+                    line: Some(line),
+                    column: None,
+                    message: format!(
+                        "marker `{child}`: its {} mm discs image {smallest:.1} px across in camera `{parent}` at the nominal pose of `{}`, under {MIN_TARGET_PX} px: too small to find reliably",
+                        target.diameter_mm, spec.name
+                    ),
+                });
+            }
+        }
     }
 
     fn pnp(&mut self, raw: &RawFile) -> Option<PnpSettings> {
@@ -520,11 +572,79 @@ impl Validator {
                 }
                 None => (0..m.points_mm.len() as u32).collect(),
             };
+            let target = match &m.target {
+                None => None,
+                Some(t) => {
+                    if t.kind != "disc" {
+                        self.problem(
+                            at,
+                            format!("{what}: target kind `{}` is not known (`disc`)", t.kind),
+                        );
+                        ok = false;
+                    }
+                    ok &= self.positive(at, &format!("{what}: target.diameter_mm"), t.diameter_mm);
+                    let polarity = match t.polarity.as_deref() {
+                        None | Some("bright") => Polarity::Bright,
+                        Some("dark") => Polarity::Dark,
+                        Some(other) => {
+                            self.problem(
+                                at,
+                                format!(
+                                    "{what}: target polarity `{other}` is not `bright` or `dark`"
+                                ),
+                            );
+                            ok = false;
+                            Polarity::Bright
+                        }
+                    };
+                    Some(DiscTarget {
+                        diameter_mm: t.diameter_mm,
+                        polarity,
+                    })
+                }
+            };
+            let normals = match &m.normals {
+                None => vec![[0.0, 0.0, 1.0]; m.points_mm.len()],
+                Some(normals) => {
+                    if normals.len() != m.points_mm.len() {
+                        self.problem(
+                            at,
+                            format!(
+                                "{what} has {} normals for {} points",
+                                normals.len(),
+                                m.points_mm.len()
+                            ),
+                        );
+                        ok = false;
+                    }
+                    normals
+                        .iter()
+                        .enumerate()
+                        .map(|(i, n)| {
+                            let norm = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+                            if !(norm.is_finite() && norm > 1e-9) {
+                                self.problem(
+                                    at,
+                                    format!(
+                                        "{what}: normals[{i}] must be a finite, non-zero vector"
+                                    ),
+                                );
+                                ok = false;
+                                return [0.0, 0.0, 1.0];
+                            }
+                            [n[0] / norm, n[1] / norm, n[2] / norm]
+                        })
+                        .collect()
+                }
+            };
             if ok {
+                self.marker_at.insert(m.frame.clone(), at);
                 out.push(Marker {
                     frame: m.frame.clone(),
                     points_mm: m.points_mm.clone(),
                     ids,
+                    target,
+                    normals,
                 });
             }
         }

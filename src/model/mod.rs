@@ -17,7 +17,7 @@ use crate::alarms::AlarmThresholds;
 use crate::chain::{FrameId, LinkId, Resolution, Topology};
 use crate::filter::{BankSettings, FilterTuning};
 use crate::geometry::{Pose, PoseCov, ReportedSigmas};
-use crate::vision::CameraModel;
+use crate::vision::{CameraModel, Polarity};
 
 /// The measurement model of one installation.
 #[derive(Debug, Clone)]
@@ -58,6 +58,20 @@ pub struct Marker {
     pub points_mm: Vec<[f64; 3]>,
     /// Point ids, one per point (defaults to 0, 1, 2, ...).
     pub ids: Vec<u32>,
+    /// What the points are in an image, when the marker is seen in frames.
+    pub target: Option<DiscTarget>,
+    /// The unit normal of each point's disc (marker frame), one per point; the marker's +z
+    /// unless the file gives them.
+    pub normals: Vec<[f64; 3]>,
+}
+
+/// A marker point as a flat disc whose centre is the point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DiscTarget {
+    /// The disc's diameter (mm).
+    pub diameter_mm: f64,
+    /// Bright on dark or dark on bright.
+    pub polarity: Polarity,
 }
 
 /// Pose estimation of marker observations.

@@ -300,3 +300,89 @@ fn an_installation_without_targets_is_refused() {
         .to_owned();
     assert!(error_of(&links_only).contains("no [[targets]]"));
 }
+
+/// The disc targets of markers: a wrong kind, size, polarity or normal is an error at the
+/// marker's line; discs too small to image 4 px across at the nominal pose are a warning.
+#[test]
+fn marker_targets_are_validated_and_small_discs_warned_of() {
+    let marker = |target: &str, normals: &str| {
+        format!(
+            "[[cameras]]\nframe = \"C1\"\nwidth = 1280\nheight = 1024\nfx = 4800.0\nfy = 4800.0\ncx = 640.0\ncy = 512.0\ndistortion = [0.0, 0.0, 0.0, 0.0, 0.0]\npixel_sigma = 0.05\n\n\
+             [[markers]]\nframe = \"B\"\npoints_mm = [[0, 0, 0], [100, 0, 0], [0, 100, 0], [100, 100, 0]]\n{target}\n{normals}\n\n\
+             [[links]]\nname = \"C1_from_B\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 25.0\nnominal = {{ t_mm = [0, 0, 3000], euler_deg = [180, 0, 0] }}\n\n\
+             [[links]]\nname = \"C1_from_G\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 25.0\n\n\
+             [[targets]]\nname = \"G\"\nbase = \"B\"\n"
+        )
+    };
+    let good = marker(
+        r#"target = { kind = "disc", diameter_mm = 20.0, polarity = "dark" }"#,
+        "normals = [[0, 0, 1], [0, 0, 2], [0, 0.1, 1], [0, 0, 1]]",
+    );
+    let inst = config::parse("site.toml", &good).expect("valid");
+    let m = inst.model.marker("B").expect("marker B");
+    let t = m.target.expect("a disc target");
+    assert_eq!(t.diameter_mm, 20.0);
+    assert_eq!(t.polarity, brokenray::vision::Polarity::Dark);
+    assert_eq!(m.normals[1], [0.0, 0.0, 1.0], "normals are made unit");
+    assert!((m.normals[2][1] - 0.1 / 1.01f64.sqrt()).abs() < 1e-12);
+    assert!(inst.warnings.is_empty(), "{:?}", inst.warnings);
+
+    let marker_line = line_of(&good, "[[markers]]");
+    for (target, normals, expected) in [
+        (
+            r#"target = { kind = "square", diameter_mm = 20.0 }"#,
+            "",
+            "target kind `square`",
+        ),
+        (
+            r#"target = { kind = "disc", diameter_mm = 0.0 }"#,
+            "",
+            "target.diameter_mm must be a positive number",
+        ),
+        (
+            r#"target = { kind = "disc", diameter_mm = 20.0, polarity = "grey" }"#,
+            "",
+            "polarity `grey`",
+        ),
+        (
+            r#"target = { kind = "disc", diameter_mm = 20.0 }"#,
+            "normals = [[0, 0, 1]]",
+            "1 normals for 4 points",
+        ),
+        (
+            r#"target = { kind = "disc", diameter_mm = 20.0 }"#,
+            "normals = [[0, 0, 1], [0, 0, 0], [0, 0, 1], [0, 0, 1]]",
+            "normals[1] must be a finite, non-zero vector",
+        ),
+    ] {
+        let text = marker(target, normals);
+        let err = error_of(&text);
+        assert!(
+            err.contains(&format!("site.toml:{marker_line}:")) && err.contains(expected),
+            "{expected}: {err}"
+        );
+    }
+
+    // 1 mm at 3 m through a 4800 px lens: 1.6 px.
+    let small = marker(r#"target = { kind = "disc", diameter_mm = 1.0 }"#, "");
+    let inst = config::parse("site.toml", &small).expect("valid, with a warning");
+    assert_eq!(inst.warnings.len(), 1, "{:?}", inst.warnings);
+    assert_eq!(inst.warnings[0].line, Some(marker_line));
+    assert!(
+        inst.warnings[0].message.contains("1.6 px across"),
+        "{}",
+        inst.warnings[0].message
+    );
+}
+
+#[test]
+fn the_built_in_markers_are_20_mm_bright_discs_without_warnings() {
+    let inst = config::default_installation();
+    assert!(inst.warnings.is_empty(), "{:?}", inst.warnings);
+    for m in &inst.model.markers {
+        let t = m.target.expect("a disc target");
+        assert_eq!(t.diameter_mm, 20.0);
+        assert_eq!(t.polarity, brokenray::vision::Polarity::Bright);
+        assert!(m.normals.iter().all(|n| *n == [0.0, 0.0, 1.0]));
+    }
+}
