@@ -11,12 +11,15 @@
 //!   robust (RANSAC) against a mislabelled point.
 //! * [`detect`]: disc targets in a grey frame ([`GreyImage`]), each centre to a hundredth of a
 //!   pixel with its covariance.
+//! * [`disc_image_offset`]: the perspective eccentricity of a disc target, to turn a detected
+//!   centroid into the image of the disc's centre.
 //! * [`solve_hand_eye`]: a rigid station's calibrated link from motions `A_i X = X B_i`.
 //!
 //! Pure and synchronous, like the rest of the core; one error type, [`VisionError`].
 
 mod camera;
 mod detect;
+mod eccentricity;
 mod error;
 mod handeye;
 mod image;
@@ -26,6 +29,7 @@ mod sqpnp;
 
 pub use camera::CameraModel;
 pub use detect::{Blob, DetectSettings, Polarity, TILE_PX, detect};
+pub use eccentricity::disc_image_offset;
 pub use error::VisionError;
 pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
