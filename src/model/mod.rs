@@ -7,10 +7,13 @@
 //! [`Model`] plus the deployment settings only the adapters see.
 //!
 //! [`Observer`] derives the camera-marker links from a model and solves raw observations of
-//! them into link samples.
+//! them into link samples; [`identify`] finds a marker's points among a frame's detected discs
+//! and solves its pose, corrected for the discs' perspective eccentricity.
 
+mod identify;
 mod observation;
 
+pub use identify::{Found, NotFound, identify};
 pub use observation::{ObservationError, ObservedLink, Observer};
 
 use crate::alarms::AlarmThresholds;

@@ -29,6 +29,10 @@ pub struct ObservedLink {
     pub points_mm: Vec<Vec3>,
     /// The marker's point ids, one per point.
     pub ids: Vec<u32>,
+    /// What the points are in a frame (disc targets), when declared.
+    pub target: Option<super::DiscTarget>,
+    /// Each point's disc normal (marker frame, unit).
+    pub normals: Vec<Vec3>,
     /// How to solve.
     pub options: PnpOptions,
 }
@@ -91,6 +95,8 @@ impl Observer {
                     camera: camera.intrinsics,
                     points_mm: marker.points_mm.iter().map(|p| Vec3::from(*p)).collect(),
                     ids: marker.ids.clone(),
+                    target: marker.target,
+                    normals: marker.normals.iter().map(|n| Vec3::from(*n)).collect(),
                     options,
                 });
             }

@@ -293,3 +293,165 @@ fn the_eccentricity_of_a_frontal_disc_is_zero_and_odd_in_the_tilt() {
         .expect("in front");
     assert!(plus.x.abs() > 0.01 && (plus.x + minus.x).abs() < 1e-9 && plus.y.abs() < 1e-9);
 }
+
+/// The built-in installation's marker B seen by camera C1, moved off its nominal pose by about a
+/// millimetre and a minute of arc: rendered, detected, identified from the nominal pose, solved
+/// with the eccentricity correction; and the ways a marker is not found.
+mod identification {
+    use super::*;
+    use brokenray::config::default_installation;
+    use brokenray::geometry::{Pose, Twist, se3_exp, se3_log};
+    use brokenray::model::{NotFound, ObservedLink, Observer, identify};
+    use nalgebra::Point3;
+
+    fn link_c1_b() -> ObservedLink {
+        let inst = default_installation();
+        Observer::new(&inst.model)
+            .link("C1", "B")
+            .expect("C1 sees B")
+            .clone()
+    }
+
+    fn nominal(link: &ObservedLink) -> Pose {
+        let inst = default_installation();
+        match &inst.model.link(link.link).kind {
+            brokenray::model::LinkKind::Measured(m) => m.nominal.expect("a nominal pose"),
+            brokenray::model::LinkKind::Calibrated { .. } => unreachable!("measured"),
+        }
+    }
+
+    /// The frame of `link`'s marker at `pose`, without the points listed in `hidden`, plus
+    /// extra discs at the given pixels (reflections).
+    fn frame(
+        link: &ObservedLink,
+        pose: &Pose,
+        hidden: &[usize],
+        extra_px: &[[f64; 2]],
+    ) -> brokenray::vision::GreyImage {
+        let target = link.target.expect("disc targets");
+        let mut discs: Vec<Disc> = link
+            .points_mm
+            .iter()
+            .zip(&link.normals)
+            .enumerate()
+            .filter(|(i, _)| !hidden.contains(i))
+            .map(|(_, (p, n))| Disc {
+                centre_mm: (pose * Point3::from(*p)).coords,
+                normal: pose.rotation * n,
+                diameter_mm: target.diameter_mm,
+            })
+            .collect();
+        for px in extra_px {
+            let xy = link
+                .camera
+                .undistort(nalgebra::Vector2::new(px[0], px[1]))
+                .expect("undistorts");
+            discs.push(Disc {
+                centre_mm: Vec3::new(xy.x, xy.y, 1.0) * DISTANCE_MM,
+                normal: Vec3::new(0.0, 0.0, -1.0),
+                diameter_mm: target.diameter_mm,
+            });
+        }
+        render_discs(&link.camera, &discs, &RenderSettings::default())
+    }
+
+    fn moved(nominal: &Pose) -> Pose {
+        let arcmin = (1.0f64 / 60.0).to_radians();
+        se3_exp(&Twist::new(0.8, -0.6, 1.2, arcmin, -arcmin, 0.5 * arcmin)) * nominal
+    }
+
+    #[test]
+    fn a_marker_moved_off_its_nominal_pose_is_found_and_solved() {
+        let link = link_c1_b();
+        let prior = nominal(&link);
+        let truth = moved(&prior);
+        let blobs = detect(&frame(&link, &truth, &[], &[]), &DetectSettings::default());
+        assert_eq!(blobs.len(), link.points_mm.len(), "every disc detected");
+        let found = identify(&link, &blobs, Some(&prior)).expect("found");
+        let mut ids = found.ids.clone();
+        ids.sort_unstable();
+        assert_eq!(ids, link.ids, "every point identified, each once");
+        // Each corrected point is the image of its disc's centre.
+        for (px, id) in found.points_px.iter().zip(&found.ids) {
+            let i = link.ids.iter().position(|x| x == id).expect("known id");
+            let truth_px = link
+                .camera
+                .project(&(truth * Point3::from(link.points_mm[i])).coords)
+                .expect("in front");
+            let e = (px[0] - truth_px.x).hypot(px[1] - truth_px.y);
+            assert!(
+                e < 0.05,
+                "point {id}: {e:.4} px from the image of its centre"
+            );
+        }
+        let error = se3_log(&(found.solution.camera_from_marker * truth.inverse()));
+        let cov = found.solution.covariance;
+        for k in 0..6 {
+            let sigma = cov[(k, k)].sqrt();
+            assert!(
+                error[k].abs() < 3.0 * sigma,
+                "component {k}: error {:.3e} over 3 sigma {:.3e}",
+                error[k],
+                3.0 * sigma
+            );
+        }
+        assert!(found.sigma_px.iter().all(|s| *s > 0.0 && *s < 0.05));
+    }
+
+    #[test]
+    fn a_covered_point_leaves_the_rest_and_too_few_is_not_found() {
+        let link = link_c1_b();
+        let prior = nominal(&link);
+        let truth = moved(&prior);
+        let one_hidden = detect(&frame(&link, &truth, &[2], &[]), &DetectSettings::default());
+        let found = identify(&link, &one_hidden, Some(&prior)).expect("found without point 2");
+        assert_eq!(found.ids.len(), link.points_mm.len() - 1);
+        assert!(!found.ids.contains(&link.ids[2]));
+
+        let five_hidden = detect(
+            &frame(&link, &truth, &[0, 1, 2, 3, 4], &[]),
+            &DetectSettings::default(),
+        );
+        assert!(matches!(
+            identify(&link, &five_hidden, Some(&prior)),
+            Err(NotFound::TooFewPoints {
+                found: 3,
+                needed: 4,
+                ..
+            })
+        ));
+        assert_eq!(
+            identify(&link, &one_hidden, None),
+            Err(NotFound::NoPrediction)
+        );
+    }
+
+    #[test]
+    fn a_reflection_beside_a_point_is_not_taken_for_it() {
+        let link = link_c1_b();
+        let prior = nominal(&link);
+        let truth = moved(&prior);
+        let p0 = link
+            .camera
+            .project(&(truth * Point3::from(link.points_mm[0])).coords)
+            .expect("in front");
+        // A second disc 40 px beside point 0: both within its gate, nearly as close.
+        let blobs = detect(
+            &frame(&link, &truth, &[], &[[p0.x + 40.0, p0.y + 3.0]]),
+            &DetectSettings::default(),
+        );
+        assert_eq!(blobs.len(), link.points_mm.len() + 1);
+        let found = identify(&link, &blobs, Some(&prior)).expect("found from the others");
+        for (px, id) in found.points_px.iter().zip(&found.ids) {
+            let i = link.ids.iter().position(|x| x == id).expect("known id");
+            let truth_px = link
+                .camera
+                .project(&(truth * Point3::from(link.points_mm[i])).coords)
+                .expect("in front");
+            assert!(
+                (px[0] - truth_px.x).hypot(px[1] - truth_px.y) < 0.05,
+                "point {id} is labelled with another disc"
+            );
+        }
+    }
+}

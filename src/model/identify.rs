@@ -1,0 +1,191 @@
+//! Markers found in a camera's detections: which blob is which marker point, and the pose.
+//!
+//! For each marker the camera sees through a measured link, its points are predicted in the
+//! image from a pose of the link (the newest filtered one, or the nominal one), and each point
+//! takes the nearest detected blob within a gate. A point with two blobs nearly as close, or a
+//! blob claimed by two points, is left out (ambiguous) rather than guessed. With at least
+//! [`MIN_POINTS`] points the pose is solved by PnP (its RMS limit and, in robust mode, RANSAC
+//! verify the assignment), then each point is corrected for its disc's perspective
+//! eccentricity at that pose and the pose is solved again. A marker that is not found says
+//! why ([`NotFound`]).
+
+use super::observation::ObservedLink;
+use crate::geometry::Pose;
+use crate::vision::{Blob, MIN_POINTS, PnpSolution, disc_image_offset, solve_pnp};
+use nalgebra::Vector2;
+
+/// A point's gate: at most this far from its prediction (px) ...
+pub const GATE_MIN_PX: f64 = 15.0;
+/// ... or this fraction of the distance to the nearest other predicted point, if larger
+/// (then never so far that it reaches a neighbour's blob).
+pub const GATE_FRACTION_OF_SPACING: f64 = 0.4;
+/// A second blob within this factor of the nearest one's distance makes a point ambiguous.
+pub const AMBIGUITY_FACTOR: f64 = 1.5;
+
+/// Why a marker was not found in a frame.
+#[derive(Debug, Clone, PartialEq)]
+pub enum NotFound {
+    /// No pose of the link to predict the points from.
+    NoPrediction,
+    /// The marker is not in front of the camera at the predicted pose.
+    NotInView,
+    /// Too few points matched a blob.
+    TooFewPoints {
+        /// Points that matched.
+        found: usize,
+        /// Points that were ambiguous (two blobs, or a blob claimed twice).
+        ambiguous: usize,
+        /// Points needed.
+        needed: usize,
+    },
+    /// PnP refused the matched points (the reason, e.g. the RMS over its limit).
+    Pnp(String),
+}
+
+impl std::fmt::Display for NotFound {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            NotFound::NoPrediction => {
+                write!(f, "no filtered or nominal pose to predict the points from")
+            }
+            NotFound::NotInView => write!(
+                f,
+                "the marker is not in front of the camera at the predicted pose"
+            ),
+            NotFound::TooFewPoints {
+                found,
+                ambiguous,
+                needed,
+            } => write!(
+                f,
+                "{found} point(s) found near their predictions ({ambiguous} ambiguous), at least {needed} needed"
+            ),
+            NotFound::Pnp(reason) => write!(f, "the matched points give no pose: {reason}"),
+        }
+    }
+}
+
+/// A marker found in a frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Found {
+    /// The images of the disc centres (eccentricity corrected; px), in matched order.
+    pub points_px: Vec<[f64; 2]>,
+    /// Their point ids.
+    pub ids: Vec<u32>,
+    /// Each point's standard deviation from the detector (px).
+    pub sigma_px: Vec<f64>,
+    /// The pose from the corrected points.
+    pub solution: PnpSolution,
+}
+
+/// Finds one marker among a frame's blobs, its points predicted from `prior`
+/// (`camera_from_marker`).
+pub fn identify(
+    link: &ObservedLink,
+    blobs: &[Blob],
+    prior: Option<&Pose>,
+) -> Result<Found, NotFound> {
+    let prior = prior.ok_or(NotFound::NoPrediction)?;
+    let predicted: Vec<Vector2<f64>> = link
+        .points_mm
+        .iter()
+        .map(|p| {
+            link.camera
+                .project(&(prior * nalgebra::Point3::from(*p)).coords)
+        })
+        .collect::<Option<_>>()
+        .ok_or(NotFound::NotInView)?;
+    let centres: Vec<Vector2<f64>> = blobs
+        .iter()
+        .map(|b| Vector2::new(b.centre_px[0], b.centre_px[1]))
+        .collect();
+    // Each point's nearest blob within its gate, unless a second one is nearly as close.
+    let mut claims: Vec<Option<usize>> = vec![None; predicted.len()];
+    let mut ambiguous = 0;
+    for (i, p) in predicted.iter().enumerate() {
+        let spacing = predicted
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != i)
+            .map(|(_, q)| (q - p).norm())
+            .fold(f64::INFINITY, f64::min);
+        let gate = GATE_MIN_PX
+            .max(GATE_FRACTION_OF_SPACING * spacing)
+            .min(0.5 * spacing);
+        let mut near: Vec<(f64, usize)> = centres
+            .iter()
+            .enumerate()
+            .map(|(k, c)| ((c - p).norm(), k))
+            .filter(|(d, _)| *d <= gate)
+            .collect();
+        near.sort_by(|a, b| a.0.total_cmp(&b.0));
+        match near.as_slice() {
+            [] => {}
+            [(_, k)] => claims[i] = Some(*k),
+            [(d0, k), (d1, _), ..] => {
+                if *d1 > AMBIGUITY_FACTOR * d0.max(0.5) {
+                    claims[i] = Some(*k);
+                } else {
+                    ambiguous += 1;
+                }
+            }
+        }
+    }
+    // A blob claimed by two points belongs to neither.
+    for i in 0..claims.len() {
+        if let Some(k) = claims[i]
+            && claims.iter().filter(|c| **c == Some(k)).count() > 1
+        {
+            for c in claims.iter_mut().filter(|c| **c == Some(k)) {
+                *c = None;
+            }
+            ambiguous += 2;
+        }
+    }
+    let matched: Vec<(usize, usize)> = claims
+        .iter()
+        .enumerate()
+        .filter_map(|(i, c)| c.map(|k| (i, k)))
+        .collect();
+    if matched.len() < MIN_POINTS {
+        return Err(NotFound::TooFewPoints {
+            found: matched.len(),
+            ambiguous,
+            needed: MIN_POINTS,
+        });
+    }
+    let object: Vec<_> = matched.iter().map(|&(i, _)| link.points_mm[i]).collect();
+    let detected: Vec<Vector2<f64>> = matched.iter().map(|&(_, k)| centres[k]).collect();
+    let first = solve_pnp(&link.camera, &object, &detected, &link.options)
+        .map_err(|e| NotFound::Pnp(e.to_string()))?;
+    // The centroids are not the images of the disc centres: correct at the first pose, solve
+    // again.
+    let corrected: Vec<Vector2<f64>> = match link.target {
+        None => detected.clone(),
+        Some(target) => matched
+            .iter()
+            .zip(&detected)
+            .map(|(&(i, _), c)| {
+                let pose = &first.camera_from_marker;
+                let centre = (pose * nalgebra::Point3::from(link.points_mm[i])).coords;
+                let normal = pose.rotation * link.normals[i];
+                match disc_image_offset(&link.camera, &centre, &normal, target.diameter_mm) {
+                    Some(offset) => c - offset,
+                    None => *c,
+                }
+            })
+            .collect(),
+    };
+    let solution = if link.target.is_some() {
+        solve_pnp(&link.camera, &object, &corrected, &link.options)
+            .map_err(|e| NotFound::Pnp(e.to_string()))?
+    } else {
+        first
+    };
+    Ok(Found {
+        points_px: corrected.iter().map(|c| [c.x, c.y]).collect(),
+        ids: matched.iter().map(|&(i, _)| link.ids[i]).collect(),
+        sigma_px: matched.iter().map(|&(_, k)| blobs[k].sigma_px()).collect(),
+        solution,
+    })
+}
