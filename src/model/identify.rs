@@ -4,14 +4,15 @@
 //! image from a pose of the link (the newest filtered one, or the nominal one), and each point
 //! takes the nearest detected blob within a gate. A point with two blobs nearly as close, or a
 //! blob claimed by two points, is left out (ambiguous) rather than guessed. With at least
-//! [`MIN_POINTS`] points the pose is solved by PnP (its RMS limit and, in robust mode, RANSAC
+//! [`MIN_POINTS`] points the pose is solved by PnP, each point weighted by the detector's
+//! sigma (its RMS limit and, in robust mode, RANSAC
 //! verify the assignment), then each point is corrected for its disc's perspective
 //! eccentricity at that pose and the pose is solved again. A marker that is not found says
 //! why ([`NotFound`]).
 
 use super::observation::ObservedLink;
 use crate::geometry::Pose;
-use crate::vision::{Blob, MIN_POINTS, PnpSolution, disc_image_offset, solve_pnp};
+use crate::vision::{Blob, MIN_POINTS, PnpSolution, disc_image_offset, solve_pnp_weighted};
 use nalgebra::Vector2;
 
 /// A point's gate: at most this far from its prediction (px) ...
@@ -25,6 +26,8 @@ pub const AMBIGUITY_FACTOR: f64 = 1.5;
 /// Why a marker was not found in a frame.
 #[derive(Debug, Clone, PartialEq)]
 pub enum NotFound {
+    /// The marker declares no disc target: nothing to look for in a frame.
+    NoTarget,
     /// No pose of the link to predict the points from.
     NoPrediction,
     /// The marker is not in front of the camera at the predicted pose.
@@ -45,6 +48,10 @@ pub enum NotFound {
 impl std::fmt::Display for NotFound {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
+            NotFound::NoTarget => write!(
+                f,
+                "the marker declares no disc target (`target = {{ kind = \"disc\", ... }}`)"
+            ),
             NotFound::NoPrediction => {
                 write!(f, "no filtered or nominal pose to predict the points from")
             }
@@ -156,7 +163,8 @@ pub fn identify(
     }
     let object: Vec<_> = matched.iter().map(|&(i, _)| link.points_mm[i]).collect();
     let detected: Vec<Vector2<f64>> = matched.iter().map(|&(_, k)| centres[k]).collect();
-    let first = solve_pnp(&link.camera, &object, &detected, &link.options)
+    let sigmas: Vec<f64> = matched.iter().map(|&(_, k)| blobs[k].sigma_px()).collect();
+    let first = solve_pnp_weighted(&link.camera, &object, &detected, &sigmas, &link.options)
         .map_err(|e| NotFound::Pnp(e.to_string()))?;
     // The centroids are not the images of the disc centres: correct at the first pose, solve
     // again.
@@ -177,7 +185,7 @@ pub fn identify(
             .collect(),
     };
     let solution = if link.target.is_some() {
-        solve_pnp(&link.camera, &object, &corrected, &link.options)
+        solve_pnp_weighted(&link.camera, &object, &corrected, &sigmas, &link.options)
             .map_err(|e| NotFound::Pnp(e.to_string()))?
     } else {
         first
@@ -185,7 +193,7 @@ pub fn identify(
     Ok(Found {
         points_px: corrected.iter().map(|c| [c.x, c.y]).collect(),
         ids: matched.iter().map(|&(i, _)| link.ids[i]).collect(),
-        sigma_px: matched.iter().map(|&(_, k)| blobs[k].sigma_px()).collect(),
+        sigma_px: sigmas,
         solution,
     })
 }

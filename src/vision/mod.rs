@@ -5,7 +5,8 @@
 //!   projection with its Jacobian, undistortion by Newton's method with a convergence check.
 //! * [`solve_pnp`]: `camera_from_marker` from marker points and pixels: IPPE (planar markers,
 //!   both solutions) or SQPnP (markers with depth) to start, Levenberg-Marquardt on the
-//!   reprojection error to finish, with the covariance `(J^T J)^-1 sigma_px^2` in the left
+//!   reprojection error to finish (each point weighted by its own sigma when a detector gives
+//!   one, [`solve_pnp_weighted`]), with the covariance `(J^T W J)^-1` in the left
 //!   perturbation of [`crate::geometry`], the RMS, and a planar-ambiguity ratio. Refuses too few
 //!   or collinear points, points behind the camera and a fit over the RMS limit; optionally
 //!   robust (RANSAC) against a mislabelled point.
@@ -35,4 +36,4 @@ pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
 };
 pub use image::{BitDepth, GreyImage};
-pub use pnp::{MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, refine, solve_pnp};
+pub use pnp::{MIN_POINTS, PnpOptions, PnpSolution, solve_pnp, solve_pnp_weighted};

@@ -5,8 +5,15 @@
 //! 3. Refine each candidate by Levenberg-Marquardt on the reprojection error in pixels, with the
 //!    full distortion model, perturbing the pose about the marker points' centroid; keep the best.
 //! 4. Check: every point in front of the camera, the RMS under the limit, a well-conditioned
-//!    information matrix. The covariance is `(J^T J)^-1 sigma_px^2`, of the left perturbation
-//!    `[rho (mm); phi (rad)]` (`docs/interface.md`, "Conventions"), so it feeds the filter as is.
+//!    information matrix. The covariance is `(J^T W J)^-1` with `W = diag(1 / sigma_i^2)`, of
+//!    the left perturbation `[rho (mm); phi (rad)]` (`docs/interface.md`, "Conventions"), so it
+//!    feeds the filter as is.
+//!
+//! A point's standard deviation `sigma_i` is the camera's `pixel_sigma` when the pixels come
+//! without their own uncertainty ([`solve_pnp`]); when a detector measured each point's
+//! ([`solve_pnp_weighted`]) it is `sqrt(sigma_detected^2 + pixel_sigma^2)`: the camera's
+//! `pixel_sigma` then stands for what the detector cannot see (calibration residuals, the air).
+//! The fit minimises `sum |r_i|^2 / sigma_i^2`; the reported RMS is in pixels, unweighted.
 //!
 //! In robust mode an observation that fails the RMS check is solved again by RANSAC over
 //! four-point subsets (a fixed pseudo-random sequence: the same input gives the same answer),
@@ -23,7 +30,8 @@ pub const MIN_POINTS: usize = 4;
 /// How a pose is estimated and when it is refused.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PnpOptions {
-    /// Standard deviation of a measured image point (px): scales the covariance.
+    /// Standard deviation of a measured image point (px), or with per-point sigmas the part
+    /// of it the detector does not see (added in quadrature).
     pub pixel_sigma_px: f64,
     /// A solution with a larger reprojection RMS is refused (px).
     pub max_rms_px: f64,
@@ -52,7 +60,7 @@ impl Default for PnpOptions {
 pub struct PnpSolution {
     /// The pose of the marker in the camera frame.
     pub camera_from_marker: Pose,
-    /// Covariance of the left perturbation `[rho (mm); phi (rad)]`: `(J^T J)^-1 sigma_px^2`.
+    /// Covariance of the left perturbation `[rho (mm); phi (rad)]`: `(J^T W J)^-1`.
     pub covariance: Mat6,
     /// Root mean square of the reprojection error over the points used (px).
     pub rms_px: f64,
@@ -70,20 +78,23 @@ pub struct PnpSolution {
 
 /// The result of refining one start.
 #[derive(Debug, Clone, Copy)]
-pub struct Refinement {
+struct Refinement {
     /// The refined pose.
-    pub camera_from_marker: Pose,
+    camera_from_marker: Pose,
     /// Sum of squared reprojection errors (px^2).
-    pub cost_px2: f64,
+    cost_px2: f64,
+    /// Sum of squared reprojection errors over their variances (what is minimised).
+    chi2: f64,
     /// The solution with the marker frame moved to the points' centroid.
-    pub camera_from_centred: Pose,
-    /// `J^T J` at the solution, of the right perturbation of `camera_from_centred`.
-    pub information_centred: Mat6,
+    camera_from_centred: Pose,
+    /// `J^T W J` at the solution, of the right perturbation of `camera_from_centred`.
+    information_centred: Mat6,
     /// Iterations taken.
-    pub iterations: usize,
+    iterations: usize,
 }
 
-/// Estimates `camera_from_marker` from marker points (mm) and their measured pixels.
+/// Estimates `camera_from_marker` from marker points (mm) and their measured pixels, every
+/// pixel with the camera's `pixel_sigma`.
 pub fn solve_pnp(
     camera: &CameraModel,
     marker_points_mm: &[Vec3],
@@ -91,12 +102,54 @@ pub fn solve_pnp(
     options: &PnpOptions,
 ) -> Result<PnpSolution, VisionError> {
     check_input(marker_points_mm, image_points_px)?;
+    let weights = vec![1.0 / options.pixel_sigma_px.powi(2); marker_points_mm.len()];
+    solve_checked(camera, marker_points_mm, image_points_px, &weights, options)
+}
+
+/// Estimates `camera_from_marker` from marker points (mm), their measured pixels and each
+/// pixel's own standard deviation (px, from the detector), the camera's `pixel_sigma` added in
+/// quadrature.
+pub fn solve_pnp_weighted(
+    camera: &CameraModel,
+    marker_points_mm: &[Vec3],
+    image_points_px: &[Vector2<f64>],
+    point_sigmas_px: &[f64],
+    options: &PnpOptions,
+) -> Result<PnpSolution, VisionError> {
+    check_input(marker_points_mm, image_points_px)?;
+    if point_sigmas_px.len() != image_points_px.len() {
+        return Err(VisionError::MismatchedPoints {
+            marker_points: marker_points_mm.len(),
+            image_points: point_sigmas_px.len(),
+        });
+    }
+    let mut weights = Vec::with_capacity(point_sigmas_px.len());
+    for (i, s) in point_sigmas_px.iter().enumerate() {
+        let variance = s * s + options.pixel_sigma_px * options.pixel_sigma_px;
+        if !s.is_finite() || *s < 0.0 || variance <= 0.0 {
+            return Err(VisionError::NonFinite {
+                what: format!("the standard deviation of image point {i} ({s})"),
+            });
+        }
+        weights.push(1.0 / variance);
+    }
+    solve_checked(camera, marker_points_mm, image_points_px, &weights, options)
+}
+
+fn solve_checked(
+    camera: &CameraModel,
+    marker_points_mm: &[Vec3],
+    image_points_px: &[Vector2<f64>],
+    weights: &[f64],
+    options: &PnpOptions,
+) -> Result<PnpSolution, VisionError> {
     let normalized = undistort_all(camera, image_points_px)?;
     let first = solve_all(
         camera,
         marker_points_mm,
         image_points_px,
         &normalized,
+        weights,
         options,
     );
     match first {
@@ -105,6 +158,7 @@ pub fn solve_pnp(
             marker_points_mm,
             image_points_px,
             &normalized,
+            weights,
             options,
         ),
         other => other,
@@ -174,16 +228,6 @@ fn shape(points: &[Vec3]) -> Result<Shape, VisionError> {
     })
 }
 
-/// Initial `camera_from_marker` candidates, best first (by the initialiser's own cost).
-pub fn initial_poses(
-    camera: &CameraModel,
-    marker_points_mm: &[Vec3],
-    image_points_px: &[Vector2<f64>],
-) -> Result<Vec<Pose>, VisionError> {
-    check_input(marker_points_mm, image_points_px)?;
-    initial_from_normalized(marker_points_mm, &undistort_all(camera, image_points_px)?)
-}
-
 /// The normalized rays `(X/Z, Y/Z)` of measured pixels.
 fn undistort_all(
     camera: &CameraModel,
@@ -232,7 +276,7 @@ fn pose_of(rotation: &Mat3, t_mm: &Vec3) -> Pose {
     Pose::from_parts(Translation3::from(*t_mm), r)
 }
 
-/// Cost, `J^T J` and `J^T r` of the reprojection error at `camera_from_centred` (the marker
+/// Weighted cost, unweighted cost (px^2), `J^T W J` and `J^T W r` of the reprojection error at `camera_from_centred` (the marker
 /// frame moved to the points' centroid `c`), over a right perturbation
 /// `camera_from_centred * Exp(delta)`; `None` if a point is behind the camera. About the
 /// centroid, rotation and translation are nearly decoupled, which keeps Gauss-Newton quadratic
@@ -242,47 +286,51 @@ fn evaluate(
     marker: &[Vec3],
     c: &Vec3,
     image: &[Vector2<f64>],
+    weights: &[f64],
     camera_from_centred: &Pose,
-) -> Option<(f64, Mat6, SMatrix<f64, 6, 1>)> {
+) -> Option<(f64, f64, Mat6, SMatrix<f64, 6, 1>)> {
     let r_mat = camera_from_centred
         .rotation
         .to_rotation_matrix()
         .into_inner();
+    let mut chi2 = 0.0;
     let mut cost = 0.0;
     let mut jtj = Mat6::zeros();
     let mut jtr = SMatrix::<f64, 6, 1>::zeros();
-    for (x, uv) in marker.iter().zip(image) {
+    for ((x, uv), w) in marker.iter().zip(image).zip(weights) {
         let xc = x - c;
         let p = r_mat * xc + camera_from_centred.translation.vector;
         let (proj, dp) = camera.project_with_jacobian(&p)?;
         let r = proj - uv;
         cost += r.norm_squared();
+        chi2 += w * r.norm_squared();
         // p = R (x + rho + phi x x) + t: dp/drho = R, dp/dphi = -R [x]x.
         let dpr: Matrix2x3<f64> = dp * r_mat;
         let mut j = SMatrix::<f64, 2, 6>::zeros();
         j.fixed_view_mut::<2, 3>(0, 0).copy_from(&dpr);
         j.fixed_view_mut::<2, 3>(0, 3)
             .copy_from(&(-(dpr * skew(&xc))));
-        jtj += j.transpose() * j;
-        jtr += j.transpose() * r;
+        jtj += j.transpose() * j * *w;
+        jtr += j.transpose() * r * *w;
     }
-    Some((cost, jtj, jtr))
+    Some((chi2, cost, jtj, jtr))
 }
 
 /// Levenberg-Marquardt on the reprojection error from `start`. `None` if the start puts a
 /// point behind the camera.
-pub fn refine(
+fn refine(
     camera: &CameraModel,
     marker_points_mm: &[Vec3],
     image_points_px: &[Vector2<f64>],
+    weights: &[f64],
     start: &Pose,
     max_iterations: usize,
 ) -> Option<Refinement> {
     let c = marker_points_mm.iter().fold(Vec3::zeros(), |a, p| a + p)
         / marker_points_mm.len().max(1) as f64;
     let mut pose = start * Translation3::from(c);
-    let eval = |pose: &Pose| evaluate(camera, marker_points_mm, &c, image_points_px, pose);
-    let (mut cost, mut jtj, mut jtr) = eval(&pose)?;
+    let eval = |pose: &Pose| evaluate(camera, marker_points_mm, &c, image_points_px, weights, pose);
+    let (mut chi2, mut cost, mut jtj, mut jtr) = eval(&pose)?;
     // The initialisers start close: begin as Gauss-Newton, damp only when a step fails.
     let mut lambda = 1e-6;
     let mut iterations = 0;
@@ -303,14 +351,14 @@ pub fn refine(
         let small = delta.fixed_rows::<3>(0).norm()
             < 1e-10 * (1.0 + pose.translation.vector.norm())
             && delta.fixed_rows::<3>(3).norm() < 1e-12;
-        if small || predicted <= 1e-15 * cost {
+        if small || predicted <= 1e-15 * chi2 {
             break;
         }
         let candidate = pose * se3_exp(&delta);
-        match eval(&candidate).filter(|(c, _, _)| *c <= cost) {
-            Some((c, j, g)) => {
+        match eval(&candidate).filter(|(x, _, _, _)| *x <= chi2) {
+            Some((x, c, j, g)) => {
                 pose = candidate;
-                (cost, jtj, jtr) = (c, j, g);
+                (chi2, cost, jtj, jtr) = (x, c, j, g);
                 lambda = (lambda * 0.1).max(1e-12);
             }
             None => {
@@ -325,6 +373,7 @@ pub fn refine(
         camera_from_marker: pose * Translation3::from(-c),
         camera_from_centred: pose,
         cost_px2: cost,
+        chi2,
         information_centred: jtj,
         iterations,
     })
@@ -340,6 +389,7 @@ fn solve_all(
     marker: &[Vec3],
     image: &[Vector2<f64>],
     normalized: &[Vector2<f64>],
+    weights: &[f64],
     options: &PnpOptions,
 ) -> Result<PnpSolution, VisionError> {
     let starts = initial_from_normalized(marker, normalized)?;
@@ -349,11 +399,11 @@ fn solve_all(
             .iter()
             .filter(|s| count_behind(s, marker) == 0)
             .take(2)
-            .filter_map(|s| refine(camera, marker, image, s, options.max_iterations))
+            .filter_map(|s| refine(camera, marker, image, weights, s, options.max_iterations))
             .collect()
     };
     let mut refined = refine_starts(&starts);
-    refined.sort_by(|a, b| a.cost_px2.total_cmp(&b.cost_px2));
+    refined.sort_by(|a, b| a.chi2.total_cmp(&b.chi2));
     // A planar marker of few points, some nearly in line, can give IPPE a homography too poor
     // to start from: when its best is over the limit, SQPnP's minima are tried as well.
     let over_limit = |r: &[Refinement]| {
@@ -368,7 +418,7 @@ fn solve_all(
             .map(|m| pose_of(&m.rotation, &(m.t_mm - m.rotation * centroid)))
             .collect();
         refined.extend(refine_starts(&more));
-        refined.sort_by(|a, b| a.cost_px2.total_cmp(&b.cost_px2));
+        refined.sort_by(|a, b| a.chi2.total_cmp(&b.chi2));
     }
     let Some(best) = refined.first().copied() else {
         let behind = starts
@@ -451,7 +501,7 @@ fn finish(
             limit_px: options.max_rms_px,
         });
     }
-    let covariance = covariance_of(&best, options.pixel_sigma_px)?;
+    let covariance = covariance_of(&best)?;
     Ok(PnpSolution {
         camera_from_marker: best.camera_from_marker,
         covariance,
@@ -463,11 +513,11 @@ fn finish(
     })
 }
 
-/// `(J^T J)^-1 sigma^2` in the left perturbation of `camera_from_marker`, refused when the
+/// `(J^T W J)^-1` in the left perturbation of `camera_from_marker`, refused when the
 /// information is (numerically) singular: the view does not determine some direction of the
 /// pose. The right perturbation of `camera_from_centred` moves to the left one of
 /// `camera_from_marker = camera_from_centred * const` by its adjoint.
-fn covariance_of(refinement: &Refinement, sigma_px: f64) -> Result<Mat6, VisionError> {
+fn covariance_of(refinement: &Refinement) -> Result<Mat6, VisionError> {
     let information = &refinement.information_centred;
     let d = information.diagonal().map(|v| v.max(0.0).sqrt());
     if d.iter().any(|v| v.is_nan() || *v <= 0.0) {
@@ -481,7 +531,7 @@ fn covariance_of(refinement: &Refinement, sigma_px: f64) -> Result<Mat6, VisionE
     if inv.diagonal().max() > 1e12 {
         return Err(degenerate_view());
     }
-    let right = scale * inv * scale * (sigma_px * sigma_px);
+    let right = scale * inv * scale;
     let ad = adjoint(&refinement.camera_from_centred);
     let cov = ad * right * ad.transpose();
     Ok((cov + cov.transpose()) * 0.5)
@@ -512,6 +562,7 @@ fn solve_ransac(
     marker: &[Vec3],
     image: &[Vector2<f64>],
     normalized: &[Vector2<f64>],
+    weights: &[f64],
     options: &PnpOptions,
 ) -> Result<PnpSolution, VisionError> {
     let n = marker.len();
@@ -570,7 +621,8 @@ fn solve_ransac(
         let m: Vec<Vec3> = kept.iter().map(|&i| marker[i]).collect();
         let px: Vec<Vector2<f64>> = kept.iter().map(|&i| image[i]).collect();
         let rays: Vec<Vector2<f64>> = kept.iter().map(|&i| normalized[i]).collect();
-        let solution = solve_all(camera, &m, &px, &rays, options)?;
+        let w: Vec<f64> = kept.iter().map(|&i| weights[i]).collect();
+        let solution = solve_all(camera, &m, &px, &rays, &w, options)?;
         let again = inliers_of(&solution.camera_from_marker);
         if round == 2 || again == kept || again.len() < needed {
             return Ok(PnpSolution {

@@ -4,7 +4,7 @@
 use crate::common;
 
 use brokenray::geometry::{Pose, Rotation, Vec3};
-use brokenray::vision::{CameraModel, PnpOptions, VisionError, solve_pnp};
+use brokenray::vision::{CameraModel, PnpOptions, VisionError, solve_pnp, solve_pnp_weighted};
 use common::{assert_summed_nees_within, nees};
 use nalgebra::{Point3, Translation3, Vector2};
 use rand::rngs::StdRng;
@@ -356,4 +356,100 @@ fn duplicated_image_points_are_refused_as_a_degenerate_view() {
         ),
         "{err}"
     );
+}
+
+#[test]
+fn per_point_sigmas_weight_the_fit_and_the_covariance_stays_honest() {
+    // Each point has its own noise, from 0.005 to 0.1 px (a detector's sigmas: large bright
+    // discs near the centre, small faint ones at the edge). Weighted by those sigmas the error lies
+    // within the reported covariance, and it is smaller than the error of the uniform fit.
+    let mut rng = StdRng::seed_from_u64(64);
+    let options = PnpOptions {
+        pixel_sigma_px: 0.001,
+        ..PnpOptions::default()
+    };
+    let trials = 800;
+    let (mut nees_sum, mut weighted_sq, mut uniform_sq) = (0.0, 0.0, 0.0);
+    for k in 0..trials {
+        let camera = if k % 2 == 0 {
+            lab_camera()
+        } else {
+            wide_camera()
+        };
+        let (n, half, dist) = if k % 2 == 0 {
+            (12, 150.0, 3000.0)
+        } else {
+            (16, 100.0, 700.0)
+        };
+        let points = marker(&mut rng, n, half, k % 4 < 2);
+        let truth = view(&mut rng, dist, 30.0);
+        let sigmas: Vec<f64> = (0..n).map(|_| rng.random_range(0.005..0.1)).collect();
+        let pixels: Vec<Vector2<f64>> = project_all(&camera, &truth, &points)
+            .into_iter()
+            .zip(&sigmas)
+            .map(|(p, s)| {
+                let noise = Normal::new(0.0, *s).expect("valid sigma");
+                p + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng))
+            })
+            .collect();
+        let weighted =
+            solve_pnp_weighted(&camera, &points, &pixels, &sigmas, &options).expect("solvable");
+        nees_sum += nees(&weighted.camera_from_marker, &truth, &weighted.covariance);
+        // The marker origin's position error in the camera frame.
+        let error =
+            |pose: &Pose| (pose.translation.vector - truth.translation.vector).norm_squared();
+        weighted_sq += error(&weighted.camera_from_marker);
+        let rms_sigma = (sigmas.iter().map(|s| s * s).sum::<f64>() / n as f64).sqrt();
+        let uniform = solve_pnp(
+            &camera,
+            &points,
+            &pixels,
+            &PnpOptions {
+                pixel_sigma_px: rms_sigma,
+                ..options
+            },
+        )
+        .expect("solvable");
+        uniform_sq += error(&uniform.camera_from_marker);
+    }
+    assert_summed_nees_within(nees_sum, trials, 0.005);
+    eprintln!(
+        "weighted: mean NEES {:.3}; mean square translation error {:.3e} mm^2, uniform {:.3e}",
+        nees_sum / trials as f64,
+        weighted_sq / trials as f64,
+        uniform_sq / trials as f64
+    );
+    assert!(
+        weighted_sq < 0.8 * uniform_sq,
+        "weighted mean square translation error {:.4} mm^2 vs uniform {:.4} mm^2",
+        weighted_sq / trials as f64,
+        uniform_sq / trials as f64
+    );
+}
+
+#[test]
+fn per_point_sigmas_are_checked() {
+    let (camera, points, _, pixels) = lab_case(5);
+    let options = PnpOptions::default();
+    let err = solve_pnp_weighted(&camera, &points, &pixels, &[0.1; 7], &options)
+        .expect_err("one sigma short");
+    assert!(
+        matches!(err, VisionError::MismatchedPoints { .. }),
+        "{err:?}"
+    );
+    let mut sigmas = vec![0.1; 8];
+    sigmas[3] = f64::NAN;
+    let err =
+        solve_pnp_weighted(&camera, &points, &pixels, &sigmas, &options).expect_err("a NaN sigma");
+    assert!(err.to_string().contains("image point 3"), "{err}");
+    sigmas[3] = -0.1;
+    assert!(solve_pnp_weighted(&camera, &points, &pixels, &sigmas, &options).is_err());
+    // Equal sigmas give the uniform fit: same pose, same covariance.
+    let a = solve_pnp_weighted(&camera, &points, &pixels, &[0.0; 8], &options).expect("solves");
+    let b = solve_pnp(&camera, &points, &pixels, &options).expect("solves");
+    assert!(
+        (a.camera_from_marker.translation.vector - b.camera_from_marker.translation.vector).norm()
+            < 1e-9
+    );
+    assert!((a.covariance - b.covariance).norm() <= 1e-9 * b.covariance.norm());
 }
