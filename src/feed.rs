@@ -37,6 +37,7 @@ pub fn observation_items(group: &SimGroup) -> Vec<Value> {
                 time: time.clone(),
                 points_px: o.points_px.clone(),
                 ids: None,
+                sigma_px: None,
             })
             .ok()
         })
@@ -54,7 +55,7 @@ pub fn sample_items(group: &SimGroup, observer: &Observer) -> Vec<Value> {
     let time = format_ns(group.time_ns);
     let mut out = Vec::new();
     for o in &group.observations {
-        if let Ok((link, s)) = observer.solve(&o.camera, &o.marker, &o.points_px, None) {
+        if let Ok((link, s)) = observer.solve(&o.camera, &o.marker, &o.points_px, None, None) {
             let cov: Vec<f64> = s.covariance.transpose().iter().copied().collect();
             out.push(json!({"link": link.name, "time": time,
                 "pose": pose_json(&s.camera_from_marker), "covariance": cov,

@@ -37,6 +37,10 @@ pub struct ObservationIn {
     /// The marker point id of each pixel, when not all points are seen or the order differs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ids: Option<Vec<u32>>,
+    /// Each pixel's standard deviation (px), when a detector measured it: the point is
+    /// weighted by it, the camera's `pixel_sigma` added in quadrature.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_px: Option<Vec<f64>>,
 }
 
 /// A batch of observations, each solved and stored, or none.
@@ -126,7 +130,7 @@ pub async fn post_observations(
 }
 
 /// Runs CPU work on the blocking pool; a panic in it is a 500.
-async fn blocking<T: Send + 'static>(
+pub(super) async fn blocking<T: Send + 'static>(
     f: impl FnOnce() -> T + Send + 'static,
 ) -> Result<T, ApiError> {
     tokio::task::spawn_blocking(f)
@@ -152,14 +156,19 @@ fn solve_batch(
                 continue;
             }
         };
-        let (link, solution) =
-            match observer.solve(&o.camera, &o.marker, &o.points_px, o.ids.as_deref()) {
-                Ok(v) => v,
-                Err(e) => {
-                    problems.push((Some(index), (e.field.to_owned(), e.message)));
-                    continue;
-                }
-            };
+        let (link, solution) = match observer.solve(
+            &o.camera,
+            &o.marker,
+            &o.points_px,
+            o.ids.as_deref(),
+            o.sigma_px.as_deref(),
+        ) {
+            Ok(v) => v,
+            Err(e) => {
+                problems.push((Some(index), (e.field.to_owned(), e.message)));
+                continue;
+            }
+        };
         if !seen.insert((link.link.0, time_ns)) {
             problems.push((
                 Some(index),

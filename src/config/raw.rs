@@ -129,6 +129,7 @@ pub(super) struct RawCamera {
     #[serde(default)]
     pub distortion: [f64; 5],
     pub pixel_sigma: f64,
+    pub gain_e_per_dn: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]

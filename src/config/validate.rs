@@ -513,6 +513,9 @@ impl Validator {
             ok &= self.finite(at, &format!("{what}: principal point"), &[c.cx, c.cy]);
             ok &= self.finite(at, &format!("{what}: distortion"), &c.distortion);
             ok &= self.positive(at, &format!("{what}: pixel_sigma"), c.pixel_sigma);
+            if let Some(gain) = c.gain_e_per_dn {
+                ok &= self.positive(at, &format!("{what}: gain_e_per_dn"), gain);
+            }
             if ok {
                 out.push(Camera {
                     frame: c.frame.clone(),
@@ -526,6 +529,7 @@ impl Validator {
                         height_px: c.height,
                     },
                     pixel_sigma_px: c.pixel_sigma,
+                    gain_e_per_dn: c.gain_e_per_dn,
                 });
             }
         }

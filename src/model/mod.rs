@@ -8,11 +8,14 @@
 //!
 //! [`Observer`] derives the camera-marker links from a model and solves raw observations of
 //! them into link samples; [`identify`] finds a marker's points among a frame's detected discs
-//! and solves its pose, corrected for the discs' perspective eccentricity.
+//! and solves its pose, corrected for the discs' perspective eccentricity; [`observe_frame`]
+//! does both for every marker a camera sees in one frame.
 
+mod frame;
 mod identify;
 mod observation;
 
+pub use frame::{FrameObservation, MarkerInFrame, observe_frame};
 pub use identify::{Found, NotFound, identify};
 pub use observation::{ObservationError, ObservedLink, Observer};
 
@@ -48,8 +51,12 @@ pub struct Camera {
     pub frame: String,
     /// Intrinsics, distortion and image size.
     pub intrinsics: CameraModel,
-    /// Standard deviation of a measured image point (px).
+    /// Standard deviation of a measured image point (px); with points from frames, the part
+    /// the detector's own uncertainty does not cover (calibration residuals, the air).
     pub pixel_sigma_px: f64,
+    /// Electrons per digital number, when known: the detector then counts the signal's shot
+    /// noise in each point's uncertainty (the background's noise is always counted).
+    pub gain_e_per_dn: Option<f64>,
 }
 
 /// A cooperative marker: known points in its own frame.

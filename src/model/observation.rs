@@ -8,7 +8,7 @@
 use super::{LinkKind, Model};
 use crate::chain::LinkId;
 use crate::geometry::Vec3;
-use crate::vision::{CameraModel, PnpOptions, PnpSolution, solve_pnp};
+use crate::vision::{CameraModel, PnpOptions, PnpSolution, solve_pnp, solve_pnp_weighted};
 use nalgebra::Vector2;
 use std::borrow::Cow;
 
@@ -25,6 +25,8 @@ pub struct ObservedLink {
     pub name: String,
     /// The camera.
     pub camera: CameraModel,
+    /// The camera's electrons per digital number, when known (for the detector's noise).
+    pub gain_e_per_dn: Option<f64>,
     /// The marker's points (mm).
     pub points_mm: Vec<Vec3>,
     /// The marker's point ids, one per point.
@@ -93,6 +95,7 @@ impl Observer {
                     link: spec.id,
                     name: spec.name.clone(),
                     camera: camera.intrinsics,
+                    gain_e_per_dn: camera.gain_e_per_dn,
                     points_mm: marker.points_mm.iter().map(|p| Vec3::from(*p)).collect(),
                     ids: marker.ids.clone(),
                     target: marker.target,
@@ -124,13 +127,7 @@ impl Observer {
             return Ok(link);
         }
         Err(if !self.cameras.iter().any(|c| c == camera) {
-            ObservationError::new(
-                "camera",
-                format!(
-                    "unknown camera `{camera}` (configured: {})",
-                    self.cameras.join(", ")
-                ),
-            )
+            self.camera_error(camera)
         } else if !self.markers.iter().any(|m| m == marker) {
             ObservationError::new(
                 "marker",
@@ -149,15 +146,57 @@ impl Observer {
         })
     }
 
-    /// Solves one observation: `points_px` in the marker's point order, or paired with `ids`.
+    /// Why `camera` has no observable link: it is not configured, or it sees no marker through
+    /// a measured link.
+    pub fn camera_error(&self, camera: &str) -> ObservationError {
+        if self.cameras.iter().any(|c| c == camera) {
+            ObservationError::new(
+                "camera",
+                format!(
+                    "camera {camera} sees no marker through a measured link `{camera}_from_<marker>`"
+                ),
+            )
+        } else {
+            ObservationError::new(
+                "camera",
+                format!(
+                    "unknown camera `{camera}` (configured: {})",
+                    self.cameras.join(", ")
+                ),
+            )
+        }
+    }
+
+    /// Solves one observation: `points_px` in the marker's point order, or paired with `ids`;
+    /// with `sigmas_px` (one per point, from a detector) each point weighted by its own
+    /// standard deviation, the camera's `pixel_sigma` added in quadrature.
     pub fn solve(
         &self,
         camera: &str,
         marker: &str,
         points_px: &[[f64; 2]],
         ids: Option<&[u32]>,
+        sigmas_px: Option<&[f64]>,
     ) -> Result<(&ObservedLink, PnpSolution), ObservationError> {
         let link = self.link(camera, marker)?;
+        if let Some(sigmas) = sigmas_px {
+            if sigmas.len() != points_px.len() {
+                return Err(ObservationError::new(
+                    "sigma_px",
+                    format!("{} sigma(s) for {} point(s)", sigmas.len(), points_px.len()),
+                ));
+            }
+            if let Some((i, s)) = sigmas
+                .iter()
+                .enumerate()
+                .find(|(_, s)| !(s.is_finite() && **s >= 0.0))
+            {
+                return Err(ObservationError::new(
+                    "sigma_px",
+                    format!("sigma {i} must be a finite number >= 0, not {s}"),
+                ));
+            }
+        }
         let marker_points: Cow<'_, [Vec3]> = match ids {
             None => {
                 if points_px.len() != link.points_mm.len() {
@@ -201,8 +240,13 @@ impl Observer {
         };
         let pixels: Vec<Vector2<f64>> =
             points_px.iter().map(|p| Vector2::new(p[0], p[1])).collect();
-        let solution = solve_pnp(&link.camera, &marker_points, &pixels, &link.options)
-            .map_err(|e| ObservationError::new("points_px", e.to_string()))?;
+        let solution = match sigmas_px {
+            None => solve_pnp(&link.camera, &marker_points, &pixels, &link.options),
+            Some(sigmas) => {
+                solve_pnp_weighted(&link.camera, &marker_points, &pixels, sigmas, &link.options)
+            }
+        }
+        .map_err(|e| ObservationError::new("points_px", e.to_string()))?;
         Ok((link, solution))
     }
 }

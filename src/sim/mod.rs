@@ -487,6 +487,50 @@ impl Simulator {
         }
     }
 
+    /// The frames of a group: per camera of a camera-marker link, in installation order, the
+    /// discs of every marker it sees at the group's true poses, rendered with `settings` (the
+    /// noise seeded from the settings' seed and the group's time, so every frame differs).
+    pub fn render_frames(
+        &self,
+        group: &SimGroup,
+        settings: &render::RenderSettings,
+    ) -> Vec<(String, crate::vision::GreyImage)> {
+        let mut cameras: Vec<(&str, &crate::vision::CameraModel)> = Vec::new();
+        for link in self.observer.links() {
+            if !cameras.iter().any(|(c, _)| *c == link.camera_frame) {
+                cameras.push((&link.camera_frame, &link.camera));
+            }
+        }
+        cameras
+            .into_iter()
+            .enumerate()
+            .map(|(k, (camera, model))| {
+                let discs: Vec<render::Disc> = self
+                    .observer
+                    .links()
+                    .filter(|l| l.camera_frame == camera)
+                    .filter_map(|l| {
+                        let pose = group.link_truth.iter().find(|(n, _)| *n == l.name)?.1;
+                        Some(render::marker_discs(l, &pose))
+                    })
+                    .flatten()
+                    .collect();
+                let seeded = render::RenderSettings {
+                    seed: settings
+                        .seed
+                        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                        .wrapping_add(group.time_ns as u64)
+                        .wrapping_add(k as u64),
+                    ..*settings
+                };
+                (
+                    camera.to_owned(),
+                    render::render_discs(model, &discs, &seeded),
+                )
+            })
+            .collect()
+    }
+
     /// The installation's camera-marker links (to solve the observations it generates).
     pub fn observer(&self) -> &Observer {
         &self.observer

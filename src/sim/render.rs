@@ -12,7 +12,8 @@
 //!
 //! Pixel convention: integer coordinates are pixel centres (see [`crate::vision::GreyImage`]).
 
-use crate::geometry::Vec3;
+use crate::geometry::{Pose, Vec3};
+use crate::model::ObservedLink;
 use crate::vision::{BitDepth, CameraModel, GreyImage};
 use nalgebra::Vector2;
 use rand::SeedableRng;
@@ -111,6 +112,23 @@ pub fn render_discs(camera: &CameraModel, discs: &[Disc], settings: &RenderSetti
     #[allow(clippy::expect_used)]
     GreyImage::new(camera.width_px, camera.height_px, settings.depth, pixels)
         .expect("a rendered frame is valid")
+}
+
+/// The discs of a link's marker at `camera_from_marker`, in the camera frame (none when the
+/// marker declares no disc target).
+pub fn marker_discs(link: &ObservedLink, camera_from_marker: &Pose) -> Vec<Disc> {
+    let Some(target) = link.target else {
+        return Vec::new();
+    };
+    link.points_mm
+        .iter()
+        .zip(&link.normals)
+        .map(|(p, n)| Disc {
+            centre_mm: (camera_from_marker * nalgebra::Point3::from(*p)).coords,
+            normal: camera_from_marker.rotation * n,
+            diameter_mm: target.diameter_mm,
+        })
+        .collect()
 }
 
 /// The image of a disc's centre: where an undistorted, noise-free detector of *centres* (not of

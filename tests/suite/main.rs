@@ -12,6 +12,7 @@ mod deformation_and_stats;
 mod detection;
 mod filter_bank;
 mod filter_behaviour;
+mod frames;
 mod geometry_properties;
 mod hand_eye;
 mod pnp;
