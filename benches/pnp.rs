@@ -65,6 +65,7 @@ fn bench(c: &mut Criterion) {
         for n in [4usize, 8, 16, 64] {
             let k = case(n, planar);
             let start = initial_poses(&k.camera, &k.marker, &k.pixels).expect("solvable")[0];
+            let weights = vec![1.0 / options.pixel_sigma_px.powi(2); n];
             group.bench_with_input(BenchmarkId::new("initialise", n), &k, |b, k| {
                 b.iter(|| {
                     initial_poses(
@@ -80,6 +81,7 @@ fn bench(c: &mut Criterion) {
                         black_box(&k.camera),
                         &k.marker,
                         &k.pixels,
+                        &weights,
                         black_box(&start),
                         50,
                     )

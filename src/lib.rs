@@ -46,6 +46,7 @@ pub mod deformation;
 pub mod feed;
 pub mod filter;
 pub mod geometry;
+pub mod imagefile;
 pub mod model;
 pub mod service;
 pub mod sim;

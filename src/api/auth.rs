@@ -274,12 +274,18 @@ pub async fn local_only(
                 .get(header::CONTENT_LENGTH)
                 .and_then(|v| v.to_str().ok())
                 .is_some_and(|v| v.trim() != "0");
-        // A body must be declared JSON; a write without a body (and without a type) passes
-        // (a browser sends an `Origin` with it, checked above).
+        // A body must be declared JSON (or a frame's image type: like JSON, none of them is a
+        // type a cross-site form may send without asking first); a write without a body (and
+        // without a type) passes (a browser sends an `Origin` with it, checked above).
         let refused = match content_type.as_deref() {
             Some(t) => !matches!(
                 t,
-                "application/json" | "application/x-ndjson" | "application/jsonl"
+                "application/json"
+                    | "application/x-ndjson"
+                    | "application/jsonl"
+                    | "image/png"
+                    | "image/tiff"
+                    | "image/x-portable-graymap"
             ),
             None => has_body,
         };
@@ -289,7 +295,8 @@ pub async fn local_only(
                 "unsupported_media_type",
                 format!(
                     "a write must be sent as `Content-Type: application/json` (or \
-                     application/x-ndjson), not `{}`",
+                     application/x-ndjson; a frame as image/png, image/tiff or \
+                     image/x-portable-graymap), not `{}`",
                     content_type.unwrap_or_else(|| "none".into())
                 ),
             ));

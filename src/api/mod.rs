@@ -11,6 +11,7 @@ mod dashboard;
 pub(crate) mod dto;
 mod error;
 mod events;
+mod frames;
 mod ingest;
 mod jsonpath;
 mod links;
@@ -322,6 +323,7 @@ fn routes() -> OpenApiRouter<AppState> {
     let api = OpenApiRouter::new()
         .routes(routes!(ingest::post_samples))
         .routes(routes!(vision::post_observations))
+        .routes(routes!(frames::post_frame))
         .routes(routes!(vision::post_hand_eye))
         .routes(routes!(targets::list_targets))
         .routes(routes!(targets::get_compensation))

@@ -36,4 +36,7 @@ pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
 };
 pub use image::{BitDepth, GreyImage};
-pub use pnp::{MIN_POINTS, PnpOptions, PnpSolution, solve_pnp, solve_pnp_weighted};
+pub use pnp::{
+    MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, refine, solve_pnp,
+    solve_pnp_weighted,
+};

@@ -78,19 +78,19 @@ pub struct PnpSolution {
 
 /// The result of refining one start.
 #[derive(Debug, Clone, Copy)]
-struct Refinement {
+pub struct Refinement {
     /// The refined pose.
-    camera_from_marker: Pose,
+    pub camera_from_marker: Pose,
     /// Sum of squared reprojection errors (px^2).
-    cost_px2: f64,
+    pub cost_px2: f64,
     /// Sum of squared reprojection errors over their variances (what is minimised).
-    chi2: f64,
+    pub chi2: f64,
     /// The solution with the marker frame moved to the points' centroid.
-    camera_from_centred: Pose,
+    pub camera_from_centred: Pose,
     /// `J^T W J` at the solution, of the right perturbation of `camera_from_centred`.
-    information_centred: Mat6,
+    pub information_centred: Mat6,
     /// Iterations taken.
-    iterations: usize,
+    pub iterations: usize,
 }
 
 /// Estimates `camera_from_marker` from marker points (mm) and their measured pixels, every
@@ -228,6 +228,17 @@ fn shape(points: &[Vec3]) -> Result<Shape, VisionError> {
     })
 }
 
+/// Initial `camera_from_marker` candidates, best first (by the initialiser's own cost): the
+/// first stage of [`solve_pnp`], public for benchmarks.
+pub fn initial_poses(
+    camera: &CameraModel,
+    marker_points_mm: &[Vec3],
+    image_points_px: &[Vector2<f64>],
+) -> Result<Vec<Pose>, VisionError> {
+    check_input(marker_points_mm, image_points_px)?;
+    initial_from_normalized(marker_points_mm, &undistort_all(camera, image_points_px)?)
+}
+
 /// The normalized rays `(X/Z, Y/Z)` of measured pixels.
 fn undistort_all(
     camera: &CameraModel,
@@ -316,9 +327,10 @@ fn evaluate(
     Some((chi2, cost, jtj, jtr))
 }
 
-/// Levenberg-Marquardt on the reprojection error from `start`. `None` if the start puts a
-/// point behind the camera.
-fn refine(
+/// Levenberg-Marquardt on the reprojection error from `start`, each point weighted by
+/// `weights` (`1 / sigma_i^2`): the second stage of [`solve_pnp`], public for benchmarks.
+/// `None` if the start puts a point behind the camera.
+pub fn refine(
     camera: &CameraModel,
     marker_points_mm: &[Vec3],
     image_points_px: &[Vector2<f64>],

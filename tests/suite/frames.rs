@@ -71,6 +71,9 @@ fn true_links(model: &Model, rng: &mut StdRng) -> HashMap<&'static str, Pose> {
     ])
 }
 
+/// A marker found in a group: its link, pose, point ids and pixels.
+type Solved = (String, PoseCov, Vec<u32>, Vec<[f64; 2]>);
+
 #[test]
 fn rendered_frames_give_an_unbiased_chain_three_times_better_than_published() {
     let mut model = (*default_installation().model).clone();
@@ -100,7 +103,7 @@ fn rendered_frames_give_an_unbiased_chain_three_times_better_than_published() {
         ..RenderSettings::default()
     };
     // Render, detect and solve on both cores.
-    let solve_group = |g: usize| -> Vec<(String, PoseCov, Vec<u32>, Vec<[f64; 2]>)> {
+    let solve_group = |g: usize| -> Vec<Solved> {
         let truth = &groups[g];
         let mut out = Vec::new();
         for link in &links {

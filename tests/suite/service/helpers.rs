@@ -106,13 +106,13 @@ impl TestApp {
         method: &str,
         uri: &str,
         headers: &[(&str, &str)],
-        body: String,
+        body: impl Into<Body>,
     ) -> (StatusCode, Value) {
         let mut builder = Request::builder().method(method).uri(uri);
         for (k, v) in headers {
             builder = builder.header(*k, *v);
         }
-        let req = builder.body(Body::from(body)).expect("request");
+        let req = builder.body(body.into()).expect("request");
         let resp = self.router.clone().oneshot(req).await.expect("response");
         let status = resp.status();
         let bytes = resp.into_body().collect().await.expect("body").to_bytes();

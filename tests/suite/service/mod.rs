@@ -3,6 +3,7 @@
 mod access;
 mod alarms;
 mod dashboard;
+mod frames;
 mod hardening;
 mod helpers;
 mod history;

@@ -1,0 +1,286 @@
+//! `POST /api/v1/frames`: one camera frame in; its disc targets detected, each marker the
+//! camera sees through a measured link identified and solved, and the found ones ingested as
+//! link samples exactly as `/observations` does (atomic, durable before the answer).
+//!
+//! The frame itself is not stored. Decoding and detection are CPU work: they run on the
+//! blocking pool, never on the async workers.
+
+use super::AppState;
+use super::dto::{PoseOut, SigmaOut};
+use super::error::{ApiError, ErrorBody};
+use super::ingest::{IngestResponse, read_body};
+use crate::bank::{MeasurementUncertainty, Sample};
+use crate::clock::format_ns;
+use crate::geometry::{Pose, PoseCov};
+use crate::imagefile::{FrameFileError, FrameFormat, decode};
+use crate::model::{FrameObservation, LinkKind, NotFound, ObservedLink, observe_frame};
+use crate::service::IngestItem;
+use crate::store::Quality;
+use axum::Json;
+use axum::body::Body;
+use axum::extract::{Query, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use serde::{Deserialize, Serialize};
+
+/// Query of `POST /frames`.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[serde(deny_unknown_fields)]
+pub struct FrameQuery {
+    /// The camera's frame (required).
+    pub camera: Option<String>,
+    /// The frame's measurement time, RFC 3339 or integer nanoseconds (required).
+    pub time: Option<String>,
+}
+
+/// Why a marker was not found, as a stable code.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum NotFoundCode {
+    /// The marker declares no disc target.
+    NoTarget,
+    /// No filtered or nominal pose to predict its points from.
+    NoPrediction,
+    /// Not in front of the camera at the predicted pose.
+    NotInView,
+    /// Too few points found near their predictions.
+    TooFewPoints,
+    /// PnP refused the matched points.
+    PnpRefused,
+}
+
+impl From<&NotFound> for NotFoundCode {
+    fn from(n: &NotFound) -> Self {
+        match n {
+            NotFound::NoTarget => NotFoundCode::NoTarget,
+            NotFound::NoPrediction => NotFoundCode::NoPrediction,
+            NotFound::NotInView => NotFoundCode::NotInView,
+            NotFound::TooFewPoints { .. } => NotFoundCode::TooFewPoints,
+            NotFound::Pnp(_) => NotFoundCode::PnpRefused,
+        }
+    }
+}
+
+/// What the frame showed of one marker.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct FrameMarkerOut {
+    /// The marker's frame.
+    pub marker: String,
+    /// The measured link `<camera>_from_<marker>`.
+    pub link: String,
+    /// Whether its pose was measured (and ingested).
+    pub found: bool,
+    /// The images of the disc centres, eccentricity corrected (px).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub points_px: Option<Vec<[f64; 2]>>,
+    /// The point id of each.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ids: Option<Vec<u32>>,
+    /// Each point's standard deviation from the detector (px).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_px: Option<Vec<f64>>,
+    /// `camera_from_marker`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pose: Option<PoseOut>,
+    /// Its sigmas.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma: Option<SigmaOut>,
+    /// Reprojection RMS (px).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reprojection_rms_px: Option<f64>,
+    /// Indices (into `points_px`) left out by robust estimation.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rejected_points: Option<Vec<usize>>,
+    /// Why it was not found (a sentence).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// Why it was not found (a stable code).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason_code: Option<NotFoundCode>,
+}
+
+/// The answer to a frame.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct FrameOut {
+    /// The camera.
+    pub camera: String,
+    /// The frame's time (RFC 3339).
+    pub time: String,
+    /// Discs detected.
+    pub blobs: usize,
+    /// Each marker of a measured link of the camera, in installation order.
+    pub markers: Vec<FrameMarkerOut>,
+    /// What ingesting the found markers' samples did.
+    pub ingest: IngestResponse,
+}
+
+/// `POST /api/v1/frames`.
+#[utoipa::path(post, path = "/frames", tag = "ingest",
+    params(FrameQuery),
+    request_body(content = Vec<u8>, description = "The frame: PNG, TIFF or binary PGM, 8 or 16 bit, the camera's size",
+        content_type = "image/png"),
+    responses(
+        (status = 200, description = "Markers found or not (each with the reason); found ones durably stored as samples", body = FrameOut),
+        (status = 409, description = "A sample differs from the one stored at the same link and time", body = ErrorBody),
+        (status = 413, description = "Body over `max_body_bytes`", body = ErrorBody),
+        (status = 415, description = "Not PNG, TIFF or PGM", body = ErrorBody),
+        (status = 422, description = "Unknown camera, missing or unbelievable time, undecodable data or a size other than the camera's (each named); nothing was stored", body = ErrorBody),
+        (status = 503, description = "The writer is not available", body = ErrorBody),
+    ),
+    security(("bearer" = ["ingest"])))]
+pub async fn post_frame(
+    State(app): State<AppState>,
+    Query(q): Query<FrameQuery>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<FrameOut>, ApiError> {
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    let format = FrameFormat::from_content_type(content_type).ok_or_else(|| {
+        let accepted: Vec<&str> = FrameFormat::ALL.iter().map(|f| f.content_type()).collect();
+        ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_media_type",
+            format!(
+                "a frame is sent as {}, not `{content_type}`",
+                accepted.join(", ")
+            ),
+        )
+    })?;
+    let camera = q.camera.ok_or_else(|| {
+        ApiError::invalid_field("camera", "the query names no camera (`?camera=C1`)")
+    })?;
+    let observer = app.service.observer();
+    let size = observer
+        .links()
+        .find(|l| l.camera_frame == camera)
+        .map(|l| (l.camera.width_px, l.camera.height_px))
+        .ok_or_else(|| {
+            let e = observer.camera_error(&camera);
+            ApiError::invalid_field(e.field, e.message)
+        })?;
+    let text = q.time.ok_or_else(|| {
+        ApiError::invalid_field("time", "the query gives no measurement time (`&time=...`)")
+    })?;
+    let latest = crate::clock::latest_accepted_ns(
+        app.service.now_ns(),
+        app.service.installation().server.max_future_s,
+    );
+    let time_ns = crate::clock::parse_query_time(&text)
+        .and_then(|t| crate::clock::parse_measurement_time(&serde_json::Value::from(t), latest))
+        .map_err(|m| ApiError::invalid_field("time", m))?;
+    let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
+    let snapshot = app.service.snapshot();
+    let (out, items) = super::vision::blocking(move || {
+        let image = decode(&bytes, format, Some(size)).map_err(|e| {
+            ApiError::invalid_field(
+                "body",
+                match e {
+                    FrameFileError::WrongSize {
+                        width_px,
+                        height_px,
+                        ..
+                    } => format!(
+                        "the frame is {width_px} x {height_px} px but camera {camera} is {} x {} px",
+                        size.0, size.1
+                    ),
+                    other => other.to_string(),
+                },
+            )
+        })?;
+        let predictions = |link: &ObservedLink| {
+            let mut poses: Vec<Pose> = Vec::new();
+            if let Ok(Some(p)) = snapshot.bank.link_estimate(link.link, time_ns) {
+                poses.push(p.pose);
+            }
+            if let LinkKind::Measured(m) = &snapshot.bank.model().links[link.link.0].kind
+                && let Some(nominal) = m.nominal
+            {
+                poses.push(nominal);
+            }
+            poses
+        };
+        let seen = observe_frame(&observer, &camera, &image, predictions)
+            .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
+        Ok::<_, ApiError>(answer(&camera, time_ns, &seen))
+    })
+    .await??;
+    let ingest = if items.is_empty() {
+        IngestResponse::default()
+    } else {
+        app.service.ingest(items).await?.into()
+    };
+    Ok(Json(FrameOut { ingest, ..out }))
+}
+
+/// The answer before ingest, and the samples to ingest.
+fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut, Vec<IngestItem>) {
+    let mut items = Vec::new();
+    let markers = seen
+        .markers
+        .iter()
+        .map(|m| {
+            let mut out = FrameMarkerOut {
+                marker: m.link.marker_frame.clone(),
+                link: m.link.name.clone(),
+                found: false,
+                points_px: None,
+                ids: None,
+                sigma_px: None,
+                pose: None,
+                sigma: None,
+                reprojection_rms_px: None,
+                rejected_points: None,
+                reason: None,
+                reason_code: None,
+            };
+            match &m.result {
+                Ok(found) => {
+                    let s = &found.solution;
+                    let cov = PoseCov {
+                        pose: s.camera_from_marker,
+                        cov: s.covariance,
+                    };
+                    items.push(IngestItem {
+                        index: items.len(),
+                        sample: Sample {
+                            link: m.link.link,
+                            time_ns,
+                            parent_from_child: s.camera_from_marker,
+                            uncertainty: MeasurementUncertainty::Covariance(s.covariance),
+                        },
+                        quality: Quality {
+                            reprojection_rms_px: Some(s.rms_px),
+                            points: u32::try_from(s.points).ok(),
+                        },
+                    });
+                    out.found = true;
+                    out.points_px = Some(found.points_px.clone());
+                    out.ids = Some(found.ids.clone());
+                    out.sigma_px = Some(found.sigma_px.clone());
+                    out.pose = Some(PoseOut::from(&s.camera_from_marker));
+                    out.sigma = Some(SigmaOut::from(&cov));
+                    out.reprojection_rms_px = Some(s.rms_px);
+                    out.rejected_points = Some(s.rejected_points.clone());
+                }
+                Err(why) => {
+                    out.reason = Some(why.to_string());
+                    out.reason_code = Some(NotFoundCode::from(why));
+                }
+            }
+            out
+        })
+        .collect();
+    (
+        FrameOut {
+            camera: camera.to_owned(),
+            time: format_ns(time_ns),
+            blobs: seen.blobs,
+            markers,
+            ingest: IngestResponse::default(),
+        },
+        items,
+    )
+}

@@ -1,0 +1,287 @@
+//! `POST /frames` through the router: rendered frames of the built-in installation in every
+//! accepted file format, the markers found, solved and stored, the chain completed; and every
+//! refusal named with nothing stored.
+
+use super::helpers::{T0_NS, TestApp};
+use axum::http::StatusCode;
+use brokenray::clock::{Clock as _, format_ns};
+use brokenray::imagefile::{FrameFormat, encode};
+use brokenray::sim::render::RenderSettings;
+use brokenray::sim::{Scenario, SimGroup, SimSettings, Simulator};
+use brokenray::vision::{BitDepth, GreyImage};
+use serde_json::Value;
+
+/// The group at `T0_NS` of a static run and its three frames (C1, C2, C3).
+fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) {
+    let inst = brokenray::config::default_installation();
+    let mut sim = Simulator::new(
+        &inst.model,
+        SimSettings {
+            scenario: Scenario::Static,
+            rate_hz: 25.0,
+            start_ns: T0_NS,
+            duration_s: None,
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed: 5,
+        },
+    )
+    .expect("simulator");
+    let group = sim.next_group();
+    let settings = RenderSettings {
+        samples_per_side: 16,
+        depth,
+        contrast_dn: if depth == BitDepth::Eight {
+            200.0
+        } else {
+            200.0 * 256.0
+        },
+        background_dn: if depth == BitDepth::Eight {
+            40.0
+        } else {
+            40.0 * 256.0
+        },
+        read_noise_dn: if depth == BitDepth::Eight {
+            2.0
+        } else {
+            2.0 * 256.0
+        },
+        gain_e_per_dn: if depth == BitDepth::Eight {
+            Some(40.0)
+        } else {
+            Some(40.0 / 256.0)
+        },
+        ..RenderSettings::default()
+    };
+    let frames = sim.render_frames(&group, &settings);
+    (group, frames)
+}
+
+async fn post_frame(
+    app: &TestApp,
+    camera: &str,
+    time: &str,
+    content_type: &str,
+    body: Vec<u8>,
+) -> (StatusCode, Value) {
+    app.request_with_headers(
+        "POST",
+        &format!("/api/v1/frames?camera={camera}&time={time}"),
+        &[("content-type", content_type)],
+        body,
+    )
+    .await
+}
+
+async fn stored_samples(app: &TestApp, link: &str) -> usize {
+    let (status, body) = app.get(&format!("/api/v1/links/{link}/samples")).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    body["samples"].as_array().expect("samples").len()
+}
+
+#[tokio::test]
+async fn frames_in_png_pgm_and_tiff_are_detected_solved_stored_and_complete_the_chain() {
+    let app = TestApp::start(None).await;
+    let (group, frames) = rendered(BitDepth::Eight);
+    let (_, frames16) = rendered(BitDepth::Sixteen);
+    let time = format_ns(group.time_ns);
+    // C1 as 8-bit PNG, C2 as 16-bit PGM, C3 as 16-bit TIFF.
+    let bodies = [
+        (
+            FrameFormat::Png,
+            encode(&frames[0].1, FrameFormat::Png).expect("png"),
+        ),
+        (
+            FrameFormat::Pgm,
+            encode(&frames16[1].1, FrameFormat::Pgm).expect("pgm"),
+        ),
+        (
+            FrameFormat::Tiff,
+            encode(&frames16[2].1, FrameFormat::Tiff).expect("tiff"),
+        ),
+    ];
+    let mut filtered = 0;
+    for ((camera, _), (format, bytes)) in frames.iter().zip(bodies) {
+        let (status, body) = post_frame(&app, camera, &time, format.content_type(), bytes).await;
+        assert_eq!(status, StatusCode::OK, "{camera}: {body}");
+        assert_eq!(body["camera"], camera.as_str());
+        assert_eq!(body["time"], time.as_str());
+        let markers = body["markers"].as_array().expect("markers");
+        assert_eq!(markers.len(), 1, "{body}");
+        let m = &markers[0];
+        assert_eq!(m["found"], true, "{camera}: {m}");
+        let link = m["link"].as_str().expect("link");
+        let points = m["points_px"].as_array().expect("points").len();
+        assert_eq!(m["ids"].as_array().expect("ids").len(), points);
+        assert_eq!(m["sigma_px"].as_array().expect("sigmas").len(), points);
+        assert!(points >= 7, "{m}");
+        assert!(
+            m["reprojection_rms_px"].as_f64().expect("rms") < 0.05,
+            "{m}"
+        );
+        // The pose is the true one within a tenth of a millimetre.
+        let truth = group
+            .link_truth
+            .iter()
+            .find(|(n, _)| n == link)
+            .expect("a true pose")
+            .1;
+        let t = &m["pose"]["t_mm"];
+        let error = (0..3)
+            .map(|i| (t[i].as_f64().expect("t") - truth.translation.vector[i]).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        assert!(error < 0.1, "{link}: {error} mm off");
+        assert_eq!(body["ingest"]["accepted"], 1, "{body}");
+        assert_eq!(body["ingest"]["stored"], 1, "{body}");
+        filtered += body["ingest"]["raw_results"].as_u64().expect("count");
+        assert_eq!(stored_samples(&app, link).await, 1);
+    }
+    // The third frame completes the group: one raw result of G.
+    assert_eq!(filtered, 1);
+    let (_, stats) = app
+        .get(&format!(
+            "/api/v1/targets/G/stats?source=raw&from={time}&to={time}"
+        ))
+        .await;
+    assert_eq!(stats["count"], 1, "{stats}");
+    let truth = group.truth[0].1;
+    let t = &stats["t_mm"]["mean"];
+    for i in 0..3 {
+        let e = t[i].as_f64().expect("t") - truth.translation.vector[i];
+        assert!(e.abs() < 0.5, "G_from_B translation {i} off by {e} mm");
+    }
+    // The same frame again is a retry: accepted, not stored twice.
+    let again = encode(&frames[0].1, FrameFormat::Png).expect("png");
+    let (status, body) = post_frame(&app, "C1", &time, "image/png", again).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["ingest"]["duplicates"], 1, "{body}");
+    assert_eq!(stored_samples(&app, "C1_from_B").await, 1);
+}
+
+#[tokio::test]
+async fn a_colour_frame_is_taken_as_its_luma() {
+    let app = TestApp::start(None).await;
+    let (group, frames) = rendered(BitDepth::Eight);
+    let grey = &frames[0].1;
+    let rgb = image::RgbImage::from_fn(grey.width_px(), grey.height_px(), |u, v| {
+        let g = grey.at(u, v) as u8;
+        image::Rgb([g, g, g])
+    });
+    let mut png = std::io::Cursor::new(Vec::new());
+    rgb.write_to(&mut png, image::ImageFormat::Png)
+        .expect("png");
+    let (status, body) = post_frame(
+        &app,
+        "C1",
+        &format_ns(group.time_ns),
+        "image/png",
+        png.into_inner(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["markers"][0]["found"], true, "{body}");
+}
+
+#[tokio::test]
+async fn an_empty_frame_finds_nothing_and_says_why() {
+    let app = TestApp::start(None).await;
+    let (group, frames) = rendered(BitDepth::Eight);
+    let empty = GreyImage::from_u8(
+        frames[0].1.width_px(),
+        frames[0].1.height_px(),
+        &vec![40; (frames[0].1.width_px() * frames[0].1.height_px()) as usize],
+    )
+    .expect("frame");
+    let (status, body) = post_frame(
+        &app,
+        "C1",
+        &format_ns(group.time_ns),
+        "image/png",
+        encode(&empty, FrameFormat::Png).expect("png"),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["blobs"], 0);
+    let m = &body["markers"][0];
+    assert_eq!(m["found"], false);
+    assert_eq!(m["reason_code"], "too_few_points", "{m}");
+    assert!(
+        m["reason"].as_str().expect("reason").contains("at least 4"),
+        "{m}"
+    );
+    assert_eq!(body["ingest"]["accepted"], 0);
+    assert_eq!(stored_samples(&app, "C1_from_B").await, 0);
+}
+
+#[tokio::test]
+async fn bad_frames_are_refused_by_name_and_nothing_is_stored() {
+    let app = TestApp::start(None).await;
+    let (group, frames) = rendered(BitDepth::Eight);
+    let time = format_ns(group.time_ns);
+    let png = encode(&frames[0].1, FrameFormat::Png).expect("png");
+    let refused = |status: StatusCode, body: &Value, field: Option<&str>, words: &str| {
+        assert_eq!(status.as_u16() / 100, 4, "{body}");
+        let error = &body["error"];
+        let message = error["message"].as_str().expect("message");
+        assert!(message.contains(words), "`{words}` not in {message}");
+        if let Some(field) = field {
+            assert_eq!(error["details"][0]["field"], field, "{body}");
+        }
+    };
+    let (s, b) = post_frame(&app, "C1", &time, "image/jpeg", png.clone()).await;
+    assert_eq!(s, StatusCode::UNSUPPORTED_MEDIA_TYPE);
+    refused(s, &b, None, "image/png");
+    let (s, b) = app
+        .request_with_headers(
+            "POST",
+            &format!("/api/v1/frames?time={time}"),
+            &[("content-type", "image/png")],
+            png.clone(),
+        )
+        .await;
+    refused(s, &b, Some("camera"), "names no camera");
+    let (s, b) = post_frame(&app, "C9", &time, "image/png", png.clone()).await;
+    refused(s, &b, Some("camera"), "unknown camera `C9`");
+    let (s, b) = app
+        .request_with_headers(
+            "POST",
+            "/api/v1/frames?camera=C1",
+            &[("content-type", "image/png")],
+            png.clone(),
+        )
+        .await;
+    refused(s, &b, Some("time"), "no measurement time");
+    let future = format_ns(app.clock.now_ns() + 3_600_000_000_000);
+    let (s, b) = post_frame(&app, "C1", &future, "image/png", png.clone()).await;
+    refused(s, &b, Some("time"), "in the future");
+    let (s, b) = post_frame(&app, "C1", "yesterday", "image/png", png.clone()).await;
+    refused(s, &b, Some("time"), "");
+    let (s, b) = post_frame(&app, "C1", &time, "image/png", b"not a png".to_vec()).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY);
+    refused(s, &b, Some("body"), "not a readable Png image");
+    // A PNG cut short: the header reads, the pixels do not.
+    let (s, b) = post_frame(
+        &app,
+        "C1",
+        &time,
+        "image/png",
+        png[..png.len() / 2].to_vec(),
+    )
+    .await;
+    refused(s, &b, Some("body"), "not a readable");
+    // C3's frame is 1392 x 1040, not C1's 1280 x 1024.
+    let c3 = encode(&frames[2].1, FrameFormat::Png).expect("png");
+    let (s, b) = post_frame(&app, "C1", &time, "image/png", c3).await;
+    refused(
+        s,
+        &b,
+        Some("body"),
+        "1392 x 1040 px but camera C1 is 1280 x 1024 px",
+    );
+    assert_eq!(stored_samples(&app, "C1_from_B").await, 0);
+    // Then the good frame is taken.
+    let (s, b) = post_frame(&app, "C1", &time, "image/png", png).await;
+    assert_eq!(s, StatusCode::OK, "{b}");
+    assert_eq!(stored_samples(&app, "C1_from_B").await, 1);
+}
