@@ -135,9 +135,41 @@ pub fn format_ns(ns: i64) -> String {
         .unwrap_or_else(|| ns.to_string())
 }
 
+/// Formats nanoseconds as RFC 3339 UTC text with all nine fractional digits, so that names
+/// made of times sort in time order (`2026-11-21T10:00:00.040000000Z`).
+pub fn format_ns_fixed(ns: i64) -> String {
+    let text = format_ns(ns);
+    match (text.strip_suffix('Z'), text.find('.')) {
+        (Some(body), Some(dot)) => format!("{body:0<width$}Z", width = dot + 10),
+        (Some(body), None) if body.contains('T') => format!("{body}.000000000Z"),
+        _ => text,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fixed_width_times_sort_in_time_order_and_parse_back() {
+        let t0 = 1_795_255_200_000_000_000;
+        let names: Vec<String> = [0, 40_000_000, 200_000_000, 1_000_000_001]
+            .iter()
+            .map(|d| format_ns_fixed(t0 + d))
+            .collect();
+        assert_eq!(names[0], "2026-11-21T10:00:00.000000000Z");
+        assert_eq!(names[1], "2026-11-21T10:00:00.040000000Z");
+        assert_eq!(names[3], "2026-11-21T10:00:01.000000001Z");
+        let mut sorted = names.clone();
+        sorted.sort();
+        assert_eq!(sorted, names);
+        for (name, d) in names
+            .iter()
+            .zip([0, 40_000_000, 200_000_000, 1_000_000_001])
+        {
+            assert_eq!(parse_query_time(name), Ok(t0 + d));
+        }
+    }
 
     #[test]
     fn a_manual_clock_moves_only_when_told_and_its_clones_share_it() {

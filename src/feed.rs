@@ -3,7 +3,9 @@
 //!
 //! Observations go to `POST /api/v1/observations` (the service runs PnP); in `samples` mode
 //! the simulator solves them itself and sends link poses with their covariance to
-//! `POST /api/v1/samples`, as a pose-producing pipeline would.
+//! `POST /api/v1/samples`, as a pose-producing pipeline would; in `frames` mode every camera's
+//! frame is rendered (8-bit PNG) and posted to `POST /api/v1/frames`, or written as
+//! `DIR/<camera>/<time>.png` beside `DIR/truth.ndjson`.
 
 use crate::api::dto::PoseOut;
 use crate::api::vision::ObservationIn;
@@ -22,6 +24,19 @@ pub enum Emit {
     Observations,
     /// Link poses solved here by PnP, for `/samples`.
     Samples,
+    /// Rendered camera frames, for `/frames`.
+    Frames,
+}
+
+impl Emit {
+    /// What is sent, for messages.
+    pub fn plural(self) -> &'static str {
+        match self {
+            Emit::Observations => "observations",
+            Emit::Samples => "samples",
+            Emit::Frames => "frames",
+        }
+    }
 }
 
 /// The observations of a group, as `/observations` items (the API's own type).
@@ -89,6 +104,8 @@ pub fn truth_line(group: &SimGroup) -> Value {
 pub enum Sink {
     /// NDJSON: one item a line (observations or samples), ready to replay.
     File(std::io::BufWriter<std::fs::File>),
+    /// Frames: `DIR/<camera>/<time>.png`.
+    Dir(std::path::PathBuf),
     /// A running service.
     Http(Client),
 }
@@ -121,6 +138,32 @@ impl Client {
             bail!("{path} answered {status}: {answer}");
         }
         Ok(answer)
+    }
+
+    /// POSTs a camera frame (PNG) to `/api/v1/frames`: the status and the answer.
+    pub async fn post_frame(
+        &self,
+        camera: &str,
+        time_ns: i64,
+        png: Vec<u8>,
+    ) -> anyhow::Result<(reqwest::StatusCode, Value)> {
+        let url = format!("{}/api/v1/frames", self.base);
+        let mut request = self
+            .http
+            .post(&url)
+            .query(&[("camera", camera), ("time", &format_ns(time_ns))])
+            .header(reqwest::header::CONTENT_TYPE, "image/png")
+            .body(png);
+        if let Some(t) = &self.token {
+            request = request.bearer_auth(t);
+        }
+        let response = request
+            .send()
+            .await
+            .with_context(|| format!("cannot reach {url}"))?;
+        let status = response.status();
+        let answer: Value = response.json().await.unwrap_or(Value::Null);
+        Ok((status, answer))
     }
 
     /// POSTs JSON to `path`: the status and the answer; an error only when there is no answer.
@@ -205,13 +248,22 @@ pub async fn feed(
             }
         }
         let group = sim.next_group();
-        let items = match settings.emit {
-            Emit::Observations => observation_items(&group),
-            Emit::Samples => sample_items(&group, sim.observer()),
-        };
         if let Some(t) = truth.as_mut() {
             writeln!(t, "{}", truth_line(&group)).context("cannot write the truth file")?;
         }
+        if settings.emit == Emit::Frames {
+            let frames = render_pngs(sim, &group).await?;
+            summary.groups += 1;
+            summary.items += frames.len() as u64;
+            summary.refused += send_frames(&mut sink, group.time_ns, frames).await?;
+            on_group(&group, &sink).await?;
+            progress.inc(1);
+            continue;
+        }
+        let items = match settings.emit {
+            Emit::Observations => observation_items(&group),
+            Emit::Samples | Emit::Frames => sample_items(&group, sim.observer()),
+        };
         summary.groups += 1;
         summary.items += items.len() as u64;
         pending.extend(items);
@@ -240,12 +292,71 @@ pub async fn feed(
     Ok(summary)
 }
 
+/// Every camera's frame of a group, rendered and encoded as PNG on the blocking pool (a
+/// frame takes tens of milliseconds: never on the async workers, which may be serving).
+async fn render_pngs(sim: &Simulator, group: &SimGroup) -> anyhow::Result<Vec<(String, Vec<u8>)>> {
+    let scenes = sim.frame_scenes(group);
+    tokio::task::spawn_blocking(move || {
+        let settings = crate::sim::render::RenderSettings {
+            // 16 x 16 samples where an edge runs: the truth stays within a few thousandths of a
+            // pixel at a sixteenth of the work.
+            samples_per_side: 16,
+            ..Default::default()
+        };
+        scenes
+            .into_iter()
+            .map(|scene| {
+                let png = crate::imagefile::encode(
+                    &scene.render(&settings),
+                    crate::imagefile::FrameFormat::Png,
+                )?;
+                Ok((scene.camera, png))
+            })
+            .collect::<anyhow::Result<Vec<_>>>()
+    })
+    .await
+    .context("the frame renderer stopped")?
+}
+
+/// Sends or writes a group's frames; answers how many the service refused as invalid.
+async fn send_frames(
+    sink: &mut Sink,
+    time_ns: i64,
+    frames: Vec<(String, Vec<u8>)>,
+) -> anyhow::Result<u64> {
+    let mut refused = 0;
+    for (camera, png) in frames {
+        match sink {
+            Sink::Dir(dir) => {
+                let folder = dir.join(&camera);
+                std::fs::create_dir_all(&folder)
+                    .with_context(|| format!("cannot create {}", folder.display()))?;
+                let path = folder.join(format!("{}.png", crate::clock::format_ns_fixed(time_ns)));
+                std::fs::write(&path, png)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
+            Sink::Http(client) => {
+                let (status, answer) = client.post_frame(&camera, time_ns, png).await?;
+                if status == reqwest::StatusCode::UNPROCESSABLE_ENTITY {
+                    tracing::warn!(%answer, camera, "the service refused a frame; going on");
+                    refused += 1;
+                } else if !status.is_success() {
+                    bail!("/api/v1/frames answered {status}: {answer}");
+                }
+            }
+            Sink::File(_) => bail!("frames are written to a directory, not to one file"),
+        }
+    }
+    Ok(refused)
+}
+
 /// Sends one request's items; answers how many the service refused as invalid.
 async fn send(sink: &mut Sink, emit: Emit, items: Vec<Value>) -> anyhow::Result<u64> {
     if items.is_empty() {
         return Ok(0);
     }
     match sink {
+        Sink::Dir(_) => bail!("observations and samples are written to a file, not a directory"),
         Sink::File(f) => {
             for item in &items {
                 writeln!(f, "{item}").context("cannot write the output file")?;
@@ -255,7 +366,7 @@ async fn send(sink: &mut Sink, emit: Emit, items: Vec<Value>) -> anyhow::Result<
         Sink::Http(client) => {
             let (path, body) = match emit {
                 Emit::Observations => ("/api/v1/observations", json!({"observations": items})),
-                Emit::Samples => ("/api/v1/samples", json!({"samples": items})),
+                Emit::Samples | Emit::Frames => ("/api/v1/samples", json!({"samples": items})),
             };
             let (status, answer) = client.post_status(path, &body).await?;
             if status.is_success() {

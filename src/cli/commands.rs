@@ -95,6 +95,7 @@ pub(super) async fn simulate(
 pub(super) async fn demo(
     installation: Installation,
     settings: crate::sim::SimSettings,
+    emit: crate::feed::Emit,
     out: &mut impl std::io::Write,
 ) -> anyhow::Result<()> {
     let targets: Vec<String> = installation.model.target_names();
@@ -110,11 +111,12 @@ pub(super) async fn demo(
     }));
     writeln!(
         out,
-        "brokenray demo: dashboard http://{addr}/\n  API http://{addr}/api/v1 (described at /api/v1/openapi.json)\n  database {}, Rerun recordings in {}/\n  scenario {:?} at {} Hz; the reference is set after 5 s; Ctrl-C stops",
+        "brokenray demo: dashboard http://{addr}/\n  API http://{addr}/api/v1 (described at /api/v1/openapi.json)\n  database {}, Rerun recordings in {}/\n  scenario {:?} at {} Hz, the cameras sending {}; the reference is set after 5 s; Ctrl-C stops",
         database.display(),
         recordings.display(),
         settings.scenario,
-        settings.rate_hz
+        settings.rate_hz,
+        emit.plural()
     )?;
     out.flush()?;
     let client = crate::feed::Client::new(&format!("http://{addr}"), None)?;
@@ -137,7 +139,7 @@ pub(super) async fn demo(
         crate::feed::FeedSettings {
             rate_hz: settings.rate_hz,
             progress: progress_bar(groups),
-            emit: crate::feed::Emit::Observations,
+            emit,
             groups,
             real_time: true,
             groups_per_request: 1,
@@ -166,8 +168,11 @@ pub(super) async fn demo(
     let summary = result?;
     writeln!(
         out,
-        "demo stopped after {} groups ({} observations, {} refused); every acknowledged write is on disk",
-        summary.groups, summary.items, summary.refused
+        "demo stopped after {} groups ({} {}, {} refused); every acknowledged write is on disk",
+        summary.groups,
+        summary.items,
+        emit.plural(),
+        summary.refused
     )?;
     Ok(())
 }

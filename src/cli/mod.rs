@@ -1,14 +1,17 @@
 //! The command line: subcommands and their output. `main.rs` only parses and dispatches here.
 //!
 //! This file declares the commands and dispatches them; `commands.rs` runs the service, the
-//! simulator and replays on an async runtime, `health.rs` is the container's health probe and
-//! `report.rs` formats what `check-config` prints.
+//! simulator and replays on an async runtime, `health.rs` is the container's health probe,
+//! `detect.rs` turns frame files into observations and `report.rs` formats what `check-config`
+//! prints.
 
 mod commands;
+mod detect;
 mod health;
 mod report;
 
 use commands::{demo, replay, serve, simulate};
+pub use detect::{DetectSummary, detect_files};
 pub use health::healthcheck;
 pub use report::describe_installation;
 
@@ -101,7 +104,8 @@ pub enum Command {
         /// static, drift, ship, tunnel or bump.
         #[arg(long, value_name = "NAME", default_value = "ship")]
         scenario: String,
-        /// Raw observations (the service runs PnP) or link poses solved here.
+        /// Raw observations (the service runs PnP), link poses solved here, or rendered frames
+        /// (the service detects; `--out` is then a directory).
         #[arg(long, value_enum, default_value_t = crate::feed::Emit::Observations)]
         emit: crate::feed::Emit,
         /// Pixel noise (px); each camera's `pixel_sigma` without it.
@@ -124,7 +128,8 @@ pub enum Command {
             required_unless_present = "out"
         )]
         to: Option<String>,
-        /// Write NDJSON here instead (one observation or sample a line).
+        /// Write NDJSON here instead (one observation or sample a line); with `--emit frames` a
+        /// new directory: `<camera>/<time>.png` and `truth.ndjson`.
         #[arg(long, value_name = "FILE")]
         out: Option<PathBuf>,
         /// Write the ground truth here (NDJSON, one group a line).
@@ -148,6 +153,24 @@ pub enum Command {
         #[arg(long, value_name = "FILE")]
         out: Option<PathBuf>,
     },
+    /// Detect a camera's markers in frame files (PNG, TIFF, PGM) and print the observations as
+    /// NDJSON lines ready for `POST /api/v1/observations`; markers not found are reported on
+    /// stderr with the reason.
+    Detect {
+        /// The camera (its frame).
+        #[arg(long, value_name = "NAME")]
+        camera: String,
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// The frame's time (RFC 3339 or integer ns), with one file; else each file's name
+        /// (`2026-11-21T10:00:00.040Z.png`) or modification time.
+        #[arg(long, value_name = "TIME")]
+        time: Option<String>,
+        /// The frames, in time order.
+        #[arg(required = true, value_name = "FILE")]
+        files: Vec<PathBuf>,
+    },
     /// A first look: the service on the built-in installation (or `--config`), fed live by the
     /// simulator (ship flexure, observations through PnP), with a reference set after 5 s and a
     /// Rerun recording. Stop with Ctrl-C.
@@ -158,12 +181,16 @@ pub enum Command {
         /// static, drift, ship, tunnel or bump.
         #[arg(long, value_name = "NAME", default_value = "ship")]
         scenario: String,
-        /// Groups per second.
-        #[arg(long, value_name = "HZ", default_value_t = 25.0)]
-        rate: f64,
+        /// Groups per second (25; 5 with `--emit frames`).
+        #[arg(long, value_name = "HZ")]
+        rate: Option<f64>,
         /// Stop by itself after this long (60s, 15m, ...); runs until Ctrl-C without it.
         #[arg(long, value_name = "DURATION")]
         duration: Option<String>,
+        /// What the simulated cameras send: pixel observations, or rendered frames that the
+        /// service detects itself (a few frames per second: try `--rate 5`).
+        #[arg(long, value_enum, default_value_t = crate::feed::Emit::Observations)]
+        emit: crate::feed::Emit,
     },
     /// Print a new random bearer token and the SHA-256 to put in `[[auth.tokens]]`.
     HashToken {
@@ -276,10 +303,26 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             let groups = (duration_s * rate).round() as u64;
             let sink = match (&to, &out_file) {
                 (Some(url), _) => crate::feed::Sink::Http(crate::feed::Client::new(url, token)?),
+                (None, Some(path)) if emit == crate::feed::Emit::Frames => {
+                    std::fs::create_dir(path).with_context(|| {
+                        format!(
+                            "cannot create the directory {} (it must not exist)",
+                            path.display()
+                        )
+                    })?;
+                    crate::feed::Sink::Dir(path.clone())
+                }
                 (None, Some(path)) => {
                     crate::feed::Sink::File(std::io::BufWriter::new(create_new(path)?))
                 }
                 (None, None) => anyhow::bail!("give --to URL or --out FILE"),
+            };
+            // Frames written to a directory carry their truth beside them.
+            let truth = match (&truth, &out_file) {
+                (None, Some(dir)) if emit == crate::feed::Emit::Frames => {
+                    Some(dir.join("truth.ndjson"))
+                }
+                _ => truth,
             };
             let truth_file = truth
                 .as_deref()
@@ -313,10 +356,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 summary.groups,
                 duration_s,
                 summary.items,
-                match emit {
-                    crate::feed::Emit::Observations => "observations",
-                    crate::feed::Emit::Samples => "samples",
-                },
+                emit.plural(),
                 summary.refused
             )?;
         }
@@ -338,17 +378,44 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             }
             writeln!(out, "{text}")?;
         }
+        Command::Detect {
+            camera,
+            config,
+            time,
+            files,
+        } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let summary = detect_files(
+                &installation,
+                &camera,
+                time.as_deref(),
+                &files,
+                out,
+                &mut std::io::stderr(),
+            )?;
+            eprintln!(
+                "{} frame(s): {} observation(s), {} marker(s) not found",
+                summary.frames, summary.observations, summary.not_found
+            );
+        }
         Command::Demo {
             config,
             scenario,
             rate,
             duration,
+            emit,
         } => {
             let mut installation = config::load_or_default(config.as_deref())?;
             if !installation.rerun.enabled() {
                 installation.rerun.save = true;
             }
             let scenario: crate::sim::Scenario = scenario.parse().map_err(anyhow::Error::msg)?;
+            // Three frames a group are rendered on one core: a few groups a second.
+            let rate = rate.unwrap_or(if emit == crate::feed::Emit::Frames {
+                5.0
+            } else {
+                25.0
+            });
             let model = filter_model_for(scenario);
             for spec in &mut Arc::make_mut(&mut installation.model).links {
                 if let LinkKind::Measured(m) = &mut spec.kind
@@ -381,7 +448,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 seed: 1,
             };
             let runtime = runtime(true)?;
-            runtime.block_on(demo(installation, settings, out))?;
+            runtime.block_on(demo(installation, settings, emit, out))?;
         }
         Command::HashToken { token } => {
             let token = match token {

@@ -487,14 +487,10 @@ impl Simulator {
         }
     }
 
-    /// The frames of a group: per camera of a camera-marker link, in installation order, the
-    /// discs of every marker it sees at the group's true poses, rendered with `settings` (the
-    /// noise seeded from the settings' seed and the group's time, so every frame differs).
-    pub fn render_frames(
-        &self,
-        group: &SimGroup,
-        settings: &render::RenderSettings,
-    ) -> Vec<(String, crate::vision::GreyImage)> {
+    /// What each camera sees in a group, ready to render (owned, so that rendering can run on
+    /// another thread): per camera of a camera-marker link, in installation order, the discs
+    /// of every marker it sees at the group's true poses, and a noise seed of its own.
+    pub fn frame_scenes(&self, group: &SimGroup) -> Vec<render::FrameScene> {
         let mut cameras: Vec<(&str, &crate::vision::CameraModel)> = Vec::new();
         for link in self.observer.links() {
             if !cameras.iter().any(|(c, _)| *c == link.camera_frame) {
@@ -504,8 +500,10 @@ impl Simulator {
         cameras
             .into_iter()
             .enumerate()
-            .map(|(k, (camera, model))| {
-                let discs: Vec<render::Disc> = self
+            .map(|(k, (camera, model))| render::FrameScene {
+                camera: camera.to_owned(),
+                model: *model,
+                discs: self
                     .observer
                     .links()
                     .filter(|l| l.camera_frame == camera)
@@ -514,19 +512,29 @@ impl Simulator {
                         Some(render::marker_discs(l, &pose))
                     })
                     .flatten()
-                    .collect();
-                let seeded = render::RenderSettings {
-                    seed: settings
-                        .seed
-                        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
-                        .wrapping_add(group.time_ns as u64)
-                        .wrapping_add(k as u64),
-                    ..*settings
-                };
-                (
-                    camera.to_owned(),
-                    render::render_discs(model, &discs, &seeded),
-                )
+                    .collect(),
+                seed: self
+                    .settings
+                    .seed
+                    .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                    .wrapping_add(group.time_ns as u64)
+                    .wrapping_add(k as u64),
+            })
+            .collect()
+    }
+
+    /// The frames of a group ([`Self::frame_scenes`] rendered with `settings`, each with its
+    /// own noise seed).
+    pub fn render_frames(
+        &self,
+        group: &SimGroup,
+        settings: &render::RenderSettings,
+    ) -> Vec<(String, crate::vision::GreyImage)> {
+        self.frame_scenes(group)
+            .into_iter()
+            .map(|scene| {
+                let frame = scene.render(settings);
+                (scene.camera, frame)
             })
             .collect()
     }

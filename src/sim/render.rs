@@ -114,6 +114,33 @@ pub fn render_discs(camera: &CameraModel, discs: &[Disc], settings: &RenderSetti
         .expect("a rendered frame is valid")
 }
 
+/// What one camera sees: its discs, ready to render.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameScene {
+    /// The camera's frame.
+    pub camera: String,
+    /// The camera.
+    pub model: CameraModel,
+    /// The discs in its view (camera frame).
+    pub discs: Vec<Disc>,
+    /// The seed of this frame's noise (replaces the settings' seed).
+    pub seed: u64,
+}
+
+impl FrameScene {
+    /// Renders the scene with `settings`, its own seed in place of theirs.
+    pub fn render(&self, settings: &RenderSettings) -> GreyImage {
+        render_discs(
+            &self.model,
+            &self.discs,
+            &RenderSettings {
+                seed: self.seed,
+                ..*settings
+            },
+        )
+    }
+}
+
 /// The discs of a link's marker at `camera_from_marker`, in the camera frame (none when the
 /// marker declares no disc target).
 pub fn marker_discs(link: &ObservedLink, camera_from_marker: &Pose) -> Vec<Disc> {

@@ -94,6 +94,7 @@ fn help_lists_only_working_subcommands() {
             "healthcheck",
             "simulate",
             "calibrate",
+            "detect",
             "demo",
             "hash-token",
             "help"
@@ -204,6 +205,120 @@ fn simulate_writes_observations_or_samples_with_the_ground_truth() {
     assert_eq!(first["link"], "C1_from_B");
     assert_eq!(first["covariance"].as_array().unwrap().len(), 36);
     assert!(first["quality"]["reprojection_rms_px"].as_f64().unwrap() < 0.5);
+}
+
+#[test]
+fn simulated_frames_are_detected_into_observations_of_the_true_poses() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = dir.path().join("frames");
+    let run = brokenray(&[
+        "simulate",
+        "--emit",
+        "frames",
+        "--scenario",
+        "ship",
+        "--duration",
+        "0.6s",
+        "--rate",
+        "5",
+        "--start",
+        "2026-11-21T10:00:00Z",
+        "--out",
+        frames.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(String::from_utf8_lossy(&run.stdout).contains("9 frames sent"));
+    // Named by their time, fixed width: the names sort in time order.
+    let mut c1: Vec<std::path::PathBuf> = std::fs::read_dir(frames.join("C1"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    c1.sort();
+    let names: Vec<String> = c1
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "2026-11-21T10:00:00.000000000Z.png",
+            "2026-11-21T10:00:00.200000000Z.png",
+            "2026-11-21T10:00:00.400000000Z.png"
+        ]
+    );
+    let truth = read_ndjson(&frames.join("truth.ndjson"));
+    assert_eq!(truth.len(), 3);
+
+    let mut args = vec!["detect", "--camera", "C1"];
+    args.extend(c1.iter().map(|p| p.to_str().unwrap()));
+    let run = brokenray(&args);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let lines: Vec<serde_json::Value> = String::from_utf8(run.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3, "one observation per frame");
+    for (k, line) in lines.iter().enumerate() {
+        assert_eq!(line["camera"], "C1");
+        assert_eq!(line["marker"], "B");
+        assert_eq!(line["time"], truth[k]["time"]);
+        assert_eq!(line["ids"].as_array().unwrap().len(), 8);
+        let sigmas = line["sigma_px"].as_array().unwrap();
+        assert!(sigmas.iter().all(|s| s.as_f64().unwrap() < 0.05), "{line}");
+        // The observation solves to the true pose (the service's own PnP on its pixels).
+        let points: Vec<[f64; 2]> = serde_json::from_value(line["points_px"].clone()).unwrap();
+        let ids: Vec<u32> = serde_json::from_value(line["ids"].clone()).unwrap();
+        let sigma_px: Vec<f64> = serde_json::from_value(line["sigma_px"].clone()).unwrap();
+        let inst = brokenray::config::default_installation();
+        let observer = brokenray::model::Observer::new(&inst.model);
+        let (_, solved) = observer
+            .solve("C1", "B", &points, Some(&ids), Some(&sigma_px))
+            .unwrap();
+        let t_true = &truth[k]["links"]["C1_from_B"]["t_mm"];
+        let error = (0..3)
+            .map(|i| {
+                (solved.camera_from_marker.translation.vector[i] - t_true[i].as_f64().unwrap())
+                    .powi(2)
+            })
+            .sum::<f64>()
+            .sqrt();
+        assert!(error < 0.1, "frame {k}: {error} mm from the truth");
+    }
+    assert!(
+        String::from_utf8_lossy(&run.stderr)
+            .contains("3 frame(s): 3 observation(s), 0 marker(s) not found")
+    );
+
+    // A frame of another camera's size, and a camera that is not configured, are named.
+    let c3 = std::fs::read_dir(frames.join("C3"))
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let run = brokenray(&["detect", "--camera", "C1", c3.to_str().unwrap()]);
+    assert!(!run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        err.contains("1392 x 1040 px but 1280 x 1024 px was expected"),
+        "{err}"
+    );
+    let run = brokenray(&["detect", "--camera", "C9", c3.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&run.stderr).contains("unknown camera `C9`"));
+    // --time stamps a single frame.
+    let mut args = vec!["detect", "--camera", "C1", "--time", "2026-11-21T10:00:00Z"];
+    args.extend(c1.iter().map(|p| p.to_str().unwrap()));
+    let run = brokenray(&args);
+    assert!(String::from_utf8_lossy(&run.stderr).contains("--time stamps one frame"));
 }
 
 #[test]
