@@ -1,41 +1,40 @@
-//! Disc detection on a full 1280 x 1024 frame (the laboratory camera C1) holding a marker of
-//! eight 20 mm discs at 3 m (about 32 px across), 0.6 px blur, read and shot noise: background
-//! tiles, threshold, components, shape gates and the centroid with its covariance. Rendering is
-//! outside the timed loop.
+//! One camera frame through the pipeline the service runs on `POST /frames`, on the built-in
+//! installation's camera C1 (1280 x 1024) seeing marker B (eight 20 mm discs at 3 m, about
+//! 32 px across), 0.6 px blur, read and shot noise:
 //!
-//! Run: `cargo bench --bench detect`.
+//! * `detect`: background tiles, threshold, components, shape gates, centroids with their
+//!   covariance;
+//! * `observe_frame`: detection, identification from the nominal pose, weighted PnP, the
+//!   eccentricity correction and PnP again (the whole per-frame work);
+//! * `decode png` / `decode pgm`: the 8-bit frame file decoded into a grey frame.
+//!
+//! Rendering is outside the timed loops. Run: `cargo bench --bench detect`.
 
-use brokenray::geometry::Vec3;
-use brokenray::sim::render::{Disc, RenderSettings, render_discs};
-use brokenray::vision::{CameraModel, DetectSettings, detect};
+use brokenray::config::default_installation;
+use brokenray::imagefile::{FrameFormat, decode, encode};
+use brokenray::model::{LinkKind, Observer, observe_frame};
+use brokenray::sim::render::{RenderSettings, marker_discs, render_discs};
+use brokenray::vision::{DetectSettings, detect};
 use criterion::{Criterion, criterion_group, criterion_main};
 use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
-    let camera = CameraModel {
-        distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
-        ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
+    let installation = default_installation();
+    let observer = Observer::new(&installation.model);
+    let link = observer.link("C1", "B").expect("C1 sees B");
+    let nominal = match &installation.model.link(link.link).kind {
+        LinkKind::Measured(m) => m.nominal.expect("a nominal pose"),
+        LinkKind::Calibrated { .. } => unreachable!("C1_from_B is measured"),
     };
-    // Eight discs on a 100 mm circle, the marker tilted by 20 degrees about x.
-    let tilt = 20f64.to_radians();
-    let normal = Vec3::new(0.0, tilt.sin(), -tilt.cos());
-    let discs: Vec<Disc> = (0..8)
-        .map(|k| {
-            let a = f64::from(k) / 8.0 * std::f64::consts::TAU;
-            let p = Vec3::new(
-                50.0 * a.cos(),
-                50.0 * a.sin() * tilt.cos(),
-                50.0 * a.sin() * tilt.sin(),
-            );
-            Disc {
-                centre_mm: Vec3::new(-20.0, 10.0, 2990.0) + p,
-                normal,
-                diameter_mm: 20.0,
-            }
-        })
-        .collect();
-    let frame = render_discs(&camera, &discs, &RenderSettings::default());
-    let settings = DetectSettings::default();
+    let frame = render_discs(
+        &link.camera,
+        &marker_discs(link, &nominal),
+        &RenderSettings::default(),
+    );
+    let settings = DetectSettings {
+        gain_e_per_dn: link.gain_e_per_dn,
+        ..DetectSettings::default()
+    };
     assert_eq!(
         detect(&frame, &settings).len(),
         8,
@@ -44,7 +43,36 @@ fn bench(c: &mut Criterion) {
     c.bench_function("detect 1280x1024, 8 discs of 32 px", |b| {
         b.iter(|| detect(black_box(&frame), black_box(&settings)))
     });
+    let observe = || {
+        observe_frame(&observer, "C1", black_box(&frame), |_| vec![nominal])
+            .expect("C1's frame")
+            .markers
+            .len()
+    };
+    assert!(
+        observe_frame(&observer, "C1", &frame, |_| vec![nominal])
+            .expect("C1's frame")
+            .markers[0]
+            .result
+            .is_ok(),
+        "the bench frame's marker is found"
+    );
+    c.bench_function(
+        "observe_frame 1280x1024 (detect, identify, PnP twice)",
+        |b| b.iter(observe),
+    );
+    let size = Some((frame.width_px(), frame.height_px()));
+    for format in [FrameFormat::Png, FrameFormat::Pgm] {
+        let bytes = encode(&frame, format).expect("encodes");
+        c.bench_function(&format!("decode {format:?} 1280x1024 8-bit"), |b| {
+            b.iter(|| decode(black_box(&bytes), format, size).expect("decodes"))
+        });
+    }
 }
 
-criterion_group!(benches, bench);
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(30).measurement_time(std::time::Duration::from_secs(3)).warm_up_time(std::time::Duration::from_millis(500));
+    targets = bench
+}
 criterion_main!(benches);
