@@ -20,16 +20,18 @@
 //!   (IPPE / SQPnP + Levenberg-Marquardt) and hand-eye station calibration. [`alarms`]: alarm
 //!   levels of a target with hysteresis, dwell, rate of change and stale data.
 //! * [`model`]: an installation's measurement model (frames, links, targets, cameras, markers,
-//!   filter and PnP settings) and the camera-marker links that solve observations.
+//!   filter and PnP settings), the camera-marker links that solve observations, and the markers
+//!   found in a camera's frame.
 //! * [`bank`]: one filter per measured link of a model; targets evaluated at a time, raw
 //!   results from measurement groups, liveness.
 //! * [`sim`]: the scenario simulator (static, drift, ship flexure, tunnel creep, a bumped
-//!   station): ground truth and what the cameras see.
+//!   station): ground truth and what the cameras see, as pixels or rendered frames.
 //!
 //! [`clock`] is the one home of the server's clock and of time text; the core never reads it
 //! (times are passed in). The adapters do the IO around the core: [`config`] (the installation
 //! file: the model plus deployment settings), [`store`] (SQLite), [`service`] (the single
-//! writer), [`api`] (HTTP), [`viz`] (Rerun), [`feed`] (the simulator's HTTP client) and [`cli`]
+//! writer), [`api`] (HTTP), [`imagefile`] (frame files), [`viz`] (Rerun), [`feed`] (the
+//! simulator's HTTP client) and [`cli`]
 //! (the binary in `main.rs` only calls it). ARCHITECTURE.md has the map; conventions are in the
 //! module docs of [`geometry`], the mathematics in `docs/method.md`.
 
