@@ -1,0 +1,193 @@
+//! `POST /api/v1/frames` under a live load: the release binary in its own process on the
+//! built-in installation, three cameras each posting an 8-bit PNG frame every 40 ms (25 Hz) for
+//! `SECONDS` (default 20) of wall time, stamped with the wall clock. Prints the server's CPU
+//! (user + system time from `/proc`, in cores: 1.0 is one core busy), the answer latency, and
+//! whether every marker was found and stored.
+//!
+//! The frames are rendered once before the run (25 groups of the ship scenario, cycled).
+//!
+//! Run: `cargo bench --bench frames_load` (Linux).
+
+#[path = "../tests/suite/common/process.rs"]
+#[allow(
+    dead_code,
+    reason = "the bench lets Drop stop the server; the tests kill it"
+)]
+mod process;
+
+use brokenray::clock::format_ns;
+use brokenray::imagefile::{FrameFormat, encode};
+use brokenray::sim::render::RenderSettings;
+use brokenray::sim::{Scenario, SimSettings, Simulator};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// CPU time (user + system) of a process so far (s).
+fn cpu_s(pid: u32) -> f64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    // Fields after the command name (which may hold spaces) start after the last ')'.
+    let rest = stat.rsplit(')').next().unwrap_or("");
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| {
+        fields
+            .get(i)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
+    let hz = std::process::Command::new("getconf")
+        .arg("CLK_TCK")
+        .output()
+        .ok()
+        .and_then(|o| String::from_utf8(o.stdout).ok())
+        .and_then(|t| t.trim().parse::<f64>().ok())
+        .unwrap_or(100.0);
+    (ticks(11) + ticks(12)) / hz
+}
+
+fn wall_ns() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos() as i64)
+        .unwrap_or(0)
+}
+
+fn main() {
+    if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
+        println!("frames load bench: run with `cargo bench --bench frames_load`");
+        return;
+    }
+    let seconds: f64 = std::env::var("SECONDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20.0);
+    let dir = tempfile::tempdir().expect("a temporary directory");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("listen = \"127.0.0.1:7878\"", "listen = \"127.0.0.1:0\"")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", dir.path().join("load.db").display()),
+        );
+    let config = dir.path().join("load.toml");
+    std::fs::write(&config, &text).expect("the config file");
+    let inst = brokenray::config::parse("load.toml", &text).expect("the built-in installation");
+
+    let render_start = Instant::now();
+    let mut sim = Simulator::new(
+        &inst.model,
+        SimSettings {
+            scenario: Scenario::Ship,
+            rate_hz: 25.0,
+            start_ns: wall_ns(),
+            duration_s: None,
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed: 3,
+        },
+    )
+    .expect("simulator");
+    let settings = RenderSettings {
+        samples_per_side: 16,
+        ..RenderSettings::default()
+    };
+    let groups: Vec<Vec<(String, Vec<u8>)>> = (0..25)
+        .map(|_| {
+            let g = sim.next_group();
+            sim.render_frames(&g, &settings)
+                .into_iter()
+                .map(|(camera, frame)| (camera, encode(&frame, FrameFormat::Png).expect("png")))
+                .collect()
+        })
+        .collect();
+    let png_kb = groups[0].iter().map(|(_, b)| b.len()).sum::<usize>() as f64 / 3.0 / 1024.0;
+    println!(
+        "rendered 25 groups of 3 frames in {:.1} s (PNG about {png_kb:.0} KiB a frame)",
+        render_start.elapsed().as_secs_f64()
+    );
+
+    let server = process::start(&config, "warn", false, Duration::from_secs(120));
+    let pid = server.child.id();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let client = reqwest::Client::new();
+    let (latencies, found, stored, errors, cpu, wall) = runtime.block_on(async {
+        let cameras = ["C1", "C2", "C3"];
+        let mut tasks = Vec::new();
+        let cpu0 = cpu_s(pid);
+        let t0 = Instant::now();
+        let end = t0 + Duration::from_secs_f64(seconds);
+        for (c, camera) in cameras.iter().enumerate() {
+            let frames: Vec<Vec<u8>> = groups.iter().map(|g| g[c].1.clone()).collect();
+            let client = client.clone();
+            let base = server.base.clone();
+            let camera = camera.to_string();
+            tasks.push(tokio::spawn(async move {
+                let mut latencies = Vec::new();
+                let (mut found, mut stored, mut errors) = (0u64, 0u64, 0u64);
+                let mut k = 0usize;
+                let mut tick = tokio::time::interval(Duration::from_millis(40));
+                tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
+                while Instant::now() < end {
+                    tick.tick().await;
+                    let time = format_ns(wall_ns());
+                    let sent = Instant::now();
+                    let answer = client
+                        .post(format!("{base}/api/v1/frames"))
+                        .query(&[("camera", camera.as_str()), ("time", time.as_str())])
+                        .header("content-type", "image/png")
+                        .body(frames[k % frames.len()].clone())
+                        .send()
+                        .await;
+                    k += 1;
+                    match answer {
+                        Ok(r) if r.status().is_success() => {
+                            let body: serde_json::Value = r.json().await.unwrap_or_default();
+                            latencies.push(sent.elapsed().as_secs_f64() * 1e3);
+                            if body["markers"][0]["found"] == true {
+                                found += 1;
+                            }
+                            stored += body["ingest"]["stored"].as_u64().unwrap_or(0);
+                        }
+                        Ok(r) => {
+                            errors += 1;
+                            eprintln!("{camera}: {}", r.text().await.unwrap_or_default());
+                        }
+                        Err(e) => {
+                            errors += 1;
+                            eprintln!("{camera}: {e}");
+                        }
+                    }
+                }
+                (latencies, found, stored, errors)
+            }));
+        }
+        let mut all = Vec::new();
+        let (mut found, mut stored, mut errors) = (0, 0, 0);
+        for t in tasks {
+            let (l, f, s, e) = t.await.expect("a camera task");
+            all.extend(l);
+            found += f;
+            stored += s;
+            errors += e;
+        }
+        let wall = t0.elapsed().as_secs_f64();
+        (all, found, stored, errors, cpu_s(pid) - cpu0, wall)
+    });
+    let mut sorted = latencies.clone();
+    sorted.sort_by(f64::total_cmp);
+    let pct = |p: f64| sorted[((sorted.len() as f64 - 1.0) * p).round() as usize];
+    println!(
+        "{} frames in {wall:.1} s ({:.1} frames/s from 3 cameras): {found} markers found, {stored} samples stored, {errors} errors",
+        latencies.len(),
+        latencies.len() as f64 / wall
+    );
+    println!(
+        "server CPU: {cpu:.2} s over {wall:.1} s = {:.2} cores; answer latency p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+        cpu / wall,
+        pct(0.5),
+        pct(0.99),
+        pct(1.0)
+    );
+}
