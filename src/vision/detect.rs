@@ -15,7 +15,9 @@
 //! 4. **Centre**: the background-corrected grey-weighted centroid over a circular window a few
 //!    pixels wider than the blob, the background taken from a ring just outside the window,
 //!    iterated with the window re-centred so that the window's placement leaves no bias. The
-//!    weights are signed (noise is not clipped), so background noise adds scatter, never bias.
+//!    weights are signed (noise is not clipped), so background noise adds scatter, never bias;
+//!    they are clipped three noise sigmas below the disc's level, so that the plateau's shot
+//!    noise adds none (a centrally symmetric image stays so under the clip: no bias).
 //!    Under perspective the image of a disc is an ellipse of uniform brightness, and its centroid
 //!    is the ellipse's centre (not the image of the disc's centre: see the eccentricity
 //!    correction of the PnP step).
@@ -332,6 +334,9 @@ fn is_elliptic(
     (mismatch as f64) <= MAX_MISMATCH_PER_PERIMETER * perimeter
 }
 
+/// The centroid's weights are clipped this many noise sigmas below the disc's level.
+const CLIP_SIGMAS: f64 = 3.0;
+
 /// How many pixels per unit of perimeter may disagree with the moments' ellipse.
 const MAX_MISMATCH_PER_PERIMETER: f64 = 0.25;
 
@@ -391,6 +396,30 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
             .map(|x| (x - ring_mean).powi(2))
             .sum::<f64>()
             / (ring_values.len() - 1) as f64;
+        // The disc's level: the median of its inner pixels (within half the minor semi-axis).
+        let inner = (0.5 * 2.0 * minor2.sqrt()).max(1.0);
+        let mut levels = Vec::new();
+        for v in cv - reach..=cv + reach {
+            for u in cu - reach..=cu + reach {
+                let (x, y) = (u as f64, v as f64);
+                if (x - centre[0]).powi(2) + (y - centre[1]).powi(2) <= inner * inner {
+                    levels.push(sign * (f64::from(image.at(u as u32, v as u32)) - background));
+                }
+            }
+        }
+        levels.sort_unstable_by(f64::total_cmp);
+        let level = levels.get(levels.len() / 2).copied().unwrap_or(0.0);
+        // Weights are clipped a few noise sigmas below that level: the plateau's pixels then
+        // weigh the same whatever their noise (only the edge, where the position is, counts),
+        // and the clipped image of a centrally symmetric blob is still centrally symmetric, so
+        // the clip adds no bias. When the level is not clear of its noise, nothing is clipped.
+        let level_sigma = (ring_var + s.gain_e_per_dn.map_or(0.0, |g| level.max(0.0) / g)).sqrt();
+        let clip = level - CLIP_SIGMAS * level_sigma;
+        let clip = if clip >= 0.5 * level {
+            clip
+        } else {
+            f64::INFINITY
+        };
         let (mut sw, mut su, mut sv, mut peak) = (0.0, 0.0, 0.0, 0.0f64);
         let mut pixels_in = Vec::new();
         for v in cv - reach..=cv + reach {
@@ -400,12 +429,13 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
                     continue;
                 }
                 let value = f64::from(image.at(u as u32, v as u32));
-                let weight = sign * (value - background);
+                let raw = sign * (value - background);
+                let weight = raw.min(clip);
                 sw += weight;
                 su += weight * x;
                 sv += weight * y;
-                peak = peak.max(weight);
-                pixels_in.push((x, y, weight));
+                peak = peak.max(raw);
+                pixels_in.push((x, y, weight, raw < clip));
             }
         }
         if sw <= 0.0 || peak < s.min_contrast_dn {
@@ -415,10 +445,13 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
         // Covariance of the centroid: sum_i (x_i - c)(x_i - c)^T var_i / (sum w)^2.
         let (mut cxx, mut cyy, mut cxy) = (0.0, 0.0, 0.0);
         let (mut muu, mut mvv, mut muv) = (0.0, 0.0, 0.0);
-        for &(x, y, weight) in &pixels_in {
+        for &(x, y, weight, free) in &pixels_in {
             let (dx, dy) = (x - next[0], y - next[1]);
-            let mut var = ring_var;
-            if let Some(gain) = s.gain_e_per_dn {
+            // A clipped pixel's noise does not reach the centre.
+            let mut var = if free { ring_var } else { 0.0 };
+            if let Some(gain) = s.gain_e_per_dn
+                && free
+            {
                 var += weight.max(0.0) / gain;
             }
             cxx += dx * dx * var;

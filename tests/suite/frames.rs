@@ -78,9 +78,11 @@ type Solved = (String, PoseCov, Vec<u32>, Vec<[f64; 2]>);
 fn rendered_frames_give_an_unbiased_chain_three_times_better_than_published() {
     let mut model = (*default_installation().model).clone();
     // The simulation has no calibration error: the detector's sigmas (with the shot noise of
-    // the renderer's gain) are the whole noise.
+    // the renderer's gain) are the noise, and `pixel_sigma` (what the detector does not see)
+    // is its systematic floor: per-point mean errors of up to 0.005 px, about 0.002 px rms, on
+    // camera C3's outer discs over static frames.
     for camera in &mut model.cameras {
-        camera.pixel_sigma_px = 1e-4;
+        camera.pixel_sigma_px = 0.002;
         assert_eq!(
             camera.gain_e_per_dn,
             RenderSettings::default().gain_e_per_dn
