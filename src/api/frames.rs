@@ -154,13 +154,9 @@ pub async fn post_frame(
     })?;
     let observer = app.service.observer();
     let size = observer
-        .links()
-        .find(|l| l.camera_frame == camera)
-        .map(|l| (l.camera.width_px, l.camera.height_px))
-        .ok_or_else(|| {
-            let e = observer.camera_error(&camera);
-            ApiError::invalid_field(e.field, e.message)
-        })?;
+        .camera(&camera)
+        .map(|c| (c.width_px, c.height_px))
+        .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
     let text = q.time.ok_or_else(|| {
         ApiError::invalid_field("time", "the query gives no measurement time (`&time=...`)")
     })?;

@@ -46,10 +46,9 @@ pub fn detect_files(
     }
     let observer = Observer::new(&installation.model);
     let size = observer
-        .links()
-        .find(|l| l.camera_frame == camera)
-        .map(|l| (l.camera.width_px, l.camera.height_px))
-        .ok_or_else(|| anyhow::anyhow!("{}", observer.camera_error(camera)))?;
+        .camera(camera)
+        .map(|c| (c.width_px, c.height_px))
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let mut last: HashMap<usize, Pose> = HashMap::new();
     let mut summary = DetectSummary::default();
     for path in files {

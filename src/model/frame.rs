@@ -42,10 +42,8 @@ pub fn observe_frame<'a>(
         .links()
         .filter(|l| l.camera_frame == camera)
         .collect();
-    let Some(first) = links.first() else {
-        return Err(observer.camera_error(camera));
-    };
-    let model = &first.camera;
+    let model = observer.camera(camera)?;
+    let gain_e_per_dn = links.first().and_then(|l| l.gain_e_per_dn);
     if (image.width_px(), image.height_px()) != (model.width_px, model.height_px) {
         return Err(ObservationError {
             field: "body",
@@ -63,7 +61,7 @@ pub fn observe_frame<'a>(
         if !blobs_of.iter().any(|(p, _)| *p == polarity) {
             let settings = DetectSettings {
                 polarity,
-                gain_e_per_dn: first.gain_e_per_dn,
+                gain_e_per_dn,
                 ..DetectSettings::default()
             };
             blobs_of.push((polarity, detect(image, &settings)));

@@ -146,6 +146,15 @@ impl Observer {
         })
     }
 
+    /// The model of a camera that sees a marker through a measured link; otherwise why not.
+    pub fn camera(&self, camera: &str) -> Result<&CameraModel, ObservationError> {
+        self.links
+            .iter()
+            .find(|l| l.camera_frame == camera)
+            .map(|l| &l.camera)
+            .ok_or_else(|| self.camera_error(camera))
+    }
+
     /// Why `camera` has no observable link: it is not configured, or it sees no marker through
     /// a measured link.
     pub fn camera_error(&self, camera: &str) -> ObservationError {
