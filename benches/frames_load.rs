@@ -104,7 +104,12 @@ fn main() {
         render_start.elapsed().as_secs_f64()
     );
 
-    let server = process::start(&config, "warn", false, Duration::from_secs(120));
+    let server = process::start(
+        &config,
+        "warn,brokenray=info",
+        false,
+        Duration::from_secs(120),
+    );
     let pid = server.child.id();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
