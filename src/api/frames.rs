@@ -13,7 +13,7 @@ use crate::bank::{MeasurementUncertainty, Sample};
 use crate::clock::format_ns;
 use crate::geometry::{Pose, PoseCov};
 use crate::imagefile::{FrameFileError, FrameFormat, decode};
-use crate::model::{FrameObservation, LinkKind, NotFound, ObservedLink, observe_frame};
+use crate::model::{FrameObservation, NotFound, ObservedLink, observe_frame};
 use crate::service::IngestItem;
 use crate::store::Quality;
 use axum::Json;
@@ -186,17 +186,12 @@ pub async fn post_frame(
                 },
             )
         })?;
-        let predictions = |link: &ObservedLink| {
-            let mut poses: Vec<Pose> = Vec::new();
-            if let Ok(Some(p)) = snapshot.bank.link_estimate(link.link, time_ns) {
-                poses.push(p.pose);
+        // The link's filtered pose at the frame's time (the nominal one follows by itself).
+        let predictions = |link: &ObservedLink| -> Vec<Pose> {
+            match snapshot.bank.link_estimate(link.link, time_ns) {
+                Ok(Some(p)) => vec![p.pose],
+                _ => Vec::new(),
             }
-            if let LinkKind::Measured(m) = &snapshot.bank.model().links[link.link.0].kind
-                && let Some(nominal) = m.nominal
-            {
-                poses.push(nominal);
-            }
-            poses
         };
         let seen = observe_frame(&observer, &camera, &image, predictions)
             .map_err(|e| ApiError::invalid_field(e.field, e.message))?;

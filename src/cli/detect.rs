@@ -11,7 +11,7 @@ use crate::clock::{format_ns, parse_query_time};
 use crate::config::Installation;
 use crate::geometry::Pose;
 use crate::imagefile::{FrameFormat, decode};
-use crate::model::{LinkKind, Observer, observe_frame};
+use crate::model::{Observer, observe_frame};
 use anyhow::{Context, bail};
 use std::collections::HashMap;
 use std::io::Write;
@@ -66,14 +66,9 @@ pub fn detect_files(
             std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
         let image = decode(&bytes, format, Some(size))
             .map_err(|e| anyhow::anyhow!("{}: {e} (camera {camera})", path.display()))?;
-        let predictions = |link: &crate::model::ObservedLink| {
-            let mut poses: Vec<Pose> = last.get(&link.link.0).copied().into_iter().collect();
-            if let LinkKind::Measured(m) = &installation.model.links[link.link.0].kind
-                && let Some(nominal) = m.nominal
-            {
-                poses.push(nominal);
-            }
-            poses
+        // The pose in the previous frame (the nominal one follows by itself).
+        let predictions = |link: &crate::model::ObservedLink| -> Vec<Pose> {
+            last.get(&link.link.0).copied().into_iter().collect()
         };
         let seen = observe_frame(&observer, camera, &image, predictions)
             .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;

@@ -3,7 +3,7 @@
 //! among them ([`identify`]) from the poses the caller predicts for its link, tried in order.
 //!
 //! Decoding the file and choosing the predictions (the filtered pose of the link at the frame's
-//! time, its nominal pose) belong to the callers; the frame's size is checked against the
+//! time, the pose in the previous frame) belong to the callers, the nominal pose comes last; the frame's size is checked against the
 //! camera's here, so every caller refuses the same frames.
 
 use super::identify::{Found, NotFound, identify};
@@ -30,8 +30,8 @@ pub struct FrameObservation<'a> {
 }
 
 /// Detects and identifies the markers `camera` sees in `image`. `predictions(link)` gives the
-/// poses `camera_from_marker` to predict a marker's points from, most trusted first; the next
-/// is tried only when one finds nothing.
+/// poses `camera_from_marker` to predict a marker's points from, most trusted first, and the
+/// link's nominal pose is tried after them; the next is tried only when one finds nothing.
 pub fn observe_frame<'a>(
     observer: &'a Observer,
     camera: &str,
@@ -79,7 +79,7 @@ pub fn observe_frame<'a>(
                         .map(|(_, b)| b.as_slice())
                         .unwrap_or_default();
                     let mut result = Err(NotFound::NoPrediction);
-                    for prior in predictions(link) {
+                    for prior in predictions(link).into_iter().chain(link.nominal) {
                         let attempt = identify(link, blobs, Some(&prior));
                         let found = attempt.is_ok();
                         // The first reason is kept: it comes from the most trusted prediction.

@@ -7,7 +7,7 @@
 
 use super::{LinkKind, Model};
 use crate::chain::LinkId;
-use crate::geometry::Vec3;
+use crate::geometry::{Pose, Vec3};
 use crate::vision::{CameraModel, PnpOptions, PnpSolution, solve_pnp, solve_pnp_weighted};
 use nalgebra::Vector2;
 use std::borrow::Cow;
@@ -37,6 +37,9 @@ pub struct ObservedLink {
     pub normals: Vec<Vec3>,
     /// How to solve.
     pub options: PnpOptions,
+    /// The link's designed `camera_from_marker`, where the installation gives one: the last
+    /// prediction of its points in a frame.
+    pub nominal: Option<Pose>,
 }
 
 /// Why an observation could not be turned into a link sample. `field` names the offending
@@ -101,6 +104,10 @@ impl Observer {
                     target: marker.target,
                     normals: marker.normals.iter().map(|n| Vec3::from(*n)).collect(),
                     options,
+                    nominal: match &spec.kind {
+                        LinkKind::Measured(m) => m.nominal,
+                        LinkKind::Calibrated { .. } => None,
+                    },
                 });
             }
         }
