@@ -9,13 +9,11 @@ use super::AppState;
 use super::dto::{PoseOut, SigmaOut};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, read_body};
-use crate::bank::{MeasurementUncertainty, Sample};
 use crate::clock::format_ns;
 use crate::geometry::{Pose, PoseCov};
 use crate::imagefile::{FrameFileError, FrameFormat, decode};
 use crate::model::{FrameObservation, NotFound, ObservedLink, observe_frame};
 use crate::service::IngestItem;
-use crate::store::Quality;
 use axum::Json;
 use axum::body::Body;
 use axum::extract::{Query, State};
@@ -234,19 +232,12 @@ fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut,
                         pose: s.camera_from_marker,
                         cov: s.covariance,
                     };
-                    items.push(IngestItem {
-                        index: items.len(),
-                        sample: Sample {
-                            link: m.link.link,
-                            time_ns,
-                            parent_from_child: s.camera_from_marker,
-                            uncertainty: MeasurementUncertainty::Covariance(s.covariance),
-                        },
-                        quality: Quality {
-                            reprojection_rms_px: Some(s.rms_px),
-                            points: u32::try_from(s.points).ok(),
-                        },
-                    });
+                    items.push(super::vision::solved_item(
+                        items.len(),
+                        m.link.link,
+                        time_ns,
+                        s,
+                    ));
                     out.found = true;
                     out.points_px = Some(found.points_px.clone());
                     out.ids = Some(found.ids.clone());

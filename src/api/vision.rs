@@ -196,24 +196,35 @@ fn solve_batch(
             ambiguity_ratio: solution.ambiguity_ratio,
             rejected_points: solution.rejected_points.clone(),
         });
-        items.push(IngestItem {
-            index,
-            sample: Sample {
-                link: link.link,
-                time_ns,
-                parent_from_child: solution.camera_from_marker,
-                uncertainty: MeasurementUncertainty::Covariance(solution.covariance),
-            },
-            quality: Quality {
-                reprojection_rms_px: Some(solution.rms_px),
-                points: u32::try_from(solution.points).ok(),
-            },
-        });
+        items.push(solved_item(index, link.link, time_ns, &solution));
     }
     if problems.is_empty() {
         Ok((items, poses))
     } else {
         Err(problems)
+    }
+}
+
+/// The sample a solved observation gives its link, with the fit's quality: what
+/// `/observations` and `/frames` ingest.
+pub(super) fn solved_item(
+    index: usize,
+    link: crate::chain::LinkId,
+    time_ns: i64,
+    solution: &crate::vision::PnpSolution,
+) -> IngestItem {
+    IngestItem {
+        index,
+        sample: Sample {
+            link,
+            time_ns,
+            parent_from_child: solution.camera_from_marker,
+            uncertainty: MeasurementUncertainty::Covariance(solution.covariance),
+        },
+        quality: Quality {
+            reprojection_rms_px: Some(solution.rms_px),
+            points: u32::try_from(solution.points).ok(),
+        },
     }
 }
 
