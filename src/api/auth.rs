@@ -278,15 +278,12 @@ pub async fn local_only(
         // type a cross-site form may send without asking first); a write without a body (and
         // without a type) passes (a browser sends an `Origin` with it, checked above).
         let refused = match content_type.as_deref() {
-            Some(t) => !matches!(
-                t,
-                "application/json"
-                    | "application/x-ndjson"
-                    | "application/jsonl"
-                    | "image/png"
-                    | "image/tiff"
-                    | "image/x-portable-graymap"
-            ),
+            Some(t) => {
+                !matches!(
+                    t,
+                    "application/json" | "application/x-ndjson" | "application/jsonl"
+                ) && crate::imagefile::FrameFormat::from_content_type(t).is_none()
+            }
             None => has_body,
         };
         if refused {
