@@ -251,18 +251,19 @@ pub async fn feed(
         if let Some(t) = truth.as_mut() {
             writeln!(t, "{}", truth_line(&group)).context("cannot write the truth file")?;
         }
-        if settings.emit == Emit::Frames {
-            let frames = render_pngs(sim, &group).await?;
-            summary.groups += 1;
-            summary.items += frames.len() as u64;
-            summary.refused += send_frames(&mut sink, group.time_ns, frames).await?;
-            on_group(&group, &sink).await?;
-            progress.inc(1);
-            continue;
-        }
         let items = match settings.emit {
             Emit::Observations => observation_items(&group),
-            Emit::Samples | Emit::Frames => sample_items(&group, sim.observer()),
+            Emit::Samples => sample_items(&group, sim.observer()),
+            // Frames go one request each, never batched.
+            Emit::Frames => {
+                let frames = render_pngs(sim, &group).await?;
+                summary.groups += 1;
+                summary.items += frames.len() as u64;
+                summary.refused += send_frames(&mut sink, group.time_ns, frames).await?;
+                on_group(&group, &sink).await?;
+                progress.inc(1);
+                continue;
+            }
         };
         summary.groups += 1;
         summary.items += items.len() as u64;
@@ -366,7 +367,8 @@ async fn send(sink: &mut Sink, emit: Emit, items: Vec<Value>) -> anyhow::Result<
         Sink::Http(client) => {
             let (path, body) = match emit {
                 Emit::Observations => ("/api/v1/observations", json!({"observations": items})),
-                Emit::Samples | Emit::Frames => ("/api/v1/samples", json!({"samples": items})),
+                Emit::Samples => ("/api/v1/samples", json!({"samples": items})),
+                Emit::Frames => bail!("frames are posted one by one, not in JSON batches"),
             };
             let (status, answer) = client.post_status(path, &body).await?;
             if status.is_success() {
