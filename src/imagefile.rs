@@ -119,27 +119,18 @@ pub fn decode(
     let mut reader = reader();
     reader.limits(limits);
     let image = reader.decode().map_err(|e| undecodable(&e))?;
-    grey_of(&image).map_err(|e| undecodable(&e))
+    grey_of(image).map_err(|e| undecodable(&e))
 }
 
-/// The grey frame of a decoded image: 8-bit kinds as 8 bit, the rest as 16 bit.
-fn grey_of(image: &DynamicImage) -> Result<GreyImage, crate::vision::VisionError> {
+/// The grey frame of a decoded image: 8-bit kinds as 8 bit, the rest as 16 bit (a grey image
+/// is taken as it is, without a conversion's copy).
+fn grey_of(image: DynamicImage) -> Result<GreyImage, crate::vision::VisionError> {
     let (w, h) = (image.width(), image.height());
     match image.color() {
-        ColorType::L8 => GreyImage::from_u8(w, h, image.as_bytes()),
-        ColorType::La8 | ColorType::Rgb8 | ColorType::Rgba8 => {
-            GreyImage::from_u8(w, h, image.to_luma8().as_raw())
+        ColorType::L8 | ColorType::La8 | ColorType::Rgb8 | ColorType::Rgba8 => {
+            GreyImage::from_u8(w, h, image.into_luma8().as_raw())
         }
-        ColorType::L16 => {
-            let pixels = image.as_luma16().map(|i| i.as_raw().clone());
-            GreyImage::new(
-                w,
-                h,
-                BitDepth::Sixteen,
-                pixels.unwrap_or_else(|| image.to_luma16().into_raw()),
-            )
-        }
-        _ => GreyImage::new(w, h, BitDepth::Sixteen, image.to_luma16().into_raw()),
+        _ => GreyImage::new(w, h, BitDepth::Sixteen, image.into_luma16().into_raw()),
     }
 }
 

@@ -44,16 +44,11 @@ impl GreyImage {
         depth: BitDepth,
         pixels: Vec<u16>,
     ) -> Result<Self, VisionError> {
-        let expected = width_px as usize * height_px as usize;
-        if expected == 0 || pixels.len() != expected {
-            return Err(VisionError::Degenerate {
-                reason: format!(
-                    "a {width_px} x {height_px} frame needs {expected} pixels, not {}",
-                    pixels.len()
-                ),
-            });
-        }
-        if let Some(v) = pixels.iter().find(|&&v| v > depth.max_value()) {
+        Self::checked_size(width_px, height_px, pixels.len())?;
+        // Every u16 fits 16 bits: only 8-bit frames need the look.
+        if depth == BitDepth::Eight
+            && let Some(v) = pixels.iter().find(|&&v| v > depth.max_value())
+        {
             return Err(VisionError::Degenerate {
                 reason: format!("pixel value {v} does not fit {depth:?} bits"),
             });
@@ -66,14 +61,28 @@ impl GreyImage {
         })
     }
 
-    /// An 8-bit frame from its bytes.
+    /// An 8-bit frame from its bytes (which fit 8 bits by their type: only the count is checked).
     pub fn from_u8(width_px: u32, height_px: u32, bytes: &[u8]) -> Result<Self, VisionError> {
-        Self::new(
+        Self::checked_size(width_px, height_px, bytes.len())?;
+        Ok(Self {
             width_px,
             height_px,
-            BitDepth::Eight,
-            bytes.iter().map(|&b| u16::from(b)).collect(),
-        )
+            depth: BitDepth::Eight,
+            pixels: bytes.iter().map(|&b| u16::from(b)).collect(),
+        })
+    }
+
+    /// Refuses a pixel count other than `width * height`, and an empty frame.
+    fn checked_size(width_px: u32, height_px: u32, count: usize) -> Result<(), VisionError> {
+        let expected = width_px as usize * height_px as usize;
+        if expected == 0 || count != expected {
+            return Err(VisionError::Degenerate {
+                reason: format!(
+                    "a {width_px} x {height_px} frame needs {expected} pixels, not {count}"
+                ),
+            });
+        }
+        Ok(())
     }
 
     /// Width (px).
