@@ -102,7 +102,11 @@ pub fn parse_json_time(v: &serde_json::Value) -> Result<i64, String> {
 /// Parses a measurement time (as [`parse_json_time`]) and refuses one later than
 /// `latest_ns`: the server's clock plus `[server] max_future_s`.
 pub fn parse_measurement_time(v: &serde_json::Value, latest_ns: i64) -> Result<i64, String> {
-    let t = parse_json_time(v)?;
+    not_after_latest(parse_json_time(v)?, latest_ns)
+}
+
+/// A measurement time `t`, refused when later than `latest_ns` (see [`latest_accepted_ns`]).
+pub fn not_after_latest(t: i64, latest_ns: i64) -> Result<i64, String> {
     if t > latest_ns {
         return Err(format!(
             "{} is in the future: the server's clock allows times up to {} (`[server] max_future_s`); check the sender's clock",

@@ -163,7 +163,7 @@ pub async fn post_frame(
         app.service.installation().server.max_future_s,
     );
     let time_ns = crate::clock::parse_query_time(&text)
-        .and_then(|t| crate::clock::parse_measurement_time(&serde_json::Value::from(t), latest))
+        .and_then(|t| crate::clock::not_after_latest(t, latest))
         .map_err(|m| ApiError::invalid_field("time", m))?;
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     let snapshot = app.service.snapshot();
