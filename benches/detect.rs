@@ -4,8 +4,9 @@
 //!
 //! * `detect`: background tiles, threshold, components, shape gates, centroids with their
 //!   covariance;
-//! * `observe_frame`: detection, identification from the nominal pose, weighted PnP, the
-//!   eccentricity correction and PnP again (the whole per-frame work);
+//! * `observe_frame`: detection near the predicted points, identification, weighted PnP, the
+//!   eccentricity correction and PnP again (the whole per-frame work), from a good prediction
+//!   (the near search) and from one 32 px off (the near search fails, the wide one follows);
 //! * `decode png` / `decode pgm`: the 8-bit frame file decoded into a grey frame.
 //!
 //! Rendering is outside the timed loops. Run: `cargo bench --bench detect`.
@@ -43,24 +44,34 @@ fn bench(c: &mut Criterion) {
     c.bench_function("detect 1280x1024, 8 discs of 32 px", |b| {
         b.iter(|| detect(black_box(&frame), black_box(&settings)))
     });
-    let observe = || {
-        observe_frame(&observer, "C1", black_box(&frame), |_| Vec::new())
-            .expect("C1's frame")
-            .markers
-            .len()
-    };
-    assert!(
-        observe_frame(&observer, "C1", &frame, |_| Vec::new())
-            .expect("C1's frame")
-            .markers[0]
-            .result
-            .is_ok(),
-        "the bench frame's marker is found"
-    );
-    c.bench_function(
-        "observe_frame 1280x1024 (detect, identify, PnP twice)",
-        |b| b.iter(observe),
-    );
+    // Predicted from the true pose (the marker is where the filter expects it: the near search),
+    // or from one 20 mm off (32 px: the near search fails and the wide one follows).
+    let off = nalgebra::Isometry3::translation(20.0, 0.0, 0.0) * nominal;
+    for (name, prior) in [
+        ("a good prediction", nominal),
+        ("a prediction 32 px off", off),
+    ] {
+        let seen = observe_frame(&observer, "C1", &frame, |_| vec![prior]).expect("C1's frame");
+        assert!(
+            seen.markers[0].result.is_ok(),
+            "the bench frame's marker is found"
+        );
+        println!(
+            "{name}: {:.3} of the frame searched",
+            seen.searched_fraction
+        );
+        c.bench_function(
+            &format!("observe_frame 1280x1024 from {name} (detect, identify, PnP twice)"),
+            |b| {
+                b.iter(|| {
+                    observe_frame(&observer, "C1", black_box(&frame), |_| vec![prior])
+                        .expect("C1's frame")
+                        .markers
+                        .len()
+                })
+            },
+        );
+    }
     let size = Some((frame.width_px(), frame.height_px()));
     for format in [FrameFormat::Png, FrameFormat::Pgm] {
         let bytes = encode(&frame, format).expect("encodes");

@@ -1,12 +1,13 @@
 //! `POST /api/v1/frames` under a live load: the release binary in its own process on the
-//! built-in installation, three cameras each posting an 8-bit PNG frame every 40 ms (25 Hz) for
-//! `SECONDS` (default 20) of wall time, stamped with the wall clock. Prints the server's CPU
+//! built-in installation, three cameras each posting an 8-bit frame every 40 ms (25 Hz) for
+//! `SECONDS` (default 20) of wall time, stamped with the wall clock, as PNG (or as binary PGM with
+//! `FORMAT=pgm`). Prints the server's CPU
 //! (user + system time from `/proc`, in cores: 1.0 is one core busy), the answer latency, and
 //! whether every marker was found and stored.
 //!
 //! The frames are rendered once before the run (25 groups of the ship scenario, cycled).
 //!
-//! Run: `cargo bench --bench frames_load` (Linux).
+//! Run: `cargo bench --bench frames_load` (Linux); `FORMAT=pgm cargo bench --bench frames_load`.
 
 #[path = "../tests/suite/common/process.rs"]
 #[allow(
@@ -60,6 +61,11 @@ fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(20.0);
+    let format = match std::env::var("FORMAT").as_deref() {
+        Ok("pgm") => FrameFormat::Pgm,
+        Ok("png") | Err(_) => FrameFormat::Png,
+        Ok(other) => panic!("FORMAT is png or pgm, not {other}"),
+    };
     let dir = tempfile::tempdir().expect("a temporary directory");
     let text = brokenray::config::DEFAULT_INSTALLATION_TOML
         .replace("listen = \"127.0.0.1:7878\"", "listen = \"127.0.0.1:0\"")
@@ -94,13 +100,13 @@ fn main() {
             let g = sim.next_group();
             sim.render_frames(&g, &settings)
                 .into_iter()
-                .map(|(camera, frame)| (camera, encode(&frame, FrameFormat::Png).expect("png")))
+                .map(|(camera, frame)| (camera, encode(&frame, format).expect("encodes")))
                 .collect()
         })
         .collect();
-    let png_kb = groups[0].iter().map(|(_, b)| b.len()).sum::<usize>() as f64 / 3.0 / 1024.0;
+    let kb = groups[0].iter().map(|(_, b)| b.len()).sum::<usize>() as f64 / 3.0 / 1024.0;
     println!(
-        "rendered 25 groups of 3 frames in {:.1} s (PNG about {png_kb:.0} KiB a frame)",
+        "rendered 25 groups of 3 frames in {:.1} s ({format:?} about {kb:.0} KiB a frame)",
         render_start.elapsed().as_secs_f64()
     );
 
@@ -141,7 +147,7 @@ fn main() {
                     let answer = client
                         .post(format!("{base}/api/v1/frames"))
                         .query(&[("camera", camera.as_str()), ("time", time.as_str())])
-                        .header("content-type", "image/png")
+                        .header("content-type", format.content_type())
                         .body(frames[k % frames.len()].clone())
                         .send()
                         .await;

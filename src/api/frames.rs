@@ -104,8 +104,11 @@ pub struct FrameOut {
     pub camera: String,
     /// The frame's time (RFC 3339).
     pub time: String,
-    /// Discs detected.
+    /// Discs detected in the searched part of the frame.
     pub blobs: usize,
+    /// The share of the frame searched (only where the predicted marker points' gates reach),
+    /// summed over the polarities searched.
+    pub searched_fraction: f64,
     /// Each marker of a measured link of the camera, in installation order.
     pub markers: Vec<FrameMarkerOut>,
     /// What ingesting the found markers' samples did.
@@ -260,6 +263,7 @@ fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut,
             camera: camera.to_owned(),
             time: format_ns(time_ns),
             blobs: seen.blobs,
+            searched_fraction: seen.searched_fraction,
             markers,
             ingest: IngestResponse::default(),
         },

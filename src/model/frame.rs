@@ -1,15 +1,17 @@
 //! One camera frame turned into marker observations: the discs detected once per polarity the
-//! camera's markers use, then each marker the camera sees through a measured link identified
-//! among them ([`identify`]) from the poses the caller predicts for its link, tried in order.
+//! camera's markers use, only in the part of the frame the predicted marker points' gates reach
+//! (a fifth of the frame or less for a marker or two), then each marker the camera sees through
+//! a measured link identified among them ([`identify`]) from the poses the caller predicts for
+//! its link, tried in order.
 //!
 //! Decoding the file and choosing the predictions (the filtered pose of the link at the frame's
 //! time, the pose in the previous frame) belong to the callers, the nominal pose comes last; the frame's size is checked against the
 //! camera's here, so every caller refuses the same frames.
 
-use super::identify::{Found, NotFound, identify};
+use super::identify::{Found, NotFound, Reach, identify, identify_within, search_squares};
 use super::observation::{ObservationError, ObservedLink, Observer};
 use crate::geometry::Pose;
-use crate::vision::{DetectSettings, GreyImage, Polarity, detect};
+use crate::vision::{DetectSettings, GreyImage, Polarity, SearchArea, detect_in};
 
 /// What one frame showed of one marker.
 #[derive(Debug, Clone)]
@@ -23,8 +25,11 @@ pub struct MarkerInFrame<'a> {
 /// What one frame showed.
 #[derive(Debug, Clone)]
 pub struct FrameObservation<'a> {
-    /// Discs detected (over every polarity searched).
+    /// Discs detected (over every polarity searched) in the searched part of the frame.
     pub blobs: usize,
+    /// The share of the frame searched, summed over the polarities searched: only the tiles
+    /// the predictions' gates reach are (0 when nothing predicts a marker).
+    pub searched_fraction: f64,
     /// Each marker of a measured link of the camera, in installation order.
     pub markers: Vec<MarkerInFrame<'a>>,
 }
@@ -56,48 +61,106 @@ pub fn observe_frame<'a>(
             ),
         });
     }
-    let mut blobs_of: Vec<(Polarity, Vec<crate::vision::Blob>)> = Vec::new();
+    // Every pose each link's points are predicted from, most trusted first.
+    let priors: Vec<Vec<Pose>> = links
+        .iter()
+        .map(|l| predictions(l).into_iter().chain(l.nominal).collect())
+        .collect();
+    let mut polarities: Vec<Polarity> = Vec::new();
     for polarity in links.iter().filter_map(|l| l.target.map(|t| t.polarity)) {
-        if !blobs_of.iter().any(|(p, _)| *p == polarity) {
-            let settings = DetectSettings {
-                polarity,
-                gain_e_per_dn,
-                ..DetectSettings::default()
-            };
-            blobs_of.push((polarity, detect(image, &settings)));
+        if !polarities.contains(&polarity) {
+            polarities.push(polarity);
         }
+    }
+    let detect_around = |polarity: Polarity, squares: &mut dyn Iterator<Item = ([f64; 2], f64)>| {
+        let mut area = SearchArea::empty(model.width_px, model.height_px);
+        for (centre_px, half_side_px) in squares {
+            area.add_square(centre_px, half_side_px);
+        }
+        let settings = DetectSettings {
+            polarity,
+            gain_e_per_dn,
+            ..DetectSettings::default()
+        };
+        (detect_in(image, &settings, &area), area.fraction())
+    };
+    let of_polarity =
+        |link: &ObservedLink, polarity: Polarity| link.target.map(|t| t.polarity) == Some(polarity);
+    let mut results: Vec<Result<Found, NotFound>> = links
+        .iter()
+        .map(|l| {
+            Err(match l.target {
+                None => NotFound::NoTarget,
+                Some(_) => NotFound::NoPrediction,
+            })
+        })
+        .collect();
+    let (mut blobs, mut searched) = (0, 0.0);
+    for polarity in polarities {
+        // First only close to the points of each link's most trusted prediction: when the
+        // prediction is good every point is there and the marker is found as a search of the
+        // whole frame would find it (`Reach::Near`).
+        let (near, fraction) = detect_around(
+            polarity,
+            &mut links
+                .iter()
+                .zip(&priors)
+                .filter(|(l, _)| of_polarity(l, polarity))
+                .filter_map(|(l, p)| p.first().map(|prior| search_squares(l, prior, Reach::Near)))
+                .flatten(),
+        );
+        searched += fraction;
+        let mut last_blobs = near.len();
+        let mut missing = Vec::new();
+        for (i, (link, priors)) in links.iter().zip(&priors).enumerate() {
+            if !of_polarity(link, polarity) {
+                continue;
+            }
+            if let Some(prior) = priors.first() {
+                match identify_within(link, &near, Some(prior), Reach::Near) {
+                    Ok(found) => results[i] = Ok(found),
+                    Err(_) => missing.push(i),
+                }
+            }
+        }
+        // Then, for the markers not found so, as far as every prediction's full gates reach,
+        // each prediction in turn.
+        if !missing.is_empty() {
+            let (wide, fraction) = detect_around(
+                polarity,
+                &mut missing
+                    .iter()
+                    .flat_map(|&i| priors[i].iter().map(move |p| (i, p)))
+                    .flat_map(|(i, p)| search_squares(links[i], p, Reach::Full)),
+            );
+            searched += fraction;
+            last_blobs = wide.len();
+            for &i in &missing {
+                let mut result = Err(NotFound::NoPrediction);
+                for prior in &priors[i] {
+                    let attempt = identify(links[i], &wide, Some(prior));
+                    let found = attempt.is_ok();
+                    // The first reason is kept: it comes from the most trusted prediction.
+                    if found || matches!(result, Err(NotFound::NoPrediction)) {
+                        result = attempt;
+                    }
+                    if found {
+                        break;
+                    }
+                }
+                results[i] = result;
+            }
+        }
+        blobs += last_blobs;
     }
     let markers = links
         .into_iter()
-        .map(|link| {
-            let result = match link.target {
-                None => Err(NotFound::NoTarget),
-                Some(target) => {
-                    let blobs = blobs_of
-                        .iter()
-                        .find(|(p, _)| *p == target.polarity)
-                        .map(|(_, b)| b.as_slice())
-                        .unwrap_or_default();
-                    let mut result = Err(NotFound::NoPrediction);
-                    for prior in predictions(link).into_iter().chain(link.nominal) {
-                        let attempt = identify(link, blobs, Some(&prior));
-                        let found = attempt.is_ok();
-                        // The first reason is kept: it comes from the most trusted prediction.
-                        if found || matches!(result, Err(NotFound::NoPrediction)) {
-                            result = attempt;
-                        }
-                        if found {
-                            break;
-                        }
-                    }
-                    result
-                }
-            };
-            MarkerInFrame { link, result }
-        })
+        .zip(results)
+        .map(|(link, result)| MarkerInFrame { link, result })
         .collect();
     Ok(FrameObservation {
-        blobs: blobs_of.iter().map(|(_, b)| b.len()).sum(),
+        blobs,
+        searched_fraction: searched,
         markers,
     })
 }

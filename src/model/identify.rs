@@ -23,6 +23,19 @@ pub const GATE_FRACTION_OF_SPACING: f64 = 0.4;
 /// A second blob within this factor of the nearest one's distance makes a point ambiguous.
 pub const AMBIGUITY_FACTOR: f64 = 1.5;
 
+/// How far around each predicted point identification looks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Reach {
+    /// Each point's full gate; the marker is found with at least [`MIN_POINTS`] points.
+    Full,
+    /// A gate of at most [`GATE_MIN_PX`], and every point must match: the quick first look
+    /// when the prediction is good. When it finds a marker, the full gate would have matched
+    /// the same blobs (each point's nearest blob is within the short gate, and any blob that
+    /// could make it ambiguous within 1.5 times that), so a caller can search the frame only
+    /// that close to the points first and widen the search when it fails.
+    Near,
+}
+
 /// Why a marker was not found in a frame.
 #[derive(Debug, Clone, PartialEq)]
 pub enum NotFound {
@@ -85,6 +98,75 @@ pub struct Found {
     pub solution: PnpSolution,
 }
 
+/// Where the points of `link`'s marker image at `prior` (`camera_from_marker`).
+fn predict(link: &ObservedLink, prior: &Pose) -> Result<Vec<Vector2<f64>>, NotFound> {
+    link.points_mm
+        .iter()
+        .map(|p| {
+            link.camera
+                .project(&(prior * nalgebra::Point3::from(*p)).coords)
+        })
+        .collect::<Option<_>>()
+        .ok_or(NotFound::NotInView)
+}
+
+/// Each predicted point's gate (px) as `(take, look)`: the point takes its nearest blob within
+/// `take`, and the blobs within `look` are weighed for ambiguity. With [`Reach::Full`] both are
+/// [`GATE_MIN_PX`], or [`GATE_FRACTION_OF_SPACING`] of the distance to the nearest other point
+/// if larger, but never over half that distance. With [`Reach::Near`] `take` is at most
+/// [`GATE_MIN_PX`] and `look` at most [`AMBIGUITY_FACTOR`] times `take`: every blob that could
+/// make a match within `take` ambiguous under the full gate.
+fn gates(predicted: &[Vector2<f64>], reach: Reach) -> Vec<(f64, f64)> {
+    predicted
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let spacing = predicted
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, q)| (q - p).norm())
+                .fold(f64::INFINITY, f64::min);
+            let gate = GATE_MIN_PX
+                .max(GATE_FRACTION_OF_SPACING * spacing)
+                .min(0.5 * spacing);
+            match reach {
+                Reach::Full => (gate, gate),
+                Reach::Near => {
+                    let take = gate.min(GATE_MIN_PX);
+                    (take, gate.min(AMBIGUITY_FACTOR * take))
+                }
+            }
+        })
+        .collect()
+}
+
+/// The part of the frame [`identify_within`] looks at for `link`'s marker at `prior`: per
+/// point, its prediction and the half side of a square that holds, whole, every blob its gates
+/// weigh (the `look` of [`gates`], plus the disc's predicted radius with half again for a tilt
+/// the prior does not know, and the detector's window margin). Empty when the marker is not in
+/// view.
+pub fn search_squares(link: &ObservedLink, prior: &Pose, reach: Reach) -> Vec<([f64; 2], f64)> {
+    let Ok(predicted) = predict(link, prior) else {
+        return Vec::new();
+    };
+    let focal_px = link.camera.fx_px.max(link.camera.fy_px);
+    let diameter_mm = link.target.map_or(0.0, |t| t.diameter_mm);
+    predicted
+        .iter()
+        .zip(gates(&predicted, reach))
+        .zip(&link.points_mm)
+        .map(|((p, (_, look)), point)| {
+            let depth_mm = (prior * nalgebra::Point3::from(*point)).z.max(1.0);
+            let radius_px = 0.5 * diameter_mm * focal_px / depth_mm;
+            ([p.x, p.y], look + 1.5 * radius_px + SEARCH_MARGIN_PX)
+        })
+        .collect()
+}
+
+/// Pixels around a disc the detector reads beyond its edge (its centroid window and ring).
+const SEARCH_MARGIN_PX: f64 = 8.0;
+
 /// Finds one marker among a frame's blobs, its points predicted from `prior`
 /// (`camera_from_marker`).
 pub fn identify(
@@ -92,16 +174,19 @@ pub fn identify(
     blobs: &[Blob],
     prior: Option<&Pose>,
 ) -> Result<Found, NotFound> {
+    identify_within(link, blobs, prior, Reach::Full)
+}
+
+/// [`identify`] with the gates of `reach`.
+pub fn identify_within(
+    link: &ObservedLink,
+    blobs: &[Blob],
+    prior: Option<&Pose>,
+    reach: Reach,
+) -> Result<Found, NotFound> {
     let prior = prior.ok_or(NotFound::NoPrediction)?;
-    let predicted: Vec<Vector2<f64>> = link
-        .points_mm
-        .iter()
-        .map(|p| {
-            link.camera
-                .project(&(prior * nalgebra::Point3::from(*p)).coords)
-        })
-        .collect::<Option<_>>()
-        .ok_or(NotFound::NotInView)?;
+    let predicted = predict(link, prior)?;
+    let gates = gates(&predicted, reach);
     let centres: Vec<Vector2<f64>> = blobs
         .iter()
         .map(|b| Vector2::new(b.centre_px[0], b.centre_px[1]))
@@ -109,25 +194,17 @@ pub fn identify(
     // Each point's nearest blob within its gate, unless a second one is nearly as close.
     let mut claims: Vec<Option<usize>> = vec![None; predicted.len()];
     let mut ambiguous = 0;
-    for (i, p) in predicted.iter().enumerate() {
-        let spacing = predicted
-            .iter()
-            .enumerate()
-            .filter(|(j, _)| *j != i)
-            .map(|(_, q)| (q - p).norm())
-            .fold(f64::INFINITY, f64::min);
-        let gate = GATE_MIN_PX
-            .max(GATE_FRACTION_OF_SPACING * spacing)
-            .min(0.5 * spacing);
+    for (i, (p, &(take, look))) in predicted.iter().zip(&gates).enumerate() {
         let mut near: Vec<(f64, usize)> = centres
             .iter()
             .enumerate()
             .map(|(k, c)| ((c - p).norm(), k))
-            .filter(|(d, _)| *d <= gate)
+            .filter(|(d, _)| *d <= look)
             .collect();
         near.sort_by(|a, b| a.0.total_cmp(&b.0));
         match near.as_slice() {
             [] => {}
+            [(d0, _), ..] if *d0 > take => {}
             [(_, k)] => claims[i] = Some(*k),
             [(d0, k), (d1, _), ..] => {
                 if *d1 > AMBIGUITY_FACTOR * d0.max(0.5) {
@@ -154,11 +231,15 @@ pub fn identify(
         .enumerate()
         .filter_map(|(i, c)| c.map(|k| (i, k)))
         .collect();
-    if matched.len() < MIN_POINTS {
+    let needed = match reach {
+        Reach::Full => MIN_POINTS,
+        Reach::Near => predicted.len().max(MIN_POINTS),
+    };
+    if matched.len() < needed {
         return Err(NotFound::TooFewPoints {
             found: matched.len(),
             ambiguous,
-            needed: MIN_POINTS,
+            needed,
         });
     }
     let object: Vec<_> = matched.iter().map(|&(i, _)| link.points_mm[i]).collect();

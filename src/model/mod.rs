@@ -16,7 +16,7 @@ mod identify;
 mod observation;
 
 pub use frame::{FrameObservation, MarkerInFrame, observe_frame};
-pub use identify::{Found, NotFound, identify};
+pub use identify::{Found, NotFound, Reach, identify, identify_within, search_squares};
 pub use observation::{ObservationError, ObservedLink, Observer};
 
 use crate::alarms::AlarmThresholds;

@@ -116,32 +116,161 @@ impl Blob {
     }
 }
 
+/// Which tiles of a frame to search: all of them, or those near where discs are expected.
+///
+/// A disc is reported only when it and the pixels around it lie in searched tiles (a disc cut
+/// by the edge of the searched area is refused like one cut by the frame's edge), so a disc
+/// found in part of a frame is found with the same centre as in the whole frame: the tiles are
+/// the whole frame's, and so are their thresholds.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SearchArea {
+    tiles_x: usize,
+    tiles_y: usize,
+    active: Vec<bool>,
+}
+
+impl SearchArea {
+    /// Every tile of a `width_px` x `height_px` frame.
+    pub fn whole(width_px: u32, height_px: u32) -> Self {
+        let (tiles_x, tiles_y) = Self::tiles(width_px, height_px);
+        Self {
+            tiles_x,
+            tiles_y,
+            active: vec![true; tiles_x * tiles_y],
+        }
+    }
+
+    /// No tile yet.
+    pub fn empty(width_px: u32, height_px: u32) -> Self {
+        let (tiles_x, tiles_y) = Self::tiles(width_px, height_px);
+        Self {
+            tiles_x,
+            tiles_y,
+            active: vec![false; tiles_x * tiles_y],
+        }
+    }
+
+    fn tiles(width_px: u32, height_px: u32) -> (usize, usize) {
+        (
+            (width_px as usize).div_ceil(TILE_PX),
+            (height_px as usize).div_ceil(TILE_PX),
+        )
+    }
+
+    /// Adds the tiles that overlap the square of half side `half_side_px` around `centre_px`
+    /// (clipped to the frame; a square wholly outside adds nothing).
+    pub fn add_square(&mut self, centre_px: [f64; 2], half_side_px: f64) {
+        let span = |c: f64, tiles: usize| -> Option<(usize, usize)> {
+            let (lo, hi) = (c - half_side_px, c + half_side_px);
+            let last = (tiles * TILE_PX) as f64 - 0.5;
+            if !(hi >= -0.5 && lo <= last) {
+                return None;
+            }
+            let tile = |x: f64| ((x.clamp(0.0, last) + 0.5) as usize / TILE_PX).min(tiles - 1);
+            Some((tile(lo), tile(hi)))
+        };
+        let (Some((x0, x1)), Some((y0, y1))) = (
+            span(centre_px[0], self.tiles_x),
+            span(centre_px[1], self.tiles_y),
+        ) else {
+            return;
+        };
+        for ty in y0..=y1 {
+            for tx in x0..=x1 {
+                self.active[ty * self.tiles_x + tx] = true;
+            }
+        }
+    }
+
+    /// The share of the frame's tiles searched (0 to 1).
+    pub fn fraction(&self) -> f64 {
+        self.active.iter().filter(|a| **a).count() as f64 / self.active.len() as f64
+    }
+
+    fn is_active(&self, tx: usize, ty: usize) -> bool {
+        self.active[ty * self.tiles_x + tx]
+    }
+
+    /// Whether every tile the pixel rectangle touches is searched.
+    fn covers(&self, u0: usize, u1: usize, v0: usize, v1: usize) -> bool {
+        let (tx1, ty1) = (
+            (u1 / TILE_PX).min(self.tiles_x - 1),
+            (v1 / TILE_PX).min(self.tiles_y - 1),
+        );
+        (v0 / TILE_PX..=ty1).all(|ty| (u0 / TILE_PX..=tx1).all(|tx| self.is_active(tx, ty)))
+    }
+
+    /// The column ranges `[u0, u1)` of searched tiles in tile row `ty`.
+    fn spans(&self, ty: usize, w: usize) -> Vec<(usize, usize)> {
+        let mut out: Vec<(usize, usize)> = Vec::new();
+        for tx in (0..self.tiles_x).filter(|&tx| self.is_active(tx, ty)) {
+            let (u0, u1) = (tx * TILE_PX, ((tx + 1) * TILE_PX).min(w));
+            match out.last_mut() {
+                Some(last) if last.1 == u0 => last.1 = u1,
+                _ => out.push((u0, u1)),
+            }
+        }
+        out
+    }
+}
+
 /// Finds the discs of a frame, in the order of their first row (then column).
 pub fn detect(image: &GreyImage, settings: &DetectSettings) -> Vec<Blob> {
+    let area = SearchArea::whole(image.width_px(), image.height_px());
+    detect_in(image, settings, &area)
+}
+
+/// Finds the discs in the searched tiles of a frame, in the order of their first row (then
+/// column). `area` must be made for the frame's size.
+pub fn detect_in(image: &GreyImage, settings: &DetectSettings, area: &SearchArea) -> Vec<Blob> {
     let (w, h) = (image.width_px() as usize, image.height_px() as usize);
+    assert_eq!(
+        (area.tiles_x, area.tiles_y),
+        SearchArea::tiles(image.width_px(), image.height_px()),
+        "a search area made for another frame size"
+    );
     let pixels = image.pixels();
     let sign = settings.polarity.sign();
-    let thresholds = tile_thresholds(pixels, w, h, settings);
-    let tiles_x = w.div_ceil(TILE_PX);
+    let thresholds = tile_thresholds(pixels, w, h, settings, area);
+    let tiles_x = area.tiles_x;
     let foreground = |u: usize, v: usize| -> bool {
         let t = thresholds[(v / TILE_PX) * tiles_x + u / TILE_PX];
         sign * f64::from(pixels[v * w + u]) > t
     };
-    components(w, h, &foreground)
+    components(w, h, area, &foreground)
         .into_iter()
+        .filter(|c| {
+            area.covers(
+                c.u_min.saturating_sub(1),
+                c.u_max + 1,
+                c.v_min.saturating_sub(1),
+                c.v_max + 1,
+            )
+        })
         .filter(|c| is_elliptic(c, &foreground, w, h))
         .filter_map(|c| refine(image, &c, settings))
         .collect()
 }
 
-/// Per tile, the signed threshold: a pixel `p` is foreground when `sign * p > threshold`.
-fn tile_thresholds(pixels: &[u16], w: usize, h: usize, settings: &DetectSettings) -> Vec<f64> {
+/// Per tile, the signed threshold: a pixel `p` is foreground when `sign * p > threshold`;
+/// infinite (nothing is foreground) in the tiles not searched.
+fn tile_thresholds(
+    pixels: &[u16],
+    w: usize,
+    h: usize,
+    settings: &DetectSettings,
+    area: &SearchArea,
+) -> Vec<f64> {
     let sign = settings.polarity.sign();
-    let (tiles_x, tiles_y) = (w.div_ceil(TILE_PX), h.div_ceil(TILE_PX));
+    let (tiles_x, tiles_y) = (area.tiles_x, area.tiles_y);
     let mut out = Vec::with_capacity(tiles_x * tiles_y);
     let mut sample = Vec::with_capacity(TILE_PX * TILE_PX / 4);
     for ty in 0..tiles_y {
         for tx in 0..tiles_x {
+            if !area.is_active(tx, ty) {
+                out.push(f64::INFINITY);
+                continue;
+            }
             sample.clear();
             for v in (ty * TILE_PX..((ty + 1) * TILE_PX).min(h)).step_by(2) {
                 for u in (tx * TILE_PX..((tx + 1) * TILE_PX).min(w)).step_by(2) {
@@ -246,7 +375,12 @@ impl Component {
 }
 
 /// The 8-connected components of the foreground, from row runs joined by union-find.
-fn components(w: usize, h: usize, foreground: &impl Fn(usize, usize) -> bool) -> Vec<Component> {
+fn components(
+    w: usize,
+    h: usize,
+    area: &SearchArea,
+    foreground: &impl Fn(usize, usize) -> bool,
+) -> Vec<Component> {
     fn find(parent: &mut [usize], mut i: usize) -> usize {
         while parent[i] != i {
             parent[i] = parent[parent[i]];
@@ -259,34 +393,40 @@ fn components(w: usize, h: usize, foreground: &impl Fn(usize, usize) -> bool) ->
     // Runs of the previous row: (u0, u1, label).
     let mut previous: Vec<(usize, usize, usize)> = Vec::new();
     let mut current: Vec<(usize, usize, usize)> = Vec::new();
+    let mut spans = Vec::new();
     for v in 0..h {
+        if v % TILE_PX == 0 {
+            spans = area.spans(v / TILE_PX, w);
+        }
         current.clear();
-        let mut u = 0;
-        while u < w {
-            if !foreground(u, v) {
-                u += 1;
-                continue;
-            }
-            let u0 = u;
-            while u < w && foreground(u, v) {
-                u += 1;
-            }
-            let u1 = u - 1;
-            let label = parent.len();
-            parent.push(label);
-            let mut part = Component::empty();
-            part.add_run(v, u0, u1);
-            parts.push(part);
-            for &(p0, p1, pl) in &previous {
-                // 8-connected: runs touch when they overlap with one column of slack.
-                if p0 <= u1 + 1 && u0 <= p1 + 1 {
-                    let (a, b) = (find(&mut parent, label), find(&mut parent, pl));
-                    if a != b {
-                        parent[a] = b;
+        for &(start, end) in &spans {
+            let mut u = start;
+            while u < end {
+                if !foreground(u, v) {
+                    u += 1;
+                    continue;
+                }
+                let u0 = u;
+                while u < end && foreground(u, v) {
+                    u += 1;
+                }
+                let u1 = u - 1;
+                let label = parent.len();
+                parent.push(label);
+                let mut part = Component::empty();
+                part.add_run(v, u0, u1);
+                parts.push(part);
+                for &(p0, p1, pl) in &previous {
+                    // 8-connected: runs touch when they overlap with one column of slack.
+                    if p0 <= u1 + 1 && u0 <= p1 + 1 {
+                        let (a, b) = (find(&mut parent, label), find(&mut parent, pl));
+                        if a != b {
+                            parent[a] = b;
+                        }
                     }
                 }
+                current.push((u0, u1, label));
             }
-            current.push((u0, u1, label));
         }
         std::mem::swap(&mut previous, &mut current);
     }
@@ -384,10 +524,11 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
             return None;
         }
         let mut ring_values = Vec::new();
+        let (inner2, outer2) = (window * window, (window + ring) * (window + ring));
         for v in cv - reach..=cv + reach {
             for u in cu - reach..=cu + reach {
-                let d = ((u as f64 - centre[0]).powi(2) + (v as f64 - centre[1]).powi(2)).sqrt();
-                if d >= window && d < window + ring {
+                let d2 = (u as f64 - centre[0]).powi(2) + (v as f64 - centre[1]).powi(2);
+                if d2 >= inner2 && d2 < outer2 {
                     ring_values.push(f64::from(image.at(u as u32, v as u32)));
                 }
             }
@@ -395,8 +536,8 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
         if ring_values.len() < 8 {
             return None;
         }
-        ring_values.sort_unstable_by(f64::total_cmp);
-        let background = ring_values[ring_values.len() / 2];
+        let half = ring_values.len() / 2;
+        let background = *ring_values.select_nth_unstable_by(half, f64::total_cmp).1;
         let ring_mean = ring_values.iter().sum::<f64>() / ring_values.len() as f64;
         let ring_var = ring_values
             .iter()
@@ -414,8 +555,12 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
                 }
             }
         }
-        levels.sort_unstable_by(f64::total_cmp);
-        let level = levels.get(levels.len() / 2).copied().unwrap_or(0.0);
+        let half = levels.len() / 2;
+        let level = if levels.is_empty() {
+            0.0
+        } else {
+            *levels.select_nth_unstable_by(half, f64::total_cmp).1
+        };
         // Weights are clipped a few noise sigmas below that level: the plateau's pixels then
         // weigh the same whatever their noise (only the edge, where the position is, counts),
         // and the clipped image of a centrally symmetric blob is still centrally symmetric, so

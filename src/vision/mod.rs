@@ -29,7 +29,7 @@ mod pnp;
 mod sqpnp;
 
 pub use camera::CameraModel;
-pub use detect::{Blob, DetectSettings, Polarity, TILE_PX, detect};
+pub use detect::{Blob, DetectSettings, Polarity, SearchArea, TILE_PX, detect, detect_in};
 pub use eccentricity::disc_image_offset;
 pub use error::VisionError;
 pub use handeye::{

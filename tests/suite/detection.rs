@@ -6,7 +6,8 @@
 use brokenray::geometry::Vec3;
 use brokenray::sim::render::{Disc, RenderSettings, render_discs};
 use brokenray::vision::{
-    BitDepth, CameraModel, DetectSettings, Polarity, detect, disc_image_offset,
+    BitDepth, CameraModel, DetectSettings, Polarity, SearchArea, detect, detect_in,
+    disc_image_offset,
 };
 
 const FOCAL_PX: f64 = 4800.0;
@@ -224,6 +225,81 @@ fn cut_discs_streaks_and_specks_are_refused() {
     assert!((found[0].centre_px[0] - 100.0).abs() < 0.01);
 }
 
+/// Searching part of a frame: the discs inside the searched tiles come out exactly as from the
+/// whole frame (same tiles, same thresholds), none outside is reported, and a disc the searched
+/// area's edge cuts is refused like one the frame's edge cuts.
+#[test]
+fn a_search_area_finds_its_discs_as_the_whole_frame_does_and_refuses_cut_ones() {
+    let camera = CameraModel::pinhole(FOCAL_PX, FOCAL_PX, 320.0, 256.0, 640, 512);
+    let at = |u: f64, v: f64| Disc {
+        centre_mm: Vec3::new(
+            (u - 320.0) * DISTANCE_MM / FOCAL_PX,
+            (v - 256.0) * DISTANCE_MM / FOCAL_PX,
+            DISTANCE_MM,
+        ),
+        normal: Vec3::new(0.0, 0.0, -1.0),
+        diameter_mm: 2.0 * 12.0 * DISTANCE_MM / FOCAL_PX,
+    };
+    // Tiles are 64 px: the first disc lies well inside tile (1, 1), the second far away, the
+    // third straddles the border between tiles (3, 1) and (4, 1).
+    let discs = [at(96.3, 95.7), at(500.2, 400.9), at(256.4, 100.1)];
+    let render = RenderSettings {
+        read_noise_dn: 2.0,
+        gain_e_per_dn: Some(40.0),
+        depth: BitDepth::Eight,
+        background_dn: 20.0,
+        contrast_dn: 180.0,
+        ..RenderSettings::default()
+    };
+    let frame = render_discs(&camera, &discs, &render);
+    let settings = DetectSettings {
+        gain_e_per_dn: render.gain_e_per_dn,
+        ..DetectSettings::default()
+    };
+    let whole = detect(&frame, &settings);
+    assert_eq!(whole.len(), 3, "{whole:?}");
+    assert_eq!(
+        detect_in(&frame, &settings, &SearchArea::whole(640, 512)),
+        whole,
+        "the whole frame as a search area is plain detection"
+    );
+
+    let mut area = SearchArea::empty(640, 512);
+    area.add_square([96.0, 96.0], 40.0); // tiles 0..=2 in both directions
+    area.add_square([230.0, 100.0], 10.0); // tile (3, 1) only: the third disc is cut
+    assert!(
+        (area.fraction() - 10.0 / 80.0).abs() < 1e-12,
+        "{}",
+        area.fraction()
+    );
+    let part = detect_in(&frame, &settings, &area);
+    assert_eq!(
+        part.len(),
+        1,
+        "only the first disc is whole in the area: {part:?}"
+    );
+    assert_eq!(part[0], whole[0], "bit for bit the whole frame's detection");
+
+    area.add_square([280.0, 100.0], 10.0); // and tile (4, 1): the third is whole now
+    let part = detect_in(&frame, &settings, &area);
+    assert_eq!(part.len(), 2, "{part:?}");
+    assert_eq!(
+        part[1],
+        *whole
+            .iter()
+            .find(|b| b.centre_px[0] > 200.0 && b.centre_px[0] < 300.0)
+            .unwrap()
+    );
+
+    // A square outside the frame adds nothing; one over its edge adds the tiles it overlaps.
+    let mut outside = SearchArea::empty(640, 512);
+    outside.add_square([-100.0, 50.0], 20.0);
+    outside.add_square([50.0, 900.0], 20.0);
+    assert_eq!(outside.fraction(), 0.0);
+    outside.add_square([630.0, 505.0], 20.0);
+    assert!((outside.fraction() - 1.0 / 80.0).abs() < 1e-12);
+}
+
 /// A 20 mm disc at 3 m tilted by 30 degrees, off the optical axis, under the laboratory lens'
 /// distortion: the detected centroid misses the image of the centre by the eccentricity; after
 /// subtracting the computed offset the error is within the detector's own bias.
@@ -301,7 +377,7 @@ mod identification {
     use super::*;
     use brokenray::config::default_installation;
     use brokenray::geometry::{Pose, Twist, se3_exp, se3_log};
-    use brokenray::model::{NotFound, ObservedLink, Observer, identify};
+    use brokenray::model::{NotFound, ObservedLink, Observer, identify, observe_frame};
     use nalgebra::Point3;
 
     fn link_c1_b() -> ObservedLink {
@@ -396,6 +472,46 @@ mod identification {
             );
         }
         assert!(found.sigma_px.iter().all(|s| *s > 0.0 && *s < 0.05));
+    }
+
+    /// A good prediction is searched only near its points and the marker comes out exactly as
+    /// from the whole frame; a prediction 32 px off widens the search, which still finds it.
+    #[test]
+    fn a_good_prediction_is_searched_near_its_points_and_a_poor_one_widely() {
+        let inst = default_installation();
+        let observer = Observer::new(&inst.model);
+        let link = link_c1_b();
+        let truth = moved(&nominal(&link));
+        let image = frame(&link, &truth, &[], &[]);
+        let settings = DetectSettings {
+            polarity: link.target.expect("discs").polarity,
+            gain_e_per_dn: link.gain_e_per_dn,
+            ..DetectSettings::default()
+        };
+        let whole = identify(&link, &detect(&image, &settings), Some(&truth)).expect("found");
+
+        let good = observe_frame(&observer, "C1", &image, |_| vec![truth]).expect("observed");
+        assert_eq!(good.markers.len(), 1);
+        assert_eq!(good.markers[0].result.as_ref(), Ok(&whole));
+        assert_eq!(good.blobs, link.points_mm.len(), "only the marker's discs");
+        assert!(
+            good.searched_fraction < 0.25,
+            "searched {:.3} of the frame",
+            good.searched_fraction
+        );
+
+        // 20 mm sideways at 3 m: 32 px, beyond the near gate of 15 px.
+        let off = Pose::from_parts(
+            nalgebra::Translation3::new(20.0, 0.0, 0.0),
+            nalgebra::UnitQuaternion::identity(),
+        ) * truth;
+        let poor = observe_frame(&observer, "C1", &image, |_| vec![off]).expect("observed");
+        assert_eq!(poor.markers[0].result.as_ref(), Ok(&whole));
+        assert!(
+            poor.searched_fraction > good.searched_fraction + 0.5,
+            "the near search ({:.3}) and the wide one",
+            poor.searched_fraction
+        );
     }
 
     #[test]

@@ -106,8 +106,16 @@ async fn frames_in_png_pgm_and_tiff_are_detected_solved_stored_and_complete_the_
         assert_eq!(status, StatusCode::OK, "{camera}: {body}");
         assert_eq!(body["camera"], camera.as_str());
         assert_eq!(body["time"], time.as_str());
+        // Only around the marker's predicted points is searched, and its discs are all there.
+        let searched = body["searched_fraction"].as_f64().expect("fraction");
+        assert!(searched > 0.0 && searched < 0.3, "{camera}: {searched}");
         let markers = body["markers"].as_array().expect("markers");
         assert_eq!(markers.len(), 1, "{body}");
+        assert_eq!(
+            body["blobs"].as_u64(),
+            Some(markers[0]["ids"].as_array().map_or(0, |i| i.len() as u64)),
+            "{camera}: every disc searched is a marker point: {body}"
+        );
         let m = &markers[0];
         assert_eq!(m["found"], true, "{camera}: {m}");
         let link = m["link"].as_str().expect("link");
