@@ -2,7 +2,8 @@
 //! camera sees through a measured link identified and solved, and the found ones ingested as
 //! link samples exactly as `/observations` does (atomic, durable before the answer).
 //!
-//! The frame itself is not stored. Decoding and detection are CPU work: they run on the
+//! The frame itself is not stored in the database; the newest of each camera is kept in memory
+//! with its answer ([`super::cameras`]). Decoding and detection are CPU work: they run on the
 //! blocking pool, never on the async workers.
 
 use super::AppState;
@@ -83,6 +84,10 @@ pub struct FrameMarkerOut {
     /// Its sigmas.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sigma: Option<SigmaOut>,
+    /// Each point of `ids` projected with the solved pose (px): `points_px` minus these are
+    /// the residuals.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reprojected_px: Option<Vec<[f64; 2]>>,
     /// Reprojection RMS (px).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reprojection_rms_px: Option<f64>,
@@ -98,7 +103,7 @@ pub struct FrameMarkerOut {
 }
 
 /// The answer to a frame.
-#[derive(Debug, Serialize, utoipa::ToSchema)]
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct FrameOut {
     /// The camera.
     pub camera: String,
@@ -170,7 +175,8 @@ pub async fn post_frame(
         .map_err(|m| ApiError::invalid_field("time", m))?;
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     let snapshot = app.service.snapshot();
-    let (out, items) = super::vision::blocking(move || {
+    let camera_name = camera.clone();
+    let (out, items, image) = super::vision::blocking(move || {
         let image = decode(&bytes, format, Some(size)).map_err(|e| {
             ApiError::invalid_field(
                 "body",
@@ -196,7 +202,8 @@ pub async fn post_frame(
         };
         let seen = observe_frame(&observer, &camera, &image, predictions)
             .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
-        Ok::<_, ApiError>(answer(&camera, time_ns, &seen))
+        let (out, items) = answer(&camera, time_ns, &seen);
+        Ok::<_, ApiError>((out, items, image))
     })
     .await??;
     let ingest = if items.is_empty() {
@@ -204,7 +211,28 @@ pub async fn post_frame(
     } else {
         app.service.ingest(items).await?.into()
     };
-    Ok(Json(FrameOut { ingest, ..out }))
+    let out = FrameOut { ingest, ..out };
+    app.latest_frames
+        .offer(&camera_name, time_ns, image, out.clone());
+    Ok(Json(out))
+}
+
+/// The marker points `ids` of `link` projected at `camera_from_marker` (px; a point behind the
+/// camera, which a solved pose does not have, at NaN).
+fn reprojected(link: &ObservedLink, ids: &[u32], camera_from_marker: &Pose) -> Vec<[f64; 2]> {
+    ids.iter()
+        .map(|id| {
+            link.ids
+                .iter()
+                .position(|x| x == id)
+                .and_then(|i| {
+                    link.camera.project(
+                        &(camera_from_marker * nalgebra::Point3::from(link.points_mm[i])).coords,
+                    )
+                })
+                .map_or([f64::NAN, f64::NAN], |p| [p.x, p.y])
+        })
+        .collect()
 }
 
 /// The answer before ingest, and the samples to ingest.
@@ -223,6 +251,7 @@ fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut,
                 sigma_px: None,
                 pose: None,
                 sigma: None,
+                reprojected_px: None,
                 reprojection_rms_px: None,
                 rejected_points: None,
                 reason: None,
@@ -247,6 +276,8 @@ fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut,
                     out.sigma_px = Some(found.sigma_px.clone());
                     out.pose = Some(PoseOut::from(&s.camera_from_marker));
                     out.sigma = Some(SigmaOut::from(&cov));
+                    out.reprojected_px =
+                        Some(reprojected(m.link, &found.ids, &s.camera_from_marker));
                     out.reprojection_rms_px = Some(s.rms_px);
                     out.rejected_points = Some(s.rejected_points.clone());
                 }

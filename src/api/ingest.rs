@@ -24,7 +24,7 @@ use serde_json::value::RawValue;
 use std::collections::HashSet;
 
 /// The answer to an accepted batch.
-#[derive(Debug, Default, Serialize, utoipa::ToSchema)]
+#[derive(Debug, Default, Clone, Serialize, utoipa::ToSchema)]
 pub struct IngestResponse {
     /// Samples in the batch, all durably stored.
     pub accepted: usize,

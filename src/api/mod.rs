@@ -7,6 +7,7 @@
 
 mod alarms;
 pub(crate) mod auth;
+mod cameras;
 mod dashboard;
 pub(crate) mod dto;
 mod error;
@@ -57,6 +58,8 @@ pub struct AppState {
     pub limits: Limits,
     /// Alarm notifications.
     pub webhooks: webhooks::Webhooks,
+    /// The newest frame of every camera.
+    pub latest_frames: Arc<cameras::LatestFrames>,
 }
 
 impl AppState {
@@ -68,8 +71,17 @@ impl AppState {
             max_body_bytes: server.max_body_bytes,
             max_batch_samples: server.max_batch_samples,
         };
+        let latest_frames = Arc::new(cameras::LatestFrames::new(
+            service
+                .installation()
+                .model
+                .cameras
+                .iter()
+                .map(|c| c.frame.as_str()),
+        ));
         Self {
             webhooks: webhooks::Webhooks::start(&service),
+            latest_frames,
             service,
             limits,
         }
@@ -282,6 +294,7 @@ async fn api_not_found(uri: axum::http::Uri) -> ApiError {
     tags(
         (name = "ingest", description = "Link samples and raw marker observations from the measurement pipeline"),
         (name = "calibration", description = "Station calibration (hand-eye)"),
+        (name = "cameras", description = "Each camera's newest frame and what was found in it"),
         (name = "targets", description = "Compensation, history, statistics and references"),
         (name = "links", description = "Links, their samples and calibrations"),
         (name = "alarms", description = "Alarm transitions"),
@@ -324,6 +337,9 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(ingest::post_samples))
         .routes(routes!(vision::post_observations))
         .routes(routes!(frames::post_frame))
+        .routes(routes!(cameras::list_cameras))
+        .routes(routes!(cameras::get_frame))
+        .routes(routes!(cameras::get_detections))
         .routes(routes!(vision::post_hand_eye))
         .routes(routes!(targets::list_targets))
         .routes(routes!(targets::get_compensation))

@@ -12,7 +12,7 @@ use brokenray::vision::{BitDepth, GreyImage};
 use serde_json::Value;
 
 /// The group at `T0_NS` of a static run and its three frames (C1, C2, C3).
-fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) {
+pub(super) fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) {
     let inst = brokenray::config::default_installation();
     let mut sim = Simulator::new(
         &inst.model,
@@ -57,7 +57,7 @@ fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) {
     (group, frames)
 }
 
-async fn post_frame(
+pub(super) async fn post_frame(
     app: &TestApp,
     camera: &str,
     time: &str,

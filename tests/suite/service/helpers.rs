@@ -125,6 +125,25 @@ impl TestApp {
         (status, value)
     }
 
+    /// A request with exactly the given headers; the answer's status, headers and raw body.
+    pub async fn request_raw(
+        &self,
+        method: &str,
+        uri: &str,
+        headers: &[(&str, &str)],
+        body: impl Into<Body>,
+    ) -> (StatusCode, axum::http::HeaderMap, axum::body::Bytes) {
+        let mut builder = Request::builder().method(method).uri(uri);
+        for (k, v) in headers {
+            builder = builder.header(*k, *v);
+        }
+        let req = builder.body(body.into()).expect("request");
+        let resp = self.router.clone().oneshot(req).await.expect("response");
+        let (parts, body) = resp.into_parts();
+        let bytes = body.collect().await.expect("body").to_bytes();
+        (parts.status, parts.headers, bytes)
+    }
+
     pub async fn get(&self, uri: &str) -> (StatusCode, Value) {
         self.request("GET", uri, None, None).await
     }

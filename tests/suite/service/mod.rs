@@ -2,6 +2,7 @@
 
 mod access;
 mod alarms;
+mod cameras;
 mod dashboard;
 mod frames;
 mod hardening;

@@ -1,0 +1,128 @@
+//! What the cameras see, through the router: the newest frame of each camera kept with the
+//! answer `/frames` gave, served as lossless PNG and as detections, newest by measurement time.
+
+use super::frames::{post_frame, rendered};
+use super::helpers::TestApp;
+use axum::http::StatusCode;
+use brokenray::clock::format_ns;
+use brokenray::imagefile::{FrameFormat, decode, encode};
+use brokenray::vision::BitDepth;
+
+#[tokio::test]
+async fn before_any_frame_cameras_are_listed_and_their_frames_are_404() {
+    let app = TestApp::start(None).await;
+    let (status, body) = app.get("/api/v1/cameras").await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let cameras = body["cameras"].as_array().expect("cameras");
+    let names: Vec<&str> = cameras.iter().filter_map(|c| c["name"].as_str()).collect();
+    assert_eq!(names, ["C1", "C2", "C3"]);
+    assert_eq!(cameras[0]["width_px"], 1280);
+    assert_eq!(cameras[0]["markers"], serde_json::json!(["B"]));
+    assert!(cameras.iter().all(|c| c.get("frame").is_none()), "{body}");
+
+    for path in ["frame", "detections"] {
+        let (status, body) = app.get(&format!("/api/v1/cameras/C1/{path}")).await;
+        assert_eq!(status, StatusCode::NOT_FOUND);
+        assert!(
+            body["error"]["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("no frame yet")),
+            "{body}"
+        );
+        let (status, body) = app.get(&format!("/api/v1/cameras/C9/{path}")).await;
+        assert_eq!(status, StatusCode::NOT_FOUND);
+        assert!(
+            body["error"]["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("no camera `C9`")),
+            "{body}"
+        );
+    }
+}
+
+#[tokio::test]
+async fn the_newest_frame_is_served_losslessly_with_its_detections_and_a_late_one_does_not_hide_it()
+{
+    let app = TestApp::start(None).await;
+    let (group, frames) = rendered(BitDepth::Eight);
+    let (_, frames16) = rendered(BitDepth::Sixteen);
+    let time = format_ns(group.time_ns);
+    let (status, answer) = post_frame(
+        &app,
+        "C1",
+        &time,
+        "image/png",
+        encode(&frames[0].1, FrameFormat::Png).expect("png"),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK, "{answer}");
+    // C2 as 16-bit PGM: served as 16-bit PNG.
+    let (status, _) = post_frame(
+        &app,
+        "C2",
+        &time,
+        "image/x-portable-graymap",
+        encode(&frames16[1].1, FrameFormat::Pgm).expect("pgm"),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK);
+
+    // The list: each camera's newest frame, its age on the server's clock, what was found.
+    let (_, list) = app.get("/api/v1/cameras").await;
+    let c1 = &list["cameras"][0];
+    assert_eq!(c1["frame"]["time"], time.as_str(), "{list}");
+    assert_eq!(c1["frame"]["markers"][0]["link"], "C1_from_B");
+    assert_eq!(c1["frame"]["markers"][0]["found"], true);
+    let age = c1["frame"]["age_s"].as_f64().expect("age");
+    let expected = (app.service.now_ns() - group.time_ns) as f64 / 1e9;
+    assert!((age - expected).abs() < 1e-6, "{age} against {expected}");
+    assert!(list["cameras"][2].get("frame").is_none(), "C3 sent nothing");
+
+    // The detections are the answer /frames gave, with the reprojected points beside the
+    // measured ones (residuals of hundredths of a pixel).
+    let (status, detections) = app.get("/api/v1/cameras/C1/detections").await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(detections, answer);
+    let m = &detections["markers"][0];
+    let points = m["points_px"].as_array().expect("points");
+    let reprojected = m["reprojected_px"].as_array().expect("reprojected");
+    assert_eq!(points.len(), reprojected.len());
+    for (p, r) in points.iter().zip(reprojected) {
+        let d = (p[0].as_f64().expect("u") - r[0].as_f64().expect("u"))
+            .hypot(p[1].as_f64().expect("v") - r[1].as_f64().expect("v"));
+        assert!(d < 0.05, "residual {d} px");
+    }
+
+    // The frame: lossless PNG of what was posted, 8 bit as 8, 16 as 16.
+    for (camera, posted) in [("C1", &frames[0].1), ("C2", &frames16[1].1)] {
+        let uri = format!("/api/v1/cameras/{camera}/frame");
+        let (status, headers, bytes) = app.request_raw("GET", &uri, &[], "").await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(headers["content-type"], "image/png");
+        assert_eq!(headers["x-frame-time"], time.as_str());
+        let image = decode(&bytes, FrameFormat::Png, None).expect("a PNG");
+        assert_eq!(&image, posted, "{camera}: the frame as posted");
+        // Asked again with its tag: not modified, no body.
+        let etag = headers["etag"].to_str().expect("etag").to_owned();
+        let (status, _, bytes) = app
+            .request_raw("GET", &uri, &[("if-none-match", &etag)], "")
+            .await;
+        assert_eq!(status, StatusCode::NOT_MODIFIED);
+        assert!(bytes.is_empty());
+    }
+
+    // A frame 40 ms older arrives late: the newer one stays.
+    let (status, _) = post_frame(
+        &app,
+        "C1",
+        &format_ns(group.time_ns - 40_000_000),
+        "image/png",
+        encode(&frames[0].1, FrameFormat::Png).expect("png"),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK);
+    let (_, headers, _) = app
+        .request_raw("GET", "/api/v1/cameras/C1/frame", &[], "")
+        .await;
+    assert_eq!(headers["x-frame-time"], time.as_str());
+}
