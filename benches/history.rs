@@ -43,7 +43,7 @@ fn main() {
         );
 
         let (service, _pipeline) = Service::start(inst).await.expect("service");
-        let app = router(AppState::new(service));
+        let app = router(AppState::new(service).expect("the frame archive"));
         let last = T0 + (n - 1) * PERIOD_NS;
         let day = 86_400 * 1_000_000_000i64;
         for (label, uri) in [

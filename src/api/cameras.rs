@@ -1,5 +1,6 @@
 //! What the cameras see: the newest frame of every camera and what was found in it, kept in
-//! memory (`GET /api/v1/cameras`, `/cameras/{name}/frame`, `/cameras/{name}/detections`).
+//! memory (`GET /api/v1/cameras`, `/cameras/{name}/frame`, `/cameras/{name}/detections`), and
+//! the frames the archive keeps (`/cameras/{name}/frames`, [`crate::archive`]).
 //!
 //! `POST /frames` hands each frame it answered to [`LatestFrames::offer`], which keeps it when
 //! it is the camera's newest by measurement time: a move of the decoded frame and the answer,
@@ -10,8 +11,9 @@
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
 use super::frames::{FrameOut, NotFoundCode};
+use crate::archive::{ArchiveReason, FrameArchive};
 use crate::clock::format_ns;
-use crate::imagefile::{FrameFormat, encode};
+use crate::imagefile::encode_png_fast;
 use crate::vision::GreyImage;
 use axum::Json;
 use axum::body::{Body, Bytes};
@@ -24,7 +26,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 /// A camera's newest frame.
 struct Latest {
     time_ns: i64,
-    image: GreyImage,
+    image: Arc<GreyImage>,
     answer: FrameOut,
     /// The frame as PNG, encoded on the first request for it.
     png: OnceLock<Result<Bytes, String>>,
@@ -57,7 +59,13 @@ impl LatestFrames {
 
     /// Keeps a frame `POST /frames` answered when it is its camera's newest by measurement
     /// time (a late frame does not hide a newer one).
-    pub(super) fn offer(&self, camera: &str, time_ns: i64, image: GreyImage, answer: FrameOut) {
+    pub(super) fn offer(
+        &self,
+        camera: &str,
+        time_ns: i64,
+        image: Arc<GreyImage>,
+        answer: FrameOut,
+    ) {
         let Some(slot) = self.slot(camera) else {
             return;
         };
@@ -212,7 +220,7 @@ pub async fn get_frame(
     let png = super::vision::blocking(move || {
         held.png
             .get_or_init(|| {
-                encode(&held.image, FrameFormat::Png)
+                encode_png_fast(&held.image)
                     .map(Bytes::from)
                     .map_err(|e| e.to_string())
             })
@@ -254,4 +262,153 @@ pub async fn get_detections(
 ) -> Result<Response, ApiError> {
     let latest = latest_of(&app, &name)?;
     Ok(Json(&latest.answer).into_response())
+}
+
+/// Query of `GET /cameras/{name}/frames`.
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[serde(deny_unknown_fields)]
+pub struct ArchivedQuery {
+    /// First measurement time (RFC 3339 or integer nanoseconds); default: the oldest.
+    pub from: Option<String>,
+    /// Last measurement time; default: the newest.
+    pub to: Option<String>,
+    /// Most frames listed (default 1000, at most 10000), oldest first.
+    pub limit: Option<usize>,
+}
+
+/// One archived frame.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ArchivedOut {
+    /// Measurement time (RFC 3339).
+    pub time: String,
+    /// Why it was kept.
+    pub reason: ArchiveReason,
+    /// Its size (bytes).
+    pub bytes: u64,
+    /// Where to fetch it: `/api/v1/cameras/{name}/frames/{time}` with the time in nanoseconds.
+    pub url: String,
+    /// The file in the archive directory (`<camera>/<time>_<reason>.png`).
+    pub file: String,
+}
+
+/// A camera's archived frames.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ArchivedListOut {
+    /// The camera.
+    pub camera: String,
+    /// Oldest first.
+    pub frames: Vec<ArchivedOut>,
+    /// Whether more frames lie in the period than were listed.
+    pub truncated: bool,
+}
+
+/// The archive, or a 404 saying none is configured; the camera must be known.
+fn archive_of<'a>(app: &'a AppState, name: &str) -> Result<&'a FrameArchive, ApiError> {
+    if app.service.installation().model.camera(name).is_none() {
+        return Err(ApiError::not_found(format!("no camera `{name}`")));
+    }
+    app.archive.as_ref().ok_or_else(|| {
+        ApiError::not_found("no frame archive is configured (`[frames] archive_dir`)")
+    })
+}
+
+/// `GET /api/v1/cameras/{name}/frames`.
+#[utoipa::path(get, path = "/cameras/{name}/frames", tag = "cameras",
+    params(("name" = String, Path, description = "The camera's frame"), ArchivedQuery),
+    responses(
+        (status = 200, description = "The camera's archived frames in the period, oldest first", body = ArchivedListOut),
+        (status = 404, description = "Unknown camera, or no archive configured", body = ErrorBody),
+        (status = 422, description = "An unreadable time or limit", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub async fn list_archived(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+    axum::extract::Query(q): axum::extract::Query<ArchivedQuery>,
+) -> Result<Json<ArchivedListOut>, ApiError> {
+    let archive = archive_of(&app, &name)?;
+    let time = |field: &str, text: &Option<String>, default: i64| match text {
+        None => Ok(default),
+        Some(t) => crate::clock::parse_query_time(t).map_err(|m| ApiError::invalid_field(field, m)),
+    };
+    let from_ns = time("from", &q.from, i64::MIN)?;
+    let to_ns = time("to", &q.to, i64::MAX)?;
+    if from_ns > to_ns {
+        return Err(ApiError::invalid_field("from", "`from` is after `to`"));
+    }
+    let limit = q.limit.unwrap_or(1000);
+    if limit == 0 || limit > 10_000 {
+        return Err(ApiError::invalid_field(
+            "limit",
+            format!("limit is 1 to 10000, not {limit}"),
+        ));
+    }
+    let mut found = archive.list(&name, from_ns, to_ns, limit + 1);
+    let truncated = found.len() > limit;
+    found.truncate(limit);
+    Ok(Json(ArchivedListOut {
+        frames: found
+            .into_iter()
+            .map(|f| ArchivedOut {
+                time: format_ns(f.time_ns),
+                reason: f.reason,
+                bytes: f.bytes,
+                url: format!("/api/v1/cameras/{name}/frames/{}", f.time_ns),
+                file: format!(
+                    "{name}/{}",
+                    f.path
+                        .file_name()
+                        .and_then(|n| n.to_str())
+                        .unwrap_or_default()
+                ),
+            })
+            .collect(),
+        camera: name,
+        truncated,
+    }))
+}
+
+/// `GET /api/v1/cameras/{name}/frames/{time}`.
+#[utoipa::path(get, path = "/cameras/{name}/frames/{time}", tag = "cameras",
+    params(
+        ("name" = String, Path, description = "The camera's frame"),
+        ("time" = String, Path, description = "The frame's measurement time, RFC 3339 or integer nanoseconds"),
+    ),
+    responses(
+        (status = 200, description = "The archived frame as PNG", content_type = "image/png"),
+        (status = 404, description = "Unknown camera, no archive, or no frame archived at that time", body = ErrorBody),
+        (status = 422, description = "An unreadable time", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub async fn get_archived(
+    State(app): State<AppState>,
+    Path((name, time)): Path<(String, String)>,
+) -> Result<Response, ApiError> {
+    let archive = archive_of(&app, &name)?;
+    let time_ns =
+        crate::clock::parse_query_time(&time).map_err(|m| ApiError::invalid_field("time", m))?;
+    let frame = archive.get(&name, time_ns).ok_or_else(|| {
+        ApiError::not_found(format!(
+            "no frame of camera `{name}` at {} in the archive",
+            format_ns(time_ns)
+        ))
+    })?;
+    let bytes = tokio::fs::read(&frame.path).await.map_err(|e| {
+        ApiError::not_found(format!(
+            "the archived frame {} cannot be read (removed to stay under the cap?): {e}",
+            frame.path.display()
+        ))
+    })?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("image/png")),
+            (
+                header::CACHE_CONTROL,
+                HeaderValue::from_static("max-age=3600"),
+            ),
+        ],
+        Body::from(bytes),
+    )
+        .into_response())
 }

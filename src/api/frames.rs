@@ -10,6 +10,7 @@ use super::AppState;
 use super::dto::{PoseOut, SigmaOut};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, read_body};
+use crate::archive::ArchiveReason;
 use crate::clock::format_ns;
 use crate::geometry::{Pose, PoseCov};
 use crate::imagefile::{FrameFileError, FrameFormat, decode};
@@ -212,9 +213,29 @@ pub async fn post_frame(
         app.service.ingest(items).await?.into()
     };
     let out = FrameOut { ingest, ..out };
+    let image = std::sync::Arc::new(image);
+    if let Some(archive) = &app.archive {
+        archive.offer(&camera_name, time_ns, &image, evidence(&out));
+    }
     app.latest_frames
         .offer(&camera_name, time_ns, image, out.clone());
     Ok(Json(out))
+}
+
+/// Why a frame is evidence worth archiving: a marker with disc targets not found, or a sample
+/// judged an outlier.
+fn evidence(out: &FrameOut) -> Option<ArchiveReason> {
+    if out
+        .markers
+        .iter()
+        .any(|m| !m.found && m.reason_code != Some(NotFoundCode::NoTarget))
+    {
+        Some(ArchiveReason::NotFound)
+    } else if out.ingest.outliers > 0 {
+        Some(ArchiveReason::Outlier)
+    } else {
+        None
+    }
 }
 
 /// The marker points `ids` of `link` projected at `camera_from_marker` (px; a point behind the

@@ -254,6 +254,40 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         }
     }
     app.webhooks.metrics(&mut out);
+    if let Some(archive) = &app.archive {
+        let c = archive.counters();
+        for (name, help, counter) in [
+            (
+                "brokenray_frames_archived_total",
+                "Frames written to the frame archive.",
+                &c.written,
+            ),
+            (
+                "brokenray_frames_archive_removed_total",
+                "Archived frames removed to stay under archive_max_mb.",
+                &c.removed,
+            ),
+            (
+                "brokenray_frames_archive_dropped_total",
+                "Frames to archive that were not, because the archive's writer was behind.",
+                &c.dropped,
+            ),
+            (
+                "brokenray_frames_archive_failed_total",
+                "Frames whose archiving failed (see the log).",
+                &c.failed,
+            ),
+        ] {
+            single(&mut out, name, "counter", help, Metrics::get(counter));
+        }
+        single(
+            &mut out,
+            "brokenray_frames_archive_bytes",
+            "gauge",
+            "Size of the frame archive on disk.",
+            archive.bytes(),
+        );
+    }
     (
         [(
             header::CONTENT_TYPE,

@@ -60,12 +60,15 @@ pub struct AppState {
     pub webhooks: webhooks::Webhooks,
     /// The newest frame of every camera.
     pub latest_frames: Arc<cameras::LatestFrames>,
+    /// The frame archive, when one is configured.
+    pub archive: Option<crate::archive::FrameArchive>,
 }
 
 impl AppState {
     /// The state of the HTTP adapter over `service`: starts delivering alarm transitions to the
-    /// configured webhooks.
-    pub fn new(service: Service) -> Self {
+    /// configured webhooks, and opens the frame archive when one is configured.
+    pub fn new(service: Service) -> Result<Self, crate::archive::ArchiveError> {
+        let archive = crate::archive::FrameArchive::open(&service.installation().frames)?;
         let server = &service.installation().server;
         let limits = Limits {
             max_body_bytes: server.max_body_bytes,
@@ -79,12 +82,13 @@ impl AppState {
                 .iter()
                 .map(|c| c.frame.as_str()),
         ));
-        Self {
+        Ok(Self {
             webhooks: webhooks::Webhooks::start(&service),
             latest_frames,
+            archive,
             service,
             limits,
-        }
+        })
     }
 }
 
@@ -340,6 +344,8 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(cameras::list_cameras))
         .routes(routes!(cameras::get_frame))
         .routes(routes!(cameras::get_detections))
+        .routes(routes!(cameras::list_archived))
+        .routes(routes!(cameras::get_archived))
         .routes(routes!(vision::post_hand_eye))
         .routes(routes!(targets::list_targets))
         .routes(routes!(targets::get_compensation))
@@ -444,6 +450,9 @@ pub enum StartError {
     /// The service could not start.
     #[error(transparent)]
     Service(#[from] crate::service::ServiceError),
+    /// The frame archive could not be opened.
+    #[error(transparent)]
+    Archive(#[from] crate::archive::ArchiveError),
 }
 
 /// A bound, started service, ready to run until a shutdown signal.
@@ -451,6 +460,7 @@ pub struct App {
     listener: tokio::net::TcpListener,
     service: Service,
     pipeline: PipelineHandle,
+    state: AppState,
 }
 
 impl App {
@@ -464,10 +474,12 @@ impl App {
             .await
             .map_err(|source| StartError::Bind { addr, source })?;
         let (service, pipeline) = Service::start(installation).await?;
+        let state = AppState::new(service.clone())?;
         Ok(App {
             listener,
             service,
             pipeline,
+            state,
         })
     }
 
@@ -496,7 +508,7 @@ impl App {
             header_timeout: Duration::from_secs_f64(settings.header_timeout_s),
             shutdown_grace: Duration::from_secs_f64(settings.shutdown_grace_s),
         };
-        let state = AppState::new(self.service.clone());
+        let state = self.state;
         let webhooks = state.webhooks.clone();
         let store = self.service.store().clone();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);

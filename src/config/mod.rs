@@ -48,9 +48,24 @@ pub struct Installation {
     pub notify: NotifySettings,
     /// How long raw samples and results are kept (rollups are kept for good).
     pub retention: RetentionSettings,
+    /// The archive of camera frames.
+    pub frames: FrameSettings,
     /// What is valid but probably not meant, each with its line (`check-config` prints them,
     /// `serve` logs them).
     pub warnings: Vec<ConfigProblem>,
+}
+
+/// The archive of camera frames (`[frames]`): one frame per camera every `archive_every_s` of
+/// measurement time, plus every frame in which a marker was not found or a link's sample was
+/// an outlier, the oldest removed to stay under `archive_max_mb`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameSettings {
+    /// Where the archive is kept; `None`: frames are not archived.
+    pub archive_dir: Option<PathBuf>,
+    /// Seconds of measurement time between the frames kept of each camera.
+    pub archive_every_s: f64,
+    /// The archive's size cap (MB, 10^6 bytes).
+    pub archive_max_mb: f64,
 }
 
 /// How long raw samples and results are kept, counted back from the newest result.

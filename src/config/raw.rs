@@ -27,6 +27,15 @@ pub(super) struct RawFile {
     pub filter: Option<Spanned<RawFilter>>,
     pub retention: Option<Spanned<RawRetention>>,
     pub pnp: Option<Spanned<RawPnp>>,
+    pub frames: Option<Spanned<RawFrames>>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawFrames {
+    pub archive_dir: Option<String>,
+    pub archive_every_s: Option<f64>,
+    pub archive_max_mb: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

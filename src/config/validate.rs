@@ -8,8 +8,8 @@
 use super::error::LineIndex;
 use super::raw::{self, RawFile, RawPose, RawSigma};
 use super::{
-    AuthSettings, ConfigProblem, Installation, NotifyLevel, NotifySettings, RerunSettings,
-    RetentionSettings, Scope, ServerSettings, TokenSpec, WebhookSpec,
+    AuthSettings, ConfigProblem, FrameSettings, Installation, NotifyLevel, NotifySettings,
+    RerunSettings, RetentionSettings, Scope, ServerSettings, TokenSpec, WebhookSpec,
 };
 use crate::alarms::AlarmThresholds;
 use crate::chain::{ChainError, Topology};
@@ -153,6 +153,7 @@ impl Validator {
         let notify = self.notify(&raw);
         let filter = self.bank_settings(&raw);
         let retention = self.retention(&raw);
+        let frames = self.frames(&raw);
         let pnp = self.pnp(&raw);
         let mut frames_seen = std::collections::HashSet::new();
         for c in &raw.cameras {
@@ -192,6 +193,7 @@ impl Validator {
             auth,
             notify,
             retention: retention?,
+            frames: frames?,
             warnings: std::mem::take(&mut self.warnings),
         })
     }
@@ -268,6 +270,30 @@ impl Validator {
         ok.then_some(RetentionSettings {
             samples_days,
             results_days,
+        })
+    }
+
+    fn frames(&mut self, raw: &RawFile) -> Option<FrameSettings> {
+        let empty = raw::RawFrames::default();
+        let (at, f) = match &raw.frames {
+            Some(s) => (s.span().start, s.get_ref()),
+            None => (0, &empty),
+        };
+        let archive_every_s = f.archive_every_s.unwrap_or(60.0);
+        let archive_max_mb = f.archive_max_mb.unwrap_or(1024.0);
+        let mut ok = self.positive(at, "frames.archive_every_s", archive_every_s)
+            & self.positive(at, "frames.archive_max_mb", archive_max_mb);
+        if f.archive_dir.as_deref() == Some("") {
+            self.problem(
+                at,
+                "frames.archive_dir is empty: leave it out to keep no archive".to_owned(),
+            );
+            ok = false;
+        }
+        ok.then(|| FrameSettings {
+            archive_dir: f.archive_dir.as_ref().map(PathBuf::from),
+            archive_every_s,
+            archive_max_mb,
         })
     }
 

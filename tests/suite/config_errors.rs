@@ -386,3 +386,35 @@ fn the_built_in_markers_are_20_mm_bright_discs_without_warnings() {
         assert!(m.normals.iter().all(|n| *n == [0.0, 0.0, 1.0]));
     }
 }
+
+#[test]
+fn the_frame_archive_settings_default_and_refuse_what_cannot_work() {
+    let plain = config::parse("site.toml", VALID).expect("valid");
+    assert_eq!(plain.frames.archive_dir, None, "no archive unless asked");
+    assert_eq!(plain.frames.archive_every_s, 60.0);
+    assert_eq!(plain.frames.archive_max_mb, 1024.0);
+    let text = format!(
+        "{VALID}\n[frames]\narchive_dir = \"/var/lib/brokenray/frames\"\narchive_every_s = 10\n"
+    );
+    let set = config::parse("site.toml", &text).expect("valid");
+    assert_eq!(
+        set.frames.archive_dir.as_deref(),
+        Some(std::path::Path::new("/var/lib/brokenray/frames"))
+    );
+    assert_eq!(set.frames.archive_every_s, 10.0);
+
+    let text = format!("{VALID}\n[frames]\narchive_dir = \"frames\"\narchive_max_mb = 0\n");
+    let e = error_of(&text);
+    assert!(
+        e.contains("frames.archive_max_mb must be a positive number"),
+        "{e}"
+    );
+    assert!(
+        e.contains(&format!("site.toml:{}", line_of(&text, "[frames]"))),
+        "{e}"
+    );
+    let e = error_of(&format!("{VALID}\n[frames]\narchive_dir = \"\"\n"));
+    assert!(e.contains("archive_dir is empty"), "{e}");
+    let e = error_of(&format!("{VALID}\n[frames]\narchive_every = 5\n"));
+    assert!(e.contains("archive_every"), "{e}");
+}

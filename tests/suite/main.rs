@@ -3,6 +3,7 @@
 //! Run one part with a filter, e.g. `cargo test --test suite service::liveness`.
 
 mod architecture;
+mod archive;
 mod chain_composition;
 mod cli;
 mod common;

@@ -126,3 +126,112 @@ async fn the_newest_frame_is_served_losslessly_with_its_detections_and_a_late_on
         .await;
     assert_eq!(headers["x-frame-time"], time.as_str());
 }
+
+#[tokio::test]
+async fn frames_with_a_marker_not_found_are_archived_as_evidence_and_listed() {
+    let archive_dir = tempfile::tempdir().expect("temp dir");
+    let text = format!(
+        "{}\n[frames]\narchive_dir = \"{}\"\narchive_every_s = 60\n",
+        brokenray::config::DEFAULT_INSTALLATION_TOML,
+        archive_dir.path().display()
+    );
+    let app = TestApp::start(Some(&text)).await;
+    let (group, frames) = rendered(BitDepth::Eight);
+    let frame = &frames[0].1;
+    let empty = brokenray::vision::GreyImage::from_u8(
+        frame.width_px(),
+        frame.height_px(),
+        &vec![40; (frame.width_px() * frame.height_px()) as usize],
+    )
+    .expect("frame");
+    let ms = 1_000_000;
+    // The first frame is the period's; the second (within it) is not kept; the third shows no
+    // marker: evidence.
+    for (dt, image) in [(0, frame), (40 * ms, frame), (80 * ms, &empty)] {
+        let (status, body) = post_frame(
+            &app,
+            "C1",
+            &format_ns(group.time_ns + dt),
+            "image/png",
+            encode(image, FrameFormat::Png).expect("png"),
+        )
+        .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+    }
+    // The writer runs beside the requests: wait for it.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    let listed = loop {
+        let (status, body) = app.get("/api/v1/cameras/C1/frames").await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        if body["frames"].as_array().is_some_and(|f| f.len() == 2) {
+            break body;
+        }
+        assert!(std::time::Instant::now() < deadline, "{body}");
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    };
+    let frames_listed = listed["frames"].as_array().expect("frames");
+    assert_eq!(frames_listed[0]["reason"], "periodic");
+    assert_eq!(frames_listed[0]["time"], format_ns(group.time_ns).as_str());
+    assert_eq!(frames_listed[1]["reason"], "not_found");
+    assert_eq!(listed["truncated"], false);
+    let file = frames_listed[1]["file"].as_str().expect("file");
+    assert!(
+        file.starts_with("C1/") && file.ends_with("_not_found.png"),
+        "{file}"
+    );
+    assert!(archive_dir.path().join(file).exists());
+    for (listed, posted) in frames_listed.iter().zip([frame, &empty]) {
+        let url = listed["url"].as_str().expect("url");
+        let (status, headers, bytes) = app.request_raw("GET", url, &[], "").await;
+        assert_eq!(status, StatusCode::OK, "{url}");
+        assert_eq!(headers["content-type"], "image/png");
+        assert_eq!(
+            &decode(&bytes, FrameFormat::Png, None).expect("png"),
+            posted
+        );
+    }
+    // A period, a limit, refusals.
+    let from = format_ns(group.time_ns + 1);
+    let (_, later) = app
+        .get(&format!("/api/v1/cameras/C1/frames?from={from}"))
+        .await;
+    assert_eq!(later["frames"].as_array().map(Vec::len), Some(1), "{later}");
+    let (_, one) = app.get("/api/v1/cameras/C1/frames?limit=1").await;
+    assert_eq!(one["truncated"], true, "{one}");
+    let (status, body) = app.get("/api/v1/cameras/C1/frames?from=yesterday").await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(body["error"]["details"][0]["field"], "from", "{body}");
+    let (status, _) = app.get("/api/v1/cameras/C9/frames").await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    let (status, _) = app
+        .get(&format!(
+            "/api/v1/cameras/C1/frames/{}",
+            group.time_ns + 40 * ms
+        ))
+        .await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "the unkept frame");
+    let (_, metrics_headers, metrics) = app.request_raw("GET", "/metrics", &[], "").await;
+    assert!(
+        metrics_headers["content-type"]
+            .to_str()
+            .is_ok_and(|t| t.starts_with("text/plain"))
+    );
+    let metrics = String::from_utf8_lossy(&metrics);
+    assert!(
+        metrics.contains("brokenray_frames_archived_total 2"),
+        "{metrics}"
+    );
+}
+
+#[tokio::test]
+async fn without_an_archive_the_listing_says_so() {
+    let app = TestApp::start(None).await;
+    let (status, body) = app.get("/api/v1/cameras/C1/frames").await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("archive_dir")),
+        "{body}"
+    );
+}

@@ -56,7 +56,7 @@ impl TestApp {
             Service::start_with_clock(inst, std::sync::Arc::new(clock.clone()))
                 .await
                 .expect("service starts");
-        let router = router(AppState::new(service.clone()));
+        let router = router(AppState::new(service.clone()).expect("the frame archive"));
         TestApp {
             clock,
             dir,
