@@ -140,20 +140,21 @@ impl Client {
         Ok(answer)
     }
 
-    /// POSTs a camera frame (PNG) to `/api/v1/frames`: the status and the answer.
+    /// POSTs a camera frame file to `/api/v1/frames`: the status and the answer.
     pub async fn post_frame(
         &self,
         camera: &str,
         time_ns: i64,
-        png: Vec<u8>,
+        format: crate::imagefile::FrameFormat,
+        bytes: Vec<u8>,
     ) -> anyhow::Result<(reqwest::StatusCode, Value)> {
         let url = format!("{}/api/v1/frames", self.base);
         let mut request = self
             .http
             .post(&url)
             .query(&[("camera", camera), ("time", &format_ns(time_ns))])
-            .header(reqwest::header::CONTENT_TYPE, "image/png")
-            .body(png);
+            .header(reqwest::header::CONTENT_TYPE, format.content_type())
+            .body(bytes);
         if let Some(t) = &self.token {
             request = request.bearer_auth(t);
         }
@@ -337,7 +338,9 @@ async fn send_frames(
                     .with_context(|| format!("cannot write {}", path.display()))?;
             }
             Sink::Http(client) => {
-                let (status, answer) = client.post_frame(&camera, time_ns, png).await?;
+                let (status, answer) = client
+                    .post_frame(&camera, time_ns, crate::imagefile::FrameFormat::Png, png)
+                    .await?;
                 if status == reqwest::StatusCode::UNPROCESSABLE_ENTITY {
                     tracing::warn!(%answer, camera, "the service refused a frame; going on");
                     refused += 1;

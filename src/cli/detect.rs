@@ -104,7 +104,7 @@ pub fn detect_files(
 }
 
 /// A file's time: its name's stem when that is one, else its modification time.
-fn time_of(path: &Path) -> anyhow::Result<i64> {
+pub(super) fn time_of(path: &Path) -> anyhow::Result<i64> {
     if let Some(stem) = path.file_stem().and_then(|s| s.to_str())
         && let Ok(t) = parse_query_time(stem)
     {

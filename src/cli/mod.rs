@@ -9,6 +9,7 @@ mod commands;
 mod detect;
 mod health;
 mod report;
+mod watch;
 
 use commands::{demo, replay, serve, simulate};
 pub use detect::{DetectSummary, detect_files};
@@ -170,6 +171,32 @@ pub enum Command {
         /// The frames, in time order.
         #[arg(required = true, value_name = "FILE")]
         files: Vec<PathBuf>,
+    },
+    /// Post the frames camera software writes into `DIR/<camera>/` to a running service, oldest
+    /// first, removing each once the service took it; refused ones are moved into
+    /// `DIR/<camera>/refused/` with the answer beside them. A frame's time is its file name's
+    /// (`2026-11-21T10:00:00.040Z.png`) or else its modification time. While the service is
+    /// unreachable nothing is removed and delivery is retried.
+    Watch {
+        /// The folder holding one subfolder per camera.
+        #[arg(value_name = "DIR")]
+        dir: PathBuf,
+        /// The service.
+        #[arg(long, value_name = "URL", default_value = "http://127.0.0.1:7878")]
+        to: String,
+        /// Bearer token with the `ingest` scope.
+        #[arg(long, env = "BROKENRAY_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+        /// Deliver what is there (waiting for the service if it is down), then stop.
+        #[arg(long)]
+        once: bool,
+        /// A file is taken once unchanged for this long (ms); 0 when the camera software
+        /// writes each file under another name and renames it into place.
+        #[arg(long, value_name = "MS", default_value_t = 300)]
+        settle_ms: u64,
+        /// Time between scans of the folder (ms).
+        #[arg(long, value_name = "MS", default_value_t = 100)]
+        poll_ms: u64,
     },
     /// A first look: the service on the built-in installation (or `--config`), fed live by the
     /// simulator (ship flexure, observations through PnP), with a reference set after 5 s and a
@@ -396,6 +423,36 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             eprintln!(
                 "{} frame(s): {} observation(s), {} marker(s) not found",
                 summary.frames, summary.observations, summary.not_found
+            );
+        }
+        Command::Watch {
+            dir,
+            to,
+            token,
+            once,
+            settle_ms,
+            poll_ms,
+        } => {
+            let client = crate::feed::Client::new(&to, token)?;
+            let progress = indicatif::ProgressBar::new_spinner().with_style(
+                indicatif::ProgressStyle::with_template("{spinner} {elapsed_precise} {msg}")
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+            );
+            progress.set_message(format!("watching {} for {to}", dir.display()));
+            let settings = watch::WatchSettings {
+                poll: std::time::Duration::from_millis(poll_ms),
+                settle: std::time::Duration::from_millis(settle_ms),
+                once,
+                progress,
+            };
+            let summary = runtime(false)?.block_on(async {
+                let stop = Box::pin(crate::api::shutdown_signal());
+                watch::watch(&dir, &client, &settings, stop).await
+            })?;
+            settings.progress.finish_and_clear();
+            eprintln!(
+                "{} frame(s) posted, {} refused (moved aside), {} wait(s) for the service",
+                summary.posted, summary.refused, summary.retries
             );
         }
         Command::Demo {

@@ -95,6 +95,7 @@ fn help_lists_only_working_subcommands() {
             "simulate",
             "calibrate",
             "detect",
+            "watch",
             "demo",
             "hash-token",
             "help"
@@ -500,4 +501,146 @@ fn hash_token_generates_a_fresh_token_and_its_hash() {
         tokens[0] != tokens[1] && tokens[1] != tokens[2] && tokens[0] != tokens[2],
         "{tokens:?}"
     );
+}
+
+/// `watch`: frames written into `DIR/<camera>/` while the service is down stay there; once it is
+/// up every frame is posted, stored and removed, and the refused ones (an unreadable file, an
+/// unknown camera) are moved aside with the service's answer beside them.
+#[test]
+fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
+    use crate::common::process;
+    use brokenray::imagefile::{FrameFormat, encode};
+    use brokenray::sim::render::RenderSettings;
+    use brokenray::sim::{Scenario, SimSettings, Simulator};
+
+    let dir = tempfile::tempdir().unwrap();
+    let inbox = dir.path().join("inbox");
+    // A free port for the service that is not up yet.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace(
+            "listen = \"127.0.0.1:7878\"",
+            &format!("listen = \"127.0.0.1:{port}\""),
+        )
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", dir.path().join("watch.db").display()),
+        );
+    let config = dir.path().join("watch.toml");
+    std::fs::write(&config, &text).unwrap();
+    let inst = brokenray::config::parse("watch.toml", &text).unwrap();
+
+    // Three groups of the three cameras, ten seconds ago, named by their time.
+    let now_ns = brokenray::clock::wall_now_ns();
+    let mut sim = Simulator::new(
+        &inst.model,
+        SimSettings {
+            scenario: Scenario::Static,
+            rate_hz: 25.0,
+            start_ns: now_ns - 10_000_000_000,
+            duration_s: None,
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed: 11,
+        },
+    )
+    .unwrap();
+    let render = RenderSettings {
+        samples_per_side: 8,
+        ..RenderSettings::default()
+    };
+    for _ in 0..3 {
+        let group = sim.next_group();
+        for (camera, frame) in sim.render_frames(&group, &render) {
+            std::fs::create_dir_all(inbox.join(&camera)).unwrap();
+            let name = format!("{}.png", brokenray::clock::format_ns_fixed(group.time_ns));
+            std::fs::write(
+                inbox.join(&camera).join(name),
+                encode(&frame, FrameFormat::Png).unwrap(),
+            )
+            .unwrap();
+        }
+    }
+    let stamp = brokenray::clock::format_ns_fixed(now_ns - 5_000_000_000);
+    std::fs::write(inbox.join("C1").join(format!("{stamp}.png")), b"not a png").unwrap();
+    std::fs::create_dir_all(inbox.join("C7")).unwrap();
+    std::fs::copy(
+        std::fs::read_dir(inbox.join("C2"))
+            .unwrap()
+            .next()
+            .unwrap()
+            .unwrap()
+            .path(),
+        inbox.join("C7").join(format!("{stamp}.png")),
+    )
+    .unwrap();
+    let frame_files = |camera: &str| -> usize {
+        std::fs::read_dir(inbox.join(camera))
+            .map(|d| {
+                d.filter_map(Result::ok)
+                    .filter(|e| e.path().extension().is_some_and(|x| x == "png"))
+                    .count()
+            })
+            .unwrap_or(0)
+    };
+
+    let mut watch = Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args([
+            "watch",
+            inbox.to_str().unwrap(),
+            "--settle-ms",
+            "0",
+            "--poll-ms",
+            "50",
+        ])
+        .args(["--to", &format!("http://127.0.0.1:{port}")])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The service is down: nothing is removed.
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    assert_eq!(
+        frame_files("C1"),
+        4,
+        "nothing taken while the service is down"
+    );
+    assert_eq!(frame_files("C3"), 3);
+
+    let server = process::start(&config, "warn,brokenray=info", false, std::time::Duration::from_secs(60));
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while ["C1", "C2", "C3", "C7"].iter().any(|c| frame_files(c) > 0) {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the inbox did not empty"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    watch.kill().unwrap();
+    let output = watch.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(log.contains("the service cannot take frames now"), "{log}");
+
+    // Every good frame stored: three samples a link.
+    let db = rusqlite::Connection::open(dir.path().join("watch.db")).unwrap();
+    let samples: i64 = db
+        .query_row("select count(*) from samples", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(samples, 9, "{log}");
+    drop(server);
+    // The refusals, each with the answer naming what is wrong.
+    for (camera, field) in [("C1", "body"), ("C7", "camera")] {
+        let aside = inbox.join(camera).join("refused");
+        let error = std::fs::read_to_string(aside.join(format!("{stamp}.png.error.json"))).unwrap();
+        let error: serde_json::Value = serde_json::from_str(&error).unwrap();
+        assert_eq!(error["status"], 422, "{error}");
+        assert_eq!(
+            error["answer"]["error"]["details"][0]["field"], field,
+            "{error}"
+        );
+        assert!(aside.join(format!("{stamp}.png")).exists());
+    }
 }
