@@ -610,7 +610,12 @@ fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
     );
     assert_eq!(frame_files("C3"), 3);
 
-    let server = process::start(&config, "warn,brokenray=info", false, std::time::Duration::from_secs(60));
+    let server = process::start(
+        &config,
+        "warn,brokenray=info",
+        false,
+        std::time::Duration::from_secs(60),
+    );
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
     while ["C1", "C2", "C3", "C7"].iter().any(|c| frame_files(c) > 0) {
         assert!(
