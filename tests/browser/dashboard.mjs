@@ -76,6 +76,52 @@ await run(async (browser) => {
   const linkRows = await page.$$eval('#links tbody tr', (r) => r.map((e) => e.dataset.link));
   check(linkRows.length === 5, `the link table lists the five links: ${linkRows.join(', ')}`);
 
+  // Cameras: the newest frame of each with its detections drawn over it; a covered marker says
+  // why it was not found; a click opens the frame full size.
+  await page.waitForSelector('article.camera[data-camera="C1"] svg.overlay circle.detected', { timeout: 15000 });
+  const detections = await (await fetch(base + '/api/v1/cameras/C1/detections')).json();
+  const seen = await page.evaluate(() => {
+    const root = document.querySelector('article.camera[data-camera="C1"]');
+    const img = root.querySelector('img');
+    const circles = [...root.querySelectorAll('circle.detected')]
+      .map((c) => [Number(c.getAttribute('cx')), Number(c.getAttribute('cy'))]);
+    // The frame's own pixels under each circle's centre (the overlay must sit on the discs).
+    const canvas = document.createElement('canvas');
+    canvas.width = img.naturalWidth;
+    canvas.height = img.naturalHeight;
+    const ctx = canvas.getContext('2d', { willReadFrequently: true });
+    ctx.drawImage(img, 0, 0);
+    const under = circles.map(([x, y]) => ctx.getImageData(Math.floor(x), Math.floor(y), 1, 1).data[0]);
+    const box = img.getBoundingClientRect();
+    const overlay = root.querySelector('svg.overlay').getBoundingClientRect();
+    return {
+      natural: [img.naturalWidth, img.naturalHeight], shown: [box.width, box.height], overlay: [overlay.width, overlay.height],
+      circles, under, residuals: root.querySelectorAll('line.residual').length,
+      magnification: Number(root.querySelector('svg.overlay').dataset.magnification),
+    };
+  });
+  const points = detections.markers[0].points_px;
+  check(seen.natural[0] === 1280 && seen.natural[1] === 1024 && seen.shown[0] > 200 && seen.shown[0] < 1280 &&
+    Math.abs(seen.overlay[0] - seen.shown[0]) < 1 && Math.abs(seen.overlay[1] - seen.shown[1]) < 1,
+  `C1's frame is shown scaled to the panel with its overlay over it: ${seen.natural.join('x')} shown at ${seen.shown.map(Math.round).join('x')}`);
+  check(seen.circles.length === points.length && seen.circles.every(([x, y], i) =>
+    Math.abs(x - (points[i][0] + 0.5)) < 1e-6 && Math.abs(y - (points[i][1] + 0.5)) < 1e-6),
+  `a circle at each of the ${points.length} detected points (pixel centres at +0.5 in the image's coordinates)`);
+  check(seen.under.every((v) => v > 150), `the circles sit on the discs: the frame's values under them ${seen.under.join(', ')}`);
+  check(seen.residuals === points.length && seen.magnification > 100,
+    `each point's residual is drawn, magnified ${seen.magnification} times`);
+  const c3 = await page.textContent('article.camera[data-camera="C3"] li[data-found="false"]');
+  check(/G: not found/.test(c3) && /at least 4 needed/.test(c3), `the covered marker of C3 is "not found" with its reason: ${c3.trim()}`);
+  check(await page.getAttribute('article.camera[data-camera="C3"]', 'data-state') === 'not-found', 'C3\'s panel is marked as not found');
+  await page.click('article.camera[data-camera="C1"] button.frame');
+  await page.waitForSelector('#camera-dialog[open] #camera-dialog-frame img', { timeout: 5000 });
+  const full = await page.evaluate(() => {
+    const img = document.querySelector('#camera-dialog-frame img');
+    return [img.getBoundingClientRect().width, document.querySelectorAll('#camera-dialog-frame circle.detected').length];
+  });
+  check(Math.round(full[0]) === 1280 && full[1] === points.length, `a click opens the frame at full size with its overlay: ${full.join(', ')}`);
+  await page.click('#camera-dialog button[value="close"]');
+
   // The alarm list: the transitions of the shown range, newest first.
   await page.waitForSelector('#alarms tbody tr');
   const alarmTimes = await page.$$eval('#alarms tbody tr:not(.empty) td:first-child', (cells) => cells.map((c) => c.textContent));

@@ -1,5 +1,5 @@
 // brokenray dashboard: compensation cards live from /api/v1/events, history plots (uPlot),
-// reference, alarms, relay chain and links. ES modules, no build step; served by the binary.
+// reference, alarms, relay chain, cameras and links. ES modules, no build step; served by the binary.
 // This module chooses the target and starts everything; the others each own one part of the page.
 //
 // Times are shown in UTC.
@@ -12,6 +12,7 @@ import { loadHistory, renderPlots, scheduleRefresh, windowMs } from './history.j
 import { loadReferences, renderReferencePanel } from './reference.js';
 import { renderTopology } from './chain.js';
 import { loadLinks, loadWebhooks } from './links.js';
+import { renderCameraAges, startCameras } from './cameras.js';
 
 export function selectTarget(name, scroll) {
   state.selected = name;
@@ -68,6 +69,7 @@ export async function start() {
   if (state.targets.length) selectTarget(keep ? state.selected : state.targets[0].name, false);
   scheduleRefresh();
   runEvents();
+  startCameras();
   if (!started) {
     started = true;
     linksTimer = setInterval(() => {
@@ -82,6 +84,7 @@ export async function start() {
 function tick() {
   $('clock').textContent = fmtTime(Date.now()) + ' UTC';
   for (const name of cards.keys()) renderAge(name);
+  renderCameraAges();
 }
 setInterval(tick, 500);
 tick();

@@ -326,6 +326,38 @@ async fn the_dashboard_works_in_a_real_browser() {
             assert_eq!(status, StatusCode::CREATED, "{body}");
         }
     }
+    // What the cameras see: frames of C1 and C2, and C3's marker covered (an empty frame).
+    let group = sim.next_group();
+    let render = brokenray::sim::render::RenderSettings {
+        samples_per_side: 8,
+        ..brokenray::sim::render::RenderSettings::default()
+    };
+    for (camera, frame) in sim.render_frames(&group, &render) {
+        let frame = if camera == "C3" {
+            brokenray::vision::GreyImage::from_u8(
+                frame.width_px(),
+                frame.height_px(),
+                &vec![40; (frame.width_px() * frame.height_px()) as usize],
+            )
+            .expect("frame")
+        } else {
+            frame
+        };
+        let (status, body) = app
+            .request_with_headers(
+                "POST",
+                &format!(
+                    "/api/v1/frames?camera={camera}&time={}",
+                    format_ns(group.time_ns)
+                ),
+                &[("content-type", "image/png")],
+                brokenray::imagefile::encode(&frame, brokenray::imagefile::FrameFormat::Png)
+                    .expect("png"),
+            )
+            .await;
+        assert_eq!(status, StatusCode::OK, "{camera}: {body}");
+        assert_eq!(body["markers"][0]["found"], camera != "C3", "{camera}: {body}");
+    }
     // The live part, posted by the browser script with the current time.
     let live: Vec<Vec<Value>> = (0..25)
         .map(|_| {
