@@ -63,7 +63,11 @@ const ASSETS: &[Asset] = &[
     ),
     asset!("chain.js", "js/chain.js", "text/javascript; charset=utf-8"),
     asset!("links.js", "js/links.js", "text/javascript; charset=utf-8"),
-    asset!("cameras.js", "js/cameras.js", "text/javascript; charset=utf-8"),
+    asset!(
+        "cameras.js",
+        "js/cameras.js",
+        "text/javascript; charset=utf-8"
+    ),
     asset!("style.css", "style.css", "text/css; charset=utf-8"),
     asset!(
         "uPlot.iife.min.js",

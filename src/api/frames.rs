@@ -217,9 +217,37 @@ pub async fn post_frame(
     if let Some(archive) = &app.archive {
         archive.offer(&camera_name, time_ns, &image, evidence(&out));
     }
+    let viz = app.service.frame_viz();
+    if let Some(index) = app
+        .service
+        .installation()
+        .model
+        .cameras
+        .iter()
+        .position(|c| c.frame == camera_name)
+        && viz.due(index, time_ns)
+    {
+        viz.send(crate::viz::Record::Frame {
+            camera: index,
+            time_ns,
+            image: std::sync::Arc::clone(&image),
+            marks: out.markers.iter().map(marks).collect(),
+        });
+    }
     app.latest_frames
         .offer(&camera_name, time_ns, image, out.clone());
     Ok(Json(out))
+}
+
+/// What Rerun draws over a frame for one marker.
+fn marks(m: &FrameMarkerOut) -> crate::viz::FrameMarks {
+    crate::viz::FrameMarks {
+        marker: m.marker.clone(),
+        points_px: m.points_px.clone().unwrap_or_default(),
+        ids: m.ids.clone().unwrap_or_default(),
+        reprojected_px: m.reprojected_px.clone().unwrap_or_default(),
+        not_found: (!m.found).then(|| m.reason.clone().unwrap_or_default()),
+    }
 }
 
 /// Why a frame is evidence worth archiving: a marker with disc targets not found, or a sample

@@ -139,6 +139,8 @@ pub struct RerunSettings {
     pub scene_hz: f64,
     /// Most points per second of measurement time in each time series.
     pub series_hz: f64,
+    /// Most camera frames per camera and second of measurement time.
+    pub image_hz: f64,
 }
 
 impl RerunSettings {

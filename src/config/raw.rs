@@ -115,6 +115,7 @@ pub(super) struct RawRerun {
     pub queue_capacity: Option<Spanned<i64>>,
     pub scene_hz: Option<Spanned<f64>>,
     pub series_hz: Option<Spanned<f64>>,
+    pub image_hz: Option<Spanned<f64>>,
 }
 
 /// `mode = "save"` or `mode = ["save", "serve"]`.

@@ -471,6 +471,7 @@ impl Validator {
         let rotate_max_mb = positive(&r.rotate_max_mb, "rotate_max_mb", 1024.0);
         let scene_hz = positive(&r.scene_hz, "scene_hz", 2.0);
         let series_hz = positive(&r.series_hz, "series_hz", 10.0);
+        let image_hz = positive(&r.image_hz, "image_hz", 1.0);
         let queue_capacity = match &r.queue_capacity {
             None => Some(4096),
             Some(q) if (1..=10_000_000).contains(q.get_ref()) => usize::try_from(*q.get_ref()).ok(),
@@ -520,6 +521,7 @@ impl Validator {
             queue_capacity: queue_capacity?,
             scene_hz: scene_hz?,
             series_hz: series_hz?,
+            image_hz: image_hz?,
         })
     }
 

@@ -310,6 +310,9 @@ struct Inner {
     events: tokio::sync::broadcast::Sender<LiveEvent>,
     /// What went to Rerun.
     viz_counters: Arc<crate::viz::VizCounters>,
+    /// Camera frames to Rerun (dropped with the last handle, like the job queue, so the logger
+    /// can finish).
+    frame_viz: crate::viz::FrameSender,
     /// Solves marker observations into link samples.
     observer: Arc<crate::model::Observer>,
     /// Turns true when shutdown begins: live event streams end on it.
@@ -461,6 +464,7 @@ impl Service {
         });
         let (viz, viz_thread) = crate::viz::start(&installation)?;
         let viz_counters = Arc::clone(viz.counters());
+        let frame_viz = viz.frame_sender(installation.rerun.image_hz);
         let (jobs, rx) = mpsc::channel(1024);
         let slot = Arc::new(RwLock::new(snapshot));
         let metrics = Arc::new(Metrics::default());
@@ -479,6 +483,7 @@ impl Service {
             snapshot: Arc::clone(&slot),
             metrics: Arc::clone(&metrics),
             viz_counters,
+            frame_viz,
             observer: Arc::new(crate::model::Observer::new(&installation.model)),
             stopping: tokio::sync::watch::channel(false).0,
             clock: Arc::clone(&clock),
@@ -603,6 +608,11 @@ impl Service {
             .acquire_owned()
             .await
             .ok()
+    }
+
+    /// Where the HTTP handlers offer camera frames for Rerun (`[rerun] image_hz`).
+    pub fn frame_viz(&self) -> &crate::viz::FrameSender {
+        &self.inner.frame_viz
     }
 
     /// Marks the start of shutdown: live event streams end.

@@ -1,4 +1,6 @@
-//! The layout a recording opens with: the frame tree on the left; per target a tab with the
+//! The layout a recording opens with: the frame tree on the left, below it a tab per camera
+//! (its frames with the detected and reprojected points, and its markers not found); per target
+//! a tab with the
 //! deformation rotation and translation (raw, filtered, 3-sigma band); the links' innovations;
 //! the alarm lanes and log. The time panel follows the measurement timeline.
 
@@ -6,8 +8,8 @@ use super::TIMELINE;
 use crate::config::Installation;
 use crate::model::LinkKind;
 use rerun::blueprint::{
-    Blueprint, ContainerLike, Horizontal, Spatial3DView, StateTimelineView, Tabs, TextLogView,
-    TimePanel, TimeSeriesView, Vertical,
+    Blueprint, ContainerLike, Horizontal, Spatial2DView, Spatial3DView, StateTimelineView, Tabs,
+    TextLogView, TimePanel, TimeSeriesView, Vertical,
 };
 
 /// The blueprint of an installation's recordings.
@@ -56,12 +58,49 @@ pub fn blueprint(inst: &Installation) -> Blueprint {
     // The target tabs get the most room, the alarm lanes and log the least.
     let mut shares = vec![4.0, 2.0, 1.0, 1.0];
     shares.drain(1..1 + (4 - right.len()));
+    // Per camera a tab: what it sees (its frame with the detected and reprojected points) and
+    // its log of markers not found.
+    let cameras: Vec<ContainerLike> = inst
+        .model
+        .cameras
+        .iter()
+        .filter_map(|c| {
+            let path = camera_path(inst, &c.frame)?;
+            Some(
+                Vertical::new([
+                    Spatial2DView::new(format!("Camera {}", c.frame))
+                        .with_origin(path)
+                        .into(),
+                    TextLogView::new(format!("Camera {}: markers not found", c.frame))
+                        .with_origin(format!("/cameras/{}", c.frame))
+                        .into(),
+                ])
+                .with_row_shares([4.0, 1.0])
+                .with_name(c.frame.clone())
+                .into(),
+            )
+        })
+        .collect();
+    let frames = Spatial3DView::new("Frames").with_origin("/world").into();
+    let left: ContainerLike = if cameras.is_empty() {
+        frames
+    } else {
+        Vertical::new([frames, Tabs::new(cameras).into()])
+            .with_row_shares([1.0, 1.0])
+            .into()
+    };
     Blueprint::new(
-        Horizontal::new([
-            Spatial3DView::new("Frames").with_origin("/world").into(),
-            Vertical::new(right).with_row_shares(shares).into(),
-        ])
-        .with_column_shares([1.0, 1.0]),
+        Horizontal::new([left, Vertical::new(right).with_row_shares(shares).into()])
+            .with_column_shares([1.0, 1.0]),
     )
     .with_time_panel(TimePanel::new().with_timeline(TIMELINE))
+}
+
+/// The entity path of a camera's pinhole (its frame's path in the frame tree, then `camera`).
+pub(super) fn camera_path(inst: &Installation, camera: &str) -> Option<String> {
+    let f = inst.model.topology.frame_id(camera)?;
+    super::logger::frame_paths(inst)
+        .into_iter()
+        .nth(f.0)
+        .map(|p| format!("/{p}/camera"))
 }

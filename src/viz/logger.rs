@@ -415,7 +415,10 @@ impl Logger {
                 }
             }
             for record in records {
-                if matches!(record, Record::Reference { .. } | Record::Alarm { .. }) {
+                if matches!(
+                    record,
+                    Record::Reference { .. } | Record::Alarm { .. } | Record::Frame { .. }
+                ) {
                     rec.set_time(
                         TIMELINE,
                         rerun::TimeCell::from_timestamp_nanos_since_epoch(record.time_ns()),
@@ -497,7 +500,7 @@ impl Logger {
                         }
                     }
                 }
-                Record::Reference { .. } | Record::Alarm { .. } => {}
+                Record::Reference { .. } | Record::Alarm { .. } | Record::Frame { .. } => {}
             }
         }
         out
@@ -515,6 +518,12 @@ impl Logger {
                 let frame = format!("{}/{name}_reference", self.target_base[*target]);
                 self.count(rec.log(frame.as_str(), &tree_transform(g0_from_b, true)));
             }
+            Record::Frame {
+                camera,
+                image,
+                marks,
+                ..
+            } => self.log_frame(rec, *camera, image, marks),
             Record::Alarm { target, transition } => {
                 let name = &inst.model.targets[*target].name;
                 self.count(rec.log(
@@ -537,6 +546,79 @@ impl Logger {
                             transition.message
                         ))
                         .with_level(level),
+                    ),
+                );
+            }
+        }
+    }
+
+    /// A camera frame under the camera's pinhole (so that the 3-D view shows it in the
+    /// frustum), the detected points labelled by id and the reprojected ones over it (at pixel
+    /// centres: the image's pixel `(u, v)` covers `[u, u + 1) x [v, v + 1)` in Rerun's image
+    /// coordinates), and a log line per marker not found.
+    fn log_frame(
+        &self,
+        rec: &RecordingStream,
+        camera: usize,
+        image: &crate::vision::GreyImage,
+        marks: &[super::FrameMarks],
+    ) {
+        let inst = &self.inst;
+        let Some(c) = inst.model.cameras.get(camera) else {
+            return;
+        };
+        let Some(f) = inst.model.topology.frame_id(&c.frame) else {
+            return;
+        };
+        let base = format!("{}/camera", self.frames[f.0].path);
+        let size = [image.width_px(), image.height_px()];
+        let picture = match image.depth() {
+            crate::vision::BitDepth::Eight => rerun::Image::from_l8(
+                image.pixels().iter().map(|&v| v as u8).collect::<Vec<u8>>(),
+                size,
+            ),
+            crate::vision::BitDepth::Sixteen => {
+                rerun::Image::from_elements(image.pixels(), size, rerun::ColorModel::L)
+            }
+        };
+        self.count(rec.log(format!("{base}/image"), &picture));
+        let centre = |p: &[f64; 2]| [(p[0] + 0.5) as f32, (p[1] + 0.5) as f32];
+        let found = marks.iter().filter(|m| m.not_found.is_none());
+        let detected: Vec<[f32; 2]> = found
+            .clone()
+            .flat_map(|m| m.points_px.iter().map(centre))
+            .collect();
+        let labels: Vec<String> = found
+            .clone()
+            .flat_map(|m| m.ids.iter().map(|id| format!("{}{id}", m.marker)))
+            .collect();
+        let reprojected: Vec<[f32; 2]> = found
+            .flat_map(|m| m.reprojected_px.iter().map(centre))
+            .collect();
+        self.count(
+            rec.log(
+                format!("{base}/image/detected"),
+                &rerun::Points2D::new(detected)
+                    .with_labels(labels)
+                    .with_radii([rerun::Radius::new_ui_points(5.0)])
+                    .with_colors([rerun::Color::from_rgb(255, 191, 71)]),
+            ),
+        );
+        self.count(
+            rec.log(
+                format!("{base}/image/reprojected"),
+                &rerun::Points2D::new(reprojected)
+                    .with_radii([rerun::Radius::new_ui_points(2.0)])
+                    .with_colors([rerun::Color::from_rgb(86, 180, 233)]),
+            ),
+        );
+        for m in marks {
+            if let Some(reason) = &m.not_found {
+                self.count(
+                    rec.log(
+                        format!("cameras/{}", c.frame),
+                        &rerun::TextLog::new(format!("{} not found: {reason}", m.marker))
+                            .with_level(rerun::TextLogLevel::WARN),
                     ),
                 );
             }
@@ -671,6 +753,11 @@ fn frame_parts(link_pose: &Pose, inverted: bool) -> ([f32; 3], [f32; 4]) {
         [t.x as f32, t.y as f32, t.z as f32],
         [q.i as f32, q.j as f32, q.k as f32, q.w as f32],
     )
+}
+
+/// Each frame's entity path, by frame index.
+pub(super) fn frame_paths(inst: &Installation) -> Vec<String> {
+    frame_tree(inst).into_iter().map(|n| n.path).collect()
 }
 
 /// The entity tree of the frames: breadth first from each target's base (then from any frame

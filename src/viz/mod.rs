@@ -19,6 +19,7 @@ use crate::alarms::Transition;
 use crate::config::{Installation, RerunSettings};
 use crate::deformation::SmallMotion;
 use crate::geometry::{Pose, PoseCov};
+use crate::vision::GreyImage;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
@@ -80,6 +81,32 @@ pub enum Record {
         /// The transition.
         transition: Transition,
     },
+    /// A camera frame and what was found in it (already decimated: [`FrameSender`]).
+    Frame {
+        /// Camera index (in the installation's cameras).
+        camera: usize,
+        /// Measurement time (ns).
+        time_ns: i64,
+        /// The frame.
+        image: Arc<GreyImage>,
+        /// Each marker of a measured link of the camera.
+        marks: Vec<FrameMarks>,
+    },
+}
+
+/// What a frame showed of one marker, to draw over it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameMarks {
+    /// The marker's frame.
+    pub marker: String,
+    /// Detected points (px, pixel-centre convention), empty when not found.
+    pub points_px: Vec<[f64; 2]>,
+    /// Their ids.
+    pub ids: Vec<u32>,
+    /// The same points reprojected with the solved pose (px).
+    pub reprojected_px: Vec<[f64; 2]>,
+    /// Why it was not found; `None` when found.
+    pub not_found: Option<String>,
 }
 
 impl Record {
@@ -89,7 +116,8 @@ impl Record {
             Record::Sample { time_ns, .. }
             | Record::Result { time_ns, .. }
             | Record::Scene { time_ns, .. }
-            | Record::Reference { time_ns, .. } => *time_ns,
+            | Record::Reference { time_ns, .. }
+            | Record::Frame { time_ns, .. } => *time_ns,
             Record::Alarm { transition, .. } => transition.time_ns,
         }
     }
@@ -185,7 +213,8 @@ impl Decimator {
         let kind = match record {
             Record::Sample { outlier: true, .. }
             | Record::Reference { .. }
-            | Record::Alarm { .. } => return true,
+            | Record::Alarm { .. }
+            | Record::Frame { .. } => return true,
             Record::Sample { link, .. } => Series::Link(*link),
             Record::Result {
                 target, filtered, ..
@@ -268,6 +297,78 @@ impl VizSender {
     /// The counters.
     pub fn counters(&self) -> &Arc<VizCounters> {
         &self.counters
+    }
+
+    /// A sender of camera frames into the same queue, at most `image_hz` per camera and
+    /// second of measurement time.
+    pub fn frame_sender(&self, image_hz: f64) -> FrameSender {
+        FrameSender {
+            tx: self.tx.clone(),
+            interval_ns: if image_hz.is_finite() && image_hz > 0.0 {
+                ((1e9 / image_hz) as i64).max(1)
+            } else {
+                1
+            },
+            last_bucket: std::sync::Mutex::new(Vec::new()),
+            counters: Arc::clone(&self.counters),
+        }
+    }
+}
+
+/// The frames' end of the queue, for the HTTP handlers (shared, unlike [`VizSender`], which
+/// the pipeline owns): at most `image_hz` frames per camera and second of measurement time,
+/// offered without ever waiting.
+#[derive(Debug)]
+pub struct FrameSender {
+    tx: Option<SyncSender<Record>>,
+    interval_ns: i64,
+    /// Per camera, the interval index of the last frame let through.
+    last_bucket: std::sync::Mutex<Vec<i64>>,
+    counters: Arc<VizCounters>,
+}
+
+impl FrameSender {
+    /// A sender that shows nothing.
+    pub fn off() -> Self {
+        Self {
+            tx: None,
+            interval_ns: 1,
+            last_bucket: std::sync::Mutex::new(Vec::new()),
+            counters: Arc::default(),
+        }
+    }
+
+    /// Whether a frame of `camera` at `time_ns` is due, recording it if so: the caller then
+    /// builds the record and [`FrameSender::send`]s it.
+    pub fn due(&self, camera: usize, time_ns: i64) -> bool {
+        if self.tx.is_none() {
+            return false;
+        }
+        let bucket = time_ns.div_euclid(self.interval_ns);
+        let mut last = self.last_bucket.lock().unwrap_or_else(|p| p.into_inner());
+        if last.len() <= camera {
+            last.resize(camera + 1, i64::MIN);
+        }
+        if bucket > last[camera] {
+            last[camera] = bucket;
+            true
+        } else {
+            self.counters.decimated.fetch_add(1, Relaxed);
+            false
+        }
+    }
+
+    /// Offers a frame record: queued or dropped (and counted); never waits.
+    pub fn send(&self, record: Record) {
+        let Some(tx) = &self.tx else { return };
+        match tx.try_send(record) {
+            Ok(()) => {
+                self.counters.queued.fetch_add(1, Relaxed);
+            }
+            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+                self.counters.dropped.fetch_add(1, Relaxed);
+            }
+        }
     }
 }
 

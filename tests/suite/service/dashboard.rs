@@ -356,7 +356,11 @@ async fn the_dashboard_works_in_a_real_browser() {
             )
             .await;
         assert_eq!(status, StatusCode::OK, "{camera}: {body}");
-        assert_eq!(body["markers"][0]["found"], camera != "C3", "{camera}: {body}");
+        assert_eq!(
+            body["markers"][0]["found"],
+            camera != "C3",
+            "{camera}: {body}"
+        );
     }
     // The live part, posted by the browser script with the current time.
     let live: Vec<Vec<Value>> = (0..25)

@@ -100,7 +100,8 @@ impl TestApp {
         self.request_with_headers(method, uri, &headers, text).await
     }
 
-    /// A request with exactly the given headers (none added).
+    /// A request with exactly the given headers (none added); the body as JSON (or as a
+    /// string when it is not JSON).
     pub async fn request_with_headers(
         &self,
         method: &str,
@@ -108,14 +109,7 @@ impl TestApp {
         headers: &[(&str, &str)],
         body: impl Into<Body>,
     ) -> (StatusCode, Value) {
-        let mut builder = Request::builder().method(method).uri(uri);
-        for (k, v) in headers {
-            builder = builder.header(*k, *v);
-        }
-        let req = builder.body(body.into()).expect("request");
-        let resp = self.router.clone().oneshot(req).await.expect("response");
-        let status = resp.status();
-        let bytes = resp.into_body().collect().await.expect("body").to_bytes();
+        let (status, _, bytes) = self.request_raw(method, uri, headers, body).await;
         let value = if bytes.is_empty() {
             Value::Null
         } else {

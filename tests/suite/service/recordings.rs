@@ -47,6 +47,10 @@ fn turning_group(k: i64) -> Value {
 #[derive(Debug, Default)]
 struct Recording {
     entities: BTreeSet<String>,
+    /// Per entity, its rows on the measurement timeline.
+    rows: BTreeMap<String, usize>,
+    /// Per entity, the 2-D positions logged (all rows).
+    points2d: BTreeMap<String, Vec<[f32; 2]>>,
     scalars: BTreeMap<String, Vec<(i64, Vec<f64>)>>,
     transforms: BTreeMap<String, usize>,
 }
@@ -75,6 +79,12 @@ fn read_recording(path: &Path) -> Recording {
             .get(&timeline)
             .map(|c| c.times_raw().to_vec())
             .unwrap_or_default();
+        *out.rows.entry(entity.clone()).or_default() += times.len();
+        out.points2d.entry(entity.clone()).or_default().extend(
+            chunk
+                .iter_slices::<[f32; 2]>(rerun::Points2D::descriptor_positions().component)
+                .flat_map(|s| s.to_vec()),
+        );
         let scalars: Vec<Vec<f64>> = chunk
             .iter_slices::<f64>(rerun::Scalars::descriptor_scalars().component)
             .map(|s| s.to_vec())
@@ -315,4 +325,76 @@ async fn replay_writes_one_filtered_point_per_stored_result() {
         .unwrap();
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
+}
+
+/// Camera frames go to Rerun at `image_hz` per camera (measurement time), under the camera's
+/// pinhole, with the detected points at pixel centres and a log line for a marker not found.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_are_recorded_under_their_cameras_at_image_hz() {
+    use brokenray::imagefile::{FrameFormat, encode};
+    let dir = tempfile::tempdir().unwrap();
+    let recordings = dir.path().join("recordings");
+    let text = with_rerun(&format!(
+        "mode = \"save\"\nrecordings_dir = \"{}\"\nimage_hz = 2.0",
+        recordings.display()
+    ));
+    let inst = installation(&dir, Some(&text));
+    let app = TestApp::start_with(dir, inst).await;
+    let (group, frames) = super::frames::rendered(brokenray::vision::BitDepth::Eight);
+    let png = encode(&frames[0].1, FrameFormat::Png).unwrap();
+    // One second of C1 at 25 Hz, starting on a whole second: two frames are due at 2 Hz.
+    let start = group.time_ns - group.time_ns.rem_euclid(1_000_000_000) + 1_000_000_000;
+    app.clock.set_ns(start + 2_000_000_000);
+    let mut answer = Value::Null;
+    for k in 0..25 {
+        let (status, body) = super::frames::post_frame(
+            &app,
+            "C1",
+            &brokenray::clock::format_ns(start + k * 40_000_000),
+            "image/png",
+            png.clone(),
+        )
+        .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        if k == 0 {
+            answer = body;
+        }
+    }
+    // C3 sees nothing: its marker is not found, and the reason is logged.
+    let empty = brokenray::vision::GreyImage::from_u8(
+        frames[2].1.width_px(),
+        frames[2].1.height_px(),
+        &vec![40; (frames[2].1.width_px() * frames[2].1.height_px()) as usize],
+    )
+    .unwrap();
+    let (status, _) = super::frames::post_frame(
+        &app,
+        "C3",
+        &brokenray::clock::format_ns(start),
+        "image/png",
+        encode(&empty, FrameFormat::Png).unwrap(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK);
+    let _app = stop_and_restart(app).await;
+    let rec = read_recording(&only_recording(&recordings));
+    let image = "/world/B/C1/camera/image";
+    assert_eq!(rec.rows.get(image), Some(&2), "{:?}", rec.rows);
+    // The first frame's points, at their pixel centres (+0.5 in Rerun's image coordinates).
+    let detected = &rec.points2d["/world/B/C1/camera/image/detected"];
+    let points = answer["markers"][0]["points_px"].as_array().unwrap();
+    assert_eq!(detected.len(), 2 * points.len());
+    for (d, p) in detected.iter().zip(points) {
+        let (u, v) = (p[0].as_f64().unwrap(), p[1].as_f64().unwrap());
+        assert!(
+            (f64::from(d[0]) - (u + 0.5)).abs() < 1e-3
+                && (f64::from(d[1]) - (v + 0.5)).abs() < 1e-3
+        );
+    }
+    assert!(
+        rec.entities
+            .contains("/world/B/C1/camera/image/reprojected")
+    );
+    assert_eq!(rec.rows.get("/cameras/C3"), Some(&1), "{:?}", rec.rows);
+    assert!(rec.entities.contains("/world/B/C1/C2/M/C3/camera/image"));
 }
