@@ -326,6 +326,39 @@ impl Writer {
     }
 }
 
+/// The archived frames under `dir` with measurement times in `[from_ns, to_ns]`, in time order
+/// (for readers such as `replay`; nothing is removed or written).
+pub fn archived_in(dir: &Path, from_ns: i64, to_ns: i64) -> std::io::Result<Vec<ArchivedFrame>> {
+    let mut files = Vec::new();
+    for camera in std::fs::read_dir(dir)? {
+        let camera = camera?;
+        if !camera.file_type()?.is_dir() {
+            continue;
+        }
+        let Some(camera_name) = camera.file_name().to_str().map(str::to_owned) else {
+            continue;
+        };
+        for file in std::fs::read_dir(camera.path())? {
+            let file = file?;
+            let Some((time_ns, reason)) = file.file_name().to_str().and_then(parse_name) else {
+                continue;
+            };
+            if time_ns < from_ns || time_ns > to_ns {
+                continue;
+            }
+            files.push(ArchivedFrame {
+                camera: camera_name.clone(),
+                time_ns,
+                reason,
+                bytes: file.metadata()?.len(),
+                path: file.path(),
+            });
+        }
+    }
+    files.sort_by(|a, b| (a.time_ns, &a.camera).cmp(&(b.time_ns, &b.camera)));
+    Ok(files)
+}
+
 /// `<time>_<reason>.png`.
 fn file_name(time_ns: i64, reason: ArchiveReason) -> String {
     format!("{}_{}.png", format_ns_fixed(time_ns), reason.as_str())

@@ -281,12 +281,13 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             let summary = replay(installation, &from, &to, target.as_deref(), &out_file)?;
             writeln!(
                 out,
-                "wrote {}: {} filtered and {} raw results, {} samples, {} alarm transitions",
+                "wrote {}: {} filtered and {} raw results, {} samples, {} alarm transitions, {} archived frames",
                 out_file.display(),
                 summary.filtered,
                 summary.raw,
                 summary.samples,
-                summary.alarms
+                summary.alarms,
+                summary.frames
             )?;
         }
         Command::Healthcheck { config, timeout_s } => {

@@ -617,8 +617,12 @@ impl Logger {
                 self.count(
                     rec.log(
                         format!("cameras/{}", c.frame),
-                        &rerun::TextLog::new(format!("{} not found: {reason}", m.marker))
-                            .with_level(rerun::TextLogLevel::WARN),
+                        &rerun::TextLog::new(if m.marker.is_empty() {
+                            reason.clone()
+                        } else {
+                            format!("{} not found: {reason}", m.marker)
+                        })
+                        .with_level(rerun::TextLogLevel::WARN),
                     ),
                 );
             }

@@ -3,7 +3,8 @@
 //!
 //! Every stored result of the period becomes a point (raw and filtered, no decimation); every
 //! stored sample of the targets' measured links its NIS (and outlier mark); every alarm
-//! transition its lane change and log line; each reference version its frame. The filtered
+//! transition its lane change and log line; each reference version its frame; every frame the
+//! archive kept of the period (`[frames] archive_dir`) its image under its camera. The filtered
 //! link poses are not stored, so the frame tree is placed by the links' raw samples (and the
 //! calibrations), at most `scene_hz` times a second.
 
@@ -30,6 +31,8 @@ pub struct ReplaySummary {
     pub samples: u64,
     /// Alarm transitions.
     pub alarms: u64,
+    /// Archived camera frames.
+    pub frames: u64,
 }
 
 /// Errors of a replay.
@@ -41,6 +44,9 @@ pub enum ReplayError {
     /// The recording could not be written.
     #[error(transparent)]
     Viz(#[from] super::VizError),
+    /// The frame archive could not be read.
+    #[error("the frame archive cannot be read: {0}")]
+    Archive(std::io::Error),
 }
 
 /// Writes the period `[from_ns, to_ns]` of `targets` (indices; all when empty) to `out`.
@@ -204,6 +210,58 @@ pub async fn replay(
                 transition: a.transition,
             });
             summary.alarms += 1;
+        }
+    }
+    // The archived frames of the period, when there is an archive: each under its camera, with
+    // why it was kept in the camera's log when it is evidence.
+    if let Some(dir) = &inst.frames.archive_dir
+        && dir.is_dir()
+    {
+        let archived =
+            crate::archive::archived_in(dir, from_ns, to_ns).map_err(ReplayError::Archive)?;
+        for frame in archived {
+            let Some(camera) = inst
+                .model
+                .cameras
+                .iter()
+                .position(|c| c.frame == frame.camera)
+            else {
+                continue;
+            };
+            let image = std::fs::read(&frame.path)
+                .map_err(ReplayError::Archive)
+                .and_then(|bytes| {
+                    crate::imagefile::decode(&bytes, crate::imagefile::FrameFormat::Png, None)
+                        .map_err(|e| ReplayError::Archive(std::io::Error::other(e)))
+                });
+            let image = match image {
+                Ok(image) => image,
+                Err(e) => {
+                    // A file removed or damaged since: the rest of the replay still goes.
+                    tracing::warn!(path = %frame.path.display(), error = %e, "an archived frame is left out of the replay");
+                    continue;
+                }
+            };
+            let evidence = match frame.reason {
+                crate::archive::ArchiveReason::Periodic => None,
+                reason => Some(format!("frame archived as evidence: {}", reason.as_str())),
+            };
+            logger.log(&Record::Frame {
+                camera,
+                time_ns: frame.time_ns,
+                image: Arc::new(image),
+                marks: evidence
+                    .into_iter()
+                    .map(|why| super::FrameMarks {
+                        marker: String::new(),
+                        points_px: Vec::new(),
+                        ids: Vec::new(),
+                        reprojected_px: Vec::new(),
+                        not_found: Some(why),
+                    })
+                    .collect(),
+            });
+            summary.frames += 1;
         }
     }
     logger.close();

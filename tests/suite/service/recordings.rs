@@ -398,3 +398,87 @@ async fn frames_are_recorded_under_their_cameras_at_image_hz() {
     assert_eq!(rec.rows.get("/cameras/C3"), Some(&1), "{:?}", rec.rows);
     assert!(rec.entities.contains("/world/B/C1/C2/M/C3/camera/image"));
 }
+
+/// `replay` puts the archived frames of the period under their cameras, and says why the
+/// evidence frames were kept.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replay_includes_the_archived_frames_of_the_period() {
+    use brokenray::archive::{ArchiveReason, FrameArchive};
+    use brokenray::config::FrameSettings;
+    let app = TestApp::start(None).await;
+    let archive_dir = app.dir.path().join("frames");
+    let settings = FrameSettings {
+        archive_dir: Some(archive_dir.clone()),
+        archive_every_s: 1.0,
+        archive_max_mb: 100.0,
+    };
+    let archive = FrameArchive::open(&settings).unwrap().unwrap();
+    let (group, frames) = super::frames::rendered(brokenray::vision::BitDepth::Eight);
+    let image = std::sync::Arc::new(frames[0].1.clone());
+    let second = 1_000_000_000;
+    for (k, evidence) in [
+        (0, None),
+        (1, Some(ArchiveReason::NotFound)),
+        (2, None),
+        (5, None),
+    ] {
+        archive
+            .offer("C1", group.time_ns + k * second, &image, evidence)
+            .unwrap();
+    }
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    while archive
+        .counters()
+        .written
+        .load(std::sync::atomic::Ordering::Relaxed)
+        < 4
+    {
+        assert!(std::time::Instant::now() < deadline, "the archive's writer");
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    }
+    drop(archive);
+    let config = app.dir.path().join("site.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "{}\n[frames]\narchive_dir = \"{}\"\n",
+            brokenray::config::DEFAULT_INSTALLATION_TOML.replace(
+                "database = \"brokenray.db\"",
+                &format!(
+                    "database = \"{}\"",
+                    app.dir.path().join("brokenray.db").display()
+                ),
+            ),
+            archive_dir.display()
+        ),
+    )
+    .unwrap();
+    // The period holds the first three frames, not the one at 5 s.
+    let out = app.dir.path().join("frames.rrd");
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_brokenray"))
+        .args(["replay", "--config", config.to_str().unwrap()])
+        .args(["--from", &group.time_ns.to_string()])
+        .args(["--to", &(group.time_ns + 3 * second).to_string()])
+        .args(["--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let report = String::from_utf8_lossy(&run.stdout);
+    assert!(report.contains("3 archived frames"), "{report}");
+    let rec = read_recording(&out);
+    assert_eq!(
+        rec.rows.get("/world/B/C1/camera/image"),
+        Some(&3),
+        "{:?}",
+        rec.rows
+    );
+    assert_eq!(
+        rec.rows.get("/cameras/C1"),
+        Some(&1),
+        "the evidence frame's line"
+    );
+}
