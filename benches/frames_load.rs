@@ -7,7 +7,14 @@
 //!
 //! The frames are rendered once before the run (25 groups of the ship scenario, cycled).
 //!
-//! Run: `cargo bench --bench frames_load` (Linux); `FORMAT=pgm cargo bench --bench frames_load`.
+//! Options (environment): `FORMAT=pgm`; `RERUN=save` (frames and everything else recorded to
+//! a file, `[rerun] image_hz` 1); `PANEL=1` (a client doing what the dashboard's Cameras panel
+//! does while open: every second `GET /cameras`, and for each camera with a new frame its PNG
+//! and detections); `CAMERAS=16` (cameras beyond the built-in three are copies of C1, each
+//! seeing its own copy of marker B through a measured link; the server's peak RSS is printed).
+//!
+//! Run: `cargo bench --bench frames_load` (Linux); e.g.
+//! `FORMAT=pgm RERUN=save PANEL=1 cargo bench --bench frames_load`.
 
 #[path = "../tests/suite/common/process.rs"]
 #[allow(
@@ -52,6 +59,37 @@ fn wall_ns() -> i64 {
         .unwrap_or(0)
 }
 
+/// Camera `C<k>`: a copy of C1, seeing its own copy of marker B (`B<k>`) through a measured
+/// link with C1_from_B's nominal pose.
+fn extra_camera(k: usize) -> String {
+    let default = brokenray::config::DEFAULT_INSTALLATION_TOML;
+    let block = |start: &str| -> String {
+        let from = default
+            .find(start)
+            .expect("a block of the built-in installation");
+        let rest = &default[from..];
+        let end = rest[2..].find("\n[").map_or(rest.len(), |e| e + 3);
+        rest[..end].to_owned()
+    };
+    format!(
+        "\n{}\n{}\n{}",
+        block("[[cameras]]\nframe = \"C1\"").replace("\"C1\"", &format!("\"C{k}\"")),
+        block("[[markers]]\nframe = \"B\"").replace("\"B\"", &format!("\"B{k}\"")),
+        block("[[links]]\nname = \"C1_from_B\"")
+            .replace("\"C1_from_B\"", &format!("\"C{k}_from_B{k}\"")),
+    )
+}
+
+/// Peak resident set of a process so far (MB), from `/proc`.
+fn peak_rss_mb(pid: u32) -> f64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_default()
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
 fn main() {
     if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
         println!("frames load bench: run with `cargo bench --bench frames_load`");
@@ -66,13 +104,36 @@ fn main() {
         Ok("png") | Err(_) => FrameFormat::Png,
         Ok(other) => panic!("FORMAT is png or pgm, not {other}"),
     };
+    let cameras: usize = std::env::var("CAMERAS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3)
+        .max(3);
+    let rerun_save = std::env::var("RERUN").as_deref() == Ok("save");
+    let panel = std::env::var("PANEL").as_deref() == Ok("1");
     let dir = tempfile::tempdir().expect("a temporary directory");
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+    let mut text = brokenray::config::DEFAULT_INSTALLATION_TOML
         .replace("listen = \"127.0.0.1:7878\"", "listen = \"127.0.0.1:0\"")
         .replace(
             "database = \"brokenray.db\"",
             &format!("database = \"{}\"", dir.path().join("load.db").display()),
         );
+    if rerun_save {
+        text = text.replace(
+            "[rerun]\nmode = \"off\"\nrecordings_dir = \"recordings\"",
+            &format!(
+                "[rerun]\nmode = \"save\"\nrecordings_dir = \"{}\"",
+                dir.path().join("recordings").display()
+            ),
+        );
+        assert!(
+            text.contains("mode = \"save\""),
+            "the [rerun] section changed"
+        );
+    }
+    for k in 4..=cameras {
+        text.push_str(&extra_camera(k));
+    }
     let config = dir.path().join("load.toml");
     std::fs::write(&config, &text).expect("the config file");
     let inst = brokenray::config::parse("load.toml", &text).expect("the built-in installation");
@@ -124,13 +185,54 @@ fn main() {
         .expect("runtime");
     let client = reqwest::Client::new();
     let (latencies, found, stored, errors, cpu, wall) = runtime.block_on(async {
-        let cameras = ["C1", "C2", "C3"];
         let mut tasks = Vec::new();
         let cpu0 = cpu_s(pid);
         let t0 = Instant::now();
         let end = t0 + Duration::from_secs_f64(seconds);
-        for (c, camera) in cameras.iter().enumerate() {
-            let frames: Vec<Vec<u8>> = groups.iter().map(|g| g[c].1.clone()).collect();
+        let names: Vec<String> = (1..=cameras).map(|k| format!("C{k}")).collect();
+        if panel {
+            let client = client.clone();
+            let base = server.base.clone();
+            tasks.push(tokio::spawn(async move {
+                // What the Cameras panel asks while open: the list every second, and each new
+                // frame's PNG and detections.
+                let mut shown: std::collections::HashMap<String, String> = Default::default();
+                let mut tick = tokio::time::interval(Duration::from_secs(1));
+                while Instant::now() < end {
+                    tick.tick().await;
+                    let Ok(list) = client.get(format!("{base}/api/v1/cameras")).send().await else {
+                        continue;
+                    };
+                    let list: serde_json::Value = list.json().await.unwrap_or_default();
+                    for c in list["cameras"].as_array().into_iter().flatten() {
+                        let (Some(name), Some(time)) =
+                            (c["name"].as_str(), c["frame"]["time"].as_str())
+                        else {
+                            continue;
+                        };
+                        if shown.get(name).map(String::as_str) == Some(time) {
+                            continue;
+                        }
+                        shown.insert(name.to_owned(), time.to_owned());
+                        for part in ["frame", "detections"] {
+                            if let Ok(r) = client
+                                .get(format!("{base}/api/v1/cameras/{name}/{part}"))
+                                .send()
+                                .await
+                            {
+                                let _ = r.bytes().await;
+                            }
+                        }
+                    }
+                }
+                (Vec::new(), 0, 0, 0)
+            }));
+        }
+        for (c, camera) in names.iter().enumerate() {
+            let frames: Vec<Vec<u8>> = groups
+                .iter()
+                .map(|g| g[if c < 3 { c } else { 0 }].1.clone())
+                .collect();
             let client = client.clone();
             let base = server.base.clone();
             let camera = camera.to_string();
@@ -190,10 +292,17 @@ fn main() {
     sorted.sort_by(f64::total_cmp);
     let pct = |p: f64| sorted[((sorted.len() as f64 - 1.0) * p).round() as usize];
     println!(
-        "{} frames in {wall:.1} s ({:.1} frames/s from 3 cameras): {found} markers found, {stored} samples stored, {errors} errors",
+        "{} frames in {wall:.1} s ({:.1} frames/s from {cameras} cameras{}{}): {found} markers found, {stored} samples stored, {errors} errors",
         latencies.len(),
-        latencies.len() as f64 / wall
+        latencies.len() as f64 / wall,
+        if rerun_save { ", Rerun save on" } else { "" },
+        if panel {
+            ", the Cameras panel open"
+        } else {
+            ""
+        },
     );
+    println!("server peak RSS: {:.0} MB", peak_rss_mb(pid));
     println!(
         "server CPU: {cpu:.2} s over {wall:.1} s = {:.2} cores; answer latency p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
         cpu / wall,

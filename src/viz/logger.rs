@@ -571,14 +571,13 @@ impl Logger {
             return;
         };
         let base = format!("{}/camera", self.frames[f.0].path);
-        let size = [image.width_px(), image.height_px()];
-        let picture = match image.depth() {
-            crate::vision::BitDepth::Eight => rerun::Image::from_l8(
-                image.pixels().iter().map(|&v| v as u8).collect::<Vec<u8>>(),
-                size,
-            ),
-            crate::vision::BitDepth::Sixteen => {
-                rerun::Image::from_elements(image.pixels(), size, rerun::ColorModel::L)
+        // Lossless PNG (fast deflate): about half the raw size in the recording.
+        let picture = match crate::imagefile::encode_png_fast(image) {
+            Ok(png) => rerun::EncodedImage::from_file_contents(png)
+                .with_media_type(rerun::MediaType::PNG),
+            Err(e) => {
+                tracing::warn!(camera = %c.frame, error = %e, "a frame could not be encoded for Rerun");
+                return;
             }
         };
         self.count(rec.log(format!("{base}/image"), &picture));
