@@ -573,8 +573,9 @@ impl Logger {
         let base = format!("{}/camera", self.frames[f.0].path);
         // Lossless PNG (fast deflate): about half the raw size in the recording.
         let picture = match crate::imagefile::encode_png_fast(image) {
-            Ok(png) => rerun::EncodedImage::from_file_contents(png)
-                .with_media_type(rerun::MediaType::PNG),
+            Ok(png) => {
+                rerun::EncodedImage::from_file_contents(png).with_media_type(rerun::MediaType::PNG)
+            }
             Err(e) => {
                 tracing::warn!(camera = %c.frame, error = %e, "a frame could not be encoded for Rerun");
                 return;
