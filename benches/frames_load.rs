@@ -136,7 +136,9 @@ fn main() {
     }
     let config = dir.path().join("load.toml");
     std::fs::write(&config, &text).expect("the config file");
-    let inst = brokenray::config::parse("load.toml", &text).expect("the built-in installation");
+    brokenray::config::parse("load.toml", &text).expect("a valid installation");
+    // Frames of the built-in three cameras; the extra cameras post C1's.
+    let inst = brokenray::config::default_installation();
 
     let render_start = Instant::now();
     let mut sim = Simulator::new(

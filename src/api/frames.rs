@@ -232,6 +232,7 @@ pub async fn post_frame(
             time_ns,
             image: std::sync::Arc::clone(&image),
             marks: out.markers.iter().map(marks).collect(),
+            ticket: viz.ticket(),
         });
     }
     app.latest_frames

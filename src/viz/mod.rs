@@ -91,8 +91,54 @@ pub enum Record {
         image: Arc<GreyImage>,
         /// Each marker of a measured link of the camera.
         marks: Vec<FrameMarks>,
+        /// Counts the frame as waiting for the logger until the record is dropped.
+        ticket: FrameTicket,
     },
 }
+
+/// A frame waiting for the logger: counted from [`FrameSender::send`] until its record is
+/// dropped (logged, or left in the queue at the end), so that frames, which weigh megabytes
+/// where other records weigh bytes, are bounded by number in the queue.
+#[derive(Debug, Default)]
+pub struct FrameTicket(Option<Arc<std::sync::atomic::AtomicUsize>>);
+
+impl FrameTicket {
+    /// A ticket that counts nothing (records built outside the live queue, such as `replay`'s).
+    pub fn none() -> Self {
+        Self(None)
+    }
+
+    fn counting(pending: &Arc<std::sync::atomic::AtomicUsize>) -> Self {
+        pending.fetch_add(1, Relaxed);
+        Self(Some(Arc::clone(pending)))
+    }
+}
+
+impl Clone for FrameTicket {
+    fn clone(&self) -> Self {
+        match &self.0 {
+            Some(pending) => Self::counting(pending),
+            None => Self(None),
+        }
+    }
+}
+
+impl PartialEq for FrameTicket {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl Drop for FrameTicket {
+    fn drop(&mut self) {
+        if let Some(pending) = &self.0 {
+            pending.fetch_sub(1, Relaxed);
+        }
+    }
+}
+
+/// Frames waiting for the logger at most; more are dropped (and counted) until it catches up.
+pub const MAX_PENDING_FRAMES: usize = 16;
 
 /// What a frame showed of one marker, to draw over it.
 #[derive(Debug, Clone, PartialEq)]
@@ -304,6 +350,7 @@ impl VizSender {
     pub fn frame_sender(&self, image_hz: f64) -> FrameSender {
         FrameSender {
             tx: self.tx.clone(),
+            pending: Arc::default(),
             interval_ns: if image_hz.is_finite() && image_hz > 0.0 {
                 ((1e9 / image_hz) as i64).max(1)
             } else {
@@ -321,6 +368,8 @@ impl VizSender {
 #[derive(Debug)]
 pub struct FrameSender {
     tx: Option<SyncSender<Record>>,
+    /// Frames sent and not yet dropped by the logger.
+    pending: Arc<std::sync::atomic::AtomicUsize>,
     interval_ns: i64,
     /// Per camera, the interval index of the last frame let through.
     last_bucket: std::sync::Mutex<Vec<i64>>,
@@ -332,6 +381,7 @@ impl FrameSender {
     pub fn off() -> Self {
         Self {
             tx: None,
+            pending: Arc::default(),
             interval_ns: 1,
             last_bucket: std::sync::Mutex::new(Vec::new()),
             counters: Arc::default(),
@@ -339,7 +389,9 @@ impl FrameSender {
     }
 
     /// Whether a frame of `camera` at `time_ns` is due, recording it if so: the caller then
-    /// builds the record and [`FrameSender::send`]s it.
+    /// builds the record (with [`FrameSender::ticket`]) and [`FrameSender::send`]s it. Not due
+    /// either when [`MAX_PENDING_FRAMES`] frames already wait for the logger (counted as
+    /// dropped).
     pub fn due(&self, camera: usize, time_ns: i64) -> bool {
         if self.tx.is_none() {
             return false;
@@ -349,13 +401,26 @@ impl FrameSender {
         if last.len() <= camera {
             last.resize(camera + 1, i64::MIN);
         }
-        if bucket > last[camera] {
-            last[camera] = bucket;
-            true
-        } else {
+        if bucket <= last[camera] {
             self.counters.decimated.fetch_add(1, Relaxed);
-            false
+            return false;
         }
+        last[camera] = bucket;
+        if self.pending.load(Relaxed) >= MAX_PENDING_FRAMES {
+            self.counters.dropped.fetch_add(1, Relaxed);
+            return false;
+        }
+        true
+    }
+
+    /// The ticket a frame record carries, counting it as waiting for the logger.
+    pub fn ticket(&self) -> FrameTicket {
+        FrameTicket::counting(&self.pending)
+    }
+
+    /// Frames waiting for the logger now.
+    pub fn pending(&self) -> usize {
+        self.pending.load(Relaxed)
     }
 
     /// Offers a frame record: queued or dropped (and counted); never waits.
@@ -524,6 +589,49 @@ mod tests {
         // A late sample, older than the newest kept, is left out; the next interval is kept.
         assert!(!d.keep(&sample(0, 500_000_000, false)));
         assert!(d.keep(&sample(0, 2_000_000_000, false)));
+    }
+
+    #[test]
+    fn frames_are_decimated_per_camera_and_bounded_while_the_logger_is_behind() {
+        let (tx, rx) = std::sync::mpsc::sync_channel(1000);
+        let sender = VizSender {
+            tx: Some(tx),
+            decimator: Decimator::new(1.0, 1.0),
+            counters: Arc::default(),
+        };
+        let frames = sender.frame_sender(2.0);
+        let image = Arc::new(GreyImage::from_u8(2, 2, &[0; 4]).expect("frame"));
+        let offer = |camera: usize, time_ns: i64| {
+            let due = frames.due(camera, time_ns);
+            if due {
+                frames.send(Record::Frame {
+                    camera,
+                    time_ns,
+                    image: Arc::clone(&image),
+                    marks: Vec::new(),
+                    ticket: frames.ticket(),
+                });
+            }
+            due
+        };
+        // 2 Hz per camera: 0 and 500 ms are due, 40 ms is not; each camera on its own.
+        assert!(offer(0, 0));
+        assert!(!offer(0, 40_000_000));
+        assert!(offer(0, 500_000_000));
+        assert!(offer(1, 40_000_000));
+        assert_eq!(frames.pending(), 3);
+        // The logger is behind: at most MAX_PENDING_FRAMES wait, the rest are dropped.
+        let due = (0..40).filter(|&s| offer(2, s * 1_000_000_000)).count();
+        assert_eq!(due, MAX_PENDING_FRAMES - 3);
+        assert_eq!(frames.pending(), MAX_PENDING_FRAMES);
+        assert_eq!(
+            sender.counters().dropped.load(Relaxed),
+            40 - (MAX_PENDING_FRAMES as u64 - 3)
+        );
+        // The logger drops what it logged: frames are taken again.
+        drop(rx.try_iter().collect::<Vec<_>>());
+        assert_eq!(frames.pending(), 0);
+        assert!(offer(2, 100_000_000_000));
     }
 
     #[test]

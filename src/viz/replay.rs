@@ -260,6 +260,7 @@ pub async fn replay(
                         not_found: Some(why),
                     })
                     .collect(),
+                ticket: super::FrameTicket::none(),
             });
             summary.frames += 1;
         }
