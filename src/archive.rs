@@ -329,32 +329,10 @@ impl Writer {
 /// The archived frames under `dir` with measurement times in `[from_ns, to_ns]`, in time order
 /// (for readers such as `replay`; nothing is removed or written).
 pub fn archived_in(dir: &Path, from_ns: i64, to_ns: i64) -> std::io::Result<Vec<ArchivedFrame>> {
-    let mut files = Vec::new();
-    for camera in std::fs::read_dir(dir)? {
-        let camera = camera?;
-        if !camera.file_type()?.is_dir() {
-            continue;
-        }
-        let Some(camera_name) = camera.file_name().to_str().map(str::to_owned) else {
-            continue;
-        };
-        for file in std::fs::read_dir(camera.path())? {
-            let file = file?;
-            let Some((time_ns, reason)) = file.file_name().to_str().and_then(parse_name) else {
-                continue;
-            };
-            if time_ns < from_ns || time_ns > to_ns {
-                continue;
-            }
-            files.push(ArchivedFrame {
-                camera: camera_name.clone(),
-                time_ns,
-                reason,
-                bytes: file.metadata()?.len(),
-                path: file.path(),
-            });
-        }
-    }
+    let mut files: Vec<ArchivedFrame> = walk(dir, false)?
+        .into_iter()
+        .filter(|f| (from_ns..=to_ns).contains(&f.time_ns))
+        .collect();
     files.sort_by(|a, b| (a.time_ns, &a.camera).cmp(&(b.time_ns, &b.camera)));
     Ok(files)
 }
@@ -378,6 +356,19 @@ fn parse_name(name: &str) -> Option<(i64, ArchiveReason)> {
 /// files of interrupted writes are removed.
 fn read_back(dir: &Path) -> std::io::Result<Index> {
     let mut index = Index::default();
+    for frame in walk(dir, true)? {
+        index.bytes += frame.bytes;
+        index
+            .files
+            .insert((frame.time_ns, frame.camera.clone()), frame);
+    }
+    Ok(index)
+}
+
+/// The frames named as the archive names them under `dir/<camera>/`; with `clean`, temporary
+/// files of interrupted writes are removed on the way.
+fn walk(dir: &Path, clean: bool) -> std::io::Result<Vec<ArchivedFrame>> {
+    let mut out = Vec::new();
     for camera in std::fs::read_dir(dir)? {
         let camera = camera?;
         if !camera.file_type()?.is_dir() {
@@ -392,28 +383,23 @@ fn read_back(dir: &Path) -> std::io::Result<Index> {
             let Some(name) = name.to_str() else {
                 continue;
             };
-            if name.starts_with('.') && name.ends_with(".tmp") {
+            if clean && name.starts_with('.') && name.ends_with(".tmp") {
                 let _ = std::fs::remove_file(file.path());
                 continue;
             }
             let Some((time_ns, reason)) = parse_name(name) else {
                 continue;
             };
-            let bytes = file.metadata()?.len();
-            index.bytes += bytes;
-            index.files.insert(
-                (time_ns, camera_name.clone()),
-                ArchivedFrame {
-                    camera: camera_name.clone(),
-                    time_ns,
-                    reason,
-                    bytes,
-                    path: file.path(),
-                },
-            );
+            out.push(ArchivedFrame {
+                camera: camera_name.clone(),
+                time_ns,
+                reason,
+                bytes: file.metadata()?.len(),
+                path: file.path(),
+            });
         }
     }
-    Ok(index)
+    Ok(out)
 }
 
 #[cfg(test)]

@@ -329,15 +329,7 @@ impl VizSender {
 
     /// Offers a record already decimated: queued or dropped; never waits.
     pub fn send_kept(&mut self, record: Record) {
-        let Some(tx) = &self.tx else { return };
-        match tx.try_send(record) {
-            Ok(()) => {
-                self.counters.queued.fetch_add(1, Relaxed);
-            }
-            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
-                self.counters.dropped.fetch_add(1, Relaxed);
-            }
-        }
+        offer(self.tx.as_ref(), &self.counters, record);
     }
 
     /// The counters.
@@ -425,14 +417,20 @@ impl FrameSender {
 
     /// Offers a frame record: queued or dropped (and counted); never waits.
     pub fn send(&self, record: Record) {
-        let Some(tx) = &self.tx else { return };
-        match tx.try_send(record) {
-            Ok(()) => {
-                self.counters.queued.fetch_add(1, Relaxed);
-            }
-            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
-                self.counters.dropped.fetch_add(1, Relaxed);
-            }
+        offer(self.tx.as_ref(), &self.counters, record);
+    }
+}
+
+/// Queues a record for the logger, or drops it when the queue is full (or the logger gone);
+/// counted either way, never waits.
+fn offer(tx: Option<&SyncSender<Record>>, counters: &VizCounters, record: Record) {
+    let Some(tx) = tx else { return };
+    match tx.try_send(record) {
+        Ok(()) => {
+            counters.queued.fetch_add(1, Relaxed);
+        }
+        Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+            counters.dropped.fetch_add(1, Relaxed);
         }
     }
 }
