@@ -121,11 +121,20 @@ export function renderCameraAges() {
   }
 }
 
+// The frame and its detections come from two requests; a newer frame may land between them.
+// They are taken only when they are of the same frame (`X-Frame-Time` against the detections'
+// time); otherwise asked again, at most three times.
 async function refreshFrame(view, camera) {
-  const [response, detections] = await Promise.all([
-    api(`/api/v1/cameras/${encodeURIComponent(camera.name)}/frame`, { raw: true }),
-    api(`/api/v1/cameras/${encodeURIComponent(camera.name)}/detections`),
-  ]);
+  const name = encodeURIComponent(camera.name);
+  let response = null;
+  let detections = null;
+  for (let attempt = 0; attempt < 3; attempt++) {
+    [response, detections] = await Promise.all([
+      api(`/api/v1/cameras/${name}/frame`, { raw: true }),
+      api(`/api/v1/cameras/${name}/detections`),
+    ]);
+    if (parseTime(response.headers.get('X-Frame-Time')) === parseTime(detections.time)) break;
+  }
   const url = URL.createObjectURL(await response.blob());
   await new Promise((resolve) => {
     view.img.onload = resolve;
@@ -136,7 +145,7 @@ async function refreshFrame(view, camera) {
   view.url = url;
   view.detections = detections;
   view.time = camera.frame.time;
-  view.timeMs = parseTime(camera.frame.time);
+  view.timeMs = parseTime(detections.time);
 }
 
 export async function loadCameras() {
