@@ -217,7 +217,6 @@ pub async fn post_frame(
     if let Some(archive) = &app.archive {
         archive.offer(&camera_name, time_ns, &image, evidence(&out));
     }
-    let viz = app.service.frame_viz();
     if let Some(index) = app
         .service
         .installation()
@@ -225,14 +224,9 @@ pub async fn post_frame(
         .cameras
         .iter()
         .position(|c| c.frame == camera_name)
-        && viz.due(index, time_ns)
     {
-        viz.send(crate::viz::Record::Frame {
-            camera: index,
-            time_ns,
-            image: std::sync::Arc::clone(&image),
-            marks: out.markers.iter().map(marks).collect(),
-            ticket: viz.ticket(),
+        app.service.frame_viz().offer(index, time_ns, &image, || {
+            out.markers.iter().map(marks).collect()
         });
     }
     app.latest_frames

@@ -193,42 +193,57 @@ pub struct VizCounters {
 pub struct Decimator {
     scene_interval_ns: i64,
     series_interval_ns: i64,
+    image_interval_ns: i64,
     /// Per series (see [`Decimator::series`]): the interval index of the last record let
     /// through, `i64::MIN` before the first.
     last_bucket: Vec<i64>,
 }
 
+/// The interval of a rate (ns); every record passes at a rate that is not a positive number.
+fn interval_ns(hz: f64) -> i64 {
+    if hz.is_finite() && hz > 0.0 {
+        ((1e9 / hz) as i64).max(1)
+    } else {
+        1
+    }
+}
+
 impl Decimator {
-    /// At most `scene_hz` scenes and `series_hz` points per series per second.
+    /// At most `scene_hz` scenes and `series_hz` points per series per second (camera frames
+    /// unlimited until [`Decimator::with_image_hz`]).
     pub fn new(scene_hz: f64, series_hz: f64) -> Self {
-        let interval = |hz: f64| {
-            if hz.is_finite() && hz > 0.0 {
-                ((1e9 / hz) as i64).max(1)
-            } else {
-                1
-            }
-        };
         Self {
-            scene_interval_ns: interval(scene_hz),
-            series_interval_ns: interval(series_hz),
+            scene_interval_ns: interval_ns(scene_hz),
+            series_interval_ns: interval_ns(series_hz),
+            image_interval_ns: 1,
             last_bucket: Vec::new(),
         }
     }
 
+    /// At most `image_hz` frames per camera per second.
+    pub fn with_image_hz(self, image_hz: f64) -> Self {
+        Self {
+            image_interval_ns: interval_ns(image_hz),
+            ..self
+        }
+    }
+
     /// The index of a series: the scene, each link's samples, each target's raw and filtered
-    /// results.
+    /// results, each camera's frames.
     fn series(kind: Series) -> usize {
         match kind {
             Series::Scene => 0,
-            Series::Link(l) => 1 + 3 * l,
-            Series::Raw(t) => 2 + 3 * t,
-            Series::Filtered(t) => 3 + 3 * t,
+            Series::Link(l) => 1 + 4 * l,
+            Series::Raw(t) => 2 + 4 * t,
+            Series::Filtered(t) => 3 + 4 * t,
+            Series::Camera(c) => 4 + 4 * c,
         }
     }
 
     fn interval(&self, kind: Series) -> i64 {
         match kind {
             Series::Scene => self.scene_interval_ns,
+            Series::Camera(_) => self.image_interval_ns,
             _ => self.series_interval_ns,
         }
     }
@@ -288,6 +303,8 @@ pub enum Series {
     Raw(usize),
     /// A target's filtered results (by target index).
     Filtered(usize),
+    /// A camera's frames (by camera index).
+    Camera(usize),
 }
 
 /// The pipeline's end of the queue: decimates, then offers without ever waiting.
@@ -343,12 +360,9 @@ impl VizSender {
         FrameSender {
             tx: self.tx.clone(),
             pending: Arc::default(),
-            interval_ns: if image_hz.is_finite() && image_hz > 0.0 {
-                ((1e9 / image_hz) as i64).max(1)
-            } else {
-                1
-            },
-            last_bucket: std::sync::Mutex::new(Vec::new()),
+            decimator: std::sync::Mutex::new(
+                Decimator::new(f64::INFINITY, f64::INFINITY).with_image_hz(image_hz),
+            ),
             counters: Arc::clone(&self.counters),
         }
     }
@@ -356,81 +370,74 @@ impl VizSender {
 
 /// The frames' end of the queue, for the HTTP handlers (shared, unlike [`VizSender`], which
 /// the pipeline owns): at most `image_hz` frames per camera and second of measurement time,
-/// offered without ever waiting.
+/// and at most [`MAX_PENDING_FRAMES`] waiting for the logger, offered without ever waiting.
 #[derive(Debug)]
 pub struct FrameSender {
     tx: Option<SyncSender<Record>>,
     /// Frames sent and not yet dropped by the logger.
     pending: Arc<std::sync::atomic::AtomicUsize>,
-    interval_ns: i64,
-    /// Per camera, the interval index of the last frame let through.
-    last_bucket: std::sync::Mutex<Vec<i64>>,
+    decimator: std::sync::Mutex<Decimator>,
     counters: Arc<VizCounters>,
 }
 
 impl FrameSender {
-    /// A sender that shows nothing.
-    pub fn off() -> Self {
-        Self {
-            tx: None,
-            pending: Arc::default(),
-            interval_ns: 1,
-            last_bucket: std::sync::Mutex::new(Vec::new()),
-            counters: Arc::default(),
-        }
-    }
-
-    /// Whether a frame of `camera` at `time_ns` is due, recording it if so: the caller then
-    /// builds the record (with [`FrameSender::ticket`]) and [`FrameSender::send`]s it. Not due
-    /// either when [`MAX_PENDING_FRAMES`] frames already wait for the logger (counted as
-    /// dropped).
-    pub fn due(&self, camera: usize, time_ns: i64) -> bool {
+    /// Offers camera `camera`'s frame at `time_ns` with what to draw over it (`marks`, built
+    /// only when the frame is due): queued, or decimated, or dropped because the logger is
+    /// behind (counted); never waits. Returns whether it was queued.
+    pub fn offer(
+        &self,
+        camera: usize,
+        time_ns: i64,
+        image: &Arc<GreyImage>,
+        marks: impl FnOnce() -> Vec<FrameMarks>,
+    ) -> bool {
         if self.tx.is_none() {
             return false;
         }
-        let bucket = time_ns.div_euclid(self.interval_ns);
-        let mut last = self.last_bucket.lock().unwrap_or_else(|p| p.into_inner());
-        if last.len() <= camera {
-            last.resize(camera + 1, i64::MIN);
-        }
-        if bucket <= last[camera] {
+        let due = self
+            .decimator
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .keep_series(Series::Camera(camera), time_ns);
+        if !due {
             self.counters.decimated.fetch_add(1, Relaxed);
             return false;
         }
-        last[camera] = bucket;
         if self.pending.load(Relaxed) >= MAX_PENDING_FRAMES {
             self.counters.dropped.fetch_add(1, Relaxed);
             return false;
         }
-        true
-    }
-
-    /// The ticket a frame record carries, counting it as waiting for the logger.
-    pub fn ticket(&self) -> FrameTicket {
-        FrameTicket::counting(&self.pending)
+        offer(
+            self.tx.as_ref(),
+            &self.counters,
+            Record::Frame {
+                camera,
+                time_ns,
+                image: Arc::clone(image),
+                marks: marks(),
+                ticket: FrameTicket::counting(&self.pending),
+            },
+        )
     }
 
     /// Frames waiting for the logger now.
     pub fn pending(&self) -> usize {
         self.pending.load(Relaxed)
     }
-
-    /// Offers a frame record: queued or dropped (and counted); never waits.
-    pub fn send(&self, record: Record) {
-        offer(self.tx.as_ref(), &self.counters, record);
-    }
 }
 
 /// Queues a record for the logger, or drops it when the queue is full (or the logger gone);
-/// counted either way, never waits.
-fn offer(tx: Option<&SyncSender<Record>>, counters: &VizCounters, record: Record) {
-    let Some(tx) = tx else { return };
+/// counted either way, never waits. Returns whether it was queued.
+fn offer(tx: Option<&SyncSender<Record>>, counters: &VizCounters, record: Record) -> bool {
+    let Some(tx) = tx else { return false };
     match tx.try_send(record) {
         Ok(()) => {
             counters.queued.fetch_add(1, Relaxed);
+            true
         }
         Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
             counters.dropped.fetch_add(1, Relaxed);
+            false
         }
     }
 }
@@ -599,19 +606,7 @@ mod tests {
         };
         let frames = sender.frame_sender(2.0);
         let image = Arc::new(GreyImage::from_u8(2, 2, &[0; 4]).expect("frame"));
-        let offer = |camera: usize, time_ns: i64| {
-            let due = frames.due(camera, time_ns);
-            if due {
-                frames.send(Record::Frame {
-                    camera,
-                    time_ns,
-                    image: Arc::clone(&image),
-                    marks: Vec::new(),
-                    ticket: frames.ticket(),
-                });
-            }
-            due
-        };
+        let offer = |camera: usize, time_ns: i64| frames.offer(camera, time_ns, &image, Vec::new);
         // 2 Hz per camera: 0 and 500 ms are due, 40 ms is not; each camera on its own.
         assert!(offer(0, 0));
         assert!(!offer(0, 40_000_000));
