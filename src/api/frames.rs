@@ -261,24 +261,6 @@ fn evidence(out: &FrameOut) -> Option<ArchiveReason> {
     }
 }
 
-/// The marker points `ids` of `link` projected at `camera_from_marker` (px; a point behind the
-/// camera, which a solved pose does not have, at NaN).
-fn reprojected(link: &ObservedLink, ids: &[u32], camera_from_marker: &Pose) -> Vec<[f64; 2]> {
-    ids.iter()
-        .map(|id| {
-            link.ids
-                .iter()
-                .position(|x| x == id)
-                .and_then(|i| {
-                    link.camera.project(
-                        &(camera_from_marker * nalgebra::Point3::from(link.points_mm[i])).coords,
-                    )
-                })
-                .map_or([f64::NAN, f64::NAN], |p| [p.x, p.y])
-        })
-        .collect()
-}
-
 /// The answer before ingest, and the samples to ingest.
 fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut, Vec<IngestItem>) {
     let mut items = Vec::new();
@@ -320,8 +302,7 @@ fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut,
                     out.sigma_px = Some(found.sigma_px.clone());
                     out.pose = Some(PoseOut::from(&s.camera_from_marker));
                     out.sigma = Some(SigmaOut::from(&cov));
-                    out.reprojected_px =
-                        Some(reprojected(m.link, &found.ids, &s.camera_from_marker));
+                    out.reprojected_px = Some(found.reprojected_px.clone());
                     out.reprojection_rms_px = Some(s.rms_px);
                     out.rejected_points = Some(s.rejected_points.clone());
                 }

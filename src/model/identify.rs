@@ -96,6 +96,9 @@ pub struct Found {
     pub sigma_px: Vec<f64>,
     /// The pose from the corrected points.
     pub solution: PnpSolution,
+    /// The same points projected with that pose (px): `points_px` minus these are the
+    /// residuals.
+    pub reprojected_px: Vec<[f64; 2]>,
 }
 
 /// Where the points of `link`'s marker image at `prior` (`camera_from_marker`).
@@ -271,10 +274,20 @@ pub fn identify_within(
     } else {
         first
     };
+    // A solved pose has every point in front of the camera; one that is not would show at NaN.
+    let reprojected_px = object
+        .iter()
+        .map(|p| {
+            link.camera
+                .project(&(solution.camera_from_marker * nalgebra::Point3::from(*p)).coords)
+                .map_or([f64::NAN, f64::NAN], |q| [q.x, q.y])
+        })
+        .collect();
     Ok(Found {
         points_px: corrected.iter().map(|c| [c.x, c.y]).collect(),
         ids: matched.iter().map(|&(i, _)| link.ids[i]).collect(),
         sigma_px: sigmas,
         solution,
+        reprojected_px,
     })
 }

@@ -472,6 +472,24 @@ mod identification {
             );
         }
         assert!(found.sigma_px.iter().all(|s| *s > 0.0 && *s < 0.05));
+        // The reprojections are the points' projections at the solved pose, a residual away.
+        assert_eq!(found.reprojected_px.len(), found.points_px.len());
+        for ((r, p), id) in found
+            .reprojected_px
+            .iter()
+            .zip(&found.points_px)
+            .zip(&found.ids)
+        {
+            let i = link.ids.iter().position(|x| x == id).expect("known id");
+            let at_pose = link
+                .camera
+                .project(
+                    &(found.solution.camera_from_marker * Point3::from(link.points_mm[i])).coords,
+                )
+                .expect("in front");
+            assert!((r[0] - at_pose.x).abs() < 1e-9 && (r[1] - at_pose.y).abs() < 1e-9);
+            assert!((r[0] - p[0]).hypot(r[1] - p[1]) < 0.05, "point {id}");
+        }
     }
 
     /// A good prediction is searched only near its points and the marker comes out exactly as
