@@ -209,7 +209,7 @@ pub async fn get_frame(
 ) -> Result<Response, ApiError> {
     let latest = latest_of(&app, &name)?;
     let etag = HeaderValue::from_str(&format!("\"{name}-{}\"", latest.time_ns))
-        .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))?;
+        .map_err(|e| ApiError::internal(e.to_string()))?;
     if headers
         .get(header::IF_NONE_MATCH)
         .is_some_and(|v| v.as_bytes() == etag.as_bytes())
@@ -225,17 +225,11 @@ pub async fn get_frame(
                     .map_err(|e| e.to_string())
             })
             .clone()
-            .map_err(|e| {
-                ApiError::new(
-                    StatusCode::INTERNAL_SERVER_ERROR,
-                    "internal",
-                    format!("encoding the frame failed: {e}"),
-                )
-            })
+            .map_err(|e| ApiError::internal(format!("encoding the frame failed: {e}")))
     })
     .await??;
     let time = HeaderValue::from_str(&format_ns(latest.time_ns))
-        .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))?;
+        .map_err(|e| ApiError::internal(e.to_string()))?;
     Ok((
         [
             (header::CONTENT_TYPE, HeaderValue::from_static("image/png")),

@@ -5,8 +5,9 @@
 //! its link, tried in order.
 //!
 //! Decoding the file and choosing the predictions (the filtered pose of the link at the frame's
-//! time, the pose in the previous frame) belong to the callers, the nominal pose comes last; the frame's size is checked against the
-//! camera's here, so every caller refuses the same frames.
+//! time, the pose in the previous frame) belong to the callers; the nominal pose comes last.
+//! The frame's size is checked against the camera's here, so every caller refuses the same
+//! frames.
 
 use super::identify::{Found, NotFound, Reach, identify, identify_within, search_squares};
 use super::observation::{ObservationError, ObservedLink, Observer};
