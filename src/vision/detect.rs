@@ -132,21 +132,20 @@ pub struct SearchArea {
 impl SearchArea {
     /// Every tile of a `width_px` x `height_px` frame.
     pub fn whole(width_px: u32, height_px: u32) -> Self {
-        let (tiles_x, tiles_y) = Self::tiles(width_px, height_px);
-        Self {
-            tiles_x,
-            tiles_y,
-            active: vec![true; tiles_x * tiles_y],
-        }
+        Self::filled(width_px, height_px, true)
     }
 
     /// No tile yet.
     pub fn empty(width_px: u32, height_px: u32) -> Self {
+        Self::filled(width_px, height_px, false)
+    }
+
+    fn filled(width_px: u32, height_px: u32, active: bool) -> Self {
         let (tiles_x, tiles_y) = Self::tiles(width_px, height_px);
         Self {
             tiles_x,
             tiles_y,
-            active: vec![false; tiles_x * tiles_y],
+            active: vec![active; tiles_x * tiles_y],
         }
     }
 

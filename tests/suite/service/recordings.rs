@@ -111,6 +111,21 @@ fn read_recording(path: &Path) -> Recording {
     out
 }
 
+/// The built-in installation on `app`'s database, plus `extra`, as `site.toml` in its
+/// directory: what `replay` runs on.
+fn site_config(app: &TestApp, extra: &str) -> std::path::PathBuf {
+    let config = app.dir.path().join("site.toml");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML.replace(
+        "database = \"brokenray.db\"",
+        &format!(
+            "database = \"{}\"",
+            app.dir.path().join("brokenray.db").display()
+        ),
+    );
+    std::fs::write(&config, format!("{text}\n{extra}")).unwrap();
+    config
+}
+
 /// The only `.rrd` file of a directory.
 fn only_recording(dir: &Path) -> std::path::PathBuf {
     let files: Vec<_> = std::fs::read_dir(dir)
@@ -276,18 +291,7 @@ async fn replay_writes_one_filtered_point_per_stored_result() {
         .await
         .unwrap();
     assert!(stored.len() >= 40, "{} stored results", stored.len());
-    let config = app.dir.path().join("site.toml");
-    std::fs::write(
-        &config,
-        brokenray::config::DEFAULT_INSTALLATION_TOML.replace(
-            "database = \"brokenray.db\"",
-            &format!(
-                "database = \"{}\"",
-                app.dir.path().join("brokenray.db").display()
-            ),
-        ),
-    )
-    .unwrap();
+    let config = site_config(&app, "");
     let out = app.dir.path().join("review.rrd");
     let run = std::process::Command::new(env!("CARGO_BIN_EXE_brokenray"))
         .args(["replay", "--config", config.to_str().unwrap()])
@@ -437,22 +441,10 @@ async fn replay_includes_the_archived_frames_of_the_period() {
         tokio::time::sleep(std::time::Duration::from_millis(10)).await;
     }
     drop(archive);
-    let config = app.dir.path().join("site.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "{}\n[frames]\narchive_dir = \"{}\"\n",
-            brokenray::config::DEFAULT_INSTALLATION_TOML.replace(
-                "database = \"brokenray.db\"",
-                &format!(
-                    "database = \"{}\"",
-                    app.dir.path().join("brokenray.db").display()
-                ),
-            ),
-            archive_dir.display()
-        ),
-    )
-    .unwrap();
+    let config = site_config(
+        &app,
+        &format!("[frames]\narchive_dir = \"{}\"\n", archive_dir.display()),
+    );
     // The period holds the first three frames, not the one at 5 s.
     let out = app.dir.path().join("frames.rrd");
     let run = std::process::Command::new(env!("CARGO_BIN_EXE_brokenray"))
