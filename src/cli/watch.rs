@@ -59,6 +59,8 @@ struct Waiting {
 /// What the service made of one frame.
 enum Outcome {
     Taken,
+    /// The file went away before it was read (someone else took it): nothing to count.
+    Gone,
     Refused(String),
     NotNow(String),
 }
@@ -88,6 +90,7 @@ pub async fn watch(
                     summary.posted += 1;
                     backoff = Duration::ZERO;
                 }
+                Outcome::Gone => {}
                 Outcome::Refused(answer) => {
                     summary.refused += 1;
                     let aside = set_aside(frame, &answer)?;
@@ -195,7 +198,7 @@ async fn deliver(client: &Client, frame: &Waiting) -> anyhow::Result<Outcome> {
     let bytes = match std::fs::read(&frame.path) {
         Ok(b) => b,
         // Taken away by someone else meanwhile: nothing to do.
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Outcome::Taken),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Outcome::Gone),
         Err(e) => return Err(e).with_context(|| format!("cannot read {}", frame.path.display())),
     };
     let answer = client
