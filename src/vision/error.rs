@@ -106,4 +106,22 @@ pub enum VisionError {
         /// The least accepted (degrees).
         min_deg: f64,
     },
+    /// A plate description that cannot be a plate.
+    #[error("invalid plate: {reason}")]
+    PlateInvalid {
+        /// What is wrong.
+        reason: String,
+    },
+    /// The plate is not (wholly) in the frame.
+    #[error("plate not found: {reason}")]
+    PlateNotFound {
+        /// What was found instead.
+        reason: String,
+    },
+    /// The views cannot calibrate the camera.
+    #[error("calibration refused: {reason}")]
+    CalibrationRefused {
+        /// Why, and what to change.
+        reason: String,
+    },
 }

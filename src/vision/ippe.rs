@@ -92,7 +92,7 @@ fn translation(rotation: &Mat3, plane_xy: &[Vector2<f64>], normalized: &[Vector2
 /// The homography `H` with `[x, y, 1] ~ H [X, Y, 1]`, by the normalized DLT with `h33 = 1`
 /// (an 8x8 solve; `h33` vanishes only when the plane passes through the camera centre, a view
 /// that determines no pose).
-fn homography(from: &[Vector2<f64>], to: &[Vector2<f64>]) -> Option<Mat3> {
+pub(super) fn homography(from: &[Vector2<f64>], to: &[Vector2<f64>]) -> Option<Mat3> {
     let t_from = normalizer(from)?;
     let t_to = normalizer(to)?;
     let mut ata = SMatrix::<f64, 8, 8>::zeros();

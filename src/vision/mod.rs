@@ -25,6 +25,7 @@ mod error;
 mod handeye;
 mod image;
 mod ippe;
+mod plate;
 mod pnp;
 mod sqpnp;
 
@@ -36,6 +37,7 @@ pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
 };
 pub use image::{BitDepth, GreyImage};
+pub use plate::{Plate, PlateView};
 pub use pnp::{
     MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, refine, solve_pnp,
     solve_pnp_weighted,
