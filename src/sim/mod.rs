@@ -24,6 +24,7 @@
 //! Pure and deterministic for a seed: no clock, no IO.
 
 mod motion;
+pub mod plate;
 pub mod render;
 
 pub use motion::GaussMarkov2;

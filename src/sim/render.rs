@@ -202,6 +202,9 @@ fn add_coverage(
     let v0 = (lo.y.floor() - 1.0).max(0.0) as usize;
     let u1 = ((hi.x.ceil() + 1.0).max(0.0) as usize).min(w.saturating_sub(1));
     let v1 = ((hi.y.ceil() + 1.0).max(0.0) as usize).min(h.saturating_sub(1));
+    if u0 > u1 || v0 > v1 {
+        return; // wholly outside the frame
+    }
     let n_c = normal.dot(&disc.centre_mm);
     let inside = |u: f64, v: f64| -> bool {
         let Ok(xy) = camera.undistort(Vector2::new(u, v)) else {

@@ -14,10 +14,14 @@
 //!   pixel with its covariance.
 //! * [`disc_image_offset`]: the perspective eccentricity of a disc target, to turn a detected
 //!   centroid into the image of the disc's centre.
+//! * [`Plate`]: a calibration plate of discs in a grid, found in a frame without a pose.
+//! * [`calibrate_camera`]: intrinsics and distortion from views of a plate, with their
+//!   covariance and warnings.
 //! * [`solve_hand_eye`]: a rigid station's calibrated link from motions `A_i X = X B_i`.
 //!
 //! Pure and synchronous, like the rest of the core; one error type, [`VisionError`].
 
+mod calibrate;
 mod camera;
 mod detect;
 mod eccentricity;
@@ -29,6 +33,11 @@ mod plate;
 mod pnp;
 mod sqpnp;
 
+pub use calibrate::{
+    CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
+    ImageCorner, Intrinsic, MIN_VIEW_POINTS, MIN_VIEWS, RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS,
+    ViewFit, calibrate_camera,
+};
 pub use camera::CameraModel;
 pub use detect::{Blob, DetectSettings, Polarity, SearchArea, TILE_PX, detect, detect_in};
 pub use eccentricity::disc_image_offset;

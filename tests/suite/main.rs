@@ -4,6 +4,7 @@
 
 mod architecture;
 mod archive;
+mod camera_calibration;
 mod chain_composition;
 mod cli;
 mod common;

@@ -1,0 +1,147 @@
+//! Views of a calibration plate from random poses, as a calibration session would take them:
+//! the plate about 0.6 of the image wide, tilted by 15 to 45 degrees about a random axis
+//! (the first view face-on), turned in its plane by up to 20 degrees, and placed so that the
+//! views together reach every part of the image, each view wholly inside the frame.
+//!
+//! The plate is seen from its front: its +x to the image's right, +y down, +z away.
+
+use super::render::{Disc, RenderSettings, render_discs};
+use crate::geometry::{Pose, Vec3};
+use crate::vision::{CameraModel, GreyImage, Plate, Polarity};
+use nalgebra::{Point3, Translation3, Unit, UnitQuaternion, Vector2};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+/// Tries to place one view inside the frame before giving up on it.
+const PLACEMENT_TRIES: usize = 200;
+
+/// `camera_from_plate` of `views` random views of `plate` wholly inside `camera`'s frame
+/// (fewer if the plate cannot be placed: too large for the view).
+pub fn plate_poses(camera: &CameraModel, plate: &Plate, views: usize, seed: u64) -> Vec<Pose> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let points = plate.points_mm();
+    let (lo, hi) = points.iter().fold(
+        (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.inf(p), hi.sup(p)),
+    );
+    let centre = (lo + hi) / 2.0;
+    let plate_width_mm = (hi.x - lo.x).max(hi.y - lo.y) + plate.diameter_mm();
+    let (w, h) = (f64::from(camera.width_px), f64::from(camera.height_px));
+    // The plate about 0.6 of the image's larger side at the nominal distance.
+    let distance_mm = camera.fx_px * plate_width_mm / (0.6 * w.max(h));
+    let margin_px = 0.02 * w.max(h);
+    let mut poses = Vec::with_capacity(views);
+    for view in 0..views {
+        for _ in 0..PLACEMENT_TRIES {
+            let tilt_deg: f64 = if view == 0 {
+                0.0
+            } else {
+                rng.random_range(15.0..45.0)
+            };
+            let axis_angle: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+            let turn_deg: f64 = rng.random_range(-20.0..20.0);
+            let tilt = UnitQuaternion::from_axis_angle(
+                &Unit::new_normalize(Vec3::new(axis_angle.cos(), axis_angle.sin(), 0.0)),
+                tilt_deg.to_radians(),
+            );
+            let turn = UnitQuaternion::from_axis_angle(&Vec3::z_axis(), turn_deg.to_radians());
+            let rotation = tilt * turn;
+            let target = Vector2::new(
+                rng.random_range(0.3 * w..0.7 * w),
+                rng.random_range(0.3 * h..0.7 * h),
+            );
+            let Ok(ray) = camera.undistort(target) else {
+                continue;
+            };
+            let depth = distance_mm * rng.random_range(0.85..1.15);
+            let at = Vec3::new(ray.x, ray.y, 1.0) * depth;
+            let pose = Pose::from_parts(Translation3::from(at - rotation * centre), rotation);
+            if inside(camera, plate, &pose, margin_px) {
+                poses.push(pose);
+                break;
+            }
+        }
+    }
+    poses
+}
+
+/// Whether every disc of the plate at `camera_from_plate` images at least `margin_px` inside
+/// the frame.
+fn inside(camera: &CameraModel, plate: &Plate, camera_from_plate: &Pose, margin_px: f64) -> bool {
+    let radius = plate.diameter_mm() / 2.0;
+    let (w, h) = (f64::from(camera.width_px), f64::from(camera.height_px));
+    plate.points_mm().iter().all(|p| {
+        [
+            (0.0, 0.0),
+            (radius, 0.0),
+            (-radius, 0.0),
+            (0.0, radius),
+            (0.0, -radius),
+        ]
+        .iter()
+        .all(|(dx, dy)| {
+            let q = camera_from_plate * Point3::new(p.x + dx, p.y + dy, 0.0);
+            camera.project(&q.coords).is_some_and(|uv| {
+                uv.x >= margin_px
+                    && uv.y >= margin_px
+                    && uv.x <= w - 1.0 - margin_px
+                    && uv.y <= h - 1.0 - margin_px
+            })
+        })
+    })
+}
+
+/// The plate's discs at `camera_from_plate`, in the camera frame.
+pub fn plate_discs(plate: &Plate, camera_from_plate: &Pose) -> Vec<Disc> {
+    let normal = camera_from_plate.rotation * Vec3::z();
+    plate
+        .points_mm()
+        .iter()
+        .map(|p| Disc {
+            centre_mm: (camera_from_plate * Point3::from(*p)).coords,
+            normal,
+            diameter_mm: plate.diameter_mm(),
+        })
+        .collect()
+}
+
+/// A frame of the plate at `camera_from_plate`; `settings`' contrast is turned to the plate's
+/// polarity (dark discs on a light plate, or bright ones).
+pub fn render_plate(
+    camera: &CameraModel,
+    plate: &Plate,
+    camera_from_plate: &Pose,
+    settings: &RenderSettings,
+) -> GreyImage {
+    let mut settings = *settings;
+    if plate.polarity() == Polarity::Dark && settings.contrast_dn > 0.0 {
+        // A light plate: the background where the bright discs were, the discs dark.
+        settings.background_dn += settings.contrast_dn;
+        settings.contrast_dn = -settings.contrast_dn;
+    }
+    render_discs(camera, &plate_discs(plate, camera_from_plate), &settings)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn views_are_inside_the_frame_tilted_and_seen_from_the_front() {
+        let camera = CameraModel {
+            distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
+            ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
+        };
+        let plate = Plate::new(7, 9, 15.0, 7.5, true, Polarity::Dark).expect("valid");
+        let poses = plate_poses(&camera, &plate, 15, 3);
+        assert_eq!(poses.len(), 15);
+        let mut max_tilt = 0.0f64;
+        for pose in &poses {
+            assert!(inside(&camera, &plate, pose, 0.0));
+            let normal = pose.rotation * Vec3::z();
+            assert!(normal.z > 0.0, "the plate's +z points away from the camera");
+            max_tilt = max_tilt.max(normal.z.acos().to_degrees());
+        }
+        assert!(max_tilt > 30.0, "{max_tilt}");
+    }
+}
