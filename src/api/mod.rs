@@ -7,6 +7,7 @@
 
 mod alarms;
 pub(crate) mod auth;
+pub(crate) mod calibration;
 mod cameras;
 mod dashboard;
 pub(crate) mod dto;
@@ -297,7 +298,7 @@ async fn api_not_found(uri: axum::http::Uri) -> ApiError {
     modifiers(&BearerAuth),
     tags(
         (name = "ingest", description = "Link samples and raw marker observations from the measurement pipeline"),
-        (name = "calibration", description = "Station calibration (hand-eye)"),
+        (name = "calibration", description = "Camera calibration (intrinsics from plate views) and station calibration (hand-eye)"),
         (name = "cameras", description = "Each camera's newest frame and what was found in it"),
         (name = "targets", description = "Compensation, history, statistics and references"),
         (name = "links", description = "Links, their samples and calibrations"),
@@ -347,6 +348,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(cameras::list_archived))
         .routes(routes!(cameras::get_archived))
         .routes(routes!(vision::post_hand_eye))
+        .routes(routes!(calibration::post_camera_calibration))
         .routes(routes!(targets::list_targets))
         .routes(routes!(targets::get_compensation))
         .routes(routes!(targets::get_stats))

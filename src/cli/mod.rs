@@ -5,6 +5,7 @@
 //! `detect.rs` turns frame files into observations and `report.rs` formats what `check-config`
 //! prints.
 
+mod calibrate;
 mod commands;
 mod detect;
 mod health;
@@ -21,7 +22,7 @@ use crate::config;
 use crate::model::LinkKind;
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Broken-ray videometrics: deformation of large structures measured through relay stations.
@@ -153,6 +154,75 @@ pub enum Command {
         /// Write the result here (JSON) as well as printing it.
         #[arg(long, value_name = "FILE")]
         out: Option<PathBuf>,
+    },
+    /// Calibrate a camera (intrinsics and distortion) from frames of a plate of discs: the plate
+    /// found in each frame, Zhang's closed form, then a bundle adjustment; prints the
+    /// intrinsics with their sigmas, each view's fit and what could be better.
+    CalibrateCamera {
+        /// The plate (TOML: rows, cols, spacing_mm, diameter_mm, asymmetric, polarity).
+        #[arg(long, value_name = "PLATE.toml")]
+        plate: PathBuf,
+        /// Parameters kept fixed (distortion terms at zero, cx/cy at the image centre), e.g.
+        /// `k3,p1,p2`.
+        #[arg(long, value_name = "PARAMS", value_delimiter = ',')]
+        fix: Vec<String>,
+        /// Print the result as `POST /api/v1/calibration/camera` answers it.
+        #[arg(long)]
+        json: bool,
+        /// Write a `[[cameras]]` block for the installation file here (must not exist).
+        #[arg(long, value_name = "FILE", requires = "camera")]
+        out: Option<PathBuf>,
+        /// The camera's frame name in the installation, for `--out`'s block.
+        #[arg(long, value_name = "NAME")]
+        camera: Option<String>,
+        /// The frames (PNG, TIFF, PGM), one view of the plate each.
+        #[arg(required = true, value_name = "FRAME")]
+        frames: Vec<PathBuf>,
+    },
+    /// Render views of a calibration plate from random poses as a camera of the installation
+    /// sees it (0.6 px blur, 2 DN read noise, shot noise): `DIR/view_NN.png`, and `truth.json`
+    /// with the camera and each view's `camera_from_plate`. To try `calibrate-camera`.
+    RenderPlate {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// The camera (its frame).
+        #[arg(long, value_name = "NAME")]
+        camera: String,
+        /// The plate (TOML).
+        #[arg(long, value_name = "PLATE.toml")]
+        plate: PathBuf,
+        /// How many views.
+        #[arg(long, default_value_t = 15)]
+        views: usize,
+        /// Seed of the poses and the noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// A new directory for the frames.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+    },
+    /// Calibrate a rigid station's link (`C2_from_C1`, `C3_from_M`) from frames taken with the
+    /// station at several positions: each camera of the station looks at a plate fixed in the
+    /// world, a marker of the station is seen by the installation's camera that watches it;
+    /// their poses give the motions, and `A_i X = X B_i` gives the link.
+    CalibrateStation {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// The calibrated link, `parent_from_child`.
+        #[arg(long, value_name = "NAME")]
+        link: String,
+        /// The plate a camera of the station looks at, `CAMERA=PLATE.toml` (once per camera).
+        #[arg(long = "plate", value_name = "CAMERA=PLATE.toml")]
+        plates: Vec<String>,
+        /// Write the result (JSON, as `POST /api/v1/calibration/hand-eye` answers) here too.
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+        /// One directory per position of the station, holding `<camera>.png` (or .pgm, .tif)
+        /// of each camera involved.
+        #[arg(required = true, value_name = "POSITION_DIR")]
+        positions: Vec<PathBuf>,
     },
     /// Detect a camera's markers in frame files (PNG, TIFF, PGM) and print the observations as
     /// NDJSON lines ready for `POST /api/v1/observations`; markers not found are reported on
@@ -406,6 +476,107 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             }
             writeln!(out, "{text}")?;
         }
+        Command::CalibrateCamera {
+            plate,
+            fix,
+            json,
+            out: out_file,
+            camera,
+            frames,
+        } => {
+            let plate = calibrate::read_plate(&plate)?;
+            let bar = frames_bar();
+            let run = calibrate::calibrate_from_frames(
+                &plate,
+                &frames,
+                &fix,
+                &bar,
+                &mut std::io::stderr(),
+            );
+            bar.finish_and_clear();
+            let run = run?;
+            if json {
+                let body = crate::api::calibration::CameraCalibrationOut::from(&run.calibration);
+                writeln!(out, "{}", serde_json::to_string_pretty(&body)?)?;
+            } else {
+                out.write_all(calibrate::report(&run).as_bytes())?;
+            }
+            if let (Some(path), Some(name)) = (out_file, camera) {
+                let block = calibrate::cameras_block(&name, &run.calibration);
+                std::io::Write::write_all(&mut create_new(&path)?, block.as_bytes())?;
+                if !json {
+                    writeln!(out, "\nwritten to {}:\n{block}", path.display())?;
+                }
+            }
+        }
+        Command::RenderPlate {
+            config,
+            camera,
+            plate,
+            views,
+            seed,
+            out: dir,
+        } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let plate = calibrate::read_plate(&plate)?;
+            let bar = frames_bar();
+            let written = calibrate::render_plate_views(
+                &installation,
+                &camera,
+                &plate,
+                views,
+                seed,
+                &dir,
+                &bar,
+            );
+            bar.finish_and_clear();
+            writeln!(
+                out,
+                "{} views of the plate written to {}",
+                written?,
+                dir.display()
+            )?;
+        }
+        Command::CalibrateStation {
+            config,
+            link,
+            plates,
+            out: out_file,
+            positions,
+        } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let mut by_camera = Vec::with_capacity(plates.len());
+            for p in &plates {
+                let (camera, file) = p
+                    .split_once('=')
+                    .ok_or_else(|| anyhow::anyhow!("--plate {p}: expected CAMERA=PLATE.toml"))?;
+                by_camera.push((camera.to_owned(), calibrate::read_plate(Path::new(file))?));
+            }
+            let bar = frames_bar();
+            let run = calibrate::calibrate_station(
+                &installation,
+                &link,
+                &by_camera,
+                &positions,
+                &bar,
+                &mut std::io::stderr(),
+            );
+            bar.finish_and_clear();
+            let run = run?;
+            let text = serde_json::to_string_pretty(&run.result)?;
+            if let Some(path) = &out_file {
+                std::fs::write(path, &text)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
+            writeln!(out, "{text}")?;
+            writeln!(
+                out,
+                "{link}: {} motions from {} positions ({} left out)",
+                run.motions,
+                positions.len(),
+                run.left_out.len()
+            )?;
+        }
         Command::Detect {
             camera,
             config,
@@ -556,6 +727,16 @@ fn create_new(path: &std::path::Path) -> anyhow::Result<std::fs::File> {
         .create_new(true)
         .open(path)
         .with_context(|| format!("cannot create {} (it must not exist)", path.display()))
+}
+
+/// A bar over frame files, on stderr.
+fn frames_bar() -> indicatif::ProgressBar {
+    indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} frames {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    )
 }
 
 fn progress_bar(groups: Option<u64>) -> indicatif::ProgressBar {

@@ -1,0 +1,395 @@
+//! `POST /api/v1/calibration/camera`: a camera's intrinsics and distortion from the plate
+//! points detected in several views (computes, stores nothing, like hand-eye). The plate
+//! description ([`PlateIn`]) is also the plate file `brokenray calibrate-camera` reads (TOML).
+//! `docs/interface.md`, "Camera calibration" describes both.
+
+use super::AppState;
+use super::dto::{FieldProblem, PoseOut, invalid};
+use super::error::{ApiError, ErrorBody};
+use super::ingest::read_body;
+use super::parse_json_body;
+use crate::vision::{
+    CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, Intrinsic, Plate,
+    Polarity, calibrate_camera,
+};
+use axum::Json;
+use axum::body::Body;
+use axum::extract::State;
+use axum::http::{HeaderMap, StatusCode};
+use nalgebra::Vector2;
+use serde::{Deserialize, Serialize};
+
+/// Dark discs on a light plate, or bright ones.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum PlatePolarity {
+    /// Dark discs on a light plate (printed plates).
+    #[default]
+    Dark,
+    /// Light discs on a dark plate (retro-reflective targets).
+    Bright,
+}
+
+/// A calibration plate: `rows` x `cols` discs; point `i` at row `i / cols`, column `i % cols`,
+/// `(col * spacing_mm, row * spacing_mm, 0)`, odd rows shifted by half a spacing when
+/// `asymmetric`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PlateIn {
+    /// Rows of points (3 or more).
+    pub rows: usize,
+    /// Points per row (3 or more).
+    pub cols: usize,
+    /// Distance between neighbouring points of a row, and between rows (mm).
+    pub spacing_mm: f64,
+    /// Disc diameter (mm), less than the spacing.
+    pub diameter_mm: f64,
+    /// Odd rows shifted by half a spacing (OpenCV's asymmetric circle grid): a plate that
+    /// looks different after any turn when `rows` is odd.
+    #[serde(default)]
+    pub asymmetric: bool,
+    /// `dark` (default) or `bright` discs.
+    #[serde(default)]
+    pub polarity: PlatePolarity,
+}
+
+impl PlateIn {
+    /// The plate, or what is wrong with it (field `plate`).
+    pub fn to_plate(&self) -> Result<Plate, FieldProblem> {
+        let polarity = match self.polarity {
+            PlatePolarity::Dark => Polarity::Dark,
+            PlatePolarity::Bright => Polarity::Bright,
+        };
+        Plate::new(
+            self.rows,
+            self.cols,
+            self.spacing_mm,
+            self.diameter_mm,
+            self.asymmetric,
+            polarity,
+        )
+        .map_err(|e| ("plate".to_owned(), e.to_string()))
+    }
+}
+
+/// One view: the plate points found in one frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PlateViewIn {
+    /// Detected centres `[u, v]` (px, pixel centres at integers).
+    pub points_px: Vec<[f64; 2]>,
+    /// The plate point of each.
+    pub ids: Vec<usize>,
+    /// Each point's standard deviation (px) when the detector measured it; equal weights
+    /// without.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_px: Option<Vec<f64>>,
+}
+
+/// Known intrinsics: the values of fixed focal lengths (or any fixed parameter).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct IntrinsicsIn {
+    /// Focal length along x (px).
+    pub fx: f64,
+    /// Focal length along y (px).
+    pub fy: f64,
+    /// Principal point x (px).
+    pub cx: f64,
+    /// Principal point y (px).
+    pub cy: f64,
+    /// `[k1, k2, p1, p2, k3]`.
+    #[serde(default)]
+    pub distortion: [f64; 5],
+}
+
+/// A calibration request.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CameraCalibrationIn {
+    /// The plate.
+    pub plate: PlateIn,
+    /// `[width, height]` of the frames (px).
+    pub image_size: [u32; 2],
+    /// Three views or more (ten or more recommended).
+    pub views: Vec<PlateViewIn>,
+    /// Parameters kept fixed: distortion terms at zero, `cx`/`cy` at the image centre, unless
+    /// `initial` gives their values (which `fx` and `fy` need).
+    #[serde(default)]
+    pub fix: Vec<String>,
+    /// Known values of fixed parameters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub initial: Option<IntrinsicsIn>,
+}
+
+/// Intrinsics as answered (or their sigmas).
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct IntrinsicsOut {
+    /// Focal length along x (px).
+    pub fx: f64,
+    /// Focal length along y (px).
+    pub fy: f64,
+    /// Principal point x (px).
+    pub cx: f64,
+    /// Principal point y (px).
+    pub cy: f64,
+    /// `[k1, k2, p1, p2, k3]`.
+    pub distortion: [f64; 5],
+}
+
+impl From<[f64; 9]> for IntrinsicsOut {
+    fn from(p: [f64; 9]) -> Self {
+        Self {
+            fx: p[0],
+            fy: p[1],
+            cx: p[2],
+            cy: p[3],
+            distortion: [p[4], p[5], p[6], p[7], p[8]],
+        }
+    }
+}
+
+/// One view's fit.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct ViewFitOut {
+    /// Reprojection RMS of its points (px).
+    pub rms_px: f64,
+    /// `camera_from_plate`.
+    pub pose: PoseOut,
+    /// Angle between the plate's normal and the optical axis (degrees).
+    pub tilt_deg: f64,
+    /// Points used.
+    pub points: usize,
+}
+
+/// Two intrinsics whose estimates are correlated by more than 0.9.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct CorrelationOut {
+    /// One parameter.
+    pub a: String,
+    /// The other.
+    pub b: String,
+    /// Their correlation coefficient.
+    pub r: f64,
+}
+
+/// Something about the views that could be better.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct CalibrationWarningOut {
+    /// `few_views`, `little_tilt`, `corners_not_reached` or `view_fits_worse`.
+    pub kind: String,
+    /// What to do, in words.
+    pub message: String,
+}
+
+/// A calibrated camera.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct CameraCalibrationOut {
+    /// The intrinsics.
+    pub camera: IntrinsicsOut,
+    /// Their standard deviations (0 for fixed ones).
+    pub sigma: IntrinsicsOut,
+    /// Their covariance, 81 numbers row-major in the order of `parameters`.
+    pub covariance: Vec<f64>,
+    /// `["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]`.
+    pub parameters: Vec<String>,
+    /// Those kept fixed.
+    pub fixed: Vec<String>,
+    /// Reprojection RMS over every point (px; the length of the residual, both axes).
+    pub rms_px: f64,
+    /// The factor the covariance was scaled by: `chi2 / (2 n - p)` (near 1 when the detector's
+    /// sigmas are right).
+    pub variance_factor: f64,
+    /// Each view, in request order.
+    pub views: Vec<ViewFitOut>,
+    /// Pairs of parameters correlated by more than 0.9.
+    pub correlations: Vec<CorrelationOut>,
+    /// What could be better, with what to do.
+    pub warnings: Vec<CalibrationWarningOut>,
+    /// `[width, height]` (px).
+    pub image_size: [u32; 2],
+    /// A point's error when predicted with this calibration, per axis (px): the
+    /// installation's `pixel_sigma`.
+    pub pixel_sigma: f64,
+    /// Levenberg-Marquardt iterations.
+    pub iterations: usize,
+}
+
+fn params_of(camera: &CameraModel) -> [f64; 9] {
+    let d = camera.distortion;
+    [
+        camera.fx_px,
+        camera.fy_px,
+        camera.cx_px,
+        camera.cy_px,
+        d[0],
+        d[1],
+        d[2],
+        d[3],
+        d[4],
+    ]
+}
+
+/// The installation's `pixel_sigma` for a calibration: its RMS per axis, at least 0.001 px.
+pub fn pixel_sigma_of(c: &CameraCalibration) -> f64 {
+    (c.rms_px / std::f64::consts::SQRT_2).max(0.001)
+}
+
+impl From<&CameraCalibration> for CameraCalibrationOut {
+    fn from(c: &CameraCalibration) -> Self {
+        Self {
+            camera: params_of(&c.camera).into(),
+            sigma: c.sigma.into(),
+            covariance: c.covariance.iter().flatten().copied().collect(),
+            parameters: Intrinsic::ALL.iter().map(|p| p.name().to_owned()).collect(),
+            fixed: c.fixed.iter().map(|p| p.name().to_owned()).collect(),
+            rms_px: c.rms_px,
+            variance_factor: c.variance_factor,
+            views: c
+                .views
+                .iter()
+                .map(|v| ViewFitOut {
+                    rms_px: v.rms_px,
+                    pose: PoseOut::from(&v.camera_from_plate),
+                    tilt_deg: v.tilt_deg,
+                    points: v.points,
+                })
+                .collect(),
+            correlations: c
+                .correlations
+                .iter()
+                .map(|k| CorrelationOut {
+                    a: k.a.name().to_owned(),
+                    b: k.b.name().to_owned(),
+                    r: k.r,
+                })
+                .collect(),
+            warnings: c
+                .warnings
+                .iter()
+                .map(|w| CalibrationWarningOut {
+                    kind: w.kind().to_owned(),
+                    message: w.to_string(),
+                })
+                .collect(),
+            image_size: [c.camera.width_px, c.camera.height_px],
+            pixel_sigma: pixel_sigma_of(c),
+            iterations: c.iterations,
+        }
+    }
+}
+
+/// The fixed parameters named in `fix`, or the unknown names.
+pub fn parse_fix(fix: &[String]) -> Result<Vec<Intrinsic>, FieldProblem> {
+    let mut out = Vec::with_capacity(fix.len());
+    for name in fix {
+        match Intrinsic::parse(name.trim()) {
+            Some(p) => out.push(p),
+            None => {
+                return Err((
+                    "fix".to_owned(),
+                    format!("`{name}` is not one of fx, fy, cx, cy, k1, k2, p1, p2, k3"),
+                ));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// A refusal of the calibration itself (422 `calibration_refused`).
+pub fn refused(e: crate::vision::VisionError) -> ApiError {
+    ApiError::new(
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "calibration_refused",
+        e.to_string(),
+    )
+}
+
+impl CameraCalibrationIn {
+    /// Validates the request and calibrates.
+    pub fn solve(&self) -> Result<(CameraCalibration, CameraCalibrationOut), ApiError> {
+        let mut problems: Vec<(Option<usize>, FieldProblem)> = Vec::new();
+        let plate = self
+            .plate
+            .to_plate()
+            .map_err(|p| problems.push((None, p)))
+            .ok();
+        let fixed = parse_fix(&self.fix)
+            .map_err(|p| problems.push((None, p)))
+            .ok();
+        let [w, h] = self.image_size;
+        if w == 0 || h == 0 {
+            problems.push((
+                None,
+                ("image_size".to_owned(), "must not be zero".to_owned()),
+            ));
+        }
+        let mut views = Vec::with_capacity(self.views.len());
+        for (i, v) in self.views.iter().enumerate() {
+            if v.points_px.len() != v.ids.len() {
+                problems.push((
+                    Some(i),
+                    (
+                        "ids".to_owned(),
+                        format!("{} id(s) for {} point(s)", v.ids.len(), v.points_px.len()),
+                    ),
+                ));
+            }
+            if v.points_px.iter().flatten().any(|c| !c.is_finite()) {
+                problems.push((Some(i), ("points_px".to_owned(), "not finite".to_owned())));
+            }
+            views.push(CalibrationView {
+                points_px: v
+                    .points_px
+                    .iter()
+                    .map(|p| Vector2::new(p[0], p[1]))
+                    .collect(),
+                ids: v.ids.clone(),
+                sigmas_px: v.sigma_px.clone(),
+            });
+        }
+        let initial = self.initial.map(|c| CameraModel {
+            distortion: c.distortion,
+            ..CameraModel::pinhole(c.fx, c.fy, c.cx, c.cy, w, h)
+        });
+        if let Some(c) = &initial
+            && !params_of(c).iter().all(|v| v.is_finite())
+        {
+            problems.push((None, ("initial".to_owned(), "not finite".to_owned())));
+        }
+        let (Some(plate), Some(fixed), true) = (plate, fixed, problems.is_empty()) else {
+            return Err(invalid(
+                format!("{} invalid field(s)", problems.len()),
+                problems,
+            ));
+        };
+        let options = CalibrationOptions {
+            fixed,
+            initial,
+            ..CalibrationOptions::default()
+        };
+        let calibration = calibrate_camera(&plate, w, h, &views, &options).map_err(refused)?;
+        let out = CameraCalibrationOut::from(&calibration);
+        Ok((calibration, out))
+    }
+}
+
+/// `POST /api/v1/calibration/camera`.
+#[utoipa::path(post, path = "/calibration/camera", tag = "calibration",
+    request_body(content = CameraCalibrationIn, description = "The plate and the points found in each view"),
+    responses(
+        (status = 200, description = "The intrinsics with their sigmas, covariance, each view's fit and warnings", body = CameraCalibrationOut),
+        (status = 400, description = "Malformed JSON", body = ErrorBody),
+        (status = 422, description = "An invalid field (`invalid_request`), or views that cannot calibrate the camera (`calibration_refused`, with the reason)", body = ErrorBody),
+    ),
+    security(("bearer" = ["admin"])))]
+pub async fn post_camera_calibration(
+    State(app): State<AppState>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<CameraCalibrationOut>, ApiError> {
+    let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
+    let input: CameraCalibrationIn = parse_json_body(&bytes)?;
+    let (_, out) = super::vision::blocking(move || input.solve()).await??;
+    Ok(Json(out))
+}
