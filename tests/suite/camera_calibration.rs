@@ -95,7 +95,7 @@ fn errors(c: &CameraCalibration, truth: &CameraModel) -> [f64; 9] {
 
 /// A machine-vision camera with a common lens (1280 x 1024, 44 degrees across) and marked
 /// barrel distortion.
-fn wide_camera() -> CameraModel {
+pub fn wide_camera() -> CameraModel {
     CameraModel {
         distortion: [-0.19, 0.11, 0.0006, -0.0004, -0.02],
         ..CameraModel::pinhole(1650.0, 1648.0, 645.3, 508.9, 1280, 1024)
@@ -234,7 +234,7 @@ fn the_reported_covariance_describes_the_errors_over_many_seeds() {
 
 /// Views projected without rendering: each disc's centroid (the image of its centre plus its
 /// eccentricity) with Gaussian noise of `sigma_px` per axis.
-fn projected_views(
+pub fn projected_views(
     camera: &CameraModel,
     plate: &Plate,
     poses: &[brokenray::geometry::Pose],

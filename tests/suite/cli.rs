@@ -649,3 +649,169 @@ fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
         assert!(aside.join(format!("{stamp}.png")).exists());
     }
 }
+
+const PLATE_TOML: &str = "rows = 7\ncols = 9\nspacing_mm = 15.0\ndiameter_mm = 7.5\nasymmetric = true\npolarity = \"dark\"\n";
+
+#[test]
+fn rendered_plate_views_calibrate_a_camera_into_a_block_the_installation_takes() {
+    let dir = tempfile::tempdir().unwrap();
+    let plate = dir.path().join("plate.toml");
+    std::fs::write(&plate, PLATE_TOML).unwrap();
+    let views = dir.path().join("views");
+    let out = brokenray(&[
+        "render-plate",
+        "--camera",
+        "C1",
+        "--plate",
+        plate.to_str().unwrap(),
+        "--views",
+        "12",
+        "--seed",
+        "4",
+        "--out",
+        views.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let truth: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(views.join("truth.json")).unwrap()).unwrap();
+    assert_eq!(truth["views"].as_array().unwrap().len(), 12);
+    // A frame without the plate is left out with the reason, not used.
+    let blank = brokenray::vision::GreyImage::new(
+        1280,
+        1024,
+        brokenray::vision::BitDepth::Eight,
+        vec![200; 1280 * 1024],
+    )
+    .unwrap();
+    let blank_file = views.join("blank.png");
+    std::fs::write(
+        &blank_file,
+        brokenray::imagefile::encode(&blank, brokenray::imagefile::FrameFormat::Png).unwrap(),
+    )
+    .unwrap();
+    let mut frames: Vec<String> = (0..12)
+        .map(|k| {
+            views
+                .join(format!("view_{k:02}.png"))
+                .to_str()
+                .unwrap()
+                .to_owned()
+        })
+        .collect();
+    frames.push(blank_file.to_str().unwrap().to_owned());
+    let block = dir.path().join("c1.toml");
+    let mut args = vec![
+        "calibrate-camera",
+        "--plate",
+        plate.to_str().unwrap(),
+        "--fix",
+        "k3",
+        "--json",
+        "--camera",
+        "C1",
+        "--out",
+        block.to_str().unwrap(),
+    ];
+    args.extend(frames.iter().map(String::as_str));
+    let out = brokenray(&args);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("blank.png: left out: plate not found: 0 disc(s) detected"),
+        "{stderr}"
+    );
+    let body: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(body["views"].as_array().unwrap().len(), 12);
+    for name in ["fx", "fy", "cx", "cy"] {
+        let error =
+            body["camera"][name].as_f64().unwrap() - truth["camera"][name].as_f64().unwrap();
+        let sigma = body["sigma"][name].as_f64().unwrap();
+        assert!(
+            error.abs() < 4.0 * sigma,
+            "{name}: {error} against sigma {sigma}"
+        );
+    }
+    // The block replaces C1's in the built-in installation, which then validates.
+    let block_text = std::fs::read_to_string(&block).unwrap();
+    assert!(
+        block_text.contains("[[cameras]]\nframe = \"C1\"\nwidth = 1280\nheight = 1024\n"),
+        "{block_text}"
+    );
+    let default = String::from_utf8(brokenray(&["default-config"]).stdout).unwrap();
+    let start = default.find("[[cameras]]\nframe = \"C1\"").unwrap();
+    let end = start + default[start..].find("\n\n").unwrap();
+    let site = format!(
+        "{}{}{}",
+        &default[..start],
+        block_text.trim_end(),
+        &default[end..]
+    );
+    let site_file = dir.path().join("site.toml");
+    std::fs::write(&site_file, site).unwrap();
+    let check = brokenray(&["check-config", "--config", site_file.to_str().unwrap()]);
+    assert!(
+        check.status.success(),
+        "{}",
+        String::from_utf8_lossy(&check.stderr)
+    );
+    // The text report names the parameters with their sigmas.
+    let mut args = vec!["calibrate-camera", "--plate", plate.to_str().unwrap()];
+    args.extend(frames[..12].iter().map(String::as_str));
+    let text = String::from_utf8(brokenray(&args).stdout).unwrap();
+    assert!(
+        text.contains("camera calibration: 12 views (0 frames left out)"),
+        "{text}"
+    );
+    assert!(text.contains("  fx ") && text.contains(" +- "), "{text}");
+}
+
+#[test]
+fn calibrate_camera_refuses_too_few_views_and_a_bad_plate_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let plate = dir.path().join("plate.toml");
+    std::fs::write(
+        &plate,
+        "rows = 7\ncols = 9\nspacing_mm = 15.0\ndiameter_mm = 7.5\nshape = \"round\"\n",
+    )
+    .unwrap();
+    let out = brokenray(&[
+        "calibrate-camera",
+        "--plate",
+        plate.to_str().unwrap(),
+        "x.png",
+    ]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("unknown field `shape`"), "{stderr}");
+    std::fs::write(&plate, PLATE_TOML).unwrap();
+    let views = dir.path().join("views");
+    let out = brokenray(&[
+        "render-plate",
+        "--camera",
+        "C2",
+        "--plate",
+        plate.to_str().unwrap(),
+        "--views",
+        "2",
+        "--out",
+        views.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let out = brokenray(&[
+        "calibrate-camera",
+        "--plate",
+        plate.to_str().unwrap(),
+        views.join("view_00.png").to_str().unwrap(),
+        views.join("view_01.png").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("2 view(s): at least 3 are needed"),
+        "{stderr}"
+    );
+}

@@ -2,6 +2,7 @@
 
 mod access;
 mod alarms;
+mod calibration;
 mod cameras;
 mod dashboard;
 mod frames;

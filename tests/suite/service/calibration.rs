@@ -1,0 +1,125 @@
+//! `POST /calibration/camera` through the router: a calibration from detected plate points,
+//! and every kind of refusal with the field or the reason.
+
+use super::helpers::TestApp;
+use crate::camera_calibration::{plate, projected_views, wide_camera};
+use axum::http::StatusCode;
+use brokenray::sim::plate::plate_poses;
+use serde_json::{Value, json};
+
+fn request(views: usize, fix: &[&str]) -> Value {
+    let camera = wide_camera();
+    let plate = plate();
+    let poses = plate_poses(&camera, &plate, views, 11);
+    let views: Vec<Value> = projected_views(&camera, &plate, &poses, 0.01, 12)
+        .iter()
+        .map(|v| {
+            json!({
+                "points_px": v.points_px.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
+                "ids": v.ids,
+            })
+        })
+        .collect();
+    json!({
+        "plate": {"rows": 7, "cols": 9, "spacing_mm": 15.0, "diameter_mm": 7.5, "asymmetric": true},
+        "image_size": [1280, 1024],
+        "views": views,
+        "fix": fix,
+    })
+}
+
+#[tokio::test]
+async fn a_camera_is_calibrated_from_plate_points_and_nothing_is_stored() {
+    let app = TestApp::start(None).await;
+    let truth = wide_camera();
+    let (status, body) = app
+        .post_json("/api/v1/calibration/camera", &request(12, &["k3"]))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let get = |v: &Value| v.as_f64().expect("a number");
+    for (name, value) in [
+        ("fx", truth.fx_px),
+        ("fy", truth.fy_px),
+        ("cx", truth.cx_px),
+        ("cy", truth.cy_px),
+    ] {
+        let error = get(&body["camera"][name]) - value;
+        let sigma = get(&body["sigma"][name]);
+        assert!(
+            sigma > 0.0 && error.abs() < 4.0 * sigma,
+            "{name}: {error} vs {sigma}"
+        );
+    }
+    // k3 stays fixed at zero (truth -0.02, so the others absorb it: only fixed is checked).
+    assert_eq!(get(&body["camera"]["distortion"][4]), 0.0);
+    assert_eq!(get(&body["sigma"]["distortion"][4]), 0.0);
+    assert_eq!(body["fixed"], json!(["k3"]));
+    assert_eq!(body["covariance"].as_array().expect("covariance").len(), 81);
+    assert_eq!(body["parameters"][2], "cx");
+    let cov_cx = get(&body["covariance"][2 * 9 + 2]);
+    assert!((cov_cx.sqrt() - get(&body["sigma"]["cx"])).abs() < 1e-12);
+    let views = body["views"].as_array().expect("views");
+    assert_eq!(views.len(), 12);
+    assert!(
+        views
+            .iter()
+            .all(|v| v["rms_px"].as_f64().is_some() && v["pose"]["t_mm"].is_array())
+    );
+    assert!(get(&body["rms_px"]) < 0.05, "{body}");
+    assert!(body["warnings"].is_array());
+    // Nothing stored: no link has samples.
+    let (_, links) = app.get("/api/v1/links").await;
+    for l in links.as_array().expect("links") {
+        assert_eq!(l["n_samples"].as_u64().unwrap_or(0), 0, "{l}");
+    }
+}
+
+#[tokio::test]
+async fn invalid_requests_name_the_field_and_impossible_ones_say_why() {
+    let app = TestApp::start(None).await;
+    let mut bad_plate = request(4, &[]);
+    bad_plate["plate"]["diameter_mm"] = json!(20.0);
+    let (status, body) = app
+        .post_json("/api/v1/calibration/camera", &bad_plate)
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["error"]["code"], "invalid_request");
+    assert_eq!(body["error"]["details"][0]["field"], "plate");
+    assert!(
+        body["error"]["details"][0]["message"]
+            .as_str()
+            .expect("text")
+            .contains("would touch")
+    );
+
+    let (status, body) = app
+        .post_json("/api/v1/calibration/camera", &request(4, &["k4"]))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["error"]["details"][0]["field"], "fix");
+
+    let mut unknown = request(4, &[]);
+    unknown["views"][0]["colour"] = json!("red");
+    let (status, body) = app.post_json("/api/v1/calibration/camera", &unknown).await;
+    assert!(status.is_client_error(), "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .expect("text")
+            .contains("colour"),
+        "{body}"
+    );
+
+    let (status, body) = app
+        .post_json("/api/v1/calibration/camera", &request(2, &[]))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["error"]["code"], "calibration_refused");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .expect("text")
+            .contains("at least 3"),
+        "{body}"
+    );
+}
