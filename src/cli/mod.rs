@@ -144,6 +144,29 @@ pub enum Command {
         #[arg(long, env = "BROKENRAY_TOKEN", hide_env_values = true)]
         token: Option<String>,
     },
+    /// Render views of a calibration plate from random poses as a camera of the installation
+    /// sees it (0.6 px blur, 2 DN read noise, shot noise): `DIR/view_NN.png`, and `truth.json`
+    /// with the camera and each view's `camera_from_plate`. To try `calibrate-camera`.
+    RenderPlate {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// The camera (its frame).
+        #[arg(long, value_name = "NAME")]
+        camera: String,
+        /// The plate (TOML).
+        #[arg(long, value_name = "PLATE.toml")]
+        plate: PathBuf,
+        /// How many views.
+        #[arg(long, default_value_t = 15)]
+        views: usize,
+        /// Seed of the poses and the noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// A new directory for the frames.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+    },
     /// Calibrate a rigid station (hand-eye, `A_i X = X B_i`) from a JSON file of motions
     /// (`{"pairs": [{"a": pose, "b": pose}, ...]}`, as `POST /api/v1/calibration/hand-eye`
     /// takes); prints X with its residuals.
@@ -178,29 +201,6 @@ pub enum Command {
         /// The frames (PNG, TIFF, PGM), one view of the plate each.
         #[arg(required = true, value_name = "FRAME")]
         frames: Vec<PathBuf>,
-    },
-    /// Render views of a calibration plate from random poses as a camera of the installation
-    /// sees it (0.6 px blur, 2 DN read noise, shot noise): `DIR/view_NN.png`, and `truth.json`
-    /// with the camera and each view's `camera_from_plate`. To try `calibrate-camera`.
-    RenderPlate {
-        /// The installation file (TOML); the built-in laboratory installation without it.
-        #[arg(long, value_name = "FILE")]
-        config: Option<PathBuf>,
-        /// The camera (its frame).
-        #[arg(long, value_name = "NAME")]
-        camera: String,
-        /// The plate (TOML).
-        #[arg(long, value_name = "PLATE.toml")]
-        plate: PathBuf,
-        /// How many views.
-        #[arg(long, default_value_t = 15)]
-        views: usize,
-        /// Seed of the poses and the noise.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// A new directory for the frames.
-        #[arg(long, value_name = "DIR")]
-        out: PathBuf,
     },
     /// Calibrate a rigid station's link (`C2_from_C1`, `C3_from_M`) from frames taken with the
     /// station at several positions: each camera of the station looks at a plate fixed in the
