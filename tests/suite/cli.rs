@@ -819,25 +819,22 @@ fn calibrate_camera_refuses_too_few_views_and_a_bad_plate_file() {
     );
 }
 
-#[test]
-fn a_station_is_calibrated_from_frames_of_two_plates_at_several_positions() {
+mod station {
+    //! `calibrate-station` on rendered frames of a moved station.
+
+    use super::{PLATE_TOML, brokenray};
     use brokenray::geometry::{Pose, Vec3};
-    use brokenray::model::LinkKind;
-    use brokenray::vision::{CameraModel, Plate, Polarity};
+    use brokenray::model::{LinkKind, Observer};
+    use brokenray::sim::render::{RenderSettings, marker_discs, render_discs};
+    use brokenray::vision::{CameraModel, GreyImage, Plate, Polarity};
     use nalgebra::{Translation3, Unit, UnitQuaternion};
-    let installation = brokenray::config::default_installation();
-    let model = &installation.model;
-    let camera = |name: &str| model.camera(name).unwrap().intrinsics;
-    let (c1, c2) = (camera("C1"), camera("C2"));
-    let LinkKind::Calibrated { parent_from_child } =
-        &model.link_by_name("C2_from_C1").unwrap().kind
-    else {
-        panic!("C2_from_C1 is calibrated");
-    };
-    let c2_from_c1 = parent_from_child.pose;
-    let plate = Plate::new(7, 9, 15.0, 7.5, true, Polarity::Dark).unwrap();
-    // Each plate in front of its camera, 0.4 of the image wide, tilted by 20 degrees.
-    let facing = |camera: &CameraModel| -> Pose {
+
+    fn plate() -> Plate {
+        Plate::new(7, 9, 15.0, 7.5, true, Polarity::Dark).unwrap()
+    }
+
+    /// A plate in front of a camera, 0.4 of the image wide, tilted by 20 degrees.
+    fn facing(camera: &CameraModel) -> Pose {
         let centre = Vec3::new(4.25 * 15.0, 3.0 * 15.0, 0.0);
         let distance = camera.fx_px * 127.5 / (0.4 * f64::from(camera.width_px));
         let r = UnitQuaternion::from_axis_angle(&Vec3::x_axis(), 20f64.to_radians());
@@ -845,102 +842,188 @@ fn a_station_is_calibrated_from_frames_of_two_plates_at_several_positions() {
             Translation3::from(Vec3::new(0.0, 0.0, distance) - r * centre),
             r,
         )
-    };
-    let (c1_from_p1, c2_from_p2) = (facing(&c1), facing(&c2));
-    // The station's motions, `C1(0)_from_C1(i)`: a few degrees about different axes (the
-    // plates stay wholly in view).
-    let motion = |axis: [f64; 3], deg: f64, t: [f64; 3]| {
-        Pose::from_parts(
-            Translation3::new(t[0], t[1], t[2]),
-            UnitQuaternion::from_axis_angle(
-                &Unit::new_normalize(Vec3::from(axis)),
-                deg.to_radians(),
-            ),
-        )
-    };
-    let motions = [
-        Pose::identity(),
-        motion([1.0, 0.0, 0.0], 2.5, [3.0, 0.0, 1.0]),
-        motion([0.0, 1.0, 0.0], -2.0, [0.0, -4.0, 2.0]),
-        motion([0.0, 0.0, 1.0], 3.0, [2.0, 2.0, 0.0]),
-        motion([1.0, 1.0, 0.0], 2.0, [-3.0, 1.0, -2.0]),
-        motion([0.0, 1.0, -1.0], -2.5, [1.0, 3.0, 3.0]),
-    ];
-    let dir = tempfile::tempdir().unwrap();
-    let plate_file = dir.path().join("plate.toml");
-    std::fs::write(&plate_file, PLATE_TOML).unwrap();
-    let mut positions = Vec::new();
-    for (i, m) in motions.iter().enumerate() {
-        let pos = dir.path().join(format!("position_{i}"));
-        std::fs::create_dir(&pos).unwrap();
-        let c2_motion = c2_from_c1 * m * c2_from_c1.inverse();
-        for (name, cam, pose) in [
-            ("C1", &c1, m.inverse() * c1_from_p1),
-            ("C2", &c2, c2_motion.inverse() * c2_from_p2),
-        ] {
-            let settings = brokenray::sim::render::RenderSettings {
-                samples_per_side: 16,
-                seed: 10 * i as u64 + u64::from(name == "C2"),
-                ..brokenray::sim::render::RenderSettings::default()
-            };
-            let image = brokenray::sim::plate::render_plate(cam, &plate, &pose, &settings);
-            let png = brokenray::imagefile::encode(&image, brokenray::imagefile::FrameFormat::Png)
-                .unwrap();
-            std::fs::write(pos.join(format!("{name}.png")), png).unwrap();
-        }
-        positions.push(pos.to_str().unwrap().to_owned());
     }
-    let plate_arg = |camera: &str| format!("{camera}={}", plate_file.display());
-    let (p1, p2) = (plate_arg("C1"), plate_arg("C2"));
-    let mut args = vec![
-        "calibrate-station",
-        "--link",
-        "C2_from_C1",
-        "--plate",
-        &p1,
-        "--plate",
-        &p2,
-    ];
-    args.extend(positions.iter().map(String::as_str));
-    let out = brokenray(&args);
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(
-        stdout.contains("C2_from_C1: 5 motions from 6 positions (0 left out)"),
-        "{stdout}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json_end = stdout.rfind("}\n").unwrap() + 1;
-    let body: serde_json::Value = serde_json::from_str(&stdout[..json_end]).unwrap();
-    let t: Vec<f64> = (0..3)
-        .map(|k| body["x"]["t_mm"][k].as_f64().unwrap())
-        .collect();
-    let q: Vec<f64> = (0..4)
-        .map(|k| body["x"]["q_wxyz"][k].as_f64().unwrap())
-        .collect();
-    let x = Pose::from_parts(
-        Translation3::new(t[0], t[1], t[2]),
-        UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3])),
-    );
-    let cov: Vec<f64> = body["covariance"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| v.as_f64().unwrap())
-        .collect();
-    let cov = brokenray::geometry::Mat6::from_row_slice(&cov);
-    let nees = crate::common::nees(&x, &c2_from_c1, &cov);
-    let bound = brokenray::chain::chi_square_quantile(6, 0.999);
-    assert!(nees < bound, "NEES {nees:.1} over {bound:.1}: {body}");
-    // A 15-degree lens keeps a plate in view over motions of a few degrees only, which
-    // leaves X's rotation known to a few arc-minutes: what matters is that the sigmas say so.
-    let sigma_arcsec = body["sigma"]["rotation_arcsec"][0].as_f64().unwrap();
-    assert!(
-        sigma_arcsec > 10.0 && sigma_arcsec < 600.0,
-        "{sigma_arcsec}"
-    );
+
+    fn settings(seed: u64) -> RenderSettings {
+        RenderSettings {
+            samples_per_side: 16,
+            seed,
+            ..RenderSettings::default()
+        }
+    }
+
+    /// The station's motions, `P(0)_from_P(i)` of its link's parent frame: a few degrees
+    /// about different axes (the targets stay wholly in view of the narrow lenses).
+    fn motions() -> Vec<Pose> {
+        let motion = |axis: [f64; 3], deg: f64, t: [f64; 3]| {
+            Pose::from_parts(
+                Translation3::new(t[0], t[1], t[2]),
+                UnitQuaternion::from_axis_angle(
+                    &Unit::new_normalize(Vec3::from(axis)),
+                    deg.to_radians(),
+                ),
+            )
+        };
+        vec![
+            Pose::identity(),
+            motion([1.0, 0.0, 0.0], 2.5, [3.0, 0.0, 1.0]),
+            motion([0.0, 1.0, 0.0], -2.0, [0.0, -4.0, 2.0]),
+            motion([0.0, 0.0, 1.0], 3.0, [2.0, 2.0, 0.0]),
+            motion([1.0, 1.0, 0.0], 2.0, [-3.0, 1.0, -2.0]),
+            motion([0.0, 1.0, -1.0], -2.5, [1.0, 3.0, 3.0]),
+        ]
+    }
+
+    fn true_link(name: &str) -> Pose {
+        let installation = brokenray::config::default_installation();
+        let LinkKind::Calibrated { parent_from_child } =
+            &installation.model.link_by_name(name).unwrap().kind
+        else {
+            panic!("{name} is calibrated");
+        };
+        parent_from_child.pose
+    }
+
+    fn intrinsics(name: &str) -> CameraModel {
+        brokenray::config::default_installation()
+            .model
+            .camera(name)
+            .unwrap()
+            .intrinsics
+    }
+
+    /// Writes each position's frames (`render(i, motion)` gives them), runs the command and
+    /// checks X against `truth` within its covariance.
+    fn calibrate_and_check(
+        link: &str,
+        plate_cameras: &[&str],
+        truth: &Pose,
+        render: impl Fn(usize, &Pose) -> Vec<(&'static str, GreyImage)>,
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        let plate_file = dir.path().join("plate.toml");
+        std::fs::write(&plate_file, PLATE_TOML).unwrap();
+        let mut positions = Vec::new();
+        for (i, m) in motions().iter().enumerate() {
+            let pos = dir.path().join(format!("position_{i}"));
+            std::fs::create_dir(&pos).unwrap();
+            for (name, image) in render(i, m) {
+                let png =
+                    brokenray::imagefile::encode(&image, brokenray::imagefile::FrameFormat::Png)
+                        .unwrap();
+                std::fs::write(pos.join(format!("{name}.png")), png).unwrap();
+            }
+            positions.push(pos.to_str().unwrap().to_owned());
+        }
+        let plates: Vec<String> = plate_cameras
+            .iter()
+            .map(|c| format!("{c}={}", plate_file.display()))
+            .collect();
+        let mut args = vec!["calibrate-station", "--link", link];
+        for p in &plates {
+            args.extend(["--plate", p.as_str()]);
+        }
+        args.extend(positions.iter().map(String::as_str));
+        let out = brokenray(&args);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{stderr}");
+        assert!(
+            stdout.contains(&format!("{link}: 5 motions from 6 positions (0 left out)")),
+            "{stdout}{stderr}"
+        );
+        let json_end = stdout.rfind("}\n").unwrap() + 1;
+        let body: serde_json::Value = serde_json::from_str(&stdout[..json_end]).unwrap();
+        let t: Vec<f64> = (0..3)
+            .map(|k| body["x"]["t_mm"][k].as_f64().unwrap())
+            .collect();
+        let q: Vec<f64> = (0..4)
+            .map(|k| body["x"]["q_wxyz"][k].as_f64().unwrap())
+            .collect();
+        let x = Pose::from_parts(
+            Translation3::new(t[0], t[1], t[2]),
+            UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3])),
+        );
+        let cov: Vec<f64> = body["covariance"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let cov = brokenray::geometry::Mat6::from_row_slice(&cov);
+        let nees = crate::common::nees(&x, truth, &cov);
+        let bound = brokenray::chain::chi_square_quantile(6, 0.999);
+        assert!(nees < bound, "NEES {nees:.1} over {bound:.1}: {body}");
+        // Motions of a few degrees leave X's rotation known to arc-minutes, not seconds:
+        // what matters is that the sigmas say so.
+        let sigma_arcsec = body["sigma"]["rotation_arcsec"][0].as_f64().unwrap();
+        assert!(sigma_arcsec > 5.0 && sigma_arcsec < 600.0, "{sigma_arcsec}");
+    }
+
+    #[test]
+    fn two_cameras_back_to_back_each_looking_at_a_plate() {
+        let c2_from_c1 = true_link("C2_from_C1");
+        let (c1, c2) = (intrinsics("C1"), intrinsics("C2"));
+        let (c2_from_p2, c1_from_p1) = (facing(&c2), facing(&c1));
+        let plate = plate();
+        // The parent is C2: its motion m, C1's `c2_from_c1^-1 m c2_from_c1`.
+        calibrate_and_check("C2_from_C1", &["C1", "C2"], &c2_from_c1, |i, m| {
+            let c1_motion = c2_from_c1.inverse() * m * c2_from_c1;
+            vec![
+                (
+                    "C2",
+                    brokenray::sim::plate::render_plate(
+                        &c2,
+                        &plate,
+                        &(m.inverse() * c2_from_p2),
+                        &settings(10 * i as u64),
+                    ),
+                ),
+                (
+                    "C1",
+                    brokenray::sim::plate::render_plate(
+                        &c1,
+                        &plate,
+                        &(c1_motion.inverse() * c1_from_p1),
+                        &settings(10 * i as u64 + 1),
+                    ),
+                ),
+            ]
+        });
+    }
+
+    #[test]
+    fn a_camera_looking_at_a_plate_and_a_marker_seen_by_the_installation() {
+        let c3_from_m = true_link("C3_from_M");
+        let c3 = intrinsics("C3");
+        let c3_from_p = facing(&c3);
+        let plate = plate();
+        let installation = brokenray::config::default_installation();
+        let observer = Observer::new(&installation.model);
+        let seen = observer.link("C2", "M").unwrap().clone();
+        let c2_from_m0 = seen.nominal.unwrap();
+        // The parent is C3: its motion m; M's is `c3_from_m^-1 m c3_from_m`, seen by C2.
+        calibrate_and_check("C3_from_M", &["C3"], &c3_from_m, |i, m| {
+            let m_motion = c3_from_m.inverse() * m * c3_from_m;
+            vec![
+                (
+                    "C3",
+                    brokenray::sim::plate::render_plate(
+                        &c3,
+                        &plate,
+                        &(m.inverse() * c3_from_p),
+                        &settings(10 * i as u64),
+                    ),
+                ),
+                (
+                    "C2",
+                    render_discs(
+                        &seen.camera,
+                        &marker_discs(&seen, &(c2_from_m0 * m_motion)),
+                        &settings(10 * i as u64 + 1),
+                    ),
+                ),
+            ]
+        });
+    }
 }
