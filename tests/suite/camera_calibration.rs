@@ -130,7 +130,7 @@ fn intrinsics_nees(c: &CameraCalibration, truth: &CameraModel) -> (f64, usize) {
     ((e.transpose() * info * &e)[(0, 0)], free.len())
 }
 
-fn calibrate(
+pub fn calibrate(
     plate: &Plate,
     camera: &CameraModel,
     views: &[CalibrationView],

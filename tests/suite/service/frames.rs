@@ -57,7 +57,7 @@ pub(super) fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) 
     (group, frames)
 }
 
-pub(super) async fn post_frame(
+pub(crate) async fn post_frame(
     app: &TestApp,
     camera: &str,
     time: &str,

@@ -2,6 +2,7 @@
 
 mod access;
 mod alarms;
+mod calibrated_cameras;
 mod calibration;
 mod cameras;
 mod dashboard;
