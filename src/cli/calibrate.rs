@@ -31,6 +31,18 @@ pub fn read_plate(path: &Path) -> anyhow::Result<Plate> {
         .map_err(|(_, message)| anyhow::anyhow!("{}: {message}", path.display()))
 }
 
+/// Reads `--plate CAMERA=PLATE.toml` arguments.
+pub fn read_plates(args: &[String]) -> anyhow::Result<Vec<(String, Plate)>> {
+    args.iter()
+        .map(|p| {
+            let (camera, file) = p
+                .split_once('=')
+                .ok_or_else(|| anyhow::anyhow!("--plate {p}: expected CAMERA=PLATE.toml"))?;
+            Ok((camera.to_owned(), read_plate(Path::new(file))?))
+        })
+        .collect()
+}
+
 fn read_frame(path: &Path, expected: Option<(u32, u32)>) -> anyhow::Result<GreyImage> {
     let format = FrameFormat::from_path(path).ok_or_else(|| {
         anyhow::anyhow!(
@@ -256,36 +268,22 @@ impl Sensor {
     }
 }
 
-/// A station's calibrated link from frames at several positions.
-pub struct StationCalibration {
-    /// The solution, as `POST /calibration/hand-eye` answers.
-    pub result: HandEyeOut,
-    /// The motions used (`A_i`, `B_i`), from the first position to each other.
-    pub motions: usize,
-    /// Positions left out, with why.
-    pub left_out: Vec<(PathBuf, String)>,
-}
-
-/// Calibrates the calibrated link `link` (`parent_from_child`) of `installation` from
-/// `positions` (one directory per position of the station, holding `<camera>.png` of each
-/// camera involved). `plates` names the plate each camera of the station looks at.
-pub fn calibrate_station(
+/// The two sensors of the station whose calibrated link is `link` (`parent_from_child`), and
+/// the link's pose in the installation.
+fn station(
     installation: &Installation,
+    observer: &Observer,
     link: &str,
     plates: &[(String, Plate)],
-    positions: &[PathBuf],
-    progress: &indicatif::ProgressBar,
-    log: &mut impl Write,
-) -> anyhow::Result<StationCalibration> {
+) -> anyhow::Result<(Sensor, Sensor, Pose)> {
     let model = &installation.model;
     let spec = model
         .link_by_name(link)
         .ok_or_else(|| anyhow::anyhow!("no link `{link}` in the installation"))?;
-    if !matches!(spec.kind, LinkKind::Calibrated { .. }) {
+    let LinkKind::Calibrated { parent_from_child } = &spec.kind else {
         bail!("`{link}` is a measured link: only a station's calibrated links are calibrated here");
-    }
-    let observer = Observer::new(model);
-    let mut sensor = |frame: &str| -> anyhow::Result<Sensor> {
+    };
+    let sensor = |frame: &str| -> anyhow::Result<Sensor> {
         if let Some(camera) = model.camera(frame) {
             let plate = plates
                 .iter()
@@ -296,12 +294,6 @@ pub fn calibrate_station(
                         "camera {frame} of the station needs its plate: --plate {frame}=PLATE.toml"
                     )
                 })?;
-            if plate.is_symmetric() {
-                writeln!(
-                    log,
-                    "warning: camera {frame}'s plate looks the same turned by half a turn: its labels follow the image's orientation, so keep the station's turns under 90 degrees (an asymmetric plate with an odd number of rows has no such limit)"
-                )?;
-            }
             return Ok(Sensor::CameraOnPlate {
                 camera: frame.to_owned(),
                 model: camera.intrinsics,
@@ -326,8 +318,42 @@ pub fn calibrate_station(
     let (parent, child) = link
         .split_once("_from_")
         .ok_or_else(|| anyhow::anyhow!("`{link}` is not named parent_from_child"))?;
-    let first = sensor(parent)?;
-    let second = sensor(child)?;
+    Ok((sensor(parent)?, sensor(child)?, parent_from_child.pose))
+}
+
+/// A station's calibrated link from frames at several positions.
+pub struct StationCalibration {
+    /// The solution, as `POST /calibration/hand-eye` answers.
+    pub result: HandEyeOut,
+    /// The motions used (`A_i`, `B_i`), from the first position to each other.
+    pub motions: usize,
+    /// Positions left out, with why.
+    pub left_out: Vec<(PathBuf, String)>,
+}
+
+/// Calibrates the calibrated link `link` (`parent_from_child`) of `installation` from
+/// `positions` (one directory per position of the station, holding `<camera>.png` of each
+/// camera involved). `plates` names the plate each camera of the station looks at.
+pub fn calibrate_station(
+    installation: &Installation,
+    link: &str,
+    plates: &[(String, Plate)],
+    positions: &[PathBuf],
+    progress: &indicatif::ProgressBar,
+    log: &mut impl Write,
+) -> anyhow::Result<StationCalibration> {
+    let observer = Observer::new(&installation.model);
+    let (first, second, _) = station(installation, &observer, link, plates)?;
+    for sensor in [&first, &second] {
+        if let Sensor::CameraOnPlate { camera, plate, .. } = sensor
+            && plate.is_symmetric()
+        {
+            writeln!(
+                log,
+                "warning: camera {camera}'s plate looks the same turned by half a turn: its labels follow the image's orientation, so keep the station's turns under 90 degrees (an asymmetric plate with an odd number of rows has no such limit)"
+            )?;
+        }
+    }
     progress.set_length(positions.len() as u64);
     // Each position's two poses, `sensor_from_world` for each sensor.
     let mut measured: Vec<(Pose, Pose, f64, f64)> = Vec::new();
@@ -530,4 +556,91 @@ pub fn render_plate_views(
     std::fs::write(dir.join("truth.json"), serde_json::to_string_pretty(&body)?)
         .with_context(|| format!("cannot write {}", dir.join("truth.json").display()))?;
     Ok(poses.len())
+}
+
+/// Renders a station's calibration session into the new directory `dir`: at each of
+/// `positions` positions (`sim::plate::station_motions`), the frame of every camera involved
+/// (`position_NN/<camera>.png`: a camera of the station looking at its plate, set up facing it
+/// at the first position; a marker of the station seen by the installation's camera that
+/// watches it, from the link's nominal pose), and `truth.json` with the link's true pose (the
+/// installation's) and the motions. Returns how many positions were written.
+#[allow(clippy::too_many_arguments)]
+pub fn render_station_views(
+    installation: &Installation,
+    link: &str,
+    plates: &[(String, Plate)],
+    positions: usize,
+    seed: u64,
+    dir: &Path,
+    progress: &indicatif::ProgressBar,
+) -> anyhow::Result<usize> {
+    use crate::sim::plate::{plate_facing, render_plate, station_motions};
+    use crate::sim::render::{RenderSettings, marker_discs, render_discs};
+    let observer = Observer::new(&installation.model);
+    let (first, second, x) = station(installation, &observer, link, plates)?;
+    std::fs::create_dir(dir)
+        .with_context(|| format!("cannot create {} (it must not exist)", dir.display()))?;
+    let motions = station_motions(positions, seed);
+    progress.set_length(motions.len() as u64);
+    for (i, m) in motions.iter().enumerate() {
+        let position = dir.join(format!("position_{i:02}"));
+        std::fs::create_dir(&position)
+            .with_context(|| format!("cannot create {}", position.display()))?;
+        // The parent turns by m; the child by the same motion seen in its own frame.
+        for (k, (sensor, motion)) in [(&first, *m), (&second, x.inverse() * m * x)]
+            .into_iter()
+            .enumerate()
+        {
+            let settings = RenderSettings {
+                samples_per_side: 16,
+                seed: seed
+                    .wrapping_mul(1000)
+                    .wrapping_add(10 * i as u64 + k as u64),
+                ..RenderSettings::default()
+            };
+            let (camera, image) = match sensor {
+                Sensor::CameraOnPlate {
+                    camera,
+                    model,
+                    plate,
+                } => {
+                    let start = plate_facing(model, plate, 0.4, 20.0);
+                    (
+                        camera,
+                        render_plate(model, plate, &(motion.inverse() * start), &settings),
+                    )
+                }
+                Sensor::MarkerSeenBy { marker, camera } => {
+                    let seen = observer
+                        .link(camera, marker)
+                        .map_err(|e| anyhow::anyhow!("{e}"))?;
+                    let start = seen.nominal.ok_or_else(|| {
+                        anyhow::anyhow!("link {} has no nominal pose to render from", seen.name)
+                    })?;
+                    (
+                        camera,
+                        render_discs(
+                            &seen.camera,
+                            &marker_discs(seen, &(start * motion)),
+                            &settings,
+                        ),
+                    )
+                }
+            };
+            let bytes = crate::imagefile::encode(&image, FrameFormat::Png)
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            let path = position.join(format!("{camera}.png"));
+            std::fs::write(&path, bytes)
+                .with_context(|| format!("cannot write {}", path.display()))?;
+        }
+        progress.inc(1);
+    }
+    let body = serde_json::json!({
+        "link": link,
+        "parent_from_child": crate::api::dto::PoseOut::from(&x),
+        "motions": motions.iter().map(crate::api::dto::PoseOut::from).collect::<Vec<_>>(),
+    });
+    std::fs::write(dir.join("truth.json"), serde_json::to_string_pretty(&body)?)
+        .with_context(|| format!("cannot write {}", dir.join("truth.json").display()))?;
+    Ok(motions.len())
 }

@@ -22,7 +22,7 @@ use crate::config;
 use crate::model::LinkKind;
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 
 /// Broken-ray videometrics: deformation of large structures measured through relay stations.
@@ -161,6 +161,30 @@ pub enum Command {
         #[arg(long, default_value_t = 15)]
         views: usize,
         /// Seed of the poses and the noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// A new directory for the frames.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+    },
+    /// Render a station's calibration session as the installation's cameras see it: the station
+    /// of a calibrated link moved to several positions, each camera of the station looking at
+    /// its plate, a marker of the station seen by the camera that watches it:
+    /// `DIR/position_NN/<camera>.png` and `truth.json`. To try `calibrate-station`.
+    RenderStation {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// The calibrated link, `parent_from_child`.
+        #[arg(long, value_name = "NAME")]
+        link: String,
+        /// The plate a camera of the station looks at, `CAMERA=PLATE.toml` (once per camera).
+        #[arg(long = "plate", value_name = "CAMERA=PLATE.toml")]
+        plates: Vec<String>,
+        /// How many positions (the first is the start).
+        #[arg(long, default_value_t = 6)]
+        positions: usize,
+        /// Seed of the motions and the noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
         /// A new directory for the frames.
@@ -537,6 +561,34 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 dir.display()
             )?;
         }
+        Command::RenderStation {
+            config,
+            link,
+            plates,
+            positions,
+            seed,
+            out: dir,
+        } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let by_camera = calibrate::read_plates(&plates)?;
+            let bar = frames_bar();
+            let written = calibrate::render_station_views(
+                &installation,
+                &link,
+                &by_camera,
+                positions,
+                seed,
+                &dir,
+                &bar,
+            );
+            bar.finish_and_clear();
+            writeln!(
+                out,
+                "{} positions of the station of {link} written to {}",
+                written?,
+                dir.display()
+            )?;
+        }
         Command::CalibrateStation {
             config,
             link,
@@ -545,13 +597,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             positions,
         } => {
             let installation = config::load_or_default(config.as_deref())?;
-            let mut by_camera = Vec::with_capacity(plates.len());
-            for p in &plates {
-                let (camera, file) = p
-                    .split_once('=')
-                    .ok_or_else(|| anyhow::anyhow!("--plate {p}: expected CAMERA=PLATE.toml"))?;
-                by_camera.push((camera.to_owned(), calibrate::read_plate(Path::new(file))?));
-            }
+            let by_camera = calibrate::read_plates(&plates)?;
             let bar = frames_bar();
             let run = calibrate::calibrate_station(
                 &installation,

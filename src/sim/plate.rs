@@ -145,3 +145,54 @@ mod tests {
         assert!(max_tilt > 30.0, "{max_tilt}");
     }
 }
+
+/// `camera_from_plate` of a plate in front of a camera, centred on its optical axis, about
+/// `fill` of the image wide, tilted by `tilt_deg` about the plate's x axis.
+pub fn plate_facing(camera: &CameraModel, plate: &Plate, fill: f64, tilt_deg: f64) -> Pose {
+    let points = plate.points_mm();
+    let (lo, hi) = points.iter().fold(
+        (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.inf(p), hi.sup(p)),
+    );
+    let centre = (lo + hi) / 2.0;
+    let width_mm = hi.x - lo.x + plate.diameter_mm();
+    let distance_mm = camera.fx_px * width_mm / (fill * f64::from(camera.width_px));
+    let r = UnitQuaternion::from_axis_angle(&Vec3::x_axis(), tilt_deg.to_radians());
+    Pose::from_parts(
+        Translation3::from(Vec3::new(0.0, 0.0, distance_mm) - r * centre),
+        r,
+    )
+}
+
+/// Motions of a station being calibrated, `S(0)_from_S(i)` of the frame it turns about: the
+/// first the identity, then turns of 2 to 3 degrees about axes that cycle through six
+/// directions (so no two neighbours are parallel), and shifts of up to 4 mm. Small enough to
+/// keep a plate wholly in view of a narrow lens.
+pub fn station_motions(positions: usize, seed: u64) -> Vec<Pose> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let axes = [
+        Vec3::x(),
+        Vec3::y(),
+        Vec3::z(),
+        Vec3::new(1.0, 1.0, 0.0),
+        Vec3::new(0.0, 1.0, -1.0),
+        Vec3::new(1.0, 0.0, 1.0),
+    ];
+    (0..positions)
+        .map(|i| {
+            if i == 0 {
+                return Pose::identity();
+            }
+            let sign = if i % 2 == 0 { -1.0 } else { 1.0 };
+            let deg: f64 = sign * rng.random_range(2.0..3.0);
+            let t = Vec3::from_fn(|_, _| rng.random_range(-4.0..4.0));
+            Pose::from_parts(
+                Translation3::from(t),
+                UnitQuaternion::from_axis_angle(
+                    &Unit::new_normalize(axes[(i - 1) % axes.len()]),
+                    deg.to_radians(),
+                ),
+            )
+        })
+        .collect()
+}

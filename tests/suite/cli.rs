@@ -94,6 +94,7 @@ fn help_lists_only_working_subcommands() {
             "healthcheck",
             "simulate",
             "render-plate",
+            "render-station",
             "calibrate",
             "calibrate-camera",
             "calibrate-station",
@@ -820,109 +821,64 @@ fn calibrate_camera_refuses_too_few_views_and_a_bad_plate_file() {
 }
 
 mod station {
-    //! `calibrate-station` on rendered frames of a moved station.
+    //! `render-station` then `calibrate-station`: a station's link from rendered frames of the
+    //! station moved to six positions, against the installation's (true) link.
 
     use super::{PLATE_TOML, brokenray};
-    use brokenray::geometry::{Pose, Vec3};
-    use brokenray::model::{LinkKind, Observer};
-    use brokenray::sim::render::{RenderSettings, marker_discs, render_discs};
-    use brokenray::vision::{CameraModel, GreyImage, Plate, Polarity};
-    use nalgebra::{Translation3, Unit, UnitQuaternion};
+    use brokenray::geometry::Pose;
+    use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 
-    fn plate() -> Plate {
-        Plate::new(7, 9, 15.0, 7.5, true, Polarity::Dark).unwrap()
-    }
-
-    /// A plate in front of a camera, 0.4 of the image wide, tilted by 20 degrees.
-    fn facing(camera: &CameraModel) -> Pose {
-        let centre = Vec3::new(4.25 * 15.0, 3.0 * 15.0, 0.0);
-        let distance = camera.fx_px * 127.5 / (0.4 * f64::from(camera.width_px));
-        let r = UnitQuaternion::from_axis_angle(&Vec3::x_axis(), 20f64.to_radians());
+    fn pose_of(v: &serde_json::Value) -> Pose {
+        let t: Vec<f64> = (0..3).map(|k| v["t_mm"][k].as_f64().unwrap()).collect();
+        let q: Vec<f64> = (0..4).map(|k| v["q_wxyz"][k].as_f64().unwrap()).collect();
         Pose::from_parts(
-            Translation3::from(Vec3::new(0.0, 0.0, distance) - r * centre),
-            r,
+            Translation3::new(t[0], t[1], t[2]),
+            UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3])),
         )
     }
 
-    fn settings(seed: u64) -> RenderSettings {
-        RenderSettings {
-            samples_per_side: 16,
-            seed,
-            ..RenderSettings::default()
-        }
-    }
-
-    /// The station's motions, `P(0)_from_P(i)` of its link's parent frame: a few degrees
-    /// about different axes (the targets stay wholly in view of the narrow lenses).
-    fn motions() -> Vec<Pose> {
-        let motion = |axis: [f64; 3], deg: f64, t: [f64; 3]| {
-            Pose::from_parts(
-                Translation3::new(t[0], t[1], t[2]),
-                UnitQuaternion::from_axis_angle(
-                    &Unit::new_normalize(Vec3::from(axis)),
-                    deg.to_radians(),
-                ),
-            )
-        };
-        vec![
-            Pose::identity(),
-            motion([1.0, 0.0, 0.0], 2.5, [3.0, 0.0, 1.0]),
-            motion([0.0, 1.0, 0.0], -2.0, [0.0, -4.0, 2.0]),
-            motion([0.0, 0.0, 1.0], 3.0, [2.0, 2.0, 0.0]),
-            motion([1.0, 1.0, 0.0], 2.0, [-3.0, 1.0, -2.0]),
-            motion([0.0, 1.0, -1.0], -2.5, [1.0, 3.0, 3.0]),
-        ]
-    }
-
-    fn true_link(name: &str) -> Pose {
-        let installation = brokenray::config::default_installation();
-        let LinkKind::Calibrated { parent_from_child } =
-            &installation.model.link_by_name(name).unwrap().kind
-        else {
-            panic!("{name} is calibrated");
-        };
-        parent_from_child.pose
-    }
-
-    fn intrinsics(name: &str) -> CameraModel {
-        brokenray::config::default_installation()
-            .model
-            .camera(name)
-            .unwrap()
-            .intrinsics
-    }
-
-    /// Writes each position's frames (`render(i, motion)` gives them), runs the command and
-    /// checks X against `truth` within its covariance.
-    fn calibrate_and_check(
-        link: &str,
-        plate_cameras: &[&str],
-        truth: &Pose,
-        render: impl Fn(usize, &Pose) -> Vec<(&'static str, GreyImage)>,
-    ) {
+    fn calibrate_and_check(link: &str, plate_cameras: &[&str]) {
         let dir = tempfile::tempdir().unwrap();
         let plate_file = dir.path().join("plate.toml");
         std::fs::write(&plate_file, PLATE_TOML).unwrap();
-        let mut positions = Vec::new();
-        for (i, m) in motions().iter().enumerate() {
-            let pos = dir.path().join(format!("position_{i}"));
-            std::fs::create_dir(&pos).unwrap();
-            for (name, image) in render(i, m) {
-                let png =
-                    brokenray::imagefile::encode(&image, brokenray::imagefile::FrameFormat::Png)
-                        .unwrap();
-                std::fs::write(pos.join(format!("{name}.png")), png).unwrap();
-            }
-            positions.push(pos.to_str().unwrap().to_owned());
-        }
         let plates: Vec<String> = plate_cameras
             .iter()
-            .map(|c| format!("{c}={}", plate_file.display()))
+            .flat_map(|c| {
+                [
+                    "--plate".to_owned(),
+                    format!("{c}={}", plate_file.display()),
+                ]
+            })
+            .collect();
+        let session = dir.path().join("session");
+        let mut args = vec![
+            "render-station",
+            "--link",
+            link,
+            "--out",
+            session.to_str().unwrap(),
+        ];
+        args.extend(plates.iter().map(String::as_str));
+        let out = brokenray(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let truth: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(session.join("truth.json")).unwrap())
+                .unwrap();
+        let positions: Vec<String> = (0..6)
+            .map(|i| {
+                session
+                    .join(format!("position_{i:02}"))
+                    .to_str()
+                    .unwrap()
+                    .to_owned()
+            })
             .collect();
         let mut args = vec!["calibrate-station", "--link", link];
-        for p in &plates {
-            args.extend(["--plate", p.as_str()]);
-        }
+        args.extend(plates.iter().map(String::as_str));
         args.extend(positions.iter().map(String::as_str));
         let out = brokenray(&args);
         let stdout = String::from_utf8_lossy(&out.stdout);
@@ -934,16 +890,7 @@ mod station {
         );
         let json_end = stdout.rfind("}\n").unwrap() + 1;
         let body: serde_json::Value = serde_json::from_str(&stdout[..json_end]).unwrap();
-        let t: Vec<f64> = (0..3)
-            .map(|k| body["x"]["t_mm"][k].as_f64().unwrap())
-            .collect();
-        let q: Vec<f64> = (0..4)
-            .map(|k| body["x"]["q_wxyz"][k].as_f64().unwrap())
-            .collect();
-        let x = Pose::from_parts(
-            Translation3::new(t[0], t[1], t[2]),
-            UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3])),
-        );
+        let x = pose_of(&body["x"]);
         let cov: Vec<f64> = body["covariance"]
             .as_array()
             .unwrap()
@@ -951,7 +898,7 @@ mod station {
             .map(|v| v.as_f64().unwrap())
             .collect();
         let cov = brokenray::geometry::Mat6::from_row_slice(&cov);
-        let nees = crate::common::nees(&x, truth, &cov);
+        let nees = crate::common::nees(&x, &pose_of(&truth["parent_from_child"]), &cov);
         let bound = brokenray::chain::chi_square_quantile(6, 0.999);
         assert!(nees < bound, "NEES {nees:.1} over {bound:.1}: {body}");
         // Motions of a few degrees leave X's rotation known to arc-minutes, not seconds:
@@ -962,68 +909,28 @@ mod station {
 
     #[test]
     fn two_cameras_back_to_back_each_looking_at_a_plate() {
-        let c2_from_c1 = true_link("C2_from_C1");
-        let (c1, c2) = (intrinsics("C1"), intrinsics("C2"));
-        let (c2_from_p2, c1_from_p1) = (facing(&c2), facing(&c1));
-        let plate = plate();
-        // The parent is C2: its motion m, C1's `c2_from_c1^-1 m c2_from_c1`.
-        calibrate_and_check("C2_from_C1", &["C1", "C2"], &c2_from_c1, |i, m| {
-            let c1_motion = c2_from_c1.inverse() * m * c2_from_c1;
-            vec![
-                (
-                    "C2",
-                    brokenray::sim::plate::render_plate(
-                        &c2,
-                        &plate,
-                        &(m.inverse() * c2_from_p2),
-                        &settings(10 * i as u64),
-                    ),
-                ),
-                (
-                    "C1",
-                    brokenray::sim::plate::render_plate(
-                        &c1,
-                        &plate,
-                        &(c1_motion.inverse() * c1_from_p1),
-                        &settings(10 * i as u64 + 1),
-                    ),
-                ),
-            ]
-        });
+        calibrate_and_check("C2_from_C1", &["C1", "C2"]);
     }
 
     #[test]
     fn a_camera_looking_at_a_plate_and_a_marker_seen_by_the_installation() {
-        let c3_from_m = true_link("C3_from_M");
-        let c3 = intrinsics("C3");
-        let c3_from_p = facing(&c3);
-        let plate = plate();
-        let installation = brokenray::config::default_installation();
-        let observer = Observer::new(&installation.model);
-        let seen = observer.link("C2", "M").unwrap().clone();
-        let c2_from_m0 = seen.nominal.unwrap();
-        // The parent is C3: its motion m; M's is `c3_from_m^-1 m c3_from_m`, seen by C2.
-        calibrate_and_check("C3_from_M", &["C3"], &c3_from_m, |i, m| {
-            let m_motion = c3_from_m.inverse() * m * c3_from_m;
-            vec![
-                (
-                    "C3",
-                    brokenray::sim::plate::render_plate(
-                        &c3,
-                        &plate,
-                        &(m.inverse() * c3_from_p),
-                        &settings(10 * i as u64),
-                    ),
-                ),
-                (
-                    "C2",
-                    render_discs(
-                        &seen.camera,
-                        &marker_discs(&seen, &(c2_from_m0 * m_motion)),
-                        &settings(10 * i as u64 + 1),
-                    ),
-                ),
-            ]
-        });
+        calibrate_and_check("C3_from_M", &["C3"]);
+    }
+
+    #[test]
+    fn a_camera_without_its_plate_or_a_measured_link_is_refused() {
+        let out = brokenray(&["calibrate-station", "--link", "C2_from_C1", "x"]);
+        assert!(!out.status.success());
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            stderr.contains("camera C2 of the station needs its plate: --plate C2=PLATE.toml"),
+            "{stderr}"
+        );
+        let out = brokenray(&["calibrate-station", "--link", "C1_from_B", "x"]);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            stderr.contains("`C1_from_B` is a measured link"),
+            "{stderr}"
+        );
     }
 }

@@ -77,6 +77,29 @@ async fn a_camera_is_calibrated_from_plate_points_and_nothing_is_stored() {
 #[tokio::test]
 async fn invalid_requests_name_the_field_and_impossible_ones_say_why() {
     let app = TestApp::start(None).await;
+    // Focal lengths are fixed at a known value only.
+    let mut known = request(6, &["fx", "fy"]);
+    known["initial"] = json!({"fx": 1650.0, "fy": 1648.0, "cx": 640.0, "cy": 512.0});
+    let (status, body) = app.post_json("/api/v1/calibration/camera", &known).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["camera"]["fx"], 1650.0);
+    assert_eq!(body["sigma"]["fx"], 0.0);
+    assert_ne!(
+        body["camera"]["cx"], 640.0,
+        "cx is free: initial gives only fixed values"
+    );
+    let (status, body) = app
+        .post_json("/api/v1/calibration/camera", &request(6, &["fx"]))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .expect("text")
+            .contains("fx can be fixed only at a known value"),
+        "{body}"
+    );
+
     let mut bad_plate = request(4, &[]);
     bad_plate["plate"]["diameter_mm"] = json!(20.0);
     let (status, body) = app
