@@ -15,9 +15,11 @@
 //! 4. **Centre**: the background-corrected grey-weighted centroid over a circular window a few
 //!    pixels wider than the blob, the background taken from a ring just outside the window,
 //!    iterated with the window re-centred so that the window's placement leaves no bias. The
-//!    weights are signed (noise is not clipped), so background noise adds scatter, never bias;
-//!    they are clipped three noise sigmas below the disc's level, so that the plateau's shot
-//!    noise adds none (a centrally symmetric image stays so under the clip: no bias).
+//!    weights are clipped three noise sigmas below the disc's level and three background sigmas
+//!    above the background (shifted down by that floor), so that neither the plateau's shot
+//!    noise nor the window's background noise adds scatter: only the edge, where the position
+//!    is, does. The clip is one pointwise function of the grey value, so a centrally symmetric
+//!    image stays so under it: no bias.
 //!    Under perspective the image of a disc is an ellipse of uniform brightness, and its centroid
 //!    is the ellipse's centre (not the image of the disc's centre: see the eccentricity
 //!    correction of the PnP step).
@@ -480,7 +482,8 @@ fn is_elliptic(
     (mismatch as f64) <= MAX_MISMATCH_PER_PERIMETER * perimeter
 }
 
-/// The centroid's weights are clipped this many noise sigmas below the disc's level.
+/// The centroid's weights are clipped this many noise sigmas below the disc's level, and this
+/// many background sigmas above the background.
 const CLIP_SIGMAS: f64 = 3.0;
 
 /// How many pixels per unit of perimeter may disagree with the moments' ellipse.
@@ -571,6 +574,14 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
         } else {
             f64::INFINITY
         };
+        // And a few background sigmas above the background: the window's pixels outside the
+        // disc then weigh nothing whatever their noise, so only the edge adds scatter. The
+        // same pointwise clip keeps a centrally symmetric image so: no bias.
+        let floor = if clip.is_finite() {
+            (CLIP_SIGMAS * ring_var.sqrt()).min(0.5 * clip)
+        } else {
+            0.0
+        };
         let (mut sw, mut su, mut sv, mut peak) = (0.0, 0.0, 0.0, 0.0f64);
         let mut pixels_in = Vec::new();
         for v in cv - reach..=cv + reach {
@@ -581,12 +592,16 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
                 }
                 let value = f64::from(image.at(u as u32, v as u32));
                 let raw = sign * (value - background);
-                let weight = raw.min(clip);
+                let weight = if floor > 0.0 {
+                    raw.clamp(floor, clip) - floor
+                } else {
+                    raw.min(clip)
+                };
                 sw += weight;
                 su += weight * x;
                 sv += weight * y;
                 peak = peak.max(raw);
-                pixels_in.push((x, y, weight, raw < clip));
+                pixels_in.push((x, y, weight, raw < clip && (floor == 0.0 || raw > floor)));
             }
         }
         if sw <= 0.0 || peak < s.min_contrast_dn {
@@ -603,7 +618,7 @@ fn refine(image: &GreyImage, c: &Component, s: &DetectSettings) -> Option<Blob> 
             if let Some(gain) = s.gain_e_per_dn
                 && free
             {
-                var += weight.max(0.0) / gain;
+                var += (weight + floor).max(0.0) / gain;
             }
             cxx += dx * dx * var;
             cyy += dy * dy * var;
