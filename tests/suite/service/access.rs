@@ -93,6 +93,13 @@ async fn tokens_and_scopes_guard_every_endpoint() {
             "operator-secret",
             "viewer-secret",
         ),
+        (
+            "POST",
+            "/api/v1/calibration/camera",
+            Some(super::calibration::request(6, &["k3"]).to_string()),
+            "operator-secret",
+            "pipeline-secret",
+        ),
     ];
     for (method, uri, body, allowed, denied) in cases {
         let b = || body.clone().map(|t| ("application/json", t));

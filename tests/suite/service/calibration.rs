@@ -7,7 +7,7 @@ use axum::http::StatusCode;
 use brokenray::sim::plate::plate_poses;
 use serde_json::{Value, json};
 
-fn request(views: usize, fix: &[&str]) -> Value {
+pub(crate) fn request(views: usize, fix: &[&str]) -> Value {
     let camera = wide_camera();
     let plate = plate();
     let poses = plate_poses(&camera, &plate, views, 11);
