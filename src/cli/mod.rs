@@ -509,15 +509,9 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             frames,
         } => {
             let plate = calibrate::read_plate(&plate)?;
-            let bar = frames_bar();
-            let run = calibrate::calibrate_from_frames(
-                &plate,
-                &frames,
-                &fix,
-                &bar,
-                &mut std::io::stderr(),
-            );
-            bar.finish_and_clear();
+            let run = with_frames_bar(|bar| {
+                calibrate::calibrate_from_frames(&plate, &frames, &fix, bar, &mut std::io::stderr())
+            });
             let run = run?;
             if json {
                 let body = crate::api::calibration::CameraCalibrationOut::from(&run.calibration);
@@ -543,17 +537,17 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         } => {
             let installation = config::load_or_default(config.as_deref())?;
             let plate = calibrate::read_plate(&plate)?;
-            let bar = frames_bar();
-            let written = calibrate::render_plate_views(
-                &installation,
-                &camera,
-                &plate,
-                views,
-                seed,
-                &dir,
-                &bar,
-            );
-            bar.finish_and_clear();
+            let written = with_frames_bar(|bar| {
+                calibrate::render_plate_views(
+                    &installation,
+                    &camera,
+                    &plate,
+                    views,
+                    seed,
+                    &dir,
+                    bar,
+                )
+            });
             writeln!(
                 out,
                 "{} views of the plate written to {}",
@@ -571,17 +565,17 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         } => {
             let installation = config::load_or_default(config.as_deref())?;
             let by_camera = calibrate::read_plates(&plates)?;
-            let bar = frames_bar();
-            let written = calibrate::render_station_views(
-                &installation,
-                &link,
-                &by_camera,
-                positions,
-                seed,
-                &dir,
-                &bar,
-            );
-            bar.finish_and_clear();
+            let written = with_frames_bar(|bar| {
+                calibrate::render_station_views(
+                    &installation,
+                    &link,
+                    &by_camera,
+                    positions,
+                    seed,
+                    &dir,
+                    bar,
+                )
+            });
             writeln!(
                 out,
                 "{} positions of the station of {link} written to {}",
@@ -598,16 +592,16 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         } => {
             let installation = config::load_or_default(config.as_deref())?;
             let by_camera = calibrate::read_plates(&plates)?;
-            let bar = frames_bar();
-            let run = calibrate::calibrate_station(
-                &installation,
-                &link,
-                &by_camera,
-                &positions,
-                &bar,
-                &mut std::io::stderr(),
-            );
-            bar.finish_and_clear();
+            let run = with_frames_bar(|bar| {
+                calibrate::calibrate_station(
+                    &installation,
+                    &link,
+                    &by_camera,
+                    &positions,
+                    bar,
+                    &mut std::io::stderr(),
+                )
+            });
             let run = run?;
             let text = serde_json::to_string_pretty(&run.result)?;
             if let Some(path) = &out_file {
@@ -775,14 +769,17 @@ fn create_new(path: &std::path::Path) -> anyhow::Result<std::fs::File> {
         .with_context(|| format!("cannot create {} (it must not exist)", path.display()))
 }
 
-/// A bar over frame files, on stderr.
-fn frames_bar() -> indicatif::ProgressBar {
-    indicatif::ProgressBar::new(0).with_style(
+/// Runs `work` with a bar over frame files on stderr, cleared when it ends.
+fn with_frames_bar<T>(work: impl FnOnce(&indicatif::ProgressBar) -> T) -> T {
+    let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template(
             "{elapsed_precise} [{bar:40}] {pos}/{len} frames {msg}",
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    )
+    );
+    let result = work(&bar);
+    bar.finish_and_clear();
+    result
 }
 
 fn progress_bar(groups: Option<u64>) -> indicatif::ProgressBar {
