@@ -10,7 +10,7 @@ use super::ingest::read_body;
 use super::parse_json_body;
 use crate::vision::{
     CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, Intrinsic, Plate,
-    Polarity, calibrate_camera,
+    Polarity, calibrate_camera, intrinsics_of,
 };
 use axum::Json;
 use axum::body::Body;
@@ -215,21 +215,6 @@ pub struct CameraCalibrationOut {
     pub iterations: usize,
 }
 
-fn params_of(camera: &CameraModel) -> [f64; 9] {
-    let d = camera.distortion;
-    [
-        camera.fx_px,
-        camera.fy_px,
-        camera.cx_px,
-        camera.cy_px,
-        d[0],
-        d[1],
-        d[2],
-        d[3],
-        d[4],
-    ]
-}
-
 /// The installation's `pixel_sigma` for a calibration: its RMS per axis, at least 0.001 px.
 pub fn pixel_sigma_of(c: &CameraCalibration) -> f64 {
     (c.rms_px / std::f64::consts::SQRT_2).max(0.001)
@@ -238,7 +223,7 @@ pub fn pixel_sigma_of(c: &CameraCalibration) -> f64 {
 impl From<&CameraCalibration> for CameraCalibrationOut {
     fn from(c: &CameraCalibration) -> Self {
         Self {
-            camera: params_of(&c.camera).into(),
+            camera: intrinsics_of(&c.camera).into(),
             sigma: c.sigma.into(),
             covariance: c.covariance.iter().flatten().copied().collect(),
             parameters: Intrinsic::ALL.iter().map(|p| p.name().to_owned()).collect(),
@@ -353,7 +338,7 @@ impl CameraCalibrationIn {
             ..CameraModel::pinhole(c.fx, c.fy, c.cx, c.cy, w, h)
         });
         if let Some(c) = &initial
-            && !params_of(c).iter().all(|v| v.is_finite())
+            && !intrinsics_of(c).iter().all(|v| v.is_finite())
         {
             problems.push((None, ("initial".to_owned(), "not finite".to_owned())));
         }

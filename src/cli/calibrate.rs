@@ -6,7 +6,7 @@
 //! detector. A frame in which the plate is not wholly found is left out with the reason (on
 //! the log), never used in part.
 
-use crate::api::calibration::{CameraCalibrationOut, PlateIn, parse_fix, pixel_sigma_of};
+use crate::api::calibration::{PlateIn, parse_fix, pixel_sigma_of};
 use crate::api::vision::HandEyeOut;
 use crate::config::Installation;
 use crate::geometry::{ARCSEC_PER_RAD, Pose};
@@ -15,7 +15,7 @@ use crate::model::{LinkKind, Observer, observe_frame};
 use crate::vision::{
     CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, DetectSettings, GreyImage,
     HandEyeOptions, Intrinsic, Plate, PlateView, PnpOptions, calibrate_camera, detect,
-    disc_image_offset, solve_hand_eye, solve_pnp_weighted,
+    disc_image_offset, intrinsics_of, solve_hand_eye, solve_pnp_weighted,
 };
 use anyhow::{Context, bail};
 use std::io::Write;
@@ -132,7 +132,6 @@ pub fn calibrate_from_frames(
 pub fn report(run: &FramesCalibration) -> String {
     use std::fmt::Write as _;
     let c = &run.calibration;
-    let out = CameraCalibrationOut::from(c);
     let mut s = String::new();
     let _ = writeln!(
         s,
@@ -144,17 +143,7 @@ pub fn report(run: &FramesCalibration) -> String {
         c.rms_px,
         c.variance_factor
     );
-    let values = [
-        out.camera.fx,
-        out.camera.fy,
-        out.camera.cx,
-        out.camera.cy,
-        out.camera.distortion[0],
-        out.camera.distortion[1],
-        out.camera.distortion[2],
-        out.camera.distortion[3],
-        out.camera.distortion[4],
-    ];
+    let values = intrinsics_of(&c.camera);
     for p in Intrinsic::ALL {
         let i = p.index();
         if c.fixed.contains(&p) {

@@ -122,30 +122,6 @@ pub fn render_plate(
     render_discs(camera, &plate_discs(plate, camera_from_plate), &settings)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn views_are_inside_the_frame_tilted_and_seen_from_the_front() {
-        let camera = CameraModel {
-            distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
-            ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
-        };
-        let plate = Plate::new(7, 9, 15.0, 7.5, true, Polarity::Dark).expect("valid");
-        let poses = plate_poses(&camera, &plate, 15, 3);
-        assert_eq!(poses.len(), 15);
-        let mut max_tilt = 0.0f64;
-        for pose in &poses {
-            assert!(inside(&camera, &plate, pose, 0.0));
-            let normal = pose.rotation * Vec3::z();
-            assert!(normal.z > 0.0, "the plate's +z points away from the camera");
-            max_tilt = max_tilt.max(normal.z.acos().to_degrees());
-        }
-        assert!(max_tilt > 30.0, "{max_tilt}");
-    }
-}
-
 /// `camera_from_plate` of a plate in front of a camera, centred on its optical axis, about
 /// `fill` of the image wide, tilted by `tilt_deg` about the plate's x axis.
 pub fn plate_facing(camera: &CameraModel, plate: &Plate, fill: f64, tilt_deg: f64) -> Pose {
@@ -195,4 +171,28 @@ pub fn station_motions(positions: usize, seed: u64) -> Vec<Pose> {
             )
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn views_are_inside_the_frame_tilted_and_seen_from_the_front() {
+        let camera = CameraModel {
+            distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
+            ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
+        };
+        let plate = Plate::new(7, 9, 15.0, 7.5, true, Polarity::Dark).expect("valid");
+        let poses = plate_poses(&camera, &plate, 15, 3);
+        assert_eq!(poses.len(), 15);
+        let mut max_tilt = 0.0f64;
+        for pose in &poses {
+            assert!(inside(&camera, &plate, pose, 0.0));
+            let normal = pose.rotation * Vec3::z();
+            assert!(normal.z > 0.0, "the plate's +z points away from the camera");
+            max_tilt = max_tilt.max(normal.z.acos().to_degrees());
+        }
+        assert!(max_tilt > 30.0, "{max_tilt}");
+    }
 }

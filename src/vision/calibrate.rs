@@ -78,8 +78,8 @@ impl Intrinsic {
     }
 }
 
-/// The parameters of a camera as a vector in [`Intrinsic::ALL`]'s order.
-fn to_params(camera: &CameraModel) -> [f64; 9] {
+/// The intrinsics of a camera as a vector in [`Intrinsic::ALL`]'s order.
+pub fn intrinsics_of(camera: &CameraModel) -> [f64; 9] {
     let [k1, k2, p1, p2, k3] = camera.distortion;
     [
         camera.fx_px,
@@ -337,20 +337,18 @@ pub fn calibrate_camera(
         .map(|p| p.index())
         .collect();
     let start = initial_camera(&problem, width_px, height_px, options)?;
-    let mut params = to_params(&start);
+    let mut params = intrinsics_of(&start);
     let mut poses = initial_poses(&problem, &start)?;
     let mut offsets: Vec<Vec<Vector2<f64>>> = views
         .iter()
         .map(|v| vec![Vector2::zeros(); v.ids.len()])
         .collect();
     let mut iterations = 0;
-    let rounds = if options.eccentricity {
-        ECCENTRICITY_ROUNDS
-    } else {
-        1
-    };
-    let mut fit = None;
-    for round in 0..rounds {
+    // Without the correction one adjustment; with it, one per round until the correction
+    // settles (then once more with it) or the rounds run out.
+    let mut settled = !options.eccentricity;
+    let mut round = 0;
+    let fit = loop {
         let result = problem.adjust(
             &mut params,
             &mut poses,
@@ -361,9 +359,9 @@ pub fn calibrate_camera(
             options.max_iterations,
         )?;
         iterations += result.iterations;
-        fit = Some(result);
-        if round + 1 == rounds {
-            break;
+        round += 1;
+        if settled || round == ECCENTRICITY_ROUNDS {
+            break result;
         }
         let camera = from_params(&params, width_px, height_px);
         let next = problem.offsets(&camera, &poses);
@@ -374,24 +372,7 @@ pub fn calibrate_camera(
             .map(|(a, b)| (a - b).norm())
             .fold(0.0, f64::max);
         offsets = next;
-        if change < 1e-5 {
-            // One more adjustment with the settled correction is all it could still move.
-            let result = problem.adjust(
-                &mut params,
-                &mut poses,
-                &offsets,
-                &free,
-                width_px,
-                height_px,
-                options.max_iterations,
-            )?;
-            iterations += result.iterations;
-            fit = Some(result);
-            break;
-        }
-    }
-    let Some(fit) = fit else {
-        return Err(refuse("no adjustment ran"));
+        settled = change < 1e-5;
     };
     let camera = from_params(&params, width_px, height_px);
     problem.report(camera, &poses, fit, &free, options, iterations)
@@ -953,7 +934,7 @@ fn initial_camera(
     for p in &options.fixed {
         let i = p.index();
         params[i] = match (options.initial, p) {
-            (Some(c), _) => to_params(&c)[i],
+            (Some(c), _) => intrinsics_of(&c)[i],
             (None, Intrinsic::Cx) => ccx,
             (None, Intrinsic::Cy) => ccy,
             (None, Intrinsic::Fx | Intrinsic::Fy) => {

@@ -9,6 +9,7 @@ use brokenray::sim::render::RenderSettings;
 use brokenray::vision::{
     CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, CameraModel,
     DetectSettings, Intrinsic, Plate, Polarity, calibrate_camera, detect, disc_image_offset,
+    intrinsics_of,
 };
 
 /// The laboratory's camera C1 (1280 x 1024, 4800 px focal length: a narrow lens).
@@ -68,28 +69,7 @@ pub fn rendered_views(
 }
 
 fn errors(c: &CameraCalibration, truth: &CameraModel) -> [f64; 9] {
-    let est = [
-        c.camera.fx_px,
-        c.camera.fy_px,
-        c.camera.cx_px,
-        c.camera.cy_px,
-        c.camera.distortion[0],
-        c.camera.distortion[1],
-        c.camera.distortion[2],
-        c.camera.distortion[3],
-        c.camera.distortion[4],
-    ];
-    let t = [
-        truth.fx_px,
-        truth.fy_px,
-        truth.cx_px,
-        truth.cy_px,
-        truth.distortion[0],
-        truth.distortion[1],
-        truth.distortion[2],
-        truth.distortion[3],
-        truth.distortion[4],
-    ];
+    let (est, t) = (intrinsics_of(&c.camera), intrinsics_of(truth));
     std::array::from_fn(|i| est[i] - t[i])
 }
 
