@@ -86,10 +86,10 @@ pub struct PlateViewIn {
     pub sigma_px: Option<Vec<f64>>,
 }
 
-/// Known intrinsics: the values of fixed focal lengths (or any fixed parameter).
+/// Intrinsics in JSON: a camera's, their sigmas, or the known values of fixed ones.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct IntrinsicsIn {
+pub struct Intrinsics {
     /// Focal length along x (px).
     pub fx: f64,
     /// Focal length along y (px).
@@ -98,9 +98,21 @@ pub struct IntrinsicsIn {
     pub cx: f64,
     /// Principal point y (px).
     pub cy: f64,
-    /// `[k1, k2, p1, p2, k3]`.
+    /// `[k1, k2, p1, p2, k3]` (zeros when left out).
     #[serde(default)]
     pub distortion: [f64; 5],
+}
+
+impl From<[f64; 9]> for Intrinsics {
+    fn from(p: [f64; 9]) -> Self {
+        Self {
+            fx: p[0],
+            fy: p[1],
+            cx: p[2],
+            cy: p[3],
+            distortion: [p[4], p[5], p[6], p[7], p[8]],
+        }
+    }
 }
 
 /// A calibration request.
@@ -119,34 +131,7 @@ pub struct CameraCalibrationIn {
     pub fix: Vec<String>,
     /// Known values of fixed parameters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub initial: Option<IntrinsicsIn>,
-}
-
-/// Intrinsics as answered (or their sigmas).
-#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
-pub struct IntrinsicsOut {
-    /// Focal length along x (px).
-    pub fx: f64,
-    /// Focal length along y (px).
-    pub fy: f64,
-    /// Principal point x (px).
-    pub cx: f64,
-    /// Principal point y (px).
-    pub cy: f64,
-    /// `[k1, k2, p1, p2, k3]`.
-    pub distortion: [f64; 5],
-}
-
-impl From<[f64; 9]> for IntrinsicsOut {
-    fn from(p: [f64; 9]) -> Self {
-        Self {
-            fx: p[0],
-            fy: p[1],
-            cx: p[2],
-            cy: p[3],
-            distortion: [p[4], p[5], p[6], p[7], p[8]],
-        }
-    }
+    pub initial: Option<Intrinsics>,
 }
 
 /// One view's fit.
@@ -186,9 +171,9 @@ pub struct CalibrationWarningOut {
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct CameraCalibrationOut {
     /// The intrinsics.
-    pub camera: IntrinsicsOut,
+    pub camera: Intrinsics,
     /// Their standard deviations (0 for fixed ones).
-    pub sigma: IntrinsicsOut,
+    pub sigma: Intrinsics,
     /// Their covariance, 81 numbers row-major in the order of `parameters`.
     pub covariance: Vec<f64>,
     /// `["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]`.

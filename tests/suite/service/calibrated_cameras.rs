@@ -4,8 +4,8 @@
 //! the true intrinsics and of one with the calibrated ones. The two `G_from_B` differ by what
 //! the calibrations' reported covariances predict (chi-square), no more.
 
-use super::frames::post_frame;
-use super::helpers::{T0_NS, TestApp};
+use super::frames::{post_frame, static_simulator};
+use super::helpers::TestApp;
 use crate::camera_calibration::{calibrate, plate, rendered_views};
 use axum::http::StatusCode;
 use brokenray::clock::format_ns;
@@ -13,7 +13,6 @@ use brokenray::geometry::{Pose, pose_from_parts, rotation_from_euler, se3_log};
 use brokenray::imagefile::{FrameFormat, encode};
 use brokenray::model::Observer;
 use brokenray::sim::render::RenderSettings;
-use brokenray::sim::{Scenario, SimSettings, Simulator};
 use brokenray::vision::{CameraCalibration, CameraModel, Intrinsic, PnpOptions, solve_pnp};
 use nalgebra::{DMatrix, DVector, Point3};
 
@@ -158,19 +157,7 @@ async fn calibrated_intrinsics_give_the_chain_of_the_true_ones_within_their_sigm
     let with_truth = TestApp::start(None).await;
     let with_calibration = TestApp::start(Some(&installation_with(&calibrated))).await;
     // The same frames to both.
-    let mut sim = Simulator::new(
-        &truth_inst.model,
-        SimSettings {
-            scenario: Scenario::Static,
-            rate_hz: 25.0,
-            start_ns: T0_NS,
-            duration_s: None,
-            pixel_sigma_px: None,
-            outlier_rate: 0.0,
-            seed: 8,
-        },
-    )
-    .expect("simulator");
+    let mut sim = static_simulator(8);
     let render = RenderSettings {
         samples_per_side: 16,
         ..RenderSettings::default()

@@ -11,10 +11,10 @@ use brokenray::sim::{Scenario, SimGroup, SimSettings, Simulator};
 use brokenray::vision::{BitDepth, GreyImage};
 use serde_json::Value;
 
-/// The group at `T0_NS` of a static run and its three frames (C1, C2, C3).
-pub(super) fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) {
+/// A static run of the built-in installation from `T0_NS` at 25 Hz.
+pub(super) fn static_simulator(seed: u64) -> Simulator {
     let inst = brokenray::config::default_installation();
-    let mut sim = Simulator::new(
+    Simulator::new(
         &inst.model,
         SimSettings {
             scenario: Scenario::Static,
@@ -23,10 +23,15 @@ pub(super) fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) 
             duration_s: None,
             pixel_sigma_px: None,
             outlier_rate: 0.0,
-            seed: 5,
+            seed,
         },
     )
-    .expect("simulator");
+    .expect("simulator")
+}
+
+/// The group at `T0_NS` of a static run and its three frames (C1, C2, C3).
+pub(super) fn rendered(depth: BitDepth) -> (SimGroup, Vec<(String, GreyImage)>) {
+    let mut sim = static_simulator(5);
     let group = sim.next_group();
     let settings = RenderSettings {
         samples_per_side: 16,

@@ -172,6 +172,14 @@ impl TestApp {
 
     /// Sets target G's reference to `G_from_B` = 3 m along z, unrotated (the pose the alarm
     /// tests turn away from); must be accepted.
+    /// Asserts that no link has a stored sample.
+    pub async fn assert_nothing_stored(&self) {
+        let (_, links) = self.get("/api/v1/links").await;
+        for l in links.as_array().expect("links") {
+            assert_eq!(l["n_samples"].as_u64().unwrap_or(0), 0, "{l}");
+        }
+    }
+
     pub async fn set_straight_reference(&self) {
         let (status, body) = self
             .post_json(
