@@ -344,7 +344,8 @@ pub fn calibrate_station(
         }
     }
     progress.set_length(positions.len() as u64);
-    // Each position's two poses, `sensor_from_world` for each sensor.
+    // Each position's two poses, `world_from_sensor` for each sensor (the world: what the
+    // sensor is measured against, fixed), with their largest rotation and translation sigmas.
     let mut measured: Vec<(Pose, Pose, f64, f64)> = Vec::new();
     let mut left_out = Vec::new();
     let mut last_marker_pose: Option<Pose> = None;
@@ -379,7 +380,8 @@ pub fn calibrate_station(
                             let pose = found.solution.camera_from_marker;
                             last_marker_pose = Some(pose);
                             let (sr, st) = sigmas_of(&found.solution.covariance);
-                            // The marker's motion is that of `marker_from_camera`'s inverse.
+                            // The watching camera is fixed: `camera_from_marker` is the
+                            // marker's `world_from_sensor` as it is.
                             Ok((pose, sr, st))
                         }
                         Err(e) => Err(format!(
