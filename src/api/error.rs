@@ -46,9 +46,9 @@ pub struct ApiError {
     pub code: &'static str,
     /// A sentence for people.
     pub message: String,
-    /// The items and fields concerned (at most [`MAX_DETAILS`]).
+    /// The items and fields concerned (at most `MAX_DETAILS`, 100).
     pub details: Vec<ErrorDetail>,
-    /// Details left out past [`MAX_DETAILS`].
+    /// Details left out past `MAX_DETAILS`.
     pub details_omitted: usize,
 }
 
@@ -89,7 +89,7 @@ impl ApiError {
         }
     }
 
-    /// Adds details: the first [`MAX_DETAILS`], each message cut to a few hundred characters;
+    /// Adds details: the first `MAX_DETAILS` (100), each message cut to a few hundred characters;
     /// the others are counted.
     pub fn with_details(mut self, mut details: Vec<ErrorDetail>) -> Self {
         if details.len() > MAX_DETAILS {

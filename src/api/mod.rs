@@ -1,7 +1,7 @@
 //! The HTTP API (`/api/v1`, `docs/interface.md`, "HTTP API"): routes, request and response bodies,
 //! errors, authentication, and the server's start and graceful stop.
 //!
-//! Handlers are thin: read the request, convert it to domain types ([`dto`]), call the
+//! Handlers are thin: read the request, convert it to domain types (`dto`), call the
 //! [`crate::service`], convert the answer back. Every error is one [`ApiError`] with the body
 //! `{"error": {"code", "message", "details": [{"index", "field", "message"}]}}`.
 

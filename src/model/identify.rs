@@ -28,7 +28,7 @@ pub const AMBIGUITY_FACTOR: f64 = 1.5;
 pub enum Reach {
     /// Each point's full gate; the marker is found with at least [`MIN_POINTS`] points.
     Full,
-    /// A gate of at most [`GATE_MIN_PX`], and every point must match: the quick first look
+    /// A gate of at most `GATE_MIN_PX` (15 px), and every point must match: the quick first look
     /// when the prediction is good. When it finds a marker, the full gate would have matched
     /// the same blobs (each point's nearest blob is within the short gate, and any blob that
     /// could make it ambiguous within 1.5 times that), so a caller can search the frame only
@@ -146,7 +146,7 @@ fn gates(predicted: &[Vector2<f64>], reach: Reach) -> Vec<(f64, f64)> {
 
 /// The part of the frame [`identify_within`] looks at for `link`'s marker at `prior`: per
 /// point, its prediction and the half side of a square that holds, whole, every blob its gates
-/// weigh (the `look` of [`gates`], plus the disc's predicted radius with half again for a tilt
+/// weigh (the `look` of `gates`, plus the disc's predicted radius with half again for a tilt
 /// the prior does not know, and the detector's window margin). Empty when the marker is not in
 /// view.
 pub fn search_squares(link: &ObservedLink, prior: &Pose, reach: Reach) -> Vec<([f64; 2], f64)> {

@@ -4,12 +4,12 @@
 //! The pipeline never calls Rerun. It hands plain [`Record`]s to a [`VizSender`], which
 //! decimates them (per series, in measurement time) and offers them to a bounded queue with
 //! `try_send`: when the queue is full the record is dropped and counted, the pipeline never
-//! waits. One logger thread ([`logger`]) owns the Rerun recording streams and is the only code
+//! waits. One logger thread (`logger`) owns the Rerun recording streams and is the only code
 //! that calls the SDK; a stalled sink (a viewer that went away, or never came) stalls that
 //! thread only.
 //!
-//! The same [`logger::Logger`] writes the recordings `brokenray replay` rebuilds from the
-//! stored history ([`replay`]).
+//! The same `logger::Logger` writes the recordings `brokenray replay` rebuilds from the
+//! stored history (`replay`).
 
 mod blueprint;
 mod logger;
@@ -96,7 +96,7 @@ pub enum Record {
     },
 }
 
-/// A frame waiting for the logger: counted from [`FrameSender::send`] until its record is
+/// A frame waiting for the logger: counted from [`FrameSender::offer`] until its record is
 /// dropped (logged, or left in the queue at the end), so that frames, which weigh megabytes
 /// where other records weigh bytes, are bounded by number in the queue.
 #[derive(Debug, Default)]
