@@ -237,6 +237,8 @@ pub const RECOMMENDED_TILT_DEG: f64 = 20.0;
 pub const MIN_VIEWS: usize = 3;
 /// Fewest points of a view accepted.
 pub const MIN_VIEW_POINTS: usize = 6;
+/// Most views accepted: the adjustment's normal equations grow with the cube of the views.
+pub const MAX_VIEWS: usize = 200;
 
 impl CalibrationWarning {
     /// A short code for the kind of warning.
@@ -382,6 +384,12 @@ fn check_views(plate: &Plate, views: &[CalibrationView]) -> Result<(), VisionErr
     if views.len() < MIN_VIEWS {
         return Err(refuse(format!(
             "{} view(s): at least {MIN_VIEWS} are needed ({RECOMMENDED_VIEWS} or more recommended)",
+            views.len()
+        )));
+    }
+    if views.len() > MAX_VIEWS {
+        return Err(refuse(format!(
+            "{} views: at most {MAX_VIEWS} are taken (a few dozen determine a camera well)",
             views.len()
         )));
     }

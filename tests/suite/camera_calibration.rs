@@ -267,6 +267,8 @@ fn what_cannot_calibrate_is_refused_with_the_reason() {
     let views = projected_views(&camera, &plate, &poses, 0.01, 1);
     let defaults = CalibrationOptions::default();
     assert!(refusal(&plate, &camera, &views[..2], &defaults).contains("2 view(s): at least 3"));
+    let many: Vec<_> = views.iter().cycle().take(201).cloned().collect();
+    assert!(refusal(&plate, &camera, &many, &defaults).contains("201 views: at most 200"));
     let mut bad = views.clone();
     bad[3].ids[5] = 70;
     assert!(
