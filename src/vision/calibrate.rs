@@ -363,7 +363,7 @@ pub fn calibrate_camera(
         iterations += result.iterations;
         round += 1;
         if settled || round == ECCENTRICITY_ROUNDS {
-            break result;
+            break result.fit;
         }
         let camera = from_params(&params, width_px, height_px);
         let next = problem.offsets(&camera, &poses);
@@ -459,10 +459,20 @@ struct Problem<'a> {
     plate_points_mm: Vec<Vec3>,
 }
 
-struct Adjusted {
+/// The fit at one estimate.
+struct Evaluation {
+    /// Sum of squared residuals over their variances (what is minimised).
     chi2: f64,
-    cost_px2: f64,
+    /// Sum of squared residuals (px^2), per view.
+    view_cost_px2: Vec<f64>,
+    /// `J^T W J` over the free intrinsics and the poses.
     information: DMatrix<f64>,
+    /// `J^T W r`.
+    gradient: DVector<f64>,
+}
+
+struct Adjusted {
+    fit: Evaluation,
     iterations: usize,
 }
 
@@ -519,8 +529,8 @@ impl<'a> Problem<'a> {
             .collect()
     }
 
-    /// Cost, weighted cost, `J^T W J` and `J^T W r` over the free intrinsics and the poses
-    /// (`camera_from_centred`, right perturbation); `None` when a point is behind the camera.
+    /// The fit over the free intrinsics and the poses (`camera_from_centred`, right
+    /// perturbation); `None` when a point is behind the camera.
     fn evaluate(
         &self,
         params: &[f64; 9],
@@ -528,13 +538,14 @@ impl<'a> Problem<'a> {
         offsets: &[Vec<Vector2<f64>>],
         free: &[usize],
         size: (u32, u32),
-    ) -> Option<(f64, f64, DMatrix<f64>, DVector<f64>)> {
+    ) -> Option<Evaluation> {
         let camera = from_params(params, size.0, size.1);
         let nf = free.len();
         let n = nf + 6 * poses.len();
         let mut jtj = DMatrix::<f64>::zeros(n, n);
         let mut jtr = DVector::<f64>::zeros(n);
-        let (mut chi2, mut cost) = (0.0, 0.0);
+        let mut chi2 = 0.0;
+        let mut view_cost_px2 = vec![0.0; poses.len()];
         for (v, pose) in poses.iter().enumerate() {
             let r_mat = pose.rotation.to_rotation_matrix().into_inner();
             let mut jii = DMatrix::<f64>::zeros(nf, nf);
@@ -547,7 +558,7 @@ impl<'a> Problem<'a> {
                 let (uv, dp) = camera.project_with_jacobian(&p)?;
                 let r = uv + offsets[v][k] - self.views[v].points_px[k];
                 let w = self.weights[v][k];
-                cost += r.norm_squared();
+                view_cost_px2[v] += r.norm_squared();
                 chi2 += w * r.norm_squared();
                 let intrinsic = intrinsic_jacobian(&camera, &p);
                 let ji = DMatrix::<f64>::from_fn(2, nf, |row, col| intrinsic[(row, free[col])]);
@@ -575,7 +586,12 @@ impl<'a> Problem<'a> {
             jtr.rows_mut(o, 6)
                 .copy_from(&DVector::from_column_slice(gp.as_slice()));
         }
-        Some((chi2, cost, jtj, jtr))
+        Some(Evaluation {
+            chi2,
+            view_cost_px2,
+            information: jtj,
+            gradient: jtr,
+        })
     }
 
     /// Levenberg-Marquardt with the eccentricities fixed.
@@ -596,7 +612,7 @@ impl<'a> Problem<'a> {
                 "the estimate puts plate points behind the camera: the views or their labels are inconsistent",
             )
         };
-        let (mut chi2, mut cost, mut jtj, mut jtr) = self
+        let mut fit = self
             .evaluate(params, poses, offsets, free, size)
             .ok_or_else(behind)?;
         let nf = free.len();
@@ -604,9 +620,9 @@ impl<'a> Problem<'a> {
         let mut iterations = 0;
         while iterations < max_iterations {
             iterations += 1;
-            let mut a = jtj.clone();
+            let mut a = fit.information.clone();
             for i in 0..a.nrows() {
-                a[(i, i)] += lambda * jtj[(i, i)].max(1e-12);
+                a[(i, i)] += lambda * fit.information[(i, i)].max(1e-12);
             }
             let Some(chol) = a.cholesky() else {
                 lambda *= 10.0;
@@ -615,9 +631,9 @@ impl<'a> Problem<'a> {
                 }
                 continue;
             };
-            let delta = chol.solve(&(-&jtr));
-            let predicted = -delta.dot(&jtr);
-            if !predicted.is_finite() || predicted <= 1e-12 * chi2.max(1e-300) {
+            let delta = chol.solve(&(-&fit.gradient));
+            let predicted = -delta.dot(&fit.gradient);
+            if !predicted.is_finite() || predicted <= 1e-12 * fit.chi2.max(1e-300) {
                 break;
             }
             let mut next_params = *params;
@@ -634,12 +650,12 @@ impl<'a> Problem<'a> {
                 .collect();
             match self
                 .evaluate(&next_params, &next_poses, offsets, free, size)
-                .filter(|(x, ..)| x.is_finite() && *x <= chi2)
+                .filter(|e| e.chi2.is_finite() && e.chi2 <= fit.chi2)
             {
-                Some((x, c, j, g)) => {
+                Some(better) => {
                     *params = next_params;
                     poses.copy_from_slice(&next_poses);
-                    (chi2, cost, jtj, jtr) = (x, c, j, g);
+                    fit = better;
                     lambda = (lambda * 0.1).max(1e-12);
                 }
                 None => {
@@ -653,19 +669,14 @@ impl<'a> Problem<'a> {
         if !params.iter().all(|p| p.is_finite()) {
             return Err(refuse("the adjustment diverged"));
         }
-        Ok(Adjusted {
-            chi2,
-            cost_px2: cost,
-            information: jtj,
-            iterations,
-        })
+        Ok(Adjusted { fit, iterations })
     }
 
     fn report(
         &self,
         camera: CameraModel,
         poses: &[Pose],
-        fit: Adjusted,
+        fit: Evaluation,
         free: &[usize],
         options: &CalibrationOptions,
         iterations: usize,
@@ -675,7 +686,7 @@ impl<'a> Problem<'a> {
         if dof == 0 {
             return Err(refuse("as many unknowns as measurements: add views"));
         }
-        let rms_px = (fit.cost_px2 / n_points as f64).sqrt();
+        let rms_px = (fit.view_cost_px2.iter().sum::<f64>() / n_points as f64).sqrt();
         if rms_px > options.max_rms_px {
             return Err(refuse(format!(
                 "the fit's RMS is {rms_px:.3} px, over the limit of {} px: points are mislabelled, the plate's description (spacing, rows, cols, asymmetric) is wrong, or the lens is not of the distortion model",
@@ -706,28 +717,15 @@ impl<'a> Problem<'a> {
                 }
             }
         }
-        let offsets = self.offsets(&camera, poses);
+        // Each view's RMS from the costs the fit ended on: the same residuals as `rms_px`.
         let views: Vec<ViewFit> = poses
             .iter()
             .enumerate()
             .map(|(v, pose)| {
-                let r_mat = pose.rotation.to_rotation_matrix().into_inner();
-                let mut sum = 0.0;
-                for (k, x) in self.centred_mm[v].iter().enumerate() {
-                    let p = r_mat * x + pose.translation.vector;
-                    if let Some(uv) = camera.project(&p) {
-                        let offset = if options.eccentricity {
-                            offsets[v][k]
-                        } else {
-                            Vector2::zeros()
-                        };
-                        sum += (uv + offset - self.views[v].points_px[k]).norm_squared();
-                    }
-                }
                 let normal = pose.rotation * Vec3::z();
                 ViewFit {
                     camera_from_plate: pose * Translation3::from(-self.centroids_mm[v]),
-                    rms_px: (sum / self.centred_mm[v].len() as f64).sqrt(),
+                    rms_px: (fit.view_cost_px2[v] / self.centred_mm[v].len() as f64).sqrt(),
                     points: self.centred_mm[v].len(),
                     tilt_deg: normal.z.abs().clamp(0.0, 1.0).acos().to_degrees(),
                 }
