@@ -15,7 +15,7 @@ use crate::model::{LinkKind, Observer, observe_frame};
 use crate::vision::{
     CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, DetectSettings, GreyImage,
     HandEyeOptions, Intrinsic, Plate, PlateView, PnpOptions, calibrate_camera, detect,
-    disc_image_offset, intrinsics_of, solve_hand_eye, solve_pnp_weighted,
+    intrinsics_of, solve_hand_eye, solve_pnp_discs,
 };
 use anyhow::{Context, bail};
 use std::io::Write;
@@ -452,8 +452,8 @@ fn sigmas_of(cov: &crate::geometry::Mat6) -> (f64, f64) {
     (r, t)
 }
 
-/// `camera_from_plate` from a frame: the plate found, PnP weighted by the detector, the
-/// discs' eccentricity corrected at the first pose and solved again; with its sigmas.
+/// `camera_from_plate` from a frame: the plate found, PnP on its discs weighted by the
+/// detector, eccentricity corrected; with its sigmas.
 fn plate_pose(
     camera: &CameraModel,
     plate: &Plate,
@@ -461,30 +461,22 @@ fn plate_pose(
 ) -> Result<(Pose, f64, f64), String> {
     let found = find_plate(plate, image)?;
     let points = plate.points_mm();
+    let normals = vec![crate::geometry::Vec3::z(); points.len()];
     let options = PnpOptions {
         pixel_sigma_px: 0.0,
         max_rms_px: 1.0,
         ..PnpOptions::default()
     };
-    let first = solve_pnp_weighted(
+    let (solution, _) = solve_pnp_discs(
         camera,
         &points,
+        &normals,
+        plate.diameter_mm(),
         &found.points_px,
         &found.sigmas_px,
         &options,
     )
     .map_err(|e| e.to_string())?;
-    let normal = first.camera_from_marker.rotation * crate::geometry::Vec3::z();
-    let corrected: Vec<_> = points
-        .iter()
-        .zip(&found.points_px)
-        .map(|(p, c)| {
-            let centre = (first.camera_from_marker * nalgebra::Point3::from(*p)).coords;
-            disc_image_offset(camera, &centre, &normal, plate.diameter_mm()).map_or(*c, |o| c - o)
-        })
-        .collect();
-    let solution = solve_pnp_weighted(camera, &points, &corrected, &found.sigmas_px, &options)
-        .map_err(|e| e.to_string())?;
     let (r, t) = sigmas_of(&solution.covariance);
     Ok((solution.camera_from_marker, r, t))
 }

@@ -12,7 +12,7 @@
 
 use super::observation::ObservedLink;
 use crate::geometry::Pose;
-use crate::vision::{Blob, MIN_POINTS, PnpSolution, disc_image_offset, solve_pnp_weighted};
+use crate::vision::{Blob, MIN_POINTS, PnpSolution, solve_pnp_discs, solve_pnp_weighted};
 use nalgebra::Vector2;
 
 /// A point's gate: at most this far from its prediction (px) ...
@@ -248,32 +248,30 @@ pub fn identify_within(
     let object: Vec<_> = matched.iter().map(|&(i, _)| link.points_mm[i]).collect();
     let detected: Vec<Vector2<f64>> = matched.iter().map(|&(_, k)| centres[k]).collect();
     let sigmas: Vec<f64> = matched.iter().map(|&(_, k)| blobs[k].sigma_px()).collect();
-    let first = solve_pnp_weighted(&link.camera, &object, &detected, &sigmas, &link.options)
-        .map_err(|e| NotFound::Pnp(e.to_string()))?;
-    // The centroids are not the images of the disc centres: correct at the first pose, solve
-    // again.
-    let corrected: Vec<Vector2<f64>> = match link.target {
-        None => detected.clone(),
-        Some(target) => matched
-            .iter()
-            .zip(&detected)
-            .map(|(&(i, _), c)| {
-                let pose = &first.camera_from_marker;
-                let centre = (pose * nalgebra::Point3::from(link.points_mm[i])).coords;
-                let normal = pose.rotation * link.normals[i];
-                match disc_image_offset(&link.camera, &centre, &normal, target.diameter_mm) {
-                    Some(offset) => c - offset,
-                    None => *c,
-                }
-            })
-            .collect(),
+    // The centroids are not the images of the disc centres: with disc targets, corrected at a
+    // first pose and solved again.
+    let (solution, corrected) = match link.target {
+        None => (
+            solve_pnp_weighted(&link.camera, &object, &detected, &sigmas, &link.options),
+            detected,
+        ),
+        Some(target) => {
+            let normals: Vec<_> = matched.iter().map(|&(i, _)| link.normals[i]).collect();
+            match solve_pnp_discs(
+                &link.camera,
+                &object,
+                &normals,
+                target.diameter_mm,
+                &detected,
+                &sigmas,
+                &link.options,
+            ) {
+                Ok((solution, corrected)) => (Ok(solution), corrected),
+                Err(e) => (Err(e), detected),
+            }
+        }
     };
-    let solution = if link.target.is_some() {
-        solve_pnp_weighted(&link.camera, &object, &corrected, &sigmas, &link.options)
-            .map_err(|e| NotFound::Pnp(e.to_string()))?
-    } else {
-        first
-    };
+    let solution = solution.map_err(|e| NotFound::Pnp(e.to_string()))?;
     // A solved pose has every point in front of the camera; one that is not would show at NaN.
     let reprojected_px = object
         .iter()

@@ -12,9 +12,10 @@
 //! give the offset to about a millionth of a pixel.
 //!
 //! It grows with the disc's size and tilt: a 20 mm disc at 3 m tilted by 30 degrees is offset
-//! by about 0.02 px, more than the detector's scatter.
+//! by about 0.02 px, more than the detector's scatter. [`solve_pnp_discs`] is the whole step:
+//! PnP on the centroids, the correction at that pose, PnP again.
 
-use super::CameraModel;
+use super::{CameraModel, PnpOptions, PnpSolution, VisionError, solve_pnp_weighted};
 use crate::geometry::Vec3;
 use nalgebra::{Matrix2, Matrix3x2, Vector2};
 
@@ -56,4 +57,33 @@ pub fn disc_image_offset(
         }
     }
     (weight > 0.0).then(|| sum / weight - image_of_centre)
+}
+
+/// PnP on disc targets: solved on the detected centroids, each corrected by its disc's
+/// perspective eccentricity at that first pose, and solved again. `normals_mm` are the discs'
+/// normals in the marker frame, one per point. Answers the pose and the corrected points (the
+/// images of the disc centres).
+pub fn solve_pnp_discs(
+    camera: &CameraModel,
+    points_mm: &[Vec3],
+    normals: &[Vec3],
+    diameter_mm: f64,
+    centroids_px: &[Vector2<f64>],
+    sigmas_px: &[f64],
+    options: &PnpOptions,
+) -> Result<(PnpSolution, Vec<Vector2<f64>>), VisionError> {
+    let first = solve_pnp_weighted(camera, points_mm, centroids_px, sigmas_px, options)?;
+    let pose = &first.camera_from_marker;
+    let corrected: Vec<Vector2<f64>> = points_mm
+        .iter()
+        .zip(normals)
+        .zip(centroids_px)
+        .map(|((p, n), c)| {
+            let centre = (pose * nalgebra::Point3::from(*p)).coords;
+            let normal = pose.rotation * n;
+            disc_image_offset(camera, &centre, &normal, diameter_mm).map_or(*c, |o| c - o)
+        })
+        .collect();
+    let solution = solve_pnp_weighted(camera, points_mm, &corrected, sigmas_px, options)?;
+    Ok((solution, corrected))
 }

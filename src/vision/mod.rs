@@ -40,7 +40,7 @@ pub use calibrate::{
 };
 pub use camera::CameraModel;
 pub use detect::{Blob, DetectSettings, Polarity, SearchArea, TILE_PX, detect, detect_in};
-pub use eccentricity::disc_image_offset;
+pub use eccentricity::{disc_image_offset, solve_pnp_discs};
 pub use error::VisionError;
 pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
