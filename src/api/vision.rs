@@ -16,7 +16,7 @@ use crate::vision::{HandEyeOptions, HandEyeSolution, solve_hand_eye};
 use axum::Json;
 use axum::body::Body;
 use axum::extract::State;
-use axum::http::{HeaderMap, StatusCode};
+use axum::http::HeaderMap;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use std::collections::HashSet;
@@ -380,13 +380,7 @@ impl HandEyeIn {
                 problems,
             ));
         }
-        let solution = solve_hand_eye(&pairs, &options).map_err(|e| {
-            ApiError::new(
-                StatusCode::UNPROCESSABLE_ENTITY,
-                "calibration_refused",
-                e.to_string(),
-            )
-        })?;
+        let solution = solve_hand_eye(&pairs, &options).map_err(super::calibration::refused)?;
         Ok(HandEyeOut::from(&solution))
     }
 }
