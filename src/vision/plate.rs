@@ -35,6 +35,8 @@ pub struct Plate {
     diameter_mm: f64,
     asymmetric: bool,
     polarity: Polarity,
+    /// It looks the same after a turn in its plane (a property of the layout, found once).
+    symmetric: bool,
 }
 
 /// Where a plate's points were found in one frame.
@@ -84,14 +86,17 @@ impl Plate {
                 "discs of {diameter_mm} mm at a spacing of {spacing_mm} mm would touch"
             ));
         }
-        Ok(Self {
+        let mut plate = Self {
             rows,
             cols,
             spacing_mm,
             diameter_mm,
             asymmetric,
             polarity,
-        })
+            symmetric: false,
+        };
+        plate.symmetric = plate.has_turn_symmetry();
+        Ok(plate)
     }
 
     /// Rows of points.
@@ -187,6 +192,10 @@ impl Plate {
     /// Whether the plate looks the same after a turn in its plane (so a frame cannot tell its
     /// point 0 from another).
     pub fn is_symmetric(&self) -> bool {
+        self.symmetric
+    }
+
+    fn has_turn_symmetry(&self) -> bool {
         let own: HashMap<[i64; 2], usize> = (0..self.len()).map(|i| (self.lattice(i), i)).collect();
         Self::lattice_maps()
             .iter()
@@ -274,7 +283,7 @@ impl Plate {
                     return Ok(PlateView {
                         points_px,
                         sigmas_px,
-                        symmetric: self.is_symmetric(),
+                        symmetric: self.symmetric,
                     });
                 }
                 Err(reason) => last_reason = Some(reason),
