@@ -19,13 +19,8 @@ const PLACEMENT_TRIES: usize = 200;
 /// (fewer if the plate cannot be placed: too large for the view).
 pub fn plate_poses(camera: &CameraModel, plate: &Plate, views: usize, seed: u64) -> Vec<Pose> {
     let mut rng = StdRng::seed_from_u64(seed);
-    let points = plate.points_mm();
-    let (lo, hi) = points.iter().fold(
-        (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
-        |(lo, hi), p| (lo.inf(p), hi.sup(p)),
-    );
-    let centre = (lo + hi) / 2.0;
-    let plate_width_mm = (hi.x - lo.x).max(hi.y - lo.y) + plate.diameter_mm();
+    let (centre, size_mm) = extent(plate);
+    let plate_width_mm = size_mm.x.max(size_mm.y);
     let (w, h) = (f64::from(camera.width_px), f64::from(camera.height_px));
     // The plate about 0.6 of the image's larger side at the nominal distance.
     let distance_mm = camera.fx_px * plate_width_mm / (0.6 * w.max(h));
@@ -63,6 +58,20 @@ pub fn plate_poses(camera: &CameraModel, plate: &Plate, views: usize, seed: u64)
         }
     }
     poses
+}
+
+/// The centre of the plate's points' bounding box and the plate's size over its discs' edges
+/// (mm, plate frame).
+fn extent(plate: &Plate) -> (Vec3, Vector2<f64>) {
+    let (lo, hi) = plate.points_mm().iter().fold(
+        (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.inf(p), hi.sup(p)),
+    );
+    let d = plate.diameter_mm();
+    (
+        (lo + hi) / 2.0,
+        Vector2::new(hi.x - lo.x + d, hi.y - lo.y + d),
+    )
 }
 
 /// Whether every disc of the plate at `camera_from_plate` images at least `margin_px` inside
@@ -125,13 +134,8 @@ pub fn render_plate(
 /// `camera_from_plate` of a plate in front of a camera, centred on its optical axis, about
 /// `fill` of the image wide, tilted by `tilt_deg` about the plate's x axis.
 pub fn plate_facing(camera: &CameraModel, plate: &Plate, fill: f64, tilt_deg: f64) -> Pose {
-    let points = plate.points_mm();
-    let (lo, hi) = points.iter().fold(
-        (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
-        |(lo, hi), p| (lo.inf(p), hi.sup(p)),
-    );
-    let centre = (lo + hi) / 2.0;
-    let width_mm = hi.x - lo.x + plate.diameter_mm();
+    let (centre, size_mm) = extent(plate);
+    let width_mm = size_mm.x;
     let distance_mm = camera.fx_px * width_mm / (fill * f64::from(camera.width_px));
     let r = UnitQuaternion::from_axis_angle(&Vec3::x_axis(), tilt_deg.to_radians());
     Pose::from_parts(
