@@ -37,17 +37,19 @@ pub(super) fn replay(
         out_file.display()
     );
     let database = installation.server.database.clone();
-    anyhow::ensure!(
-        database.exists(),
-        "no database at {}: nothing was stored yet (see `server.database`)",
-        database.display()
-    );
+    if let Some(path) = database.sqlite_path() {
+        anyhow::ensure!(
+            path.exists(),
+            "no database at {}: nothing was stored yet (see `server.database`)",
+            path.display()
+        );
+    }
     let installation = std::sync::Arc::new(installation);
     let runtime = runtime(false)?;
     runtime.block_on(async {
         let (store, write) = crate::store::open(&installation, now_ns())
             .await
-            .with_context(|| format!("cannot open {}", database.display()))?;
+            .with_context(|| format!("cannot open {}", database))?;
         drop(write);
         let bar = indicatif::ProgressBar::new(0).with_style(
             indicatif::ProgressStyle::with_template(
@@ -112,7 +114,7 @@ pub(super) async fn demo(
     writeln!(
         out,
         "brokenray demo: dashboard http://{addr}/\n  API http://{addr}/api/v1 (described at /api/v1/openapi.json)\n  database {}, Rerun recordings in {}/\n  scenario {:?} at {} Hz, the cameras sending {}; the reference is set after 5 s; Ctrl-C stops",
-        database.display(),
+        database,
         recordings.display(),
         settings.scenario,
         settings.rate_hz,
@@ -189,7 +191,7 @@ pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
     let addr = app.local_addr()?;
     tracing::info!(
         listen = %addr,
-        database = %database.display(),
+        database = %database,
         installation = %source,
         links = n_links,
         targets = ?targets,

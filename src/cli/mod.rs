@@ -344,18 +344,13 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         } => {
             let installation = config::load_or_default(config.as_deref())?;
             let database = installation.server.database.clone();
-            writeln!(
-                out,
-                "backing up {} to {} ...",
-                database.display(),
-                out_file.display()
-            )?;
+            writeln!(out, "backing up {} to {} ...", database, out_file.display())?;
             out.flush()?;
             let runtime = runtime(false)?;
             let started = std::time::Instant::now();
             let bytes = runtime
                 .block_on(crate::store::backup(&database, &out_file))
-                .with_context(|| format!("backup of {} failed", database.display()))?;
+                .with_context(|| format!("backup of {} failed", database))?;
             writeln!(
                 out,
                 "done: {} ({:.1} MB) in {:.1} s, a consistent copy",

@@ -77,13 +77,81 @@ pub struct RetentionSettings {
     pub results_days: f64,
 }
 
+/// Where the history is kept (`[server] database`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Database {
+    /// An SQLite file (created if missing): the embedded default.
+    Sqlite(PathBuf),
+    /// A PostgreSQL database, by its `postgres://` URL.
+    Postgres(PostgresUrl),
+}
+
+impl Database {
+    /// The SQLite file, when the database is one.
+    pub fn sqlite_path(&self) -> Option<&Path> {
+        match self {
+            Database::Sqlite(p) => Some(p),
+            Database::Postgres(_) => None,
+        }
+    }
+}
+
+/// Names the database for people: the file, or the URL without its password.
+impl std::fmt::Display for Database {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Database::Sqlite(p) => write!(f, "{}", p.display()),
+            Database::Postgres(u) => write!(f, "{u}"),
+        }
+    }
+}
+
+/// A PostgreSQL URL (`postgres://user:password@host:port/database?options`). It prints without
+/// its password, so logs and error messages never carry it.
+#[derive(Clone, PartialEq, Eq)]
+pub struct PostgresUrl(url::Url);
+
+impl PostgresUrl {
+    /// Parses a `postgres://` or `postgresql://` URL; `None` when it is not one.
+    pub fn parse(text: &str) -> Option<PostgresUrl> {
+        let url = url::Url::parse(text).ok()?;
+        matches!(url.scheme(), "postgres" | "postgresql").then_some(PostgresUrl(url))
+    }
+
+    /// The whole URL, password included, for the driver only.
+    pub fn secret(&self) -> &str {
+        self.0.as_str()
+    }
+
+    /// The database's name (the URL's path), if the URL gives one.
+    pub fn database_name(&self) -> Option<&str> {
+        Some(self.0.path().trim_start_matches('/')).filter(|n| !n.is_empty())
+    }
+}
+
+impl std::fmt::Display for PostgresUrl {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let mut shown = self.0.clone();
+        if shown.password().is_some() {
+            let _ = shown.set_password(Some("***"));
+        }
+        write!(f, "{shown}")
+    }
+}
+
+impl std::fmt::Debug for PostgresUrl {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PostgresUrl({self})")
+    }
+}
+
 /// HTTP server settings.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ServerSettings {
     /// The address to listen on.
     pub listen: SocketAddr,
-    /// The SQLite file (created if missing).
-    pub database: PathBuf,
+    /// Where the history is kept: an SQLite file or a PostgreSQL database.
+    pub database: Database,
     /// Largest request body (bytes).
     pub max_body_bytes: usize,
     /// Most samples in one ingest batch.

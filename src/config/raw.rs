@@ -89,7 +89,7 @@ pub(super) struct RawOscillation {
 #[serde(deny_unknown_fields)]
 pub(super) struct RawServer {
     pub listen: Option<Spanned<String>>,
-    pub database: Option<String>,
+    pub database: Option<Spanned<String>>,
     pub max_body_bytes: Option<usize>,
     pub max_batch_samples: Option<usize>,
     pub events_max_hz: Option<f64>,

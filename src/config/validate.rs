@@ -347,6 +347,46 @@ impl Validator {
         })
     }
 
+    /// `server.database`: a `postgres://` URL, or else an SQLite file path.
+    fn database(&mut self, raw: Option<&toml::Spanned<String>>) -> Option<crate::config::Database> {
+        use crate::config::{Database, PostgresUrl};
+        let Some(s) = raw else {
+            return Some(Database::Sqlite(PathBuf::from("brokenray.db")));
+        };
+        let text = s.get_ref().trim();
+        if text.starts_with("postgres:") || text.starts_with("postgresql:") {
+            match PostgresUrl::parse(text) {
+                Some(url) if url.database_name().is_some() => Some(Database::Postgres(url)),
+                Some(_) => {
+                    self.problem(
+                        s.span().start,
+                        "server.database: the PostgreSQL URL names no database; write it like \
+                         postgres://user:password@127.0.0.1:5432/brokenray"
+                            .into(),
+                    );
+                    None
+                }
+                None => {
+                    self.problem(
+                        s.span().start,
+                        "server.database is not a valid PostgreSQL URL; write it like \
+                         postgres://user:password@127.0.0.1:5432/brokenray"
+                            .into(),
+                    );
+                    None
+                }
+            }
+        } else if text.is_empty() {
+            self.problem(
+                s.span().start,
+                "server.database is empty: give an SQLite file or a postgres:// URL".into(),
+            );
+            None
+        } else {
+            Some(Database::Sqlite(PathBuf::from(text)))
+        }
+    }
+
     fn server(&mut self, raw: &RawFile) -> Option<ServerSettings> {
         let listen = match &raw.server.listen {
             None => SocketAddr::from(([127, 0, 0, 1], 7878)),
@@ -366,7 +406,7 @@ impl Validator {
         };
         Some(ServerSettings {
             listen,
-            database: PathBuf::from(raw.server.database.as_deref().unwrap_or("brokenray.db")),
+            database: self.database(raw.server.database.as_ref())?,
             max_body_bytes: raw
                 .server
                 .max_body_bytes

@@ -8,7 +8,7 @@ use crate::bank::{BankRecord, FilterBank, Sample, TargetEstimate};
 use crate::chain::LinkId;
 use crate::deformation::{Deformation, Reference};
 use crate::filter::Disposition;
-use crate::store::write_tx::WriteTx;
+use crate::store::WriteTx;
 use crate::store::{
     NewResult, NewSample, Quality, SampleValues, StoreError, StoredAlarm, WriteConn,
 };

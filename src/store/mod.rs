@@ -1,40 +1,52 @@
-//! The SQLite store: schema migrations, the write connection, and every query.
+//! The store: the history of one installation, on SQLite or PostgreSQL.
 //!
 //! Only this module contains SQL. It takes and returns domain types (poses, covariances,
-//! results); rows are converted at its edge. Conventions of the schema (`migrations/`): times
-//! are integer nanoseconds since the Unix epoch (UTC), lengths millimetres, rotations unit
-//! quaternions, covariances 36 little-endian f64 (column-major) in a blob.
+//! results); rows are converted at its edge. [`Store`] (the read side) and [`WriteConn`] (the
+//! one writer, owned by the service's pipeline, which commits many requests per transaction)
+//! are the seam the rest of the service uses; each dispatches to a backend module:
 //!
-//! The database runs in WAL mode with `synchronous = FULL`: a commit is on disk before it
-//! returns, so what the service acknowledges survives a crash or a power cut. Reads go through
-//! a pool of connections; all writes go through the one [`WriteConn`], owned by the service's
-//! pipeline task, which commits many requests per transaction.
+//! * [`sqlite`]: one file, WAL mode, `synchronous = FULL` (`migrations/`), the embedded default;
+//! * [`postgres`]: a server, samples, results and rollups partitioned by time with pg_partman
+//!   (`migrations-postgres/`), synchronous commit.
+//!
+//! Both promise the same: a commit returns only once durable, so what the service
+//! acknowledges survives a crash; a transaction that fails leaves nothing behind and the next
+//! starts on a fresh connection; the same keys and conflict rules. The behaviour both share
+//! (checks of values before they reach a row, the merge of rollups, the planning of a history)
+//! lives here, once; the backends hold only their statements. Conventions of both schemas:
+//! times are integer nanoseconds since the Unix epoch (UTC), lengths millimetres, rotations
+//! unit quaternions, covariances 36 little-endian f64 (column-major) in a byte string.
 
-mod codec;
-mod read;
-pub(crate) mod rollup;
-mod write;
-
-/// The statements of one write transaction.
-pub mod write_tx {
-    pub use super::write::WriteTx;
+/// Runs the same expression on whichever backend `$value` holds.
+macro_rules! on_backend {
+    ($value:expr, $enum:ident, $b:ident => $body:expr) => {
+        match $value {
+            $enum::Sqlite($b) => $body,
+            $enum::Postgres($b) => $body,
+        }
+    };
 }
 
+mod codec;
+pub mod postgres;
+pub(crate) mod rollup;
+mod rows;
+pub mod sqlite;
+
 pub use codec::{Quality, SampleValues, StoredUncertainty};
-pub use read::{
+pub use rows::{
     Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample,
 };
-pub use write::{NewResult, NewSample, WriteConn};
+pub use sqlite::APPLICATION_ID;
 
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
-};
-use sqlx::{ConnectOptions, Connection};
-use std::path::{Path, PathBuf};
-use std::time::Duration;
-
-/// The embedded migrations (`migrations/`), applied at start-up.
-pub static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!();
+use crate::chain::LinkId;
+use crate::config::Database;
+use crate::deformation::SmallMotion;
+use crate::geometry::{PoseCov, ReportedSigmas};
+use codec::{encode_mat6, pose_columns};
+use rows::{ResultColumns, SampleColumns, VersionColumns};
+use std::path::PathBuf;
+use std::sync::Arc;
 
 /// Errors of the store.
 #[derive(Debug, thiserror::Error)]
@@ -46,10 +58,10 @@ pub enum StoreError {
     #[error("migration failed: {0}")]
     Migration(sqlx::migrate::MigrateError),
     /// The database could not be opened or prepared at start-up.
-    #[error("cannot open the database {}: {message}", path.display())]
+    #[error("cannot open the database {database}: {message}")]
     Open {
-        /// The configured file.
-        path: PathBuf,
+        /// The configured file, or the URL without its password.
+        database: String,
         /// Why.
         message: String,
     },
@@ -78,6 +90,15 @@ pub enum StoreError {
         /// The column or quantity.
         what: String,
     },
+    /// The database server cannot be reached.
+    #[error("the database server cannot be reached: {0}")]
+    Unreachable(String),
+    /// Another brokenray service holds this database's writer lock.
+    #[error(
+        "another brokenray service writes to this database (it holds the writer's lock); \
+         one database has one writer"
+    )]
+    WriterLocked,
     /// A long scan (through rusqlite) failed.
     #[error("database error while scanning: {0}")]
     Scan(String),
@@ -97,48 +118,6 @@ impl From<sqlx::Error> for StoreError {
 impl From<sqlx::migrate::MigrateError> for StoreError {
     fn from(e: sqlx::migrate::MigrateError) -> Self {
         StoreError::Migration(e)
-    }
-}
-
-/// The SQLite `application_id` of a brokenray database ("BRRY"): a file with another id is
-/// another program's and is never migrated into.
-pub const APPLICATION_ID: i64 = 0x4252_5259;
-
-/// Device and inode of a file: the identity the open database must keep.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct FileIdentity {
-    dev: u64,
-    ino: u64,
-}
-
-impl FileIdentity {
-    /// The identity of the file at `path`, or `None` when there is none.
-    pub(crate) fn of(path: &Path) -> Option<FileIdentity> {
-        let meta = std::fs::metadata(path).ok()?;
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::MetadataExt;
-            Some(FileIdentity {
-                dev: meta.dev(),
-                ino: meta.ino(),
-            })
-        }
-        #[cfg(not(unix))]
-        {
-            let _ = meta;
-            Some(FileIdentity { dev: 0, ino: 0 })
-        }
-    }
-}
-
-/// Fails unless the file at `path` is still the one with `identity`.
-pub(crate) fn check_identity(path: &Path, identity: FileIdentity) -> StoreResult<()> {
-    if FileIdentity::of(path) == Some(identity) {
-        Ok(())
-    } else {
-        Err(StoreError::FileReplaced {
-            path: path.to_owned(),
-        })
     }
 }
 
@@ -197,331 +176,652 @@ pub struct DatabaseHealth {
 /// Result alias of the store.
 pub type StoreResult<T> = Result<T, StoreError>;
 
+/// How a reference came about, as stored: `(origin, window from, window to, window count)`.
+type WindowOrigin = (&'static str, Option<i64>, Option<i64>, Option<i64>);
+
+/// The read side of a backend.
+#[derive(Debug, Clone)]
+enum Reader {
+    Sqlite(sqlite::Reader),
+    Postgres(postgres::Reader),
+}
+
 /// The read side of the store, and the ids of the installation's links and targets.
 #[derive(Debug, Clone)]
 pub struct Store {
-    pool: SqlitePool,
-    /// A connection of its own for the health check, so that busy readers cannot fail it.
-    health_conn: std::sync::Arc<tokio::sync::Mutex<Option<sqlx::SqliteConnection>>>,
-    path: PathBuf,
-    identity: FileIdentity,
-    writer: std::sync::Arc<WriterHealth>,
+    reader: Reader,
+    writer: Arc<WriterHealth>,
     /// Database ids of the installation's links, indexed by `LinkId`.
-    link_ids: Vec<i64>,
+    link_ids: Arc<[i64]>,
     /// Database ids of the installation's targets, indexed by target index.
-    target_ids: Vec<i64>,
+    target_ids: Arc<[i64]>,
 }
 
-fn options(path: &Path) -> SqliteConnectOptions {
-    SqliteConnectOptions::new()
-        .filename(path)
-        .create_if_missing(true)
-        .journal_mode(SqliteJournalMode::Wal)
-        .synchronous(SqliteSynchronous::Full)
-        .foreign_keys(true)
-        .busy_timeout(Duration::from_secs(10))
-        .disable_statement_logging()
-}
-
-/// Refuses a file that is another program's SQLite database, and marks a new (or an older
-/// brokenray) database with [`APPLICATION_ID`].
-async fn claim(conn: &mut sqlx::SqliteConnection, path: &Path) -> StoreResult<()> {
-    let (id,): (i64,) = sqlx::query_as("pragma application_id")
-        .fetch_one(&mut *conn)
-        .await?;
-    if id == APPLICATION_ID {
-        return Ok(());
-    }
-    let tables: Vec<(String,)> = sqlx::query_as(
-        "select name from sqlite_master where type = 'table' and name not like 'sqlite_%'",
-    )
-    .fetch_all(&mut *conn)
-    .await?;
-    let names: std::collections::HashSet<&str> = tables.iter().map(|(n,)| n.as_str()).collect();
-    // A brokenray database written before the id was set has these.
-    let ours = ["_sqlx_migrations", "samples", "results", "filter_state"]
-        .iter()
-        .all(|t| names.contains(t));
-    if id != 0 || !(names.is_empty() || ours) {
-        return Err(StoreError::Foreign {
-            path: path.to_owned(),
-        });
-    }
-    sqlx::query(&format!("pragma application_id = {APPLICATION_ID}"))
-        .execute(&mut *conn)
-        .await?;
-    Ok(())
-}
-
-/// Opens (creating if needed) the installation's database (`server.database`), applies
-/// migrations and registers the names of its links and targets. Returns the read side and the
-/// one write connection. Every error names the file.
+/// Opens the installation's database (`server.database`: an SQLite file, created if needed,
+/// or a PostgreSQL database), applies migrations and registers the names of its links and
+/// targets. Returns the read side and the one write connection. Every error names the
+/// database.
 pub async fn open(
     installation: &crate::config::Installation,
     now_ns: i64,
 ) -> StoreResult<(Store, WriteConn)> {
-    let path = installation.server.database.as_path();
     let link_names: Vec<&String> = installation.model.links.iter().map(|l| &l.name).collect();
     let target_names: Vec<&String> = installation.model.targets.iter().map(|t| &t.name).collect();
-    let opened = open_inner(path, &link_names, &target_names, now_ns).await;
-    opened.map_err(|e| match e {
-        e @ (StoreError::Foreign { .. } | StoreError::Open { .. }) => e,
-        other => StoreError::Open {
-            path: path.to_owned(),
-            message: other.to_string(),
-        },
-    })
-}
-
-async fn open_inner(
-    path: &Path,
-    link_names: &[&String],
-    target_names: &[&String],
-    now_ns: i64,
-) -> StoreResult<(Store, WriteConn)> {
-    let mut conn = options(path).connect().await?;
-    claim(&mut conn, path).await?;
-    MIGRATOR.run(&mut conn).await?;
-    let identity = FileIdentity::of(path).ok_or_else(|| StoreError::Open {
-        path: path.to_owned(),
-        message: "the file vanished while it was opened".into(),
-    })?;
-    let mut tx = conn.begin().await?;
-    let mut link_ids = Vec::with_capacity(link_names.len());
-    for name in link_names.iter().copied() {
-        sqlx::query(
-            "insert into links (name, created_ns) values (?, ?) on conflict (name) do nothing",
-        )
-        .bind(name)
-        .bind(now_ns)
-        .execute(&mut *tx)
-        .await?;
-        let (id,): (i64,) = sqlx::query_as("select link_id from links where name = ?")
-            .bind(name)
-            .fetch_one(&mut *tx)
-            .await?;
-        link_ids.push(id);
-    }
-    let mut target_ids = Vec::with_capacity(target_names.len());
-    for name in target_names.iter().copied() {
-        sqlx::query(
-            "insert into targets (name, created_ns) values (?, ?) on conflict (name) do nothing",
-        )
-        .bind(name)
-        .bind(now_ns)
-        .execute(&mut *tx)
-        .await?;
-        let (id,): (i64,) = sqlx::query_as("select target_id from targets where name = ?")
-            .bind(name)
-            .fetch_one(&mut *tx)
-            .await?;
-        target_ids.push(id);
-    }
-    tx.commit().await?;
-    let pool = SqlitePoolOptions::new()
-        .max_connections(4)
-        .connect_with(options(path).read_only(true))
-        .await?;
-    let health_conn = options(path).read_only(true).connect().await?;
-    let writer = std::sync::Arc::new(WriterHealth::default());
+    let (reader, backend, link_ids, target_ids) = match &installation.server.database {
+        Database::Sqlite(path) => {
+            let (r, w, l, t) = sqlite::open(path, &link_names, &target_names, now_ns).await?;
+            (Reader::Sqlite(r), Writer::Sqlite(w), l, t)
+        }
+        Database::Postgres(url) => {
+            let (r, w, l, t) = postgres::open(url, &link_names, &target_names, now_ns).await?;
+            (Reader::Postgres(r), Writer::Postgres(w), l, t)
+        }
+    };
+    let writer = Arc::new(WriterHealth::default());
+    let link_ids: Arc<[i64]> = link_ids.into();
+    let target_ids: Arc<[i64]> = target_ids.into();
     Ok((
         Store {
-            pool,
-            health_conn: std::sync::Arc::new(tokio::sync::Mutex::new(Some(health_conn))),
-            path: path.to_owned(),
-            identity,
-            writer: std::sync::Arc::clone(&writer),
-            link_ids: link_ids.clone(),
-            target_ids: target_ids.clone(),
+            reader,
+            writer: Arc::clone(&writer),
+            link_ids: Arc::clone(&link_ids),
+            target_ids: Arc::clone(&target_ids),
         },
-        WriteConn::new(conn, path, identity, writer, link_ids, target_ids),
+        WriteConn {
+            backend,
+            health: writer,
+            link_ids,
+            target_ids,
+        },
     ))
 }
 
-impl Store {
-    /// The database file.
-    pub fn path(&self) -> &Path {
-        &self.path
+/// Writes a consistent copy of the database to `out` while the service may be writing to it:
+/// for SQLite a database file (`VACUUM INTO`), for PostgreSQL a `pg_dump` archive (custom
+/// format, one snapshot). Refuses to overwrite `out`. Returns the copy's size in bytes.
+pub async fn backup(database: &Database, out: &std::path::Path) -> StoreResult<u64> {
+    match database {
+        Database::Sqlite(path) => sqlite::backup(path, out).await,
+        Database::Postgres(url) => postgres::backup(url, out).await,
     }
+}
 
-    /// The health of the database and the writer, on the health check's own connection: the
-    /// configured file must still be the one open, answer a query, and the writer's last commit
-    /// must have succeeded.
+impl Store {
+    /// The health of the database and the writer: the database must answer a query (on a
+    /// connection of its own, so that busy readers cannot fail it) and the writer's last
+    /// commit must have succeeded.
     pub async fn health(&self) -> DatabaseHealth {
         let writer_problem = self.writer.problem();
-        let file_problem = check_identity(&self.path, self.identity)
-            .err()
-            .map(|e| e.to_string());
-        let query_problem = {
-            let mut guard = self.health_conn.lock().await;
-            if guard.is_none() {
-                *guard = options(&self.path)
-                    .create_if_missing(false)
-                    .read_only(true)
-                    .connect()
-                    .await
-                    .ok();
-            }
-            match guard.as_mut() {
-                None => Some(format!("cannot open {}", self.path.display())),
-                Some(conn) => {
-                    let answer = tokio::time::timeout(
-                        Duration::from_secs(2),
-                        sqlx::query("select count(*) from sqlite_master").execute(&mut *conn),
-                    )
-                    .await;
-                    match answer {
-                        Ok(Ok(_)) => None,
-                        Ok(Err(e)) => {
-                            *guard = None;
-                            Some(format!("the database does not answer: {e}"))
-                        }
-                        Err(_) => {
-                            *guard = None;
-                            Some("the database did not answer within 2 s".to_owned())
-                        }
-                    }
-                }
-            }
-        };
-        let reachable = file_problem.is_none() && query_problem.is_none();
-        let problem = file_problem.or(query_problem).or(writer_problem.clone());
+        let database_problem = on_backend!(&self.reader, Reader, r => r.problem().await);
         DatabaseHealth {
-            reachable,
+            reachable: database_problem.is_none(),
             writer_ok: writer_problem.is_none(),
-            problem,
+            problem: database_problem.or(writer_problem),
         }
     }
 
     /// Closes the read pool and the health connection.
     pub async fn close(&self) {
-        self.pool.close().await;
-        if let Some(conn) = self.health_conn.lock().await.take() {
-            let _ = conn.close().await;
-        }
+        on_backend!(&self.reader, Reader, r => r.close().await)
     }
-}
 
-/// Writes a consistent copy of the database at `database` to `out` while the service may be
-/// writing to it (`VACUUM INTO` reads one snapshot; WAL lets the writer go on). Refuses to
-/// overwrite `out`. Returns the copy's size in bytes.
-pub async fn backup(database: &Path, out: &Path) -> StoreResult<u64> {
-    if out.exists() {
-        return Err(StoreError::Malformed(format!(
-            "{} already exists; a backup never overwrites a file",
-            out.display()
-        )));
+    /// Stored samples of a link in `[from_ns, to_ns]`, oldest first, at most `limit`.
+    pub async fn samples(
+        &self,
+        link: LinkId,
+        from_ns: i64,
+        to_ns: i64,
+        limit: i64,
+    ) -> StoreResult<Vec<StoredSample>> {
+        let id = self.link_ids[link.0];
+        let rows =
+            on_backend!(&self.reader, Reader, r => r.samples(id, from_ns, to_ns, limit).await)?;
+        rows.into_iter().map(rows::SampleRow::into_sample).collect()
     }
-    if !database.exists() {
-        return Err(StoreError::Malformed(format!(
-            "no database at {}",
-            database.display()
-        )));
-    }
-    let mut conn = SqliteConnectOptions::new()
-        .filename(database)
-        .busy_timeout(Duration::from_secs(30))
-        .connect()
-        .await?;
-    sqlx::query("vacuum into ?")
-        .bind(out.to_string_lossy().into_owned())
-        .execute(&mut conn)
-        .await?;
-    conn.close().await?;
-    Ok(std::fs::metadata(out).map(|m| m.len()).unwrap_or(0))
-}
 
-#[cfg(test)]
-mod tests {
-    /// The migration that gives alarms ids keeps every row and its values, numbers them in time
-    /// order, and leaves them unacknowledged.
-    #[test]
-    fn alarm_ids_are_given_to_existing_rows_in_time_order() {
-        let db = rusqlite::Connection::open_in_memory().expect("memory database");
-        for sql in [
-            include_str!("../../migrations/0001_initial.sql"),
-            include_str!("../../migrations/0002_rollups.sql"),
-            include_str!("../../migrations/0003_alarms.sql"),
-            include_str!("../../migrations/0004_alarm_units.sql"),
-            include_str!("../../migrations/0005_link_resets.sql"),
-        ] {
-            db.execute_batch(sql).expect("older migration");
-        }
-        db.execute_batch(
-            "insert into targets values (1, 'G', 0), (2, 'H', 0);
-             insert into alarms (target_id, time_ns, kind, from_level, to_level, value, message, created_ns, unit) values
-               (2, 300, 'rate', 'none', 'alarm', 40.5, 'c', 9, 'mm_per_s'),
-               (1, 100, 'deformation', 'none', 'warn', 61.0, 'a', 7, null),
-               (1, 200, 'stale', 'none', 'alarm', 0.0, 'b', 8, 'none');",
-        )
-        .expect("old rows");
-        db.execute_batch(include_str!("../../migrations/0006_alarm_ids_and_acks.sql"))
-            .expect("migration 0006");
-        let mut q = db
-            .prepare(
-                "select alarm_id, target_id, time_ns, kind, value, unit, message, created_ns, \
-                 acknowledged_by, acknowledged_ns, ack_note from alarms order by alarm_id",
-            )
-            .expect("query");
-        type Row = (
-            i64,
-            i64,
-            i64,
-            String,
-            f64,
-            Option<String>,
-            String,
-            i64,
-            Option<String>,
-            Option<i64>,
-            Option<String>,
-        );
-        let rows: Vec<Row> = q
-            .query_map([], |r| {
-                Ok((
-                    r.get(0)?,
-                    r.get(1)?,
-                    r.get(2)?,
-                    r.get(3)?,
-                    r.get(4)?,
-                    r.get(5)?,
-                    r.get(6)?,
-                    r.get(7)?,
-                    r.get(8)?,
-                    r.get(9)?,
-                    r.get(10)?,
-                ))
+    /// Stored results of a target in `[from_ns, to_ns]`, oldest first, at most `limit`.
+    pub async fn results(
+        &self,
+        target: usize,
+        filtered: bool,
+        from_ns: i64,
+        to_ns: i64,
+        limit: i64,
+    ) -> StoreResult<Vec<StoredResult>> {
+        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let rows = on_backend!(&self.reader, Reader, r => r.results(id, source, from_ns, to_ns, limit).await)?;
+        rows.into_iter().map(rows::ResultRow::into_result).collect()
+    }
+
+    /// The paper's statistics (Table 4/5) of a target's results in `[from_ns, to_ns]`, with the
+    /// times of the first and last result. The rows are streamed and folded one by one:
+    /// memory does not grow with the window.
+    pub async fn pose_stats(
+        &self,
+        target: usize,
+        filtered: bool,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<(Option<crate::stats::PoseStats>, Option<(i64, i64)>)> {
+        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        on_backend!(&self.reader, Reader, r => r.pose_stats(id, source, from_ns, to_ns).await)
+    }
+
+    /// How many results of a target are stored in `[from_ns, to_ns]`.
+    pub async fn count_results(
+        &self,
+        target: usize,
+        filtered: bool,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<u64> {
+        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let n = on_backend!(&self.reader, Reader, r => r.count_results(id, source, from_ns, to_ns).await)?;
+        Ok(u64::try_from(n).unwrap_or(0))
+    }
+
+    /// How many samples of a link are stored in `[from_ns, to_ns]`.
+    pub async fn count_samples(&self, link: LinkId, from_ns: i64, to_ns: i64) -> StoreResult<u64> {
+        let id = self.link_ids[link.0];
+        let n = on_backend!(&self.reader, Reader, r => r.count_samples(id, from_ns, to_ns).await)?;
+        Ok(u64::try_from(n).unwrap_or(0))
+    }
+
+    /// The stored results of a target nearest to `at_ns`: the newest at or before it and the
+    /// oldest after it.
+    pub async fn results_around(
+        &self,
+        target: usize,
+        filtered: bool,
+        at_ns: i64,
+    ) -> StoreResult<(Option<StoredResult>, Option<StoredResult>)> {
+        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let before = on_backend!(&self.reader, Reader, r => r.result_next_to(id, source, at_ns, false).await)?;
+        let after = on_backend!(&self.reader, Reader, r => r.result_next_to(id, source, at_ns, true).await)?;
+        Ok((
+            before.map(rows::ResultRow::into_result).transpose()?,
+            after.map(rows::ResultRow::into_result).transpose()?,
+        ))
+    }
+
+    /// The newest stored result of a target.
+    pub async fn latest_result(
+        &self,
+        target: usize,
+        filtered: bool,
+    ) -> StoreResult<Option<StoredResult>> {
+        Ok(self.results_around(target, filtered, i64::MAX).await?.0)
+    }
+
+    /// Every reference version of a target, oldest first.
+    pub async fn references(&self, target: usize) -> StoreResult<Vec<StoredReference>> {
+        let id = self.target_ids[target];
+        let rows = on_backend!(&self.reader, Reader, r => r.references(id).await)?;
+        rows.into_iter()
+            .map(rows::ReferenceRow::into_reference)
+            .collect()
+    }
+
+    /// Every calibration version of a link, oldest first.
+    pub async fn calibrations(&self, link: LinkId) -> StoreResult<Vec<StoredCalibration>> {
+        let id = self.link_ids[link.0];
+        let rows = on_backend!(&self.reader, Reader, r => r.calibrations(id).await)?;
+        rows.into_iter()
+            .map(rows::CalibrationRow::into_calibration)
+            .collect()
+    }
+
+    /// The newest manual restart of each link's filter: when (ns, wall clock), who, why.
+    pub async fn last_link_resets(
+        &self,
+    ) -> StoreResult<Vec<(LinkId, i64, Option<String>, Option<String>)>> {
+        let rows = on_backend!(&self.reader, Reader, r => r.last_link_resets().await)?;
+        Ok(rows
+            .into_iter()
+            .filter_map(|(id, t, by, note)| {
+                self.link_ids
+                    .iter()
+                    .position(|l| *l == id)
+                    .map(|i| (LinkId(i), t, by, note))
             })
-            .expect("rows")
-            .collect::<Result<_, _>>()
-            .expect("readable");
-        let times: Vec<i64> = rows.iter().map(|r| r.2).collect();
-        assert_eq!(times, [100, 200, 300]);
-        let ids: Vec<i64> = rows.iter().map(|r| r.0).collect();
-        assert!(ids.windows(2).all(|w| w[0] < w[1]), "{ids:?}");
-        assert_eq!(
-            (
-                rows[2].1,
-                rows[2].3.as_str(),
-                rows[2].4,
-                rows[2].5.as_deref()
-            ),
-            (2, "rate", 40.5, Some("mm_per_s"))
-        );
-        assert_eq!(
-            (rows[0].5.as_deref(), rows[0].6.as_str(), rows[0].7),
-            (None, "a", 7)
-        );
-        assert!(
-            rows.iter()
-                .all(|r| r.8.is_none() && r.9.is_none() && r.10.is_none())
-        );
-        // The old key stays unique.
-        let again = db.execute(
-            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, message, created_ns) \
-             values (1, 100, 'deformation', 'warn', 'none', 1.0, 'd', 10)",
-            [],
-        );
-        assert!(again.is_err(), "the (target, time, kind) key is unique");
+            .collect())
     }
+
+    /// The persisted filter state: `(installation digest, state)`.
+    pub async fn filter_state(&self) -> StoreResult<Option<(String, String)>> {
+        on_backend!(&self.reader, Reader, r => r.filter_state().await)
+    }
+
+    /// One alarm transition by id.
+    pub async fn alarm(&self, id: i64) -> StoreResult<Option<StoredAlarm>> {
+        let row = on_backend!(&self.reader, Reader, r => r.alarm(id).await)?;
+        row.map(|row| rows::alarm_of_row(row, &self.target_ids))
+            .transpose()
+    }
+
+    /// Alarm transitions in `[from_ns, to_ns]`, of one target or all, at most `limit`: the
+    /// oldest first, or with `newest_first` the newest (so a limit keeps the latest ones).
+    pub async fn alarms(
+        &self,
+        target: Option<usize>,
+        from_ns: i64,
+        to_ns: i64,
+        limit: i64,
+        newest_first: bool,
+    ) -> StoreResult<Vec<StoredAlarm>> {
+        let id = target.map(|t| self.target_ids[t]);
+        let rows = on_backend!(&self.reader, Reader, r => r.alarms(id, from_ns, to_ns, limit, newest_first).await)?;
+        rows.into_iter()
+            .map(|row| rows::alarm_of_row(row, &self.target_ids))
+            .collect()
+    }
+
+    /// The level each alarm kind of a target was last left at (`none` when never raised).
+    pub async fn alarm_levels(&self, target: usize) -> StoreResult<[crate::alarms::Level; 3]> {
+        use crate::alarms::{AlarmKind, Level};
+        let id = self.target_ids[target];
+        let mut out = [Level::None; 3];
+        for (i, kind) in [AlarmKind::Deformation, AlarmKind::Rate, AlarmKind::Stale]
+            .iter()
+            .enumerate()
+        {
+            let level =
+                on_backend!(&self.reader, Reader, r => r.last_alarm_level(id, kind.name()).await)?;
+            if let Some(level) = level {
+                out[i] = Level::parse(&level).unwrap_or(Level::None);
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// A raw sample to store.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NewSample {
+    /// The link.
+    pub link: LinkId,
+    /// Measurement time (ns).
+    pub time_ns: i64,
+    /// Its values as given.
+    pub values: SampleValues,
+    /// What the filter did with it (`fused`, `outlier`, ...).
+    pub disposition: crate::filter::DispositionKind,
+    /// True when flagged as an outlier.
+    pub outlier: bool,
+    /// Normalised innovation squared, where the filter computed one.
+    pub nis: Option<f64>,
+    /// When the service received it (ns, wall clock).
+    pub received_ns: i64,
+}
+
+/// A target result to store.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NewResult {
+    /// Target index in the installation.
+    pub target: usize,
+    /// False for a raw result, true for a filtered one.
+    pub filtered: bool,
+    /// Its time (ns).
+    pub time_ns: i64,
+    /// `target_from_base` with covariance.
+    pub estimate: PoseCov,
+    /// Its status.
+    pub status: crate::bank::TargetStatus,
+    /// Age of the newest sample behind it (s).
+    pub age_s: f64,
+    /// Chi-square of redundant paths, where there were several.
+    pub chi2: Option<f64>,
+    /// The reference version and the deformation against it.
+    pub deformation: Option<(i64, SmallMotion)>,
+}
+
+/// The writer of a backend.
+#[derive(Debug)]
+enum Writer {
+    Sqlite(sqlite::Writer),
+    Postgres(postgres::Writer),
+}
+
+/// A transaction of a backend.
+enum Tx<'c> {
+    Sqlite(sqlite::Tx<'c>),
+    Postgres(postgres::Tx<'c>),
+}
+
+/// The one connection that writes.
+#[derive(Debug)]
+pub struct WriteConn {
+    backend: Writer,
+    health: Arc<WriterHealth>,
+    link_ids: Arc<[i64]>,
+    target_ids: Arc<[i64]>,
+}
+
+/// One write transaction. Dropped without [`WriteTx::commit`], it is rolled back (the next
+/// transaction starts on a fresh connection).
+pub struct WriteTx<'c> {
+    tx: Tx<'c>,
+    link_ids: &'c [i64],
+    target_ids: &'c [i64],
+}
+
+/// Refuses a value that is not finite before it reaches a row.
+fn finite(what: &str, values: &[f64]) -> StoreResult<()> {
+    if values.iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(StoreError::NonFinite {
+            what: what.to_owned(),
+        })
+    }
+}
+
+impl WriteConn {
+    /// What the health check sees of this writer; the service records each commit's outcome.
+    pub fn health(&self) -> &WriterHealth {
+        &self.health
+    }
+
+    /// Starts a transaction, on a fresh connection when the last one did not commit. Fails
+    /// when the database cannot be reached (or, for SQLite, the configured file is no longer
+    /// the one opened at start).
+    pub async fn begin(&mut self) -> StoreResult<WriteTx<'_>> {
+        let tx = match &mut self.backend {
+            Writer::Sqlite(w) => Tx::Sqlite(w.begin().await?),
+            Writer::Postgres(w) => Tx::Postgres(w.begin().await?),
+        };
+        Ok(WriteTx {
+            tx,
+            link_ids: &self.link_ids,
+            target_ids: &self.target_ids,
+        })
+    }
+
+    /// Closes the connection (for SQLite after checkpointing the WAL into the file, so that
+    /// the file alone is complete).
+    pub async fn close(self) -> StoreResult<()> {
+        on_backend!(self.backend, Writer, w => w.close().await)
+    }
+}
+
+impl WriteTx<'_> {
+    /// Commits: everything written in this transaction is durable when this returns `Ok`. On
+    /// an error nothing of it is committed (or, for SQLite, when the file was replaced
+    /// meanwhile, it went to a file that is no longer the configured one): the caller must not
+    /// acknowledge it.
+    pub async fn commit(self) -> StoreResult<()> {
+        on_backend!(self.tx, Tx, t => t.commit().await)
+    }
+
+    /// The stored samples of a link with times in `[from_ns, to_ns]` (this transaction's
+    /// writes included), with their values.
+    pub async fn existing_samples(
+        &mut self,
+        link: LinkId,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<(i64, SampleValues)>> {
+        let id = self.link_ids[link.0];
+        let rows =
+            on_backend!(&mut self.tx, Tx, t => t.existing_samples(id, from_ns, to_ns).await)?;
+        rows.into_iter()
+            .map(|r| Ok((r.time_ns, r.values()?)))
+            .collect()
+    }
+
+    /// Inserts samples (keys must be new), many rows a statement.
+    pub async fn insert_samples(&mut self, samples: &[NewSample]) -> StoreResult<()> {
+        let mut columns = Vec::with_capacity(samples.len());
+        for s in samples {
+            let pose = pose_columns(&s.values.pose);
+            finite("sample pose", &pose)?;
+            finite(
+                "sample quality",
+                &[s.values.quality.reprojection_rms_px.unwrap_or(0.0)],
+            )?;
+            if let Some(nis) = s.nis {
+                finite("sample NIS", &[nis])?;
+            }
+            let (uncertainty_kind, uncertainty) = s.values.uncertainty.columns();
+            columns.push(SampleColumns {
+                link_id: self.link_ids[s.link.0],
+                time_ns: s.time_ns,
+                pose,
+                uncertainty_kind,
+                uncertainty,
+                reprojection_rms_px: s.values.quality.reprojection_rms_px,
+                points: s.values.quality.points.map(i64::from),
+                disposition: s.disposition.name(),
+                outlier: s.outlier,
+                nis: s.nis,
+                received_ns: s.received_ns,
+            });
+        }
+        on_backend!(&mut self.tx, Tx, t => t.insert_samples(&columns).await)
+    }
+
+    /// Inserts target results and adds them to the rollups, in this transaction; a result at an
+    /// existing (target, source, time) replaces it (a raw group completed again by a late
+    /// sample, or a filtered result recomputed; within one call the last one counts).
+    pub async fn insert_results(&mut self, results: &[NewResult]) -> StoreResult<()> {
+        // Both the rows and the rollups carry the sigmas: derive them once.
+        let sigmas: Vec<ReportedSigmas> = results
+            .iter()
+            .map(|r| r.estimate.reported_sigmas())
+            .collect();
+        let mut columns: Vec<ResultColumns> = Vec::with_capacity(results.len());
+        let mut at_key: std::collections::HashMap<(usize, bool, i64), usize> =
+            std::collections::HashMap::with_capacity(results.len());
+        for (r, s) in results.iter().zip(&sigmas) {
+            let pose = pose_columns(&r.estimate.pose);
+            finite("result pose", &pose)?;
+            finite("result covariance", r.estimate.cov.as_slice())?;
+            finite("result sigma", &s.rotation_arcsec)?;
+            finite("result sigma", &s.translation_mm)?;
+            finite("result age", &[r.age_s])?;
+            let deformation = match &r.deformation {
+                Some((version, d)) => {
+                    finite("result deformation", &d.rotation_arcsec)?;
+                    finite("result deformation", &d.translation_mm)?;
+                    let [a, b, c] = d.rotation_arcsec;
+                    let [x, y, z] = d.translation_mm;
+                    Some((*version, [a, b, c, x, y, z]))
+                }
+                None => None,
+            };
+            let [a, b, c] = s.rotation_arcsec;
+            let [x, y, z] = s.translation_mm;
+            let row = ResultColumns {
+                target_id: self.target_ids[r.target],
+                source: i64::from(r.filtered),
+                time_ns: r.time_ns,
+                pose,
+                cov: encode_mat6(&r.estimate.cov),
+                sigmas: [a, b, c, x, y, z],
+                status: r.status.name(),
+                age_s: r.age_s,
+                chi2: r.chi2,
+                deformation,
+            };
+            // One row a key: a statement may not write the same key twice on every engine.
+            match at_key.entry((r.target, r.filtered, r.time_ns)) {
+                std::collections::hash_map::Entry::Occupied(e) => columns[*e.get()] = row,
+                std::collections::hash_map::Entry::Vacant(e) => {
+                    e.insert(columns.len());
+                    columns.push(row);
+                }
+            }
+        }
+        on_backend!(&mut self.tx, Tx, t => t.upsert_results(&columns).await)?;
+        self.update_rollups(results, &sigmas).await
+    }
+
+    /// Adds new results to the rollups: the touched buckets of every level are read in one
+    /// statement, merged, and written back in one.
+    async fn update_rollups(
+        &mut self,
+        results: &[NewResult],
+        sigmas: &[ReportedSigmas],
+    ) -> StoreResult<()> {
+        use rollup::{Bucket, decode_bucket, encode_stats};
+        use std::collections::HashMap;
+        let mut fresh: Vec<(rows::RollupKey, Bucket)> = rollup::aggregate(results, sigmas)
+            .into_iter()
+            .map(|((target, filtered, width_s, start), b)| {
+                (
+                    (self.target_ids[target], i64::from(filtered), width_s, start),
+                    b,
+                )
+            })
+            .collect();
+        fresh.sort_by_key(|(k, _)| *k);
+        let keys: Vec<rows::RollupKey> = fresh.iter().map(|(k, _)| *k).collect();
+        let stored = on_backend!(&mut self.tx, Tx, t => t.rollup_rows(&keys).await)?;
+        let mut existing: HashMap<rows::RollupKey, Bucket> = HashMap::with_capacity(stored.len());
+        for (t, s, w, b, n, n_def, stats) in stored {
+            existing.insert((t, s, w, b), decode_bucket(b, n, n_def, &stats)?);
+        }
+        let merged: Vec<rows::RollupRow> = fresh
+            .iter_mut()
+            .map(|((t, s, w, start), bucket)| {
+                if let Some(old) = existing.get(&(*t, *s, *w, *start)) {
+                    bucket.merge(old);
+                }
+                (
+                    *t,
+                    *s,
+                    *w,
+                    *start,
+                    bucket.n,
+                    bucket.n_def,
+                    encode_stats(bucket),
+                )
+            })
+            .collect();
+        on_backend!(&mut self.tx, Tx, t => t.upsert_rollups(&merged).await)
+    }
+
+    /// Stores an alarm transition of `target`; returns its id. A transition recomputed at the
+    /// same time and of the same kind (after a rolled-back commit) replaces the values and
+    /// keeps the id and any acknowledgement.
+    pub async fn insert_alarm(
+        &mut self,
+        target: usize,
+        t: &crate::alarms::Transition,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        finite("alarm value", &[t.value])?;
+        let id = self.target_ids[target];
+        on_backend!(&mut self.tx, Tx, x => x.insert_alarm(id, t, now_ns).await)
+    }
+
+    /// An alarm's new level and acknowledgement, read inside the transaction:
+    /// `(to_level, acknowledged_by, ack_note)`; `None` when there is no such alarm.
+    pub async fn alarm_ack_state(
+        &mut self,
+        id: i64,
+    ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
+        on_backend!(&mut self.tx, Tx, t => t.alarm_ack_state(id).await)
+    }
+
+    /// Records an acknowledgement of alarm `id`.
+    pub async fn acknowledge_alarm(
+        &mut self,
+        id: i64,
+        by: &str,
+        note: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        on_backend!(&mut self.tx, Tx, t => t.acknowledge_alarm(id, by, note, now_ns).await)
+    }
+
+    /// Deletes samples older than `samples_before_ns` and results older than
+    /// `results_before_ns`; rollups stay. Returns how many `(samples, results)` went.
+    pub async fn prune(
+        &mut self,
+        samples_before_ns: i64,
+        results_before_ns: i64,
+    ) -> StoreResult<(u64, u64)> {
+        on_backend!(&mut self.tx, Tx, t => t.prune(samples_before_ns, results_before_ns).await)
+    }
+
+    /// The filtered results of a target in `[from_ns, to_ns]`, oldest first.
+    pub async fn filtered_poses(
+        &mut self,
+        target: usize,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<PoseCov>> {
+        let id = self.target_ids[target];
+        let rows = on_backend!(&mut self.tx, Tx, t => t.results_in(id, 1, from_ns, to_ns).await)?;
+        rows.into_iter()
+            .map(|r| r.into_result().map(|r| r.estimate))
+            .collect()
+    }
+
+    /// Stores a new reference version of a target; returns its version.
+    pub async fn insert_reference(
+        &mut self,
+        target: usize,
+        reference: &crate::deformation::Reference,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let columns = version_columns("reference", &reference.g0_from_b)?;
+        let origin: WindowOrigin = match reference.origin {
+            crate::deformation::ReferenceOrigin::Explicit => ("explicit", None, None, None),
+            crate::deformation::ReferenceOrigin::Window {
+                from_ns,
+                to_ns,
+                count,
+            } => ("window", Some(from_ns), Some(to_ns), Some(count as i64)),
+        };
+        let id = self.target_ids[target];
+        on_backend!(&mut self.tx, Tx, t => t.insert_reference(id, &columns, &origin, now_ns).await)
+    }
+
+    /// Stores a new calibration version of a link; returns its version.
+    pub async fn insert_calibration(
+        &mut self,
+        link: LinkId,
+        valid_from_ns: i64,
+        parent_from_child: &PoseCov,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let columns = version_columns("calibration", parent_from_child)?;
+        let id = self.link_ids[link.0];
+        on_backend!(&mut self.tx, Tx, t => t.insert_calibration(id, valid_from_ns, &columns, now_ns).await)
+    }
+
+    /// Records a manual restart of a link's filter.
+    pub async fn insert_link_reset(
+        &mut self,
+        link: LinkId,
+        by: Option<&str>,
+        note: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        let id = self.link_ids[link.0];
+        on_backend!(&mut self.tx, Tx, t => t.insert_link_reset(id, by, note, now_ns).await)
+    }
+
+    /// Saves the filter bank's state.
+    pub async fn save_filter_state(
+        &mut self,
+        digest: &str,
+        state_json: &str,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        on_backend!(&mut self.tx, Tx, t => t.save_filter_state(digest, state_json, now_ns).await)
+    }
+}
+
+/// The columns of a reference or calibration, checked finite.
+fn version_columns(what: &str, value: &PoseCov) -> StoreResult<VersionColumns> {
+    let pose = pose_columns(&value.pose);
+    finite(&format!("{what} pose"), &pose)?;
+    finite(&format!("{what} covariance"), value.cov.as_slice())?;
+    Ok(VersionColumns {
+        pose,
+        cov: encode_mat6(&value.cov),
+    })
 }

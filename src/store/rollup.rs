@@ -1,7 +1,7 @@
 //! Rollups: per bucket, the count and min, sum and max of every result component, so a history
 //! at any scale reads a bounded number of rows and a spike survives downsampling.
 
-use super::{NewResult, Store, StoreResult};
+use super::{NewResult, Reader, Store, StoreResult};
 use crate::geometry::{PoseCov, ReportedSigmas, euler_from_rotation};
 use std::collections::HashMap;
 
@@ -298,24 +298,23 @@ impl Store {
 
     /// The span of a target's history: from the finest rollup, which is kept when old results
     /// are pruned (its last bucket counts to its end), else from the results. Each end is its
-    /// own indexed lookup (SQLite optimises a lone `min` or `max`, not both in one query).
+    /// own indexed lookup.
     pub async fn result_bounds(
         &self,
         target: usize,
         filtered: bool,
     ) -> StoreResult<Option<(i64, i64)>> {
-        let end = |order: &'static str| {
-            sqlx::query_as::<_, (i64,)>(match order {
-                "asc" => "select bucket_ns from rollups where target_id = ? and source = ? and width_s = ? order by bucket_ns asc limit 1",
-                _ => "select bucket_ns from rollups where target_id = ? and source = ? and width_s = ? order by bucket_ns desc limit 1",
-            })
-            .bind(self.target_ids[target])
-            .bind(i64::from(filtered))
-            .bind(ROLLUP_WIDTHS_S[0])
-            .fetch_optional(&self.pool)
-        };
-        if let (Some((lo,)), Some((hi,))) = (end("asc").await?, end("desc").await?) {
-            return Ok(Some((lo, hi + ROLLUP_WIDTHS_S[0] * 1_000_000_000 - 1)));
+        let (id, source, width_s) = (
+            self.target_ids[target],
+            i64::from(filtered),
+            ROLLUP_WIDTHS_S[0],
+        );
+        let first =
+            on_backend!(&self.reader, Reader, r => r.rollup_end(id, source, width_s, false).await)?;
+        let last =
+            on_backend!(&self.reader, Reader, r => r.rollup_end(id, source, width_s, true).await)?;
+        if let (Some(lo), Some(hi)) = (first, last) {
+            return Ok(Some((lo, hi + width_s * 1_000_000_000 - 1)));
         }
         let first = self
             .results_around(target, filtered, i64::MIN)
@@ -339,17 +338,12 @@ impl Store {
         to_ns: i64,
     ) -> StoreResult<Vec<Bucket>> {
         let width_ns = width_s * 1_000_000_000;
-        let rows: Vec<(i64, i64, i64, Vec<u8>)> = sqlx::query_as(
-            "select bucket_ns, n, n_def, stats from rollups where target_id = ? and source = ? and width_s = ? \
-             and bucket_ns >= ? and bucket_ns <= ? order by bucket_ns",
-        )
-        .bind(self.target_ids[target])
-        .bind(i64::from(filtered))
-        .bind(width_s)
-        .bind(floor_to(from_ns, width_ns))
-        .bind(to_ns)
-        .fetch_all(&self.pool)
-        .await?;
+        let (id, source, from) = (
+            self.target_ids[target],
+            i64::from(filtered),
+            floor_to(from_ns, width_ns),
+        );
+        let rows = on_backend!(&self.reader, Reader, r => r.rollup_rows(id, source, width_s, from, to_ns).await)?;
         rows.iter()
             .map(|(start, n, n_def, stats)| decode_bucket(*start, *n, *n_def, stats))
             .collect()
@@ -367,18 +361,9 @@ impl Store {
         start_ns: i64,
         width_ns: i64,
     ) -> StoreResult<Vec<Bucket>> {
-        use futures::TryStreamExt as _;
         let mut buckets: std::collections::BTreeMap<i64, Bucket> =
             std::collections::BTreeMap::new();
-        let mut rows =
-            sqlx::query_as::<_, super::read::ResultRow>(super::read::RESULT_SELECT_BY_RANGE)
-                .bind(self.target_ids[target])
-                .bind(i64::from(filtered))
-                .bind(from_ns)
-                .bind(to_ns)
-                .bind(i64::MAX)
-                .fetch(&self.pool);
-        while let Some(row) = rows.try_next().await? {
+        let add = |row: super::rows::ResultRow| -> StoreResult<()> {
             let r = row.into_result()?;
             let (values, has_def) = components(
                 &r.estimate,
@@ -390,7 +375,10 @@ impl Store {
                 .entry(bucket_start)
                 .or_insert_with(|| Bucket::empty(bucket_start))
                 .add(&values, has_def);
-        }
+            Ok(())
+        };
+        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        on_backend!(&self.reader, Reader, r => r.for_each_result(id, source, from_ns, to_ns, add).await)?;
         Ok(buckets.into_values().collect())
     }
 }

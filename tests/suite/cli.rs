@@ -118,7 +118,7 @@ fn the_container_installation_is_the_default_with_container_paths() {
     assert_eq!(inst.server.listen.to_string(), "0.0.0.0:7878");
     assert_eq!(
         inst.server.database,
-        std::path::Path::new("/var/lib/brokenray/brokenray.db")
+        brokenray::config::Database::Sqlite("/var/lib/brokenray/brokenray.db".into())
     );
     let topology = |t: &str| t[t.find("[[cameras]]").expect("cameras")..].to_owned();
     assert_eq!(

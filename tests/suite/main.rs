@@ -2,6 +2,25 @@
 //! (the Rerun SDK included), so one binary builds in a fraction of the time of one per file.
 //! Run one part with a filter, e.g. `cargo test --test suite service::liveness`.
 
+/// Runs each named `async fn NAME(backend: Backend)` as two tests, `NAME::sqlite` and
+/// `NAME::postgres` (the latter on a fresh database of the throwaway cluster).
+macro_rules! on_both_backends {
+    ($($name:ident),* $(,)?) => {
+        $(
+            mod $name {
+                #[tokio::test]
+                async fn sqlite() {
+                    super::$name(crate::service::helpers::Backend::Sqlite).await
+                }
+                #[tokio::test]
+                async fn postgres() {
+                    super::$name(crate::service::helpers::Backend::Postgres).await
+                }
+            }
+        )*
+    };
+}
+
 mod architecture;
 mod archive;
 mod camera_calibration;
@@ -19,3 +38,4 @@ mod geometry_properties;
 mod hand_eye;
 mod pnp;
 mod service;
+mod store_backends;

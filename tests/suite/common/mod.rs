@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 pub mod paper;
+pub mod postgres;
 pub mod process;
 
 use brokenray::geometry::{Mat6, Pose, Rotation, Twist, Vec3, se3_exp};

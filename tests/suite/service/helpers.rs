@@ -1,4 +1,5 @@
-//! A service on a temporary SQLite file, driven in process through the router.
+//! A service on a temporary SQLite file (or a fresh PostgreSQL database of the tests'
+//! throwaway cluster), driven in process through the router.
 
 use axum::Router;
 use axum::body::Body;
@@ -11,6 +12,25 @@ use http_body_util::BodyExt;
 use serde_json::Value;
 use tower::ServiceExt;
 
+/// Which store a test's service runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Backend {
+    /// A file in the test's temporary directory.
+    Sqlite,
+    /// A fresh database in the process's throwaway cluster.
+    Postgres,
+}
+
+impl Backend {
+    /// A new database of this backend: its `[server] database` value.
+    pub fn database(self, dir: &tempfile::TempDir) -> String {
+        match self {
+            Backend::Sqlite => dir.path().join("brokenray.db").display().to_string(),
+            Backend::Postgres => crate::common::postgres::fresh_database(),
+        }
+    }
+}
+
 pub struct TestApp {
     /// The service's clock: it reads [`START_NS`] until a test moves it.
     pub clock: ManualClock,
@@ -18,28 +38,39 @@ pub struct TestApp {
     pub service: Service,
     pub pipeline: Option<PipelineHandle>,
     pub router: Router,
+    /// The `[server] database` value, kept by restarts.
+    pub database: String,
 }
 
 /// The built-in installation with its database in a fresh temporary directory, plus `extra`
 /// TOML appended (or replacing it entirely when `replace` is given).
 pub fn installation(dir: &tempfile::TempDir, text: Option<&str>) -> Installation {
+    installation_at(&Backend::Sqlite.database(dir), text)
+}
+
+/// The built-in installation (or `text`) with `[server] database = database`.
+pub fn installation_at(database: &str, text: Option<&str>) -> Installation {
     let base = text.unwrap_or(config::DEFAULT_INSTALLATION_TOML);
-    let db = dir.path().join("brokenray.db");
     let text = if base.contains("[server]") {
         base.replace(
             "database = \"brokenray.db\"",
-            &format!("database = \"{}\"", db.display()),
+            &format!("database = \"{database}\""),
         )
     } else {
-        format!("[server]\ndatabase = \"{}\"\n{base}", db.display())
+        format!("[server]\ndatabase = \"{database}\"\n{base}")
     };
     config::parse("test.toml", &text).expect("valid test installation")
 }
 
 impl TestApp {
     pub async fn start(text: Option<&str>) -> TestApp {
+        Self::start_on(Backend::Sqlite, text).await
+    }
+
+    /// A service on a new database of `backend`.
+    pub async fn start_on(backend: Backend, text: Option<&str>) -> TestApp {
         let dir = tempfile::tempdir().expect("temp dir");
-        let inst = installation(&dir, text);
+        let inst = installation_at(&backend.database(&dir), text);
         Self::start_with(dir, inst).await
     }
 
@@ -52,12 +83,18 @@ impl TestApp {
         inst: Installation,
         clock: ManualClock,
     ) -> TestApp {
+        let inst_database = inst.server.database.clone();
         let (service, pipeline) =
             Service::start_with_clock(inst, std::sync::Arc::new(clock.clone()))
                 .await
                 .expect("service starts");
         let router = router(AppState::new(service.clone()).expect("the frame archive"));
+        let database = match &inst_database {
+            config::Database::Sqlite(p) => p.display().to_string(),
+            config::Database::Postgres(u) => u.secret().to_owned(),
+        };
         TestApp {
+            database,
             clock,
             dir,
             service,
@@ -74,7 +111,7 @@ impl TestApp {
         drop(self.service);
         pipeline.finished().await.expect("a clean stop");
         store.close().await;
-        let inst = installation(&self.dir, text);
+        let inst = installation_at(&self.database, text);
         Self::start_with_clock(self.dir, inst, self.clock).await
     }
 

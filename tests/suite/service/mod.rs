@@ -8,7 +8,7 @@ mod cameras;
 mod dashboard;
 mod frames;
 mod hardening;
-mod helpers;
+pub mod helpers;
 mod history;
 mod ingest_errors;
 mod liveness;

@@ -1,0 +1,542 @@
+//! The PostgreSQL write connection and the statements of one transaction.
+//!
+//! Like the SQLite writer, transactions are plain `BEGIN` / `COMMIT` statements on one
+//! connection, and a transaction that did not commit leaves the connection unclean: the next
+//! [`Writer::begin`] rolls it back, or, when that fails (the server restarted, the network
+//! dropped), connects again. The writer's session runs with `synchronous_commit = on`
+//! whatever the server's default, so a `COMMIT` returns only once the server has flushed it
+//! to its write-ahead log. It holds an advisory lock: a second brokenray service writing to
+//! the same database is refused instead of interleaving its rollups with this one's.
+//!
+//! Batches go in as one statement per table: each column as an array, expanded by `unnest`
+//! (one round trip and one plan for thousands of rows).
+
+use super::super::rows::{
+    RESULT_COLUMNS, RESULT_INSERT_COLUMNS, ResultColumns, ResultRow, RollupKey, RollupRow,
+    SAMPLE_COLUMNS, SAMPLE_INSERT_COLUMNS, SampleColumns, SampleRow, VersionColumns,
+};
+use super::super::{StoreError, StoreResult, WindowOrigin};
+use sqlx::postgres::{PgConnectOptions, PgConnection};
+use sqlx::{ConnectOptions, Connection};
+
+/// Rows per statement: bounds the arrays a statement carries (a few MB at most).
+const ROWS_PER_STATEMENT: usize = 10_000;
+
+/// The one connection that writes.
+#[derive(Debug)]
+pub(in crate::store) struct Writer {
+    /// `None` after a failure until the next [`Writer::begin`] reconnects.
+    conn: Option<PgConnection>,
+    /// False from `BEGIN` until a successful `COMMIT`: the connection's state is then unknown.
+    clean: bool,
+    options: Box<PgConnectOptions>,
+}
+
+/// One write transaction. Dropped without [`Tx::commit`], it is rolled back when the next
+/// begins.
+pub(in crate::store) struct Tx<'c> {
+    conn: &'c mut PgConnection,
+    clean: &'c mut bool,
+}
+
+impl Writer {
+    /// Connects, with the session settings the writer relies on, and takes the writer's lock.
+    pub(super) async fn connect(options: &PgConnectOptions) -> StoreResult<PgConnection> {
+        let mut conn = tokio::time::timeout(
+            super::CONNECT_TIMEOUT,
+            options
+                .clone()
+                .options([("synchronous_commit", "on")])
+                .connect(),
+        )
+        .await
+        .map_err(|_| StoreError::Unreachable("the server did not answer within 5 s".into()))??;
+        let (locked,): (bool,) = sqlx::query_as("select pg_try_advisory_lock($1)")
+            .bind(super::WRITER_LOCK)
+            .fetch_one(&mut conn)
+            .await?;
+        if !locked {
+            let _ = conn.close().await;
+            return Err(StoreError::WriterLocked);
+        }
+        Ok(conn)
+    }
+
+    pub(super) fn new(conn: PgConnection, options: &PgConnectOptions) -> Self {
+        Self {
+            conn: Some(conn),
+            clean: true,
+            options: Box::new(options.clone()),
+        }
+    }
+
+    /// Starts a transaction: after one that did not commit, first rolls it back, or connects
+    /// again when the connection does not answer.
+    pub(in crate::store) async fn begin(&mut self) -> StoreResult<Tx<'_>> {
+        if !self.clean
+            && let Some(conn) = self.conn.as_mut()
+            && sqlx::query("rollback").execute(&mut *conn).await.is_err()
+            && let Some(old) = self.conn.take()
+        {
+            let _ = old.close().await;
+        }
+        if self.conn.is_none() {
+            self.conn = Some(Self::connect(&self.options).await?);
+            tracing::info!("the writer reconnected to PostgreSQL");
+        }
+        self.clean = false;
+        let began = match self.conn.as_mut() {
+            Some(conn) => sqlx::query("begin").execute(&mut *conn).await.map(|_| ()),
+            None => unreachable!("connected above"),
+        };
+        if let Err(e) = began {
+            // A connection that cannot begin is gone (the server restarted between commits).
+            self.conn = None;
+            return Err(e.into());
+        }
+        let Some(conn) = self.conn.as_mut() else {
+            unreachable!("connected above")
+        };
+        Ok(Tx {
+            conn,
+            clean: &mut self.clean,
+        })
+    }
+
+    /// Closes the connection (rolling back an unfinished transaction), which also releases
+    /// the writer's lock.
+    pub(in crate::store) async fn close(self) -> StoreResult<()> {
+        if let Some(mut conn) = self.conn {
+            if !self.clean {
+                let _ = sqlx::query("rollback").execute(&mut conn).await;
+            }
+            conn.close().await?;
+        }
+        Ok(())
+    }
+}
+
+/// `update set` of every column but the key, from `excluded`.
+fn set_excluded(columns: &str, key: &[&str]) -> String {
+    columns
+        .split(',')
+        .map(str::trim)
+        .filter(|c| !key.contains(c))
+        .map(|c| format!("{c} = excluded.{c}"))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+impl Tx<'_> {
+    /// Commits: flushed to the server's write-ahead log when this returns `Ok`.
+    pub(in crate::store) async fn commit(self) -> StoreResult<()> {
+        sqlx::query("commit").execute(&mut *self.conn).await?;
+        *self.clean = true;
+        Ok(())
+    }
+
+    pub(in crate::store) async fn existing_samples(
+        &mut self,
+        link_id: i64,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<SampleRow>> {
+        Ok(sqlx::query_as(&format!(
+            "select {SAMPLE_COLUMNS} from samples where link_id = $1 and time_ns >= $2 \
+             and time_ns <= $3 order by time_ns"
+        ))
+        .bind(link_id)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&mut *self.conn)
+        .await?)
+    }
+
+    /// Inserts samples, one statement per ten thousand.
+    pub(in crate::store) async fn insert_samples(
+        &mut self,
+        samples: &[SampleColumns],
+    ) -> StoreResult<()> {
+        let sql = format!(
+            "insert into samples ({SAMPLE_INSERT_COLUMNS}) select * from unnest(\
+             $1::int8[], $2::int8[], $3::float8[], $4::float8[], $5::float8[], $6::float8[], \
+             $7::float8[], $8::float8[], $9::float8[], $10::int8[], $11::bytea[], $12::float8[], \
+             $13::int8[], $14::text[], $15::bool[], $16::float8[], $17::int8[])"
+        );
+        for chunk in samples.chunks(ROWS_PER_STATEMENT) {
+            let col = |i: usize| chunk.iter().map(|s| s.pose[i]).collect::<Vec<f64>>();
+            sqlx::query(&sql)
+                .bind(chunk.iter().map(|s| s.link_id).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|s| s.time_ns).collect::<Vec<_>>())
+                .bind(col(0))
+                .bind(col(1))
+                .bind(col(2))
+                .bind(col(3))
+                .bind(col(4))
+                .bind(col(5))
+                .bind(col(6))
+                .bind(chunk.iter().map(|s| s.uncertainty_kind).collect::<Vec<_>>())
+                .bind(
+                    chunk
+                        .iter()
+                        .map(|s| s.uncertainty.as_deref())
+                        .collect::<Vec<_>>(),
+                )
+                .bind(
+                    chunk
+                        .iter()
+                        .map(|s| s.reprojection_rms_px)
+                        .collect::<Vec<_>>(),
+                )
+                .bind(chunk.iter().map(|s| s.points).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|s| s.disposition).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|s| s.outlier).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|s| s.nis).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|s| s.received_ns).collect::<Vec<_>>())
+                .execute(&mut *self.conn)
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// Inserts results; one at an existing key replaces it.
+    pub(in crate::store) async fn upsert_results(
+        &mut self,
+        results: &[ResultColumns],
+    ) -> StoreResult<()> {
+        let sql = format!(
+            "insert into results ({RESULT_INSERT_COLUMNS}) select * from unnest(\
+             $1::int8[], $2::int8[], $3::int8[], $4::float8[], $5::float8[], $6::float8[], \
+             $7::float8[], $8::float8[], $9::float8[], $10::float8[], $11::bytea[], \
+             $12::float8[], $13::float8[], $14::float8[], $15::float8[], $16::float8[], \
+             $17::float8[], $18::text[], $19::float8[], $20::float8[], $21::int8[], \
+             $22::float8[], $23::float8[], $24::float8[], $25::float8[], $26::float8[], \
+             $27::float8[]) on conflict (target_id, source, time_ns) do update set {}",
+            set_excluded(RESULT_INSERT_COLUMNS, &["target_id", "source", "time_ns"])
+        );
+        for chunk in results.chunks(ROWS_PER_STATEMENT) {
+            let pose = |i: usize| chunk.iter().map(|r| r.pose[i]).collect::<Vec<f64>>();
+            let sigma = |i: usize| chunk.iter().map(|r| r.sigmas[i]).collect::<Vec<f64>>();
+            let def = |i: usize| {
+                chunk
+                    .iter()
+                    .map(|r| r.deformation.map(|(_, d)| d[i]))
+                    .collect::<Vec<Option<f64>>>()
+            };
+            sqlx::query(&sql)
+                .bind(chunk.iter().map(|r| r.target_id).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|r| r.source).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|r| r.time_ns).collect::<Vec<_>>())
+                .bind(pose(0))
+                .bind(pose(1))
+                .bind(pose(2))
+                .bind(pose(3))
+                .bind(pose(4))
+                .bind(pose(5))
+                .bind(pose(6))
+                .bind(chunk.iter().map(|r| r.cov.as_slice()).collect::<Vec<_>>())
+                .bind(sigma(0))
+                .bind(sigma(1))
+                .bind(sigma(2))
+                .bind(sigma(3))
+                .bind(sigma(4))
+                .bind(sigma(5))
+                .bind(chunk.iter().map(|r| r.status).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|r| r.age_s).collect::<Vec<_>>())
+                .bind(chunk.iter().map(|r| r.chi2).collect::<Vec<_>>())
+                .bind(
+                    chunk
+                        .iter()
+                        .map(|r| r.deformation.map(|(v, _)| v))
+                        .collect::<Vec<_>>(),
+                )
+                .bind(def(0))
+                .bind(def(1))
+                .bind(def(2))
+                .bind(def(3))
+                .bind(def(4))
+                .bind(def(5))
+                .execute(&mut *self.conn)
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// The stored rollup rows at these keys.
+    pub(in crate::store) async fn rollup_rows(
+        &mut self,
+        keys: &[RollupKey],
+    ) -> StoreResult<Vec<RollupRow>> {
+        let mut out = Vec::new();
+        for chunk in keys.chunks(ROWS_PER_STATEMENT) {
+            let rows: Vec<RollupRow> = sqlx::query_as(
+                "select r.target_id, r.source, r.width_s, r.bucket_ns, r.n, r.n_def, r.stats \
+                 from unnest($1::int8[], $2::int8[], $3::int8[], $4::int8[]) as k (t, s, w, b) \
+                 join rollups r on r.target_id = k.t and r.source = k.s and r.width_s = k.w \
+                 and r.bucket_ns = k.b",
+            )
+            .bind(chunk.iter().map(|k| k.0).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|k| k.1).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|k| k.2).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|k| k.3).collect::<Vec<_>>())
+            .fetch_all(&mut *self.conn)
+            .await?;
+            out.extend(rows);
+        }
+        Ok(out)
+    }
+
+    /// Writes rollup rows, replacing those at the same keys.
+    pub(in crate::store) async fn upsert_rollups(&mut self, rows: &[RollupRow]) -> StoreResult<()> {
+        for chunk in rows.chunks(ROWS_PER_STATEMENT) {
+            sqlx::query(
+                "insert into rollups (target_id, source, width_s, bucket_ns, n, n_def, stats) \
+                 select * from unnest($1::int8[], $2::int8[], $3::int8[], $4::int8[], $5::int8[], \
+                 $6::int8[], $7::bytea[]) \
+                 on conflict (target_id, source, width_s, bucket_ns) do update set \
+                 n = excluded.n, n_def = excluded.n_def, stats = excluded.stats",
+            )
+            .bind(chunk.iter().map(|r| r.0).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.1).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.2).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.3).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.4).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.5).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.6.as_slice()).collect::<Vec<_>>())
+            .execute(&mut *self.conn)
+            .await?;
+        }
+        Ok(())
+    }
+
+    /// Stores an alarm transition (or updates the one at the same key); returns its id.
+    pub(in crate::store) async fn insert_alarm(
+        &mut self,
+        target_id: i64,
+        t: &crate::alarms::Transition,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let (id,): (i64,) = sqlx::query_as(
+            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns) \
+             values ($1, $2, $3, $4, $5, $6, $7, $8, $9) \
+             on conflict (target_id, time_ns, kind) do update set from_level = excluded.from_level, \
+             to_level = excluded.to_level, value = excluded.value, unit = excluded.unit, \
+             message = excluded.message, created_ns = excluded.created_ns \
+             returning alarm_id",
+        )
+        .bind(target_id)
+        .bind(t.time_ns)
+        .bind(t.kind.name())
+        .bind(t.from.name())
+        .bind(t.to.name())
+        .bind(t.value)
+        .bind(t.unit.name())
+        .bind(t.message.as_str())
+        .bind(now_ns)
+        .fetch_one(&mut *self.conn)
+        .await?;
+        Ok(id)
+    }
+
+    pub(in crate::store) async fn alarm_ack_state(
+        &mut self,
+        id: i64,
+    ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
+        Ok(sqlx::query_as(
+            "select to_level, acknowledged_by, ack_note from alarms where alarm_id = $1",
+        )
+        .bind(id)
+        .fetch_optional(&mut *self.conn)
+        .await?)
+    }
+
+    pub(in crate::store) async fn acknowledge_alarm(
+        &mut self,
+        id: i64,
+        by: &str,
+        note: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "update alarms set acknowledged_by = $1, acknowledged_ns = $2, ack_note = $3 where alarm_id = $4",
+        )
+        .bind(by)
+        .bind(now_ns)
+        .bind(note)
+        .bind(id)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+
+    /// Retention: drops the day partitions wholly before each cutoff, deletes the older rows
+    /// of the partition a cutoff falls in (and of the default partition), then lets pg_partman
+    /// make the coming days' partitions.
+    pub(in crate::store) async fn prune(
+        &mut self,
+        samples_before_ns: i64,
+        results_before_ns: i64,
+    ) -> StoreResult<(u64, u64)> {
+        let samples = self.drop_before("samples", samples_before_ns).await?;
+        let results = self.drop_before("results", results_before_ns).await?;
+        super::maintain(&mut *self.conn).await?;
+        Ok((samples, results))
+    }
+
+    /// Removes the rows of `table` (partitioned on `time_ns`) before `cutoff_ns`; returns how
+    /// many went.
+    async fn drop_before(&mut self, table: &str, cutoff_ns: i64) -> StoreResult<u64> {
+        let parent = super::qualified(&mut *self.conn, table).await?;
+        let children: Vec<(String, i64)> = sqlx::query_as(
+            "select format('%I.%I', p.partition_schemaname, p.partition_tablename), i.child_end_id \
+             from partman.show_partitions($1) p, \
+             lateral partman.show_partition_info(format('%I.%I', p.partition_schemaname, \
+             p.partition_tablename), p_parent_table => $1) i",
+        )
+        .bind(&parent)
+        .fetch_all(&mut *self.conn)
+        .await?;
+        let mut gone = 0u64;
+        for (child, last_ns) in children {
+            if last_ns < cutoff_ns {
+                let (n,): (i64,) = sqlx::query_as(&format!("select count(*) from {child}"))
+                    .fetch_one(&mut *self.conn)
+                    .await?;
+                sqlx::query(&format!("drop table {child}"))
+                    .execute(&mut *self.conn)
+                    .await?;
+                gone += u64::try_from(n).unwrap_or(0);
+            }
+        }
+        gone += sqlx::query(&format!("delete from {table} where time_ns < $1"))
+            .bind(cutoff_ns)
+            .execute(&mut *self.conn)
+            .await?
+            .rows_affected();
+        Ok(gone)
+    }
+
+    pub(in crate::store) async fn results_in(
+        &mut self,
+        target_id: i64,
+        source: i64,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<ResultRow>> {
+        Ok(sqlx::query_as(&format!(
+            "select {RESULT_COLUMNS} from results where target_id = $1 and source = $2 \
+             and time_ns >= $3 and time_ns <= $4 order by time_ns"
+        ))
+        .bind(target_id)
+        .bind(source)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&mut *self.conn)
+        .await?)
+    }
+
+    /// Stores the next reference version of a target; returns it.
+    pub(in crate::store) async fn insert_reference(
+        &mut self,
+        target_id: i64,
+        columns: &VersionColumns,
+        origin: &WindowOrigin,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let p = columns.pose;
+        let (version,): (i64,) = sqlx::query_as(
+            "insert into target_references (target_id, version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
+             origin, window_from_ns, window_to_ns, window_count, created_ns) \
+             select $1, coalesce(max(version), 0) + 1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14 \
+             from target_references where target_id = $1 \
+             returning version",
+        )
+        .bind(target_id)
+        .bind(p[0])
+        .bind(p[1])
+        .bind(p[2])
+        .bind(p[3])
+        .bind(p[4])
+        .bind(p[5])
+        .bind(p[6])
+        .bind(columns.cov.as_slice())
+        .bind(origin.0)
+        .bind(origin.1)
+        .bind(origin.2)
+        .bind(origin.3)
+        .bind(now_ns)
+        .fetch_one(&mut *self.conn)
+        .await?;
+        Ok(version)
+    }
+
+    /// Stores the next calibration version of a link; returns it.
+    pub(in crate::store) async fn insert_calibration(
+        &mut self,
+        link_id: i64,
+        valid_from_ns: i64,
+        columns: &VersionColumns,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let p = columns.pose;
+        let (version,): (i64,) = sqlx::query_as(
+            "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns) \
+             select $1, coalesce(max(version), 0) + 1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11 \
+             from calibrations where link_id = $1 \
+             returning version",
+        )
+        .bind(link_id)
+        .bind(valid_from_ns)
+        .bind(p[0])
+        .bind(p[1])
+        .bind(p[2])
+        .bind(p[3])
+        .bind(p[4])
+        .bind(p[5])
+        .bind(p[6])
+        .bind(columns.cov.as_slice())
+        .bind(now_ns)
+        .fetch_one(&mut *self.conn)
+        .await?;
+        Ok(version)
+    }
+
+    pub(in crate::store) async fn insert_link_reset(
+        &mut self,
+        link_id: i64,
+        by: Option<&str>,
+        note: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "insert into link_resets (link_id, created_ns, by_name, note) values ($1, $2, $3, $4) \
+             on conflict (link_id, created_ns) do update set by_name = excluded.by_name, note = excluded.note",
+        )
+        .bind(link_id)
+        .bind(now_ns)
+        .bind(by)
+        .bind(note)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+
+    pub(in crate::store) async fn save_filter_state(
+        &mut self,
+        digest: &str,
+        state_json: &str,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "insert into filter_state (id, installation_digest, state, updated_ns) values (1, $1, $2, $3) \
+             on conflict (id) do update set installation_digest = excluded.installation_digest, \
+             state = excluded.state, updated_ns = excluded.updated_ns",
+        )
+        .bind(digest)
+        .bind(state_json)
+        .bind(now_ns)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+}

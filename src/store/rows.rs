@@ -1,0 +1,427 @@
+//! Rows as both backends return them, and their conversion to domain values.
+//!
+//! Both schemas give these columns the same names and the same Rust types (64-bit integers,
+//! doubles, text, booleans, byte strings), so one row type decodes from either engine and the
+//! conversions, with their checks of stored vocabularies, exist once.
+
+use super::codec::{decode_mat6, pose_from_columns};
+use super::{Quality, SampleValues, StoreError, StoreResult, StoredUncertainty};
+use crate::geometry::PoseCov;
+
+/// The columns of a sample read, in order.
+pub(super) const SAMPLE_COLUMNS: &str = "time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, uncertainty_kind, uncertainty, \
+     reprojection_rms_px, points, disposition, outlier, nis, received_ns";
+
+/// The columns of a result read, in order.
+pub(super) const RESULT_COLUMNS: &str = "time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, status, age_s, chi2, \
+     reference_version, def_rx_arcsec, def_ry_arcsec, def_rz_arcsec, def_tx_mm, def_ty_mm, def_tz_mm";
+
+/// The columns of an alarm read, in [`AlarmRow`] order.
+pub(super) const ALARM_COLUMNS: &str = "alarm_id, target_id, time_ns, kind, from_level, to_level, value, \
+     message, unit, acknowledged_by, acknowledged_ns, ack_note";
+
+/// The columns of a reference read.
+pub(super) const REFERENCE_COLUMNS: &str = "version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, origin, \
+     window_from_ns, window_to_ns, window_count, created_ns";
+
+/// The columns of a calibration read.
+pub(super) const CALIBRATION_COLUMNS: &str =
+    "version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns";
+
+/// A stored rollup row: key (target id, source, width, bucket start), counts, statistics.
+pub(super) type RollupRow = (i64, i64, i64, i64, i64, i64, Vec<u8>);
+
+/// The key of a rollup row.
+pub(super) type RollupKey = (i64, i64, i64, i64);
+
+/// A sample row.
+#[derive(sqlx::FromRow)]
+pub(super) struct SampleRow {
+    pub time_ns: i64,
+    tx_mm: f64,
+    ty_mm: f64,
+    tz_mm: f64,
+    qw: f64,
+    qx: f64,
+    qy: f64,
+    qz: f64,
+    uncertainty_kind: i64,
+    uncertainty: Option<Vec<u8>>,
+    reprojection_rms_px: Option<f64>,
+    points: Option<i64>,
+    disposition: String,
+    outlier: bool,
+    nis: Option<f64>,
+    received_ns: i64,
+}
+
+impl SampleRow {
+    /// The sample's values as given.
+    pub(super) fn values(&self) -> StoreResult<SampleValues> {
+        Ok(SampleValues {
+            pose: pose_from_columns([
+                self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
+            ]),
+            uncertainty: StoredUncertainty::from_columns(
+                self.uncertainty_kind,
+                self.uncertainty.as_deref(),
+            )?,
+            quality: Quality {
+                reprojection_rms_px: self.reprojection_rms_px,
+                points: self.points.and_then(|p| u32::try_from(p).ok()),
+            },
+        })
+    }
+
+    /// The whole stored sample.
+    pub(super) fn into_sample(self) -> StoreResult<StoredSample> {
+        Ok(StoredSample {
+            time_ns: self.time_ns,
+            values: self.values()?,
+            disposition: crate::filter::DispositionKind::parse(&self.disposition).ok_or_else(
+                || {
+                    StoreError::Malformed(format!(
+                        "a sample at {} has the unknown disposition `{}`",
+                        self.time_ns, self.disposition
+                    ))
+                },
+            )?,
+            outlier: self.outlier,
+            nis: self.nis,
+            received_ns: self.received_ns,
+        })
+    }
+}
+
+/// A stored raw sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredSample {
+    /// Measurement time (ns).
+    pub time_ns: i64,
+    /// Its values as given.
+    pub values: SampleValues,
+    /// What the filter did with it.
+    pub disposition: crate::filter::DispositionKind,
+    /// Flagged as an outlier.
+    pub outlier: bool,
+    /// Normalised innovation squared.
+    pub nis: Option<f64>,
+    /// When it was received (ns).
+    pub received_ns: i64,
+}
+
+/// A result row.
+#[derive(sqlx::FromRow)]
+pub(super) struct ResultRow {
+    pub time_ns: i64,
+    tx_mm: f64,
+    ty_mm: f64,
+    tz_mm: f64,
+    qw: f64,
+    qx: f64,
+    qy: f64,
+    qz: f64,
+    cov: Vec<u8>,
+    status: String,
+    age_s: f64,
+    chi2: Option<f64>,
+    reference_version: Option<i64>,
+    def_rx_arcsec: Option<f64>,
+    def_ry_arcsec: Option<f64>,
+    def_rz_arcsec: Option<f64>,
+    def_tx_mm: Option<f64>,
+    def_ty_mm: Option<f64>,
+    def_tz_mm: Option<f64>,
+}
+
+impl ResultRow {
+    /// The stored result.
+    pub(super) fn into_result(self) -> StoreResult<StoredResult> {
+        let deformation = match (
+            self.reference_version,
+            self.def_rx_arcsec,
+            self.def_ry_arcsec,
+            self.def_rz_arcsec,
+            self.def_tx_mm,
+            self.def_ty_mm,
+            self.def_tz_mm,
+        ) {
+            (Some(v), Some(a), Some(b), Some(c), Some(x), Some(y), Some(z)) => {
+                Some((v, [a, b, c], [x, y, z]))
+            }
+            _ => None,
+        };
+        Ok(StoredResult {
+            time_ns: self.time_ns,
+            estimate: PoseCov {
+                pose: pose_from_columns([
+                    self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
+                ]),
+                cov: decode_mat6(&self.cov)?,
+            },
+            status: crate::bank::TargetStatus::parse(&self.status).ok_or_else(|| {
+                StoreError::Malformed(format!(
+                    "a result at {} has the unknown status `{}`",
+                    self.time_ns, self.status
+                ))
+            })?,
+            age_s: self.age_s,
+            chi2: self.chi2,
+            deformation,
+        })
+    }
+}
+
+/// A stored target result.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredResult {
+    /// Its time (ns).
+    pub time_ns: i64,
+    /// `target_from_base` with covariance.
+    pub estimate: PoseCov,
+    /// Its status.
+    pub status: crate::bank::TargetStatus,
+    /// Age of the newest sample behind it (s).
+    pub age_s: f64,
+    /// Chi-square of redundant paths.
+    pub chi2: Option<f64>,
+    /// `(reference version, rotation arcsec, translation mm)` of the deformation, if any.
+    pub deformation: Option<(i64, [f64; 3], [f64; 3])>,
+}
+
+/// A reference row.
+#[derive(sqlx::FromRow)]
+pub(super) struct ReferenceRow {
+    version: i64,
+    tx_mm: f64,
+    ty_mm: f64,
+    tz_mm: f64,
+    qw: f64,
+    qx: f64,
+    qy: f64,
+    qz: f64,
+    cov: Vec<u8>,
+    origin: String,
+    window_from_ns: Option<i64>,
+    window_to_ns: Option<i64>,
+    window_count: Option<i64>,
+    created_ns: i64,
+}
+
+impl ReferenceRow {
+    /// The stored reference version.
+    pub(super) fn into_reference(self) -> StoreResult<StoredReference> {
+        let origin = match (
+            self.origin.as_str(),
+            self.window_from_ns,
+            self.window_to_ns,
+            self.window_count,
+        ) {
+            ("window", Some(from_ns), Some(to_ns), Some(count)) => {
+                crate::deformation::ReferenceOrigin::Window {
+                    from_ns,
+                    to_ns,
+                    count: usize::try_from(count).unwrap_or(0),
+                }
+            }
+            _ => crate::deformation::ReferenceOrigin::Explicit,
+        };
+        Ok(StoredReference {
+            version: self.version,
+            reference: crate::deformation::Reference {
+                g0_from_b: PoseCov {
+                    pose: pose_from_columns([
+                        self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
+                    ]),
+                    cov: decode_mat6(&self.cov)?,
+                },
+                origin,
+            },
+            created_ns: self.created_ns,
+        })
+    }
+}
+
+/// A stored reference version.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredReference {
+    /// Its version (1, 2, ...).
+    pub version: i64,
+    /// The reference.
+    pub reference: crate::deformation::Reference,
+    /// When it was set (ns).
+    pub created_ns: i64,
+}
+
+/// A calibration row.
+#[derive(sqlx::FromRow)]
+pub(super) struct CalibrationRow {
+    version: i64,
+    valid_from_ns: i64,
+    tx_mm: f64,
+    ty_mm: f64,
+    tz_mm: f64,
+    qw: f64,
+    qx: f64,
+    qy: f64,
+    qz: f64,
+    cov: Vec<u8>,
+    created_ns: i64,
+}
+
+impl CalibrationRow {
+    /// The stored calibration version.
+    pub(super) fn into_calibration(self) -> StoreResult<StoredCalibration> {
+        Ok(StoredCalibration {
+            version: self.version,
+            valid_from_ns: self.valid_from_ns,
+            parent_from_child: PoseCov {
+                pose: pose_from_columns([
+                    self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
+                ]),
+                cov: decode_mat6(&self.cov)?,
+            },
+            created_ns: self.created_ns,
+        })
+    }
+}
+
+/// A stored calibration version.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredCalibration {
+    /// Its version (1, 2, ...).
+    pub version: i64,
+    /// From when it is valid (ns).
+    pub valid_from_ns: i64,
+    /// `parent_from_child` with covariance.
+    pub parent_from_child: PoseCov,
+    /// When it was stored (ns).
+    pub created_ns: i64,
+}
+
+/// A stored alarm transition.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredAlarm {
+    /// Its id.
+    pub id: i64,
+    /// Target index in the installation.
+    pub target: usize,
+    /// The transition.
+    pub transition: crate::alarms::Transition,
+    /// Its acknowledgement, once given.
+    pub ack: Option<Acknowledgement>,
+}
+
+/// Someone's acknowledgement of an alarm transition.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Acknowledgement {
+    /// Who, as they said.
+    pub by: String,
+    /// When (ns, server clock).
+    pub at_ns: i64,
+    /// Why or what was done, as they said.
+    pub note: Option<String>,
+}
+
+/// The columns of an alarm row, in [`ALARM_COLUMNS`] order.
+pub(super) type AlarmRow = (
+    i64,
+    i64,
+    i64,
+    String,
+    String,
+    String,
+    f64,
+    String,
+    Option<String>,
+    Option<String>,
+    Option<i64>,
+    Option<String>,
+);
+
+/// The alarm of a row; `target_ids` maps the row's target id to the installation's index.
+pub(super) fn alarm_of_row(row: AlarmRow, target_ids: &[i64]) -> StoreResult<StoredAlarm> {
+    use crate::alarms::{AlarmKind, Level, ValueUnit};
+    let (id, tid, time_ns, kind, from, to, value, message, unit, by, at_ns, note) = row;
+    let malformed = || StoreError::Malformed(format!("alarm {id} of kind `{kind}`"));
+    let kind_ = AlarmKind::parse(&kind).ok_or_else(malformed)?;
+    let unit = match unit {
+        Some(u) => ValueUnit::parse(&u).ok_or_else(malformed)?,
+        // Rows from before units were stored held the rotation.
+        None => match kind_ {
+            AlarmKind::Deformation => ValueUnit::Arcsec,
+            AlarmKind::Rate => ValueUnit::ArcsecPerS,
+            AlarmKind::Stale => ValueUnit::None,
+        },
+    };
+    Ok(StoredAlarm {
+        id,
+        target: target_ids
+            .iter()
+            .position(|t| *t == tid)
+            .ok_or_else(malformed)?,
+        transition: crate::alarms::Transition {
+            kind: kind_,
+            time_ns,
+            from: Level::parse(&from).ok_or_else(malformed)?,
+            to: Level::parse(&to).ok_or_else(malformed)?,
+            value,
+            unit,
+            message,
+        },
+        ack: match (by, at_ns) {
+            (Some(by), Some(at_ns)) => Some(Acknowledgement { by, at_ns, note }),
+            _ => None,
+        },
+    })
+}
+
+/// A sample as its row is written (values checked finite, ids resolved).
+pub(super) struct SampleColumns {
+    pub link_id: i64,
+    pub time_ns: i64,
+    /// `[tx, ty, tz, qw, qx, qy, qz]`.
+    pub pose: [f64; 7],
+    pub uncertainty_kind: i64,
+    pub uncertainty: Option<Vec<u8>>,
+    pub reprojection_rms_px: Option<f64>,
+    pub points: Option<i64>,
+    pub disposition: &'static str,
+    pub outlier: bool,
+    pub nis: Option<f64>,
+    pub received_ns: i64,
+}
+
+/// A result as its row is written (values checked finite, ids resolved).
+pub(super) struct ResultColumns {
+    pub target_id: i64,
+    pub source: i64,
+    pub time_ns: i64,
+    /// `[tx, ty, tz, qw, qx, qy, qz]`.
+    pub pose: [f64; 7],
+    pub cov: Vec<u8>,
+    /// Reported sigmas: rotation x y z (arcsec), translation x y z (mm).
+    pub sigmas: [f64; 6],
+    pub status: &'static str,
+    pub age_s: f64,
+    pub chi2: Option<f64>,
+    /// The reference version and the deformation: rotation (arcsec), translation (mm).
+    pub deformation: Option<(i64, [f64; 6])>,
+}
+
+/// A reference or calibration version as its row is written.
+pub(super) struct VersionColumns {
+    /// `[tx, ty, tz, qw, qx, qy, qz]`.
+    pub pose: [f64; 7],
+    pub cov: Vec<u8>,
+}
+
+/// The columns `insert into results` names, in [`ResultColumns`] order.
+pub(super) const RESULT_INSERT_COLUMNS: &str = "target_id, source, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
+     sigma_rx_arcsec, sigma_ry_arcsec, sigma_rz_arcsec, sigma_tx_mm, sigma_ty_mm, sigma_tz_mm, \
+     status, age_s, chi2, reference_version, def_rx_arcsec, def_ry_arcsec, def_rz_arcsec, \
+     def_tx_mm, def_ty_mm, def_tz_mm";
+
+/// The columns `insert into samples` names, in [`SampleColumns`] order.
+pub(super) const SAMPLE_INSERT_COLUMNS: &str = "link_id, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, \
+     uncertainty_kind, uncertainty, reprojection_rms_px, points, disposition, outlier, nis, received_ns";

@@ -1,0 +1,456 @@
+//! The SQLite write connection and the statements of one transaction.
+//!
+//! Transactions are plain `BEGIN` / `COMMIT` statements, not the driver's nested
+//! transaction objects: SQLite rolls a transaction back by itself when a commit fails on a
+//! full disk or an I/O error, and the driver's bookkeeping does not follow, so later "commits"
+//! would only release savepoints of a transaction that never commits. Instead, any transaction
+//! that did not commit (a failed statement, a failed commit, a cancelled task) leaves the
+//! connection marked unclean, and the next [`Writer::begin`] replaces it with a fresh one:
+//! whatever happened, the writer starts from a known state. When it begins and after it
+//! commits, the writer checks that the configured file is still the one open (device and
+//! inode), so a deleted or replaced file is never written to in silence.
+
+use super::super::rows::{
+    RESULT_COLUMNS, RESULT_INSERT_COLUMNS, ResultColumns, ResultRow, RollupKey, RollupRow,
+    SAMPLE_COLUMNS, SAMPLE_INSERT_COLUMNS, SampleColumns, SampleRow, VersionColumns,
+};
+use super::super::{StoreResult, WindowOrigin};
+use super::{FileIdentity, check_identity};
+use sqlx::{ConnectOptions, Connection, QueryBuilder, Sqlite, SqliteConnection};
+use std::path::{Path, PathBuf};
+
+/// Rows per multi-row insert: well under SQLite's limit on bound parameters.
+const ROWS_PER_STATEMENT: usize = 400;
+
+/// The one connection that writes.
+#[derive(Debug)]
+pub(in crate::store) struct Writer {
+    /// `None` after a failure until the next [`Writer::begin`] reconnects.
+    conn: Option<SqliteConnection>,
+    /// False from `BEGIN` until a successful `COMMIT`: the connection's state is then unknown.
+    clean: bool,
+    path: PathBuf,
+    identity: FileIdentity,
+}
+
+/// One write transaction. Dropped without [`Tx::commit`], it is rolled back (the next
+/// transaction starts on a fresh connection).
+pub(in crate::store) struct Tx<'c> {
+    conn: &'c mut SqliteConnection,
+    clean: &'c mut bool,
+    path: &'c Path,
+    identity: FileIdentity,
+}
+
+impl Writer {
+    pub(super) fn new(conn: SqliteConnection, path: &Path, identity: FileIdentity) -> Self {
+        Self {
+            conn: Some(conn),
+            clean: true,
+            path: path.to_owned(),
+            identity,
+        }
+    }
+
+    /// Starts a transaction (`BEGIN`), on a fresh connection when the last one did
+    /// not commit. Fails when the configured file is no longer the one opened at start.
+    pub(in crate::store) async fn begin(&mut self) -> StoreResult<Tx<'_>> {
+        check_identity(&self.path, self.identity)?;
+        if !self.clean || self.conn.is_none() {
+            if let Some(old) = self.conn.take() {
+                // Closing rolls back whatever transaction the connection still had.
+                if let Err(e) = old.close().await {
+                    tracing::warn!(error = %e, "closing the failed write connection");
+                }
+            }
+            let fresh = super::options(&self.path)
+                .create_if_missing(false)
+                .connect()
+                .await?;
+            self.conn = Some(fresh);
+            self.clean = true;
+            tracing::info!("the writer reconnected to the database after a failed transaction");
+        }
+        let Some(conn) = self.conn.as_mut() else {
+            unreachable!("connected above")
+        };
+        self.clean = false;
+        sqlx::query("begin").execute(&mut *conn).await?;
+        Ok(Tx {
+            conn,
+            clean: &mut self.clean,
+            path: &self.path,
+            identity: self.identity,
+        })
+    }
+
+    /// Checkpoints the WAL into the database file (so that the file alone is complete) and
+    /// closes the connection.
+    pub(in crate::store) async fn close(self) -> StoreResult<()> {
+        let Some(mut conn) = self.conn else {
+            return Ok(());
+        };
+        if !self.clean {
+            let _ = sqlx::query("rollback").execute(&mut conn).await;
+        }
+        let (busy, _, _): (i64, i64, i64) = sqlx::query_as("pragma wal_checkpoint(truncate)")
+            .fetch_one(&mut conn)
+            .await?;
+        if busy != 0 {
+            tracing::warn!(
+                "a reader kept the WAL checkpoint from completing; the -wal file is still needed"
+            );
+        }
+        conn.close().await?;
+        Ok(())
+    }
+}
+
+impl Tx<'_> {
+    /// Commits: on disk, in the configured file, when this returns `Ok`.
+    pub(in crate::store) async fn commit(self) -> StoreResult<()> {
+        sqlx::query("commit").execute(&mut *self.conn).await?;
+        *self.clean = true;
+        check_identity(self.path, self.identity)
+    }
+
+    pub(in crate::store) async fn existing_samples(
+        &mut self,
+        link_id: i64,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<SampleRow>> {
+        Ok(sqlx::query_as(&format!(
+            "select {SAMPLE_COLUMNS} from samples where link_id = ? and time_ns >= ? \
+             and time_ns <= ? order by time_ns"
+        ))
+        .bind(link_id)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&mut *self.conn)
+        .await?)
+    }
+
+    /// Inserts samples, many rows a statement.
+    pub(in crate::store) async fn insert_samples(
+        &mut self,
+        samples: &[SampleColumns],
+    ) -> StoreResult<()> {
+        for chunk in samples.chunks(ROWS_PER_STATEMENT) {
+            let mut qb: QueryBuilder<Sqlite> =
+                QueryBuilder::new(format!("insert into samples ({SAMPLE_INSERT_COLUMNS}) "));
+            qb.push_values(chunk, |mut b, s| {
+                b.push_bind(s.link_id).push_bind(s.time_ns);
+                for v in s.pose {
+                    b.push_bind(v);
+                }
+                b.push_bind(s.uncertainty_kind)
+                    .push_bind(s.uncertainty.as_deref())
+                    .push_bind(s.reprojection_rms_px)
+                    .push_bind(s.points)
+                    .push_bind(s.disposition)
+                    .push_bind(s.outlier)
+                    .push_bind(s.nis)
+                    .push_bind(s.received_ns);
+            });
+            qb.build().execute(&mut *self.conn).await?;
+        }
+        Ok(())
+    }
+
+    /// Inserts results; one at an existing key replaces it.
+    pub(in crate::store) async fn upsert_results(
+        &mut self,
+        results: &[ResultColumns],
+    ) -> StoreResult<()> {
+        for chunk in results.chunks(ROWS_PER_STATEMENT / 2) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(format!(
+                "insert or replace into results ({RESULT_INSERT_COLUMNS}) "
+            ));
+            qb.push_values(chunk, |mut b, r| {
+                b.push_bind(r.target_id)
+                    .push_bind(r.source)
+                    .push_bind(r.time_ns);
+                for v in r.pose {
+                    b.push_bind(v);
+                }
+                b.push_bind(r.cov.as_slice());
+                for v in r.sigmas {
+                    b.push_bind(v);
+                }
+                b.push_bind(r.status).push_bind(r.age_s).push_bind(r.chi2);
+                b.push_bind(r.deformation.map(|(v, _)| v));
+                for i in 0..6 {
+                    b.push_bind(r.deformation.map(|(_, d)| d[i]));
+                }
+            });
+            qb.build().execute(&mut *self.conn).await?;
+        }
+        Ok(())
+    }
+
+    /// The stored rollup rows at these keys.
+    pub(in crate::store) async fn rollup_rows(
+        &mut self,
+        keys: &[RollupKey],
+    ) -> StoreResult<Vec<RollupRow>> {
+        let mut out = Vec::new();
+        // Row-value IN: 4 parameters a key, well under SQLite's limit per statement.
+        for chunk in keys.chunks(2000) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "select target_id, source, width_s, bucket_ns, n, n_def, stats from rollups \
+                 where (target_id, source, width_s, bucket_ns) in (values ",
+            );
+            let mut sep = qb.separated(", ");
+            for (t, s, w, b) in chunk {
+                sep.push("(")
+                    .push_bind_unseparated(*t)
+                    .push_unseparated(", ")
+                    .push_bind_unseparated(*s)
+                    .push_unseparated(", ")
+                    .push_bind_unseparated(*w)
+                    .push_unseparated(", ")
+                    .push_bind_unseparated(*b)
+                    .push_unseparated(")");
+            }
+            qb.push(")");
+            out.extend(
+                qb.build_query_as::<RollupRow>()
+                    .fetch_all(&mut *self.conn)
+                    .await?,
+            );
+        }
+        Ok(out)
+    }
+
+    /// Writes rollup rows, replacing those at the same keys.
+    pub(in crate::store) async fn upsert_rollups(&mut self, rows: &[RollupRow]) -> StoreResult<()> {
+        for chunk in rows.chunks(ROWS_PER_STATEMENT) {
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "insert or replace into rollups (target_id, source, width_s, bucket_ns, n, n_def, stats) ",
+            );
+            qb.push_values(chunk, |mut b, (t, s, w, start, n, n_def, stats)| {
+                b.push_bind(*t)
+                    .push_bind(*s)
+                    .push_bind(*w)
+                    .push_bind(*start)
+                    .push_bind(*n)
+                    .push_bind(*n_def)
+                    .push_bind(stats.as_slice());
+            });
+            qb.build().execute(&mut *self.conn).await?;
+        }
+        Ok(())
+    }
+
+    /// Stores an alarm transition (or updates the one at the same key); returns its id.
+    pub(in crate::store) async fn insert_alarm(
+        &mut self,
+        target_id: i64,
+        t: &crate::alarms::Transition,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let (id,): (i64,) = sqlx::query_as(
+            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?) \
+             on conflict (target_id, time_ns, kind) do update set from_level = excluded.from_level, \
+             to_level = excluded.to_level, value = excluded.value, unit = excluded.unit, \
+             message = excluded.message, created_ns = excluded.created_ns \
+             returning alarm_id",
+        )
+        .bind(target_id)
+        .bind(t.time_ns)
+        .bind(t.kind.name())
+        .bind(t.from.name())
+        .bind(t.to.name())
+        .bind(t.value)
+        .bind(t.unit.name())
+        .bind(t.message.as_str())
+        .bind(now_ns)
+        .fetch_one(&mut *self.conn)
+        .await?;
+        Ok(id)
+    }
+
+    pub(in crate::store) async fn alarm_ack_state(
+        &mut self,
+        id: i64,
+    ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
+        Ok(sqlx::query_as(
+            "select to_level, acknowledged_by, ack_note from alarms where alarm_id = ?",
+        )
+        .bind(id)
+        .fetch_optional(&mut *self.conn)
+        .await?)
+    }
+
+    pub(in crate::store) async fn acknowledge_alarm(
+        &mut self,
+        id: i64,
+        by: &str,
+        note: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "update alarms set acknowledged_by = ?, acknowledged_ns = ?, ack_note = ? where alarm_id = ?",
+        )
+        .bind(by)
+        .bind(now_ns)
+        .bind(note)
+        .bind(id)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+
+    pub(in crate::store) async fn prune(
+        &mut self,
+        samples_before_ns: i64,
+        results_before_ns: i64,
+    ) -> StoreResult<(u64, u64)> {
+        let samples = sqlx::query("delete from samples where time_ns < ?")
+            .bind(samples_before_ns)
+            .execute(&mut *self.conn)
+            .await?
+            .rows_affected();
+        let results = sqlx::query("delete from results where time_ns < ?")
+            .bind(results_before_ns)
+            .execute(&mut *self.conn)
+            .await?
+            .rows_affected();
+        Ok((samples, results))
+    }
+
+    pub(in crate::store) async fn results_in(
+        &mut self,
+        target_id: i64,
+        source: i64,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<ResultRow>> {
+        Ok(sqlx::query_as(&format!(
+            "select {RESULT_COLUMNS} from results where target_id = ? and source = ? \
+             and time_ns >= ? and time_ns <= ? order by time_ns"
+        ))
+        .bind(target_id)
+        .bind(source)
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_all(&mut *self.conn)
+        .await?)
+    }
+
+    /// Stores the next reference version of a target; returns it.
+    pub(in crate::store) async fn insert_reference(
+        &mut self,
+        target_id: i64,
+        columns: &VersionColumns,
+        origin: &WindowOrigin,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let (max,): (Option<i64>,) =
+            sqlx::query_as("select max(version) from target_references where target_id = ?")
+                .bind(target_id)
+                .fetch_one(&mut *self.conn)
+                .await?;
+        let version = max.unwrap_or(0) + 1;
+        let p = columns.pose;
+        sqlx::query(
+            "insert into target_references (target_id, version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
+             origin, window_from_ns, window_to_ns, window_count, created_ns) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(target_id)
+        .bind(version)
+        .bind(p[0])
+        .bind(p[1])
+        .bind(p[2])
+        .bind(p[3])
+        .bind(p[4])
+        .bind(p[5])
+        .bind(p[6])
+        .bind(columns.cov.as_slice())
+        .bind(origin.0)
+        .bind(origin.1)
+        .bind(origin.2)
+        .bind(origin.3)
+        .bind(now_ns)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(version)
+    }
+
+    /// Stores the next calibration version of a link; returns it.
+    pub(in crate::store) async fn insert_calibration(
+        &mut self,
+        link_id: i64,
+        valid_from_ns: i64,
+        columns: &VersionColumns,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let (max,): (Option<i64>,) =
+            sqlx::query_as("select max(version) from calibrations where link_id = ?")
+                .bind(link_id)
+                .fetch_one(&mut *self.conn)
+                .await?;
+        let version = max.unwrap_or(0) + 1;
+        let p = columns.pose;
+        sqlx::query(
+            "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(link_id)
+        .bind(version)
+        .bind(valid_from_ns)
+        .bind(p[0])
+        .bind(p[1])
+        .bind(p[2])
+        .bind(p[3])
+        .bind(p[4])
+        .bind(p[5])
+        .bind(p[6])
+        .bind(columns.cov.as_slice())
+        .bind(now_ns)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(version)
+    }
+
+    pub(in crate::store) async fn insert_link_reset(
+        &mut self,
+        link_id: i64,
+        by: Option<&str>,
+        note: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "insert or replace into link_resets (link_id, created_ns, by_name, note) values (?, ?, ?, ?)",
+        )
+        .bind(link_id)
+        .bind(now_ns)
+        .bind(by)
+        .bind(note)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+
+    pub(in crate::store) async fn save_filter_state(
+        &mut self,
+        digest: &str,
+        state_json: &str,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "insert into filter_state (id, installation_digest, state, updated_ns) values (1, ?, ?, ?) \
+             on conflict (id) do update set installation_digest = excluded.installation_digest, \
+             state = excluded.state, updated_ns = excluded.updated_ns",
+        )
+        .bind(digest)
+        .bind(state_json)
+        .bind(now_ns)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+}
