@@ -91,6 +91,7 @@ on_both_backends!(
     versions_alarms_resets_and_filter_state_round_trip,
     retention_removes_old_rows_and_keeps_rollups,
     rollups_agree_with_the_results_they_summarise,
+    rows_before_the_partitions_are_moved_into_their_own_by_maintenance,
 );
 
 /// Every column of a sample and a result comes back bit for bit (all three uncertainty
@@ -427,6 +428,63 @@ async fn rollups_agree_with_the_results_they_summarise(backend: Backend) {
             assert!((b.mean(3).unwrap() - mean).abs() < 1e-9);
         }
     }
+    write.close().await.unwrap();
+    store.close().await;
+}
+
+/// Rows older than the partitions made at start-up (a backfill) land in PostgreSQL's default
+/// partition; the maintenance of a retention pass moves them into day partitions of their own,
+/// and every row still reads back.
+async fn rows_before_the_partitions_are_moved_into_their_own_by_maintenance(backend: Backend) {
+    let (_dir, inst, store, mut write) = open(backend).await;
+    let samples: Vec<NewSample> = (0..2_000)
+        .map(|k| sample(k, T0_NS - 3 * DAY + k * 120 * S))
+        .collect();
+    commit_samples(&mut write, &samples).await;
+    let results: Vec<NewResult> = (0..2_000)
+        .map(|k| result(k, T0_NS - 3 * DAY + k * 120 * S))
+        .collect();
+    commit_results(&mut write, &results).await;
+    let in_default = |table: &str| match &inst.server.database {
+        brokenray::config::Database::Postgres(url) => Some(
+            crate::common::postgres::cluster()
+                .psql(
+                    url.database_name().unwrap(),
+                    &format!("select count(*) from only {table}_default"),
+                )
+                .parse::<i64>()
+                .unwrap(),
+        ),
+        brokenray::config::Database::Sqlite(_) => None,
+    };
+    if let Some(n) = in_default("samples") {
+        assert_eq!(n, 2_000, "before the partitions: in the default partition");
+    }
+    let mut tx = write.begin().await.unwrap();
+    assert_eq!(tx.prune(i64::MIN, i64::MIN).await.unwrap(), (0, 0));
+    tx.commit().await.unwrap();
+    for table in ["samples", "results", "rollups"] {
+        if let Some(n) = in_default(table) {
+            assert_eq!(n, 0, "{table}: moved out of the default partition");
+        }
+    }
+    let back = store
+        .samples(LinkId(0), i64::MIN, i64::MAX, i64::MAX)
+        .await
+        .unwrap();
+    assert_eq!(back.len(), samples.len());
+    assert_eq!(
+        store
+            .count_results(0, true, i64::MIN, i64::MAX)
+            .await
+            .unwrap(),
+        2_000
+    );
+    let history = store
+        .history(0, true, i64::MIN, i64::MAX, 10)
+        .await
+        .unwrap();
+    assert_eq!(history.buckets.iter().map(|b| b.n).sum::<i64>(), 2_000);
     write.close().await.unwrap();
     store.close().await;
 }

@@ -162,6 +162,11 @@ async fn maintain(conn: &mut PgConnection) -> StoreResult<()> {
             .bind(&parent)
             .fetch_one(&mut *conn)
             .await?;
+            // pg_partman keeps the moved rows in a temporary table shaped like this parent,
+            // dropped only at commit: gone now, so that the next parent gets its own.
+            sqlx::query("drop table if exists pg_temp.partman_temp_data_storage")
+                .execute(&mut *conn)
+                .await?;
             tracing::info!(table, moved, "rows moved out of the default partition");
         }
         sqlx::query("select partman.run_maintenance($1, p_jobmon => false)")

@@ -1,8 +1,13 @@
 //! Alarms through the service: a deformation ramp stores exactly its transitions.
 
-use super::helpers::{T0_NS, TestApp, turned_sample};
+use super::helpers::{Backend, T0_NS, TestApp, turned_sample};
 use axum::http::StatusCode;
 use serde_json::json;
+
+on_both_backends!(
+    a_deformation_ramp_stores_exactly_its_transitions,
+    an_alarm_is_acknowledged_once_with_who_when_and_a_note,
+);
 
 const ONE_LINK: &str = r#"
 [[links]]
@@ -22,9 +27,8 @@ hysteresis = 0.1
 dwell_s = 1.0
 "#;
 
-#[tokio::test]
-async fn a_deformation_ramp_stores_exactly_its_transitions() {
-    let app = TestApp::start(Some(ONE_LINK)).await;
+async fn a_deformation_ramp_stores_exactly_its_transitions(backend: Backend) {
+    let app = TestApp::start_on(backend, Some(ONE_LINK)).await;
     app.set_straight_reference().await;
     // Rotation about x: up to 150 arcsec at 5 arcsec/s, 10 s there, back down; 25 Hz.
     let mut samples = Vec::new();
@@ -118,10 +122,9 @@ async fn an_alarm_decided_by_translation_reports_millimetres() {
 /// Alarms carry ids; an acknowledgement (admin) records who, when and a note, is shown with
 /// the alarm, accepts its own retry, refuses a different second one and a return to `none`,
 /// and survives a restart; the migration gave older rows ids too.
-#[tokio::test]
-async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note() {
+async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note(backend: Backend) {
     let config = ONE_LINK.replace("dwell_s = 1.0", "dwell_s = 0.0");
-    let app = TestApp::start(Some(&config)).await;
+    let app = TestApp::start_on(backend, Some(&config)).await;
     app.set_straight_reference().await;
     let mut events = app.service.subscribe();
     // 200 arcsec about x for 2 s, then back to 0: up to `alarm` and back to `none`.

@@ -1,7 +1,7 @@
 //! History at scale: a million results over 30 days, downsampled to 2000 buckets whose min and
 //! max contain every stored value of their span (checked against a direct scan).
 
-use super::helpers::{ONE_LINK, T0_NS, TestApp, installation};
+use super::helpers::{Backend, ONE_LINK, T0_NS, TestApp, installation_at};
 use axum::http::StatusCode;
 use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
 use brokenray::store::{self, NewResult};
@@ -37,10 +37,15 @@ fn result(k: i64) -> NewResult {
     }
 }
 
-#[tokio::test]
-async fn a_month_of_results_downsamples_without_losing_a_spike() {
+on_both_backends!(
+    a_month_of_results_downsamples_without_losing_a_spike,
+    retention_prunes_old_rows_and_keeps_rollups,
+    a_result_recomputed_at_the_same_time_counts_once_in_the_rollups,
+);
+
+async fn a_month_of_results_downsamples_without_losing_a_spike(backend: Backend) {
     let dir = tempfile::tempdir().unwrap();
-    let inst = installation(&dir, Some(ONE_LINK));
+    let inst = installation_at(&backend.database(&dir), Some(ONE_LINK));
     {
         let (store, mut write) = store::open(&inst, 0).await.unwrap();
         for chunk_start in (0..N).step_by(100_000) {
@@ -166,11 +171,13 @@ async fn a_month_of_results_downsamples_without_losing_a_spike() {
     }
 }
 
-#[tokio::test]
-async fn retention_prunes_old_rows_and_keeps_rollups() {
-    let app = TestApp::start(Some(&format!(
-        "{ONE_LINK}\n[retention]\nsamples_days = 1\nresults_days = 2\n"
-    )))
+async fn retention_prunes_old_rows_and_keeps_rollups(backend: Backend) {
+    let app = TestApp::start_on(
+        backend,
+        Some(&format!(
+            "{ONE_LINK}\n[retention]\nsamples_days = 1\nresults_days = 2\n"
+        )),
+    )
     .await;
     // Five days of samples, one an hour, ending an hour ago (later ones would be in the
     // future, which the service refuses).
@@ -208,11 +215,10 @@ async fn retention_prunes_old_rows_and_keeps_rollups() {
 /// Each camera posting on its own: the samples of one time arrive in separate requests, and the
 /// filtered result at that time is computed again with each. The rollups must count it once,
 /// with its last value, as the results table does.
-#[tokio::test]
-async fn a_result_recomputed_at_the_same_time_counts_once_in_the_rollups() {
+async fn a_result_recomputed_at_the_same_time_counts_once_in_the_rollups(backend: Backend) {
     use brokenray::feed::sample_items;
     use brokenray::sim::{Scenario, SimSettings, Simulator};
-    let app = TestApp::start(None).await;
+    let app = TestApp::start_on(backend, None).await;
     let inst = app.service.installation().clone();
     let mut sim = Simulator::new(
         &inst.model,

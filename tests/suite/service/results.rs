@@ -1,7 +1,7 @@
 //! Results through the API: ground truth, the paper's statistics, history, references,
 //! calibrations, restarts.
 
-use super::helpers::{ONE_LINK, T0_NS, TestApp, pose_json, time_text};
+use super::helpers::{Backend, ONE_LINK, T0_NS, TestApp, pose_json, time_text};
 use crate::common::paper::{self, TABLE_4, TABLE_5};
 use axum::http::StatusCode;
 use brokenray::config;
@@ -13,6 +13,16 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
 use serde_json::{Value, json};
+
+on_both_backends!(
+    noise_free_samples_give_the_true_chain,
+    the_papers_samples_give_back_table_4_and_5_through_stats,
+    retries_store_one_copy_and_changed_values_conflict,
+    compensation_at_a_past_time_is_interpolated_and_a_later_one_predicted,
+    a_window_reference_gives_deformation_and_correction,
+    a_new_calibration_is_versioned_and_used,
+    a_restart_restores_the_filters_and_answers_the_same_compensation,
+);
 
 const MEASURED: [&str; 3] = ["C1_from_B", "C2_from_M", "C3_from_G"];
 
@@ -64,9 +74,8 @@ fn group(k: i64, links: &[(String, Pose)]) -> Vec<Value> {
         .collect()
 }
 
-#[tokio::test]
-async fn noise_free_samples_give_the_true_chain() {
-    let app = TestApp::start(None).await;
+async fn noise_free_samples_give_the_true_chain(backend: Backend) {
+    let app = TestApp::start_on(backend, None).await;
     let links = truth();
     let mut samples = Vec::new();
     for k in 0..20 {
@@ -147,9 +156,8 @@ async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
     );
 }
 
-#[tokio::test]
-async fn the_papers_samples_give_back_table_4_and_5_through_stats() {
-    let app = TestApp::start(Some(ONE_LINK)).await;
+async fn the_papers_samples_give_back_table_4_and_5_through_stats(backend: Backend) {
+    let app = TestApp::start_on(backend, Some(ONE_LINK)).await;
     let samples: Vec<Value> = (0..8)
         .map(|i| json!({"link": "G_from_B", "time": time_text(i as i64 * 25), "pose": {"t_mm": TABLE_5[i], "euler_deg": TABLE_4[i]}}))
         .collect();
@@ -167,9 +175,8 @@ async fn the_papers_samples_give_back_table_4_and_5_through_stats() {
     });
 }
 
-#[tokio::test]
-async fn retries_store_one_copy_and_changed_values_conflict() {
-    let app = TestApp::start(None).await;
+async fn retries_store_one_copy_and_changed_values_conflict(backend: Backend) {
+    let app = TestApp::start_on(backend, None).await;
     let links = truth();
     let batch = json!({"samples": group(0, &links)});
     let (s1, b1) = app.post_json("/api/v1/samples", &batch).await;
@@ -194,9 +201,8 @@ async fn retries_store_one_copy_and_changed_values_conflict() {
     assert_eq!(samples["samples"].as_array().unwrap().len(), 1);
 }
 
-#[tokio::test]
-async fn compensation_at_a_past_time_is_interpolated_and_a_later_one_predicted() {
-    let app = TestApp::start(None).await;
+async fn compensation_at_a_past_time_is_interpolated_and_a_later_one_predicted(backend: Backend) {
+    let app = TestApp::start_on(backend, None).await;
     let links = truth();
     // The target drifts: C3_from_G slides 0.01 mm per group along x (a fifth of its sigma).
     let mut samples = Vec::new();
@@ -263,9 +269,8 @@ async fn compensation_at_a_past_time_is_interpolated_and_a_later_one_predicted()
     assert_eq!(status, StatusCode::NOT_FOUND);
 }
 
-#[tokio::test]
-async fn a_window_reference_gives_deformation_and_correction() {
-    let app = TestApp::start(None).await;
+async fn a_window_reference_gives_deformation_and_correction(backend: Backend) {
+    let app = TestApp::start_on(backend, None).await;
     let links = truth();
     let mut samples = Vec::new();
     for k in 0..10 {
@@ -346,9 +351,8 @@ async fn a_window_reference_gives_deformation_and_correction() {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
 }
 
-#[tokio::test]
-async fn a_new_calibration_is_versioned_and_used() {
-    let app = TestApp::start(None).await;
+async fn a_new_calibration_is_versioned_and_used(backend: Backend) {
+    let app = TestApp::start_on(backend, None).await;
     let links = truth();
     app.post_json("/api/v1/samples", &json!({"samples": group(0, &links)}))
         .await;
@@ -392,9 +396,8 @@ async fn a_new_calibration_is_versioned_and_used() {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
 }
 
-#[tokio::test]
-async fn a_restart_restores_the_filters_and_answers_the_same_compensation() {
-    let app = TestApp::start(None).await;
+async fn a_restart_restores_the_filters_and_answers_the_same_compensation(backend: Backend) {
+    let app = TestApp::start_on(backend, None).await;
     let links = truth();
     let mut rng = StdRng::seed_from_u64(9);
     let mut samples = Vec::new();
