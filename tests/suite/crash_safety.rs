@@ -2,6 +2,7 @@
 //! the compensation after a restart is the one before the kill.
 
 use crate::common::process::{self, Server};
+use crate::service::helpers::Backend;
 use serde_json::{Value, json};
 use std::process::Command;
 use std::sync::{Arc, Mutex};
@@ -58,15 +59,22 @@ fn start(config: &std::path::Path) -> Server {
 /// A temporary directory with the built-in installation on port 0 and a database inside it.
 fn site() -> (tempfile::TempDir, std::path::PathBuf) {
     let dir = tempfile::tempdir().unwrap();
+    let database = dir.path().join("db.sqlite").display().to_string();
+    let config = site_with_database(&dir, &database);
+    (dir, config)
+}
+
+/// The built-in installation on port 0 with `database` (a file or a URL), written into `dir`.
+fn site_with_database(dir: &tempfile::TempDir, database: &str) -> std::path::PathBuf {
     let config = dir.path().join("site.toml");
     let text = brokenray::config::DEFAULT_INSTALLATION_TOML
         .replace("127.0.0.1:7878", "127.0.0.1:0")
         .replace(
             "database = \"brokenray.db\"",
-            &format!("database = \"{}\"", dir.path().join("db.sqlite").display()),
+            &format!("database = \"{database}\""),
         );
     std::fs::write(&config, text).unwrap();
-    (dir, config)
+    config
 }
 
 /// Four writers streaming groups (every fourth each) until the server goes away; each
@@ -127,9 +135,11 @@ async fn stored_times(client: &reqwest::Client, base: &str, link: &str) -> Vec<i
         .collect()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same() {
-    let (_dir, config) = site();
+on_both_backends!(multi_thread: sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same);
+
+async fn sigkill_loses_nothing_acknowledged_and_the_restart_answers_the_same(backend: Backend) {
+    let dir = tempfile::tempdir().unwrap();
+    let config = site_with_database(&dir, &backend.database(&dir));
     let client = reqwest::Client::new();
 
     // Phase 1: four writers stream groups; the server is killed while they do.
@@ -732,4 +742,96 @@ async fn idle_and_slow_clients_cannot_hold_the_service() {
     let exit = terminate(server);
     assert!(exit.success(), "{exit}");
     drop(events);
+}
+
+/// PostgreSQL crashes (an immediate stop) and comes back while four writers stream: during the
+/// outage every request answers 503 and the health check says why; afterwards the writer
+/// reconnects by itself. Nothing acknowledged is lost, and a refused group retried is taken
+/// once (a commit whose answer was lost with the connection may already be stored).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_postgres_crash_during_ingest_loses_nothing_acknowledged() {
+    let cluster = crate::common::postgres::Cluster::own();
+    let dir = tempfile::tempdir().unwrap();
+    let config = site_with_database(&dir, &cluster.create_database());
+    let client = reqwest::Client::new();
+    let server = start(&config);
+    let acknowledged = Arc::new(Mutex::new(Vec::<i64>::new()));
+    let refused = Arc::new(Mutex::new(Vec::<(i64, reqwest::StatusCode)>::new()));
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let writers: Vec<_> = (0..4i64)
+        .map(|w| {
+            let (client, base) = (client.clone(), server.base.clone());
+            let (acknowledged, refused, stop) = (
+                Arc::clone(&acknowledged),
+                Arc::clone(&refused),
+                Arc::clone(&stop),
+            );
+            tokio::spawn(async move {
+                let mut k = w;
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    let status = try_group(&client, &base, k).await;
+                    if status.is_success() {
+                        acknowledged.lock().unwrap().push(k);
+                    } else {
+                        refused.lock().unwrap().push((k, status));
+                        tokio::time::sleep(Duration::from_millis(20)).await;
+                    }
+                    k += 4;
+                }
+            })
+        })
+        .collect();
+    let count = |v: &Arc<Mutex<Vec<i64>>>| v.lock().unwrap().len();
+    while count(&acknowledged) < 300 {
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    cluster.stop("immediate");
+    while refused.lock().unwrap().len() < 20 {
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let (status, body) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert!(
+        body["problem"].as_str().is_some_and(|p| !p.is_empty()),
+        "{body}"
+    );
+    let before_restart = count(&acknowledged);
+    cluster.start();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while count(&acknowledged) < before_restart + 300 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "writes did not resume after PostgreSQL came back"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    for w in writers {
+        w.await.unwrap();
+    }
+    let (status, body) = health(&client, &server.base).await;
+    assert_eq!(status, reqwest::StatusCode::OK, "{body}");
+    let refused = refused.lock().unwrap().clone();
+    assert!(
+        refused
+            .iter()
+            .all(|(_, s)| *s == reqwest::StatusCode::SERVICE_UNAVAILABLE),
+        "refusals other than 503: {refused:?}"
+    );
+    // A refused group, retried now, is taken (stored once, whether or not it was already).
+    for (k, _) in &refused {
+        assert!(try_group(&client, &server.base, *k).await.is_success());
+    }
+    let mut expected = acknowledged.lock().unwrap().clone();
+    expected.extend(refused.iter().map(|(k, _)| *k));
+    let stored = stored_times(&client, &server.base, "C1_from_B").await;
+    let stored_set: std::collections::BTreeSet<i64> = stored.iter().copied().collect();
+    assert_eq!(stored.len(), stored_set.len(), "a group stored twice");
+    let expected: std::collections::BTreeSet<i64> =
+        expected.iter().map(|k| group_time(*k)).collect();
+    assert_eq!(
+        stored_set, expected,
+        "stored groups differ from the acknowledged and retried ones"
+    );
+    server.kill();
 }

@@ -5,6 +5,20 @@
 /// Runs each named `async fn NAME(backend: Backend)` as two tests, `NAME::sqlite` and
 /// `NAME::postgres` (the latter on a fresh database of the throwaway cluster).
 macro_rules! on_both_backends {
+    (multi_thread: $($name:ident),* $(,)?) => {
+        $(
+            mod $name {
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn sqlite() {
+                    super::$name(crate::service::helpers::Backend::Sqlite).await
+                }
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn postgres() {
+                    super::$name(crate::service::helpers::Backend::Postgres).await
+                }
+            }
+        )*
+    };
     ($($name:ident),* $(,)?) => {
         $(
             mod $name {

@@ -46,6 +46,12 @@ fn is_root() -> bool {
 }
 
 impl Cluster {
+    /// A cluster of the caller's own (for a test that stops and starts its server), stopped
+    /// when the process ends.
+    pub fn own() -> Cluster {
+        Self::start_new()
+    }
+
     fn start_new() -> Cluster {
         let bin = std::env::var_os("BROKENRAY_PG_BIN")
             .map(PathBuf::from)
