@@ -47,10 +47,9 @@ pub(super) fn replay(
     let installation = std::sync::Arc::new(installation);
     let runtime = runtime(false)?;
     runtime.block_on(async {
-        let (store, write) = crate::store::open(&installation, now_ns())
+        let store = crate::store::open_reader(&installation, now_ns())
             .await
             .with_context(|| format!("cannot open {}", database))?;
-        drop(write);
         let bar = indicatif::ProgressBar::new(0).with_style(
             indicatif::ProgressStyle::with_template(
                 "{msg} [{bar:40}] {pos}/{len} rows ({eta} left)",

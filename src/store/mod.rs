@@ -236,6 +236,35 @@ pub async fn open(
     ))
 }
 
+/// Opens the installation's database for reading only, beside a service that writes to it
+/// (`replay`): on PostgreSQL without migrating or taking the writer's lock; on SQLite as
+/// [`open`] does, the write connection dropped at once (WAL lets both go on).
+pub async fn open_reader(
+    installation: &crate::config::Installation,
+    now_ns: i64,
+) -> StoreResult<Store> {
+    let link_names: Vec<&String> = installation.model.links.iter().map(|l| &l.name).collect();
+    let target_names: Vec<&String> = installation.model.targets.iter().map(|t| &t.name).collect();
+    match &installation.server.database {
+        Database::Sqlite(_) => {
+            // Dropped, not closed: closing checkpoints the WAL, which would hold up the
+            // service's writer.
+            let (store, _write) = open(installation, now_ns).await?;
+            Ok(store)
+        }
+        Database::Postgres(url) => {
+            let (reader, link_ids, target_ids) =
+                postgres::open_reader(url, &link_names, &target_names).await?;
+            Ok(Store {
+                reader: Reader::Postgres(reader),
+                writer: Arc::new(WriterHealth::default()),
+                link_ids: link_ids.into(),
+                target_ids: target_ids.into(),
+            })
+        }
+    }
+}
+
 /// Writes a consistent copy of the database to `out` while the service may be writing to it:
 /// for SQLite a database file (`VACUUM INTO`), for PostgreSQL a `pg_dump` archive (custom
 /// format, one snapshot). Refuses to overwrite `out`. Returns the copy's size in bytes.

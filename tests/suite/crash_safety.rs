@@ -835,3 +835,60 @@ async fn a_postgres_crash_during_ingest_loses_nothing_acknowledged() {
     );
     server.kill();
 }
+
+/// `backup` of a PostgreSQL site while it is written to: a `pg_dump` archive that
+/// `pg_restore` turns into a database holding whole groups, at least those acknowledged before
+/// the backup began; never over an existing file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_postgres_backup_while_serving_restores_with_pg_restore() {
+    let cluster = crate::common::postgres::cluster();
+    let dir = tempfile::tempdir().unwrap();
+    let config = site_with_database(&dir, &cluster.create_database());
+    let client = reqwest::Client::new();
+    let server = start(&config);
+    for k in 0..50 {
+        post_group(&client, &server.base, k).await;
+    }
+    let (c, base) = (client.clone(), server.base.clone());
+    let writer = tokio::spawn(async move {
+        for k in 50..300 {
+            post_group(&c, &base, k).await;
+        }
+    });
+    let out = dir.path().join("site.dump");
+    let backup_args = [
+        "backup",
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let backup = brokenray(&backup_args);
+    assert!(
+        backup.status.success(),
+        "{}",
+        String::from_utf8_lossy(&backup.stderr)
+    );
+    writer.await.unwrap();
+    server.kill();
+    let restored = cluster.create_database();
+    let restore = Command::new("pg_restore")
+        .args(["--no-owner", "--dbname", &restored])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        restore.status.success(),
+        "{}",
+        String::from_utf8_lossy(&restore.stderr)
+    );
+    let name = restored.rsplit('/').next().unwrap();
+    let n: i64 = cluster
+        .psql(name, "select count(*) from samples")
+        .parse()
+        .unwrap();
+    assert!(n >= 150 && n % 3 == 0, "{n} samples in the copy");
+    let again = brokenray(&backup_args);
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
+}

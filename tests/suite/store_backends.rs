@@ -488,3 +488,72 @@ async fn rows_before_the_partitions_are_moved_into_their_own_by_maintenance(back
     write.close().await.unwrap();
     store.close().await;
 }
+
+/// The installation with `[server] database = url` (the built-in one otherwise).
+fn at(url: &str) -> Installation {
+    installation_at(url, Some(ONE_LINK))
+}
+
+/// A URL without a database name or that does not parse is a configuration error naming the
+/// field; a server that does not answer, a role that may not create the schema and a second
+/// writer are refused at start-up with the reason, and no message shows the password.
+#[tokio::test]
+async fn postgres_start_up_refusals_name_the_reason() {
+    for (text, expected) in [
+        ("postgres://brokenray@127.0.0.1:5432", "names no database"),
+        ("postgres://[::1", "not a valid PostgreSQL URL"),
+    ] {
+        let err = brokenray::config::parse(
+            "t.toml",
+            &format!("[server]\ndatabase = \"{text}\"\n{ONE_LINK}"),
+        )
+        .expect_err("refused")
+        .to_string();
+        assert!(
+            err.contains("server.database") && err.contains(expected),
+            "{err}"
+        );
+    }
+    // Nothing listens on port 1.
+    let down = at("postgres://brokenray:hunter2@127.0.0.1:1/brokenray");
+    let err = store::open(&down, T0_NS)
+        .await
+        .expect_err("refused")
+        .to_string();
+    assert!(err.contains("cannot connect"), "{err}");
+    assert!(!err.contains("hunter2"), "the password leaked: {err}");
+    assert!(err.contains("***"), "{err}");
+
+    let cluster = crate::common::postgres::cluster();
+    let url = cluster.create_database();
+    let name = url.rsplit('/').next().unwrap().to_owned();
+    let role = format!("{name}_reader");
+    cluster.psql(&name, &format!("create role {role} login"));
+    let limited = at(&url.replace("brokenray@", &format!("{role}@")));
+    let err = store::open(&limited, T0_NS)
+        .await
+        .expect_err("refused")
+        .to_string();
+    assert!(
+        err.contains("cannot prepare the schema") && err.contains("permission denied"),
+        "{err}"
+    );
+
+    let inst = at(&url);
+    let (store, write) = store::open(&inst, T0_NS).await.expect("the first writer");
+    let err = store::open(&inst, T0_NS)
+        .await
+        .expect_err("a second writer")
+        .to_string();
+    assert!(err.contains("another brokenray service"), "{err}");
+    // A reader (replay) opens beside the writer.
+    let reader = store::open_reader(&inst, T0_NS).await.expect("a reader");
+    assert!(reader.latest_result(0, true).await.unwrap().is_none());
+    reader.close().await;
+    write.close().await.unwrap();
+    store.close().await;
+    // The lock goes with the writer's connection.
+    let (store, write) = store::open(&inst, T0_NS).await.expect("a writer again");
+    write.close().await.unwrap();
+    store.close().await;
+}

@@ -115,6 +115,61 @@ pub(super) async fn open(
     ))
 }
 
+/// Opens the database at `url` for reading only (while a service writes to it): no
+/// migration, no writer's lock. The installation's links and targets must be registered
+/// (the service does so when it starts).
+pub(super) async fn open_reader(
+    url: &PostgresUrl,
+    link_names: &[&String],
+    target_names: &[&String],
+) -> StoreResult<(Reader, Vec<i64>, Vec<i64>)> {
+    let options = options_of(url)?;
+    let refused = |message: String| StoreError::Open {
+        database: url.to_string(),
+        message,
+    };
+    let pool = PgPoolOptions::new()
+        .max_connections(4)
+        .acquire_timeout(CONNECT_TIMEOUT)
+        .connect_with(options.clone())
+        .await
+        .map_err(|e| refused(format!("cannot connect: {e}")))?;
+    let ids = |table: &'static str, column: &'static str, names: &[&String]| {
+        let pool = pool.clone();
+        let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
+        async move {
+            let mut out = Vec::with_capacity(names.len());
+            for name in names {
+                let row: Option<(i64,)> =
+                    sqlx::query_as(&format!("select {column} from {table} where name = $1"))
+                        .bind(&name)
+                        .fetch_optional(&pool)
+                        .await
+                        .map_err(|e| refused(format!("cannot read {table}: {e}")))?;
+                let (id,) = row.ok_or_else(|| {
+                    refused(format!(
+                        "it holds no `{name}` in {table}: the service registers the \
+                         installation's names when it starts on this database"
+                    ))
+                })?;
+                out.push(id);
+            }
+            StoreResult::Ok(out)
+        }
+    };
+    let link_ids = ids("links", "link_id", link_names).await?;
+    let target_ids = ids("targets", "target_id", target_names).await?;
+    Ok((
+        Reader {
+            pool,
+            health_conn: std::sync::Arc::new(tokio::sync::Mutex::new(None)),
+            options: std::sync::Arc::new(options),
+        },
+        link_ids,
+        target_ids,
+    ))
+}
+
 /// The id of a link or target by name, registering it when new.
 async fn register(
     conn: &mut PgConnection,
