@@ -1,8 +1,9 @@
 //! History query latency over 10 million stored filtered results (one target, 25 Hz, about 4.6
 //! days): 24 h and full-range queries at `max_points=2000`, through the router in process.
 //!
-//! Run: `cargo bench --bench history` (`RESULTS` sets the count; the database is built once per
-//! run in a temporary directory, which takes a minute or two).
+//! Run: `cargo bench --bench history` (`RESULTS` sets the count; `BACKENDS` the stores, by
+//! default `sqlite,postgres`, PostgreSQL in a throwaway cluster of this run; each database is
+//! built once per run, which takes minutes).
 
 use axum::body::Body;
 use axum::http::Request;
@@ -15,6 +16,9 @@ use tower::ServiceExt;
 
 mod support;
 
+#[path = "../tests/suite/common/postgres.rs"]
+mod postgres;
+
 fn main() {
     if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
         println!("history latency bench: run with `cargo bench --bench history`");
@@ -25,9 +29,23 @@ fn main() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(10_000_000);
     let dir = tempfile::tempdir().expect("temp dir");
+    let backends = std::env::var("BACKENDS").unwrap_or_else(|_| "sqlite,postgres".into());
+    for backend in backends.split(',').map(str::trim) {
+        let database = match backend {
+            "sqlite" => dir.path().join("history.sqlite").display().to_string(),
+            "postgres" => postgres::fresh_database(),
+            other => panic!("BACKENDS: unknown backend `{other}` (sqlite, postgres)"),
+        };
+        println!("== backend: {backend}");
+        measure(&database, n);
+    }
+}
+
+/// Fills `database` with `n` results and times history queries on it.
+fn measure(database: &str, n: i64) {
     let text = format!(
         "[server]\ndatabase = \"{}\"\n[[links]]\nname = \"G_from_B\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 30.0, translation_mm = 1.0 }}\nexpected_rate_hz = 25.0\n[[targets]]\nname = \"G\"\nbase = \"B\"\n",
-        dir.path().join("history.sqlite").display()
+        database
     );
     let inst = brokenray::config::parse("bench.toml", &text).expect("config");
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -40,6 +58,21 @@ fn main() {
         println!(
             "built {n} filtered results in {:.1} s",
             build.elapsed().as_secs_f64()
+        );
+        // On PostgreSQL the results lie before the partitions made at start-up: a retention
+        // pass that removes nothing moves them into day partitions of their own.
+        let settle = Instant::now();
+        {
+            let (store, mut write) = brokenray::store::open(&inst, 0).await.expect("open");
+            let mut tx = write.begin().await.expect("begin");
+            tx.prune(i64::MIN, i64::MIN).await.expect("maintenance");
+            tx.commit().await.expect("commit");
+            write.close().await.expect("close");
+            store.close().await;
+        }
+        println!(
+            "maintenance (partitions) in {:.1} s",
+            settle.elapsed().as_secs_f64()
         );
 
         let (service, _pipeline) = Service::start(inst).await.expect("service");

@@ -1,16 +1,23 @@
 //! Load generator: ingest over HTTP on loopback and compensation latency, against the release
-//! binary in its own process, with a raw SQLite insert baseline. Prints its figures.
+//! binary in its own process, on each store backend in turn, with a raw SQLite insert
+//! baseline. Prints its figures.
 //!
-//! Run: `cargo bench --bench ingest` (options through the environment: `CLIENTS` (4),
+//! Run: `cargo bench --bench ingest` (options through the environment: `BACKENDS`
+//! (`sqlite,postgres`: PostgreSQL in a throwaway cluster of this run, fsync and synchronous
+//! commit on), `CLIENTS` (4),
 //! `BATCHES` (300), `BATCH` (1000 samples), `SSE_CLIENTS` (0): that many clients reading
 //! `/api/v1/events` while the batches go in; `BROKENRAY_BIN`: another build of the binary to
-//! measure, for A/B comparisons).
+//! measure, for A/B comparisons; `PG_LOG`: print the PostgreSQL cluster's log at the end, with
+//! `BROKENRAY_PG_SETTINGS="-c log_min_duration_statement=3"` the slow statements).
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
+
+#[path = "../tests/suite/common/postgres.rs"]
+mod postgres;
 
 const T0: i64 = 1_795_255_200_000_000_000;
 const LINKS: [(&str, [f64; 3], [f64; 4]); 3] = [
@@ -138,19 +145,37 @@ fn main() {
     let batches = env_usize("BATCHES", 300);
     let n = env_usize("BATCH", 1000) / 3 * 3;
     let dir = tempfile::tempdir().expect("temp dir");
-    let config = dir.path().join("site.toml");
+    let backends = std::env::var("BACKENDS").unwrap_or_else(|_| "sqlite,postgres".into());
+    for backend in backends.split(',').map(str::trim) {
+        measure(backend, dir.path(), clients, batches, n);
+    }
+    if std::env::var_os("PG_LOG").is_some() {
+        println!("{}", postgres::cluster().log());
+    }
+    let raw = raw_sqlite_baseline(dir.path(), batches.min(200), n);
+    println!(
+        "raw SQLite baseline (rusqlite, one prepared statement, one transaction per batch, WAL, synchronous=FULL): {raw:.0} samples/s"
+    );
+}
+
+/// Runs the service on `backend` and measures ingest and compensation latency.
+fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize, n: usize) {
+    let config = dir.join(format!("site-{backend}.toml"));
+    let database = match backend {
+        "sqlite" => dir.join("bench.sqlite").display().to_string(),
+        "postgres" => postgres::fresh_database(),
+        other => panic!("BACKENDS: unknown backend `{other}` (sqlite, postgres)"),
+    };
+    println!("== backend: {backend}");
     let text = brokenray::config::DEFAULT_INSTALLATION_TOML
         .replace("127.0.0.1:7878", "127.0.0.1:0")
         .replace(
             "database = \"brokenray.db\"",
-            &format!(
-                "database = \"{}\"",
-                dir.path().join("bench.sqlite").display()
-            ),
+            &format!("database = \"{database}\""),
         );
     // RERUN=off (default) | save | connect (to an address where nothing listens).
     let rerun_mode = std::env::var("RERUN").unwrap_or_else(|_| "off".into());
-    let recordings = dir.path().join("recordings");
+    let recordings = dir.join("recordings");
     let rerun_section = match rerun_mode.as_str() {
         "off" => "mode = \"off\"".to_owned(),
         "save" => format!(
@@ -332,8 +357,4 @@ fn main() {
             .unwrap_or(0);
         println!("recordings: {:.1} MB", bytes as f64 / 1e6);
     }
-    let raw = raw_sqlite_baseline(dir.path(), batches.min(200), n);
-    println!(
-        "raw SQLite baseline (rusqlite, one prepared statement, one transaction per batch, WAL, synchronous=FULL): {raw:.0} samples/s"
-    );
 }

@@ -8,8 +8,9 @@
 //! to its write-ahead log. It holds an advisory lock: a second brokenray service writing to
 //! the same database is refused instead of interleaving its rollups with this one's.
 //!
-//! Batches go in as one statement per table: each column as an array, expanded by `unnest`
-//! (one round trip and one plan for thousands of rows).
+//! Samples and results go in by binary `COPY` (rows in the server's own format, no statement
+//! to plan); rollups and the keys to look up as one statement each, every column an array
+//! expanded by `unnest`.
 
 use super::super::rows::{
     RESULT_COLUMNS, RESULT_INSERT_COLUMNS, ResultColumns, ResultRow, RollupKey, RollupRow,
@@ -19,7 +20,7 @@ use super::super::{StoreError, StoreResult, WindowOrigin};
 use sqlx::postgres::{PgConnectOptions, PgConnection};
 use sqlx::{ConnectOptions, Connection};
 
-/// Rows per statement: bounds the arrays a statement carries (a few MB at most).
+/// Keys per rollup statement: bounds the arrays a statement carries.
 const ROWS_PER_STATEMENT: usize = 10_000;
 
 /// The one connection that writes.
@@ -116,15 +117,76 @@ impl Writer {
     }
 }
 
-/// `update set` of every column but the key, from `excluded`.
-fn set_excluded(columns: &str, key: &[&str]) -> String {
-    columns
-        .split(',')
-        .map(str::trim)
-        .filter(|c| !key.contains(c))
-        .map(|c| format!("{c} = excluded.{c}"))
-        .collect::<Vec<_>>()
-        .join(", ")
+/// Rows in PostgreSQL's binary `COPY` format: a header, then per row the field count and
+/// each field as its length (-1 for null) and its bytes in network order, then a trailer.
+struct CopyRows {
+    buf: Vec<u8>,
+}
+
+impl CopyRows {
+    fn new() -> Self {
+        let mut buf = Vec::with_capacity(1 << 16);
+        buf.extend_from_slice(b"PGCOPY\n\xff\r\n\0");
+        buf.extend_from_slice(&0i32.to_be_bytes()); // flags
+        buf.extend_from_slice(&0i32.to_be_bytes()); // header extension
+        Self { buf }
+    }
+
+    fn row(&mut self, fields: i16) {
+        self.buf.extend_from_slice(&fields.to_be_bytes());
+    }
+
+    fn null(&mut self) {
+        self.buf.extend_from_slice(&(-1i32).to_be_bytes());
+    }
+
+    fn i64(&mut self, v: i64) {
+        self.buf.extend_from_slice(&8i32.to_be_bytes());
+        self.buf.extend_from_slice(&v.to_be_bytes());
+    }
+
+    fn i64_or_null(&mut self, v: Option<i64>) {
+        match v {
+            Some(v) => self.i64(v),
+            None => self.null(),
+        }
+    }
+
+    fn f64(&mut self, v: f64) {
+        self.buf.extend_from_slice(&8i32.to_be_bytes());
+        self.buf.extend_from_slice(&v.to_be_bytes());
+    }
+
+    fn f64_or_null(&mut self, v: Option<f64>) {
+        match v {
+            Some(v) => self.f64(v),
+            None => self.null(),
+        }
+    }
+
+    fn bool(&mut self, v: bool) {
+        self.buf.extend_from_slice(&1i32.to_be_bytes());
+        self.buf.push(u8::from(v));
+    }
+
+    /// A `bytea` or `text` field (text's binary form is its UTF-8).
+    fn bytes(&mut self, v: Option<&[u8]>) {
+        match v {
+            Some(v) => {
+                // Fields are a few hundred bytes at most; one over 2 GB would make the server
+                // refuse the copy (its length no longer matches), never store a wrong value.
+                let len = i32::try_from(v.len()).unwrap_or(i32::MAX);
+                self.buf.extend_from_slice(&len.to_be_bytes());
+                self.buf.extend_from_slice(v);
+            }
+            None => self.null(),
+        }
+    }
+
+    fn finish(mut self) -> Vec<u8> {
+        self.buf.extend_from_slice(&(-1i16).to_be_bytes());
+        self.buf
+    }
 }
 
 impl Tx<'_> {
@@ -152,113 +214,105 @@ impl Tx<'_> {
         .await?)
     }
 
-    /// Inserts samples, one statement per ten thousand.
+    /// Inserts samples by binary `COPY` (the fastest way into PostgreSQL: no statement to
+    /// plan, rows in the server's own format).
     pub(in crate::store) async fn insert_samples(
         &mut self,
         samples: &[SampleColumns],
     ) -> StoreResult<()> {
-        let sql = format!(
-            "insert into samples ({SAMPLE_INSERT_COLUMNS}) select * from unnest(\
-             $1::int8[], $2::int8[], $3::float8[], $4::float8[], $5::float8[], $6::float8[], \
-             $7::float8[], $8::float8[], $9::float8[], $10::int8[], $11::bytea[], $12::float8[], \
-             $13::int8[], $14::text[], $15::bool[], $16::float8[], $17::int8[])"
-        );
-        for chunk in samples.chunks(ROWS_PER_STATEMENT) {
-            let col = |i: usize| chunk.iter().map(|s| s.pose[i]).collect::<Vec<f64>>();
-            sqlx::query(&sql)
-                .bind(chunk.iter().map(|s| s.link_id).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|s| s.time_ns).collect::<Vec<_>>())
-                .bind(col(0))
-                .bind(col(1))
-                .bind(col(2))
-                .bind(col(3))
-                .bind(col(4))
-                .bind(col(5))
-                .bind(col(6))
-                .bind(chunk.iter().map(|s| s.uncertainty_kind).collect::<Vec<_>>())
-                .bind(
-                    chunk
-                        .iter()
-                        .map(|s| s.uncertainty.as_deref())
-                        .collect::<Vec<_>>(),
-                )
-                .bind(
-                    chunk
-                        .iter()
-                        .map(|s| s.reprojection_rms_px)
-                        .collect::<Vec<_>>(),
-                )
-                .bind(chunk.iter().map(|s| s.points).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|s| s.disposition).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|s| s.outlier).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|s| s.nis).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|s| s.received_ns).collect::<Vec<_>>())
-                .execute(&mut *self.conn)
-                .await?;
+        if samples.is_empty() {
+            return Ok(());
         }
-        Ok(())
+        let mut rows = CopyRows::new();
+        for s in samples {
+            rows.row(17);
+            rows.i64(s.link_id);
+            rows.i64(s.time_ns);
+            for v in s.pose {
+                rows.f64(v);
+            }
+            rows.i64(s.uncertainty_kind);
+            rows.bytes(s.uncertainty.as_deref());
+            rows.f64_or_null(s.reprojection_rms_px);
+            rows.i64_or_null(s.points);
+            rows.bytes(Some(s.disposition.as_bytes()));
+            rows.bool(s.outlier);
+            rows.f64_or_null(s.nis);
+            rows.i64(s.received_ns);
+        }
+        self.copy_in("samples", SAMPLE_INSERT_COLUMNS, rows).await
     }
 
-    /// Inserts results; one at an existing key replaces it.
+    /// Inserts results; one at an existing key replaces it: the rows at the batch's keys are
+    /// deleted (usually none), then the batch goes in by binary `COPY`.
     pub(in crate::store) async fn upsert_results(
         &mut self,
         results: &[ResultColumns],
     ) -> StoreResult<()> {
-        let sql = format!(
-            "insert into results ({RESULT_INSERT_COLUMNS}) select * from unnest(\
-             $1::int8[], $2::int8[], $3::int8[], $4::float8[], $5::float8[], $6::float8[], \
-             $7::float8[], $8::float8[], $9::float8[], $10::float8[], $11::bytea[], \
-             $12::float8[], $13::float8[], $14::float8[], $15::float8[], $16::float8[], \
-             $17::float8[], $18::text[], $19::float8[], $20::float8[], $21::int8[], \
-             $22::float8[], $23::float8[], $24::float8[], $25::float8[], $26::float8[], \
-             $27::float8[]) on conflict (target_id, source, time_ns) do update set {}",
-            set_excluded(RESULT_INSERT_COLUMNS, &["target_id", "source", "time_ns"])
-        );
-        for chunk in results.chunks(ROWS_PER_STATEMENT) {
-            let pose = |i: usize| chunk.iter().map(|r| r.pose[i]).collect::<Vec<f64>>();
-            let sigma = |i: usize| chunk.iter().map(|r| r.sigmas[i]).collect::<Vec<f64>>();
-            let def = |i: usize| {
-                chunk
-                    .iter()
-                    .map(|r| r.deformation.map(|(_, d)| d[i]))
-                    .collect::<Vec<Option<f64>>>()
-            };
-            sqlx::query(&sql)
-                .bind(chunk.iter().map(|r| r.target_id).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|r| r.source).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|r| r.time_ns).collect::<Vec<_>>())
-                .bind(pose(0))
-                .bind(pose(1))
-                .bind(pose(2))
-                .bind(pose(3))
-                .bind(pose(4))
-                .bind(pose(5))
-                .bind(pose(6))
-                .bind(chunk.iter().map(|r| r.cov.as_slice()).collect::<Vec<_>>())
-                .bind(sigma(0))
-                .bind(sigma(1))
-                .bind(sigma(2))
-                .bind(sigma(3))
-                .bind(sigma(4))
-                .bind(sigma(5))
-                .bind(chunk.iter().map(|r| r.status).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|r| r.age_s).collect::<Vec<_>>())
-                .bind(chunk.iter().map(|r| r.chi2).collect::<Vec<_>>())
-                .bind(
-                    chunk
-                        .iter()
-                        .map(|r| r.deformation.map(|(v, _)| v))
-                        .collect::<Vec<_>>(),
-                )
-                .bind(def(0))
-                .bind(def(1))
-                .bind(def(2))
-                .bind(def(3))
-                .bind(def(4))
-                .bind(def(5))
-                .execute(&mut *self.conn)
-                .await?;
+        if results.is_empty() {
+            return Ok(());
         }
+        // Per target and source, one index scan over the batch's times; the time span stated
+        // on its own lets the planner skip the partitions outside it.
+        let mut keys: std::collections::BTreeMap<(i64, i64), Vec<i64>> =
+            std::collections::BTreeMap::new();
+        for r in results {
+            keys.entry((r.target_id, r.source))
+                .or_default()
+                .push(r.time_ns);
+        }
+        for ((target_id, source), times) in keys {
+            let first = times.iter().copied().min().unwrap_or(0);
+            let last = times.iter().copied().max().unwrap_or(0);
+            sqlx::query(
+                "delete from results where target_id = $1 and source = $2 \
+                 and time_ns = any($3) and time_ns >= $4 and time_ns <= $5",
+            )
+            .bind(target_id)
+            .bind(source)
+            .bind(times)
+            .bind(first)
+            .bind(last)
+            .execute(&mut *self.conn)
+            .await?;
+        }
+        let mut rows = CopyRows::new();
+        for r in results {
+            rows.row(27);
+            rows.i64(r.target_id);
+            rows.i64(r.source);
+            rows.i64(r.time_ns);
+            for v in r.pose {
+                rows.f64(v);
+            }
+            rows.bytes(Some(&r.cov));
+            for v in r.sigmas {
+                rows.f64(v);
+            }
+            rows.bytes(Some(r.status.as_bytes()));
+            rows.f64(r.age_s);
+            rows.f64_or_null(r.chi2);
+            rows.i64_or_null(r.deformation.map(|(v, _)| v));
+            for i in 0..6 {
+                rows.f64_or_null(r.deformation.map(|(_, d)| d[i]));
+            }
+        }
+        self.copy_in("results", RESULT_INSERT_COLUMNS, rows).await
+    }
+
+    /// `COPY table (columns) FROM STDIN` of binary rows.
+    async fn copy_in(&mut self, table: &str, columns: &str, rows: CopyRows) -> StoreResult<()> {
+        let mut copy = self
+            .conn
+            .copy_in_raw(&format!(
+                "copy {table} ({columns}) from stdin with (format binary)"
+            ))
+            .await?;
+        if let Err(e) = copy.send(rows.finish()).await {
+            let _ = copy.abort("the rows could not be sent").await;
+            return Err(e.into());
+        }
+        copy.finish().await?;
         Ok(())
     }
 
@@ -269,16 +323,22 @@ impl Tx<'_> {
     ) -> StoreResult<Vec<RollupRow>> {
         let mut out = Vec::new();
         for chunk in keys.chunks(ROWS_PER_STATEMENT) {
+            // The span of the keys' bucket starts, stated on its own, lets the planner skip
+            // the partitions outside it (a join on the keys alone reads them all).
+            let first = chunk.iter().map(|k| k.3).min().unwrap_or(0);
+            let last = chunk.iter().map(|k| k.3).max().unwrap_or(0);
             let rows: Vec<RollupRow> = sqlx::query_as(
                 "select r.target_id, r.source, r.width_s, r.bucket_ns, r.n, r.n_def, r.stats \
                  from unnest($1::int8[], $2::int8[], $3::int8[], $4::int8[]) as k (t, s, w, b) \
                  join rollups r on r.target_id = k.t and r.source = k.s and r.width_s = k.w \
-                 and r.bucket_ns = k.b",
+                 and r.bucket_ns = k.b where r.bucket_ns >= $5 and r.bucket_ns <= $6",
             )
             .bind(chunk.iter().map(|k| k.0).collect::<Vec<_>>())
             .bind(chunk.iter().map(|k| k.1).collect::<Vec<_>>())
             .bind(chunk.iter().map(|k| k.2).collect::<Vec<_>>())
             .bind(chunk.iter().map(|k| k.3).collect::<Vec<_>>())
+            .bind(first)
+            .bind(last)
             .fetch_all(&mut *self.conn)
             .await?;
             out.extend(rows);

@@ -5,7 +5,7 @@
 //!
 //! PostgreSQL refuses to run as root: as root, the server's programs run as the `postgres`
 //! user (`runuser`). The binaries are PostgreSQL 15's as Debian installs them, or those in
-//! `BROKENRAY_PG_BIN`. Shared by `tests/suite` and the benchmarks (included there by path).
+//! `BROKENRAY_PG_BIN`; `BROKENRAY_PG_SETTINGS` adds server settings. Shared by `tests/suite` and the benchmarks (included there by path).
 
 #![allow(dead_code, reason = "each includer uses part of it")]
 
@@ -135,10 +135,13 @@ impl Cluster {
 
     /// Starts the server (also after [`Cluster::stop`]), waiting until it accepts connections.
     pub fn start(&self) {
+        // `BROKENRAY_PG_SETTINGS` adds server settings, e.g. `-c log_min_duration_statement=5`
+        // to see slow statements in the cluster's log.
         let options = format!(
-            "-c listen_addresses=127.0.0.1 -p {} -c unix_socket_directories={}",
+            "-c listen_addresses=127.0.0.1 -p {} -c unix_socket_directories={} {}",
             self.port,
-            self.dir.display()
+            self.dir.display(),
+            std::env::var("BROKENRAY_PG_SETTINGS").unwrap_or_default()
         );
         let log = self.dir.join("server.log").to_string_lossy().into_owned();
         self.run(
