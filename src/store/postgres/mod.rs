@@ -3,8 +3,8 @@
 //!
 //! Reads go through a pool (at most 8 connections; a request waits at most 5 s for one, so
 //! while the server is down requests answer 503 instead of hanging). The writer is one
-//! connection of its own ([`Writer`]). The schema (`migrations-postgres/`) partitions samples,
-//! results and rollups into days with pg_partman; [`maintain`] makes the coming days'
+//! connection of its own (`Writer`). The schema (`migrations-postgres/`) partitions samples,
+//! results and rollups into days with pg_partman; `maintain` makes the coming days'
 //! partitions and moves rows that landed in the default partition (a backfill, a restart after
 //! a long stop) into their own, at start-up and with each retention pass.
 

@@ -2,7 +2,7 @@
 //!
 //! A commit is on disk before it returns, so what the service acknowledges survives a crash or
 //! a power cut. Reads go through a pool of read-only connections; all writes go through the
-//! one [`Writer`]. The file's identity (device and inode) is checked around every commit, so a
+//! one `Writer`. The file's identity (device and inode) is checked around every commit, so a
 //! file deleted or replaced under the service is reported instead of written to in silence.
 
 mod read;
