@@ -126,6 +126,26 @@ fn the_container_installation_is_the_default_with_container_paths() {
         topology(brokenray::config::DEFAULT_INSTALLATION_TOML),
         "docker/installation.toml's topology drifted from src/config/default.toml"
     );
+    // The PostgreSQL variant: the same file but for the database, which is the compose file's
+    // server with the compose file's password.
+    let pg = std::fs::read_to_string(root.join("docker/installation.postgres.toml")).unwrap();
+    let pg_inst =
+        brokenray::config::parse("docker/installation.postgres.toml", &pg).expect("valid");
+    let compose = std::fs::read_to_string(root.join("docker/compose.postgres.yaml")).unwrap();
+    match &pg_inst.server.database {
+        brokenray::config::Database::Postgres(url) => {
+            let url = url::Url::parse(url.secret()).unwrap();
+            assert_eq!(url.host_str(), Some("postgres"));
+            let password = url.password().expect("a password");
+            assert!(compose.contains(&format!("POSTGRES_PASSWORD: {password}")));
+        }
+        other => panic!("docker/installation.postgres.toml names {other}"),
+    }
+    assert_eq!(
+        topology(&pg),
+        topology(&text),
+        "docker/installation.postgres.toml's topology drifted from docker/installation.toml"
+    );
     let dockerfile = std::fs::read_to_string(root.join("docker/Dockerfile")).unwrap();
     assert!(dockerfile.contains("COPY docker/installation.toml /etc/brokenray/installation.toml"));
     for line in ["HEALTHCHECK", "CMD [\"serve\""] {
