@@ -29,12 +29,8 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// The advisory lock the writer holds ("BRRY"): one writer per database.
 const WRITER_LOCK: i64 = 0x4252_5259;
 
-/// The partitioned tables and their time columns.
-const PARTITIONED: [(&str, &str); 3] = [
-    ("samples", "time_ns"),
-    ("results", "time_ns"),
-    ("rollups", "bucket_ns"),
-];
+/// The tables partitioned by time.
+const PARTITIONED: [&str; 3] = ["samples", "results", "rollups"];
 
 /// The read side of a PostgreSQL database.
 #[derive(Debug, Clone)]
@@ -204,7 +200,7 @@ async fn qualified(conn: &mut PgConnection, table: &str) -> StoreResult<String> 
 /// Partition upkeep: rows in a default partition are moved into partitions of their own
 /// (made as needed), then pg_partman makes the partitions of the coming days.
 async fn maintain(conn: &mut PgConnection) -> StoreResult<()> {
-    for (table, _) in PARTITIONED {
+    for table in PARTITIONED {
         let parent = qualified(&mut *conn, table).await?;
         let (stray,): (bool,) =
             sqlx::query_as(&format!("select exists (select 1 from {table}_default)"))
