@@ -130,31 +130,22 @@ pub(super) async fn open_reader(
         .connect_with(options.clone())
         .await
         .map_err(|e| refused(format!("cannot connect: {e}")))?;
-    let ids = |table: &'static str, column: &'static str, names: &[&String]| {
-        let pool = pool.clone();
-        let names: Vec<String> = names.iter().map(|n| n.to_string()).collect();
-        async move {
-            let mut out = Vec::with_capacity(names.len());
-            for name in names {
-                let row: Option<(i64,)> =
-                    sqlx::query_as(&format!("select {column} from {table} where name = $1"))
-                        .bind(&name)
-                        .fetch_optional(&pool)
-                        .await
-                        .map_err(|e| refused(format!("cannot read {table}: {e}")))?;
-                let (id,) = row.ok_or_else(|| {
-                    refused(format!(
-                        "it holds no `{name}` in {table}: the service registers the \
-                         installation's names when it starts on this database"
-                    ))
-                })?;
-                out.push(id);
-            }
-            StoreResult::Ok(out)
-        }
-    };
-    let link_ids = ids("links", "link_id", link_names).await?;
-    let target_ids = ids("targets", "target_id", target_names).await?;
+    let mut link_ids = Vec::with_capacity(link_names.len());
+    for name in link_names {
+        link_ids.push(
+            registered(&pool, "links", "link_id", name)
+                .await
+                .map_err(refused)?,
+        );
+    }
+    let mut target_ids = Vec::with_capacity(target_names.len());
+    for name in target_names {
+        target_ids.push(
+            registered(&pool, "targets", "target_id", name)
+                .await
+                .map_err(refused)?,
+        );
+    }
     Ok((
         Reader {
             pool,
@@ -164,6 +155,27 @@ pub(super) async fn open_reader(
         link_ids,
         target_ids,
     ))
+}
+
+/// The id of a registered link or target; a message when there is none.
+async fn registered(
+    pool: &PgPool,
+    table: &str,
+    id_column: &str,
+    name: &str,
+) -> Result<i64, String> {
+    let row: Option<(i64,)> =
+        sqlx::query_as(&format!("select {id_column} from {table} where name = $1"))
+            .bind(name)
+            .fetch_optional(pool)
+            .await
+            .map_err(|e| format!("cannot read {table}: {e}"))?;
+    row.map(|(id,)| id).ok_or_else(|| {
+        format!(
+            "it holds no `{name}` in {table}: the service registers the installation's names \
+             when it starts on this database"
+        )
+    })
 }
 
 /// The id of a link or target by name, registering it when new.
