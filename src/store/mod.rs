@@ -176,6 +176,18 @@ pub struct DatabaseHealth {
 /// Result alias of the store.
 pub type StoreResult<T> = Result<T, StoreError>;
 
+/// A health probe's verdict: `None` when `query` answered within 2 s, else what is wrong (the
+/// caller then drops its health connection, so the next probe connects afresh).
+async fn probe<T, E: std::fmt::Display>(
+    query: impl std::future::Future<Output = Result<T, E>>,
+) -> Option<String> {
+    match tokio::time::timeout(std::time::Duration::from_secs(2), query).await {
+        Ok(Ok(_)) => None,
+        Ok(Err(e)) => Some(format!("the database does not answer: {e}")),
+        Err(_) => Some("the database did not answer within 2 s".to_owned()),
+    }
+}
+
 /// How a reference came about, as stored: `(origin, window from, window to, window count)`.
 type WindowOrigin = (&'static str, Option<i64>, Option<i64>, Option<i64>);
 

@@ -253,22 +253,11 @@ impl Reader {
             }
         }
         let conn = guard.as_mut()?;
-        let answer = tokio::time::timeout(
-            Duration::from_secs(2),
-            sqlx::query("select 1").execute(conn),
-        )
-        .await;
-        match answer {
-            Ok(Ok(_)) => None,
-            Ok(Err(e)) => {
-                *guard = None;
-                Some(format!("the database does not answer: {e}"))
-            }
-            Err(_) => {
-                *guard = None;
-                Some("the database did not answer within 2 s".to_owned())
-            }
+        let problem = super::probe(sqlx::query("select 1").execute(conn)).await;
+        if problem.is_some() {
+            *guard = None;
         }
+        problem
     }
 
     /// Closes the read pool and the health connection.

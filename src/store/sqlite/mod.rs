@@ -216,22 +216,14 @@ impl Reader {
             match guard.as_mut() {
                 None => Some(format!("cannot open {}", self.path.display())),
                 Some(conn) => {
-                    let answer = tokio::time::timeout(
-                        Duration::from_secs(2),
+                    let problem = super::probe(
                         sqlx::query("select count(*) from sqlite_master").execute(&mut *conn),
                     )
                     .await;
-                    match answer {
-                        Ok(Ok(_)) => None,
-                        Ok(Err(e)) => {
-                            *guard = None;
-                            Some(format!("the database does not answer: {e}"))
-                        }
-                        Err(_) => {
-                            *guard = None;
-                            Some("the database did not answer within 2 s".to_owned())
-                        }
+                    if problem.is_some() {
+                        *guard = None;
                     }
+                    problem
                 }
             }
         };
