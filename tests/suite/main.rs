@@ -6,13 +6,16 @@
 /// `NAME::postgres` (the latter on a fresh database of the throwaway cluster).
 macro_rules! on_both_backends {
     (multi_thread: $($name:ident),* $(,)?) => {
+        on_both_backends!(@tests [tokio::test(flavor = "multi_thread", worker_threads = 2)] $($name),*);
+    };
+    (@tests [$test:meta] $($name:ident),*) => {
         $(
             mod $name {
-                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                #[$test]
                 async fn sqlite() {
                     super::$name(crate::service::helpers::Backend::Sqlite).await
                 }
-                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                #[$test]
                 async fn postgres() {
                     super::$name(crate::service::helpers::Backend::Postgres).await
                 }
@@ -20,18 +23,7 @@ macro_rules! on_both_backends {
         )*
     };
     ($($name:ident),* $(,)?) => {
-        $(
-            mod $name {
-                #[tokio::test]
-                async fn sqlite() {
-                    super::$name(crate::service::helpers::Backend::Sqlite).await
-                }
-                #[tokio::test]
-                async fn postgres() {
-                    super::$name(crate::service::helpers::Backend::Postgres).await
-                }
-            }
-        )*
+        on_both_backends!(@tests [tokio::test] $($name),*);
     };
 }
 
