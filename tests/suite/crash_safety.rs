@@ -234,35 +234,8 @@ async fn sigterm_finishes_in_flight_writes_and_exits_cleanly() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn backup_while_serving_gives_a_consistent_copy() {
     let (dir, config) = site();
-    let client = reqwest::Client::new();
-    let server = start(&config);
-    for k in 0..50 {
-        post_group(&client, &server.base, k).await;
-    }
-    // A writer keeps going while the backup runs.
-    let (c, base) = (client.clone(), server.base.clone());
-    let writer = tokio::spawn(async move {
-        for k in 50..400 {
-            post_group(&c, &base, k).await;
-        }
-    });
     let out = dir.path().join("copy.sqlite");
-    let backup_args = [
-        "backup",
-        "--config",
-        config.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    let backup = brokenray(&backup_args);
-    assert!(
-        backup.status.success(),
-        "{}",
-        String::from_utf8_lossy(&backup.stderr)
-    );
-    assert!(String::from_utf8_lossy(&backup.stdout).contains("a consistent copy"));
-    writer.await.unwrap();
-    server.kill();
+    backup_while_serving(&config, &out, 400).await;
     // The copy is a sound database holding at least what was acknowledged before it began,
     // with whole groups only (each commit is all or nothing).
     let conn = rusqlite::Connection::open(&out).unwrap();
@@ -274,8 +247,48 @@ async fn backup_while_serving_gives_a_consistent_copy() {
         .query_row("select count(*) from samples", [], |r| r.get(0))
         .unwrap();
     assert!(n >= 150 && n % 3 == 0, "{n} samples in the copy");
-    // A second backup to the same file is refused rather than overwriting it.
-    let again = brokenray(&backup_args);
+    assert_backup_refuses_to_overwrite(&config, &out);
+}
+
+/// Starts the service on `config`, posts 50 groups, then takes a backup to `out` while a
+/// writer posts groups up to `until`, which must succeed saying so; stops the service.
+async fn backup_while_serving(config: &std::path::Path, out: &std::path::Path, until: i64) {
+    let client = reqwest::Client::new();
+    let server = start(config);
+    for k in 0..50 {
+        post_group(&client, &server.base, k).await;
+    }
+    // A writer keeps going while the backup runs.
+    let (c, base) = (client.clone(), server.base.clone());
+    let writer = tokio::spawn(async move {
+        for k in 50..until {
+            post_group(&c, &base, k).await;
+        }
+    });
+    let backup = brokenray(&backup_args(config, out));
+    assert!(
+        backup.status.success(),
+        "{}",
+        String::from_utf8_lossy(&backup.stderr)
+    );
+    assert!(String::from_utf8_lossy(&backup.stdout).contains("a consistent copy"));
+    writer.await.unwrap();
+    server.kill();
+}
+
+fn backup_args<'a>(config: &'a std::path::Path, out: &'a std::path::Path) -> [&'a str; 5] {
+    [
+        "backup",
+        "--config",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]
+}
+
+/// A second backup to the same file is refused rather than overwriting it.
+fn assert_backup_refuses_to_overwrite(config: &std::path::Path, out: &std::path::Path) {
+    let again = brokenray(&backup_args(config, out));
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
 }
@@ -844,33 +857,8 @@ async fn a_postgres_backup_while_serving_restores_with_pg_restore() {
     let cluster = crate::common::postgres::cluster();
     let dir = tempfile::tempdir().unwrap();
     let config = site_with_database(&dir, &cluster.create_database());
-    let client = reqwest::Client::new();
-    let server = start(&config);
-    for k in 0..50 {
-        post_group(&client, &server.base, k).await;
-    }
-    let (c, base) = (client.clone(), server.base.clone());
-    let writer = tokio::spawn(async move {
-        for k in 50..300 {
-            post_group(&c, &base, k).await;
-        }
-    });
     let out = dir.path().join("site.dump");
-    let backup_args = [
-        "backup",
-        "--config",
-        config.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    let backup = brokenray(&backup_args);
-    assert!(
-        backup.status.success(),
-        "{}",
-        String::from_utf8_lossy(&backup.stderr)
-    );
-    writer.await.unwrap();
-    server.kill();
+    backup_while_serving(&config, &out, 300).await;
     let restored = cluster.create_database();
     let restore = Command::new("pg_restore")
         .args(["--no-owner", "--dbname", &restored])
@@ -888,7 +876,5 @@ async fn a_postgres_backup_while_serving_restores_with_pg_restore() {
         .parse()
         .unwrap();
     assert!(n >= 150 && n % 3 == 0, "{n} samples in the copy");
-    let again = brokenray(&backup_args);
-    assert!(!again.status.success());
-    assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
+    assert_backup_refuses_to_overwrite(&config, &out);
 }
