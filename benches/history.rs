@@ -64,8 +64,8 @@ fn measure(database: &str, n: i64) {
         let settle = Instant::now();
         {
             let (store, mut write) = brokenray::store::open(&inst, 0).await.expect("open");
-            let mut tx = write.begin().await.expect("begin");
-            tx.prune(i64::MIN, i64::MIN).await.expect("maintenance");
+            let mut tx = write.begin(0).await.expect("begin");
+            tx.prune(i64::MIN, i64::MIN, Default::default()).await.expect("maintenance");
             tx.commit().await.expect("commit");
             write.close().await.expect("close");
             store.close().await;

@@ -48,6 +48,7 @@ pub mod config;
 pub mod deformation;
 pub mod feed;
 pub mod filter;
+pub mod fleet;
 pub mod geometry;
 pub mod imagefile;
 pub mod model;

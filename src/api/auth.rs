@@ -1,5 +1,6 @@
 //! Bearer tokens: `Authorization: Bearer <token>`, checked against the SHA-256 hashes of the
-//! configuration, each with scopes `read`, `ingest`, `admin`. Without configured tokens every
+//! configuration, each with scopes `read`, `ingest`, `admin`, `sync` (a site's uploads to the
+//! centre, for the token's own site only; `admin` does not include it). Without configured tokens every
 //! request is accepted (the server then listens on loopback only; see [`crate::api::App`]).
 //! The scope each route needs is declared once, in its OpenAPI annotation, and enforced from
 //! the document ([`ScopeTable`]). `/healthz` is open to all (`security(())`): health checks carry
@@ -66,6 +67,7 @@ impl ScopeTable {
                     Some(match declared.first().copied() {
                         Some("read") => Scope::Read,
                         Some("ingest") => Scope::Ingest,
+                        Some("sync") => Scope::Sync,
                         _ => Scope::Admin,
                     })
                 };
@@ -110,6 +112,15 @@ fn is_write(method: &Method) -> bool {
     )
 }
 
+/// Who made a request, for handlers that check more than a scope: set by [`require_token`].
+#[derive(Debug, Clone)]
+pub struct Caller {
+    /// False when no tokens are configured (every request is local) or the route is open.
+    pub authenticated: bool,
+    /// The site a `sync` token uploads for.
+    pub site: Option<crate::config::SiteName>,
+}
+
 /// The lowercase hex SHA-256 of a token.
 pub fn sha256_hex(token: &str) -> String {
     hex::encode(Sha256::digest(token.as_bytes()))
@@ -124,6 +135,11 @@ pub async fn require_token(
 ) -> Result<Response, ApiError> {
     let needed = scopes.required(request.method(), request.uri().path());
     let Some(needed) = needed.filter(|_| !tokens.is_empty()) else {
+        let mut request = request;
+        request.extensions_mut().insert(Caller {
+            authenticated: false,
+            site: None,
+        });
         return Ok(next.run(request).await);
     };
     let given = request
@@ -151,21 +167,24 @@ pub async fn require_token(
             "the token is not known",
         ));
     };
-    if !token.scopes.contains(&needed) && !token.scopes.contains(&Scope::Admin) {
+    // `admin` may do everything but upload for a site: only that site's `sync` token may.
+    let admin_may = needed != Scope::Sync && token.scopes.contains(&Scope::Admin);
+    if !token.scopes.contains(&needed) && !admin_may {
         return Err(ApiError::new(
             StatusCode::FORBIDDEN,
             "forbidden",
             format!(
                 "token `{}` lacks the `{}` scope this request needs",
                 token.name,
-                match needed {
-                    Scope::Read => "read",
-                    Scope::Ingest => "ingest",
-                    Scope::Admin => "admin",
-                }
+                needed.name()
             ),
         ));
     }
+    let mut request = request;
+    request.extensions_mut().insert(Caller {
+        authenticated: true,
+        site: token.site.clone(),
+    });
     Ok(next.run(request).await)
 }
 

@@ -13,6 +13,7 @@ mod dashboard;
 pub(crate) mod dto;
 mod error;
 mod events;
+mod fleet;
 mod frames;
 mod ingest;
 mod jsonpath;
@@ -63,6 +64,10 @@ pub struct AppState {
     pub latest_frames: Arc<cameras::LatestFrames>,
     /// The frame archive, when one is configured.
     pub archive: Option<crate::archive::FrameArchive>,
+    /// The centre's record of its fleet, when this service is a centre.
+    pub central: Option<Arc<crate::store::Central>>,
+    /// This site's uploads, when it pushes to a centre.
+    pub upstream: Option<Arc<crate::fleet::Upstream>>,
 }
 
 impl AppState {
@@ -87,6 +92,12 @@ impl AppState {
             webhooks: webhooks::Webhooks::start(&service),
             latest_frames,
             archive,
+            central: None,
+            upstream: (service.installation().fleet)
+                .site
+                .clone()
+                .zip(service.installation().fleet.upstream.clone())
+                .map(|(site, settings)| Arc::new(crate::fleet::Upstream::new(site, settings))),
             service,
             limits,
         })
@@ -123,6 +134,11 @@ pub struct HealthOut {
     /// What is wrong, when something is (a failing commit, a removed database file, ...).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub problem: Option<String>,
+    /// On a fleet's site, what is wrong with the uploads to the centre (a stream the centre
+    /// refused). The site keeps measuring and keeping what it has not sent: the answer stays
+    /// 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub upstream_problem: Option<String>,
     /// Each target's status and age now, by name. A stale target does not make the service
     /// unhealthy (the answer stays 200): alert on `targets.*.status == "stale"` or on
     /// `brokenray_target_age_seconds` instead.
@@ -189,6 +205,7 @@ async fn healthz(
             database,
             writer,
             problem,
+            upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
             targets,
         }),
     )
@@ -304,6 +321,7 @@ async fn api_not_found(uri: axum::http::Uri) -> ApiError {
         (name = "links", description = "Links, their samples and calibrations"),
         (name = "alarms", description = "Alarm transitions"),
         (name = "events", description = "Live results and alarms"),
+        (name = "fleet", description = "Sites uploading to a centre, and the centre's view of its fleet"),
         (name = "operations", description = "Health, metrics, this document"),
         (name = "dashboard", description = "The web dashboard's page and files (open: they hold no data)"),
     )
@@ -364,6 +382,9 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(links::put_calibration))
         .routes(routes!(links::post_reset))
         .routes(routes!(links::list_calibrations))
+        .routes(routes!(fleet::post_sync))
+        .routes(routes!(fleet::list_sites))
+        .routes(routes!(fleet::get_upstream))
         .routes(routes!(openapi_json));
     OpenApiRouter::with_openapi(<ApiDoc as utoipa::OpenApi>::openapi())
         .nest("/api/v1", api)
@@ -465,6 +486,15 @@ pub struct App {
     state: AppState,
 }
 
+/// Starts the uploader of a site that pushes to a centre.
+fn spawn_uploader(state: &AppState) -> Option<tokio::task::JoinHandle<()>> {
+    let upstream = Arc::clone(state.upstream.as_ref()?);
+    Some(tokio::spawn(crate::fleet::uploader::run(
+        state.service.clone(),
+        upstream,
+    )))
+}
+
 impl App {
     /// Starts the service and binds its address (port 0 picks a free port).
     pub async fn build(installation: Installation) -> Result<App, StartError> {
@@ -475,8 +505,17 @@ impl App {
         let listener = tokio::net::TcpListener::bind(addr)
             .await
             .map_err(|source| StartError::Bind { addr, source })?;
+        let central = match (&installation.fleet.central, &installation.server.database) {
+            (Some(_), crate::config::Database::Postgres(url)) => {
+                Some(Arc::new(crate::store::Central::open(url).await.map_err(
+                    |e| StartError::Service(crate::service::ServiceError::Storage(e)),
+                )?))
+            }
+            _ => None,
+        };
         let (service, pipeline) = Service::start(installation).await?;
-        let state = AppState::new(service.clone())?;
+        let mut state = AppState::new(service.clone())?;
+        state.central = central;
         Ok(App {
             listener,
             service,
@@ -514,6 +553,7 @@ impl App {
         let webhooks = state.webhooks.clone();
         let store = self.service.store().clone();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let uploader = spawn_uploader(&state);
         let service = self.service.clone();
         tokio::spawn(async move {
             shutdown.await;
@@ -521,6 +561,10 @@ impl App {
             let _ = stop_tx.send(true);
         });
         server::serve(self.listener, router(state), limits, stop_rx).await;
+        // The uploader holds a service handle; it ends when shutdown begins.
+        if let Some(uploader) = uploader {
+            let _ = uploader.await;
+        }
         // Handlers are done: dropping the last service handle closes the job queue, and the
         // pipeline commits what is queued before it stops.
         drop(self.service);

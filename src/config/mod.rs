@@ -50,6 +50,8 @@ pub struct Installation {
     pub retention: RetentionSettings,
     /// The archive of camera frames.
     pub frames: FrameSettings,
+    /// This service in a fleet: a site reporting to a centre, or the centre.
+    pub fleet: FleetSettings,
     /// What is valid but probably not meant, each with its line (`check-config` prints them,
     /// `serve` logs them).
     pub warnings: Vec<ConfigProblem>,
@@ -75,6 +77,88 @@ pub struct RetentionSettings {
     pub samples_days: f64,
     /// Raw and filtered results (days); rollups stay.
     pub results_days: f64,
+}
+
+/// A site's name in a fleet (`[site] name`): 1 to 48 characters, lowercase letters, digits,
+/// `-` and `_`, starting with a letter or digit. It names the site at the centre, in URLs and
+/// in the centre's database.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct SiteName(String);
+
+impl SiteName {
+    /// The longest name.
+    pub const MAX_LEN: usize = 48;
+
+    /// The name, when `text` is a valid one.
+    pub fn parse(text: &str) -> Option<SiteName> {
+        let ok = !text.is_empty()
+            && text.len() <= Self::MAX_LEN
+            && text
+                .bytes()
+                .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-' || b == b'_')
+            && !text.starts_with(['-', '_']);
+        ok.then(|| SiteName(text.to_owned()))
+    }
+
+    /// The name as text.
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+}
+
+impl std::fmt::Display for SiteName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// This service's part in a fleet (`[site]`, `[upstream]`, `[central]`).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct FleetSettings {
+    /// The site's name; `None` for a service that is no fleet's site.
+    pub site: Option<SiteName>,
+    /// Where the site pushes its history; `None`: it keeps it to itself.
+    pub upstream: Option<UpstreamSettings>,
+    /// The centre's settings when this service takes sites' uploads.
+    pub central: Option<CentralSettings>,
+}
+
+/// Where and how a site pushes its history (`[upstream]`).
+#[derive(Clone, PartialEq)]
+pub struct UpstreamSettings {
+    /// The centre's base URL (`http://central:7878`).
+    pub url: url::Url,
+    /// The bearer token (scope `sync`, this site), from `token` or `token_file`.
+    pub token: Option<String>,
+    /// The budget for raw samples (kbit/s of compressed upload); 0 sends none unless asked.
+    pub raw_kbit_s: f64,
+    /// The disk budget of what the centre has not acknowledged (MB, 10^6 bytes): over it, the
+    /// retention pass prunes by age even what was not sent, and says so.
+    pub max_backlog_mb: f64,
+    /// Most rows in one upload (a commit is never split, so one may hold more).
+    pub batch_rows: usize,
+    /// Seconds between status reports when nothing else is sent.
+    pub heartbeat_s: f64,
+}
+
+impl std::fmt::Debug for UpstreamSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("UpstreamSettings")
+            .field("url", &self.url.as_str())
+            .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .field("raw_kbit_s", &self.raw_kbit_s)
+            .field("max_backlog_mb", &self.max_backlog_mb)
+            .field("batch_rows", &self.batch_rows)
+            .field("heartbeat_s", &self.heartbeat_s)
+            .finish()
+    }
+}
+
+/// The centre's settings (`[central]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CentralSettings {
+    /// Largest upload once decompressed (bytes).
+    pub max_sync_bytes: usize,
 }
 
 /// Where the history is kept (`[server] database`).
@@ -227,6 +311,20 @@ pub enum Scope {
     Ingest,
     /// Set references and calibrations.
     Admin,
+    /// Upload a site's history to the centre; only for the token's own site.
+    Sync,
+}
+
+impl Scope {
+    /// The scope's name in the configuration and the API's description.
+    pub fn name(self) -> &'static str {
+        match self {
+            Scope::Read => "read",
+            Scope::Ingest => "ingest",
+            Scope::Admin => "admin",
+            Scope::Sync => "sync",
+        }
+    }
 }
 
 /// A configured bearer token.
@@ -238,6 +336,8 @@ pub struct TokenSpec {
     pub sha256_hex: String,
     /// What it may do.
     pub scopes: Vec<Scope>,
+    /// The site a `sync` token may upload for.
+    pub site: Option<SiteName>,
 }
 
 /// Where alarm transitions are sent (`[[notify.webhooks]]`).

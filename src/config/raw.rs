@@ -28,6 +28,34 @@ pub(super) struct RawFile {
     pub retention: Option<Spanned<RawRetention>>,
     pub pnp: Option<Spanned<RawPnp>>,
     pub frames: Option<Spanned<RawFrames>>,
+    pub site: Option<Spanned<RawSite>>,
+    pub upstream: Option<Spanned<RawUpstream>>,
+    pub central: Option<Spanned<RawCentral>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawSite {
+    pub name: String,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawUpstream {
+    pub url: String,
+    pub token: Option<String>,
+    pub token_file: Option<String>,
+    pub raw_kbit_s: Option<f64>,
+    pub max_backlog_mb: Option<f64>,
+    pub batch_rows: Option<usize>,
+    pub heartbeat_s: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawCentral {
+    pub enabled: bool,
+    pub max_sync_mb: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -247,6 +275,7 @@ pub(super) struct RawToken {
     pub name: String,
     pub sha256: String,
     pub scopes: Vec<String>,
+    pub site: Option<String>,
 }
 
 #[derive(Debug, Default, Deserialize)]

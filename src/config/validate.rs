@@ -8,8 +8,9 @@
 use super::error::LineIndex;
 use super::raw::{self, RawFile, RawPose, RawSigma};
 use super::{
-    AuthSettings, ConfigProblem, FrameSettings, Installation, NotifyLevel, NotifySettings,
-    RerunSettings, RetentionSettings, Scope, ServerSettings, TokenSpec, WebhookSpec,
+    AuthSettings, CentralSettings, ConfigProblem, FleetSettings, FrameSettings, Installation,
+    NotifyLevel, NotifySettings, RerunSettings, RetentionSettings, Scope, ServerSettings, SiteName,
+    TokenSpec, UpstreamSettings, WebhookSpec,
 };
 use crate::alarms::AlarmThresholds;
 use crate::chain::{ChainError, Topology};
@@ -155,6 +156,7 @@ impl Validator {
         let retention = self.retention(&raw);
         let frames = self.frames(&raw);
         let pnp = self.pnp(&raw);
+        let fleet = self.fleet(&raw, server.as_ref());
         let mut frames_seen = std::collections::HashSet::new();
         for c in &raw.cameras {
             if !frames_seen.insert(c.get_ref().frame.clone()) {
@@ -194,6 +196,7 @@ impl Validator {
             notify,
             retention: retention?,
             frames: frames?,
+            fleet: fleet?,
             warnings: std::mem::take(&mut self.warnings),
         })
     }
@@ -270,6 +273,136 @@ impl Validator {
         ok.then_some(RetentionSettings {
             samples_days,
             results_days,
+        })
+    }
+
+    /// `[site]`, `[upstream]` and `[central]`: a site that pushes names itself and uses an
+    /// SQLite file (its outbox); a centre runs on PostgreSQL.
+    fn fleet(&mut self, raw: &RawFile, server: Option<&ServerSettings>) -> Option<FleetSettings> {
+        let mut ok = true;
+        let site = match &raw.site {
+            None => None,
+            Some(s) => {
+                let name = &s.get_ref().name;
+                let parsed = SiteName::parse(name);
+                if parsed.is_none() {
+                    self.problem(
+                        s.span().start,
+                        format!(
+                            "site.name `{name}` is not a site name: 1 to {} lowercase letters, digits, `-` or `_`, starting with a letter or digit",
+                            SiteName::MAX_LEN
+                        ),
+                    );
+                    ok = false;
+                }
+                parsed
+            }
+        };
+        let upstream = match &raw.upstream {
+            None => None,
+            Some(s) => {
+                let at = s.span().start;
+                let u = s.get_ref();
+                if raw.site.is_none() {
+                    self.problem(
+                        at,
+                        "[upstream] needs the site's name: add `[site] name = \"...\"`".into(),
+                    );
+                    ok = false;
+                }
+                if server.is_some_and(|s| s.database.sqlite_path().is_none()) {
+                    self.problem(
+                        at,
+                        "[upstream] needs an SQLite database (server.database): the site's file is its outbox".into(),
+                    );
+                    ok = false;
+                }
+                let url = match url::Url::parse(&u.url) {
+                    Ok(url) if matches!(url.scheme(), "http" | "https") && url.has_host() => {
+                        Some(url)
+                    }
+                    _ => {
+                        self.problem(
+                            at,
+                            format!("upstream.url `{}` is not an http:// or https:// URL", u.url),
+                        );
+                        None
+                    }
+                };
+                let token = match (&u.token, &u.token_file) {
+                    (Some(_), Some(_)) => {
+                        self.problem(at, "upstream: give token or token_file, not both".into());
+                        ok = false;
+                        None
+                    }
+                    (Some(t), None) => Some(t.trim().to_owned()),
+                    (None, Some(f)) => match std::fs::read_to_string(f) {
+                        Ok(t) if !t.trim().is_empty() => Some(t.trim().to_owned()),
+                        Ok(_) => {
+                            self.problem(at, format!("upstream.token_file `{f}` is empty"));
+                            ok = false;
+                            None
+                        }
+                        Err(e) => {
+                            self.problem(
+                                at,
+                                format!("upstream.token_file `{f}` cannot be read: {e}"),
+                            );
+                            ok = false;
+                            None
+                        }
+                    },
+                    (None, None) => None,
+                };
+                let raw_kbit_s = u.raw_kbit_s.unwrap_or(0.0);
+                if !(raw_kbit_s.is_finite() && raw_kbit_s >= 0.0) {
+                    self.problem(
+                        at,
+                        format!("upstream.raw_kbit_s must be 0 or more, not {raw_kbit_s}"),
+                    );
+                    ok = false;
+                }
+                let max_backlog_mb = u.max_backlog_mb.unwrap_or(10_000.0);
+                ok &= self.positive(at, "upstream.max_backlog_mb", max_backlog_mb);
+                let heartbeat_s = u.heartbeat_s.unwrap_or(10.0);
+                ok &= self.positive(at, "upstream.heartbeat_s", heartbeat_s);
+                let batch_rows = u.batch_rows.unwrap_or(20_000);
+                if batch_rows == 0 {
+                    self.problem(at, "upstream.batch_rows must be at least 1".into());
+                    ok = false;
+                }
+                url.map(|url| UpstreamSettings {
+                    url,
+                    token,
+                    raw_kbit_s,
+                    max_backlog_mb,
+                    batch_rows,
+                    heartbeat_s,
+                })
+            }
+        };
+        let central = match &raw.central {
+            Some(s) if s.get_ref().enabled => {
+                let at = s.span().start;
+                if server.is_some_and(|s| s.database.sqlite_path().is_some()) {
+                    self.problem(
+                        at,
+                        "[central] needs a PostgreSQL database (server.database = \"postgres://...\")".into(),
+                    );
+                    ok = false;
+                }
+                let max_sync_mb = s.get_ref().max_sync_mb.unwrap_or(256.0);
+                ok &= self.positive(at, "central.max_sync_mb", max_sync_mb);
+                Some(CentralSettings {
+                    max_sync_bytes: (max_sync_mb * 1e6) as usize,
+                })
+            }
+            _ => None,
+        };
+        (ok && (raw.upstream.is_none() || upstream.is_some())).then_some(FleetSettings {
+            site,
+            upstream,
+            central,
         })
     }
 
@@ -1185,10 +1318,11 @@ impl Validator {
                     "read" => scopes.push(Scope::Read),
                     "ingest" => scopes.push(Scope::Ingest),
                     "admin" => scopes.push(Scope::Admin),
+                    "sync" => scopes.push(Scope::Sync),
                     other => self.problem(
                         at,
                         format!(
-                            "token `{}`: scope `{other}` is not one of read, ingest, admin",
+                            "token `{}`: scope `{other}` is not one of read, ingest, admin, sync",
                             t.name
                         ),
                     ),
@@ -1204,10 +1338,35 @@ impl Validator {
                 );
                 continue;
             }
+            let site = match &t.site {
+                None => None,
+                Some(name) => {
+                    let parsed = SiteName::parse(name);
+                    if parsed.is_none() {
+                        self.problem(
+                            at,
+                            format!("token `{}`: site `{name}` is not a site name", t.name),
+                        );
+                        continue;
+                    }
+                    parsed
+                }
+            };
+            if scopes.contains(&Scope::Sync) != site.is_some() {
+                self.problem(
+                    at,
+                    format!(
+                        "token `{}`: a `sync` token names the one site it uploads for (`site = \"...\"`), and only a sync token names a site",
+                        t.name
+                    ),
+                );
+                continue;
+            }
             tokens.push(TokenSpec {
                 name: t.name.clone(),
                 sha256_hex: hex,
                 scopes,
+                site,
             });
         }
         AuthSettings { tokens }

@@ -271,7 +271,15 @@ pub(crate) enum Job {
     },
     Prune {
         retention: crate::config::RetentionSettings,
+        /// On a fleet's site: whether raw samples are uploaded (what is not yet acknowledged
+        /// is then kept); `None` when nothing is uploaded.
+        upstream_raw: Option<bool>,
         reply: oneshot::Sender<ServiceResult<(u64, u64)>>,
+    },
+    RecordAck {
+        tier: crate::store::outbox::Tier,
+        seq: i64,
+        reply: oneshot::Sender<ServiceResult<()>>,
     },
     AddCalibration {
         link: crate::chain::LinkId,
@@ -687,7 +695,25 @@ impl Service {
     /// result, or from the server's clock when that is earlier); rollups stay. Returns how many `(samples, results)` were deleted.
     pub async fn prune(&self) -> ServiceResult<(u64, u64)> {
         let retention = self.inner.installation.retention;
-        self.submit(|reply| Job::Prune { retention, reply }).await
+        let upstream_raw =
+            (self.inner.installation.fleet.upstream.as_ref()).map(|u| u.raw_kbit_s > 0.0);
+        self.submit(|reply| Job::Prune {
+            retention,
+            upstream_raw,
+            reply,
+        })
+        .await
+    }
+
+    /// Records that the centre acknowledged `tier` up to the commit `seq` (in a commit of its
+    /// own, like every write).
+    pub async fn record_upstream_ack(
+        &self,
+        tier: crate::store::outbox::Tier,
+        seq: i64,
+    ) -> ServiceResult<()> {
+        self.submit(|reply| Job::RecordAck { tier, seq, reply })
+            .await
     }
 
     /// Restarts a measured link's filter from its next sample (see

@@ -9,6 +9,7 @@ use crate::chain::LinkId;
 use crate::deformation::{Deformation, Reference};
 use crate::filter::Disposition;
 use crate::store::WriteTx;
+use crate::store::outbox::{KeepUnsent, Tier};
 use crate::store::{
     NewResult, NewSample, Quality, SampleValues, StoreError, StoredAlarm, WriteConn,
 };
@@ -94,6 +95,7 @@ enum Pending {
     ),
     Liveness(oneshot::Sender<ServiceResult<usize>>, ServiceResult<usize>),
     Acknowledge(oneshot::Sender<ServiceResult<()>>, ServiceResult<()>),
+    Ack(oneshot::Sender<ServiceResult<()>>, ServiceResult<()>),
 }
 
 /// What a job asks the transaction to do; its reply waits in a [`Pending`].
@@ -107,7 +109,14 @@ enum Work {
         target: usize,
         request: ReferenceRequest,
     },
-    Prune(crate::config::RetentionSettings),
+    Prune {
+        retention: crate::config::RetentionSettings,
+        upstream_raw: Option<bool>,
+    },
+    RecordAck {
+        tier: crate::store::outbox::Tier,
+        seq: i64,
+    },
     AddCalibration {
         link: LinkId,
         valid_from_ns: i64,
@@ -149,9 +158,21 @@ impl Job {
                 Pending::Reference(reply, unapplied()),
                 Work::SetReference { target, request },
             ),
-            Job::Prune { retention, reply } => {
-                (Pending::Prune(reply, unapplied()), Work::Prune(retention))
-            }
+            Job::Prune {
+                retention,
+                upstream_raw,
+                reply,
+            } => (
+                Pending::Prune(reply, unapplied()),
+                Work::Prune {
+                    retention,
+                    upstream_raw,
+                },
+            ),
+            Job::RecordAck { tier, seq, reply } => (
+                Pending::Ack(reply, unapplied()),
+                Work::RecordAck { tier, seq },
+            ),
             Job::CheckLiveness { reply } => (Pending::Liveness(reply, unapplied()), Work::Liveness),
             Job::AcknowledgeAlarm {
                 id,
@@ -199,6 +220,7 @@ impl Pending {
             Pending::Prune(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Liveness(tx, r) => tx.send(r).map_err(|_| ()),
             Pending::Acknowledge(tx, r) => tx.send(r).map_err(|_| ()),
+            Pending::Ack(tx, r) => tx.send(r).map_err(|_| ()),
         };
     }
 
@@ -212,6 +234,7 @@ impl Pending {
             Pending::Prune(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Liveness(tx, _) => tx.send(Err(err())).map_err(|_| ()),
             Pending::Acknowledge(tx, _) => tx.send(Err(err())).map_err(|_| ()),
+            Pending::Ack(tx, _) => tx.send(Err(err())).map_err(|_| ()),
         };
     }
 }
@@ -358,7 +381,7 @@ impl Pipeline {
             ..
         } = self;
         let outcome: Result<BankRecord, StoreError> = async {
-            let mut tx = write.begin().await?;
+            let mut tx = write.begin(now).await?;
             for (work, slot) in work.into_iter().zip(pending.iter_mut()) {
                 match (work, slot) {
                     (Work::Ingest(items), Pending::Ingest(_, result)) => {
@@ -382,7 +405,33 @@ impl Pipeline {
                         }
                         *result = r;
                     }
-                    (Work::Prune(retention), Pending::Prune(_, result)) => {
+                    (Work::RecordAck { tier, seq }, Pending::Ack(_, result)) => {
+                        tx.record_ack(tier, seq, now).await?;
+                        *result = Ok(());
+                    }
+                    (
+                        Work::Prune {
+                            retention,
+                            upstream_raw,
+                        },
+                        Pending::Prune(_, result),
+                    ) => {
+                        // A site keeps what the centre has not acknowledged.
+                        let keep = match upstream_raw {
+                            None => KeepUnsent::default(),
+                            Some(raw) => {
+                                let acks = tx.upstream_acks().await?;
+                                let acked = |tier| {
+                                    acks.iter()
+                                        .find(|(t, _)| *t == tier)
+                                        .map_or(i64::MIN, |(_, s)| *s)
+                                };
+                                KeepUnsent {
+                                    results: Some(acked(Tier::Results)),
+                                    raw: raw.then(|| acked(Tier::Raw)),
+                                }
+                            }
+                        };
                         // Counted back from the newest result, but never from later than the
                         // server's clock: one result stamped in the future must not make the
                         // real history look old.
@@ -397,6 +446,7 @@ impl Pipeline {
                                 tx.prune(
                                     n.saturating_sub(days(retention.samples_days)),
                                     n.saturating_sub(days(retention.results_days)),
+                                    keep,
                                 )
                                 .await?
                             }

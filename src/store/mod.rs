@@ -28,12 +28,14 @@ macro_rules! on_backend {
 }
 
 mod codec;
+pub mod outbox;
 pub mod postgres;
 pub(crate) mod rollup;
 mod rows;
 pub mod sqlite;
 
 pub use codec::{Quality, SampleValues, StoredUncertainty};
+pub use postgres::central::{Central, SiteRecord, SiteUpload, StreamRecord, SyncOutcome};
 pub use rows::{
     Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample,
 };
@@ -44,6 +46,7 @@ use crate::config::Database;
 use crate::deformation::SmallMotion;
 use crate::geometry::{PoseCov, ReportedSigmas};
 use codec::{encode_mat6, pose_columns};
+use outbox::{Backlog, KeepUnsent, OutboxBatch, Registry, Tier};
 use rows::{ResultColumns, SampleColumns, VersionColumns};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -99,6 +102,9 @@ pub enum StoreError {
          one database has one writer"
     )]
     WriterLocked,
+    /// The outbox of a fleet's site is an SQLite file's; this database has none.
+    #[error("this database is no site's outbox (a site that uploads keeps its history in SQLite)")]
+    NotAnOutbox,
     /// A long scan (through rusqlite) failed.
     #[error("database error while scanning: {0}")]
     Scan(String),
@@ -288,6 +294,44 @@ pub async fn backup(database: &Database, out: &std::path::Path) -> StoreResult<u
 }
 
 impl Store {
+    /// The next batch of `tier` after the commit `after` (`None`: from the start), about
+    /// `limit` rows of whole commits; `None` when nothing waits.
+    pub async fn outbox_batch(
+        &self,
+        tier: Tier,
+        after: Option<i64>,
+        limit: usize,
+    ) -> StoreResult<Option<OutboxBatch>> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.outbox_batch(tier, after.unwrap_or(i64::MIN), limit).await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// The names behind the ids of the outbox's rows.
+    pub async fn registry(&self) -> StoreResult<Registry> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.registry().await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// The outbox's identity (random, made with the file).
+    pub async fn outbox_id(&self) -> StoreResult<String> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.outbox_id().await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// Per tier, the acknowledged number and the rows still to send.
+    pub async fn backlog(&self) -> StoreResult<Vec<(Tier, Backlog)>> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.backlog().await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
     /// The health of the database and the writer: the database must answer a query (on a
     /// connection of its own, so that busy readers cannot fail it) and the writer's last
     /// commit must have succeeded.
@@ -566,9 +610,9 @@ impl WriteConn {
     /// Starts a transaction, on a fresh connection when the last one did not commit. Fails
     /// when the database cannot be reached (or, for SQLite, the configured file is no longer
     /// the one opened at start).
-    pub async fn begin(&mut self) -> StoreResult<WriteTx<'_>> {
+    pub async fn begin(&mut self, now_ns: i64) -> StoreResult<WriteTx<'_>> {
         let tx = match &mut self.backend {
-            Writer::Sqlite(w) => Tx::Sqlite(w.begin().await?),
+            Writer::Sqlite(w) => Tx::Sqlite(w.begin(now_ns).await?),
             Writer::Postgres(w) => Tx::Postgres(w.begin().await?),
         };
         Ok(WriteTx {
@@ -778,12 +822,35 @@ impl WriteTx<'_> {
 
     /// Deletes samples older than `samples_before_ns` and results older than
     /// `results_before_ns`; rollups stay. Returns how many `(samples, results)` went.
+    ///
+    /// On a fleet's site, `keep` holds back what the centre has not acknowledged.
     pub async fn prune(
         &mut self,
         samples_before_ns: i64,
         results_before_ns: i64,
+        keep: KeepUnsent,
     ) -> StoreResult<(u64, u64)> {
-        on_backend!(&mut self.tx, Tx, t => t.prune(samples_before_ns, results_before_ns).await)
+        match &mut self.tx {
+            Tx::Sqlite(t) => t.prune(samples_before_ns, results_before_ns, keep).await,
+            Tx::Postgres(t) => t.prune(samples_before_ns, results_before_ns).await,
+        }
+    }
+
+    /// Records that the centre acknowledged `tier` up to the commit `seq` (a site's outbox:
+    /// SQLite only).
+    pub async fn record_ack(&mut self, tier: Tier, seq: i64, now_ns: i64) -> StoreResult<()> {
+        match &mut self.tx {
+            Tx::Sqlite(t) => t.record_ack(tier, seq, now_ns).await,
+            Tx::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// Per tier, the last commit the centre acknowledged (none on PostgreSQL).
+    pub async fn upstream_acks(&mut self) -> StoreResult<Vec<(Tier, i64)>> {
+        match &mut self.tx {
+            Tx::Sqlite(t) => t.upstream_acks().await,
+            Tx::Postgres(_) => Ok(Vec::new()),
+        }
     }
 
     /// The filtered results of a target in `[from_ns, to_ns]`, oldest first.

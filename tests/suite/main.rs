@@ -39,6 +39,7 @@ mod deformation_and_stats;
 mod detection;
 mod filter_bank;
 mod filter_behaviour;
+mod fleet;
 mod frames;
 mod geometry_properties;
 mod hand_eye;

@@ -73,13 +73,13 @@ fn result(k: i64, time_ns: i64) -> NewResult {
 }
 
 async fn commit_samples(write: &mut WriteConn, samples: &[NewSample]) {
-    let mut tx = write.begin().await.unwrap();
+    let mut tx = write.begin(0).await.unwrap();
     tx.insert_samples(samples).await.unwrap();
     tx.commit().await.unwrap();
 }
 
 async fn commit_results(write: &mut WriteConn, results: &[NewResult]) {
-    let mut tx = write.begin().await.unwrap();
+    let mut tx = write.begin(0).await.unwrap();
     tx.insert_results(results).await.unwrap();
     tx.commit().await.unwrap();
 }
@@ -190,7 +190,7 @@ async fn a_result_at_an_existing_key_is_replaced(backend: Backend) {
 async fn a_transaction_dropped_without_commit_leaves_nothing(backend: Backend) {
     let (_dir, _inst, store, mut write) = open(backend).await;
     {
-        let mut tx = write.begin().await.unwrap();
+        let mut tx = write.begin(0).await.unwrap();
         tx.insert_samples(&[sample(1, T0_NS)]).await.unwrap();
         tx.insert_results(&[result(1, T0_NS)]).await.unwrap();
     }
@@ -238,7 +238,7 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
         unit: ValueUnit::Arcsec,
         message: "rotation 61.5 arcsec".into(),
     };
-    let mut tx = write.begin().await.unwrap();
+    let mut tx = write.begin(0).await.unwrap();
     assert_eq!(tx.insert_reference(0, &reference, T0_NS).await.unwrap(), 1);
     assert_eq!(
         tx.insert_reference(0, &reference, T0_NS + 1).await.unwrap(),
@@ -352,9 +352,9 @@ async fn retention_removes_old_rows_and_keeps_rollups(backend: Backend) {
         brokenray::config::Database::Sqlite(_) => None,
     };
     let first_days_before = first_days();
-    let mut tx = write.begin().await.unwrap();
+    let mut tx = write.begin(0).await.unwrap();
     let (gone_samples, gone_results) = tx
-        .prune(day0 + 2 * DAY, day0 + DAY + DAY / 2)
+        .prune(day0 + 2 * DAY, day0 + DAY + DAY / 2, Default::default())
         .await
         .unwrap();
     tx.commit().await.unwrap();
@@ -460,8 +460,13 @@ async fn rows_before_the_partitions_are_moved_into_their_own_by_maintenance(back
     if let Some(n) = in_default("samples") {
         assert_eq!(n, 2_000, "before the partitions: in the default partition");
     }
-    let mut tx = write.begin().await.unwrap();
-    assert_eq!(tx.prune(i64::MIN, i64::MIN).await.unwrap(), (0, 0));
+    let mut tx = write.begin(0).await.unwrap();
+    assert_eq!(
+        tx.prune(i64::MIN, i64::MIN, Default::default())
+            .await
+            .unwrap(),
+        (0, 0)
+    );
     tx.commit().await.unwrap();
     for table in ["samples", "results", "rollups"] {
         if let Some(n) = in_default(table) {

@@ -8,6 +8,7 @@
 //! partitions and moves rows that landed in the default partition (a backfill, a restart after
 //! a long stop) into their own, at start-up and with each retention pass.
 
+pub(crate) mod central;
 mod read;
 mod write;
 

@@ -5,6 +5,7 @@
 //! one `Writer`. The file's identity (device and inode) is checked around every commit, so a
 //! file deleted or replaced under the service is reported instead of written to in silence.
 
+mod outbox;
 mod read;
 mod write;
 

@@ -10,6 +10,7 @@
 //! commits, the writer checks that the configured file is still the one open (device and
 //! inode), so a deleted or replaced file is never written to in silence.
 
+use super::super::outbox::{KeepUnsent, Tier};
 use super::super::rows::{
     RESULT_COLUMNS, RESULT_INSERT_COLUMNS, ResultColumns, ResultRow, RollupKey, RollupRow,
     SAMPLE_COLUMNS, SAMPLE_INSERT_COLUMNS, SampleColumns, SampleRow, VersionColumns,
@@ -40,6 +41,9 @@ pub(in crate::store) struct Tx<'c> {
     clean: &'c mut bool,
     path: &'c Path,
     identity: FileIdentity,
+    /// This transaction's commit sequence number: every row it writes carries it
+    /// (`commit_seq`), the outbox of a fleet's site.
+    seq: i64,
 }
 
 impl Writer {
@@ -54,7 +58,7 @@ impl Writer {
 
     /// Starts a transaction (`BEGIN`), on a fresh connection when the last one did
     /// not commit. Fails when the configured file is no longer the one opened at start.
-    pub(in crate::store) async fn begin(&mut self) -> StoreResult<Tx<'_>> {
+    pub(in crate::store) async fn begin(&mut self, now_ns: i64) -> StoreResult<Tx<'_>> {
         check_identity(&self.path, self.identity)?;
         if !self.clean || self.conn.is_none() {
             if let Some(old) = self.conn.take() {
@@ -76,11 +80,19 @@ impl Writer {
         };
         self.clean = false;
         sqlx::query("begin").execute(&mut *conn).await?;
+        // The next number: one past the last committed (a rolled-back transaction's number is
+        // used again, as nothing carries it).
+        let (seq,): (i64,) =
+            sqlx::query_as("insert into commits (created_ns) values (?) returning seq")
+                .bind(now_ns)
+                .fetch_one(&mut *conn)
+                .await?;
         Ok(Tx {
             conn,
             clean: &mut self.clean,
             path: &self.path,
             identity: self.identity,
+            seq,
         })
     }
 
@@ -137,8 +149,9 @@ impl Tx<'_> {
         samples: &[SampleColumns],
     ) -> StoreResult<()> {
         for chunk in samples.chunks(ROWS_PER_STATEMENT) {
-            let mut qb: QueryBuilder<Sqlite> =
-                QueryBuilder::new(format!("insert into samples ({SAMPLE_INSERT_COLUMNS}) "));
+            let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(format!(
+                "insert into samples ({SAMPLE_INSERT_COLUMNS}, commit_seq) "
+            ));
             qb.push_values(chunk, |mut b, s| {
                 b.push_bind(s.link_id).push_bind(s.time_ns);
                 for v in s.pose {
@@ -151,7 +164,8 @@ impl Tx<'_> {
                     .push_bind(s.disposition)
                     .push_bind(s.outlier)
                     .push_bind(s.nis)
-                    .push_bind(s.received_ns);
+                    .push_bind(s.received_ns)
+                    .push_bind(self.seq);
             });
             qb.build().execute(&mut *self.conn).await?;
         }
@@ -165,7 +179,7 @@ impl Tx<'_> {
     ) -> StoreResult<()> {
         for chunk in results.chunks(ROWS_PER_STATEMENT / 2) {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(format!(
-                "insert or replace into results ({RESULT_INSERT_COLUMNS}) "
+                "insert or replace into results ({RESULT_INSERT_COLUMNS}, commit_seq) "
             ));
             qb.push_values(chunk, |mut b, r| {
                 b.push_bind(r.target_id)
@@ -183,6 +197,7 @@ impl Tx<'_> {
                 for i in 0..6 {
                     b.push_bind(r.deformation.map(|(_, d)| d[i]));
                 }
+                b.push_bind(self.seq);
             });
             qb.build().execute(&mut *self.conn).await?;
         }
@@ -227,7 +242,7 @@ impl Tx<'_> {
     pub(in crate::store) async fn upsert_rollups(&mut self, rows: &[RollupRow]) -> StoreResult<()> {
         for chunk in rows.chunks(ROWS_PER_STATEMENT) {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
-                "insert or replace into rollups (target_id, source, width_s, bucket_ns, n, n_def, stats) ",
+                "insert or replace into rollups (target_id, source, width_s, bucket_ns, n, n_def, stats, commit_seq) ",
             );
             qb.push_values(chunk, |mut b, (t, s, w, start, n, n_def, stats)| {
                 b.push_bind(*t)
@@ -236,7 +251,8 @@ impl Tx<'_> {
                     .push_bind(*start)
                     .push_bind(*n)
                     .push_bind(*n_def)
-                    .push_bind(stats.as_slice());
+                    .push_bind(stats.as_slice())
+                    .push_bind(self.seq);
             });
             qb.build().execute(&mut *self.conn).await?;
         }
@@ -251,11 +267,12 @@ impl Tx<'_> {
         now_ns: i64,
     ) -> StoreResult<i64> {
         let (id,): (i64,) = sqlx::query_as(
-            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns) \
-             values (?, ?, ?, ?, ?, ?, ?, ?, ?) \
+            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns, commit_seq) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
              on conflict (target_id, time_ns, kind) do update set from_level = excluded.from_level, \
              to_level = excluded.to_level, value = excluded.value, unit = excluded.unit, \
-             message = excluded.message, created_ns = excluded.created_ns \
+             message = excluded.message, created_ns = excluded.created_ns, \
+             commit_seq = excluded.commit_seq \
              returning alarm_id",
         )
         .bind(target_id)
@@ -267,6 +284,7 @@ impl Tx<'_> {
         .bind(t.unit.name())
         .bind(t.message.as_str())
         .bind(now_ns)
+        .bind(self.seq)
         .fetch_one(&mut *self.conn)
         .await?;
         Ok(id)
@@ -292,33 +310,82 @@ impl Tx<'_> {
         now_ns: i64,
     ) -> StoreResult<()> {
         sqlx::query(
-            "update alarms set acknowledged_by = ?, acknowledged_ns = ?, ack_note = ? where alarm_id = ?",
+            "update alarms set acknowledged_by = ?, acknowledged_ns = ?, ack_note = ?, commit_seq = ? \
+             where alarm_id = ?",
         )
         .bind(by)
         .bind(now_ns)
         .bind(note)
+        .bind(self.seq)
         .bind(id)
         .execute(&mut *self.conn)
         .await?;
         Ok(())
     }
 
+    /// Deletes samples and results older than the cutoffs, but none that the centre has not
+    /// acknowledged (`keep`); old commit numbers go with them.
     pub(in crate::store) async fn prune(
         &mut self,
         samples_before_ns: i64,
         results_before_ns: i64,
+        keep: KeepUnsent,
     ) -> StoreResult<(u64, u64)> {
-        let samples = sqlx::query("delete from samples where time_ns < ?")
+        let unsent = |acked: Option<i64>| acked.unwrap_or(i64::MAX);
+        let samples = sqlx::query("delete from samples where time_ns < ? and commit_seq <= ?")
             .bind(samples_before_ns)
+            .bind(unsent(keep.raw))
             .execute(&mut *self.conn)
             .await?
             .rows_affected();
-        let results = sqlx::query("delete from results where time_ns < ?")
-            .bind(results_before_ns)
+        let results = sqlx::query(
+            "delete from results where time_ns < ? \
+             and commit_seq <= case source when 0 then ? else ? end",
+        )
+        .bind(results_before_ns)
+        .bind(unsent(keep.raw))
+        .bind(unsent(keep.results))
+        .execute(&mut *self.conn)
+        .await?
+        .rows_affected();
+        // The commits table only dates rows: keep a day of it past the older cutoff.
+        sqlx::query("delete from commits where created_ns < ? and seq < ?")
+            .bind(samples_before_ns.min(results_before_ns))
+            .bind(self.seq)
             .execute(&mut *self.conn)
-            .await?
-            .rows_affected();
+            .await?;
         Ok((samples, results))
+    }
+
+    /// Records that the centre acknowledged `tier` up to the commit `seq`.
+    pub(in crate::store) async fn record_ack(
+        &mut self,
+        tier: Tier,
+        seq: i64,
+        now_ns: i64,
+    ) -> StoreResult<()> {
+        sqlx::query(
+            "insert into upstream_acks (tier, acked_seq, updated_ns) values (?, ?, ?) \
+             on conflict (tier) do update set acked_seq = max(acked_seq, excluded.acked_seq), \
+             updated_ns = excluded.updated_ns",
+        )
+        .bind(tier.name())
+        .bind(seq)
+        .bind(now_ns)
+        .execute(&mut *self.conn)
+        .await?;
+        Ok(())
+    }
+
+    /// Per tier, the last commit the centre acknowledged.
+    pub(in crate::store) async fn upstream_acks(&mut self) -> StoreResult<Vec<(Tier, i64)>> {
+        let rows: Vec<(String, i64)> = sqlx::query_as("select tier, acked_seq from upstream_acks")
+            .fetch_all(&mut *self.conn)
+            .await?;
+        Ok(rows
+            .into_iter()
+            .filter_map(|(t, s)| Some((Tier::parse(&t)?, s)))
+            .collect())
     }
 
     pub(in crate::store) async fn results_in(
@@ -357,8 +424,8 @@ impl Tx<'_> {
         let p = columns.pose;
         sqlx::query(
             "insert into target_references (target_id, version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
-             origin, window_from_ns, window_to_ns, window_count, created_ns) \
-             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+             origin, window_from_ns, window_to_ns, window_count, created_ns, commit_seq) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(target_id)
         .bind(version)
@@ -375,6 +442,7 @@ impl Tx<'_> {
         .bind(origin.2)
         .bind(origin.3)
         .bind(now_ns)
+        .bind(self.seq)
         .execute(&mut *self.conn)
         .await?;
         Ok(version)
@@ -396,8 +464,8 @@ impl Tx<'_> {
         let version = max.unwrap_or(0) + 1;
         let p = columns.pose;
         sqlx::query(
-            "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns) \
-             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns, commit_seq) \
+             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(link_id)
         .bind(version)
@@ -411,6 +479,7 @@ impl Tx<'_> {
         .bind(p[6])
         .bind(columns.cov.as_slice())
         .bind(now_ns)
+        .bind(self.seq)
         .execute(&mut *self.conn)
         .await?;
         Ok(version)
@@ -424,12 +493,14 @@ impl Tx<'_> {
         now_ns: i64,
     ) -> StoreResult<()> {
         sqlx::query(
-            "insert or replace into link_resets (link_id, created_ns, by_name, note) values (?, ?, ?, ?)",
+            "insert or replace into link_resets (link_id, created_ns, by_name, note, commit_seq) \
+             values (?, ?, ?, ?, ?)",
         )
         .bind(link_id)
         .bind(now_ns)
         .bind(by)
         .bind(note)
+        .bind(self.seq)
         .execute(&mut *self.conn)
         .await?;
         Ok(())

@@ -50,7 +50,7 @@ async fn a_month_of_results_downsamples_without_losing_a_spike(backend: Backend)
         let (store, mut write) = store::open(&inst, 0).await.unwrap();
         for chunk_start in (0..N).step_by(100_000) {
             let rows: Vec<NewResult> = (chunk_start..chunk_start + 100_000).map(result).collect();
-            let mut tx = write.begin().await.unwrap();
+            let mut tx = write.begin(0).await.unwrap();
             tx.insert_results(&rows).await.unwrap();
             tx.commit().await.unwrap();
         }

@@ -1,0 +1,404 @@
+//! The fleet's endpoints: a centre's `POST /api/v1/sites/{site}/sync` (a site's uploads) and
+//! `GET /api/v1/sites` (the fleet), and a site's `GET /api/v1/upstream` (its uploads).
+
+use super::AppState;
+use super::auth::Caller;
+use super::error::{ApiError, ErrorBody};
+use crate::clock::format_ns;
+use crate::config::SiteName;
+use crate::fleet::protocol::{
+    Outcome, SiteStatus, SyncRequest, SyncResponse, TargetStatus, TierBacklog,
+};
+use crate::store::outbox::OutboxBatch;
+use crate::store::{SiteUpload, SyncOutcome};
+use axum::Json;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use bytes::Bytes;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::io::Read;
+
+/// The site of a path, or 404 naming the rule.
+fn site_of(text: &str) -> Result<SiteName, ApiError> {
+    SiteName::parse(text).ok_or_else(|| {
+        ApiError::not_found(format!(
+            "`{text}` is not a site name (lowercase letters, digits, `-`, `_`)"
+        ))
+    })
+}
+
+/// The body of an upload: decompressed when `Content-Encoding: zstd`, at most `max` bytes.
+fn decompress(headers: &HeaderMap, body: &Bytes, max: usize) -> Result<Vec<u8>, ApiError> {
+    let encoding = headers
+        .get(header::CONTENT_ENCODING)
+        .and_then(|v| v.to_str().ok())
+        .map(str::trim);
+    match encoding {
+        None | Some("identity") => Ok(body.to_vec()),
+        Some("zstd") => {
+            let decoder = zstd::stream::read::Decoder::new(&body[..])
+                .map_err(|e| ApiError::bad_request("malformed_body", format!("not zstd: {e}")))?;
+            let mut out = Vec::new();
+            decoder
+                .take(max as u64 + 1)
+                .read_to_end(&mut out)
+                .map_err(|e| {
+                    ApiError::bad_request(
+                        "malformed_body",
+                        format!("the zstd stream is broken: {e}"),
+                    )
+                })?;
+            if out.len() > max {
+                return Err(ApiError::new(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    "payload_too_large",
+                    format!(
+                        "the upload is over {max} bytes once decompressed (`[central] max_sync_mb`)"
+                    ),
+                ));
+            }
+            Ok(out)
+        }
+        Some(other) => Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_media_type",
+            format!("Content-Encoding `{other}`: only zstd or none"),
+        )),
+    }
+}
+
+/// `POST /api/v1/sites/{site}/sync`: a site's upload, applied in one transaction exactly once.
+#[utoipa::path(post, path = "/sites/{site}/sync", tag = "fleet",
+    params(("site" = String, Path, description = "The site, as its token names it")),
+    request_body(content = Object, content_type = "application/json",
+        description = "A `SyncRequest` (see docs/interface.md, \"Fleet\"), zstd-compressed with `Content-Encoding: zstd`"),
+    responses(
+        (status = 200, description = "Applied, a duplicate (nothing changed), or a gap (resume from `acked_seq`)", body = SyncResponse),
+        (status = 403, description = "The token uploads for another site", body = ErrorBody),
+        (status = 404, description = "This service is no centre", body = ErrorBody),
+        (status = 409, description = "The site uploads from another outbox than the one the centre has been receiving", body = ErrorBody),
+        (status = 422, description = "The upload is malformed; the field is named", body = ErrorBody),
+    ),
+    security(("bearer" = ["sync"])))]
+pub async fn post_sync(
+    State(app): State<AppState>,
+    Path(site): Path<String>,
+    axum::Extension(caller): axum::Extension<Caller>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Json<SyncResponse>, ApiError> {
+    let Some(central) = &app.central else {
+        return Err(ApiError::not_found(
+            "this service is no centre (`[central] enabled = true` on PostgreSQL)",
+        ));
+    };
+    let site = site_of(&site)?;
+    if caller.authenticated && caller.site.as_ref() != Some(&site) {
+        return Err(ApiError::new(
+            StatusCode::FORBIDDEN,
+            "forbidden",
+            format!("this token does not upload for site `{site}`"),
+        ));
+    }
+    let max = app
+        .service
+        .installation()
+        .fleet
+        .central
+        .map_or(256_000_000, |c| c.max_sync_bytes);
+    let json = decompress(&headers, &body, max)?;
+    let request: SyncRequest = super::parse_json_body(&json)?;
+    let batch: Option<OutboxBatch> = request.batch.map(Into::into);
+    if let Some(b) = &batch {
+        for (i, rows) in b.tables.iter().enumerate() {
+            if let Some(problem) = rows.problem() {
+                return Err(ApiError::invalid_field(
+                    &format!("batch.tables[{i}]"),
+                    problem,
+                ));
+            }
+            if rows.table.tier() != b.tier {
+                return Err(ApiError::invalid_field(
+                    &format!("batch.tables[{i}].table"),
+                    format!("not a table of the {} tier", b.tier.name()),
+                ));
+            }
+        }
+        if b.upto_seq <= b.after_seq {
+            return Err(ApiError::invalid_field(
+                "batch.upto_seq",
+                "must be after `after_seq`",
+            ));
+        }
+    }
+    let status = request
+        .status
+        .as_ref()
+        .map(serde_json::to_string)
+        .transpose()
+        .map_err(|e| ApiError::internal(e.to_string()))?;
+    let backlog =
+        serde_json::to_string(&request.backlog).map_err(|e| ApiError::internal(e.to_string()))?;
+    let upload = SiteUpload {
+        outbox_id: &request.outbox_id,
+        registry: &request.registry,
+        batch: batch.as_ref(),
+        status_json: status.as_deref(),
+        backlog_json: Some(&backlog),
+        wire_bytes: body.len() as u64,
+    };
+    let outcome = central.sync(&site, upload, app.service.now_ns()).await?;
+    let answer = match outcome {
+        SyncOutcome::Applied { acked_seq } => SyncResponse {
+            outcome: Outcome::Applied,
+            acked_seq,
+        },
+        SyncOutcome::Duplicate { acked_seq } => SyncResponse {
+            outcome: Outcome::Duplicate,
+            acked_seq,
+        },
+        SyncOutcome::Gap { acked_seq } => SyncResponse {
+            outcome: Outcome::Gap,
+            acked_seq,
+        },
+        SyncOutcome::OutboxChanged { known } => {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "outbox_changed",
+                format!(
+                    "site `{site}` uploads from outbox {}, but the centre has been receiving outbox {known}: \
+                     the site's database was replaced or another site uses this name",
+                    request.outbox_id
+                ),
+            ));
+        }
+    };
+    Ok(Json(answer))
+}
+
+/// One tier of a site at the centre.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct SiteTierOut {
+    /// `events`, `results` or `raw`.
+    pub tier: &'static str,
+    /// The last of the site's commits applied (absent: nothing yet).
+    pub acked_seq: Option<i64>,
+    /// Rows still at the site, as it last reported.
+    pub backlog_rows: Option<u64>,
+    /// Rows applied.
+    pub rows_applied: i64,
+    /// Bytes received (compressed).
+    pub bytes_received: i64,
+    /// When the last batch was applied.
+    pub last_applied: Option<String>,
+}
+
+/// A site of the fleet.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct SiteOut {
+    /// Its name.
+    pub site: String,
+    /// Its last upload or report (centre's clock).
+    pub last_contact: String,
+    /// Its first upload.
+    pub first_contact: String,
+    /// Rows still to send per tier, as it last reported (`events`, `results`, `raw`).
+    pub backlog: BTreeMap<String, u64>,
+    /// Its targets, as it last reported.
+    pub targets: Vec<TargetStatus>,
+    /// Its worst alarm level (`none`, `warn`, `alarm`).
+    pub alarm: &'static str,
+    /// When the site made its last report (its clock).
+    pub reported: Option<String>,
+    /// Per tier, what the centre has.
+    pub tiers: Vec<SiteTierOut>,
+}
+
+/// `GET /api/v1/sites`.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct SitesOut {
+    /// Every site the centre has heard from, by name.
+    pub sites: Vec<SiteOut>,
+}
+
+/// `GET /api/v1/sites`: the fleet, each site with its last contact, backlog, targets and worst
+/// alarm.
+#[utoipa::path(get, path = "/sites", tag = "fleet",
+    responses(
+        (status = 200, description = "Every site the centre has heard from", body = SitesOut),
+        (status = 404, description = "This service is no centre", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, ApiError> {
+    let Some(central) = &app.central else {
+        return Err(ApiError::not_found(
+            "this service is no centre (`[central] enabled = true` on PostgreSQL)",
+        ));
+    };
+    let records = central.sites().await?;
+    let sites = records
+        .into_iter()
+        .map(|r| {
+            let status: Option<SiteStatus> = r
+                .status_json
+                .as_deref()
+                .and_then(|s| serde_json::from_str(s).ok());
+            let reported: Vec<TierBacklog> = r
+                .backlog_json
+                .as_deref()
+                .and_then(|s| serde_json::from_str(s).ok())
+                .unwrap_or_default();
+            let targets = status
+                .as_ref()
+                .map(|s| s.targets.clone())
+                .unwrap_or_default();
+            let alarm = targets
+                .iter()
+                .filter_map(|t| crate::alarms::Level::parse(&t.alarm))
+                .max()
+                .unwrap_or(crate::alarms::Level::None)
+                .name();
+            SiteOut {
+                last_contact: format_ns(r.last_contact_ns),
+                first_contact: format_ns(r.first_contact_ns),
+                backlog: reported
+                    .iter()
+                    .map(|b| (b.tier.name().to_owned(), b.rows))
+                    .collect(),
+                alarm,
+                reported: status.map(|s| s.time),
+                targets,
+                tiers: r
+                    .streams
+                    .iter()
+                    .map(|s| SiteTierOut {
+                        tier: s.tier.name(),
+                        acked_seq: s.acked_seq,
+                        backlog_rows: reported.iter().find(|b| b.tier == s.tier).map(|b| b.rows),
+                        rows_applied: s.rows_applied,
+                        bytes_received: s.bytes_received,
+                        last_applied: (s.batches_applied > 0).then(|| format_ns(s.updated_ns)),
+                    })
+                    .collect(),
+                site: r.site,
+            }
+        })
+        .collect();
+    Ok(Json(SitesOut { sites }))
+}
+
+/// One tier of this site's uploads.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct UpstreamTierOut {
+    /// `events`, `results` or `raw`.
+    pub tier: &'static str,
+    /// The last of this site's commits the centre acknowledged (absent: none yet).
+    pub acked_seq: Option<i64>,
+    /// Still to send: rows, and bytes on the wire (estimated from what was sent).
+    pub backlog: BacklogOut,
+    /// Since start: batches, rows and compressed bytes the centre acknowledged.
+    pub sent: SentOut,
+    /// Uncompressed over compressed bytes of what was sent (absent before any).
+    pub compression_ratio: Option<f64>,
+    /// When the centre last acknowledged a batch.
+    pub last_success: Option<String>,
+    /// The last failure.
+    pub last_error: Option<ErrorAtOut>,
+    /// Why the stream stopped, when the centre refused it (it resumes after a restart).
+    pub stopped: Option<String>,
+    /// False for raw samples when `raw_kbit_s` is 0 (they are kept, not sent).
+    pub enabled: bool,
+}
+
+/// A backlog.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct BacklogOut {
+    /// Rows.
+    pub rows: u64,
+    /// Bytes (estimated).
+    pub bytes: u64,
+}
+
+/// What was sent.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct SentOut {
+    /// Batches.
+    pub batches: u64,
+    /// Rows.
+    pub rows: u64,
+    /// Compressed bytes.
+    pub bytes: u64,
+}
+
+/// A failure and when.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ErrorAtOut {
+    /// When (server clock).
+    pub time: String,
+    /// What.
+    pub message: String,
+}
+
+/// `GET /api/v1/upstream`.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct UpstreamOut {
+    /// This site.
+    pub site: String,
+    /// The centre.
+    pub url: String,
+    /// When the centre last answered.
+    pub last_contact: Option<String>,
+    /// The raw samples' budget (kbit/s).
+    pub raw_kbit_s: f64,
+    /// Per tier, most urgent first.
+    pub tiers: Vec<UpstreamTierOut>,
+}
+
+/// `GET /api/v1/upstream`: this site's uploads to its centre, per tier.
+#[utoipa::path(get, path = "/upstream", tag = "fleet",
+    responses(
+        (status = 200, description = "Per tier: acknowledged commit, backlog, last success and failure", body = UpstreamOut),
+        (status = 404, description = "This service uploads to no centre", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub async fn get_upstream(State(app): State<AppState>) -> Result<Json<UpstreamOut>, ApiError> {
+    let Some(upstream) = &app.upstream else {
+        return Err(ApiError::not_found(
+            "this service uploads to no centre (`[upstream]` in the installation)",
+        ));
+    };
+    let raw_kbit_s = upstream.settings.raw_kbit_s;
+    Ok(Json(UpstreamOut {
+        site: upstream.site.to_string(),
+        url: upstream.settings.url.to_string(),
+        last_contact: upstream.last_contact_ns().map(format_ns),
+        raw_kbit_s,
+        tiers: upstream
+            .progress()
+            .into_iter()
+            .map(|(tier, p)| UpstreamTierOut {
+                tier: tier.name(),
+                acked_seq: p.acked_seq,
+                backlog: BacklogOut {
+                    rows: p.backlog_rows,
+                    bytes: p.backlog_bytes(),
+                },
+                compression_ratio: (p.bytes_sent > 0)
+                    .then(|| p.json_bytes_sent as f64 / p.bytes_sent as f64),
+                sent: SentOut {
+                    batches: p.batches_sent,
+                    rows: p.rows_sent,
+                    bytes: p.bytes_sent,
+                },
+                last_success: p.last_success_ns.map(format_ns),
+                last_error: p.last_error.map(|(t, m)| ErrorAtOut {
+                    time: format_ns(t),
+                    message: m,
+                }),
+                stopped: p.stopped,
+                enabled: tier != crate::store::outbox::Tier::Raw || raw_kbit_s > 0.0,
+            })
+            .collect(),
+    }))
+}

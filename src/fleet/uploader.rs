@@ -1,0 +1,457 @@
+//! The site's uploader: one task that pushes the outbox to the centre, tier by tier.
+//!
+//! Each round it looks at the tiers in order (events, results, raw) and sends the first batch
+//! waiting, so a burst of alarms never waits behind a day of results. Raw batches go only when
+//! `raw_kbit_s` allows: after one of `n` bytes, the next waits `8 n / raw_kbit_s` ms. A batch
+//! the centre acknowledges is recorded in the site's database (through the writer, like every
+//! write) before the next of its tier is read; until then a restart sends it again, which the
+//! centre answers as a duplicate. Failures of the link or the centre (no answer, 5xx, 408, 429)
+//! are retried with back-off from 1 s to 60 s; a refusal (401, 403, 404, 409, 413, 422) stops
+//! that tier's stream, says so in `GET /api/v1/upstream`, the health check and the log, and
+//! never skips data: after the operator fixes the cause, a restart resumes where it stopped.
+
+use super::protocol::{
+    Outcome, SiteStatus, SyncRequest, SyncResponse, TargetStatus, TierBacklog, ZSTD_LEVEL,
+};
+use crate::config::{SiteName, UpstreamSettings};
+use crate::service::Service;
+use crate::store::outbox::Tier;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// The longest wait between retries.
+const MAX_BACKOFF: Duration = Duration::from_secs(60);
+
+/// Bytes a row is counted for in the backlog's estimate before any of its tier was sent.
+const DEFAULT_BYTES_PER_ROW: f64 = 100.0;
+
+/// One tier's progress.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TierProgress {
+    /// The last commit the centre acknowledged (`None`: nothing yet).
+    pub acked_seq: Option<i64>,
+    /// Rows still to send (counted at start and with every report of state).
+    pub backlog_rows: u64,
+    /// Batches, rows, compressed and uncompressed bytes sent and acknowledged since start.
+    pub batches_sent: u64,
+    /// Rows acknowledged since start.
+    pub rows_sent: u64,
+    /// Compressed bytes of acknowledged batches since start.
+    pub bytes_sent: u64,
+    /// The same batches' bytes before compression.
+    pub json_bytes_sent: u64,
+    /// When the centre last acknowledged a batch (server clock, ns).
+    pub last_success_ns: Option<i64>,
+    /// The last failure: when (ns) and what.
+    pub last_error: Option<(i64, String)>,
+    /// Failures since start.
+    pub errors: u64,
+    /// Why the stream stopped (a refusal), if it did.
+    pub stopped: Option<String>,
+}
+
+impl TierProgress {
+    /// The backlog's size on the wire, estimated from the compressed bytes per row sent so far.
+    pub fn backlog_bytes(&self) -> u64 {
+        let per_row = if self.rows_sent > 0 {
+            self.bytes_sent as f64 / self.rows_sent as f64
+        } else {
+            DEFAULT_BYTES_PER_ROW
+        };
+        (self.backlog_rows as f64 * per_row).round() as u64
+    }
+}
+
+/// The uploader's shared state: its settings and each tier's progress.
+#[derive(Debug)]
+pub struct Upstream {
+    /// The site.
+    pub site: SiteName,
+    /// Where and how it pushes.
+    pub settings: UpstreamSettings,
+    tiers: Mutex<[TierProgress; 3]>,
+    /// When the centre last answered anything (server clock, ns).
+    last_contact_ns: Mutex<Option<i64>>,
+}
+
+fn index(tier: Tier) -> usize {
+    match tier {
+        Tier::Events => 0,
+        Tier::Results => 1,
+        Tier::Raw => 2,
+    }
+}
+
+impl Upstream {
+    /// The state of a site that pushes with `settings`.
+    pub fn new(site: SiteName, settings: UpstreamSettings) -> Upstream {
+        Upstream {
+            site,
+            settings,
+            tiers: Mutex::new(Default::default()),
+            last_contact_ns: Mutex::new(None),
+        }
+    }
+
+    /// Each tier's progress, most urgent first.
+    pub fn progress(&self) -> Vec<(Tier, TierProgress)> {
+        let tiers = self.tiers.lock().unwrap_or_else(|p| p.into_inner());
+        Tier::ALL
+            .into_iter()
+            .map(|t| (t, tiers[index(t)].clone()))
+            .collect()
+    }
+
+    /// When the centre last answered.
+    pub fn last_contact_ns(&self) -> Option<i64> {
+        *self
+            .last_contact_ns
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// What is wrong with the uploads, for the health check: a stopped stream.
+    pub fn problem(&self) -> Option<String> {
+        self.progress().into_iter().find_map(|(t, p)| {
+            p.stopped
+                .map(|why| format!("the upload of the {} tier stopped: {why}", t.name()))
+        })
+    }
+
+    fn update(&self, tier: Tier, f: impl FnOnce(&mut TierProgress)) {
+        let mut tiers = self.tiers.lock().unwrap_or_else(|p| p.into_inner());
+        f(&mut tiers[index(tier)]);
+    }
+
+    fn contact(&self, now_ns: i64) {
+        *self
+            .last_contact_ns
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()) = Some(now_ns);
+    }
+}
+
+/// Why an upload failed.
+enum Failure {
+    /// Worth retrying: the link or the centre is down or busy.
+    Transient(String),
+    /// The centre refused it: retrying the same would fail the same way.
+    Refused(String),
+}
+
+/// The site's current state, from the service's snapshot.
+fn site_status(service: &Service) -> SiteStatus {
+    let snapshot = service.snapshot();
+    let now_ns = service.now_ns();
+    let inst = service.installation();
+    SiteStatus {
+        time: crate::clock::format_ns(now_ns),
+        targets: inst
+            .model
+            .targets
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let now = snapshot.target_now(i, now_ns, inst.server.clock_tolerance_s);
+                let view = &snapshot.targets[i];
+                TargetStatus {
+                    name: t.name.clone(),
+                    status: now.status.name().to_owned(),
+                    alarm: view.alarms.level().name().to_owned(),
+                    time: view
+                        .latest
+                        .as_ref()
+                        .map(|l| crate::clock::format_ns(l.time_ns)),
+                }
+            })
+            .collect(),
+    }
+}
+
+/// The uploader's connection to the centre.
+struct Link {
+    client: reqwest::Client,
+    url: url::Url,
+    token: Option<String>,
+}
+
+impl Link {
+    fn new(upstream: &Upstream) -> Result<Link, String> {
+        let mut base = upstream.settings.url.clone();
+        if !base.path().ends_with('/') {
+            base.set_path(&format!("{}/", base.path()));
+        }
+        let url = base
+            .join(&format!("api/v1/sites/{}/sync", upstream.site))
+            .map_err(|e| format!("the centre's URL does not take a path: {e}"))?;
+        let client = reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(10))
+            .timeout(Duration::from_secs(300))
+            .build()
+            .map_err(|e| format!("cannot make an HTTP client: {e}"))?;
+        Ok(Link {
+            client,
+            url,
+            token: upstream.settings.token.clone(),
+        })
+    }
+
+    /// Posts one upload, compressed; returns the answer and the bytes sent (compressed,
+    /// uncompressed).
+    async fn post(&self, request: &SyncRequest) -> Result<(SyncResponse, u64, u64), Failure> {
+        let json = serde_json::to_vec(request)
+            .map_err(|e| Failure::Refused(format!("cannot encode the upload: {e}")))?;
+        let body = zstd::bulk::compress(&json, ZSTD_LEVEL)
+            .map_err(|e| Failure::Refused(format!("cannot compress the upload: {e}")))?;
+        let sizes = (body.len() as u64, json.len() as u64);
+        let mut post = self
+            .client
+            .post(self.url.clone())
+            .header(reqwest::header::CONTENT_TYPE, "application/json")
+            .header(reqwest::header::CONTENT_ENCODING, "zstd")
+            .body(body);
+        if let Some(token) = &self.token {
+            post = post.bearer_auth(token);
+        }
+        let response = post
+            .send()
+            .await
+            .map_err(|e| Failure::Transient(format!("the centre cannot be reached: {e}")))?;
+        let status = response.status();
+        let text = response
+            .text()
+            .await
+            .map_err(|e| Failure::Transient(format!("the answer was cut: {e}")))?;
+        if status.is_success() {
+            let answer: SyncResponse = serde_json::from_str(&text).map_err(|e| {
+                Failure::Transient(format!("the centre's answer does not parse: {e}"))
+            })?;
+            return Ok((answer, sizes.0, sizes.1));
+        }
+        let message = serde_json::from_str::<serde_json::Value>(&text)
+            .ok()
+            .and_then(|v| v["error"]["message"].as_str().map(str::to_owned))
+            .unwrap_or_else(|| text.chars().take(300).collect());
+        let what = format!("the centre answered {status}: {message}");
+        if status.is_server_error() || matches!(status.as_u16(), 408 | 429) {
+            Err(Failure::Transient(what))
+        } else {
+            Err(Failure::Refused(what))
+        }
+    }
+}
+
+/// Sleeps for `d`, or less when the service begins to stop; true when it does.
+async fn pause(stopping: &mut tokio::sync::watch::Receiver<bool>, d: Duration) -> bool {
+    if *stopping.borrow() {
+        return true;
+    }
+    tokio::select! {
+        () = tokio::time::sleep(d) => *stopping.borrow(),
+        _ = stopping.changed() => true,
+    }
+}
+
+/// Counts each tier's backlog and the acknowledged numbers from the database.
+async fn refresh_backlog(service: &Service, upstream: &Upstream) -> Option<Vec<TierBacklog>> {
+    match service.store().backlog().await {
+        Ok(backlog) => Some(
+            backlog
+                .into_iter()
+                .map(|(tier, b)| {
+                    upstream.update(tier, |p| {
+                        p.backlog_rows = b.rows;
+                        p.acked_seq = p.acked_seq.max(b.acked_seq);
+                    });
+                    TierBacklog {
+                        tier,
+                        rows: b.rows,
+                        acked_seq: b.acked_seq,
+                    }
+                })
+                .collect(),
+        ),
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot count the upload backlog");
+            None
+        }
+    }
+}
+
+/// Runs the uploader until the service begins to stop.
+pub async fn run(service: Service, upstream: Arc<Upstream>) {
+    let mut stopping = service.stopping();
+    let link = match Link::new(&upstream) {
+        Ok(link) => link,
+        Err(e) => {
+            for tier in Tier::ALL {
+                upstream.update(tier, |p| p.stopped = Some(e.clone()));
+            }
+            tracing::error!(error = %e, "the uploader cannot start");
+            return;
+        }
+    };
+    let store = service.store().clone();
+    let outbox_id = loop {
+        match store.outbox_id().await {
+            Ok(id) => break id,
+            Err(e) => {
+                tracing::warn!(error = %e, "the uploader cannot read the outbox; retrying");
+                if pause(&mut stopping, Duration::from_secs(5)).await {
+                    return;
+                }
+            }
+        }
+    };
+    let settings = upstream.settings.clone();
+    let heartbeat = Duration::from_secs_f64(settings.heartbeat_s);
+    let mut backlog = refresh_backlog(&service, &upstream)
+        .await
+        .unwrap_or_default();
+    let mut cursor: [Option<i64>; 3] = [None; 3];
+    for b in &backlog {
+        cursor[index(b.tier)] = b.acked_seq;
+    }
+    let mut backoff = Duration::from_secs(1);
+    let mut raw_allowed_at = Instant::now();
+    let mut last_report: Option<Instant> = None;
+    tracing::info!(site = %upstream.site, centre = %link.url, "uploading to the centre");
+    while !*stopping.borrow() {
+        let report_due = last_report.is_none_or(|t| t.elapsed() >= heartbeat);
+        if report_due && let Some(b) = refresh_backlog(&service, &upstream).await {
+            backlog = b;
+        }
+        // The first tier with a batch waiting and a stream that runs.
+        let mut next = None;
+        let progress = upstream.progress();
+        for tier in Tier::ALL {
+            let i = index(tier);
+            if progress[i].1.stopped.is_some() {
+                continue;
+            }
+            if tier == Tier::Raw && (settings.raw_kbit_s <= 0.0 || Instant::now() < raw_allowed_at)
+            {
+                continue;
+            }
+            match store
+                .outbox_batch(tier, cursor[i], settings.batch_rows)
+                .await
+            {
+                Ok(Some(batch)) => {
+                    next = Some(batch);
+                    break;
+                }
+                // Nothing waits: the tier's backlog is empty now, whatever the last count.
+                Ok(None) => upstream.update(tier, |p| p.backlog_rows = 0),
+                Err(e) => {
+                    tracing::warn!(error = %e, tier = tier.name(), "cannot read the outbox");
+                    upstream.update(tier, |p| {
+                        p.last_error = Some((service.now_ns(), e.to_string()));
+                        p.errors += 1;
+                    });
+                }
+            }
+        }
+        if next.is_none() && !report_due {
+            if pause(&mut stopping, Duration::from_millis(500)).await {
+                break;
+            }
+            continue;
+        }
+        let registry = match store.registry().await {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot read the outbox's registry");
+                if pause(&mut stopping, backoff).await {
+                    break;
+                }
+                continue;
+            }
+        };
+        let tier = next.as_ref().map(|b| b.tier);
+        let rows = next.as_ref().map_or(0, |b| b.rows() as u64);
+        let request = SyncRequest {
+            outbox_id: outbox_id.clone(),
+            registry,
+            batch: next.map(Into::into),
+            status: Some(site_status(&service)),
+            backlog: backlog.clone(),
+        };
+        match link.post(&request).await {
+            Ok((answer, bytes, json_bytes)) => {
+                let now = service.now_ns();
+                upstream.contact(now);
+                backoff = Duration::from_secs(1);
+                last_report = Some(Instant::now());
+                let Some(tier) = tier else { continue };
+                let i = index(tier);
+                match answer.outcome {
+                    Outcome::Applied | Outcome::Duplicate => {
+                        let Some(acked) = answer.acked_seq else {
+                            continue;
+                        };
+                        if let Err(e) = service.record_upstream_ack(tier, acked).await {
+                            // The centre has it: a restart sends it again as a duplicate.
+                            tracing::warn!(error = %e, "cannot record the centre's acknowledgement");
+                        }
+                        cursor[i] = Some(acked);
+                        upstream.update(tier, |p| {
+                            p.acked_seq = Some(acked);
+                            p.batches_sent += 1;
+                            p.rows_sent += rows;
+                            p.bytes_sent += bytes;
+                            p.json_bytes_sent += json_bytes;
+                            p.backlog_rows = p.backlog_rows.saturating_sub(rows);
+                            p.last_success_ns = Some(now);
+                        });
+                        if tier == Tier::Raw && settings.raw_kbit_s > 0.0 {
+                            raw_allowed_at = Instant::now()
+                                + Duration::from_secs_f64(
+                                    bytes as f64 * 8.0 / (settings.raw_kbit_s * 1000.0),
+                                );
+                        }
+                    }
+                    Outcome::Gap => {
+                        tracing::warn!(
+                            tier = tier.name(),
+                            resume_after = ?answer.acked_seq,
+                            "the centre has less than this site recorded; resuming from its number"
+                        );
+                        cursor[i] = answer.acked_seq;
+                    }
+                }
+            }
+            Err(Failure::Transient(why)) => {
+                if let Some(tier) = tier {
+                    upstream.update(tier, |p| {
+                        p.last_error = Some((service.now_ns(), why.clone()));
+                        p.errors += 1;
+                    });
+                }
+                tracing::warn!(error = %why, retry_in_s = backoff.as_secs(), "an upload failed; retrying");
+                if pause(&mut stopping, backoff).await {
+                    break;
+                }
+                backoff = (backoff * 2).min(MAX_BACKOFF);
+            }
+            Err(Failure::Refused(why)) => {
+                tracing::error!(error = %why, tier = ?tier.map(Tier::name), "the centre refused an upload; its stream stops until the service restarts");
+                let now = service.now_ns();
+                // A report of state alone refused: the refusal is about the site (its token,
+                // its outbox), so every stream stops.
+                let stopped: Vec<Tier> = match tier {
+                    Some(t) => vec![t],
+                    None => Tier::ALL.to_vec(),
+                };
+                for t in stopped {
+                    upstream.update(t, |p| {
+                        p.last_error = Some((now, why.clone()));
+                        p.errors += 1;
+                        p.stopped = Some(why.clone());
+                    });
+                }
+                last_report = Some(Instant::now());
+            }
+        }
+    }
+}

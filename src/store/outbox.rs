@@ -1,0 +1,405 @@
+//! What a fleet's site uploads: the tiers, the tables in each, and a batch of rows.
+//!
+//! The site's SQLite file is its outbox (`migrations/0007_outbox.sql`): every write transaction
+//! has a commit sequence number and every row carries the number of the transaction that last
+//! wrote it (`commit_seq`). A tier's stream is its tables' rows in commit order; the centre
+//! acknowledges a tier up to a number, and everything above it is still to send, each row in
+//! its current version. A batch covers whole commits `(after_seq, upto_seq]`, so "acknowledged
+//! up to N" means every row written by commits up to N has arrived.
+//!
+//! Rows travel as the site's own columns (column by column, in the order of
+//! [`SyncTable::columns`]); the centre writes them into a schema of the same tables, so every
+//! read of the store works on a site's copy unchanged.
+
+use serde::{Deserialize, Serialize};
+
+/// The tiers of upload, the most urgent first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Tier {
+    /// Alarm transitions (and their acknowledgements), references, calibrations, filter
+    /// resets: small, and what an operator ashore must see first.
+    Events,
+    /// Filtered results and the rollups of all results: the history.
+    Results,
+    /// Raw samples and raw results: large, sent under a bandwidth budget.
+    Raw,
+}
+
+impl Tier {
+    /// Every tier, most urgent first.
+    pub const ALL: [Tier; 3] = [Tier::Events, Tier::Results, Tier::Raw];
+
+    /// The tier's name in the API and the database.
+    pub fn name(self) -> &'static str {
+        match self {
+            Tier::Events => "events",
+            Tier::Results => "results",
+            Tier::Raw => "raw",
+        }
+    }
+
+    /// The tier of a name.
+    pub fn parse(name: &str) -> Option<Tier> {
+        Tier::ALL.into_iter().find(|t| t.name() == name)
+    }
+
+    /// The tables of the tier's stream.
+    pub fn tables(self) -> &'static [SyncTable] {
+        match self {
+            Tier::Events => &[
+                SyncTable::Alarms,
+                SyncTable::References,
+                SyncTable::Calibrations,
+                SyncTable::LinkResets,
+            ],
+            Tier::Results => &[SyncTable::FilteredResults, SyncTable::Rollups],
+            Tier::Raw => &[SyncTable::Samples, SyncTable::RawResults],
+        }
+    }
+}
+
+/// A table (or part of one) that a site uploads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SyncTable {
+    /// `alarms`.
+    Alarms,
+    /// `target_references`.
+    References,
+    /// `calibrations`.
+    Calibrations,
+    /// `link_resets`.
+    LinkResets,
+    /// `results` with source 1.
+    FilteredResults,
+    /// `rollups`.
+    Rollups,
+    /// `samples`.
+    Samples,
+    /// `results` with source 0.
+    RawResults,
+}
+
+/// The type of a column on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// A 64-bit integer.
+    Int,
+    /// A 64-bit float.
+    Real,
+    /// UTF-8 text.
+    Text,
+    /// Bytes.
+    Blob,
+    /// A boolean (an integer 0 or 1 in SQLite).
+    Bool,
+}
+
+use Kind::{Blob, Bool, Int, Real, Text};
+
+const POSE: [(&str, Kind); 7] = [
+    ("tx_mm", Real),
+    ("ty_mm", Real),
+    ("tz_mm", Real),
+    ("qw", Real),
+    ("qx", Real),
+    ("qy", Real),
+    ("qz", Real),
+];
+
+macro_rules! columns {
+    ($($name:literal : $kind:ident),* ; pose ; $($rest:literal : $rkind:ident),*) => {
+        &[$(($name, $kind),)* POSE[0], POSE[1], POSE[2], POSE[3], POSE[4], POSE[5], POSE[6],
+          $(($rest, $rkind)),*]
+    };
+    ($($name:literal : $kind:ident),*) => { &[$(($name, $kind)),*] };
+}
+
+const RESULT_COLUMNS: &[(&str, Kind)] = columns!(
+    "target_id": Int, "source": Int, "time_ns": Int; pose;
+    "cov": Blob, "sigma_rx_arcsec": Real, "sigma_ry_arcsec": Real, "sigma_rz_arcsec": Real,
+    "sigma_tx_mm": Real, "sigma_ty_mm": Real, "sigma_tz_mm": Real, "status": Text,
+    "age_s": Real, "chi2": Real, "reference_version": Int, "def_rx_arcsec": Real,
+    "def_ry_arcsec": Real, "def_rz_arcsec": Real, "def_tx_mm": Real, "def_ty_mm": Real,
+    "def_tz_mm": Real
+);
+
+impl SyncTable {
+    /// The tier whose stream carries the table.
+    pub fn tier(self) -> Tier {
+        match self {
+            SyncTable::Alarms
+            | SyncTable::References
+            | SyncTable::Calibrations
+            | SyncTable::LinkResets => Tier::Events,
+            SyncTable::FilteredResults | SyncTable::Rollups => Tier::Results,
+            SyncTable::Samples | SyncTable::RawResults => Tier::Raw,
+        }
+    }
+
+    /// The table's name in both schemas.
+    pub fn table(self) -> &'static str {
+        match self {
+            SyncTable::Alarms => "alarms",
+            SyncTable::References => "target_references",
+            SyncTable::Calibrations => "calibrations",
+            SyncTable::LinkResets => "link_resets",
+            SyncTable::FilteredResults | SyncTable::RawResults => "results",
+            SyncTable::Rollups => "rollups",
+            SyncTable::Samples => "samples",
+        }
+    }
+
+    /// The rows of the table that belong to this stream (an SQL condition), if not all.
+    pub fn filter(self) -> Option<&'static str> {
+        match self {
+            SyncTable::FilteredResults => Some("source = 1"),
+            SyncTable::RawResults => Some("source = 0"),
+            _ => None,
+        }
+    }
+
+    /// The key a row replaces another at.
+    pub fn key(self) -> &'static [&'static str] {
+        match self {
+            SyncTable::Alarms => &["alarm_id"],
+            SyncTable::References => &["target_id", "version"],
+            SyncTable::Calibrations => &["link_id", "version"],
+            SyncTable::LinkResets => &["link_id", "created_ns"],
+            SyncTable::FilteredResults | SyncTable::RawResults => {
+                &["target_id", "source", "time_ns"]
+            }
+            SyncTable::Rollups => &["target_id", "source", "width_s", "bucket_ns"],
+            SyncTable::Samples => &["link_id", "time_ns"],
+        }
+    }
+
+    /// The columns that travel, in order, with their types.
+    pub fn columns(self) -> &'static [(&'static str, Kind)] {
+        match self {
+            SyncTable::Alarms => columns!(
+                "alarm_id": Int, "target_id": Int, "time_ns": Int, "kind": Text,
+                "from_level": Text, "to_level": Text, "value": Real, "message": Text,
+                "created_ns": Int, "unit": Text, "acknowledged_by": Text,
+                "acknowledged_ns": Int, "ack_note": Text
+            ),
+            SyncTable::References => columns!(
+                "target_id": Int, "version": Int; pose;
+                "cov": Blob, "origin": Text, "window_from_ns": Int, "window_to_ns": Int,
+                "window_count": Int, "created_ns": Int
+            ),
+            SyncTable::Calibrations => columns!(
+                "link_id": Int, "version": Int, "valid_from_ns": Int; pose;
+                "cov": Blob, "created_ns": Int
+            ),
+            SyncTable::LinkResets => columns!(
+                "link_id": Int, "created_ns": Int, "by_name": Text, "note": Text
+            ),
+            SyncTable::FilteredResults | SyncTable::RawResults => RESULT_COLUMNS,
+            SyncTable::Rollups => columns!(
+                "target_id": Int, "source": Int, "width_s": Int, "bucket_ns": Int, "n": Int,
+                "n_def": Int, "stats": Blob
+            ),
+            SyncTable::Samples => columns!(
+                "link_id": Int, "time_ns": Int; pose;
+                "uncertainty_kind": Int, "uncertainty": Blob, "reprojection_rms_px": Real,
+                "points": Int, "disposition": Text, "outlier": Bool, "nis": Real,
+                "received_ns": Int
+            ),
+        }
+    }
+
+    /// Whether the centre must write the key column of an identity (`alarm_id`).
+    pub(crate) fn overrides_identity(self) -> bool {
+        self == SyncTable::Alarms
+    }
+}
+
+/// Bytes that travel as lowercase hex.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HexBytes(pub Vec<u8>);
+
+impl Serialize for HexBytes {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&hex::encode(&self.0))
+    }
+}
+
+impl<'de> Deserialize<'de> for HexBytes {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = <std::borrow::Cow<'de, str>>::deserialize(d)?;
+        hex::decode(text.as_bytes())
+            .map(HexBytes)
+            .map_err(serde::de::Error::custom)
+    }
+}
+
+/// One column's values, one a row (`None`: null).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ColumnValues {
+    /// Integers.
+    Int(Vec<Option<i64>>),
+    /// Floating point numbers.
+    Real(Vec<Option<f64>>),
+    /// Text.
+    Text(Vec<Option<String>>),
+    /// Byte strings.
+    Blob(Vec<Option<HexBytes>>),
+    /// Booleans.
+    Bool(Vec<Option<bool>>),
+}
+
+impl ColumnValues {
+    pub(crate) fn empty(kind: Kind) -> ColumnValues {
+        match kind {
+            Int => ColumnValues::Int(Vec::new()),
+            Real => ColumnValues::Real(Vec::new()),
+            Text => ColumnValues::Text(Vec::new()),
+            Blob => ColumnValues::Blob(Vec::new()),
+            Bool => ColumnValues::Bool(Vec::new()),
+        }
+    }
+
+    /// The type of the values.
+    pub(crate) fn kind(&self) -> Kind {
+        match self {
+            ColumnValues::Int(_) => Int,
+            ColumnValues::Real(_) => Real,
+            ColumnValues::Text(_) => Text,
+            ColumnValues::Blob(_) => Blob,
+            ColumnValues::Bool(_) => Bool,
+        }
+    }
+
+    /// The number of rows.
+    pub fn len(&self) -> usize {
+        match self {
+            ColumnValues::Int(v) => v.len(),
+            ColumnValues::Real(v) => v.len(),
+            ColumnValues::Text(v) => v.len(),
+            ColumnValues::Blob(v) => v.len(),
+            ColumnValues::Bool(v) => v.len(),
+        }
+    }
+
+    /// True without rows.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The rows of one table in a batch, column by column in [`SyncTable::columns`]' order.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TableRows {
+    /// The table.
+    pub table: SyncTable,
+    /// Its columns.
+    pub columns: Vec<ColumnValues>,
+}
+
+impl TableRows {
+    pub(crate) fn new(table: SyncTable) -> TableRows {
+        TableRows {
+            table,
+            columns: table
+                .columns()
+                .iter()
+                .map(|(_, kind)| ColumnValues::empty(*kind))
+                .collect(),
+        }
+    }
+
+    /// The number of rows.
+    pub fn rows(&self) -> usize {
+        self.columns.first().map_or(0, ColumnValues::len)
+    }
+
+    /// Why the rows cannot be written, if they cannot: not the table's columns and types, or
+    /// columns of different lengths.
+    pub fn problem(&self) -> Option<String> {
+        let spec = self.table.columns();
+        if self.columns.len() != spec.len() {
+            return Some(format!(
+                "{:?}: {} columns, the table has {}",
+                self.table,
+                self.columns.len(),
+                spec.len()
+            ));
+        }
+        let rows = self.rows();
+        for (values, (name, kind)) in self.columns.iter().zip(spec) {
+            if values.kind() != *kind {
+                return Some(format!("{:?}.{name}: values of the wrong type", self.table));
+            }
+            if values.len() != rows {
+                return Some(format!(
+                    "{:?}.{name}: {} values, the first column has {rows}",
+                    self.table,
+                    values.len()
+                ));
+            }
+        }
+        None
+    }
+}
+
+/// A site's link or target and its id in the site's database.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Registered {
+    /// The id rows refer to.
+    pub id: i64,
+    /// The link's or target's name.
+    pub name: String,
+    /// When the site registered it (server clock, ns).
+    pub created_ns: i64,
+}
+
+/// The names behind the ids of a site's rows.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Registry {
+    /// Links.
+    pub links: Vec<Registered>,
+    /// Targets.
+    pub targets: Vec<Registered>,
+}
+
+/// The rows of one tier written by the commits `(after_seq, upto_seq]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OutboxBatch {
+    /// The tier.
+    pub tier: Tier,
+    /// The last number the centre acknowledged when the batch was read.
+    pub after_seq: i64,
+    /// The last commit the batch covers.
+    pub upto_seq: i64,
+    /// The rows, per table (tables without rows left out).
+    pub tables: Vec<TableRows>,
+}
+
+impl OutboxBatch {
+    /// The number of rows.
+    pub fn rows(&self) -> usize {
+        self.tables.iter().map(TableRows::rows).sum()
+    }
+}
+
+/// Per tier, what the site has still to send.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Backlog {
+    /// The last number the centre acknowledged (`None`: nothing yet).
+    pub acked_seq: Option<i64>,
+    /// Rows above it.
+    pub rows: u64,
+}
+
+/// Where the site's retention may not reach: per tier that is uploaded, the last number the
+/// centre acknowledged (rows written later are kept whatever their age).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct KeepUnsent {
+    /// Filtered results above this number are kept (`None`: the tier is not uploaded).
+    pub results: Option<i64>,
+    /// Samples and raw results above this number are kept.
+    pub raw: Option<i64>,
+}

@@ -1,0 +1,458 @@
+//! The centre of a fleet: sites' uploads applied exactly once, and the record of the fleet.
+//!
+//! Each site's rows live in a schema of their own, `site_<id>` (the id given to the site on its
+//! first upload; pg_partman takes only plain identifiers, and names may hold `-`), made then
+//! with the tables of `migrations-postgres/` (so every read of the store works on a site's copy
+//! as on a service's own database). The schema `fleet` (`migrations-central/`) records the
+//! sites, the outbox each uploads from, and per tier the last commit applied.
+//!
+//! An upload covers the site's commits `(after_seq, upto_seq]` of one tier. It is applied in
+//! one transaction, with the tier's row locked, when it continues what was applied
+//! (`after_seq <= acked < upto_seq`); rows replace those at the same keys, so an upload that
+//! overlaps what was applied brings only the site's current versions. One that ends at or
+//! before `acked` changes nothing (a replay, or one overtaken by a later upload); one that
+//! starts after `acked` is refused with the number to resume from (a gap).
+
+use super::super::outbox::{ColumnValues, Kind, OutboxBatch, Registry, TableRows, Tier};
+use super::super::{StoreError, StoreResult};
+use super::{CONNECT_TIMEOUT, MIGRATOR, options_of};
+use crate::config::{PostgresUrl, SiteName};
+use sqlx::postgres::{PgConnectOptions, PgConnection, PgPool, PgPoolOptions};
+use sqlx::{ConnectOptions, Connection};
+use std::collections::HashSet;
+
+/// The centre's own migrations (`migrations-central/`), applied in the schema `fleet`.
+pub static FLEET_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migrations-central");
+
+/// What a site sends in one request: its identity and state, and a batch of one tier (none in
+/// a report of state alone).
+#[derive(Debug, Clone, Copy)]
+pub struct SiteUpload<'a> {
+    /// The site's outbox.
+    pub outbox_id: &'a str,
+    /// The names behind the ids of the batch's rows.
+    pub registry: &'a Registry,
+    /// The rows.
+    pub batch: Option<&'a OutboxBatch>,
+    /// The site's report of its state (JSON), kept as sent.
+    pub status_json: Option<&'a str>,
+    /// The site's report of its backlog (JSON), kept as sent.
+    pub backlog_json: Option<&'a str>,
+    /// The request's size on the wire (bytes), counted per tier.
+    pub wire_bytes: u64,
+}
+
+/// What became of an upload.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SyncOutcome {
+    /// Applied: the tier is now acknowledged up to `acked_seq` (also the answer to a report
+    /// of state alone, with the tier's number unchanged).
+    Applied {
+        /// The tier's last applied commit (`None`: nothing yet).
+        acked_seq: Option<i64>,
+    },
+    /// Nothing to apply: it ends at or before what was applied.
+    Duplicate {
+        /// The tier's last applied commit.
+        acked_seq: Option<i64>,
+    },
+    /// It starts after what was applied: the site resumes from `acked_seq`.
+    Gap {
+        /// The tier's last applied commit (`None`: nothing yet).
+        acked_seq: Option<i64>,
+    },
+    /// The site uploads from another outbox than the one first seen under its name.
+    OutboxChanged {
+        /// The outbox first seen.
+        known: String,
+    },
+}
+
+/// A site as the centre knows it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SiteRecord {
+    /// The site.
+    pub site: String,
+    /// Its first and last upload (centre's clock, ns).
+    pub first_contact_ns: i64,
+    /// Its last upload or report (centre's clock, ns).
+    pub last_contact_ns: i64,
+    /// Its last report of its state (JSON, as sent).
+    pub status_json: Option<String>,
+    /// Its last report of its backlog (JSON, as sent).
+    pub backlog_json: Option<String>,
+    /// Per tier: the last applied commit, rows applied, bytes received, batches applied.
+    pub streams: Vec<StreamRecord>,
+}
+
+/// One tier of one site at the centre.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StreamRecord {
+    /// The tier.
+    pub tier: Tier,
+    /// The last commit applied (`None`: nothing yet).
+    pub acked_seq: Option<i64>,
+    /// Rows applied.
+    pub rows_applied: i64,
+    /// Bytes received (compressed, as sent).
+    pub bytes_received: i64,
+    /// Batches applied.
+    pub batches_applied: i64,
+    /// When the last batch was applied (centre's clock, ns).
+    pub updated_ns: i64,
+}
+
+/// The centre's side of a fleet on its PostgreSQL database.
+#[derive(Debug)]
+pub struct Central {
+    pool: PgPool,
+    options: PgConnectOptions,
+    /// Sites whose schema is ready (made and migrated) since start, by id.
+    prepared: tokio::sync::Mutex<HashSet<i64>>,
+}
+
+/// The schema of a site's rows.
+pub fn site_schema(site_id: i64) -> String {
+    format!("site_{site_id}")
+}
+
+/// The stored form of "nothing applied yet".
+const NOTHING: i64 = i64::MIN;
+
+fn acked(stored: i64) -> Option<i64> {
+    (stored != NOTHING).then_some(stored)
+}
+
+/// The PostgreSQL array type of a column's values.
+fn array_type(kind: Kind) -> &'static str {
+    match kind {
+        Kind::Int => "int8[]",
+        Kind::Real => "float8[]",
+        Kind::Text => "text[]",
+        Kind::Blob => "bytea[]",
+        Kind::Bool => "bool[]",
+    }
+}
+
+/// Writes a table's rows, each replacing the row at its key.
+async fn apply_rows(conn: &mut PgConnection, rows: &TableRows) -> StoreResult<()> {
+    if let Some(problem) = rows.problem() {
+        return Err(StoreError::Malformed(problem));
+    }
+    let table = rows.table;
+    let spec = table.columns();
+    let names: Vec<&str> = spec.iter().map(|(n, _)| *n).collect();
+    let arrays: Vec<String> = spec
+        .iter()
+        .enumerate()
+        .map(|(i, (_, k))| format!("${}::{}", i + 1, array_type(*k)))
+        .collect();
+    let key = table.key();
+    let updates: Vec<String> = names
+        .iter()
+        .filter(|n| !key.contains(n))
+        .map(|n| format!("{n} = excluded.{n}"))
+        .collect();
+    let sql = format!(
+        "insert into {} ({}) {} select * from unnest({}) on conflict ({}) do update set {}",
+        table.table(),
+        names.join(", "),
+        if table.overrides_identity() {
+            "overriding system value"
+        } else {
+            ""
+        },
+        arrays.join(", "),
+        key.join(", "),
+        updates.join(", ")
+    );
+    let blobs: Vec<Vec<Option<&[u8]>>> = rows
+        .columns
+        .iter()
+        .filter_map(|c| match c {
+            ColumnValues::Blob(v) => Some(v.iter().map(|b| b.as_ref().map(|b| &b.0[..])).collect()),
+            _ => None,
+        })
+        .collect();
+    let mut blobs = blobs.iter();
+    let mut query = sqlx::query(&sql);
+    for values in &rows.columns {
+        query = match values {
+            ColumnValues::Int(v) => query.bind(v),
+            ColumnValues::Real(v) => query.bind(v),
+            ColumnValues::Text(v) => query.bind(v),
+            ColumnValues::Bool(v) => query.bind(v),
+            ColumnValues::Blob(_) => match blobs.next() {
+                Some(v) => query.bind(v),
+                None => unreachable!("one list per blob column"),
+            },
+        };
+    }
+    query.execute(&mut *conn).await?;
+    Ok(())
+}
+
+/// Writes the site's links and targets (ids as the site has them).
+async fn apply_registry(conn: &mut PgConnection, registry: &Registry) -> StoreResult<()> {
+    for (table, id, list) in [
+        ("links", "link_id", &registry.links),
+        ("targets", "target_id", &registry.targets),
+    ] {
+        let ids: Vec<i64> = list.iter().map(|r| r.id).collect();
+        let names: Vec<&str> = list.iter().map(|r| r.name.as_str()).collect();
+        let created: Vec<i64> = list.iter().map(|r| r.created_ns).collect();
+        sqlx::query(&format!(
+            "insert into {table} ({id}, name, created_ns) overriding system value \
+             select * from unnest($1::int8[], $2::text[], $3::int8[]) \
+             on conflict ({id}) do update set name = excluded.name"
+        ))
+        .bind(&ids)
+        .bind(&names)
+        .bind(&created)
+        .execute(&mut *conn)
+        .await?;
+    }
+    Ok(())
+}
+
+impl Central {
+    /// Opens the centre's record of its fleet on the database at `url` (its schema made or
+    /// migrated).
+    pub async fn open(url: &PostgresUrl) -> StoreResult<Central> {
+        let options = options_of(url)?;
+        let refused = |e: StoreError| StoreError::Open {
+            database: url.to_string(),
+            message: format!("cannot prepare the fleet's schema: {e}"),
+        };
+        let mut conn = options.connect().await.map_err(|e| refused(e.into()))?;
+        let migrate = async {
+            sqlx::query("create schema if not exists fleet")
+                .execute(&mut conn)
+                .await?;
+            sqlx::query("set search_path to fleet")
+                .execute(&mut conn)
+                .await?;
+            FLEET_MIGRATOR.run(&mut conn).await?;
+            StoreResult::Ok(())
+        };
+        migrate.await.map_err(refused)?;
+        let _ = conn.close().await;
+        let pool = PgPoolOptions::new()
+            .max_connections(8)
+            .acquire_timeout(CONNECT_TIMEOUT)
+            .connect_with(options.clone())
+            .await
+            .map_err(|e| refused(e.into()))?;
+        Ok(Central {
+            pool,
+            options,
+            prepared: tokio::sync::Mutex::new(HashSet::new()),
+        })
+    }
+
+    /// Makes (or migrates) the schema of a site's rows, once per site and start.
+    async fn prepare_site(&self, site_id: i64) -> StoreResult<()> {
+        let mut prepared = self.prepared.lock().await;
+        if prepared.contains(&site_id) {
+            return Ok(());
+        }
+        let schema = site_schema(site_id);
+        sqlx::query(&format!("create schema if not exists {schema}"))
+            .execute(&self.pool)
+            .await?;
+        // A pool of one connection in the site's schema (the migrator takes a pool).
+        let in_schema = PgPoolOptions::new()
+            .max_connections(1)
+            .acquire_timeout(CONNECT_TIMEOUT)
+            .connect_with(
+                self.options
+                    .clone()
+                    .options([("search_path", schema.as_str())]),
+            )
+            .await?;
+        MIGRATOR.run(&in_schema).await?;
+        in_schema.close().await;
+        prepared.insert(site_id);
+        Ok(())
+    }
+
+    /// The id of a site (its schema's number) and the outbox it uploads from, registering it
+    /// with `outbox_id` on its first contact.
+    async fn register(
+        &self,
+        site: &SiteName,
+        outbox_id: &str,
+        now_ns: i64,
+    ) -> StoreResult<(i64, String)> {
+        sqlx::query(
+            "insert into fleet.sites (site, outbox_id, first_contact_ns, last_contact_ns) \
+             values ($1, $2, $3, $3) on conflict (site) do nothing",
+        )
+        .bind(site.as_str())
+        .bind(outbox_id)
+        .bind(now_ns)
+        .execute(&self.pool)
+        .await?;
+        Ok(
+            sqlx::query_as("select site_id, outbox_id from fleet.sites where site = $1")
+                .bind(site.as_str())
+                .fetch_one(&self.pool)
+                .await?,
+        )
+    }
+
+    /// Applies an upload of `site` (or records its report of state), in one transaction;
+    /// `now_ns` is the centre's clock.
+    pub async fn sync(
+        &self,
+        site: &SiteName,
+        upload: SiteUpload<'_>,
+        now_ns: i64,
+    ) -> StoreResult<SyncOutcome> {
+        let (site_id, known) = self.register(site, upload.outbox_id, now_ns).await?;
+        if known != upload.outbox_id {
+            return Ok(SyncOutcome::OutboxChanged { known });
+        }
+        self.prepare_site(site_id).await?;
+        let mut tx = self.pool.begin().await?;
+        sqlx::query(&format!(
+            "set local search_path to {}",
+            site_schema(site_id)
+        ))
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "update fleet.sites set last_contact_ns = $2, status = coalesce($3, status), \
+             backlog = coalesce($4, backlog) where site = $1",
+        )
+        .bind(site.as_str())
+        .bind(now_ns)
+        .bind(upload.status_json)
+        .bind(upload.backlog_json)
+        .execute(&mut *tx)
+        .await?;
+        let Some(batch) = upload.batch else {
+            tx.commit().await?;
+            return Ok(SyncOutcome::Applied { acked_seq: None });
+        };
+        let tier = batch.tier.name();
+        sqlx::query(
+            "insert into fleet.streams (site, tier, acked_seq, updated_ns) values ($1, $2, $3, $4) \
+             on conflict (site, tier) do nothing",
+        )
+        .bind(site.as_str())
+        .bind(tier)
+        .bind(NOTHING)
+        .bind(now_ns)
+        .execute(&mut *tx)
+        .await?;
+        // Locks the tier's row: uploads of one site and tier apply one after the other.
+        let (stored,): (i64,) = sqlx::query_as(
+            "select acked_seq from fleet.streams where site = $1 and tier = $2 for update",
+        )
+        .bind(site.as_str())
+        .bind(tier)
+        .fetch_one(&mut *tx)
+        .await?;
+        let outcome = if batch.upto_seq <= stored {
+            SyncOutcome::Duplicate {
+                acked_seq: acked(stored),
+            }
+        } else if batch.after_seq > stored {
+            SyncOutcome::Gap {
+                acked_seq: acked(stored),
+            }
+        } else {
+            apply_registry(&mut tx, upload.registry).await?;
+            for rows in &batch.tables {
+                if rows.table.tier() != batch.tier {
+                    return Err(StoreError::Malformed(format!(
+                        "{:?} rows in a batch of the {tier} tier",
+                        rows.table
+                    )));
+                }
+                apply_rows(&mut tx, rows).await?;
+            }
+            sqlx::query(
+                "update fleet.streams set acked_seq = $3, rows_applied = rows_applied + $4, \
+                 bytes_received = bytes_received + $5, batches_applied = batches_applied + 1, \
+                 updated_ns = $6 where site = $1 and tier = $2",
+            )
+            .bind(site.as_str())
+            .bind(tier)
+            .bind(batch.upto_seq)
+            .bind(i64::try_from(batch.rows()).unwrap_or(i64::MAX))
+            .bind(i64::try_from(upload.wire_bytes).unwrap_or(i64::MAX))
+            .bind(now_ns)
+            .execute(&mut *tx)
+            .await?;
+            SyncOutcome::Applied {
+                acked_seq: Some(batch.upto_seq),
+            }
+        };
+        tx.commit().await?;
+        Ok(outcome)
+    }
+
+    /// The schema of a site's rows, when the site has uploaded.
+    pub async fn schema_of(&self, site: &SiteName) -> StoreResult<Option<String>> {
+        let row: Option<(i64,)> = sqlx::query_as("select site_id from fleet.sites where site = $1")
+            .bind(site.as_str())
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.map(|(id,)| site_schema(id)))
+    }
+
+    /// Every site the centre has heard from, by name.
+    pub async fn sites(&self) -> StoreResult<Vec<SiteRecord>> {
+        type SiteRow = (String, i64, i64, Option<String>, Option<String>);
+        let sites: Vec<SiteRow> = sqlx::query_as(
+            "select site, first_contact_ns, last_contact_ns, status, backlog from fleet.sites \
+             order by site",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        type StreamRow = (String, String, i64, i64, i64, i64, i64);
+        let streams: Vec<StreamRow> = sqlx::query_as(
+            "select site, tier, acked_seq, rows_applied, bytes_received, batches_applied, \
+             updated_ns from fleet.streams",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        Ok(sites
+            .into_iter()
+            .map(
+                |(site, first_contact_ns, last_contact_ns, status_json, backlog_json)| {
+                    let mut mine: Vec<StreamRecord> = streams
+                        .iter()
+                        .filter(|s| s.0 == site)
+                        .filter_map(|s| {
+                            Some(StreamRecord {
+                                tier: Tier::parse(&s.1)?,
+                                acked_seq: acked(s.2),
+                                rows_applied: s.3,
+                                bytes_received: s.4,
+                                batches_applied: s.5,
+                                updated_ns: s.6,
+                            })
+                        })
+                        .collect();
+                    mine.sort_by_key(|s| s.tier);
+                    SiteRecord {
+                        site,
+                        first_contact_ns,
+                        last_contact_ns,
+                        status_json,
+                        backlog_json,
+                        streams: mine,
+                    }
+                },
+            )
+            .collect())
+    }
+
+    /// Whether the database answers (for the health check).
+    pub async fn problem(&self) -> Option<String> {
+        super::super::probe(sqlx::query("select 1").execute(&self.pool)).await
+    }
+}

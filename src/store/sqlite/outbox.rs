@@ -1,0 +1,225 @@
+//! The site's outbox on SQLite: batches of a tier's rows in commit order, what the centre
+//! acknowledged, the backlog. Reads run in one read transaction each, so a batch is one
+//! consistent snapshot.
+
+use super::super::StoreResult;
+use super::super::outbox::{
+    Backlog, ColumnValues, HexBytes, OutboxBatch, Registered, Registry, SyncTable, TableRows, Tier,
+};
+use super::Reader;
+use sqlx::sqlite::SqliteRow;
+use sqlx::{Row, SqliteConnection};
+
+/// Appends one row's values to the columns of `rows`.
+fn push_row(rows: &mut TableRows, row: &SqliteRow) -> StoreResult<()> {
+    for (i, values) in rows.columns.iter_mut().enumerate() {
+        match values {
+            ColumnValues::Int(v) => v.push(row.try_get(i)?),
+            ColumnValues::Real(v) => v.push(row.try_get(i)?),
+            ColumnValues::Text(v) => v.push(row.try_get(i)?),
+            ColumnValues::Blob(v) => v.push(row.try_get::<Option<Vec<u8>>, _>(i)?.map(HexBytes)),
+            ColumnValues::Bool(v) => v.push(row.try_get(i)?),
+        }
+    }
+    Ok(())
+}
+
+/// `select <columns>, commit_seq from <table> where <filter> and commit_seq > ? ...`.
+fn select(table: SyncTable, condition: &str) -> String {
+    let columns: Vec<&str> = table.columns().iter().map(|(n, _)| *n).collect();
+    let filter = table
+        .filter()
+        .map_or(String::new(), |f| format!("{f} and "));
+    format!(
+        "select {}, commit_seq from {} where {filter}{condition} order by commit_seq",
+        columns.join(", "),
+        table.table()
+    )
+}
+
+/// The rows of `table` written by the commits `(after, upto]`, at most `limit + 1` of them.
+async fn rows_between(
+    conn: &mut SqliteConnection,
+    table: SyncTable,
+    after: i64,
+    upto: i64,
+    limit: usize,
+) -> StoreResult<Vec<SqliteRow>> {
+    Ok(sqlx::query(&format!(
+        "{} limit ?",
+        select(table, "commit_seq > ? and commit_seq <= ?")
+    ))
+    .bind(after)
+    .bind(upto)
+    .bind(i64::try_from(limit + 1).unwrap_or(i64::MAX))
+    .fetch_all(&mut *conn)
+    .await?)
+}
+
+impl Reader {
+    /// The next batch of `tier` after the commit `after`: whole commits, about `limit` rows
+    /// (more when one commit holds more), `None` when nothing is waiting.
+    pub(in crate::store) async fn outbox_batch(
+        &self,
+        tier: Tier,
+        after: i64,
+        limit: usize,
+    ) -> StoreResult<Option<OutboxBatch>> {
+        let mut tx = self.pool.begin().await?;
+        let (head,): (Option<i64>,) = sqlx::query_as("select max(seq) from commits")
+            .fetch_one(&mut *tx)
+            .await?;
+        // Rows from before the outbox carry negative numbers: the head is at least 0.
+        let head = head.unwrap_or(0).max(0);
+        if head <= after {
+            return Ok(None);
+        }
+        let mut fetched = Vec::new();
+        let mut upto = head;
+        for &table in tier.tables() {
+            let mut rows = rows_between(&mut tx, table, after, head, limit).await?;
+            if rows.len() > limit {
+                let last: i64 = rows[limit].try_get("commit_seq")?;
+                let first: i64 = rows[0].try_get("commit_seq")?;
+                if first == last {
+                    // One commit larger than the limit: all of it.
+                    rows = sqlx::query(&select(table, "commit_seq = ?"))
+                        .bind(first)
+                        .fetch_all(&mut *tx)
+                        .await?;
+                    upto = upto.min(first);
+                } else {
+                    upto = upto.min(last - 1);
+                }
+            }
+            fetched.push((table, rows));
+        }
+        let mut tables = Vec::new();
+        for (table, rows) in fetched {
+            let mut out = TableRows::new(table);
+            for row in &rows {
+                let seq: i64 = row.try_get("commit_seq")?;
+                if seq <= upto {
+                    push_row(&mut out, row)?;
+                }
+            }
+            if out.rows() > 0 {
+                tables.push(out);
+            }
+        }
+        tx.rollback().await?;
+        Ok((!tables.is_empty()).then_some(OutboxBatch {
+            tier,
+            after_seq: after,
+            upto_seq: upto,
+            tables,
+        }))
+    }
+
+    /// The names behind the ids of the site's rows.
+    pub(in crate::store) async fn registry(&self) -> StoreResult<Registry> {
+        let read = |sql: &'static str| async move {
+            let rows: Vec<(i64, String, i64)> = sqlx::query_as(sql).fetch_all(&self.pool).await?;
+            StoreResult::Ok(
+                rows.into_iter()
+                    .map(|(id, name, created_ns)| Registered {
+                        id,
+                        name,
+                        created_ns,
+                    })
+                    .collect(),
+            )
+        };
+        Ok(Registry {
+            links: read("select link_id, name, created_ns from links order by link_id").await?,
+            targets: read("select target_id, name, created_ns from targets order by target_id")
+                .await?,
+        })
+    }
+
+    /// The outbox's identity.
+    pub(in crate::store) async fn outbox_id(&self) -> StoreResult<String> {
+        let (id,): (String,) = sqlx::query_as("select outbox_id from outbox where id = 1")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(id)
+    }
+
+    /// Per tier, the last number the centre acknowledged and the rows above it.
+    pub(in crate::store) async fn backlog(&self) -> StoreResult<Vec<(Tier, Backlog)>> {
+        let acks: Vec<(String, i64)> = sqlx::query_as("select tier, acked_seq from upstream_acks")
+            .fetch_all(&self.pool)
+            .await?;
+        let mut out = Vec::new();
+        for tier in Tier::ALL {
+            let acked_seq = acks.iter().find(|(t, _)| t == tier.name()).map(|(_, s)| *s);
+            let mut rows = 0u64;
+            for &table in tier.tables() {
+                let filter = table
+                    .filter()
+                    .map_or(String::new(), |f| format!("{f} and "));
+                let (n,): (i64,) = sqlx::query_as(&format!(
+                    "select count(*) from {} where {filter}commit_seq > ?",
+                    table.table()
+                ))
+                .bind(acked_seq.unwrap_or(i64::MIN))
+                .fetch_one(&self.pool)
+                .await?;
+                rows += u64::try_from(n).unwrap_or(0);
+            }
+            out.push((tier, Backlog { acked_seq, rows }));
+        }
+        Ok(out)
+    }
+}
+
+/// The type of a column, for the tests of the column lists against the schema.
+#[cfg(test)]
+fn sqlite_type(kind: super::super::outbox::Kind) -> &'static str {
+    use super::super::outbox::Kind;
+    match kind {
+        Kind::Int | Kind::Bool => "integer",
+        Kind::Real => "real",
+        Kind::Text => "text",
+        Kind::Blob => "blob",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every uploaded column exists in the SQLite schema with its type, and every column of
+    /// the tables (but `commit_seq`) is uploaded: a migration that adds a column must add it
+    /// to the upload too.
+    #[tokio::test]
+    async fn the_uploaded_columns_are_the_schemas() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("site.db");
+        let (_reader, _writer, _, _) = super::super::open(&path, &[], &[], 0).await.unwrap();
+        let mut conn = sqlx::ConnectOptions::connect(&super::super::options(&path))
+            .await
+            .unwrap();
+        for tier in Tier::ALL {
+            for &table in tier.tables() {
+                let schema: Vec<(String, String)> = sqlx::query_as(&format!(
+                    "select name, lower(type) from pragma_table_info('{}') where name != 'commit_seq'",
+                    table.table()
+                ))
+                .fetch_all(&mut conn)
+                .await
+                .unwrap();
+                let uploaded: Vec<(String, String)> = table
+                    .columns()
+                    .iter()
+                    .map(|(n, k)| ((*n).to_owned(), sqlite_type(*k).to_owned()))
+                    .collect();
+                let mut a = schema.clone();
+                let mut b = uploaded.clone();
+                a.sort();
+                b.sort();
+                assert_eq!(a, b, "{table:?}");
+            }
+        }
+    }
+}

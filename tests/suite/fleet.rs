@@ -1,0 +1,695 @@
+//! A fleet on real processes: a site (SQLite) pushing through a faulty link to a centre
+//! (PostgreSQL). After each fault the centre's copy of every uploaded table equals the site's,
+//! row for row and bit for bit.
+
+use crate::common::postgres;
+use crate::common::process::{self, Server};
+use brokenray::store::outbox::{Kind, SyncTable, Tier};
+use serde_json::{Value, json};
+use sqlx::Row;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+
+const SITE: &str = "ship-1";
+const SYNC_TOKEN: &str = "ship-1-sync-secret";
+
+fn group_time(k: i64) -> i64 {
+    1_795_255_200_000_000_000 + k * 40_000_000
+}
+
+/// One measurement group of the built-in installation's three camera links at `time_ns`.
+fn group_at(time_ns: i64, k: i64, links: &[&str]) -> Value {
+    let wobble = (k as f64 * 0.37).sin() * 0.02;
+    // From group 3000 on, G sits 5 mm further from C3: over the alarm threshold.
+    let moved = if k >= 3000 { 5.0 } else { 0.0 };
+    let all = [
+        json!({"link": "C1_from_B", "time": time_ns, "pose": {"t_mm": [-20.0 + wobble, 10.0, 2991.7], "euler_deg": [178.6589, 1.245, -0.0291]}}),
+        json!({"link": "C2_from_M", "time": time_ns, "pose": {"t_mm": [0.0, wobble, 3156.6], "euler_deg": [180.0, 0.0, 0.0]}}),
+        json!({"link": "C3_from_G", "time": time_ns, "pose": {"t_mm": [-25.0, -40.0, 2999.6 + wobble + moved], "euler_deg": [179.137, 0.257, 164.5782]}}),
+    ];
+    let samples: Vec<Value> = all
+        .into_iter()
+        .filter(|s| links.contains(&s["link"].as_str().unwrap_or("")))
+        .collect();
+    json!({ "samples": samples })
+}
+
+const ALL_LINKS: [&str; 3] = ["C1_from_B", "C2_from_M", "C3_from_G"];
+
+/// Posts groups `ks` (every link) to the site, in requests of `per_request` groups.
+async fn post_groups(
+    client: &reqwest::Client,
+    base: &str,
+    ks: std::ops::Range<i64>,
+    per_request: i64,
+) {
+    let mut k = ks.start;
+    while k < ks.end {
+        let end = (k + per_request).min(ks.end);
+        let mut samples = Vec::new();
+        for j in k..end {
+            samples.extend(
+                group_at(group_time(j), j, &ALL_LINKS)["samples"]
+                    .as_array()
+                    .unwrap()
+                    .clone(),
+            );
+        }
+        let r = client
+            .post(format!("{base}/api/v1/samples"))
+            .json(&json!({ "samples": samples }))
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success(), "groups {k}..{end}: {}", r.status());
+        k = end;
+    }
+}
+
+/// What the link between site and centre does to each connection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Fault {
+    /// Passes the request and the answer.
+    None,
+    /// Passes the request twice (two connections), answers with the second answer.
+    Twice,
+    /// Passes half of the request's body, then cuts both sides.
+    CutRequest,
+    /// Passes the request, then cuts the site's side before the answer.
+    CutAnswer,
+    /// Refuses the connection (the centre is unreachable).
+    Down,
+}
+
+/// A TCP proxy standing for the satellite link: one request per connection, each treated by
+/// the next fault of a repeating schedule.
+struct FaultyLink {
+    addr: std::net::SocketAddr,
+    schedule: Arc<Mutex<Vec<Fault>>>,
+    counts: Arc<Mutex<std::collections::HashMap<&'static str, usize>>>,
+    target: Arc<Mutex<String>>,
+}
+
+/// Reads one HTTP request (headers and a `Content-Length` body) from `stream`.
+async fn read_request(stream: &mut TcpStream) -> Option<(Vec<u8>, Vec<u8>)> {
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 65536];
+    let head_end = loop {
+        if let Some(i) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
+            break i + 4;
+        }
+        let n = stream.read(&mut chunk).await.ok()?;
+        if n == 0 {
+            return None;
+        }
+        buf.extend_from_slice(&chunk[..n]);
+    };
+    let head = String::from_utf8_lossy(&buf[..head_end]).to_string();
+    let length: usize = head
+        .lines()
+        .find_map(|l| {
+            let (k, v) = l.split_once(':')?;
+            k.eq_ignore_ascii_case("content-length")
+                .then(|| v.trim().parse().ok())
+                .flatten()
+        })
+        .unwrap_or(0);
+    while buf.len() < head_end + length {
+        let n = stream.read(&mut chunk).await.ok()?;
+        if n == 0 {
+            return None;
+        }
+        buf.extend_from_slice(&chunk[..n]);
+    }
+    // One request per connection: ask the centre to close after its answer.
+    let head = head.replacen("\r\n", "\r\nconnection: close\r\n", 1);
+    Some((head.into_bytes(), buf[head_end..head_end + length].to_vec()))
+}
+
+/// Sends a request to `target` and reads the answer to the end.
+async fn forward(target: &str, head: &[u8], body: &[u8]) -> Option<Vec<u8>> {
+    let mut centre = TcpStream::connect(target).await.ok()?;
+    centre.write_all(head).await.ok()?;
+    centre.write_all(body).await.ok()?;
+    let mut answer = Vec::new();
+    centre.read_to_end(&mut answer).await.ok()?;
+    Some(answer)
+}
+
+impl FaultyLink {
+    async fn start(target: &str, schedule: Vec<Fault>) -> FaultyLink {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let link = FaultyLink {
+            addr: listener.local_addr().unwrap(),
+            schedule: Arc::new(Mutex::new(schedule)),
+            counts: Arc::default(),
+            target: Arc::new(Mutex::new(target.trim_start_matches("http://").to_owned())),
+        };
+        let (schedule, counts, target) = (
+            Arc::clone(&link.schedule),
+            Arc::clone(&link.counts),
+            Arc::clone(&link.target),
+        );
+        let turn = Arc::new(AtomicUsize::new(0));
+        tokio::spawn(async move {
+            loop {
+                let Ok((mut site, _)) = listener.accept().await else {
+                    return;
+                };
+                let fault = {
+                    let s = schedule.lock().unwrap();
+                    s[turn.fetch_add(1, Ordering::Relaxed) % s.len()]
+                };
+                let target = target.lock().unwrap().clone();
+                let counts = Arc::clone(&counts);
+                tokio::spawn(async move {
+                    if fault == Fault::Down {
+                        *counts.lock().unwrap().entry("down").or_default() += 1;
+                        return;
+                    }
+                    let Some((head, body)) = read_request(&mut site).await else {
+                        return;
+                    };
+                    let name = match fault {
+                        Fault::None => "none",
+                        Fault::Twice => "twice",
+                        Fault::CutRequest => "cut_request",
+                        Fault::CutAnswer => "cut_answer",
+                        Fault::Down => unreachable!(),
+                    };
+                    *counts.lock().unwrap().entry(name).or_default() += 1;
+                    let answer = match fault {
+                        Fault::CutRequest => {
+                            if let Ok(mut centre) = TcpStream::connect(&target).await {
+                                let _ = centre.write_all(&head).await;
+                                let _ = centre.write_all(&body[..body.len() / 2]).await;
+                            }
+                            return;
+                        }
+                        Fault::Twice => {
+                            let _ = forward(&target, &head, &body).await;
+                            forward(&target, &head, &body).await
+                        }
+                        _ => forward(&target, &head, &body).await,
+                    };
+                    if fault == Fault::CutAnswer {
+                        return;
+                    }
+                    if let Some(answer) = answer {
+                        let _ = site.write_all(&answer).await;
+                    }
+                });
+            }
+        });
+        link
+    }
+
+    fn set_schedule(&self, schedule: Vec<Fault>) {
+        *self.schedule.lock().unwrap() = schedule;
+    }
+
+    fn set_target(&self, base: &str) {
+        *self.target.lock().unwrap() = base.trim_start_matches("http://").to_owned();
+    }
+
+    fn count(&self, fault: &str) -> usize {
+        self.counts.lock().unwrap().get(fault).copied().unwrap_or(0)
+    }
+}
+
+/// The built-in installation on port 0 with `database` and `extra` appended, written into `dir`.
+fn installation(
+    dir: &std::path::Path,
+    name: &str,
+    database: &str,
+    extra: &str,
+) -> std::path::PathBuf {
+    let config = dir.join(name);
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("127.0.0.1:7878", "127.0.0.1:0")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{database}\""),
+        );
+    std::fs::write(&config, format!("{text}\n{extra}\n")).unwrap();
+    config
+}
+
+/// A centre on a fresh PostgreSQL database; returns its installation file and database URL.
+fn centre_installation(dir: &std::path::Path) -> (std::path::PathBuf, String) {
+    let url = postgres::fresh_database();
+    let extra = format!(
+        "[central]\nenabled = true\n\n\
+         [[auth.tokens]]\nname = \"ship-1\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"{SITE}\"\n\n\
+         [[auth.tokens]]\nname = \"office\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n",
+        brokenray::api::sha256_hex(SYNC_TOKEN),
+        brokenray::api::sha256_hex("office-secret"),
+    );
+    (installation(dir, "centre.toml", &url, &extra), url)
+}
+
+/// A site pushing to `centre` (a base URL), all tiers (raw samples unbudgeted), in small batches.
+fn site_installation(dir: &std::path::Path, centre: &str) -> std::path::PathBuf {
+    let database = dir.join("site.db").display().to_string();
+    let extra = format!(
+        "[site]\nname = \"{SITE}\"\n\n\
+         [upstream]\nurl = \"{centre}\"\ntoken = \"{SYNC_TOKEN}\"\nraw_kbit_s = 1000000.0\n\
+         batch_rows = 700\nheartbeat_s = 0.5\n"
+    );
+    installation(dir, "site.toml", &database, &extra)
+}
+
+fn start(config: &std::path::Path) -> Server {
+    process::start(config, "info", false, Duration::from_secs(60))
+}
+
+/// `GET /api/v1/upstream` of the site.
+async fn upstream(client: &reqwest::Client, site: &str) -> Value {
+    client
+        .get(format!("{site}/api/v1/upstream"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap()
+}
+
+/// Waits (at most `limit`) until the centre's copy of every uploaded table equals the site's
+/// and the site reports nothing left to send; then asserts it (a last time, with the
+/// difference named) and returns the site's `GET /api/v1/upstream`.
+async fn wait_caught_up(
+    client: &reqwest::Client,
+    site: &str,
+    site_db: &std::path::Path,
+    centre_url: &str,
+    limit: Duration,
+) -> Value {
+    let start = std::time::Instant::now();
+    loop {
+        let u = upstream(client, site).await;
+        let tiers = u["tiers"].as_array().unwrap();
+        let reported_done = tiers
+            .iter()
+            .all(|t| !t["enabled"].as_bool().unwrap() || t["backlog"]["rows"].as_u64() == Some(0));
+        assert!(
+            tiers.iter().all(|t| t["stopped"].is_null()),
+            "a stream stopped: {u:#}"
+        );
+        if reported_done && copies_equal(site_db, centre_url).await.is_ok() {
+            return u;
+        }
+        if start.elapsed() > limit {
+            let difference = copies_equal(site_db, centre_url).await.err();
+            panic!("the site did not catch up within {limit:?}: {difference:?}\n{u:#}");
+        }
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+}
+
+/// Every row of `table` in the site's file, each value as exact text, sorted by key.
+async fn site_rows(path: &std::path::Path, table: SyncTable) -> Vec<Vec<String>> {
+    let options = sqlx::sqlite::SqliteConnectOptions::new()
+        .filename(path)
+        .read_only(true);
+    let mut conn = sqlx::ConnectOptions::connect(&options).await.unwrap();
+    let rows = sqlx::query(&select(table))
+        .fetch_all(&mut conn)
+        .await
+        .unwrap();
+    rows.iter().map(|r| render(table, r)).collect()
+}
+
+/// The same from the centre's schema of the site.
+async fn centre_rows(url: &str, table: SyncTable) -> Vec<Vec<String>> {
+    let options: sqlx::postgres::PgConnectOptions = url.parse().unwrap();
+    // The first site to upload gets the schema `site_1`.
+    let options = options.options([("search_path", "site_1")]);
+    let mut conn = sqlx::ConnectOptions::connect(&options).await.unwrap();
+    let rows = match sqlx::query(&select(table)).fetch_all(&mut conn).await {
+        Ok(rows) => rows,
+        // Before the site's first upload its schema does not exist: no rows.
+        Err(sqlx::Error::Database(e)) if e.code().as_deref() == Some("42P01") => Vec::new(),
+        Err(e) => panic!("{table:?} at the centre: {e}"),
+    };
+    rows.iter().map(|r| render(table, r)).collect()
+}
+
+fn select(table: SyncTable) -> String {
+    let columns: Vec<&str> = table.columns().iter().map(|(n, _)| *n).collect();
+    let filter = table
+        .filter()
+        .map_or(String::new(), |f| format!(" where {f}"));
+    format!(
+        "select {} from {}{filter} order by {}",
+        columns.join(", "),
+        table.table(),
+        table.key().join(", ")
+    )
+}
+
+fn render<R: Row>(table: SyncTable, row: &R) -> Vec<String>
+where
+    usize: sqlx::ColumnIndex<R>,
+    for<'r> Option<i64>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+    for<'r> Option<f64>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+    for<'r> Option<String>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+    for<'r> Option<Vec<u8>>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+    for<'r> Option<bool>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+{
+    table
+        .columns()
+        .iter()
+        .enumerate()
+        .map(|(i, (name, kind))| {
+            let text = match kind {
+                Kind::Int => row.try_get::<Option<i64>, _>(i).map(|v| format!("{v:?}")),
+                // Bits: the copy must be exact.
+                Kind::Real => row
+                    .try_get::<Option<f64>, _>(i)
+                    .map(|v| format!("{:?}", v.map(f64::to_bits))),
+                Kind::Text => row
+                    .try_get::<Option<String>, _>(i)
+                    .map(|v| format!("{v:?}")),
+                Kind::Blob => row
+                    .try_get::<Option<Vec<u8>>, _>(i)
+                    .map(|v| format!("{:?}", v.map(hex::encode))),
+                Kind::Bool => row.try_get::<Option<bool>, _>(i).map(|v| format!("{v:?}")),
+            };
+            text.unwrap_or_else(|e| panic!("{table:?}.{name}: {e}"))
+        })
+        .collect()
+}
+
+/// Whether the centre's copy of every uploaded table equals the site's (raw tier included);
+/// the first difference otherwise.
+async fn copies_equal(site_db: &std::path::Path, centre_url: &str) -> Result<(), String> {
+    for tier in Tier::ALL {
+        for &table in tier.tables() {
+            let site = site_rows(site_db, table).await;
+            let centre = centre_rows(centre_url, table).await;
+            if site.len() != centre.len() {
+                return Err(format!(
+                    "{table:?}: {} rows at the site, {} at the centre",
+                    site.len(),
+                    centre.len()
+                ));
+            }
+            if let Some((s, c)) = site.iter().zip(&centre).find(|(s, c)| s != c) {
+                return Err(format!("{table:?}: site row {s:?}, centre row {c:?}"));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Every uploaded table has rows at the site but those in `may_be_empty`: the test exercises
+/// them.
+async fn assert_exercised(site_db: &std::path::Path, may_be_empty: &[SyncTable]) {
+    for tier in Tier::ALL {
+        for &table in tier.tables() {
+            assert!(
+                may_be_empty.contains(&table) || !site_rows(site_db, table).await.is_empty(),
+                "{table:?} is empty at the site: the test does not exercise it"
+            );
+        }
+    }
+}
+
+/// Sets a reference from the first minute of results and restarts a link's filter, so that the
+/// events tier carries references and resets (alarms follow from the move at group 3000).
+async fn events(client: &reqwest::Client, site: &str) {
+    let format = brokenray::clock::format_ns;
+    let r = client
+        .post(format!("{site}/api/v1/targets/G/reference"))
+        .json(&json!({"from": format(group_time(0)), "to": format(group_time(1500))}))
+        .send()
+        .await
+        .unwrap();
+    assert!(
+        r.status().is_success(),
+        "reference: {} {}",
+        r.status(),
+        r.text().await.unwrap()
+    );
+    let r = client
+        .post(format!("{site}/api/v1/links/C1_from_B/reset"))
+        .json(&json!({"by": "test", "note": "a reset travels with the events"}))
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "reset: {}", r.status());
+}
+
+/// The link cut in the middle of a batch, cut before the answer, and every batch delivered
+/// twice; then late samples that rewrite a raw result and rollups already sent. After each,
+/// the centre's rows equal the site's, exactly once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn faults_of_the_link_leave_the_centre_equal_to_the_site() {
+    let dir = tempfile::tempdir().unwrap();
+    let (centre_config, centre_url) = centre_installation(dir.path());
+    let centre = start(&centre_config);
+    let link = FaultyLink::start(
+        &centre.base,
+        vec![
+            Fault::Twice,
+            Fault::CutRequest,
+            Fault::None,
+            Fault::CutAnswer,
+            Fault::Twice,
+        ],
+    )
+    .await;
+    let site_config = site_installation(dir.path(), &format!("http://{}", link.addr));
+    let site = start(&site_config);
+    let client = reqwest::Client::new();
+
+    post_groups(&client, &site.base, 0..3000, 250).await;
+    events(&client, &site.base).await;
+    post_groups(&client, &site.base, 3000..4000, 250).await;
+    let site_db = dir.path().join("site.db");
+    let u = wait_caught_up(
+        &client,
+        &site.base,
+        &site_db,
+        &centre_url,
+        Duration::from_secs(120),
+    )
+    .await;
+    for fault in ["twice", "cut_request", "cut_answer"] {
+        assert!(
+            link.count(fault) >= 2,
+            "the link did `{fault}` only {} times",
+            link.count(fault)
+        );
+    }
+    assert_exercised(&site_db, &[SyncTable::Calibrations, SyncTable::Alarms]).await;
+    assert!(u["tiers"][0]["acked_seq"].as_i64().is_some(), "{u:#}");
+
+    // Late samples: one link at times already sent recomputes raw results there, and every
+    // sample lands in rollup buckets already sent.
+    link.set_schedule(vec![Fault::Twice, Fault::None]);
+    let raw_before = site_rows(&site_db, SyncTable::RawResults).await;
+    for k in [4000, 4001, 4002] {
+        let r = client
+            .post(format!("{}/api/v1/samples", site.base))
+            .json(&group_at(group_time(k), k, &["C1_from_B", "C2_from_M"]))
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success());
+    }
+    wait_caught_up(
+        &client,
+        &site.base,
+        &site_db,
+        &centre_url,
+        Duration::from_secs(60),
+    )
+    .await;
+    for k in [4000, 4001, 4002] {
+        let r = client
+            .post(format!("{}/api/v1/samples", site.base))
+            .json(&group_at(group_time(k), k, &["C3_from_G"]))
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success());
+    }
+    wait_caught_up(
+        &client,
+        &site.base,
+        &site_db,
+        &centre_url,
+        Duration::from_secs(60),
+    )
+    .await;
+    // An acknowledgement changes an alarm already sent.
+    let alarms: Value = client
+        .get(format!("{}/api/v1/alarms", site.base))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let id = alarms["alarms"][0]["id"]
+        .as_i64()
+        .expect("an alarm after the move");
+    let r = client
+        .post(format!("{}/api/v1/alarms/{id}/ack", site.base))
+        .json(&json!({"by": "test", "note": "seen"}))
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "ack: {}", r.status());
+    wait_caught_up(
+        &client,
+        &site.base,
+        &site_db,
+        &centre_url,
+        Duration::from_secs(60),
+    )
+    .await;
+    let raw_after = site_rows(&site_db, SyncTable::RawResults).await;
+    assert_ne!(
+        raw_before, raw_after,
+        "the late samples made or rewrote raw results"
+    );
+    assert_exercised(&site_db, &[SyncTable::Calibrations]).await;
+
+    // The fleet as the office sees it.
+    let sites: Value = client
+        .get(format!("{}/api/v1/sites", centre.base))
+        .bearer_auth("office-secret")
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let s = &sites["sites"][0];
+    assert_eq!(s["site"], SITE, "{sites:#}");
+    assert_eq!(s["targets"][0]["name"], "G", "{sites:#}");
+    assert!(s["last_contact"].is_string(), "{sites:#}");
+    assert_eq!(s["backlog"]["results"], 0, "{sites:#}");
+    assert!(
+        ["none", "warn", "alarm"].contains(&s["alarm"].as_str().unwrap()),
+        "{sites:#}"
+    );
+    drop(site);
+    drop(centre);
+}
+
+/// Groups at `step_ns` intervals from `from_ns`, posted `per_request` a request.
+async fn post_span(
+    client: &reqwest::Client,
+    base: &str,
+    from_ns: i64,
+    count: i64,
+    step_ns: i64,
+    per_request: i64,
+) {
+    for first in (0..count).step_by(per_request as usize) {
+        let mut samples = Vec::new();
+        for j in first..(first + per_request).min(count) {
+            samples.extend(
+                group_at(from_ns + j * step_ns, j, &ALL_LINKS)["samples"]
+                    .as_array()
+                    .unwrap()
+                    .clone(),
+            );
+        }
+        let r = client
+            .post(format!("{base}/api/v1/samples"))
+            .json(&json!({ "samples": samples }))
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success(), "{}", r.status());
+    }
+}
+
+/// The centre down while the site keeps measuring (two hours of measurement time): the site
+/// says so and keeps everything; the centre back (on another port, as after a move), the site
+/// catches up, is killed with SIGKILL in the middle of it, restarts and finishes. The centre's
+/// rows then equal the site's, exactly once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill() {
+    let dir = tempfile::tempdir().unwrap();
+    let (centre_config, centre_url) = centre_installation(dir.path());
+    let centre = start(&centre_config);
+    let link = FaultyLink::start(&centre.base, vec![Fault::None]).await;
+    let site_config = site_installation(dir.path(), &format!("http://{}", link.addr));
+    let mut site = start(&site_config);
+    let site_db = dir.path().join("site.db");
+    let client = reqwest::Client::new();
+    post_groups(&client, &site.base, 0..500, 250).await;
+    wait_caught_up(
+        &client,
+        &site.base,
+        &site_db,
+        &centre_url,
+        Duration::from_secs(60),
+    )
+    .await;
+
+    // The centre goes down; the site measures two hours (a group every 0.4 s).
+    centre.kill();
+    link.set_schedule(vec![Fault::Down]);
+    let outage_from = group_time(500);
+    post_span(&client, &site.base, outage_from, 18_000, 400_000_000, 1000).await;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let u = upstream(&client, &site.base).await;
+    let results = &u["tiers"][1];
+    assert!(
+        results["backlog"]["rows"].as_u64().unwrap() > 10_000,
+        "{u:#}"
+    );
+    assert!(
+        results["last_error"]["message"].is_string()
+            || u["tiers"][2]["last_error"]["message"].is_string(),
+        "{u:#}"
+    );
+    assert!(
+        results["stopped"].is_null(),
+        "an outage does not stop a stream: {u:#}"
+    );
+
+    // The centre is back; the site is killed while it catches up, and restarted.
+    let centre = start(&centre_config);
+    link.set_target(&centre.base);
+    link.set_schedule(vec![Fault::None]);
+    let start_wait = std::time::Instant::now();
+    loop {
+        let u = upstream(&client, &site.base).await;
+        if u["tiers"][2]["sent"]["batches"].as_u64().unwrap_or(0) >= 3 {
+            break;
+        }
+        assert!(
+            start_wait.elapsed() < Duration::from_secs(60),
+            "no progress: {u:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    site.kill();
+    assert!(
+        copies_equal(&site_db, &centre_url).await.is_err(),
+        "the kill came after the catch-up: the test proves nothing"
+    );
+    site = start(&site_config);
+    let u = wait_caught_up(
+        &client,
+        &site.base,
+        &site_db,
+        &centre_url,
+        Duration::from_secs(300),
+    )
+    .await;
+    assert_eq!(u["tiers"][1]["backlog"]["rows"], 0, "{u:#}");
+    drop(site);
+    drop(centre);
+}
