@@ -311,13 +311,13 @@ pub struct UpstreamTierOut {
     pub enabled: bool,
 }
 
-/// A backlog.
+/// A backlog (null until the uploader has counted it, just after start).
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct BacklogOut {
     /// Rows.
-    pub rows: u64,
-    /// Bytes (estimated).
-    pub bytes: u64,
+    pub rows: Option<u64>,
+    /// Bytes on the wire (estimated from the compressed bytes per row sent so far).
+    pub bytes: Option<u64>,
 }
 
 /// What was sent.

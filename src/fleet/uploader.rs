@@ -30,13 +30,15 @@ const DEFAULT_BYTES_PER_ROW: f64 = 100.0;
 pub struct TierProgress {
     /// The last commit the centre acknowledged (`None`: nothing yet).
     pub acked_seq: Option<i64>,
-    /// Rows still to send (counted at start and with every report of state).
-    pub backlog_rows: u64,
+    /// Rows still to send (counted at start and with every report of state; `None` until
+    /// first counted).
+    pub backlog_rows: Option<u64>,
     /// Batches, rows, compressed and uncompressed bytes sent and acknowledged since start.
     pub batches_sent: u64,
     /// Rows acknowledged since start.
     pub rows_sent: u64,
-    /// Compressed bytes of acknowledged batches since start.
+    /// Compressed bytes of acknowledged batches since start (the events tier also counts the
+    /// reports of state sent alone).
     pub bytes_sent: u64,
     /// The same batches' bytes before compression.
     pub json_bytes_sent: u64,
@@ -52,13 +54,14 @@ pub struct TierProgress {
 
 impl TierProgress {
     /// The backlog's size on the wire, estimated from the compressed bytes per row sent so far.
-    pub fn backlog_bytes(&self) -> u64 {
+    pub fn backlog_bytes(&self) -> Option<u64> {
         let per_row = if self.rows_sent > 0 {
             self.bytes_sent as f64 / self.rows_sent as f64
         } else {
             DEFAULT_BYTES_PER_ROW
         };
-        (self.backlog_rows as f64 * per_row).round() as u64
+        self.backlog_rows
+            .map(|rows| (rows as f64 * per_row).round() as u64)
     }
 }
 
@@ -260,7 +263,7 @@ async fn refresh_backlog(service: &Service, upstream: &Upstream) -> Option<Vec<T
                 .into_iter()
                 .map(|(tier, b)| {
                     upstream.update(tier, |p| {
-                        p.backlog_rows = b.rows;
+                        p.backlog_rows = Some(b.rows);
                         p.acked_seq = p.acked_seq.max(b.acked_seq);
                     });
                     TierBacklog {
@@ -342,7 +345,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                     break;
                 }
                 // Nothing waits: the tier's backlog is empty now, whatever the last count.
-                Ok(None) => upstream.update(tier, |p| p.backlog_rows = 0),
+                Ok(None) => upstream.update(tier, |p| p.backlog_rows = Some(0)),
                 Err(e) => {
                     tracing::warn!(error = %e, tier = tier.name(), "cannot read the outbox");
                     upstream.update(tier, |p| {
@@ -383,7 +386,14 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                 upstream.contact(now);
                 backoff = Duration::from_secs(1);
                 last_report = Some(Instant::now());
-                let Some(tier) = tier else { continue };
+                let Some(tier) = tier else {
+                    // A report of state alone: counted with the events tier's bytes.
+                    upstream.update(Tier::Events, |p| {
+                        p.bytes_sent += bytes;
+                        p.json_bytes_sent += json_bytes;
+                    });
+                    continue;
+                };
                 let i = index(tier);
                 match answer.outcome {
                     Outcome::Applied | Outcome::Duplicate => {
@@ -401,7 +411,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                             p.rows_sent += rows;
                             p.bytes_sent += bytes;
                             p.json_bytes_sent += json_bytes;
-                            p.backlog_rows = p.backlog_rows.saturating_sub(rows);
+                            p.backlog_rows = p.backlog_rows.map(|b| b.saturating_sub(rows));
                             p.last_success_ns = Some(now);
                         });
                         if tier == Tier::Raw && settings.raw_kbit_s > 0.0 {
