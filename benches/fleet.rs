@@ -84,7 +84,12 @@ fn env_f64(name: &str, default: f64) -> f64 {
 }
 
 fn start(config: &Path) -> Server {
-    process::start(config, "warn,brokenray::cli=info", false, Duration::from_secs(300))
+    process::start(
+        config,
+        "warn,brokenray::cli=info",
+        false,
+        Duration::from_secs(300),
+    )
 }
 
 /// A free loopback port (bound, then released).
@@ -215,7 +220,9 @@ fn main() {
     let dir = tempfile::tempdir().expect("a temporary folder");
     let client = Http::new();
     let url = postgres::fresh_database();
-    let sites = ["ship-0", "ship-1", "ship-a", "ship-b", "ship-c", "ship-d", "ship-e"];
+    let sites = [
+        "ship-0", "ship-1", "ship-a", "ship-b", "ship-c", "ship-d", "ship-e",
+    ];
     let centre_port = free_port();
     let centre_cfg = centre_config(dir.path(), centre_port, &url, &sites);
     // 1. Steady state.
@@ -319,7 +326,12 @@ fn main() {
             rows / seconds,
             samples / seconds
         );
-        tier_line(&upstream(&client, &servers[0].0.base), 2, raw_hours, seconds);
+        tier_line(
+            &upstream(&client, &servers[0].0.base),
+            2,
+            raw_hours,
+            seconds,
+        );
     };
     println!();
     run_raw(&["ship-a"]);

@@ -288,6 +288,9 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             archive.bytes(),
         );
     }
+    if let Some(upstream) = &app.upstream {
+        upstream_metrics(&mut out, upstream);
+    }
     (
         [(
             header::CONTENT_TYPE,
@@ -295,4 +298,56 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         )],
         out,
     )
+}
+
+/// A fleet's site: its uploads per tier.
+fn upstream_metrics(out: &mut String, upstream: &crate::fleet::Upstream) {
+    let progress = upstream.progress();
+    type Field = fn(&crate::fleet::TierProgress) -> Option<f64>;
+    let families: [(&str, &str, &str, Field); 6] = [
+        (
+            "brokenray_upstream_acked_seq",
+            "gauge",
+            "The last of this site's commits the centre acknowledged, per tier.",
+            |p| p.acked_seq.map(|s| s as f64),
+        ),
+        (
+            "brokenray_upstream_backlog_rows",
+            "gauge",
+            "Rows the centre has not acknowledged, per tier.",
+            |p| p.backlog_rows.map(|r| r as f64),
+        ),
+        (
+            "brokenray_upstream_sent_rows_total",
+            "counter",
+            "Rows the centre acknowledged since start, per tier.",
+            |p| Some(p.rows_sent as f64),
+        ),
+        (
+            "brokenray_upstream_sent_bytes_total",
+            "counter",
+            "Compressed bytes of acknowledged uploads since start, per tier.",
+            |p| Some(p.bytes_sent as f64),
+        ),
+        (
+            "brokenray_upstream_errors_total",
+            "counter",
+            "Uploads that failed since start, per tier.",
+            |p| Some(p.errors as f64),
+        ),
+        (
+            "brokenray_upstream_stopped",
+            "gauge",
+            "1 when the centre refused a tier's stream (it resumes after a restart).",
+            |p| Some(if p.stopped.is_some() { 1.0 } else { 0.0 }),
+        ),
+    ];
+    for (name, kind, help, field) in families {
+        family(out, name, kind, help);
+        for (tier, p) in &progress {
+            if let Some(v) = field(p) {
+                let _ = writeln!(out, "{name}{{tier=\"{}\"}} {v}", tier.name());
+            }
+        }
+    }
 }

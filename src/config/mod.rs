@@ -132,9 +132,6 @@ pub struct UpstreamSettings {
     pub token: Option<String>,
     /// The budget for raw samples (kbit/s of compressed upload); 0 sends none unless asked.
     pub raw_kbit_s: f64,
-    /// The disk budget of what the centre has not acknowledged (MB, 10^6 bytes): over it, the
-    /// retention pass prunes by age even what was not sent, and says so.
-    pub max_backlog_mb: f64,
     /// Most rows in one upload (a commit is never split, so one may hold more).
     pub batch_rows: usize,
     /// Seconds between status reports when nothing else is sent.
@@ -147,7 +144,6 @@ impl std::fmt::Debug for UpstreamSettings {
             .field("url", &self.url.as_str())
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("raw_kbit_s", &self.raw_kbit_s)
-            .field("max_backlog_mb", &self.max_backlog_mb)
             .field("batch_rows", &self.batch_rows)
             .field("heartbeat_s", &self.heartbeat_s)
             .finish()

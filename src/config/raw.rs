@@ -46,7 +46,6 @@ pub(super) struct RawUpstream {
     pub token: Option<String>,
     pub token_file: Option<String>,
     pub raw_kbit_s: Option<f64>,
-    pub max_backlog_mb: Option<f64>,
     pub batch_rows: Option<usize>,
     pub heartbeat_s: Option<f64>,
 }

@@ -362,8 +362,6 @@ impl Validator {
                     );
                     ok = false;
                 }
-                let max_backlog_mb = u.max_backlog_mb.unwrap_or(10_000.0);
-                ok &= self.positive(at, "upstream.max_backlog_mb", max_backlog_mb);
                 let heartbeat_s = u.heartbeat_s.unwrap_or(10.0);
                 ok &= self.positive(at, "upstream.heartbeat_s", heartbeat_s);
                 let batch_rows = u.batch_rows.unwrap_or(20_000);
@@ -375,7 +373,6 @@ impl Validator {
                     url,
                     token,
                     raw_kbit_s,
-                    max_backlog_mb,
                     batch_rows,
                     heartbeat_s,
                 })

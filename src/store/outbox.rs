@@ -126,6 +126,20 @@ const RESULT_COLUMNS: &[(&str, Kind)] = columns!(
 );
 
 impl SyncTable {
+    /// The table's name on the wire.
+    pub fn name(self) -> &'static str {
+        match self {
+            SyncTable::Alarms => "alarms",
+            SyncTable::References => "references",
+            SyncTable::Calibrations => "calibrations",
+            SyncTable::LinkResets => "link_resets",
+            SyncTable::FilteredResults => "filtered_results",
+            SyncTable::Rollups => "rollups",
+            SyncTable::Samples => "samples",
+            SyncTable::RawResults => "raw_results",
+        }
+    }
+
     /// The tier whose stream carries the table.
     pub fn tier(self) -> Tier {
         match self {
@@ -138,7 +152,7 @@ impl SyncTable {
         }
     }
 
-    /// The table's name in both schemas.
+    /// The table's name in both schemas (several streams may share one).
     pub fn table(self) -> &'static str {
         match self {
             SyncTable::Alarms => "alarms",
@@ -322,8 +336,8 @@ impl TableRows {
         let spec = self.table.columns();
         if self.columns.len() != spec.len() {
             return Some(format!(
-                "{:?}: {} columns, the table has {}",
-                self.table,
+                "{}: {} columns, the table has {}",
+                self.table.name(),
                 self.columns.len(),
                 spec.len()
             ));
@@ -331,12 +345,15 @@ impl TableRows {
         let rows = self.rows();
         for (values, (name, kind)) in self.columns.iter().zip(spec) {
             if values.kind() != *kind {
-                return Some(format!("{:?}.{name}: values of the wrong type", self.table));
+                return Some(format!(
+                    "{}.{name}: values of the wrong type",
+                    self.table.name()
+                ));
             }
             if values.len() != rows {
                 return Some(format!(
-                    "{:?}.{name}: {} values, the first column has {rows}",
-                    self.table,
+                    "{}.{name}: {} values, the first column has {rows}",
+                    self.table.name(),
                     values.len()
                 ));
             }

@@ -418,3 +418,89 @@ fn the_frame_archive_settings_default_and_refuse_what_cannot_work() {
     let e = error_of(&format!("{VALID}\n[frames]\narchive_every = 5\n"));
     assert!(e.contains("archive_every"), "{e}");
 }
+
+/// A fleet's settings: a site that pushes names itself and keeps an SQLite outbox, a centre
+/// runs on PostgreSQL, a `sync` token names its one site; each mistake is named at its line.
+#[test]
+fn fleet_settings_are_checked_and_each_mistake_named() {
+    let site = format!(
+        "{VALID}\n[site]\nname = \"ship-1\"\n\n[upstream]\nurl = \"http://central:7878\"\ntoken = \"t\"\nraw_kbit_s = 64\n"
+    );
+    let inst = config::parse("site.toml", &site).unwrap();
+    let up = inst.fleet.upstream.as_ref().unwrap();
+    assert_eq!(inst.fleet.site.as_ref().unwrap().as_str(), "ship-1");
+    assert_eq!(up.raw_kbit_s, 64.0);
+    assert_eq!(up.token.as_deref(), Some("t"));
+    assert!(
+        !format!("{up:?}").contains("\"t\""),
+        "the token is never printed"
+    );
+
+    let cases: Vec<(String, &str, &str)> = vec![
+        (
+            format!("{VALID}\n[upstream]\nurl = \"http://central:7878\"\n"),
+            "[upstream]",
+            "needs the site's name",
+        ),
+        (
+            format!("{VALID}\n[site]\nname = \"Ship 1\"\n"),
+            "[site]",
+            "is not a site name",
+        ),
+        (
+            format!("{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"ftp://x\"\n"),
+            "[upstream]",
+            "is not an http:// or https:// URL",
+        ),
+        (
+            format!(
+                "[server]\ndatabase = \"postgres://u@h/db\"\n{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"http://c\"\n"
+            ),
+            "[upstream]",
+            "needs an SQLite database",
+        ),
+        (
+            format!("{VALID}\n[central]\nenabled = true\n"),
+            "[central]",
+            "needs a PostgreSQL database",
+        ),
+        (
+            format!(
+                "{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"http://c\"\ntoken = \"a\"\ntoken_file = \"b\"\n"
+            ),
+            "[upstream]",
+            "give token or token_file, not both",
+        ),
+        (
+            format!(
+                "{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"http://c\"\ntoken_file = \"/nonexistent/token\"\n"
+            ),
+            "[upstream]",
+            "cannot be read",
+        ),
+        (
+            format!(
+                "{VALID}\n[[auth.tokens]]\nname = \"x\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\n",
+                "a".repeat(64)
+            ),
+            "[[auth.tokens]]",
+            "a `sync` token names the one site",
+        ),
+        (
+            format!(
+                "{VALID}\n[[auth.tokens]]\nname = \"x\"\nsha256 = \"{}\"\nscopes = [\"read\"]\nsite = \"s\"\n",
+                "a".repeat(64)
+            ),
+            "[[auth.tokens]]",
+            "only a sync token names a site",
+        ),
+    ];
+    for (text, at, message) in cases {
+        let e = error_of(&text);
+        assert!(e.contains(message), "want `{message}` in: {e}");
+        assert!(
+            e.contains(&format!("site.toml:{}:", line_of(&text, at))),
+            "want the line of `{at}` in: {e}"
+        );
+    }
+}

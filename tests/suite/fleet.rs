@@ -561,6 +561,22 @@ async fn faults_of_the_link_leave_the_centre_equal_to_the_site() {
     );
     assert_exercised(&site_db, &[SyncTable::Calibrations]).await;
 
+    let metrics = client
+        .get(format!("{}/metrics", site.base))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    for line in [
+        "brokenray_upstream_backlog_rows{tier=\"results\"} 0",
+        "brokenray_upstream_stopped{tier=\"events\"} 0",
+    ] {
+        assert!(metrics.contains(line), "want `{line}` in /metrics");
+    }
+    assert!(metrics.contains("brokenray_upstream_sent_bytes_total{tier=\"raw\"}"));
+
     // The fleet as the office sees it.
     let sites: Value = client
         .get(format!("{}/api/v1/sites", centre.base))
@@ -692,4 +708,162 @@ async fn a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill()
     assert_eq!(u["tiers"][1]["backlog"]["rows"], 0, "{u:#}");
     drop(site);
     drop(centre);
+}
+
+/// Posts an upload (zstd-compressed JSON) to the centre with `token`.
+async fn sync(
+    client: &reqwest::Client,
+    centre: &str,
+    site: &str,
+    token: &str,
+    body: &Value,
+) -> (reqwest::StatusCode, Value) {
+    let json = serde_json::to_vec(body).unwrap();
+    let r = client
+        .post(format!("{centre}/api/v1/sites/{site}/sync"))
+        .bearer_auth(token)
+        .header("content-type", "application/json")
+        .header("content-encoding", "zstd")
+        .body(zstd::bulk::compress(&json, 3).unwrap())
+        .send()
+        .await
+        .unwrap();
+    let status = r.status();
+    (status, r.json().await.unwrap_or(Value::Null))
+}
+
+/// An upload of one filter reset of link 1, covering the commits `(after, upto]`.
+fn reset_upload(outbox: &str, after: Option<i64>, upto: i64) -> Value {
+    json!({
+        "outbox_id": outbox,
+        "registry": {"links": [{"id": 1, "name": "C1_from_B", "created_ns": 0}], "targets": []},
+        "batch": {"tier": "events", "after_seq": after, "upto_seq": upto, "tables": [
+            {"table": "link_resets", "columns": [
+                {"int": [1]}, {"int": [upto]}, {"text": ["test"]}, {"text": [null]}
+            ]}
+        ]}
+    })
+}
+
+/// The centre's answers to uploads: applied once, a replay a duplicate, a gap answered with the
+/// number to resume from; another site's token, a read token, a malformed upload, a broken
+/// stream and another outbox under the same name refused, each saying why, and nothing of a
+/// refused upload stored.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_centre_applies_once_and_refuses_what_it_must_saying_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let (config, url) = centre_installation(dir.path());
+    let centre = start(&config);
+    let client = reqwest::Client::new();
+    let base = &centre.base;
+
+    let (status, answer) = sync(&client, base, SITE, SYNC_TOKEN, &reset_upload("a", None, 3)).await;
+    assert_eq!(status, 200, "{answer}");
+    assert_eq!(answer, json!({"outcome": "applied", "acked_seq": 3}));
+    let (_, answer) = sync(&client, base, SITE, SYNC_TOKEN, &reset_upload("a", None, 3)).await;
+    assert_eq!(answer, json!({"outcome": "duplicate", "acked_seq": 3}));
+    let (_, answer) = sync(
+        &client,
+        base,
+        SITE,
+        SYNC_TOKEN,
+        &reset_upload("a", Some(10), 12),
+    )
+    .await;
+    assert_eq!(answer, json!({"outcome": "gap", "acked_seq": 3}));
+    // Overlapping what was applied: applied, the overlap rewritten with the same rows.
+    let (_, answer) = sync(
+        &client,
+        base,
+        SITE,
+        SYNC_TOKEN,
+        &reset_upload("a", Some(2), 5),
+    )
+    .await;
+    assert_eq!(answer, json!({"outcome": "applied", "acked_seq": 5}));
+
+    let refusals = [
+        (
+            "ship-2",
+            SYNC_TOKEN,
+            reset_upload("a", Some(5), 6),
+            403,
+            "forbidden",
+            "ship-2",
+        ),
+        (
+            SITE,
+            "office-secret",
+            reset_upload("a", Some(5), 6),
+            403,
+            "forbidden",
+            "sync",
+        ),
+        (
+            SITE,
+            SYNC_TOKEN,
+            reset_upload("b", Some(5), 6),
+            409,
+            "outbox_changed",
+            "outbox",
+        ),
+        (
+            SITE,
+            SYNC_TOKEN,
+            json!({"outbox_id": "a", "registry": {"links": [], "targets": []},
+                   "batch": {"tier": "events", "after_seq": 5, "upto_seq": 6,
+                             "tables": [{"table": "samples", "columns": []}]}}),
+            422,
+            "invalid_request",
+            "batch.tables[0]",
+        ),
+        (
+            SITE,
+            SYNC_TOKEN,
+            json!({"outbox_id": "a", "registry": {"links": [], "targets": []},
+                   "batch": {"tier": "events", "after_seq": 5, "upto_seq": 6,
+                             "tables": [{"table": "link_resets", "columns": [{"int": [1]}]}]}}),
+            422,
+            "invalid_request",
+            "link_resets: 1 columns, the table has 4",
+        ),
+    ];
+    for (site, token, body, want, code, mentions) in refusals {
+        let (status, answer) = sync(&client, base, site, token, &body).await;
+        assert_eq!(status.as_u16(), want, "{answer}");
+        assert_eq!(answer["error"]["code"], code, "{answer}");
+        assert!(
+            answer["error"]["message"]
+                .as_str()
+                .unwrap()
+                .contains(mentions),
+            "want `{mentions}` in {answer}"
+        );
+    }
+    let r = client
+        .post(format!("{base}/api/v1/sites/{SITE}/sync"))
+        .bearer_auth(SYNC_TOKEN)
+        .header("content-type", "application/json")
+        .header("content-encoding", "zstd")
+        .body("not zstd at all")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+
+    // What was applied, once: the resets at 3 and 5; nothing of the refused uploads.
+    let rows = centre_rows(&url, SyncTable::LinkResets).await;
+    let times: Vec<&str> = rows.iter().map(|r| r[1].as_str()).collect();
+    assert_eq!(times, ["Some(3)", "Some(5)"]);
+    let sites: Value = client
+        .get(format!("{base}/api/v1/sites"))
+        .bearer_auth("office-secret")
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(sites["sites"].as_array().unwrap().len(), 1, "{sites}");
+    assert_eq!(sites["sites"][0]["tiers"][0]["acked_seq"], 5, "{sites}");
 }

@@ -367,8 +367,8 @@ impl Central {
             for rows in &batch.tables {
                 if rows.table.tier() != batch.tier {
                     return Err(StoreError::Malformed(format!(
-                        "{:?} rows in a batch of the {tier} tier",
-                        rows.table
+                        "{} rows in a batch of the {tier} tier",
+                        rows.table.name()
                     )));
                 }
                 apply_rows(&mut tx, rows).await?;

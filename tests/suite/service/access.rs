@@ -7,11 +7,12 @@ use serde_json::json;
 
 pub fn with_tokens() -> String {
     format!(
-        "{}\n[[auth.tokens]]\nname = \"viewer\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n\n[[auth.tokens]]\nname = \"pipeline\"\nsha256 = \"{}\"\nscopes = [\"ingest\"]\n\n[[auth.tokens]]\nname = \"operator\"\nsha256 = \"{}\"\nscopes = [\"read\", \"admin\"]\n",
+        "{}\n[[auth.tokens]]\nname = \"viewer\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n\n[[auth.tokens]]\nname = \"pipeline\"\nsha256 = \"{}\"\nscopes = [\"ingest\"]\n\n[[auth.tokens]]\nname = \"operator\"\nsha256 = \"{}\"\nscopes = [\"read\", \"admin\"]\n\n[[auth.tokens]]\nname = \"ship-1\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"ship-1\"\n",
         brokenray::config::DEFAULT_INSTALLATION_TOML,
         sha256_hex("viewer-secret"),
         sha256_hex("pipeline-secret"),
         sha256_hex("operator-secret"),
+        sha256_hex("site-secret"),
     )
 }
 

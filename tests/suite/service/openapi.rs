@@ -31,7 +31,9 @@ fn concrete(path: &str) -> String {
     } else {
         "C1_from_B"
     };
-    path.replace("{name}", name).replace("{file}", "app.js")
+    path.replace("{name}", name)
+        .replace("{file}", "app.js")
+        .replace("{site}", "ship-1")
 }
 
 /// The status, and the JSON body unless the answer is an event stream (which never ends).
@@ -141,6 +143,7 @@ async fn each_operation_needs_the_scope_the_document_states() {
         "read" => "viewer-secret",
         "ingest" => "pipeline-secret",
         "admin" => "operator-secret",
+        "sync" => "site-secret",
         other => panic!("unknown scope `{other}`"),
     };
     for (method, path, op) in operations(&doc) {
@@ -179,6 +182,8 @@ async fn each_operation_needs_the_scope_the_document_states() {
         let others: &[&str] = match scopes[0] {
             "read" => &["ingest"],
             "ingest" => &["read"],
+            // `admin` includes every scope but `sync`: only the site's own token uploads.
+            "sync" => &["read", "ingest", "admin"],
             _ => &["read", "ingest"],
         };
         for other in others {
