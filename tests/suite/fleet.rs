@@ -39,11 +39,13 @@ fn group_at(time_ns: i64, k: i64, links: &[&str]) -> Value {
 
 const ALL_LINKS: [&str; 3] = ["C1_from_B", "C2_from_M", "C3_from_G"];
 
-/// Posts groups `ks` (every link) to the site, in requests of `per_request` groups.
+/// Posts groups `ks` (every link) to the site, group `k` at `time_of(k)`, in requests of
+/// `per_request` groups.
 async fn post_groups(
     client: &reqwest::Client,
     base: &str,
     ks: std::ops::Range<i64>,
+    time_of: impl Fn(i64) -> i64,
     per_request: i64,
 ) {
     let mut k = ks.start;
@@ -52,7 +54,7 @@ async fn post_groups(
         let mut samples = Vec::new();
         for j in k..end {
             samples.extend(
-                group_at(group_time(j), j, &ALL_LINKS)["samples"]
+                group_at(time_of(j), j, &ALL_LINKS)["samples"]
                     .as_array()
                     .unwrap()
                     .clone(),
@@ -467,9 +469,9 @@ async fn faults_of_the_link_leave_the_centre_equal_to_the_site() {
     let site = start(&site_config);
     let client = reqwest::Client::new();
 
-    post_groups(&client, &site.base, 0..3000, 250).await;
+    post_groups(&client, &site.base, 0..3000, group_time, 250).await;
     events(&client, &site.base).await;
-    post_groups(&client, &site.base, 3000..4000, 250).await;
+    post_groups(&client, &site.base, 3000..4000, group_time, 250).await;
     let site_db = dir.path().join("site.db");
     let u = wait_caught_up(
         &client,
@@ -600,35 +602,6 @@ async fn faults_of_the_link_leave_the_centre_equal_to_the_site() {
     drop(centre);
 }
 
-/// Groups at `step_ns` intervals from `from_ns`, posted `per_request` a request.
-async fn post_span(
-    client: &reqwest::Client,
-    base: &str,
-    from_ns: i64,
-    count: i64,
-    step_ns: i64,
-    per_request: i64,
-) {
-    for first in (0..count).step_by(per_request as usize) {
-        let mut samples = Vec::new();
-        for j in first..(first + per_request).min(count) {
-            samples.extend(
-                group_at(from_ns + j * step_ns, j, &ALL_LINKS)["samples"]
-                    .as_array()
-                    .unwrap()
-                    .clone(),
-            );
-        }
-        let r = client
-            .post(format!("{base}/api/v1/samples"))
-            .json(&json!({ "samples": samples }))
-            .send()
-            .await
-            .unwrap();
-        assert!(r.status().is_success(), "{}", r.status());
-    }
-}
-
 /// The centre down while the site keeps measuring (two hours of measurement time): the site
 /// says so and keeps everything; the centre back (on another port, as after a move), the site
 /// catches up, is killed with SIGKILL in the middle of it, restarts and finishes. The centre's
@@ -643,7 +616,7 @@ async fn a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill()
     let mut site = start(&site_config);
     let site_db = dir.path().join("site.db");
     let client = reqwest::Client::new();
-    post_groups(&client, &site.base, 0..500, 250).await;
+    post_groups(&client, &site.base, 0..500, group_time, 250).await;
     wait_caught_up(
         &client,
         &site.base,
@@ -656,8 +629,9 @@ async fn a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill()
     // The centre goes down; the site measures two hours (a group every 0.4 s).
     centre.kill();
     link.set_schedule(vec![Fault::Down]);
-    let outage_from = group_time(500);
-    post_span(&client, &site.base, outage_from, 18_000, 400_000_000, 1000).await;
+    // (G moves at group 3000: alarms wait too.)
+    let outage = |k: i64| group_time(500) + (k - 500) * 400_000_000;
+    post_groups(&client, &site.base, 500..18_500, outage, 1000).await;
     tokio::time::sleep(Duration::from_secs(2)).await;
     let u = upstream(&client, &site.base).await;
     let results = &u["tiers"][1];

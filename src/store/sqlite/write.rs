@@ -348,7 +348,8 @@ impl Tx<'_> {
         .execute(&mut *self.conn)
         .await?
         .rows_affected();
-        // The commits table only dates rows: keep a day of it past the older cutoff.
+        // The commits table only dates commits: those older than both cutoffs go (never the
+        // newest, which numbers the next).
         sqlx::query("delete from commits where created_ns < ? and seq < ?")
             .bind(samples_before_ns.min(results_before_ns))
             .bind(self.seq)
