@@ -495,40 +495,26 @@ async fn faults_of_the_link_leave_the_centre_equal_to_the_site() {
     // sample lands in rollup buckets already sent.
     link.set_schedule(vec![Fault::Twice, Fault::None]);
     let raw_before = site_rows(&site_db, SyncTable::RawResults).await;
-    for k in [4000, 4001, 4002] {
-        let r = client
-            .post(format!("{}/api/v1/samples", site.base))
-            .json(&group_at(group_time(k), k, &["C1_from_B", "C2_from_M"]))
-            .send()
-            .await
-            .unwrap();
-        assert!(r.status().is_success());
+    // Two links first, the third after they were sent.
+    for links in [&["C1_from_B", "C2_from_M"][..], &["C3_from_G"][..]] {
+        for k in [4000, 4001, 4002] {
+            let r = client
+                .post(format!("{}/api/v1/samples", site.base))
+                .json(&group_at(group_time(k), k, links))
+                .send()
+                .await
+                .unwrap();
+            assert!(r.status().is_success());
+        }
+        wait_caught_up(
+            &client,
+            &site.base,
+            &site_db,
+            &centre_url,
+            Duration::from_secs(60),
+        )
+        .await;
     }
-    wait_caught_up(
-        &client,
-        &site.base,
-        &site_db,
-        &centre_url,
-        Duration::from_secs(60),
-    )
-    .await;
-    for k in [4000, 4001, 4002] {
-        let r = client
-            .post(format!("{}/api/v1/samples", site.base))
-            .json(&group_at(group_time(k), k, &["C3_from_G"]))
-            .send()
-            .await
-            .unwrap();
-        assert!(r.status().is_success());
-    }
-    wait_caught_up(
-        &client,
-        &site.base,
-        &site_db,
-        &centre_url,
-        Duration::from_secs(60),
-    )
-    .await;
     // An acknowledgement changes an alarm already sent.
     let alarms: Value = client
         .get(format!("{}/api/v1/alarms", site.base))
