@@ -98,9 +98,23 @@ pub async fn list_alarms(
     State(app): State<AppState>,
     Query(q): Query<AlarmsQuery>,
 ) -> Result<Json<AlarmsOut>, ApiError> {
-    let inst = app.service.installation();
+    let names = app.service.installation().model.target_names();
+    Ok(Json(alarms_of(app.service.store(), &names, &q).await?))
+}
+
+/// The alarm transitions of `store` the query asks for; its targets are `names`, by index.
+pub(super) async fn alarms_of(
+    store: &crate::store::Store,
+    names: &[String],
+    q: &AlarmsQuery,
+) -> Result<AlarmsOut, ApiError> {
     let target = match &q.target {
-        Some(name) => Some(super::targets::target_index(&app, name)?.0),
+        Some(name) => Some(
+            names
+                .iter()
+                .position(|n| n == name)
+                .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))?,
+        ),
         None => None,
     };
     let (from, to) = super::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
@@ -111,17 +125,13 @@ pub async fn list_alarms(
         false,
         &[("asc", false), ("desc", true)],
     )?;
-    let stored = app
-        .service
-        .store()
-        .alarms(target, from, to, limit, newest_first)
-        .await?;
-    Ok(Json(AlarmsOut {
+    let stored = store.alarms(target, from, to, limit, newest_first).await?;
+    Ok(AlarmsOut {
         alarms: stored
             .iter()
-            .map(|a| AlarmOut::new(inst.model.targets[a.target].name.clone(), a))
+            .map(|a| AlarmOut::new(names[a.target].clone(), a))
             .collect(),
-    }))
+    })
 }
 
 /// Body of `POST /api/v1/alarms/{id}/ack`.

@@ -63,6 +63,7 @@ const ASSETS: &[Asset] = &[
     ),
     asset!("chain.js", "js/chain.js", "text/javascript; charset=utf-8"),
     asset!("links.js", "js/links.js", "text/javascript; charset=utf-8"),
+    asset!("fleet.js", "js/fleet.js", "text/javascript; charset=utf-8"),
     asset!(
         "cameras.js",
         "js/cameras.js",

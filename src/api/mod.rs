@@ -20,6 +20,7 @@ mod jsonpath;
 mod links;
 mod metrics;
 mod server;
+mod sites;
 mod targets;
 pub(crate) mod vision;
 mod webhooks;
@@ -139,6 +140,10 @@ pub struct HealthOut {
     /// 200.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub upstream_problem: Option<String>,
+    /// True on a fleet's centre (it serves `GET /api/v1/sites`); absent otherwise. The
+    /// dashboard reads it to show the fleet.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub centre: bool,
     /// Each target's status and age now, by name. A stale target does not make the service
     /// unhealthy (the answer stays 200): alert on `targets.*.status == "stale"` or on
     /// `brokenray_target_age_seconds` instead.
@@ -206,6 +211,7 @@ async fn healthz(
             writer,
             problem,
             upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
+            centre: app.central.is_some(),
             targets,
         }),
     )
@@ -385,6 +391,13 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(fleet::post_sync))
         .routes(routes!(fleet::list_sites))
         .routes(routes!(fleet::get_upstream))
+        .routes(routes!(sites::list_site_targets))
+        .routes(routes!(sites::get_site_compensation))
+        .routes(routes!(sites::get_site_stats))
+        .routes(routes!(sites::get_site_history))
+        .routes(routes!(sites::get_site_reference))
+        .routes(routes!(sites::list_site_references))
+        .routes(routes!(sites::list_site_alarms))
         .routes(routes!(openapi_json));
     OpenApiRouter::with_openapi(<ApiDoc as utoipa::OpenApi>::openapi())
         .nest("/api/v1", api)

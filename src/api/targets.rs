@@ -4,7 +4,6 @@ use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::{ApiError, ErrorBody};
 use crate::bank::{TargetEstimate, TargetStatus};
-use crate::chain::Direction;
 use crate::clock::{format_ns, parse_query_time};
 use crate::deformation::{Deformation, ReferenceOrigin};
 use crate::geometry::PoseCov;
@@ -27,44 +26,7 @@ pub(super) fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetS
         .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))
 }
 
-/// A step of a path as answered.
-#[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct StepOut {
-    /// The link.
-    pub link: String,
-    /// `forward` (as stored) or `inverted`.
-    pub direction: &'static str,
-}
-
-/// A path as answered.
-#[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct PathOut {
-    /// Steps from the base outwards.
-    pub steps: Vec<StepOut>,
-    /// The product it computes, `G_from_C3 * ... * C1_from_B`.
-    pub product: String,
-    /// The frames it passes, from the base to the target (one more than the steps: step `i`
-    /// joins `frames[i]` and `frames[i + 1]`).
-    pub frames: Vec<String>,
-}
-
-/// A target's deformation thresholds (`null` where not checked): against the magnitude of the
-/// deformation's rotation and translation.
-#[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ThresholdsOut {
-    /// Warn at this rotation magnitude (arc-seconds).
-    pub warn_rotation_arcsec: Option<f64>,
-    /// Alarm at this rotation magnitude (arc-seconds).
-    pub alarm_rotation_arcsec: Option<f64>,
-    /// Warn at this translation magnitude (mm).
-    pub warn_translation_mm: Option<f64>,
-    /// Alarm at this translation magnitude (mm).
-    pub alarm_translation_mm: Option<f64>,
-    /// Alarm at this rate of rotation (arc-seconds per second).
-    pub rate_rotation_arcsec_per_s: Option<f64>,
-    /// Alarm at this rate of translation (mm per second).
-    pub rate_translation_mm_per_s: Option<f64>,
-}
+pub use crate::fleet::protocol::{PathOut, ThresholdsOut};
 
 /// A target as listed.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
@@ -90,68 +52,40 @@ pub struct TargetOut {
     responses((status = 200, description = "Every target with its paths and status", body = [TargetOut])),
     security(("bearer" = ["read"])))]
 pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
-    let inst = app.service.installation();
     let snapshot = app.service.snapshot();
-    let topo = &inst.model.topology;
-    let path_out = |p: &crate::chain::Path| PathOut {
-        frames: path_frames(topo, p),
-        steps: p
-            .steps
-            .iter()
-            .map(|s| StepOut {
-                link: topo.link(s.link).name.clone(),
-                direction: match s.direction {
-                    Direction::Forward => "forward",
-                    Direction::Inverse => "inverted",
-                },
-            })
-            .collect(),
-        product: topo.describe_product(p),
-    };
     Json(
-        inst.model
-            .targets
-            .iter()
+        crate::fleet::protocol::describe_targets(&app.service.installation().model)
+            .into_iter()
             .enumerate()
-            .map(|(i, t)| {
+            .map(|(i, d)| {
                 let latest = snapshot.targets[i].latest.as_ref();
-                TargetOut {
-                    name: t.name.clone(),
-                    base: topo.frame_name(t.base).to_owned(),
-                    status: latest.map_or("initializing", |l| l.status.name()),
-                    time: latest.map(|l| format_ns(l.time_ns)),
-                    paths: t.resolution.paths.iter().map(path_out).collect(),
-                    dependent_paths: t.resolution.dependent_paths.iter().map(path_out).collect(),
-                    alarms: ThresholdsOut {
-                        warn_rotation_arcsec: t.alarms.warn_rotation_arcsec,
-                        alarm_rotation_arcsec: t.alarms.alarm_rotation_arcsec,
-                        warn_translation_mm: t.alarms.warn_translation_mm,
-                        alarm_translation_mm: t.alarms.alarm_translation_mm,
-                        rate_rotation_arcsec_per_s: t.alarms.rate_rotation_arcsec_per_s,
-                        rate_translation_mm_per_s: t.alarms.rate_translation_mm_per_s,
-                    },
-                }
+                TargetOut::new(
+                    d,
+                    latest.map_or("initializing", |l| l.status.name()),
+                    latest.map(|l| l.time_ns),
+                )
             })
             .collect(),
     )
 }
 
-/// The frames a path passes from its base: a forward step `parent_from_child` goes from its
-/// child to its parent, an inverted one back.
-fn path_frames(topo: &crate::chain::Topology, p: &crate::chain::Path) -> Vec<String> {
-    let mut frames = Vec::with_capacity(p.steps.len() + 1);
-    for (i, s) in p.steps.iter().enumerate() {
-        let link = topo.link(s.link);
-        let (from, to) = match s.direction {
-            Direction::Forward => (link.child, link.parent),
-            Direction::Inverse => (link.parent, link.child),
-        };
-        if i == 0 {
-            frames.push(topo.frame_name(from).to_owned());
+impl TargetOut {
+    /// A target as its installation describes it, with its status and newest result's time.
+    pub fn new(
+        d: crate::fleet::protocol::TargetDescription,
+        status: &'static str,
+        time_ns: Option<i64>,
+    ) -> Self {
+        TargetOut {
+            name: d.name,
+            base: d.base,
+            status,
+            time: time_ns.map(format_ns),
+            paths: d.paths,
+            dependent_paths: d.dependent_paths,
+            alarms: d.alarms,
         }
-        frames.push(topo.frame_name(to).to_owned());
     }
-    frames
 }
 
 /// A reference as answered.
@@ -318,13 +252,68 @@ pub struct CompensationOut {
 }
 
 /// A result to answer, wherever it came from.
-struct Evaluated {
-    time_ns: Option<i64>,
-    status: TargetStatus,
-    age_s: Option<f64>,
-    source: CompensationSource,
-    estimate: Option<PoseCov>,
-    consistency: Option<crate::chain::Consistency>,
+pub(super) struct Evaluated {
+    pub time_ns: Option<i64>,
+    pub status: TargetStatus,
+    pub age_s: Option<f64>,
+    pub source: CompensationSource,
+    pub estimate: Option<PoseCov>,
+    pub consistency: Option<crate::chain::Consistency>,
+}
+
+impl Evaluated {
+    /// No result yet.
+    pub(super) fn none(source: CompensationSource) -> Self {
+        Evaluated {
+            time_ns: None,
+            status: TargetStatus::Initializing,
+            age_s: None,
+            source,
+            estimate: None,
+            consistency: None,
+        }
+    }
+
+    /// A stored result as it was.
+    pub(super) fn stored(r: &crate::store::StoredResult, source: CompensationSource) -> Self {
+        Evaluated {
+            time_ns: Some(r.time_ns),
+            status: r.status,
+            age_s: Some(r.age_s),
+            source,
+            estimate: Some(r.estimate),
+            consistency: None,
+        }
+    }
+}
+
+/// Target `ti`'s stored filtered results at `at_ns`, interpolated between the two around it;
+/// 404 before the first.
+pub(super) async fn from_history(
+    store: &crate::store::Store,
+    ti: usize,
+    name: &str,
+    at_ns: i64,
+) -> Result<Evaluated, ApiError> {
+    let (before, after) = store.results_around(ti, true, at_ns).await?;
+    let Some(before) = before else {
+        return Err(ApiError::not_found(format!(
+            "target `{name}` has no filtered result at or before {}",
+            format_ns(at_ns)
+        )));
+    };
+    let estimate = match after {
+        Some(after) if before.time_ns < at_ns => {
+            let a = (at_ns - before.time_ns) as f64 / (after.time_ns - before.time_ns) as f64;
+            before.estimate.interpolate(&after.estimate, a)
+        }
+        _ => before.estimate,
+    };
+    Ok(Evaluated {
+        time_ns: Some(at_ns),
+        estimate: Some(estimate),
+        ..Evaluated::stored(&before, CompensationSource::History)
+    })
 }
 
 fn evaluated(e: &TargetEstimate, source: CompensationSource) -> Evaluated {
@@ -338,9 +327,34 @@ fn evaluated(e: &TargetEstimate, source: CompensationSource) -> Evaluated {
     }
 }
 
-fn compensation_out(
-    app: &AppState,
-    spec: &TargetSpec,
+/// Whose compensation is answered: a target's name, base frame and thresholds.
+pub(super) struct Described<'a> {
+    /// The target.
+    pub name: &'a str,
+    /// Its base frame.
+    pub base: &'a str,
+    /// Its deformation thresholds.
+    pub thresholds: crate::alarms::AlarmThresholds,
+}
+
+impl<'a> Described<'a> {
+    /// A target of this service's installation.
+    fn of(app: &'a AppState, spec: &'a TargetSpec) -> Self {
+        Described {
+            name: &spec.name,
+            base: app
+                .service
+                .installation()
+                .model
+                .topology
+                .frame_name(spec.base),
+            thresholds: spec.alarms,
+        }
+    }
+}
+
+pub(super) fn compensation_out(
+    target: &Described<'_>,
     e: Evaluated,
     reference: Option<&CurrentReference>,
 ) -> CompensationOut {
@@ -352,14 +366,13 @@ fn compensation_out(
         estimate,
         consistency,
     } = e;
-    let inst = app.service.installation();
     let deformation = match (estimate, reference) {
         (Some(e), Some(r)) => Some(Deformation::new(&r.reference, &e)),
         _ => None,
     };
     CompensationOut {
-        target: spec.name.clone(),
-        base: inst.model.topology.frame_name(spec.base).to_owned(),
+        target: target.name.to_owned(),
+        base: target.base.to_owned(),
         time: time_ns.map(format_ns),
         age_s,
         status: status.name(),
@@ -388,7 +401,7 @@ fn compensation_out(
         alarm: deformation.map_or("none", |d| {
             let m = d.deformation();
             crate::alarms::threshold_level(
-                &spec.alarms,
+                &target.thresholds,
                 m.rotation_magnitude_arcsec(),
                 m.translation_magnitude_mm(),
             )
@@ -426,7 +439,11 @@ pub fn live_compensation(
     estimate: &TargetEstimate,
     reference: Option<&CurrentReference>,
 ) -> CompensationOut {
-    compensation_out(app, spec, live(app, ti, estimate), reference)
+    compensation_out(
+        &Described::of(app, spec),
+        live(app, ti, estimate),
+        reference,
+    )
 }
 
 /// Query of `compensation`.
@@ -453,28 +470,21 @@ pub async fn get_compensation(
     Query(q): Query<AtQuery>,
 ) -> Result<Json<CompensationOut>, ApiError> {
     let (ti, spec) = target_index(&app, &name)?;
+    let target = Described::of(&app, &spec);
     let snapshot = app.service.snapshot();
     let view = &snapshot.targets[ti];
     let reference = view.reference.as_ref();
     let Some(at) = q.at else {
         return Ok(Json(match &view.latest {
             Some(l) => {
-                let mut out = compensation_out(&app, &spec, live(&app, ti, l), reference);
+                let mut out = compensation_out(&target, live(&app, ti, l), reference);
                 // Live: the alarm state with its hysteresis, dwell, rate and stale tracks.
                 out.alarm = view.alarms.level().name();
                 out
             }
             None => compensation_out(
-                &app,
-                &spec,
-                Evaluated {
-                    time_ns: None,
-                    status: TargetStatus::Initializing,
-                    age_s: None,
-                    source: CompensationSource::Live,
-                    estimate: None,
-                    consistency: None,
-                },
+                &target,
+                Evaluated::none(CompensationSource::Live),
                 reference,
             ),
         }));
@@ -494,39 +504,13 @@ pub async fn get_compensation(
             CompensationSource::Live
         };
         return Ok(Json(compensation_out(
-            &app,
-            &spec,
+            &target,
             evaluated(&est, source),
             reference,
         )));
     }
-    let (before, after) = app.service.store().results_around(ti, true, at_ns).await?;
-    let Some(before) = before else {
-        return Err(ApiError::not_found(format!(
-            "target `{name}` has no filtered result at or before {}",
-            format_ns(at_ns)
-        )));
-    };
-    let estimate = match after {
-        Some(after) if before.time_ns < at_ns => {
-            let a = (at_ns - before.time_ns) as f64 / (after.time_ns - before.time_ns) as f64;
-            before.estimate.interpolate(&after.estimate, a)
-        }
-        _ => before.estimate,
-    };
-    Ok(Json(compensation_out(
-        &app,
-        &spec,
-        Evaluated {
-            time_ns: Some(at_ns),
-            status: before.status,
-            age_s: Some(before.age_s),
-            source: CompensationSource::History,
-            estimate: Some(estimate),
-            consistency: None,
-        },
-        reference,
-    )))
+    let e = from_history(app.service.store(), ti, &name, at_ns).await?;
+    Ok(Json(compensation_out(&target, e, reference)))
 }
 
 /// Query of `stats` and other windows.
@@ -601,28 +585,37 @@ pub async fn get_stats(
     Query(q): Query<WindowQuery>,
 ) -> Result<Json<StatsOut>, ApiError> {
     let (ti, spec) = target_index(&app, &name)?;
-    let (from, to, filtered) = parse_window(&q)?;
+    Ok(Json(
+        stats_of(&app, app.service.store(), ti, spec.name, &q).await?,
+    ))
+}
+
+/// The statistics of target `ti` of `store`, named `name`.
+pub(super) async fn stats_of(
+    app: &AppState,
+    store: &crate::store::Store,
+    ti: usize,
+    name: String,
+    q: &WindowQuery,
+) -> Result<StatsOut, ApiError> {
+    let (from, to, filtered) = parse_window(q)?;
     let _permit = app.service.heavy_read().await;
-    let (stats, first_last) = app
-        .service
-        .store()
-        .pose_stats(ti, filtered, from, to)
-        .await?;
+    let (stats, first_last) = store.pose_stats(ti, filtered, from, to).await?;
     let comp = |c: crate::stats::ComponentStats| ComponentsOut {
         min: c.min,
         max: c.max,
         mean: c.mean,
         rms: c.rms,
     };
-    Ok(Json(StatsOut {
-        target: spec.name,
+    Ok(StatsOut {
+        target: name,
         source: ResultSource::of(filtered),
         count: stats.map_or(0, |s| s.count),
         from: first_last.map(|(first, _)| format_ns(if from == i64::MIN { first } else { from })),
         to: first_last.map(|(_, last)| format_ns(if to == i64::MAX { last } else { to })),
         euler_deg: stats.map(|s| comp(s.euler_deg)),
         t_mm: stats.map(|s| comp(s.t_mm)),
-    }))
+    })
 }
 
 /// Body of `POST .../reference`.
@@ -726,21 +719,31 @@ pub async fn list_references(
     Path(name): Path<String>,
 ) -> Result<Json<ReferencesOut>, ApiError> {
     let (ti, spec) = target_index(&app, &name)?;
-    let stored = app.service.store().references(ti).await?;
-    Ok(Json(ReferencesOut {
-        target: spec.name,
-        references: stored
-            .iter()
-            .map(|r| {
-                (&CurrentReference {
-                    version: r.version,
-                    reference: r.reference,
-                    created_ns: r.created_ns,
-                })
-                    .into()
-            })
-            .collect(),
-    }))
+    Ok(Json(
+        references_of(app.service.store(), ti, spec.name).await?,
+    ))
+}
+
+/// Every reference version of target `ti` of `store`, named `name`, oldest first.
+pub(super) async fn references_of(
+    store: &crate::store::Store,
+    ti: usize,
+    name: String,
+) -> Result<ReferencesOut, ApiError> {
+    let stored = store.references(ti).await?;
+    Ok(ReferencesOut {
+        target: name,
+        references: stored.iter().map(|r| (&current_of(r)).into()).collect(),
+    })
+}
+
+/// A stored reference version as the service holds its current one.
+pub(super) fn current_of(r: &crate::store::StoredReference) -> CurrentReference {
+    CurrentReference {
+        version: r.version,
+        reference: r.reference,
+        created_ns: r.created_ns,
+    }
 }
 
 /// Query of `history`.
@@ -814,9 +817,20 @@ pub async fn get_history(
     Path(name): Path<String>,
     Query(q): Query<HistoryQuery>,
 ) -> Result<axum::response::Response, ApiError> {
+    let (ti, spec) = target_index(&app, &name)?;
+    history_of(&app, app.service.store(), ti, &spec.name, q).await
+}
+
+/// The history of target `ti` of `store`, named `name`: JSON or CSV as the query asks.
+pub(super) async fn history_of(
+    app: &AppState,
+    store: &crate::store::Store,
+    ti: usize,
+    name: &str,
+    q: HistoryQuery,
+) -> Result<axum::response::Response, ApiError> {
     use crate::store::rollup::{Bucket, COMPONENTS, N_COMPONENTS};
     use axum::response::IntoResponse;
-    let (ti, spec) = target_index(&app, &name)?;
     let (from_q, to_q, filtered) = parse_window(&WindowQuery {
         from: q.from.clone(),
         to: q.to.clone(),
@@ -853,9 +867,7 @@ pub async fn get_history(
     };
     // Reading every result of a long window is heavy: at most `max_heavy_reads` at once.
     let _permit = app.service.heavy_read().await;
-    let history = app
-        .service
-        .store()
+    let history = store
         .history(ti, filtered, from_q, to_q, max_points)
         .await?;
     let buckets = &history.buckets;
@@ -897,7 +909,7 @@ pub async fn get_history(
                 ),
                 (
                     axum::http::header::CONTENT_DISPOSITION,
-                    format!("attachment; filename=\"{}-history.csv\"", spec.name),
+                    format!("attachment; filename=\"{name}-history.csv\""),
                 ),
             ],
             body,
@@ -916,7 +928,7 @@ pub async fn get_history(
         );
     }
     Ok(Json(HistoryOut {
-        target: spec.name,
+        target: name.to_owned(),
         source: ResultSource::of(filtered),
         from: history.window_ns.map(|(from, _)| format_ns(from)),
         to: history.window_ns.map(|(_, to)| format_ns(to)),

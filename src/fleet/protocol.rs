@@ -69,6 +69,141 @@ pub struct SiteStatus {
     pub time: String,
     /// Its targets.
     pub targets: Vec<TargetStatus>,
+    /// What its installation says of its targets (base, paths, thresholds), so that the centre
+    /// answers the per-target endpoints of the site's copy with the site's own shapes. Absent
+    /// from sites of earlier versions.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub described: Vec<TargetDescription>,
+}
+
+/// A step of a path: a link, taken as stored or inverted.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct StepOut {
+    /// The link.
+    pub link: String,
+    /// `forward` (as stored) or `inverted`.
+    pub direction: String,
+}
+
+/// A path from a target's base to the target.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct PathOut {
+    /// Steps from the base outwards.
+    pub steps: Vec<StepOut>,
+    /// The product it computes, `G_from_C3 * ... * C1_from_B`.
+    pub product: String,
+    /// The frames it passes, from the base to the target (one more than the steps: step `i`
+    /// joins `frames[i]` and `frames[i + 1]`).
+    pub frames: Vec<String>,
+}
+
+/// A target's deformation thresholds (`null` where not checked): against the magnitude of the
+/// deformation's rotation and translation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ThresholdsOut {
+    /// Warn at this rotation magnitude (arc-seconds).
+    pub warn_rotation_arcsec: Option<f64>,
+    /// Alarm at this rotation magnitude (arc-seconds).
+    pub alarm_rotation_arcsec: Option<f64>,
+    /// Warn at this translation magnitude (mm).
+    pub warn_translation_mm: Option<f64>,
+    /// Alarm at this translation magnitude (mm).
+    pub alarm_translation_mm: Option<f64>,
+    /// Alarm at this rate of rotation (arc-seconds per second).
+    pub rate_rotation_arcsec_per_s: Option<f64>,
+    /// Alarm at this rate of translation (mm per second).
+    pub rate_translation_mm_per_s: Option<f64>,
+}
+
+impl ThresholdsOut {
+    /// The thresholds that judge a deformation's level (hysteresis and dwell are the site's
+    /// live alarm state's business, not a single value's).
+    pub fn thresholds(&self) -> crate::alarms::AlarmThresholds {
+        crate::alarms::AlarmThresholds {
+            warn_rotation_arcsec: self.warn_rotation_arcsec,
+            alarm_rotation_arcsec: self.alarm_rotation_arcsec,
+            warn_translation_mm: self.warn_translation_mm,
+            alarm_translation_mm: self.alarm_translation_mm,
+            rate_rotation_arcsec_per_s: self.rate_rotation_arcsec_per_s,
+            rate_translation_mm_per_s: self.rate_translation_mm_per_s,
+            hysteresis: 0.0,
+            dwell_s: 0.0,
+        }
+    }
+}
+
+/// What an installation says of one target: its base, how it is reached, its thresholds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct TargetDescription {
+    /// Its name (frame).
+    pub name: String,
+    /// Its base frame.
+    pub base: String,
+    /// Independent paths (fused).
+    pub paths: Vec<PathOut>,
+    /// Further paths sharing a link with one above (not fused).
+    pub dependent_paths: Vec<PathOut>,
+    /// Its alarm thresholds.
+    pub alarms: ThresholdsOut,
+}
+
+/// The frames a path passes from its base: a forward step `parent_from_child` goes from its
+/// child to its parent, an inverted one back.
+fn path_frames(topo: &crate::chain::Topology, p: &crate::chain::Path) -> Vec<String> {
+    use crate::chain::Direction;
+    let mut frames = Vec::with_capacity(p.steps.len() + 1);
+    for (i, s) in p.steps.iter().enumerate() {
+        let link = topo.link(s.link);
+        let (from, to) = match s.direction {
+            Direction::Forward => (link.child, link.parent),
+            Direction::Inverse => (link.parent, link.child),
+        };
+        if i == 0 {
+            frames.push(topo.frame_name(from).to_owned());
+        }
+        frames.push(topo.frame_name(to).to_owned());
+    }
+    frames
+}
+
+/// Every target of a model, as its installation describes it, in the installation's order.
+pub fn describe_targets(model: &crate::model::Model) -> Vec<TargetDescription> {
+    use crate::chain::Direction;
+    let topo = &model.topology;
+    let path_out = |p: &crate::chain::Path| PathOut {
+        frames: path_frames(topo, p),
+        steps: p
+            .steps
+            .iter()
+            .map(|s| StepOut {
+                link: topo.link(s.link).name.clone(),
+                direction: match s.direction {
+                    Direction::Forward => "forward",
+                    Direction::Inverse => "inverted",
+                }
+                .to_owned(),
+            })
+            .collect(),
+        product: topo.describe_product(p),
+    };
+    model
+        .targets
+        .iter()
+        .map(|t| TargetDescription {
+            name: t.name.clone(),
+            base: topo.frame_name(t.base).to_owned(),
+            paths: t.resolution.paths.iter().map(path_out).collect(),
+            dependent_paths: t.resolution.dependent_paths.iter().map(path_out).collect(),
+            alarms: ThresholdsOut {
+                warn_rotation_arcsec: t.alarms.warn_rotation_arcsec,
+                alarm_rotation_arcsec: t.alarms.alarm_rotation_arcsec,
+                warn_translation_mm: t.alarms.warn_translation_mm,
+                alarm_translation_mm: t.alarms.alarm_translation_mm,
+                rate_rotation_arcsec_per_s: t.alarms.rate_rotation_arcsec_per_s,
+                rate_translation_mm_per_s: t.alarms.rate_translation_mm_per_s,
+            },
+        })
+        .collect()
 }
 
 /// One target of a site.

@@ -168,6 +168,7 @@ fn site_status(service: &Service) -> SiteStatus {
                 }
             })
             .collect(),
+        described: super::protocol::describe_targets(&inst.model),
     }
 }
 

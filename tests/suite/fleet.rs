@@ -584,8 +584,170 @@ async fn faults_of_the_link_leave_the_centre_equal_to_the_site() {
         ["none", "warn", "alarm"].contains(&s["alarm"].as_str().unwrap()),
         "{sites:#}"
     );
+    the_centre_answers_for_the_site_as_the_site_does(&client, &site.base, &centre.base).await;
+
+    // The office's page: the fleet panel, and the site opened in the page's views.
+    let tools = crate::service::dashboard::browser();
+    crate::service::dashboard::run_script(
+        tools,
+        "fleet.mjs",
+        vec![
+            centre.base.clone().into(),
+            SITE.into(),
+            "office-secret".into(),
+            crate::service::dashboard::artifacts_dir().into(),
+        ],
+    )
+    .await;
     drop(site);
     drop(centre);
+}
+
+/// `GET` of `url` as JSON with the office's token, and its status.
+async fn office_get(client: &reqwest::Client, url: &str) -> (u16, Value) {
+    let r = client
+        .get(url)
+        .bearer_auth("office-secret")
+        .send()
+        .await
+        .unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
+}
+
+/// Asserts `a` and `b` are equal JSON, numbers within `rel` of each other (relative, with an
+/// absolute floor of `rel` for values near zero); `at` names the place.
+fn assert_close(a: &Value, b: &Value, rel: f64, at: &str) {
+    match (a, b) {
+        (Value::Number(x), Value::Number(y)) => {
+            let (x, y) = (x.as_f64().unwrap(), y.as_f64().unwrap());
+            assert!(
+                (x - y).abs() <= rel * x.abs().max(y.abs()).max(1.0),
+                "{at}: {x} against {y}"
+            );
+        }
+        (Value::Array(x), Value::Array(y)) => {
+            assert_eq!(x.len(), y.len(), "{at}: lengths");
+            for (i, (x, y)) in x.iter().zip(y).enumerate() {
+                assert_close(x, y, rel, &format!("{at}[{i}]"));
+            }
+        }
+        (Value::Object(x), Value::Object(y)) => {
+            let keys = |o: &serde_json::Map<String, Value>| o.keys().cloned().collect::<Vec<_>>();
+            assert_eq!(keys(x), keys(y), "{at}: fields");
+            for (k, v) in x {
+                assert_close(v, &y[k], rel, &format!("{at}.{k}"));
+            }
+        }
+        _ => assert_eq!(a, b, "{at}"),
+    }
+}
+
+/// The centre's per-target endpoints of the site answer from its copy what the site answers
+/// itself: the same targets, compensations at a past time (bit for bit: the same rows through
+/// the same code), statistics, history buckets, references and alarms; the newest
+/// compensation is the site's newest result; unknown sites and targets are 404s.
+async fn the_centre_answers_for_the_site_as_the_site_does(
+    client: &reqwest::Client,
+    site: &str,
+    centre: &str,
+) {
+    let at_site = |path: &str| format!("{site}/api/v1{path}");
+    let at_centre = |path: &str| format!("{centre}/api/v1/sites/{SITE}{path}");
+    let both = |path: &'static str| async move {
+        let (s1, own) = office_get(client, &at_site(path)).await;
+        let (s2, copy) = office_get(client, &at_centre(path)).await;
+        assert_eq!((s1, s2), (200, 200), "{path}: {own} / {copy}");
+        (own, copy)
+    };
+
+    let (own, copy) = both("/targets").await;
+    let (own, copy) = (own.as_array().unwrap(), copy.as_array().unwrap());
+    assert_eq!(own.len(), copy.len());
+    for (o, c) in own.iter().zip(copy) {
+        for field in ["name", "base", "paths", "dependent_paths", "alarms", "time"] {
+            assert_eq!(o[field], c[field], "targets: {field}");
+        }
+    }
+
+    // A time between two results, before the newest: both interpolate the stored results.
+    let at = brokenray::clock::format_ns(group_time(2000) + 13_000_000);
+    let path = format!("/targets/G/compensation?at={at}");
+    let (_, own) = office_get(client, &at_site(&path)).await;
+    let (status, copy) = office_get(client, &at_centre(&path)).await;
+    assert_eq!(status, 200, "{copy}");
+    assert_close(&own, &copy, 1e-9, &format!("compensation at {at}"));
+    assert_eq!(copy["source"], "history");
+
+    let (own, copy) = both("/targets/G/compensation").await;
+    assert_eq!(own["time"], copy["time"], "the newest result");
+    assert_close(&own["pose"], &copy["pose"], 1e-12, "newest pose");
+    assert_close(
+        &own["deformation"],
+        &copy["deformation"],
+        1e-9,
+        "newest deformation",
+    );
+    assert_close(&own["reference"], &copy["reference"], 1e-9, "reference");
+    assert_eq!(own["alarm"], copy["alarm"], "the alarm state");
+    assert_eq!(copy["alarm"], "alarm", "the move raised an alarm");
+    assert!(copy["age_s"].as_f64().unwrap() > 0.0);
+
+    for source in ["filtered", "raw"] {
+        let path: &'static str = if source == "raw" {
+            "/targets/G/stats?source=raw"
+        } else {
+            "/targets/G/stats?source=filtered"
+        };
+        let (own, copy) = both(path).await;
+        assert!(own["count"].as_u64().unwrap() > 3000, "{own}");
+        assert_close(&own, &copy, 1e-9, path);
+    }
+    let window = format!(
+        "/targets/G/history?from={}&to={}&max_points=40",
+        brokenray::clock::format_ns(group_time(0)),
+        brokenray::clock::format_ns(group_time(4003)),
+    );
+    let (_, own) = office_get(client, &at_site(&window)).await;
+    let (status, copy) = office_get(client, &at_centre(&window)).await;
+    assert_eq!(status, 200, "{copy}");
+    assert_eq!(own["count"], copy["count"], "history counts per bucket");
+    assert_close(&own, &copy, 1e-9, "history");
+
+    let (own_references, copy) = both("/targets/G/references").await;
+    assert_eq!(own_references, copy);
+    let (own, copy) = both("/targets/G/reference").await;
+    assert_close(&own, &copy, 1e-9, "reference");
+    let (own, copy) = both("/alarms").await;
+    assert!(!own["alarms"].as_array().unwrap().is_empty());
+    assert_eq!(own, copy, "alarms with their acknowledgement");
+
+    for (url, why) in [
+        (at_centre("/targets/H/compensation"), "unknown target"),
+        (
+            format!("{centre}/api/v1/sites/ship-9/targets"),
+            "unknown site",
+        ),
+        (
+            format!("{centre}/api/v1/sites/Ship!/targets"),
+            "not a site name",
+        ),
+    ] {
+        let (status, body) = office_get(client, &url).await;
+        assert_eq!(status, 404, "{why}: {body}");
+        assert_eq!(body["error"]["code"], "not_found", "{why}: {body}");
+    }
+    // A site's copy is read at the centre, never written: no reference is set there.
+    let r = client
+        .post(at_centre("/targets/G/reference"))
+        .bearer_auth("office-secret")
+        .json(&json!({"from": 0, "to": 1}))
+        .send()
+        .await
+        .unwrap();
+    assert!(!r.status().is_success(), "{}", r.status());
+    let (_, after) = office_get(client, &at_centre("/targets/G/references")).await;
+    assert_eq!(after, own_references, "the copy's references are unchanged");
 }
 
 /// The centre down while the site keeps measuring (two hours of measurement time): the site

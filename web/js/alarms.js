@@ -1,6 +1,6 @@
 // The alarm table: transitions, acknowledgement, and marks on the plots.
 
-import { $, ALARMS_SHOWN, clearMessage, el, fmtTime, parseTime, showMessage, state } from './util.js';
+import { $, ALARMS_SHOWN, apiBase, clearMessage, el, fmtTime, parseTime, showMessage, state } from './util.js';
 import { api } from './api.js';
 import { loadCompensation } from './cards.js';
 import { windowQuery } from './history.js';
@@ -19,7 +19,8 @@ function ackCell(a) {
     if (a.note) cell.append(el('div', { class: 'muted small', text: a.note }));
     return cell;
   }
-  if (a.to === 'none' || a.id === undefined) return cell;
+  // A site's copy at a centre is read-only: the site's operators acknowledge its alarms.
+  if (a.to === 'none' || a.id === undefined || state.site) return cell;
   const button = el('button', { type: 'button', class: 'ghost', 'data-ack': String(a.id), text: 'Acknowledge' });
   button.addEventListener('click', () => {
     const by = el('input', { type: 'text', name: 'by', placeholder: 'your name', 'aria-label': 'Acknowledged by', required: '', value: operator() });
@@ -75,7 +76,7 @@ function renderAlarms() {
 }
 
 export async function loadAlarms(win) {
-  const answer = await api(`/api/v1/alarms?${windowQuery(win)}&limit=${ALARMS_SHOWN}&order=desc`);
+  const answer = await api(`${apiBase()}/alarms?${windowQuery(win)}&limit=${ALARMS_SHOWN}&order=desc`);
   state.alarms = answer.alarms;
   renderAlarms();
   redrawMarks();

@@ -4,7 +4,7 @@
 //
 // Times are shown in UTC.
 
-import { $, clearMessage, el, fmtTime, parseTime, showMessage, state, toInput } from './util.js';
+import { $, apiBase, clearMessage, el, fmtTime, parseTime, showMessage, state, toInput } from './util.js';
 import { api } from './api.js';
 import { buildCard, cards, loadCompensation, renderAge } from './cards.js';
 import { runEvents } from './events.js';
@@ -13,6 +13,7 @@ import { loadReferences, renderReferencePanel } from './reference.js';
 import { renderTopology } from './chain.js';
 import { loadLinks, loadWebhooks } from './links.js';
 import { renderCameraAges, startCameras } from './cameras.js';
+import { startFleet } from './fleet.js';
 
 export function selectTarget(name, scroll) {
   state.selected = name;
@@ -35,7 +36,7 @@ export function selectTarget(name, scroll) {
 $('target-select').addEventListener('change', () => selectTarget($('target-select').value, false));
 
 async function loadTargets() {
-  state.targets = await api('/api/v1/targets');
+  state.targets = await api(apiBase() + '/targets');
   const select = $('target-select');
   select.textContent = '';
   $('cards').textContent = '';
@@ -53,21 +54,48 @@ async function loadTargets() {
 
 // start
 
+// A site's copy at a centre has no live stream, cameras, links or reference form: what the
+// site uploaded is shown, read-only, its compensations asked again every few seconds.
+function showSiteMode() {
+  document.body.dataset.site = state.site || '';
+  for (const node of document.querySelectorAll('.local-only')) node.hidden = Boolean(state.site);
+  $('site-banner').hidden = !state.site;
+  if (state.site) {
+    $('site-name').textContent = state.site;
+    $('live').dataset.state = 'copy';
+    $('live').textContent = 'uploaded copy';
+  }
+}
+
 let started = false;
 let linksTimer = null;
+let siteTimer = null;
 export async function start() {
   clearMessage('start');
+  showSiteMode();
+  startFleet();
   try {
     await loadTargets();
     await Promise.all(state.targets.map((t) => loadCompensation(t.name)));
-    await loadLinks();
+    if (!state.site) await loadLinks();
   } catch (e) {
-    if (e.status !== 401) showMessage('start', 'Cannot reach the service: ' + e.message);
+    if (e.status !== 401) showMessage('start', (state.site ? `Site ${state.site}: ` : 'Cannot reach the service: ') + e.message);
     return;
   }
   const keep = state.targets.some((t) => t.name === state.selected);
   if (state.targets.length) selectTarget(keep ? state.selected : state.targets[0].name, false);
   scheduleRefresh();
+  if (state.site) {
+    if (siteTimer === null) {
+      siteTimer = setInterval(() => {
+        if (document.hidden) return;
+        for (const t of state.targets) {
+          loadCompensation(t.name).catch((e) => { if (e.status !== 401) showMessage('site', `Site ${state.site}: ` + e.message); });
+        }
+      }, 2000);
+    }
+    return;
+  }
   runEvents();
   startCameras();
   if (!started) {
@@ -98,5 +126,9 @@ window.addEventListener('resize', () => {
 
 // The plots take their colours from the style sheet when built: rebuild on a theme change.
 window.matchMedia('(prefers-color-scheme: dark)').addEventListener('change', () => renderPlots(true));
+
+// Another site (or this service's own view) chosen: a fresh page, so no stream, timer or plot
+// of the previous view lives on.
+window.addEventListener('hashchange', () => location.reload());
 
 start();

@@ -1,6 +1,6 @@
 // The compensation cards: one per target, updated live.
 
-import { $, AXES, LATE_ALARM_S, LATE_WARN_S, el, fmt, fmtAge, fmtTime, norm3, parseTime, state } from './util.js';
+import { $, AXES, LATE_ALARM_S, LATE_WARN_S, apiBase, el, fmt, fmtAge, fmtTime, norm3, parseTime, state } from './util.js';
 import { api } from './api.js';
 import { renderReferencePanel } from './reference.js';
 import { selectTarget } from './app.js';
@@ -149,6 +149,6 @@ function scheduleCard(name) {
 }
 
 export async function loadCompensation(name) {
-  const c = await api('/api/v1/targets/' + encodeURIComponent(name) + '/compensation');
+  const c = await api(apiBase() + '/targets/' + encodeURIComponent(name) + '/compensation');
   acceptCompensation(c);
 }

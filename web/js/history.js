@@ -1,7 +1,7 @@
 // History plots (uPlot): filtered and raw buckets of the selected target over the chosen range,
 // thresholds, alarm and reference marks, zoom, selection and CSV download.
 
-import { $, AXES, clearMessage, el, fmtSpan, fmtTime, fromInput, iso, pad, parseTime, showMessage, state, toInput } from './util.js';
+import { $, apiBase, AXES, clearMessage, el, fmtSpan, fmtTime, fromInput, iso, pad, parseTime, showMessage, state, toInput } from './util.js';
 import { api } from './api.js';
 import { loadAlarms } from './alarms.js';
 
@@ -11,7 +11,7 @@ export const windowQuery = (win) => `from=${encodeURIComponent(iso(win[0]))}&to=
 // A history request of the selected target over `win`, one bucket a pixel of plot width.
 function historyUrl(target, source, win, extra) {
   const maxPoints = Math.min(2000, Math.round(plotWidth()));
-  return '/api/v1/targets/' + encodeURIComponent(target) + `/history?source=${source}&` +
+  return apiBase() + '/targets/' + encodeURIComponent(target) + `/history?source=${source}&` +
     `${windowQuery(win)}&max_points=${maxPoints}` + (extra ? '&' + extra : '');
 }
 
@@ -29,7 +29,8 @@ function readPalette() {
 
 export function windowMs() {
   if (state.range.kind === 'abs') return [state.range.from, state.range.to];
-  const end = Math.max(Date.now(), state.newestMs);
+  // A site's copy ends where its uploads end (a site cut off for days shows its last data).
+  const end = state.site && state.newestMs ? state.newestMs : Math.max(Date.now(), state.newestMs);
   return [end - state.range.seconds * 1000, end];
 }
 

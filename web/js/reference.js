@@ -1,6 +1,6 @@
 // The reference panel: the current reference, its versions, and setting one from a window.
 
-import { $, el, fmtTime, fromInput, iso, parseTime, state } from './util.js';
+import { $, apiBase, el, fmtTime, fromInput, iso, parseTime, state } from './util.js';
 import { api } from './api.js';
 import { loadCompensation } from './cards.js';
 import { loadHistory } from './history.js';
@@ -25,7 +25,7 @@ export function renderReferencePanel() {
 }
 
 export async function loadReferences(target) {
-  const answer = await api('/api/v1/targets/' + encodeURIComponent(target) + '/references');
+  const answer = await api(apiBase() + '/targets/' + encodeURIComponent(target) + '/references');
   if (target !== state.selected) return;
   state.references = answer.references.slice().reverse();
   const body = $('references').tBodies[0];

@@ -26,7 +26,20 @@ export const state = {
   historyAbort: null,
   refreshTimer: null,
   token: sessionStorage.getItem(TOKEN_KEY) || '',
+  // On a centre, the site whose uploaded copy is shown (`#site=NAME`); null: this service's own.
+  site: siteOfHash(),
 };
+
+// The site named by the page's address (`#site=ship-1`), or null.
+function siteOfHash() {
+  const m = /^#site=([a-z0-9_-]+)$/.exec(location.hash);
+  return m ? m[1] : null;
+}
+
+// Where the per-target endpoints are: this service's own, or a site's copy at a centre.
+export function apiBase() {
+  return state.site ? '/api/v1/sites/' + encodeURIComponent(state.site) : '/api/v1';
+}
 
 // messages
 

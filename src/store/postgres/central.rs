@@ -19,7 +19,7 @@ use super::{CONNECT_TIMEOUT, MIGRATOR, options_of};
 use crate::config::{PostgresUrl, SiteName};
 use sqlx::postgres::{PgConnectOptions, PgConnection, PgPool, PgPoolOptions};
 use sqlx::{ConnectOptions, Connection};
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 
 /// The centre's own migrations (`migrations-central/`), applied in the schema `fleet`.
 pub static FLEET_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migrations-central");
@@ -109,6 +109,8 @@ pub struct Central {
     options: PgConnectOptions,
     /// Sites whose schema is ready (made and migrated) since start, by id.
     prepared: tokio::sync::Mutex<HashSet<i64>>,
+    /// Per site (by id), a small read pool in the site's schema, made on first use.
+    readers: tokio::sync::Mutex<HashMap<i64, super::Reader>>,
 }
 
 /// The schema of a site's rows.
@@ -247,6 +249,7 @@ impl Central {
             pool,
             options,
             prepared: tokio::sync::Mutex::new(HashSet::new()),
+            readers: tokio::sync::Mutex::new(HashMap::new()),
         })
     }
 
@@ -449,6 +452,87 @@ impl Central {
                 },
             )
             .collect())
+    }
+
+    /// The store's read side over a site's copy, and the names of the site's targets by index:
+    /// `described` first (the site's installation, in its order), then any other target the
+    /// site's rows name (one its installation no longer has). `None` before the site's first
+    /// upload.
+    pub async fn site_store(
+        &self,
+        site: &SiteName,
+        described: &[String],
+    ) -> StoreResult<Option<(super::super::Store, Vec<String>)>> {
+        let row: Option<(i64,)> = sqlx::query_as("select site_id from fleet.sites where site = $1")
+            .bind(site.as_str())
+            .fetch_optional(&self.pool)
+            .await?;
+        let Some((site_id,)) = row else {
+            return Ok(None);
+        };
+        // The schema exists once the site's first batch was applied; before, nothing to read.
+        let schema = site_schema(site_id);
+        let (ready,): (bool,) = sqlx::query_as(
+            "select exists (select 1 from information_schema.tables \
+             where table_schema = $1 and table_name = 'targets')",
+        )
+        .bind(&schema)
+        .fetch_one(&self.pool)
+        .await?;
+        if !ready {
+            return Ok(None);
+        }
+        let reader = {
+            let mut readers = self.readers.lock().await;
+            match readers.get(&site_id) {
+                Some(r) => r.clone(),
+                None => {
+                    let options = self
+                        .options
+                        .clone()
+                        .options([("search_path", schema.as_str())]);
+                    let pool = PgPoolOptions::new()
+                        .max_connections(2)
+                        .acquire_timeout(CONNECT_TIMEOUT)
+                        .connect_lazy_with(options.clone());
+                    let r = super::Reader {
+                        pool,
+                        health_conn: std::sync::Arc::new(tokio::sync::Mutex::new(None)),
+                        options: std::sync::Arc::new(options),
+                    };
+                    readers.insert(site_id, r.clone());
+                    r
+                }
+            }
+        };
+        let registered: Vec<(i64, String)> =
+            sqlx::query_as("select target_id, name from targets order by target_id")
+                .fetch_all(&reader.pool)
+                .await?;
+        let mut names: Vec<String> = described.to_vec();
+        names.extend(
+            registered
+                .iter()
+                .filter(|(_, n)| !described.contains(n))
+                .map(|(_, n)| n.clone()),
+        );
+        // A described target with no row yet has no results: an id no row holds.
+        let target_ids: Vec<i64> = names
+            .iter()
+            .map(|n| {
+                registered
+                    .iter()
+                    .find(|(_, r)| r == n)
+                    .map_or(-1, |(id, _)| *id)
+            })
+            .collect();
+        let store = super::super::Store {
+            reader: super::super::Reader::Postgres(reader),
+            writer: std::sync::Arc::new(super::super::WriterHealth::default()),
+            link_ids: std::sync::Arc::from(Vec::<i64>::new()),
+            target_ids: target_ids.into(),
+        };
+        Ok(Some((store, names)))
     }
 
     /// Whether the database answers (for the health check).

@@ -237,7 +237,7 @@ async fn targets_answer_each_paths_frames_and_the_thresholds() {
 }
 
 /// What the browser test needs: Node.js, playwright-core under `tests/browser`, and Chromium.
-struct Browser {
+pub(crate) struct Browser {
     node: PathBuf,
     chromium: PathBuf,
     dir: PathBuf,
@@ -252,7 +252,7 @@ fn on_path(name: &str) -> Option<PathBuf> {
 }
 
 /// Finds the browser tools, or says what is missing and how `scripts/test` installs it.
-fn browser() -> Browser {
+pub(crate) fn browser() -> Browser {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/browser");
     let node = on_path("node").expect(
         "the dashboard test needs Node.js (`node`): `scripts/test` installs it (Debian: nodejs npm)",
@@ -410,7 +410,7 @@ async fn the_dashboard_works_in_a_real_browser() {
 
 /// Runs a script of `tests/browser` with Node.js, prints what it said, and fails the test unless
 /// every check of the script passed.
-async fn run_script(tools: Browser, script: &str, args: Vec<std::ffi::OsString>) {
+pub(crate) async fn run_script(tools: Browser, script: &str, args: Vec<std::ffi::OsString>) {
     let path = tools.dir.join(script);
     let output = tokio::task::spawn_blocking(move || {
         std::process::Command::new(&tools.node)
@@ -509,6 +509,6 @@ fn now_ns() -> i64 {
         .as_nanos() as i64
 }
 
-fn artifacts_dir() -> PathBuf {
+pub(crate) fn artifacts_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/artifacts")
 }

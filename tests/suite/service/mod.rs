@@ -5,7 +5,7 @@ mod alarms;
 mod calibrated_cameras;
 mod calibration;
 mod cameras;
-mod dashboard;
+pub(crate) mod dashboard;
 mod frames;
 mod hardening;
 pub mod helpers;

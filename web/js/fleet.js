@@ -1,0 +1,74 @@
+// The fleet panel, on a centre: every site with its last contact, backlog, targets and worst
+// alarm, from /api/v1/sites; a site opens in the page's views (`#site=NAME`), answered from
+// its uploaded copy. Hidden on a service that is no centre (only a centre's `/healthz` says
+// `centre`).
+
+import { $, clearMessage, el, fmtAge, fmtTime, parseTime, showMessage, state } from './util.js';
+import { api } from './api.js';
+
+// A site not heard from for this long is marked late (its link or the site is down).
+const LATE_CONTACT_S = 120;
+
+function badge(value) {
+  return el('span', { class: 'badge ' + value, text: value });
+}
+
+function siteRow(s) {
+  const age = (Date.now() - parseTime(s.last_contact)) / 1000;
+  const backlog = Object.entries(s.backlog || {})
+    .map(([tier, rows]) => `${tier} ${rows}`).join(' · ') || '—';
+  const targets = el('td', {});
+  for (const t of s.targets || []) {
+    targets.append(el('span', { class: 'site-target' }, t.name + ' ', badge(t.status)), ' ');
+  }
+  if (!(s.targets || []).length) targets.textContent = '—';
+  const open = el('a', { href: '#site=' + encodeURIComponent(s.site), text: 'Open', 'data-open-site': s.site });
+  if (state.site === s.site) open.setAttribute('aria-current', 'page');
+  return el('tr', { 'data-site': s.site },
+    el('th', { scope: 'row', text: s.site }),
+    el('td', { class: age > LATE_CONTACT_S ? 'late' : '', title: fmtTime(parseTime(s.last_contact)) + ' UTC' },
+      fmtAge(age) + ' ago'),
+    el('td', {}, badge(s.alarm)),
+    targets,
+    el('td', { class: 'num', text: backlog }),
+    el('td', {}, open));
+}
+
+async function loadSites() {
+  const answer = await api('/api/v1/sites');
+  $('fleet').hidden = false;
+  const body = $('sites').tBodies[0];
+  body.textContent = '';
+  for (const s of answer.sites) body.append(siteRow(s));
+  if (!answer.sites.length) {
+    body.append(el('tr', { class: 'empty' }, el('td', { colspan: '6', text: 'No site has uploaded yet.' })));
+  }
+  document.body.dataset.sitesLoads = String(Number(document.body.dataset.sitesLoads || 0) + 1);
+  clearMessage('fleet');
+}
+
+// Whether this service is a centre: `/healthz` (open, no token) says so.
+async function isCentre() {
+  const response = await fetch('/healthz');
+  const health = await response.json();
+  return health.centre === true;
+}
+
+let timer = null;
+export async function startFleet() {
+  if (timer !== null) return;
+  let centre = false;
+  try {
+    centre = await isCentre();
+  } catch (e) {
+    showMessage('fleet', 'Cannot ask the service whether it is a centre: ' + e.message);
+    return;
+  }
+  if (!centre) return;
+  const tick = () => {
+    if (document.hidden) return;
+    loadSites().catch((e) => { if (e.status !== 401) showMessage('fleet', 'Fleet: ' + e.message); });
+  };
+  tick();
+  timer = setInterval(tick, 5000);
+}
