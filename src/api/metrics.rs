@@ -61,6 +61,16 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             &m.alarm_feed_dropped,
         ),
         (
+            "brokenray_centre_upkeep_failed_total",
+            "On a centre: passes of the sites' upkeep (retention, partitions) that failed.",
+            &m.centre_upkeep_failed,
+        ),
+        (
+            "brokenray_centre_rows_pruned_total",
+            "On a centre: sites' rows removed by its retention.",
+            &m.centre_rows_pruned,
+        ),
+        (
             "brokenray_commits_failed_total",
             "Transactions that failed; their requests were refused.",
             &m.commits_failed,

@@ -499,6 +499,56 @@ pub struct App {
     state: AppState,
 }
 
+/// Starts the centre's upkeep of its sites' copies (retention per tier, partitions): at start,
+/// then every ten minutes, until the service stops. A failed pass is logged and counted, and
+/// the next one tries again.
+fn spawn_centre_upkeep(state: &AppState) -> Option<tokio::task::JoinHandle<()>> {
+    let central = Arc::clone(state.central.as_ref()?);
+    let settings = state.service.installation().fleet.central?;
+    let service = state.service.clone();
+    let mut stopping = service.stopping();
+    Some(tokio::spawn(async move {
+        let mut every = tokio::time::interval(Duration::from_secs(600));
+        every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                _ = every.tick() => {}
+                _ = stopping.changed() => return,
+            }
+            if *stopping.borrow() {
+                return;
+            }
+            let pass = central.maintain(service.now_ns(), settings.raw_days, settings.results_days);
+            match pass.await {
+                Ok(sites) => {
+                    let pruned: u64 = sites
+                        .iter()
+                        .map(|s| s.samples + s.raw_results + s.results)
+                        .sum();
+                    service
+                        .metrics()
+                        .centre_rows_pruned
+                        .fetch_add(pruned, std::sync::atomic::Ordering::Relaxed);
+                    for s in sites
+                        .iter()
+                        .filter(|s| s.samples + s.raw_results + s.results > 0)
+                    {
+                        tracing::info!(site = %s.site, samples = s.samples, raw_results = s.raw_results,
+                            results = s.results, "the centre's retention pruned a site's old rows");
+                    }
+                }
+                Err(e) => {
+                    service
+                        .metrics()
+                        .centre_upkeep_failed
+                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    tracing::warn!(error = %e, "the centre's upkeep of its sites failed; trying again in ten minutes");
+                }
+            }
+        }
+    }))
+}
+
 /// Starts the uploader of a site that pushes to a centre.
 fn spawn_uploader(state: &AppState) -> Option<tokio::task::JoinHandle<()>> {
     let upstream = Arc::clone(state.upstream.as_ref()?);
@@ -567,6 +617,7 @@ impl App {
         let store = self.service.store().clone();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let uploader = spawn_uploader(&state);
+        let upkeep = spawn_centre_upkeep(&state);
         let service = self.service.clone();
         tokio::spawn(async move {
             shutdown.await;
@@ -577,6 +628,9 @@ impl App {
         // The uploader holds a service handle; it ends when shutdown begins.
         if let Some(uploader) = uploader {
             let _ = uploader.await;
+        }
+        if let Some(upkeep) = upkeep {
+            let _ = upkeep.await;
         }
         // Handlers are done: dropping the last service handle closes the job queue, and the
         // pipeline commits what is queued before it stops.

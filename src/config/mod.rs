@@ -155,6 +155,10 @@ impl std::fmt::Debug for UpstreamSettings {
 pub struct CentralSettings {
     /// Largest upload once decompressed (bytes).
     pub max_sync_bytes: usize,
+    /// Sites' raw tier (samples and raw results) kept this long (days, the centre's clock).
+    pub raw_days: f64,
+    /// Sites' filtered results kept this long (days); rollups and the events tier stay.
+    pub results_days: f64,
 }
 
 /// Where the history is kept (`[server] database`).

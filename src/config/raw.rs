@@ -55,6 +55,8 @@ pub(super) struct RawUpstream {
 pub(super) struct RawCentral {
     pub enabled: bool,
     pub max_sync_mb: Option<f64>,
+    pub raw_days: Option<f64>,
+    pub results_days: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

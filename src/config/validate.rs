@@ -390,8 +390,25 @@ impl Validator {
                 }
                 let max_sync_mb = s.get_ref().max_sync_mb.unwrap_or(256.0);
                 ok &= self.positive(at, "central.max_sync_mb", max_sync_mb);
+                let raw_days = s.get_ref().raw_days.unwrap_or(30.0);
+                let results_days = s.get_ref().results_days.unwrap_or(365.0);
+                ok &= self.positive(at, "central.raw_days", raw_days);
+                ok &= self.positive(at, "central.results_days", results_days);
+                if raw_days > results_days {
+                    self.problem(
+                        at,
+                        format!(
+                            "central.raw_days ({raw_days}) is longer than central.results_days \
+                             ({results_days}): raw results share the results' daily partitions, \
+                             which go at results_days"
+                        ),
+                    );
+                    ok = false;
+                }
                 Some(CentralSettings {
                     max_sync_bytes: (max_sync_mb * 1e6) as usize,
+                    raw_days,
+                    results_days,
                 })
             }
             _ => None,

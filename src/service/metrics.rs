@@ -26,6 +26,10 @@ pub struct Metrics {
     pub commit_micros_max: AtomicU64,
     /// Alarm transitions the notification queue had no room for (never sent).
     pub alarm_feed_dropped: AtomicU64,
+    /// On a centre: passes of its sites' upkeep (retention, partitions) that failed.
+    pub centre_upkeep_failed: AtomicU64,
+    /// On a centre: sites' rows its retention removed.
+    pub centre_rows_pruned: AtomicU64,
 }
 
 impl Metrics {

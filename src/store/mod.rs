@@ -35,7 +35,9 @@ mod rows;
 pub mod sqlite;
 
 pub use codec::{Quality, SampleValues, StoredUncertainty};
-pub use postgres::central::{Central, SiteRecord, SiteUpload, StreamRecord, SyncOutcome};
+pub use postgres::central::{
+    Central, SiteRecord, SiteUpkeep, SiteUpload, StreamRecord, SyncOutcome,
+};
 pub use rows::{
     Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample,
 };

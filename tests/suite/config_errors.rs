@@ -466,6 +466,20 @@ fn fleet_settings_are_checked_and_each_mistake_named() {
         ),
         (
             format!(
+                "[server]\ndatabase = \"postgres://u@h/db\"\n{VALID}\n[central]\nenabled = true\nraw_days = 400\n"
+            ),
+            "[central]",
+            "central.raw_days (400) is longer than central.results_days (365)",
+        ),
+        (
+            format!(
+                "[server]\ndatabase = \"postgres://u@h/db\"\n{VALID}\n[central]\nenabled = true\nresults_days = -1\n"
+            ),
+            "[central]",
+            "central.results_days must be a positive number",
+        ),
+        (
+            format!(
                 "{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"http://c\"\ntoken = \"a\"\ntoken_file = \"b\"\n"
             ),
             "[upstream]",

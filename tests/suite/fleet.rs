@@ -244,7 +244,7 @@ fn installation(
 fn centre_installation(dir: &std::path::Path) -> (std::path::PathBuf, String) {
     let url = postgres::fresh_database();
     let extra = format!(
-        "[central]\nenabled = true\n\n\
+        "[central]\nenabled = true\nraw_days = 36500\nresults_days = 36500\n\n\
          [[auth.tokens]]\nname = \"ship-1\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"{SITE}\"\n\n\
          [[auth.tokens]]\nname = \"office\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n",
         brokenray::api::sha256_hex(SYNC_TOKEN),
@@ -829,7 +829,118 @@ async fn a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill()
     .await;
     assert_eq!(u["tiers"][1]["backlog"]["rows"], 0, "{u:#}");
     drop(site);
+    the_centres_upkeep_moves_past_days_and_prunes_per_tier(&centre_url, &site_db).await;
     drop(centre);
+}
+
+/// Counts of the centre's copy of the site: samples, raw and filtered results, rollups, alarms,
+/// references; and the rows in the default partitions.
+async fn copy_counts(pool: &sqlx::PgPool, schema: &str) -> ([i64; 6], i64) {
+    let mut counts = [0i64; 6];
+    for (i, q) in [
+        "select count(*) from {s}.samples",
+        "select count(*) from {s}.results where source = 0",
+        "select count(*) from {s}.results where source = 1",
+        "select count(*) from {s}.rollups",
+        "select count(*) from {s}.alarms",
+        "select count(*) from {s}.target_references",
+    ]
+    .iter()
+    .enumerate()
+    {
+        counts[i] = sqlx::query_scalar(&q.replace("{s}", schema))
+            .fetch_one(pool)
+            .await
+            .unwrap();
+    }
+    let mut stray = 0i64;
+    for t in ["samples", "results", "rollups"] {
+        let n: i64 = sqlx::query_scalar(&format!("select count(*) from {schema}.{t}_default"))
+            .fetch_one(pool)
+            .await
+            .unwrap();
+        stray += n;
+    }
+    (counts, stray)
+}
+
+/// The centre's upkeep on the copy the site just delivered (hours of a past day): its own pass
+/// at its restart left no row in a default partition; a pass that prunes nothing leaves the
+/// copy equal to the site's; then the raw tier goes past its days while filtered results,
+/// rollups, alarms and references stay; then filtered results go past theirs, rollups and the
+/// events tier still staying.
+async fn the_centres_upkeep_moves_past_days_and_prunes_per_tier(
+    centre_url: &str,
+    site_db: &std::path::Path,
+) {
+    let url = brokenray::config::PostgresUrl::parse(centre_url).unwrap();
+    let central = brokenray::store::Central::open(&url).await.unwrap();
+    let pool = sqlx::PgPool::connect(centre_url).await.unwrap();
+    let id: i64 = sqlx::query_scalar("select site_id from fleet.sites where site = $1")
+        .bind(SITE)
+        .fetch_one(&pool)
+        .await
+        .unwrap();
+    let schema = format!("site_{id}");
+    let newest: i64 = sqlx::query_scalar(&format!("select max(time_ns) from {schema}.samples"))
+        .fetch_one(&pool)
+        .await
+        .unwrap();
+    let (before, stray) = copy_counts(&pool, &schema).await;
+    // The first 500 groups landed in the default partitions (their day is before the copy's
+    // first partition); the centre's own pass when it came back moved them into a partition
+    // of their day, where the catch-up then landed.
+    assert_eq!(stray, 0, "rows left in the default partitions");
+    let day_partitions: i64 = sqlx::query_scalar(
+        "select count(*) from information_schema.tables where table_schema = $1 \
+         and table_name like 'samples_p%'",
+    )
+    .bind(&schema)
+    .fetch_one(&pool)
+    .await
+    .unwrap();
+    assert!(
+        day_partitions > 30,
+        "the coming days' and the past day's: {day_partitions}"
+    );
+    assert!(before[..5].iter().all(|&n| n > 0), "{before:?}");
+
+    const DAY: i64 = 86_400_000_000_000;
+    let pass = central
+        .maintain(newest + DAY / 24, 30.0, 365.0)
+        .await
+        .unwrap();
+    assert_eq!(pass.len(), 1);
+    assert_eq!(
+        (pass[0].samples, pass[0].raw_results, pass[0].results),
+        (0, 0, 0)
+    );
+    let (after, stray) = copy_counts(&pool, &schema).await;
+    assert_eq!(
+        (after, stray),
+        (before, 0),
+        "moved into their day's partitions"
+    );
+    copies_equal(site_db, centre_url).await.unwrap();
+
+    // A day and an hour later, raw kept one day, results two: the raw tier goes.
+    let pass = central
+        .maintain(newest + DAY + DAY / 24, 1.0, 2.0)
+        .await
+        .unwrap();
+    assert_eq!(
+        (pass[0].samples, pass[0].raw_results, pass[0].results),
+        (before[0] as u64, before[1] as u64, 0)
+    );
+    let (after, _) = copy_counts(&pool, &schema).await;
+    assert_eq!(after, [0, 0, before[2], before[3], before[4], before[5]]);
+
+    // Three days later: the filtered results go too; rollups and the events tier stay.
+    let pass = central.maintain(newest + 3 * DAY, 1.0, 2.0).await.unwrap();
+    assert_eq!(pass[0].results, before[2] as u64);
+    let (after, _) = copy_counts(&pool, &schema).await;
+    assert_eq!(after, [0, 0, 0, before[3], before[4], before[5]]);
+    pool.close().await;
 }
 
 /// Posts an upload (zstd-compressed JSON) to the centre with `token`.

@@ -85,6 +85,19 @@ pub struct SiteRecord {
     pub streams: Vec<StreamRecord>,
 }
 
+/// What one pass of the centre's upkeep removed from a site's copy.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SiteUpkeep {
+    /// The site.
+    pub site: String,
+    /// Samples removed (older than the raw tier's days).
+    pub samples: u64,
+    /// Raw results removed (older than the raw tier's days).
+    pub raw_results: u64,
+    /// Results removed (older than the results' days; raw ones among them too).
+    pub results: u64,
+}
+
 /// One tier of one site at the centre.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct StreamRecord {
@@ -533,6 +546,65 @@ impl Central {
             target_ids: target_ids.into(),
         };
         Ok(Some((store, names)))
+    }
+
+    /// Upkeep of every site's copy, one site at a time, each in one transaction that holds the
+    /// site's uploads back meanwhile: the raw tier (samples, raw results) before
+    /// `now_ns - raw_days` and filtered results before `now_ns - results_days` are removed
+    /// (whole daily partitions dropped where they can be), rollups and the events tier stay;
+    /// then rows that landed in a default partition (a site catching up on past days) move
+    /// into their day's, and the coming days' partitions are made. Returns what went, per site.
+    pub async fn maintain(
+        &self,
+        now_ns: i64,
+        raw_days: f64,
+        results_days: f64,
+    ) -> StoreResult<Vec<SiteUpkeep>> {
+        let days = |d: f64| now_ns.saturating_sub((d * 86_400e9) as i64);
+        let (raw_cutoff_ns, results_cutoff_ns) = (days(raw_days), days(results_days));
+        let sites: Vec<(String, i64)> =
+            sqlx::query_as("select site, site_id from fleet.sites order by site")
+                .fetch_all(&self.pool)
+                .await?;
+        let mut out = Vec::with_capacity(sites.len());
+        for (site, site_id) in sites {
+            let schema = site_schema(site_id);
+            let (ready,): (bool,) = sqlx::query_as(
+                "select exists (select 1 from information_schema.tables \
+                 where table_schema = $1 and table_name = 'samples')",
+            )
+            .bind(&schema)
+            .fetch_one(&self.pool)
+            .await?;
+            if !ready {
+                continue;
+            }
+            let mut tx = self.pool.begin().await?;
+            sqlx::query(&format!("set local search_path to {schema}"))
+                .execute(&mut *tx)
+                .await?;
+            // The site's uploads wait (they lock these rows) while its partitions change.
+            sqlx::query("select tier from fleet.streams where site = $1 for update")
+                .bind(&site)
+                .execute(&mut *tx)
+                .await?;
+            let samples = super::drop_before(&mut tx, "samples", raw_cutoff_ns).await?;
+            let raw_results = sqlx::query("delete from results where source = 0 and time_ns < $1")
+                .bind(raw_cutoff_ns)
+                .execute(&mut *tx)
+                .await?
+                .rows_affected();
+            let results = super::drop_before(&mut tx, "results", results_cutoff_ns).await?;
+            super::maintain(&mut tx).await?;
+            tx.commit().await?;
+            out.push(SiteUpkeep {
+                site,
+                samples,
+                raw_results,
+                results,
+            });
+        }
+        Ok(out)
     }
 
     /// Whether the database answers (for the health check).

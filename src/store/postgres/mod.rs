@@ -241,6 +241,43 @@ async fn maintain(conn: &mut PgConnection) -> StoreResult<()> {
     Ok(())
 }
 
+/// Removes the rows of `table` (partitioned on `time_ns`) before `cutoff_ns`: whole daily
+/// partitions that end before it are dropped, the rest deleted. Returns how many went.
+pub(super) async fn drop_before(
+    conn: &mut PgConnection,
+    table: &str,
+    cutoff_ns: i64,
+) -> StoreResult<u64> {
+    let parent = qualified(&mut *conn, table).await?;
+    let children: Vec<(String, i64)> = sqlx::query_as(
+        "select format('%I.%I', p.partition_schemaname, p.partition_tablename), i.child_end_id \
+         from partman.show_partitions($1) p, \
+         lateral partman.show_partition_info(format('%I.%I', p.partition_schemaname, \
+         p.partition_tablename), p_parent_table => $1) i",
+    )
+    .bind(&parent)
+    .fetch_all(&mut *conn)
+    .await?;
+    let mut gone = 0u64;
+    for (child, last_ns) in children {
+        if last_ns < cutoff_ns {
+            let (n,): (i64,) = sqlx::query_as(&format!("select count(*) from {child}"))
+                .fetch_one(&mut *conn)
+                .await?;
+            sqlx::query(&format!("drop table {child}"))
+                .execute(&mut *conn)
+                .await?;
+            gone += u64::try_from(n).unwrap_or(0);
+        }
+    }
+    gone += sqlx::query(&format!("delete from {table} where time_ns < $1"))
+        .bind(cutoff_ns)
+        .execute(&mut *conn)
+        .await?
+        .rows_affected();
+    Ok(gone)
+}
+
 impl Reader {
     /// What is wrong with the database, on the health check's own connection: it must answer
     /// a query within 2 s.

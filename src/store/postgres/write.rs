@@ -437,43 +437,10 @@ impl Tx<'_> {
         samples_before_ns: i64,
         results_before_ns: i64,
     ) -> StoreResult<(u64, u64)> {
-        let samples = self.drop_before("samples", samples_before_ns).await?;
-        let results = self.drop_before("results", results_before_ns).await?;
+        let samples = super::drop_before(&mut *self.conn, "samples", samples_before_ns).await?;
+        let results = super::drop_before(&mut *self.conn, "results", results_before_ns).await?;
         super::maintain(&mut *self.conn).await?;
         Ok((samples, results))
-    }
-
-    /// Removes the rows of `table` (partitioned on `time_ns`) before `cutoff_ns`; returns how
-    /// many went.
-    async fn drop_before(&mut self, table: &str, cutoff_ns: i64) -> StoreResult<u64> {
-        let parent = super::qualified(&mut *self.conn, table).await?;
-        let children: Vec<(String, i64)> = sqlx::query_as(
-            "select format('%I.%I', p.partition_schemaname, p.partition_tablename), i.child_end_id \
-             from partman.show_partitions($1) p, \
-             lateral partman.show_partition_info(format('%I.%I', p.partition_schemaname, \
-             p.partition_tablename), p_parent_table => $1) i",
-        )
-        .bind(&parent)
-        .fetch_all(&mut *self.conn)
-        .await?;
-        let mut gone = 0u64;
-        for (child, last_ns) in children {
-            if last_ns < cutoff_ns {
-                let (n,): (i64,) = sqlx::query_as(&format!("select count(*) from {child}"))
-                    .fetch_one(&mut *self.conn)
-                    .await?;
-                sqlx::query(&format!("drop table {child}"))
-                    .execute(&mut *self.conn)
-                    .await?;
-                gone += u64::try_from(n).unwrap_or(0);
-            }
-        }
-        gone += sqlx::query(&format!("delete from {table} where time_ns < $1"))
-            .bind(cutoff_ns)
-            .execute(&mut *self.conn)
-            .await?
-            .rows_affected();
-        Ok(gone)
     }
 
     pub(in crate::store) async fn results_in(
