@@ -211,6 +211,9 @@ pub struct SiteOut {
     pub alarm: &'static str,
     /// When the site made its last report (its clock).
     pub reported: Option<String>,
+    /// What is wrong at the site, as it last reported (the disk budget removed rows before
+    /// their time, some never sent).
+    pub problems: Vec<String>,
     /// Per tier, what the centre has.
     pub tiers: Vec<SiteTierOut>,
 }
@@ -267,6 +270,10 @@ pub async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, A
                     .map(|b| (b.tier.name().to_owned(), b.rows))
                     .collect(),
                 alarm,
+                problems: status
+                    .as_ref()
+                    .map(|s| s.problems.clone())
+                    .unwrap_or_default(),
                 reported: status.map(|s| s.time),
                 targets,
                 tiers: r

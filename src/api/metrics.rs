@@ -71,6 +71,16 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             &m.centre_rows_pruned,
         ),
         (
+            "brokenray_budget_rows_removed_total",
+            "Rows the disk budget removed before their retention age.",
+            &m.budget_rows_removed,
+        ),
+        (
+            "brokenray_budget_unsent_removed_total",
+            "Rows the disk budget removed that the centre had not acknowledged.",
+            &m.budget_unsent_removed,
+        ),
+        (
             "brokenray_commits_failed_total",
             "Transactions that failed; their requests were refused.",
             &m.commits_failed,
@@ -182,6 +192,22 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         "counter",
         "Outliers of a measured link.",
     );
+    if let Some(budget) = inst.retention.disk_budget_bytes {
+        single(
+            &mut out,
+            "brokenray_disk_budget_bytes",
+            "gauge",
+            "The SQLite file's disk budget (`[retention] disk_budget_mb`).",
+            budget,
+        );
+        single(
+            &mut out,
+            "brokenray_database_used_bytes",
+            "gauge",
+            "The SQLite file's bytes in use at the last retention pass (every ten minutes).",
+            Metrics::get(&m.database_used_bytes),
+        );
+    }
     family(
         &mut out,
         "brokenray_link_rate_hz",

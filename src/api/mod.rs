@@ -140,6 +140,11 @@ pub struct HealthOut {
     /// 200.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub upstream_problem: Option<String>,
+    /// The last time the disk budget (`[retention] disk_budget_mb`) removed rows younger than
+    /// their retention, and what (rows the centre had not acknowledged among them). History
+    /// was lost; the service works on: the answer stays 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub storage_problem: Option<String>,
     /// True on a fleet's centre (it serves `GET /api/v1/sites`); absent otherwise. The
     /// dashboard reads it to show the fleet.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
@@ -211,6 +216,7 @@ async fn healthz(
             writer,
             problem,
             upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
+            storage_problem: app.service.storage_problem(),
             centre: app.central.is_some(),
             targets,
         }),

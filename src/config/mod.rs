@@ -77,6 +77,10 @@ pub struct RetentionSettings {
     pub samples_days: f64,
     /// Raw and filtered results (days); rollups stay.
     pub results_days: f64,
+    /// The most the SQLite file may hold (bytes in use); past it the oldest samples and raw
+    /// results go, then the oldest filtered results, whatever their age or upload (`None`: no
+    /// budget).
+    pub disk_budget_bytes: Option<u64>,
 }
 
 /// A site's name in a fleet (`[site] name`): 1 to 48 characters, lowercase letters, digits,

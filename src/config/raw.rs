@@ -80,6 +80,7 @@ pub(super) struct RawPnp {
 pub(super) struct RawRetention {
     pub samples_days: Option<f64>,
     pub results_days: Option<f64>,
+    pub disk_budget_mb: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

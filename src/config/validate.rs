@@ -153,7 +153,7 @@ impl Validator {
         let auth = self.auth(&raw);
         let notify = self.notify(&raw);
         let filter = self.bank_settings(&raw);
-        let retention = self.retention(&raw);
+        let retention = self.retention(&raw, server.as_ref());
         let frames = self.frames(&raw);
         let pnp = self.pnp(&raw);
         let fleet = self.fleet(&raw, server.as_ref());
@@ -260,7 +260,11 @@ impl Validator {
         })
     }
 
-    fn retention(&mut self, raw: &RawFile) -> Option<RetentionSettings> {
+    fn retention(
+        &mut self,
+        raw: &RawFile,
+        server: Option<&ServerSettings>,
+    ) -> Option<RetentionSettings> {
         let empty = raw::RawRetention::default();
         let (at, r) = match &raw.retention {
             Some(s) => (s.span().start, s.get_ref()),
@@ -268,11 +272,28 @@ impl Validator {
         };
         let samples_days = r.samples_days.unwrap_or(90.0);
         let results_days = r.results_days.unwrap_or(90.0);
-        let ok = self.positive(at, "retention.samples_days", samples_days)
+        let mut ok = self.positive(at, "retention.samples_days", samples_days)
             & self.positive(at, "retention.results_days", results_days);
+        let disk_budget_bytes = match r.disk_budget_mb {
+            None => None,
+            Some(mb) => {
+                ok &= self.positive(at, "retention.disk_budget_mb", mb);
+                if server.is_some_and(|s| s.database.sqlite_path().is_none()) {
+                    self.problem(
+                        at,
+                        "retention.disk_budget_mb applies to an SQLite file; a PostgreSQL \
+                         server's disk is its own administrator's business"
+                            .into(),
+                    );
+                    ok = false;
+                }
+                Some((mb * 1e6) as u64)
+            }
+        };
         ok.then_some(RetentionSettings {
             samples_days,
             results_days,
+            disk_budget_bytes,
         })
     }
 

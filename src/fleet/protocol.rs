@@ -74,6 +74,10 @@ pub struct SiteStatus {
     /// from sites of earlier versions.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub described: Vec<TargetDescription>,
+    /// What is wrong at the site that the office must know: the disk budget removed rows
+    /// before their time (some never sent).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub problems: Vec<String>,
 }
 
 /// A step of a path: a link, taken as stored or inverted.

@@ -170,6 +170,7 @@ fn site_status(service: &Service) -> SiteStatus {
             })
             .collect(),
         described: super::protocol::describe_targets(&inst.model),
+        problems: service.storage_problem().into_iter().collect(),
     }
 }
 

@@ -30,6 +30,12 @@ pub struct Metrics {
     pub centre_upkeep_failed: AtomicU64,
     /// On a centre: sites' rows its retention removed.
     pub centre_rows_pruned: AtomicU64,
+    /// Rows the disk budget removed before their retention age.
+    pub budget_rows_removed: AtomicU64,
+    /// Of those, rows the centre had not acknowledged.
+    pub budget_unsent_removed: AtomicU64,
+    /// The SQLite file's bytes in use at the last retention pass under a disk budget.
+    pub database_used_bytes: AtomicU64,
 }
 
 impl Metrics {

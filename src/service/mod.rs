@@ -274,7 +274,7 @@ pub(crate) enum Job {
         /// On a fleet's site: whether raw samples are uploaded (what is not yet acknowledged
         /// is then kept); `None` when nothing is uploaded.
         upstream_raw: Option<bool>,
-        reply: oneshot::Sender<ServiceResult<(u64, u64)>>,
+        reply: oneshot::Sender<ServiceResult<Pruned>>,
     },
     RecordAck {
         tier: crate::store::outbox::Tier,
@@ -333,6 +333,19 @@ struct Inner {
     /// Bounds the reads that stream over many rows (statistics, fine history), so that they
     /// cannot take every read connection.
     heavy_reads: Arc<tokio::sync::Semaphore>,
+    /// The last removal the disk budget forced (see [`Service::storage_problem`]).
+    storage_problem: std::sync::Mutex<Option<String>>,
+}
+
+/// What one pass of retention removed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Pruned {
+    /// Samples older than their retention.
+    pub samples: u64,
+    /// Results older than theirs.
+    pub results: u64,
+    /// With a disk budget: what it made go beyond the ages (and the bytes in use).
+    pub budget: Option<crate::store::BudgetCut>,
 }
 
 /// The running service: a handle that request handlers clone.
@@ -496,6 +509,7 @@ impl Service {
             stopping: tokio::sync::watch::channel(false).0,
             clock: Arc::clone(&clock),
             alarm_feed: std::sync::Mutex::new(alarm_rx),
+            storage_problem: std::sync::Mutex::new(None),
             heavy_reads: Arc::new(tokio::sync::Semaphore::new(
                 installation.server.max_heavy_reads,
             )),
@@ -694,15 +708,72 @@ impl Service {
     /// Deletes samples and results older than the retention ages (counted back from the newest
     /// result, or from the server's clock when that is earlier); rollups stay. Returns how many `(samples, results)` were deleted.
     pub async fn prune(&self) -> ServiceResult<(u64, u64)> {
+        let p = self.prune_report().await?;
+        Ok((p.samples, p.results))
+    }
+
+    /// One pass of retention, as [`Service::prune`], with what the disk budget made it remove
+    /// beyond the ages. When the budget removed rows, that is kept as the storage problem
+    /// ([`Service::storage_problem`]), logged as an error and counted in the metrics.
+    pub async fn prune_report(&self) -> ServiceResult<Pruned> {
         let retention = self.inner.installation.retention;
         let upstream_raw =
             (self.inner.installation.fleet.upstream.as_ref()).map(|u| u.raw_kbit_s > 0.0);
-        self.submit(|reply| Job::Prune {
-            retention,
-            upstream_raw,
-            reply,
-        })
-        .await
+        let pruned = self
+            .submit(|reply| Job::Prune {
+                retention,
+                upstream_raw,
+                reply,
+            })
+            .await?;
+        if let (Some(cut), Some(budget)) = (pruned.budget, retention.disk_budget_bytes)
+            && cut.rows() > 0
+        {
+            let m = self.metrics();
+            m.budget_rows_removed
+                .fetch_add(cut.rows(), std::sync::atomic::Ordering::Relaxed);
+            m.budget_unsent_removed
+                .fetch_add(cut.unsent, std::sync::atomic::Ordering::Relaxed);
+            let when =
+                |t: Option<i64>| t.map_or_else(|| "none".to_owned(), crate::clock::format_ns);
+            let problem = format!(
+                "the disk budget ({:.0} MB) forced removing {} rows younger than their retention \
+                 ({} samples, {} raw results before {}, {} filtered results before {}), {} of \
+                 them not yet acknowledged by the centre, at {}",
+                budget as f64 / 1e6,
+                cut.rows(),
+                cut.samples,
+                cut.raw_results,
+                when(cut.raw_before_ns),
+                cut.results,
+                when(cut.results_before_ns),
+                cut.unsent,
+                crate::clock::format_ns(self.now_ns()),
+            );
+            tracing::error!(problem = %problem, "storage budget reached");
+            *self
+                .inner
+                .storage_problem
+                .lock()
+                .unwrap_or_else(|p| p.into_inner()) = Some(problem);
+        }
+        if let Some(cut) = pruned.budget {
+            self.metrics()
+                .database_used_bytes
+                .store(cut.used_bytes_after, std::sync::atomic::Ordering::Relaxed);
+        }
+        Ok(pruned)
+    }
+
+    /// The last time the disk budget removed rows younger than their retention, and what: the
+    /// service works on (`/healthz` stays 200), but history was lost, and on a fleet's site
+    /// possibly rows the centre never received.
+    pub fn storage_problem(&self) -> Option<String> {
+        self.inner
+            .storage_problem
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// Records that the centre acknowledged `tier` up to the commit `seq` (in a commit of its

@@ -1,8 +1,8 @@
 //! The pipeline task: the one writer. See the module docs of [`crate::service`].
 
 use super::{
-    CurrentReference, ItemProblem, Job, ReferenceRequest, ServiceError, ServiceResult, Snapshot,
-    TargetView,
+    CurrentReference, ItemProblem, Job, Pruned, ReferenceRequest, ServiceError, ServiceResult,
+    Snapshot, TargetView,
 };
 use crate::bank::{BankRecord, FilterBank, Sample, TargetEstimate};
 use crate::chain::LinkId;
@@ -90,8 +90,8 @@ enum Pending {
     Calibration(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
     Reset(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
     Prune(
-        oneshot::Sender<ServiceResult<(u64, u64)>>,
-        ServiceResult<(u64, u64)>,
+        oneshot::Sender<ServiceResult<Pruned>>,
+        ServiceResult<Pruned>,
     ),
     Liveness(oneshot::Sender<ServiceResult<usize>>, ServiceResult<usize>),
     Acknowledge(oneshot::Sender<ServiceResult<()>>, ServiceResult<()>),
@@ -440,7 +440,7 @@ impl Pipeline {
                             .filter_map(|t| t.latest.as_ref().map(|l| l.time_ns))
                             .max()
                             .map(|n| n.min(now));
-                        let r = match newest {
+                        let (samples, results) = match newest {
                             Some(n) => {
                                 let days = |d: f64| (d * 86_400e9) as i64;
                                 tx.prune(
@@ -452,7 +452,16 @@ impl Pipeline {
                             }
                             None => (0, 0),
                         };
-                        *result = Ok(r);
+                        // Past the disk budget, the oldest rows go whatever their age.
+                        let budget = match retention.disk_budget_bytes {
+                            Some(b) => Some(tx.shrink_to_budget(b, keep).await?),
+                            None => None,
+                        };
+                        *result = Ok(Pruned {
+                            samples,
+                            results,
+                            budget,
+                        });
                     }
                     (
                         Work::AddCalibration {

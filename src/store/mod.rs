@@ -522,6 +522,34 @@ impl Store {
     }
 }
 
+/// What a disk budget made the retention remove beyond its ages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct BudgetCut {
+    /// Bytes of the file in use before.
+    pub used_bytes_before: u64,
+    /// And after.
+    pub used_bytes_after: u64,
+    /// Samples removed.
+    pub samples: u64,
+    /// Raw results removed.
+    pub raw_results: u64,
+    /// Filtered results removed.
+    pub results: u64,
+    /// Of those, rows the centre had not acknowledged (on a site whose tier is uploaded).
+    pub unsent: u64,
+    /// Samples and raw results before this time went (ns), when any did.
+    pub raw_before_ns: Option<i64>,
+    /// Filtered results before this time went (ns), when any did.
+    pub results_before_ns: Option<i64>,
+}
+
+impl BudgetCut {
+    /// Rows removed.
+    pub fn rows(&self) -> u64 {
+        self.samples + self.raw_results + self.results
+    }
+}
+
 /// A raw sample to store.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct NewSample {
@@ -835,6 +863,24 @@ impl WriteTx<'_> {
         match &mut self.tx {
             Tx::Sqlite(t) => t.prune(samples_before_ns, results_before_ns, keep).await,
             Tx::Postgres(t) => t.prune(samples_before_ns, results_before_ns).await,
+        }
+    }
+
+    /// Brings an SQLite file's bytes in use under 90 % of `budget_bytes` when they are over
+    /// it, the oldest raw rows first, then the oldest filtered results (see [`BudgetCut`]);
+    /// `keep` says what the centre has not acknowledged, to count what goes unsent. Nothing on
+    /// PostgreSQL (the configuration refuses a budget there).
+    pub async fn shrink_to_budget(
+        &mut self,
+        budget_bytes: u64,
+        keep: KeepUnsent,
+    ) -> StoreResult<BudgetCut> {
+        match &mut self.tx {
+            Tx::Sqlite(t) => {
+                t.shrink_to_budget(budget_bytes, keep, self.link_ids, self.target_ids)
+                    .await
+            }
+            Tx::Postgres(_) => Ok(BudgetCut::default()),
         }
     }
 

@@ -473,6 +473,18 @@ fn fleet_settings_are_checked_and_each_mistake_named() {
         ),
         (
             format!(
+                "[server]\ndatabase = \"postgres://u@h/db\"\n{VALID}\n[retention]\ndisk_budget_mb = 500\n"
+            ),
+            "[retention]",
+            "retention.disk_budget_mb applies to an SQLite file",
+        ),
+        (
+            format!("{VALID}\n[retention]\ndisk_budget_mb = 0\n"),
+            "[retention]",
+            "retention.disk_budget_mb must be a positive number",
+        ),
+        (
+            format!(
                 "[server]\ndatabase = \"postgres://u@h/db\"\n{VALID}\n[central]\nenabled = true\nresults_days = -1\n"
             ),
             "[central]",

@@ -22,6 +22,7 @@ function siteRow(s) {
     targets.append(el('span', { class: 'site-target' }, t.name + ' ', badge(t.status)), ' ');
   }
   if (!(s.targets || []).length) targets.textContent = '—';
+  for (const p of s.problems || []) targets.append(el('div', { class: 'site-problem', text: p }));
   const open = el('a', { href: '#site=' + encodeURIComponent(s.site), text: 'Open', 'data-open-site': s.site });
   if (state.site === s.site) open.setAttribute('aria-current', 'page');
   return el('tr', { 'data-site': s.site },

@@ -15,7 +15,7 @@ use super::super::rows::{
     RESULT_COLUMNS, RESULT_INSERT_COLUMNS, ResultColumns, ResultRow, RollupKey, RollupRow,
     SAMPLE_COLUMNS, SAMPLE_INSERT_COLUMNS, SampleColumns, SampleRow, VersionColumns,
 };
-use super::super::{StoreResult, WindowOrigin};
+use super::super::{BudgetCut, StoreResult, WindowOrigin};
 use super::{FileIdentity, check_identity};
 use sqlx::{ConnectOptions, Connection, QueryBuilder, Sqlite, SqliteConnection};
 use std::path::{Path, PathBuf};
@@ -356,6 +356,138 @@ impl Tx<'_> {
             .execute(&mut *self.conn)
             .await?;
         Ok((samples, results))
+    }
+
+    /// Bytes of the file in use (its pages less the free ones), as this transaction sees it.
+    async fn used_bytes(&mut self) -> StoreResult<u64> {
+        let (pages,): (i64,) = sqlx::query_as("pragma page_count")
+            .fetch_one(&mut *self.conn)
+            .await?;
+        let (free,): (i64,) = sqlx::query_as("pragma freelist_count")
+            .fetch_one(&mut *self.conn)
+            .await?;
+        let (size,): (i64,) = sqlx::query_as("pragma page_size")
+            .fetch_one(&mut *self.conn)
+            .await?;
+        Ok(u64::try_from((pages - free) * size).unwrap_or(0))
+    }
+
+    /// Brings the file's bytes in use under 90 % of `budget_bytes` when they are over it: an
+    /// hour at a time, the oldest samples and raw results go, then (when no raw row is left)
+    /// the oldest filtered results; rollups, alarms, references, calibrations and resets
+    /// stay. `keep` says what the centre has not acknowledged, to count what went unsent.
+    pub(in crate::store) async fn shrink_to_budget(
+        &mut self,
+        budget_bytes: u64,
+        keep: KeepUnsent,
+        link_ids: &[i64],
+        target_ids: &[i64],
+    ) -> StoreResult<BudgetCut> {
+        const HOUR_NS: i64 = 3_600_000_000_000;
+        let used = self.used_bytes().await?;
+        let mut cut = BudgetCut {
+            used_bytes_before: used,
+            used_bytes_after: used,
+            ..BudgetCut::default()
+        };
+        if used <= budget_bytes {
+            return Ok(cut);
+        }
+        let goal = budget_bytes / 10 * 9;
+        let unsent = |acked: Option<i64>| acked.unwrap_or(i64::MAX);
+        // Raw rows first (samples and raw results, one clock), then filtered results.
+        for filtered in [false, true] {
+            loop {
+                let mut oldest: Option<i64> = None;
+                let mut consider = |t: Option<i64>| {
+                    oldest = match (oldest, t) {
+                        (Some(a), Some(b)) => Some(a.min(b)),
+                        (a, b) => a.or(b),
+                    };
+                };
+                if !filtered {
+                    for id in link_ids {
+                        let (t,): (Option<i64>,) =
+                            sqlx::query_as("select min(time_ns) from samples where link_id = ?")
+                                .bind(id)
+                                .fetch_one(&mut *self.conn)
+                                .await?;
+                        consider(t);
+                    }
+                }
+                for id in target_ids {
+                    let (t,): (Option<i64>,) = sqlx::query_as(
+                        "select min(time_ns) from results where target_id = ? and source = ?",
+                    )
+                    .bind(id)
+                    .bind(i64::from(filtered))
+                    .fetch_one(&mut *self.conn)
+                    .await?;
+                    consider(t);
+                }
+                let Some(oldest) = oldest else { break };
+                let before_ns = oldest.saturating_add(HOUR_NS);
+                if !filtered {
+                    for id in link_ids {
+                        let (n,): (i64,) = sqlx::query_as(
+                            "select count(*) from samples where link_id = ? and time_ns < ? \
+                             and commit_seq > ?",
+                        )
+                        .bind(id)
+                        .bind(before_ns)
+                        .bind(unsent(keep.raw))
+                        .fetch_one(&mut *self.conn)
+                        .await?;
+                        cut.unsent += u64::try_from(n).unwrap_or(0);
+                        cut.samples +=
+                            sqlx::query("delete from samples where link_id = ? and time_ns < ?")
+                                .bind(id)
+                                .bind(before_ns)
+                                .execute(&mut *self.conn)
+                                .await?
+                                .rows_affected();
+                    }
+                }
+                let acked = if filtered { keep.results } else { keep.raw };
+                for id in target_ids {
+                    let (n,): (i64,) = sqlx::query_as(
+                        "select count(*) from results where target_id = ? and source = ? \
+                         and time_ns < ? and commit_seq > ?",
+                    )
+                    .bind(id)
+                    .bind(i64::from(filtered))
+                    .bind(before_ns)
+                    .bind(unsent(acked))
+                    .fetch_one(&mut *self.conn)
+                    .await?;
+                    cut.unsent += u64::try_from(n).unwrap_or(0);
+                    let gone = sqlx::query(
+                        "delete from results where target_id = ? and source = ? and time_ns < ?",
+                    )
+                    .bind(id)
+                    .bind(i64::from(filtered))
+                    .bind(before_ns)
+                    .execute(&mut *self.conn)
+                    .await?
+                    .rows_affected();
+                    if filtered {
+                        cut.results += gone;
+                    } else {
+                        cut.raw_results += gone;
+                    }
+                }
+                if filtered {
+                    cut.results_before_ns = Some(before_ns);
+                } else {
+                    cut.raw_before_ns = Some(before_ns);
+                }
+                cut.used_bytes_after = self.used_bytes().await?;
+                if cut.used_bytes_after <= goal {
+                    return Ok(cut);
+                }
+            }
+        }
+        Ok(cut)
     }
 
     /// Records that the centre acknowledged `tier` up to the commit `seq`.

@@ -271,3 +271,136 @@ async fn a_result_recomputed_at_the_same_time_counts_once_in_the_rollups(backend
     };
     approx::assert_abs_diff_eq!(mean(&fine), mean(&coarse), epsilon = 1e-9);
 }
+
+/// A site cut off from its centre with a disk budget: past it, every sample and raw result
+/// goes before the first filtered result does, the oldest first, whatever their age and
+/// though the centre never had them; rollups and references stay; the service says so in
+/// `/healthz` and `/metrics`, and keeps working.
+#[tokio::test]
+async fn a_disk_budget_removes_the_oldest_raw_rows_first_and_says_so() {
+    let site = |budget_mb: f64| {
+        format!(
+            "{ONE_LINK}\n[site]\nname = \"ship-1\"\n\n[upstream]\nurl = \"http://127.0.0.1:9\"\n\
+             raw_kbit_s = 64\n\n[retention]\ndisk_budget_mb = {budget_mb}\n"
+        )
+    };
+    let app = TestApp::start(Some(&site(1000.0))).await;
+    // Three hours of a sample a second, ending an hour ago: well inside the 90 days' retention.
+    let n = 10_800i64;
+    let start = app.service.now_ns() - (n + 3_600) * 1_000_000_000;
+    for chunk in (0..n).collect::<Vec<_>>().chunks(2_000) {
+        let samples: Vec<serde_json::Value> = chunk
+            .iter()
+            .map(|k| {
+                let wobble = (*k as f64 * 0.1).sin() * 0.01;
+                serde_json::json!({"link": "G_from_B", "time": start + k * 1_000_000_000,
+                                   "pose": {"t_mm": [1.0 + wobble, 2.0, 3.0], "q_wxyz": [1, 0, 0, 0]}})
+            })
+            .collect();
+        let (status, body) = app
+            .post_json("/api/v1/samples", &serde_json::json!({"samples": samples}))
+            .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+    }
+    app.set_straight_reference().await;
+    let under = app.service.prune_report().await.unwrap();
+    let used = under.budget.unwrap().used_bytes_after;
+    assert_eq!(
+        under.budget.unwrap().rows(),
+        0,
+        "under its budget nothing goes"
+    );
+    assert!(app.service.storage_problem().is_none());
+
+    // The same file under a budget of 70 % of what it uses.
+    let budget_bytes = used * 7 / 10;
+    let app = app.restart(Some(&site(budget_bytes as f64 / 1e6))).await;
+    let count = |source: &'static str| {
+        let app = &app;
+        async move {
+            let (_, s) = app
+                .get(&format!("/api/v1/targets/G/stats?source={source}"))
+                .await;
+            s["count"].as_u64().unwrap()
+        }
+    };
+    let (filtered_before, raw_before) = (count("filtered").await, count("raw").await);
+    let coarse = format!(
+        "/api/v1/targets/G/history?max_points=6&from={start}&to={}",
+        start + n * 1_000_000_000
+    );
+    let (_, coarse_before) = app.get(&coarse).await;
+    assert!(
+        coarse_before["count"][0].as_i64().unwrap() > 0,
+        "{coarse_before}"
+    );
+    let pruned = app.service.prune_report().await.unwrap();
+    let cut = pruned.budget.unwrap();
+    assert_eq!(
+        (pruned.samples, pruned.results),
+        (0, 0),
+        "nothing is old by age"
+    );
+    assert!(cut.used_bytes_before > budget_bytes, "{cut:?}");
+    assert!(
+        cut.used_bytes_after <= budget_bytes / 10 * 9,
+        "{cut:?} {budget_bytes}"
+    );
+    assert!(cut.samples > 0 && cut.raw_results > 0, "{cut:?}");
+    assert_eq!(
+        cut.unsent,
+        cut.rows(),
+        "the centre had acknowledged nothing"
+    );
+    // Raw rows go first: filtered results only once none is left (this budget needs both).
+    assert!(cut.results > 0, "{cut:?}");
+    let (_, left) = app.get("/api/v1/links/G_from_B/samples?limit=1").await;
+    assert_eq!(
+        left["samples"],
+        serde_json::json!([]),
+        "every sample went first"
+    );
+    assert_eq!((cut.samples, cut.raw_results), (n as u64, raw_before));
+    assert_eq!(count("raw").await, 0);
+    // Then the oldest filtered results, as counted; the newest stay.
+    assert_eq!(count("filtered").await, filtered_before - cut.results);
+    let (_, first) = app.get("/api/v1/targets/G/stats?source=filtered").await;
+    let first_left = brokenray::clock::parse_query_time(first["from"].as_str().unwrap()).unwrap();
+    assert!(first_left >= cut.results_before_ns.unwrap(), "{first}");
+    let (_, coarse_after) = app.get(&coarse).await;
+    assert_eq!(
+        coarse_before["count"], coarse_after["count"],
+        "rollups stay"
+    );
+    let (status, _) = app.get("/api/v1/targets/G/reference").await;
+    assert_eq!(status, StatusCode::OK, "the reference stays");
+
+    // Said, not hidden: the health check (still 200) and the metrics.
+    let (status, health) = app.get("/healthz").await;
+    assert_eq!(status, StatusCode::OK);
+    let problem = health["storage_problem"].as_str().unwrap();
+    assert!(
+        problem.contains(&format!("{} rows younger than their retention", cut.rows()))
+            && problem.contains(&format!("{} of them not yet acknowledged", cut.unsent)),
+        "{problem}"
+    );
+    let (status, metrics) = app.request("GET", "/metrics", None, None).await;
+    assert_eq!(status, StatusCode::OK);
+    let metrics = metrics.as_str().unwrap_or_default().to_owned();
+    assert!(
+        metrics.contains(&format!(
+            "brokenray_budget_unsent_removed_total {}",
+            cut.unsent
+        )),
+        "{metrics}"
+    );
+    // And it measures on.
+    let (status, body) = app
+        .post_json(
+            "/api/v1/samples",
+            &serde_json::json!({"samples": [{"link": "G_from_B", "time": app.service.now_ns() - 1_000_000_000,
+                                            "pose": {"t_mm": [1.0, 2.0, 3.0], "q_wxyz": [1, 0, 0, 0]}}]}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+}
