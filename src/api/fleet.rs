@@ -132,6 +132,45 @@ pub async fn post_sync(
             ));
         }
     }
+    if let Some(r) = &request.requested {
+        if batch.is_some() {
+            return Err(ApiError::invalid_field(
+                "requested",
+                "an upload carries a batch or requested rows, not both",
+            ));
+        }
+        for (i, rows) in r.tables.iter().enumerate() {
+            if let Some(problem) = rows.problem() {
+                return Err(ApiError::invalid_field(
+                    &format!("requested.tables[{i}]"),
+                    problem,
+                ));
+            }
+            if rows.table.tier() != crate::store::outbox::Tier::Raw {
+                return Err(ApiError::invalid_field(
+                    &format!("requested.tables[{i}].table"),
+                    "not a table of the raw tier",
+                ));
+            }
+        }
+        if r.to_ns <= r.from_ns {
+            return Err(ApiError::invalid_field(
+                "requested.to_ns",
+                "must be after `from_ns`",
+            ));
+        }
+        if !central
+            .raw_requests(&site)
+            .await?
+            .iter()
+            .any(|q| q.id == r.request_id)
+        {
+            return Err(ApiError::invalid_field(
+                "requested.request_id",
+                format!("site `{site}` has no raw request {}", r.request_id),
+            ));
+        }
+    }
     let status = request
         .status
         .as_ref()
@@ -144,24 +183,16 @@ pub async fn post_sync(
         outbox_id: &request.outbox_id,
         registry: &request.registry,
         batch: batch.as_ref(),
+        requested: request.requested.as_ref(),
         status_json: status.as_deref(),
         backlog_json: Some(&backlog),
         wire_bytes: body.len() as u64,
     };
     let outcome = central.sync(&site, upload, app.service.now_ns()).await?;
-    let answer = match outcome {
-        SyncOutcome::Applied { acked_seq } => SyncResponse {
-            outcome: Outcome::Applied,
-            acked_seq,
-        },
-        SyncOutcome::Duplicate { acked_seq } => SyncResponse {
-            outcome: Outcome::Duplicate,
-            acked_seq,
-        },
-        SyncOutcome::Gap { acked_seq } => SyncResponse {
-            outcome: Outcome::Gap,
-            acked_seq,
-        },
+    let (outcome, acked_seq) = match outcome {
+        SyncOutcome::Applied { acked_seq } => (Outcome::Applied, acked_seq),
+        SyncOutcome::Duplicate { acked_seq } => (Outcome::Duplicate, acked_seq),
+        SyncOutcome::Gap { acked_seq } => (Outcome::Gap, acked_seq),
         SyncOutcome::OutboxChanged { known } => {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
@@ -174,7 +205,12 @@ pub async fn post_sync(
             ));
         }
     };
-    Ok(Json(answer))
+    Ok(Json(SyncResponse {
+        outcome,
+        acked_seq,
+        // Every answer tells the site what the office asks of it.
+        raw_requests: central.pending_raw(&site).await?,
+    }))
 }
 
 /// One tier of a site at the centre.
@@ -295,6 +331,138 @@ pub async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, A
     Ok(Json(SitesOut { sites }))
 }
 
+/// Body of `POST /api/v1/sites/{site}/raw-requests`.
+#[derive(Debug, serde::Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RawRequestIn {
+    /// The period's start (RFC 3339 or integer ns, measurement time).
+    #[schema(schema_with = super::dto::time_schema)]
+    pub from: serde_json::Value,
+    /// Its end, excluded.
+    #[schema(schema_with = super::dto::time_schema)]
+    pub to: serde_json::Value,
+    /// Who asks (for the record).
+    pub by: Option<String>,
+}
+
+/// A period of raw rows asked of a site.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct RawRequestOut {
+    /// Its id.
+    pub id: i64,
+    /// The period's start.
+    pub from: String,
+    /// Its end, excluded.
+    pub to: String,
+    /// `pending` until the site has delivered all of it, then `done`.
+    pub state: &'static str,
+    /// How far the site has delivered it: every raw row measured before this time is here.
+    pub delivered_to: String,
+    /// Rows applied (samples and raw results).
+    pub rows: i64,
+    /// Who asked.
+    pub requested_by: Option<String>,
+    /// When it was asked (centre's clock).
+    pub created: String,
+    /// When the last of it arrived.
+    pub done: Option<String>,
+}
+
+impl From<&crate::store::RawRequestRecord> for RawRequestOut {
+    fn from(r: &crate::store::RawRequestRecord) -> Self {
+        RawRequestOut {
+            id: r.id,
+            from: format_ns(r.from_ns),
+            to: format_ns(r.to_ns),
+            state: if r.done_ns.is_some() {
+                "done"
+            } else {
+                "pending"
+            },
+            delivered_to: format_ns(r.delivered_to_ns),
+            rows: r.rows_applied,
+            requested_by: r.requested_by.clone(),
+            created: format_ns(r.created_ns),
+            done: r.done_ns.map(format_ns),
+        }
+    }
+}
+
+/// `GET .../raw-requests`.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct RawRequestsOut {
+    /// The site.
+    pub site: String,
+    /// Its requests, the newest first.
+    pub requests: Vec<RawRequestOut>,
+}
+
+/// The centre of this service, or 404.
+fn centre(app: &AppState) -> Result<&crate::store::Central, ApiError> {
+    app.central.as_deref().ok_or_else(|| {
+        ApiError::not_found("this service is no centre (`[central] enabled = true` on PostgreSQL)")
+    })
+}
+
+/// `POST /api/v1/sites/{site}/raw-requests`: asks a site for its raw samples and raw results
+/// of a period (whether or not its raw tier is streamed); the site uploads them with its next
+/// contacts, after its events and results.
+#[utoipa::path(post, path = "/sites/{site}/raw-requests", tag = "fleet",
+    params(("site" = String, Path, description = "The site")),
+    request_body(content = RawRequestIn, description = "The period, `[from, to)`, in measurement time"),
+    responses(
+        (status = 201, description = "Asked; the site delivers it with its next contacts", body = RawRequestOut),
+        (status = 404, description = "Not a site this centre has heard from, or this service is no centre", body = ErrorBody),
+        (status = 422, description = "Invalid period", body = ErrorBody),
+    ),
+    security(("bearer" = ["admin"])))]
+pub async fn post_raw_request(
+    State(app): State<AppState>,
+    Path(site): Path<String>,
+    body: Bytes,
+) -> Result<(StatusCode, Json<RawRequestOut>), ApiError> {
+    let central = centre(&app)?;
+    let site = site_of(&site)?;
+    let r: RawRequestIn = super::parse_json_body(&body)?;
+    let from_ns =
+        crate::clock::parse_json_time(&r.from).map_err(|m| ApiError::invalid_field("from", m))?;
+    let to_ns =
+        crate::clock::parse_json_time(&r.to).map_err(|m| ApiError::invalid_field("to", m))?;
+    if to_ns <= from_ns {
+        return Err(ApiError::invalid_field("to", "`to` is not after `from`"));
+    }
+    super::check_texts(&[("by", r.by.as_deref())])?;
+    let made = central
+        .request_raw(&site, from_ns, to_ns, r.by.as_deref(), app.service.now_ns())
+        .await?
+        .ok_or_else(|| {
+            ApiError::not_found(format!("the centre has not heard from site `{site}`"))
+        })?;
+    Ok((StatusCode::CREATED, Json((&made).into())))
+}
+
+/// `GET /api/v1/sites/{site}/raw-requests`: the periods of raw rows asked of a site, and how
+/// far each has arrived.
+#[utoipa::path(get, path = "/sites/{site}/raw-requests", tag = "fleet",
+    params(("site" = String, Path, description = "The site")),
+    responses(
+        (status = 200, description = "Every request of the site, the newest first", body = RawRequestsOut),
+        (status = 404, description = "This service is no centre", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub async fn list_raw_requests(
+    State(app): State<AppState>,
+    Path(site): Path<String>,
+) -> Result<Json<RawRequestsOut>, ApiError> {
+    let central = centre(&app)?;
+    let site = site_of(&site)?;
+    let requests = central.raw_requests(&site).await?;
+    Ok(Json(RawRequestsOut {
+        site: site.to_string(),
+        requests: requests.iter().map(Into::into).collect(),
+    }))
+}
+
 /// One tier of this site's uploads.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct UpstreamTierOut {
@@ -336,6 +504,8 @@ pub struct SentOut {
     pub rows: u64,
     /// Compressed bytes.
     pub bytes: u64,
+    /// Raw tier only: rows sent for periods the centre asked for (also counted in `bytes`).
+    pub requested_rows: u64,
 }
 
 /// A failure and when.
@@ -360,6 +530,22 @@ pub struct UpstreamOut {
     pub raw_kbit_s: f64,
     /// Per tier, most urgent first.
     pub tiers: Vec<UpstreamTierOut>,
+    /// Periods of raw rows the centre asked for and has not all of, as it last said: `id`,
+    /// `from`, `to`, `delivered_to`.
+    pub raw_requests: Vec<PendingRawOut>,
+}
+
+/// A period the centre asked this site for.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct PendingRawOut {
+    /// The centre's id of the request.
+    pub id: i64,
+    /// The period's start.
+    pub from: String,
+    /// Its end, excluded.
+    pub to: String,
+    /// How far this site has delivered it.
+    pub delivered_to: String,
 }
 
 /// `GET /api/v1/upstream`: this site's uploads to its centre, per tier.
@@ -381,6 +567,16 @@ pub async fn get_upstream(State(app): State<AppState>) -> Result<Json<UpstreamOu
         url: upstream.settings.url.to_string(),
         last_contact: upstream.last_contact_ns().map(format_ns),
         raw_kbit_s,
+        raw_requests: upstream
+            .raw_requests()
+            .iter()
+            .map(|r| PendingRawOut {
+                id: r.id,
+                from: format_ns(r.from_ns),
+                to: format_ns(r.to_ns),
+                delivered_to: format_ns(r.delivered_to_ns),
+            })
+            .collect(),
         tiers: upstream
             .progress()
             .into_iter()
@@ -397,6 +593,7 @@ pub async fn get_upstream(State(app): State<AppState>) -> Result<Json<UpstreamOu
                     batches: p.batches_sent,
                     rows: p.rows_sent,
                     bytes: p.bytes_sent,
+                    requested_rows: p.requested_rows_sent,
                 },
                 last_success: p.last_success_ns.map(format_ns),
                 last_error: p.last_error.map(|(t, m)| ErrorAtOut {

@@ -397,6 +397,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(fleet::post_sync))
         .routes(routes!(fleet::list_sites))
         .routes(routes!(fleet::get_upstream))
+        .routes(routes!(fleet::post_raw_request, fleet::list_raw_requests))
         .routes(routes!(sites::list_site_targets))
         .routes(routes!(sites::get_site_compensation))
         .routes(routes!(sites::get_site_stats))

@@ -2,6 +2,7 @@
 //! (`Content-Encoding: zstd`), posted to `POST /api/v1/sites/{site}/sync`.
 
 use crate::store::outbox::{OutboxBatch, Registry, TableRows, Tier};
+pub use crate::store::outbox::{RawRequest, RequestedRows};
 use serde::{Deserialize, Serialize};
 
 /// The zstd level of uploads: a satellite link costs more than the site's cores.
@@ -24,6 +25,10 @@ pub struct SyncRequest {
     /// What the site has still to send, per tier.
     #[serde(default)]
     pub backlog: Vec<TierBacklog>,
+    /// Raw rows of a period the centre asked for, outside the commit stream; never with a
+    /// batch.
+    #[serde(default)]
+    pub requested: Option<RequestedRows>,
 }
 
 /// A batch on the wire.
@@ -248,10 +253,14 @@ pub enum Outcome {
 }
 
 /// The centre's answer.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct SyncResponse {
     /// What became of the upload.
     pub outcome: Outcome,
     /// The tier's last applied commit (absent: nothing yet, or a report of state alone).
     pub acked_seq: Option<i64>,
+    /// Periods of raw rows the office asked of this site and has not all of yet.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    #[schema(value_type = Vec<Object>)]
+    pub raw_requests: Vec<RawRequest>,
 }

@@ -36,7 +36,7 @@ pub mod sqlite;
 
 pub use codec::{Quality, SampleValues, StoredUncertainty};
 pub use postgres::central::{
-    Central, SiteRecord, SiteUpkeep, SiteUpload, StreamRecord, SyncOutcome,
+    Central, RawRequestRecord, SiteRecord, SiteUpkeep, SiteUpload, StreamRecord, SyncOutcome,
 };
 pub use rows::{
     Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample,
@@ -48,7 +48,7 @@ use crate::config::Database;
 use crate::deformation::SmallMotion;
 use crate::geometry::{PoseCov, ReportedSigmas};
 use codec::{encode_mat6, pose_columns};
-use outbox::{Backlog, KeepUnsent, OutboxBatch, Registry, Tier};
+use outbox::{Backlog, KeepUnsent, OutboxBatch, Registry, TableRows, Tier};
 use rows::{ResultColumns, SampleColumns, VersionColumns};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -306,6 +306,15 @@ impl Store {
     ) -> StoreResult<Option<OutboxBatch>> {
         match &self.reader {
             Reader::Sqlite(r) => r.outbox_batch(tier, after.unwrap_or(i64::MIN), limit).await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// The raw rows (samples and raw results) measured in `[from_ns, to_ns)`, for a period the
+    /// centre asked for (a site's outbox: SQLite only).
+    pub async fn raw_rows_in(&self, from_ns: i64, to_ns: i64) -> StoreResult<Vec<TableRows>> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.raw_rows_in(from_ns, to_ns).await,
             Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
         }
     }

@@ -420,3 +420,35 @@ pub struct KeepUnsent {
     /// Samples and raw results above this number are kept.
     pub raw: Option<i64>,
 }
+
+/// One slice of a period's raw rows (samples and raw results measured in `[from_ns, to_ns)`),
+/// as the site has them now: the part of a fleet's upload that answers a [`RawRequest`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RequestedRows {
+    /// The centre's request.
+    pub request_id: i64,
+    /// The slice's start (ns, measurement time).
+    pub from_ns: i64,
+    /// Its end, excluded.
+    pub to_ns: i64,
+    /// True when the rows replace those the centre has at their keys (the site's raw tier is
+    /// not streamed, so these are its newest versions); false when the raw stream is the
+    /// authority on versions and only missing rows are added.
+    pub replace: bool,
+    /// The rows, per table.
+    pub tables: Vec<TableRows>,
+}
+
+/// A period of raw rows the centre asks a site for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RawRequest {
+    /// The request.
+    pub id: i64,
+    /// Its period's start (ns, measurement time).
+    pub from_ns: i64,
+    /// Its end, excluded.
+    pub to_ns: i64,
+    /// How far the site has delivered it (from `from_ns`).
+    pub delivered_to_ns: i64,
+}

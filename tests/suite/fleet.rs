@@ -246,9 +246,11 @@ fn centre_installation(dir: &std::path::Path) -> (std::path::PathBuf, String) {
     let extra = format!(
         "[central]\nenabled = true\nraw_days = 36500\nresults_days = 36500\n\n\
          [[auth.tokens]]\nname = \"ship-1\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"{SITE}\"\n\n\
-         [[auth.tokens]]\nname = \"office\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n",
+         [[auth.tokens]]\nname = \"office\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n\n\
+         [[auth.tokens]]\nname = \"office-admin\"\nsha256 = \"{}\"\nscopes = [\"read\", \"admin\"]\n",
         brokenray::api::sha256_hex(SYNC_TOKEN),
         brokenray::api::sha256_hex("office-secret"),
+        brokenray::api::sha256_hex("office-admin-secret"),
     );
     (installation(dir, "centre.toml", &url, &extra), url)
 }
@@ -1099,4 +1101,159 @@ async fn the_centre_applies_once_and_refuses_what_it_must_saying_why() {
         .unwrap();
     assert_eq!(sites["sites"].as_array().unwrap().len(), 1, "{sites}");
     assert_eq!(sites["sites"][0]["tiers"][0]["acked_seq"], 5, "{sites}");
+}
+
+/// The rows of `table` at the site whose `time_ns` is in `[from_ns, to_ns)`.
+async fn site_rows_in(
+    path: &std::path::Path,
+    table: SyncTable,
+    from_ns: i64,
+    to_ns: i64,
+) -> Vec<Vec<String>> {
+    let at = table
+        .columns()
+        .iter()
+        .position(|(n, _)| *n == "time_ns")
+        .unwrap();
+    site_rows(path, table)
+        .await
+        .into_iter()
+        .filter(|r| {
+            let t: i64 = r[at]
+                .trim_start_matches("Some(")
+                .trim_end_matches(')')
+                .parse()
+                .unwrap();
+            (from_ns..to_ns).contains(&t)
+        })
+        .collect()
+}
+
+/// A site whose raw tier is not streamed (`raw_kbit_s = 0`) delivers the raw rows of a period
+/// the office asks for, exactly: the centre then holds the site's samples and raw results of
+/// that period and of no other; a second, overlapping request adds what it adds once; asking
+/// is refused for a read token, an unknown site and an empty period.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_period_of_raw_samples_arrives_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let (centre_config, centre_url) = centre_installation(dir.path());
+    let centre = start(&centre_config);
+    let site_db = dir.path().join("site.db");
+    let site_config = installation(
+        dir.path(),
+        "site.toml",
+        &site_db.display().to_string(),
+        &format!(
+            "[site]\nname = \"{SITE}\"\n\n[upstream]\nurl = \"{}\"\ntoken = \"{SYNC_TOKEN}\"\n\
+             raw_kbit_s = 0\nbatch_rows = 700\nheartbeat_s = 0.5\n",
+            centre.base
+        ),
+    );
+    let site = start(&site_config);
+    let client = reqwest::Client::new();
+    post_groups(&client, &site.base, 0..2000, group_time, 250).await;
+    // The events and results tiers arrive; the raw tier stays at the site.
+    let waited = std::time::Instant::now();
+    loop {
+        let u = upstream(&client, &site.base).await;
+        let done = |i: usize| u["tiers"][i]["backlog"]["rows"].as_u64() == Some(0);
+        if done(0) && done(1) && u["tiers"][1]["acked_seq"].is_i64() {
+            break;
+        }
+        assert!(waited.elapsed() < Duration::from_secs(60), "{u:#}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert!(
+        centre_rows(&centre_url, SyncTable::Samples)
+            .await
+            .is_empty()
+    );
+
+    let ask = |from: i64, to: i64, token: &'static str| {
+        let client = &client;
+        let url = format!("{}/api/v1/sites/{SITE}/raw-requests", centre.base);
+        async move {
+            let r = client
+                .post(url)
+                .bearer_auth(token)
+                .json(&json!({"from": from, "to": to, "by": "office"}))
+                .send()
+                .await
+                .unwrap();
+            (r.status().as_u16(), r.json::<Value>().await.unwrap())
+        }
+    };
+    let (status, body) = ask(group_time(500), group_time(1500), "office-secret").await;
+    assert_eq!(status, 403, "a read token does not ask: {body}");
+    let (status, body) = ask(group_time(5), group_time(5), "office-admin-secret").await;
+    assert_eq!(
+        (status, &body["error"]["details"][0]["field"]),
+        (422, &json!("to")),
+        "{body}"
+    );
+    let r = client
+        .post(format!("{}/api/v1/sites/ship-9/raw-requests", centre.base))
+        .bearer_auth("office-admin-secret")
+        .json(&json!({"from": 0, "to": 1}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 404);
+
+    let wait_done = |id: i64| {
+        let client = &client;
+        let url = format!("{}/api/v1/sites/{SITE}/raw-requests", centre.base);
+        async move {
+            let waited = std::time::Instant::now();
+            loop {
+                let (_, list) = office_get(client, &url).await;
+                let r = list["requests"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .find(|r| r["id"] == id)
+                    .cloned()
+                    .unwrap();
+                if r["state"] == "done" {
+                    return r;
+                }
+                assert!(waited.elapsed() < Duration::from_secs(60), "{list:#}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    };
+    let (status, first) = ask(group_time(500), group_time(1500), "office-admin-secret").await;
+    assert_eq!(status, 201, "{first}");
+    assert_eq!(first["state"], "pending");
+    let done = wait_done(first["id"].as_i64().unwrap()).await;
+    assert_eq!(
+        done["rows"], 4000,
+        "1000 groups: 3000 samples and 1000 raw results: {done}"
+    );
+    for table in [SyncTable::Samples, SyncTable::RawResults] {
+        assert_eq!(
+            centre_rows(&centre_url, table).await,
+            site_rows_in(&site_db, table, group_time(500), group_time(1500)).await,
+            "{table:?}: the period's rows, exactly"
+        );
+    }
+    // An overlapping request adds the rest, once.
+    let (_, second) = ask(group_time(1400), group_time(1600), "office-admin-secret").await;
+    wait_done(second["id"].as_i64().unwrap()).await;
+    for table in [SyncTable::Samples, SyncTable::RawResults] {
+        assert_eq!(
+            centre_rows(&centre_url, table).await,
+            site_rows_in(&site_db, table, group_time(500), group_time(1600)).await,
+            "{table:?}: both periods' rows, once"
+        );
+    }
+    let u = upstream(&client, &site.base).await;
+    assert_eq!(
+        u["raw_requests"],
+        json!([]),
+        "nothing left to deliver: {u:#}"
+    );
+    assert_eq!(u["tiers"][2]["enabled"], false, "the raw stream stays off");
+    drop(site);
+    drop(centre);
 }

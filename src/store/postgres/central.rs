@@ -13,7 +13,9 @@
 //! before `acked` changes nothing (a replay, or one overtaken by a later upload); one that
 //! starts after `acked` is refused with the number to resume from (a gap).
 
-use super::super::outbox::{ColumnValues, Kind, OutboxBatch, Registry, TableRows, Tier};
+use super::super::outbox::{
+    ColumnValues, Kind, OutboxBatch, RawRequest, Registry, RequestedRows, TableRows, Tier,
+};
 use super::super::{StoreError, StoreResult};
 use super::{CONNECT_TIMEOUT, MIGRATOR, options_of};
 use crate::config::{PostgresUrl, SiteName};
@@ -34,6 +36,8 @@ pub struct SiteUpload<'a> {
     pub registry: &'a Registry,
     /// The rows.
     pub batch: Option<&'a OutboxBatch>,
+    /// Raw rows of a period the centre asked for (never with a batch).
+    pub requested: Option<&'a RequestedRows>,
     /// The site's report of its state (JSON), kept as sent.
     pub status_json: Option<&'a str>,
     /// The site's report of its backlog (JSON), kept as sent.
@@ -149,8 +153,8 @@ fn array_type(kind: Kind) -> &'static str {
     }
 }
 
-/// Writes a table's rows, each replacing the row at its key.
-async fn apply_rows(conn: &mut PgConnection, rows: &TableRows) -> StoreResult<()> {
+/// Writes a table's rows, each replacing the row at its key (`replace`), or only where none is.
+async fn apply_rows(conn: &mut PgConnection, rows: &TableRows, replace: bool) -> StoreResult<()> {
     if let Some(problem) = rows.problem() {
         return Err(StoreError::Malformed(problem));
     }
@@ -168,8 +172,13 @@ async fn apply_rows(conn: &mut PgConnection, rows: &TableRows) -> StoreResult<()
         .filter(|n| !key.contains(n))
         .map(|n| format!("{n} = excluded.{n}"))
         .collect();
+    let on_conflict = if replace {
+        format!("do update set {}", updates.join(", "))
+    } else {
+        "do nothing".to_owned()
+    };
     let sql = format!(
-        "insert into {} ({}) {} select * from unnest({}) on conflict ({}) do update set {}",
+        "insert into {} ({}) {} select * from unnest({}) on conflict ({}) {on_conflict}",
         table.table(),
         names.join(", "),
         if table.overrides_identity() {
@@ -179,7 +188,6 @@ async fn apply_rows(conn: &mut PgConnection, rows: &TableRows) -> StoreResult<()
         },
         arrays.join(", "),
         key.join(", "),
-        updates.join(", ")
     );
     let blobs: Vec<Vec<Option<&[u8]>>> = rows
         .columns
@@ -230,7 +238,160 @@ async fn apply_registry(conn: &mut PgConnection, registry: &Registry) -> StoreRe
     Ok(())
 }
 
+/// Applies a slice of a period the centre asked for, in the upload's transaction: only when it
+/// continues what was delivered (a replay or a slice of a finished request changes nothing; one
+/// that starts later is a gap, and the site resumes from the request's `delivered_to_ns`).
+async fn apply_requested(
+    conn: &mut PgConnection,
+    site: &SiteName,
+    slice: &RequestedRows,
+    registry: &Registry,
+    now_ns: i64,
+) -> StoreResult<SyncOutcome> {
+    let row: Option<(i64, i64, Option<i64>)> = sqlx::query_as(
+        "select to_ns, delivered_to_ns, done_ns from fleet.raw_requests \
+         where request_id = $1 and site = $2 for update",
+    )
+    .bind(slice.request_id)
+    .bind(site.as_str())
+    .fetch_optional(&mut *conn)
+    .await?;
+    let Some((to_ns, delivered_to_ns, done_ns)) = row else {
+        return Err(StoreError::Malformed(format!(
+            "requested.request_id: site `{site}` has no raw request {}",
+            slice.request_id
+        )));
+    };
+    if done_ns.is_some() || slice.to_ns <= delivered_to_ns {
+        return Ok(SyncOutcome::Duplicate { acked_seq: None });
+    }
+    if slice.from_ns > delivered_to_ns {
+        return Ok(SyncOutcome::Gap { acked_seq: None });
+    }
+    apply_registry(&mut *conn, registry).await?;
+    let mut rows_applied = 0i64;
+    for rows in &slice.tables {
+        if rows.table.tier() != Tier::Raw {
+            return Err(StoreError::Malformed(format!(
+                "{} rows in a slice of raw rows",
+                rows.table.name()
+            )));
+        }
+        apply_rows(&mut *conn, rows, slice.replace).await?;
+        rows_applied += i64::try_from(rows.rows()).unwrap_or(i64::MAX);
+    }
+    let delivered = slice.to_ns.min(to_ns);
+    sqlx::query(
+        "update fleet.raw_requests set delivered_to_ns = $2, rows_applied = rows_applied + $3, \
+         done_ns = case when $2 >= to_ns then $4 end where request_id = $1",
+    )
+    .bind(slice.request_id)
+    .bind(delivered)
+    .bind(rows_applied)
+    .bind(now_ns)
+    .execute(&mut *conn)
+    .await?;
+    Ok(SyncOutcome::Applied { acked_seq: None })
+}
+
+/// A period of raw rows asked of a site, as the centre records it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RawRequestRecord {
+    /// The request's id.
+    pub id: i64,
+    /// The period's start (ns, measurement time).
+    pub from_ns: i64,
+    /// Its end, excluded.
+    pub to_ns: i64,
+    /// How far the site delivered it.
+    pub delivered_to_ns: i64,
+    /// Rows applied.
+    pub rows_applied: i64,
+    /// Who asked (the token's name, or a name given).
+    pub requested_by: Option<String>,
+    /// When it was asked (centre's clock).
+    pub created_ns: i64,
+    /// When the last of it arrived.
+    pub done_ns: Option<i64>,
+}
+
+type RawRequestRow = (i64, i64, i64, i64, i64, Option<String>, i64, Option<i64>);
+
+fn raw_request_of(r: RawRequestRow) -> RawRequestRecord {
+    RawRequestRecord {
+        id: r.0,
+        from_ns: r.1,
+        to_ns: r.2,
+        delivered_to_ns: r.3,
+        rows_applied: r.4,
+        requested_by: r.5,
+        created_ns: r.6,
+        done_ns: r.7,
+    }
+}
+
+const RAW_REQUEST_COLUMNS: &str = "request_id, from_ns, to_ns, delivered_to_ns, rows_applied, \
+                                   requested_by, created_ns, done_ns";
+
 impl Central {
+    /// Asks `site` for its raw rows measured in `[from_ns, to_ns)`; `None` when the centre has
+    /// not heard from the site.
+    pub async fn request_raw(
+        &self,
+        site: &SiteName,
+        from_ns: i64,
+        to_ns: i64,
+        requested_by: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<Option<RawRequestRecord>> {
+        let row: Option<RawRequestRow> = sqlx::query_as(&format!(
+            "insert into fleet.raw_requests (site, from_ns, to_ns, delivered_to_ns, requested_by, \
+             created_ns) select site, $2, $3, $2, $4, $5 from fleet.sites where site = $1 \
+             returning {RAW_REQUEST_COLUMNS}"
+        ))
+        .bind(site.as_str())
+        .bind(from_ns)
+        .bind(to_ns)
+        .bind(requested_by)
+        .bind(now_ns)
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(row.map(raw_request_of))
+    }
+
+    /// Every raw request of `site`, the newest first.
+    pub async fn raw_requests(&self, site: &SiteName) -> StoreResult<Vec<RawRequestRecord>> {
+        let rows: Vec<RawRequestRow> = sqlx::query_as(&format!(
+            "select {RAW_REQUEST_COLUMNS} from fleet.raw_requests where site = $1 \
+             order by request_id desc"
+        ))
+        .bind(site.as_str())
+        .fetch_all(&self.pool)
+        .await?;
+        Ok(rows.into_iter().map(raw_request_of).collect())
+    }
+
+    /// The raw requests of `site` not yet delivered, the oldest first: what its uploads are
+    /// answered with.
+    pub async fn pending_raw(&self, site: &SiteName) -> StoreResult<Vec<RawRequest>> {
+        let rows: Vec<(i64, i64, i64, i64)> = sqlx::query_as(
+            "select request_id, from_ns, to_ns, delivered_to_ns from fleet.raw_requests \
+             where site = $1 and done_ns is null order by request_id",
+        )
+        .bind(site.as_str())
+        .fetch_all(&self.pool)
+        .await?;
+        Ok(rows
+            .into_iter()
+            .map(|(id, from_ns, to_ns, delivered_to_ns)| RawRequest {
+                id,
+                from_ns,
+                to_ns,
+                delivered_to_ns,
+            })
+            .collect())
+    }
+
     /// Opens the centre's record of its fleet on the database at `url` (its schema made or
     /// migrated).
     pub async fn open(url: &PostgresUrl) -> StoreResult<Central> {
@@ -347,6 +508,11 @@ impl Central {
         .bind(upload.backlog_json)
         .execute(&mut *tx)
         .await?;
+        if let Some(slice) = upload.requested {
+            let outcome = apply_requested(&mut tx, site, slice, upload.registry, now_ns).await?;
+            tx.commit().await?;
+            return Ok(outcome);
+        }
         let Some(batch) = upload.batch else {
             tx.commit().await?;
             return Ok(SyncOutcome::Applied { acked_seq: None });
@@ -387,7 +553,7 @@ impl Central {
                         rows.table.name()
                     )));
                 }
-                apply_rows(&mut tx, rows).await?;
+                apply_rows(&mut tx, rows, true).await?;
             }
             sqlx::query(
                 "update fleet.streams set acked_seq = $3, rows_applied = rows_applied + $4, \

@@ -116,6 +116,33 @@ impl Reader {
         }))
     }
 
+    /// The raw rows (samples and raw results) measured in `[from_ns, to_ns)`, in one
+    /// snapshot; tables without a row are left out.
+    pub(in crate::store) async fn raw_rows_in(
+        &self,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<TableRows>> {
+        let mut tx = self.pool.begin().await?;
+        let mut tables = Vec::new();
+        for &table in Tier::Raw.tables() {
+            let rows = sqlx::query(&select(table, "time_ns >= ? and time_ns < ?"))
+                .bind(from_ns)
+                .bind(to_ns)
+                .fetch_all(&mut *tx)
+                .await?;
+            let mut out = TableRows::new(table);
+            for row in &rows {
+                push_row(&mut out, row)?;
+            }
+            if out.rows() > 0 {
+                tables.push(out);
+            }
+        }
+        tx.rollback().await?;
+        Ok(tables)
+    }
+
     /// The names behind the ids of the site's rows.
     pub(in crate::store) async fn registry(&self) -> StoreResult<Registry> {
         let read = |sql: &'static str| async move {
