@@ -9,8 +9,13 @@
 //!    rows/s, bytes per hour of measurement per tier, compression ratios.
 //! 3. Raw samples: a site with `RAW_HOURS` (2) of backlog sends its raw tier unbudgeted:
 //!    sample rows applied per second at the centre; then four such sites at once.
+//! 4. The centre alone: the raw tier of the same backlog, read and compressed into uploads
+//!    beforehand (as the site would send them), posted by one client as fast as the centre
+//!    answers, then by four clients for four sites at once: the sample rows the centre
+//!    applies per second, without the sites' own work on the same two cores.
 //!
-//! Run: `cargo bench --bench fleet` (Linux; PostgreSQL 15 with pg_partman installed).
+//! Run: `cargo bench --bench fleet` (Linux; PostgreSQL 15 with pg_partman installed);
+//! `CENTRE_ONLY=1` runs only phase 4 (with the backlog it needs).
 
 #[path = "../tests/suite/common/postgres.rs"]
 mod postgres;
@@ -224,7 +229,21 @@ fn main() {
         "ship-0", "ship-1", "ship-a", "ship-b", "ship-c", "ship-d", "ship-e",
     ];
     let centre_port = free_port();
-    let centre_cfg = centre_config(dir.path(), centre_port, &url, &sites);
+    let mut all_sites = sites.to_vec();
+    all_sites.extend(SOLO_SITES);
+    let centre_cfg = centre_config(dir.path(), centre_port, &url, &all_sites);
+    if std::env::var("CENTRE_ONLY").is_ok() {
+        let raw_db = dir.path().join("raw-template.db");
+        let raw_groups = (raw_hours * 3600.0 * 25.0) as i64;
+        let template_cfg = site_config(dir.path(), "template", &raw_db, free_port(), 0.0);
+        let template = start(&template_cfg);
+        post_groups(&client, &template.base, 0, raw_groups);
+        drop(template);
+        let centre = start(&centre_cfg);
+        centre_alone(&centre.base, &template_cfg, raw_hours);
+        drop(centre);
+        return;
+    }
     // 1. Steady state.
     let centre = start(&centre_cfg);
     let live_db = dir.path().join("live.db");
@@ -336,5 +355,120 @@ fn main() {
     println!();
     run_raw(&["ship-a"]);
     run_raw(&["ship-b", "ship-c", "ship-d", "ship-e"]);
+    println!();
+    centre_alone(&centre.base, &template_cfg, raw_hours);
     drop(centre);
+}
+
+/// The sites of phase 4.
+const SOLO_SITES: [&str; 5] = ["solo-a", "solo-b", "solo-c", "solo-d", "solo-e"];
+
+/// Phase 4: the raw tier of the site database behind `site_cfg`, read and compressed into
+/// uploads beforehand, posted to the centre at `base` by one client, then by four at once (one
+/// site each); prints the sample rows applied per second.
+fn centre_alone(base: &str, site_cfg: &Path, raw_hours: f64) {
+    use brokenray::fleet::protocol::{SyncRequest, ZSTD_LEVEL};
+    use brokenray::store::outbox::{SyncTable, Tier};
+    let inst = brokenray::config::load(site_cfg).expect("the site's installation");
+    let batch_rows = inst
+        .fleet
+        .upstream
+        .as_ref()
+        .map_or(20_000, |u| u.batch_rows);
+    let rt = tokio::runtime::Runtime::new().expect("a runtime");
+    let prepared = Instant::now();
+    let bodies: Vec<(Vec<u8>, usize, usize)> = rt.block_on(async {
+        let store = brokenray::store::open_reader(&inst, 0)
+            .await
+            .expect("the site's store");
+        let outbox_id = store.outbox_id().await.expect("its outbox");
+        let registry = store.registry().await.expect("its registry");
+        let mut after = None;
+        let mut bodies = Vec::new();
+        while let Some(batch) = store
+            .outbox_batch(Tier::Raw, after, batch_rows)
+            .await
+            .expect("a batch")
+        {
+            after = Some(batch.upto_seq);
+            let samples = batch
+                .tables
+                .iter()
+                .filter(|t| t.table == SyncTable::Samples)
+                .map(|t| t.rows())
+                .sum();
+            let rows = batch.rows();
+            let request = SyncRequest {
+                outbox_id: outbox_id.clone(),
+                registry: registry.clone(),
+                batch: Some(batch.into()),
+                status: None,
+                backlog: Vec::new(),
+                requested: None,
+            };
+            let json = serde_json::to_vec(&request).expect("JSON");
+            bodies.push((
+                zstd::bulk::compress(&json, ZSTD_LEVEL).expect("zstd"),
+                samples,
+                rows,
+            ));
+        }
+        store.close().await;
+        bodies
+    });
+    let samples: usize = bodies.iter().map(|(_, n, _)| n).sum();
+    let rows: usize = bodies.iter().map(|(_, _, n)| n).sum();
+    let bytes: usize = bodies.iter().map(|(b, _, _)| b.len()).sum();
+    println!(
+        "the centre alone: {} uploads of {batch_rows} rows ({samples} samples, {:.1} MB compressed, \
+         {raw_hours} h of raw tier), prepared in {:.0} s",
+        bodies.len(),
+        bytes as f64 / 1e6,
+        prepared.elapsed().as_secs_f64()
+    );
+    let post_all = |site: &str| {
+        let client = Http::new();
+        let url = format!("{base}/api/v1/sites/{site}/sync");
+        for (body, _, _) in &bodies {
+            let answer = client.rt.block_on(async {
+                client
+                    .client
+                    .post(&url)
+                    .bearer_auth(token_of(site))
+                    .header("content-type", "application/json")
+                    .header("content-encoding", "zstd")
+                    .body(body.clone())
+                    .send()
+                    .await
+                    .expect("the centre answers")
+                    .text()
+                    .await
+                    .expect("an answer")
+            });
+            assert!(answer.contains("\"applied\""), "{site}: {answer}");
+        }
+    };
+    let began = Instant::now();
+    post_all(SOLO_SITES[0]);
+    let seconds = began.elapsed().as_secs_f64();
+    println!(
+        "  one site:    {:.1} s, {:.0} sample rows/s ({:.0} rows/s with the raw results)",
+        seconds,
+        samples as f64 / seconds,
+        rows as f64 / seconds
+    );
+    let began = Instant::now();
+    std::thread::scope(|s| {
+        for site in &SOLO_SITES[1..] {
+            let post_all = &post_all;
+            s.spawn(move || post_all(site));
+        }
+    });
+    let seconds = began.elapsed().as_secs_f64();
+    println!(
+        "  four sites:  {:.1} s, {:.0} sample rows/s in all, {:.0} per site",
+        seconds,
+        samples as f64 * 4.0 / seconds,
+        samples as f64 / seconds
+    );
 }

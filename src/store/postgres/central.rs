@@ -651,14 +651,7 @@ impl Central {
         };
         // The schema exists once the site's first batch was applied; before, nothing to read.
         let schema = site_schema(site_id);
-        let (ready,): (bool,) = sqlx::query_as(
-            "select exists (select 1 from information_schema.tables \
-             where table_schema = $1 and table_name = 'targets')",
-        )
-        .bind(&schema)
-        .fetch_one(&self.pool)
-        .await?;
-        if !ready {
+        if !self.schema_ready(&schema).await? {
             return Ok(None);
         }
         let reader = {
@@ -735,14 +728,7 @@ impl Central {
         let mut out = Vec::with_capacity(sites.len());
         for (site, site_id) in sites {
             let schema = site_schema(site_id);
-            let (ready,): (bool,) = sqlx::query_as(
-                "select exists (select 1 from information_schema.tables \
-                 where table_schema = $1 and table_name = 'samples')",
-            )
-            .bind(&schema)
-            .fetch_one(&self.pool)
-            .await?;
-            if !ready {
+            if !self.schema_ready(&schema).await? {
                 continue;
             }
             let mut tx = self.pool.begin().await?;
@@ -771,6 +757,18 @@ impl Central {
             });
         }
         Ok(out)
+    }
+
+    /// Whether a site's schema has its tables (made with the site's first upload).
+    async fn schema_ready(&self, schema: &str) -> StoreResult<bool> {
+        let (ready,): (bool,) = sqlx::query_as(
+            "select exists (select 1 from information_schema.tables \
+             where table_schema = $1 and table_name = 'samples')",
+        )
+        .bind(schema)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(ready)
     }
 
     /// Whether the database answers (for the health check).
