@@ -1,7 +1,8 @@
 // The fleet panel, on a centre: every site with its last contact, backlog, targets and worst
 // alarm, from /api/v1/sites; a site opens in the page's views (`#site=NAME`), answered from
 // its uploaded copy. Hidden on a service that is no centre (only a centre's `/healthz` says
-// `centre`).
+// `centre`). On any service, what `/healthz` reports wrong of the uploads or the disk budget
+// is shown as a message, checked every ten seconds.
 
 import { $, clearMessage, el, fmtAge, fmtTime, parseTime, showMessage, state } from './util.js';
 import { api } from './api.js';
@@ -48,19 +49,33 @@ async function loadSites() {
   clearMessage('fleet');
 }
 
-// Whether this service is a centre: `/healthz` (open, no token) says so.
-async function isCentre() {
+// `/healthz` (open, no token): whether this service is a centre, and what it reports wrong
+// that the page must show (a stopped upload stream, rows the disk budget removed).
+async function health() {
   const response = await fetch('/healthz');
-  const health = await response.json();
-  return health.centre === true;
+  const h = await response.json();
+  for (const [key, text] of [['upstream', h.upstream_problem], ['storage', h.storage_problem]]) {
+    if (text) showMessage('health-' + key, text);
+    else clearMessage('health-' + key);
+  }
+  return h;
+}
+
+let healthTimer = null;
+function watchHealth() {
+  if (healthTimer !== null) return;
+  healthTimer = setInterval(() => {
+    if (!document.hidden) health().catch(() => {});
+  }, 10000);
 }
 
 let timer = null;
 export async function startFleet() {
   if (timer !== null) return;
   let centre = false;
+  watchHealth();
   try {
-    centre = await isCentre();
+    centre = (await health()).centre === true;
   } catch (e) {
     showMessage('fleet', 'Cannot ask the service whether it is a centre: ' + e.message);
     return;
