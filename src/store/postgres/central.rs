@@ -126,7 +126,8 @@ pub struct Central {
     options: PgConnectOptions,
     /// Sites whose schema is ready (made and migrated) since start, by id.
     prepared: tokio::sync::Mutex<HashSet<i64>>,
-    /// Per site (by id), a small read pool in the site's schema, made on first use.
+    /// Per site (by id), a small read pool in the site's schema, made on first use (at most
+    /// two connections, closed after a minute unused).
     readers: tokio::sync::Mutex<HashMap<i64, super::Reader>>,
 }
 
@@ -663,8 +664,12 @@ impl Central {
                         .options
                         .clone()
                         .options([("search_path", schema.as_str())]);
+                    // Connections close after a minute unused: a fleet of many sites browsed now
+                    // and then must not hold the server's connections.
                     let pool = PgPoolOptions::new()
                         .max_connections(2)
+                        .min_connections(0)
+                        .idle_timeout(std::time::Duration::from_secs(60))
                         .acquire_timeout(CONNECT_TIMEOUT)
                         .connect_lazy_with(options.clone());
                     let r = super::Reader {
