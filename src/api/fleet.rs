@@ -20,7 +20,7 @@ use std::collections::BTreeMap;
 use std::io::Read;
 
 /// The site of a path, or 404 naming the rule.
-fn site_of(text: &str) -> Result<SiteName, ApiError> {
+pub(super) fn site_of(text: &str) -> Result<SiteName, ApiError> {
     SiteName::parse(text).ok_or_else(|| {
         ApiError::not_found(format!(
             "`{text}` is not a site name (lowercase letters, digits, `-`, `_`)"
@@ -68,6 +68,27 @@ fn decompress(headers: &HeaderMap, body: &Bytes, max: usize) -> Result<Vec<u8>, 
     }
 }
 
+/// Refuses tables of an upload that cannot be written (naming `field[i]`) or that are not of
+/// `tier`.
+fn check_tables(
+    field: &str,
+    tables: &[crate::store::outbox::TableRows],
+    tier: crate::store::outbox::Tier,
+) -> Result<(), ApiError> {
+    for (i, rows) in tables.iter().enumerate() {
+        if let Some(problem) = rows.problem() {
+            return Err(ApiError::invalid_field(&format!("{field}[{i}]"), problem));
+        }
+        if rows.table.tier() != tier {
+            return Err(ApiError::invalid_field(
+                &format!("{field}[{i}].table"),
+                format!("not a table of the {} tier", tier.name()),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// `POST /api/v1/sites/{site}/sync`: a site's upload, applied in one transaction exactly once.
 #[utoipa::path(post, path = "/sites/{site}/sync", tag = "fleet",
     params(("site" = String, Path, description = "The site, as its token names it")),
@@ -88,11 +109,7 @@ pub async fn post_sync(
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Json<SyncResponse>, ApiError> {
-    let Some(central) = &app.central else {
-        return Err(ApiError::not_found(
-            "this service is no centre (`[central] enabled = true` on PostgreSQL)",
-        ));
-    };
+    let central = centre(&app)?;
     let site = site_of(&site)?;
     if caller.authenticated && caller.site.as_ref() != Some(&site) {
         return Err(ApiError::new(
@@ -111,20 +128,7 @@ pub async fn post_sync(
     let request: SyncRequest = super::parse_json_body(&json)?;
     let batch: Option<OutboxBatch> = request.batch.map(Into::into);
     if let Some(b) = &batch {
-        for (i, rows) in b.tables.iter().enumerate() {
-            if let Some(problem) = rows.problem() {
-                return Err(ApiError::invalid_field(
-                    &format!("batch.tables[{i}]"),
-                    problem,
-                ));
-            }
-            if rows.table.tier() != b.tier {
-                return Err(ApiError::invalid_field(
-                    &format!("batch.tables[{i}].table"),
-                    format!("not a table of the {} tier", b.tier.name()),
-                ));
-            }
-        }
+        check_tables("batch.tables", &b.tables, b.tier)?;
         if b.upto_seq <= b.after_seq {
             return Err(ApiError::invalid_field(
                 "batch.upto_seq",
@@ -139,35 +143,15 @@ pub async fn post_sync(
                 "an upload carries a batch or requested rows, not both",
             ));
         }
-        for (i, rows) in r.tables.iter().enumerate() {
-            if let Some(problem) = rows.problem() {
-                return Err(ApiError::invalid_field(
-                    &format!("requested.tables[{i}]"),
-                    problem,
-                ));
-            }
-            if rows.table.tier() != crate::store::outbox::Tier::Raw {
-                return Err(ApiError::invalid_field(
-                    &format!("requested.tables[{i}].table"),
-                    "not a table of the raw tier",
-                ));
-            }
-        }
+        check_tables(
+            "requested.tables",
+            &r.tables,
+            crate::store::outbox::Tier::Raw,
+        )?;
         if r.to_ns <= r.from_ns {
             return Err(ApiError::invalid_field(
                 "requested.to_ns",
                 "must be after `from_ns`",
-            ));
-        }
-        if !central
-            .raw_requests(&site)
-            .await?
-            .iter()
-            .any(|q| q.id == r.request_id)
-        {
-            return Err(ApiError::invalid_field(
-                "requested.request_id",
-                format!("site `{site}` has no raw request {}", r.request_id),
             ));
         }
     }
@@ -193,6 +177,12 @@ pub async fn post_sync(
         SyncOutcome::Applied { acked_seq } => (Outcome::Applied, acked_seq),
         SyncOutcome::Duplicate { acked_seq } => (Outcome::Duplicate, acked_seq),
         SyncOutcome::Gap { acked_seq } => (Outcome::Gap, acked_seq),
+        SyncOutcome::UnknownRequest { id } => {
+            return Err(ApiError::invalid_field(
+                "requested.request_id",
+                format!("site `{site}` has no raw request {id}"),
+            ));
+        }
         SyncOutcome::OutboxChanged { known } => {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
@@ -270,11 +260,7 @@ pub struct SitesOut {
     ),
     security(("bearer" = ["read"])))]
 pub async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, ApiError> {
-    let Some(central) = &app.central else {
-        return Err(ApiError::not_found(
-            "this service is no centre (`[central] enabled = true` on PostgreSQL)",
-        ));
-    };
+    let central = centre(&app)?;
     let records = central.sites().await?;
     let sites = records
         .into_iter()
@@ -398,7 +384,7 @@ pub struct RawRequestsOut {
 }
 
 /// The centre of this service, or 404.
-fn centre(app: &AppState) -> Result<&crate::store::Central, ApiError> {
+pub(super) fn centre(app: &AppState) -> Result<&crate::store::Central, ApiError> {
     app.central.as_deref().ok_or_else(|| {
         ApiError::not_found("this service is no centre (`[central] enabled = true` on PostgreSQL)")
     })

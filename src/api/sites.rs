@@ -12,6 +12,7 @@
 use super::AppState;
 use super::alarms::{AlarmsOut, AlarmsQuery, alarms_of};
 use super::error::{ApiError, ErrorBody};
+use super::fleet::{centre, site_of};
 use super::targets::{
     AtQuery, CompensationOut, CompensationSource, Described, Evaluated, HistoryQuery, ReferenceOut,
     ReferencesOut, StatsOut, TargetOut, WindowQuery, compensation_out, current_of, from_history,
@@ -19,7 +20,6 @@ use super::targets::{
 };
 use crate::bank::TargetStatus;
 use crate::clock::parse_query_time;
-use crate::config::SiteName;
 use crate::fleet::protocol::{SiteStatus, TargetDescription};
 use crate::store::Store;
 use axum::Json;
@@ -61,26 +61,12 @@ impl SiteView {
 
 /// The copy of `site`, or 404 saying why there is none.
 async fn site_view(app: &AppState, site: &str) -> Result<SiteView, ApiError> {
-    let Some(central) = &app.central else {
-        return Err(ApiError::not_found(
-            "this service is no centre (`[central] enabled = true` on PostgreSQL)",
-        ));
-    };
-    let name = SiteName::parse(site).ok_or_else(|| {
-        ApiError::not_found(format!(
-            "`{site}` is not a site name (lowercase letters, digits, `-`, `_`)"
-        ))
+    let central = centre(app)?;
+    let name = site_of(site)?;
+    let (site_id, status_json) = central.site_report(&name).await?.ok_or_else(|| {
+        ApiError::not_found(format!("the centre has not heard from site `{site}`"))
     })?;
-    let record = central
-        .sites()
-        .await?
-        .into_iter()
-        .find(|r| r.site == site)
-        .ok_or_else(|| {
-            ApiError::not_found(format!("the centre has not heard from site `{site}`"))
-        })?;
-    let status: SiteStatus = record
-        .status_json
+    let status: SiteStatus = status_json
         .as_deref()
         .and_then(|s| serde_json::from_str(s).ok())
         .filter(|s: &SiteStatus| !s.described.is_empty())
@@ -92,7 +78,7 @@ async fn site_view(app: &AppState, site: &str) -> Result<SiteView, ApiError> {
         })?;
     let described: Vec<String> = status.described.iter().map(|d| d.name.clone()).collect();
     let (store, names) = central
-        .site_store(&name, &described)
+        .site_store(site_id, &described)
         .await?
         .ok_or_else(|| ApiError::not_found(format!("site `{site}` has uploaded no rows yet")))?;
     Ok(SiteView {

@@ -162,7 +162,9 @@ enum Failure {
 }
 
 /// The site's current state, from the service's snapshot.
-fn site_status(service: &Service) -> SiteStatus {
+/// `described` is the installation's description of its targets, made once per run (the
+/// installation does not change while the service runs).
+fn site_status(service: &Service, described: &[super::protocol::TargetDescription]) -> SiteStatus {
     let snapshot = service.snapshot();
     let now_ns = service.now_ns();
     let inst = service.installation();
@@ -187,7 +189,7 @@ fn site_status(service: &Service) -> SiteStatus {
                 }
             })
             .collect(),
-        described: super::protocol::describe_targets(&inst.model),
+        described: described.to_vec(),
         problems: service.storage_problem().into_iter().collect(),
     }
 }
@@ -352,6 +354,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
         }
     };
     let settings = upstream.settings.clone();
+    let described = super::protocol::describe_targets(&service.installation().model);
     let heartbeat = Duration::from_secs_f64(settings.heartbeat_s);
     let counted_at = Instant::now();
     let backlog = refresh_backlog(&service, &upstream)
@@ -463,7 +466,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             outbox_id: outbox_id.clone(),
             registry,
             batch: next.map(Into::into),
-            status: Some(site_status(&service)),
+            status: Some(site_status(&service, &described)),
             backlog: backlog_now(&upstream),
             requested,
         };

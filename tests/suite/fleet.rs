@@ -1062,6 +1062,16 @@ async fn the_centre_applies_once_and_refuses_what_it_must_saying_why() {
             "invalid_request",
             "link_resets: 1 columns, the table has 4",
         ),
+        (
+            SITE,
+            SYNC_TOKEN,
+            json!({"outbox_id": "a", "registry": {"links": [], "targets": []},
+                   "requested": {"request_id": 999, "from_ns": 0, "to_ns": 1, "replace": true,
+                                 "tables": []}}),
+            422,
+            "invalid_request",
+            "no raw request 999",
+        ),
     ];
     for (site, token, body, want, code, mentions) in refusals {
         let (status, answer) = sync(&client, base, site, token, &body).await;

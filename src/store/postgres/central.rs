@@ -65,6 +65,11 @@ pub enum SyncOutcome {
         /// The tier's last applied commit (`None`: nothing yet).
         acked_seq: Option<i64>,
     },
+    /// Requested rows answer a raw request the site does not have (nothing was applied).
+    UnknownRequest {
+        /// The request named.
+        id: i64,
+    },
     /// The site uploads from another outbox than the one first seen under its name.
     OutboxChanged {
         /// The outbox first seen.
@@ -258,10 +263,9 @@ async fn apply_requested(
     .fetch_optional(&mut *conn)
     .await?;
     let Some((to_ns, delivered_to_ns, done_ns)) = row else {
-        return Err(StoreError::Malformed(format!(
-            "requested.request_id: site `{site}` has no raw request {}",
-            slice.request_id
-        )));
+        return Ok(SyncOutcome::UnknownRequest {
+            id: slice.request_id,
+        });
     };
     if done_ns.is_some() || slice.to_ns <= delivered_to_ns {
         return Ok(SyncOutcome::Duplicate { acked_seq: None });
@@ -511,7 +515,12 @@ impl Central {
         .await?;
         if let Some(slice) = upload.requested {
             let outcome = apply_requested(&mut tx, site, slice, upload.registry, now_ns).await?;
-            tx.commit().await?;
+            if let SyncOutcome::UnknownRequest { .. } = outcome {
+                // Refused: nothing of it is stored, its report of state neither.
+                tx.rollback().await?;
+            } else {
+                tx.commit().await?;
+            }
             return Ok(outcome);
         }
         let Some(batch) = upload.batch else {
@@ -634,31 +643,34 @@ impl Central {
             .collect())
     }
 
-    /// The store's read side over a site's copy, and the names of the site's targets by index:
-    /// `described` first (the site's installation, in its order), then any other target the
-    /// site's rows name (one its installation no longer has). `None` before the site's first
-    /// upload.
+    /// A site's id and its last report of its state (JSON, as sent); `None` when the centre has
+    /// not heard from it.
+    pub async fn site_report(&self, site: &SiteName) -> StoreResult<Option<(i64, Option<String>)>> {
+        Ok(
+            sqlx::query_as("select site_id, status from fleet.sites where site = $1")
+                .bind(site.as_str())
+                .fetch_optional(&self.pool)
+                .await?,
+        )
+    }
+
+    /// The store's read side over the copy of the site `site_id`, and the names of the site's
+    /// targets by index: `described` first (the site's installation, in its order), then any
+    /// other target the site's rows name (one its installation no longer has). `None` before
+    /// the site's first batch made its schema.
     pub async fn site_store(
         &self,
-        site: &SiteName,
+        site_id: i64,
         described: &[String],
     ) -> StoreResult<Option<(super::super::Store, Vec<String>)>> {
-        let row: Option<(i64,)> = sqlx::query_as("select site_id from fleet.sites where site = $1")
-            .bind(site.as_str())
-            .fetch_optional(&self.pool)
-            .await?;
-        let Some((site_id,)) = row else {
-            return Ok(None);
-        };
-        // The schema exists once the site's first batch was applied; before, nothing to read.
         let schema = site_schema(site_id);
-        if !self.schema_ready(&schema).await? {
-            return Ok(None);
-        }
         let reader = {
             let mut readers = self.readers.lock().await;
             match readers.get(&site_id) {
                 Some(r) => r.clone(),
+                // The schema exists once the site's first batch was applied; before, nothing
+                // to read (and no reader kept).
+                None if !self.schema_ready(&schema).await? => return Ok(None),
                 None => {
                     let options = self
                         .options
