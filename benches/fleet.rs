@@ -381,7 +381,8 @@ fn centre_alone(base: &str, site_cfg: &Path, raw_hours: f64) {
         let store = brokenray::store::open_reader(&inst, 0)
             .await
             .expect("the site's store");
-        let outbox_id = store.outbox_id().await.expect("its outbox");
+        let identity = store.outbox_identity().await.expect("its outbox");
+        let head_seq = store.outbox_head().await.expect("its newest commit");
         let registry = store.registry().await.expect("its registry");
         let mut after = None;
         let mut bodies = Vec::new();
@@ -399,7 +400,10 @@ fn centre_alone(base: &str, site_cfg: &Path, raw_hours: f64) {
                 .sum();
             let rows = batch.rows();
             let request = SyncRequest {
-                outbox_id: outbox_id.clone(),
+                outbox_id: identity.outbox_id.clone(),
+                generation: Some(identity.generation.clone()),
+                lineage: identity.lineage.clone(),
+                head_seq: Some(head_seq),
                 registry: registry.clone(),
                 batch: Some(batch.into()),
                 status: None,

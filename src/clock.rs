@@ -100,13 +100,27 @@ pub fn parse_json_time(v: &serde_json::Value) -> Result<i64, String> {
 }
 
 /// Parses a measurement time (as [`parse_json_time`]) and refuses one later than
-/// `latest_ns`: the server's clock plus `[server] max_future_s`.
+/// `latest_ns` (the server's clock plus `[server] max_future_s`) or earlier than
+/// [`EARLIEST_NS`].
 pub fn parse_measurement_time(v: &serde_json::Value, latest_ns: i64) -> Result<i64, String> {
-    not_after_latest(parse_json_time(v)?, latest_ns)
+    accepted_time(parse_json_time(v)?, latest_ns)
 }
 
-/// A measurement time `t`, refused when later than `latest_ns` (see [`latest_accepted_ns`]).
-pub fn not_after_latest(t: i64, latest_ns: i64) -> Result<i64, String> {
+/// The earliest measurement time accepted, 2000-01-01T00:00:00Z: an earlier one comes from a
+/// clock that was never set, and the far past is where time arithmetic (buckets, partitions)
+/// would wrap around.
+pub const EARLIEST_NS: i64 = 946_684_800_000_000_000;
+
+/// A measurement time `t`, refused when later than `latest_ns` (see [`latest_accepted_ns`]) or
+/// earlier than [`EARLIEST_NS`].
+pub fn accepted_time(t: i64, latest_ns: i64) -> Result<i64, String> {
+    if t < EARLIEST_NS {
+        return Err(format!(
+            "{} is before {}: check the sender's clock",
+            format_ns(t),
+            format_ns(EARLIEST_NS)
+        ));
+    }
     if t > latest_ns {
         return Err(format!(
             "{} is in the future: the server's clock allows times up to {} (`[server] max_future_s`); check the sender's clock",

@@ -119,6 +119,8 @@ pub struct Caller {
     pub authenticated: bool,
     /// The site a `sync` token uploads for.
     pub site: Option<crate::config::SiteName>,
+    /// The token's name, when a token was given.
+    pub name: Option<String>,
 }
 
 /// The lowercase hex SHA-256 of a token.
@@ -139,6 +141,7 @@ pub async fn require_token(
         request.extensions_mut().insert(Caller {
             authenticated: false,
             site: None,
+            name: None,
         });
         return Ok(next.run(request).await);
     };
@@ -184,6 +187,7 @@ pub async fn require_token(
     request.extensions_mut().insert(Caller {
         authenticated: true,
         site: token.site.clone(),
+        name: Some(token.name.clone()),
     });
     Ok(next.run(request).await)
 }

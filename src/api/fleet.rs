@@ -28,17 +28,72 @@ pub(super) fn site_of(text: &str) -> Result<SiteName, ApiError> {
     })
 }
 
-/// The body of an upload: decompressed when `Content-Encoding: zstd`, at most `max` bytes.
-fn decompress(headers: &HeaderMap, body: &Bytes, max: usize) -> Result<Vec<u8>, ApiError> {
+/// The largest report of state a site may send (its targets, their descriptions, its
+/// problems), as JSON.
+const MAX_REPORT_BYTES: usize = 256 * 1024;
+
+/// Uploads read at once (decompressed, parsed and applied): each may take up to
+/// `[central] max_sync_mb` of memory, so a burst of them cannot take the host's.
+pub(super) const SYNC_SLOTS: usize = 2;
+
+/// How long an upload waits for a slot before it is answered 503 (the site retries).
+const SYNC_WAIT: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Memory a JSON value of an upload may take once read, at the most: an `Option<String>` or
+/// hex bytes (24 bytes) in a vector that may have doubled.
+const BYTES_PER_VALUE: usize = 48;
+
+/// The most a decompressed upload may hold: a quarter of the budget (the buffer may double
+/// while it grows; the values read from it take the other half).
+fn max_json_bytes(budget: usize) -> usize {
+    budget / 4
+}
+
+/// The zstd window a decoder allows: at most the largest upload, so that a frame cannot make
+/// the decoder allocate more than that.
+fn window_log_max(budget: usize) -> u32 {
+    let bytes = max_json_bytes(budget).max(1 << 20);
+    (usize::BITS - (bytes - 1).leading_zeros()).clamp(20, 31)
+}
+
+fn too_large(message: String) -> ApiError {
+    ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, "payload_too_large", message)
+}
+
+/// The body of an upload: decompressed when `Content-Encoding: zstd`, within `budget` bytes of
+/// memory for the JSON and the values read from it. The frame's declared size is checked
+/// before anything is allocated, the decoder's window is bounded, and the decoded text is
+/// read only when its values fit (counted by their separators).
+fn decompress(headers: &HeaderMap, body: &Bytes, budget: usize) -> Result<Vec<u8>, ApiError> {
     let encoding = headers
         .get(header::CONTENT_ENCODING)
         .and_then(|v| v.to_str().ok())
         .map(str::trim);
-    match encoding {
-        None | Some("identity") => Ok(body.to_vec()),
+    let max = max_json_bytes(budget);
+    let over = |what: &str| {
+        too_large(format!(
+            "the upload {what} over {max} bytes once decompressed (a quarter of \
+             `[central] max_sync_mb`)"
+        ))
+    };
+    let json = match encoding {
+        None | Some("identity") => {
+            if body.len() > max {
+                return Err(over("is"));
+            }
+            body.to_vec()
+        }
         Some("zstd") => {
-            let decoder = zstd::stream::read::Decoder::new(&body[..])
+            if let Ok(Some(declared)) = zstd::zstd_safe::get_frame_content_size(body)
+                && declared > max as u64
+            {
+                return Err(over("says it is"));
+            }
+            let mut decoder = zstd::stream::read::Decoder::new(&body[..])
                 .map_err(|e| ApiError::bad_request("malformed_body", format!("not zstd: {e}")))?;
+            decoder
+                .window_log_max(window_log_max(budget))
+                .map_err(|e| ApiError::internal(format!("zstd decoder: {e}")))?;
             let mut out = Vec::new();
             decoder
                 .take(max as u64 + 1)
@@ -46,35 +101,66 @@ fn decompress(headers: &HeaderMap, body: &Bytes, max: usize) -> Result<Vec<u8>, 
                 .map_err(|e| {
                     ApiError::bad_request(
                         "malformed_body",
-                        format!("the zstd stream is broken: {e}"),
+                        format!("the zstd stream is broken or needs too large a window: {e}"),
                     )
                 })?;
             if out.len() > max {
-                return Err(ApiError::new(
-                    StatusCode::PAYLOAD_TOO_LARGE,
-                    "payload_too_large",
-                    format!(
-                        "the upload is over {max} bytes once decompressed (`[central] max_sync_mb`)"
-                    ),
-                ));
+                return Err(over("is"));
             }
-            Ok(out)
+            out
         }
-        Some(other) => Err(ApiError::new(
-            StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "unsupported_media_type",
-            format!("Content-Encoding `{other}`: only zstd or none"),
-        )),
+        Some(other) => {
+            return Err(ApiError::new(
+                StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                "unsupported_media_type",
+                format!("Content-Encoding `{other}`: only zstd or none"),
+            ));
+        }
+    };
+    // Every value but the first of an array follows a comma: an upper bound of the values.
+    let values = json.iter().filter(|&&b| b == b',' || b == b'[').count();
+    if values.saturating_mul(BYTES_PER_VALUE) > budget / 2 {
+        return Err(too_large(format!(
+            "the upload holds up to {values} values, more than `[central] max_sync_mb` allows \
+             reading at once"
+        )));
     }
+    Ok(json)
 }
 
-/// Refuses tables of an upload that cannot be written (naming `field[i]`) or that are not of
-/// `tier`.
+/// Decompresses and parses an upload on a blocking thread (never on the async workers).
+async fn read_upload(
+    headers: HeaderMap,
+    body: Bytes,
+    budget: usize,
+) -> Result<SyncRequest, ApiError> {
+    tokio::task::spawn_blocking(move || {
+        let json = decompress(&headers, &body, budget)?;
+        super::parse_json_body::<SyncRequest>(&json)
+    })
+    .await
+    .map_err(|e| ApiError::internal(format!("the upload's reader failed: {e}")))?
+}
+
+/// The columns of uploaded rows that place them in time partitions: a value outside
+/// [`crate::clock::EARLIEST_NS`] to a day past the centre's clock would make partitions no one
+/// can keep (and an upkeep that fails for the site).
+const PARTITION_TIMES: [&str; 2] = ["time_ns", "bucket_ns"];
+
+/// How far past the centre's clock an uploaded row's time may lie.
+const UPLOAD_FUTURE_NS: i64 = 86_400_000_000_000;
+
+/// Refuses tables of an upload that cannot be written (naming `field[i]`), that are not of
+/// `tier`, or whose rows lie outside the times the centre keeps (before
+/// [`crate::clock::EARLIEST_NS`], or over a day past `now_ns`).
 fn check_tables(
     field: &str,
     tables: &[crate::store::outbox::TableRows],
     tier: crate::store::outbox::Tier,
+    now_ns: i64,
 ) -> Result<(), ApiError> {
+    use crate::store::outbox::ColumnValues;
+    let latest = now_ns.saturating_add(UPLOAD_FUTURE_NS);
     for (i, rows) in tables.iter().enumerate() {
         if let Some(problem) = rows.problem() {
             return Err(ApiError::invalid_field(&format!("{field}[{i}]"), problem));
@@ -84,6 +170,28 @@ fn check_tables(
                 &format!("{field}[{i}].table"),
                 format!("not a table of the {} tier", tier.name()),
             ));
+        }
+        for (j, ((name, _), values)) in rows.table.columns().iter().zip(&rows.columns).enumerate() {
+            if !PARTITION_TIMES.contains(name) {
+                continue;
+            }
+            let ColumnValues::Int(times) = values else {
+                continue;
+            };
+            if let Some((k, t)) = times.iter().enumerate().find_map(|(k, t)| {
+                t.filter(|t| !(crate::clock::EARLIEST_NS..=latest).contains(t))
+                    .map(|t| (k, t))
+            }) {
+                return Err(ApiError::invalid_field(
+                    &format!("{field}[{i}].columns[{j}].int[{k}]"),
+                    format!(
+                        "{name} {} lies outside the times the centre keeps ({} to a day past its \
+                         clock)",
+                        crate::clock::format_ns(t),
+                        crate::clock::format_ns(crate::clock::EARLIEST_NS)
+                    ),
+                ));
+            }
         }
     }
     Ok(())
@@ -98,7 +206,7 @@ fn check_tables(
         (status = 200, description = "Applied, a duplicate (nothing changed), or a gap (resume from `acked_seq`)", body = SyncResponse),
         (status = 403, description = "The token uploads for another site", body = ErrorBody),
         (status = 404, description = "This service is no centre", body = ErrorBody),
-        (status = 409, description = "The site uploads from another outbox than the one the centre has been receiving", body = ErrorBody),
+        (status = 409, description = "The site uploads from another outbox than the one the centre has been receiving, from a generation of it descending from none the centre knows, or from a database older than one it uploaded from before in the same generation", body = ErrorBody),
         (status = 422, description = "The upload is malformed; the field is named", body = ErrorBody),
     ),
     security(("bearer" = ["sync"])))]
@@ -118,23 +226,62 @@ pub async fn post_sync(
             format!("this token does not upload for site `{site}`"),
         ));
     }
-    let max = app
+    let budget = app
         .service
         .installation()
         .fleet
         .central
-        .map_or(256_000_000, |c| c.max_sync_bytes);
-    let json = decompress(&headers, &body, max)?;
-    let request: SyncRequest = super::parse_json_body(&json)?;
+        .map_or(128_000_000, |c| c.max_sync_bytes);
+    // Held until the upload is applied: what it was read into lives until then.
+    let _slot = super::take_slot(&app.sync_slots, SYNC_WAIT, "uploads").await?;
+    let request = read_upload(headers, body.clone(), budget).await?;
     let batch: Option<OutboxBatch> = request.batch.map(Into::into);
     if let Some(b) = &batch {
-        check_tables("batch.tables", &b.tables, b.tier)?;
+        check_tables("batch.tables", &b.tables, b.tier, app.service.now_ns())?;
         if b.upto_seq <= b.after_seq {
             return Err(ApiError::invalid_field(
                 "batch.upto_seq",
                 "must be after `after_seq`",
             ));
         }
+        match request.head_seq {
+            None => {
+                return Err(ApiError::invalid_field(
+                    "head_seq",
+                    "an upload with a batch says the site's newest commit",
+                ));
+            }
+            Some(head) if b.upto_seq > head => {
+                return Err(ApiError::invalid_field(
+                    "batch.upto_seq",
+                    format!("{} is past the site's newest commit, {head}", b.upto_seq),
+                ));
+            }
+            Some(_) => {}
+        }
+    }
+    for (field, name) in std::iter::once(("generation", request.generation.as_deref())).chain(
+        request
+            .lineage
+            .iter()
+            .map(|g| ("lineage", Some(g.as_str()))),
+    ) {
+        if let Some(name) = name
+            && (name.is_empty()
+                || name.len() > 64
+                || !name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-'))
+        {
+            return Err(ApiError::invalid_field(
+                field,
+                "a generation is 1 to 64 letters, digits or `-`",
+            ));
+        }
+    }
+    if request.lineage.len() > crate::store::outbox::LINEAGE_KEPT {
+        return Err(ApiError::invalid_field(
+            "lineage",
+            format!("at most {} generations", crate::store::outbox::LINEAGE_KEPT),
+        ));
     }
     if let Some(r) = &request.requested {
         if batch.is_some() {
@@ -147,6 +294,7 @@ pub async fn post_sync(
             "requested.tables",
             &r.tables,
             crate::store::outbox::Tier::Raw,
+            app.service.now_ns(),
         )?;
         if r.to_ns <= r.from_ns {
             return Err(ApiError::invalid_field(
@@ -161,10 +309,33 @@ pub async fn post_sync(
         .map(serde_json::to_string)
         .transpose()
         .map_err(|e| ApiError::internal(e.to_string()))?;
+    // A site's report is shown to every reader of the fleet: bounded, so that one site cannot
+    // make `GET /api/v1/sites` large for all.
+    if let Some(text) = &status
+        && text.len() > MAX_REPORT_BYTES
+    {
+        return Err(ApiError::invalid_field(
+            "status",
+            format!(
+                "the report of state is {} bytes, at most {MAX_REPORT_BYTES} are kept",
+                text.len()
+            ),
+        ));
+    }
+    if request.backlog.len() > crate::store::outbox::Tier::ALL.len() {
+        return Err(ApiError::invalid_field(
+            "backlog",
+            "one entry a tier at most",
+        ));
+    }
     let backlog =
         serde_json::to_string(&request.backlog).map_err(|e| ApiError::internal(e.to_string()))?;
     let upload = SiteUpload {
         outbox_id: &request.outbox_id,
+        // A site of an earlier version uploads in its outbox's first generation.
+        generation: request.generation.as_deref().unwrap_or(&request.outbox_id),
+        lineage: &request.lineage,
+        head_seq: request.head_seq,
         registry: &request.registry,
         batch: batch.as_ref(),
         requested: request.requested.as_ref(),
@@ -172,7 +343,12 @@ pub async fn post_sync(
         backlog_json: Some(&backlog),
         wire_bytes: body.len() as u64,
     };
-    let outcome = central.sync(&site, upload, app.service.now_ns()).await?;
+    // A value the database refuses is refused the same every time: the site must hear 422 and
+    // stop that stream, not retry a 503 for ever.
+    let outcome = central
+        .sync(&site, upload, app.service.now_ns())
+        .await
+        .map_err(crate::store::StoreError::refusal_of_value)?;
     let (outcome, acked_seq) = match outcome {
         SyncOutcome::Applied { acked_seq } => (Outcome::Applied, acked_seq),
         SyncOutcome::Duplicate { acked_seq } => (Outcome::Duplicate, acked_seq),
@@ -181,6 +357,32 @@ pub async fn post_sync(
             return Err(ApiError::invalid_field(
                 "requested.request_id",
                 format!("site `{site}` has no raw request {id}"),
+            ));
+        }
+        SyncOutcome::GenerationUnknown { generation } => {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "generation_unknown",
+                format!(
+                    "site `{site}` uploads in outbox generation {generation}, which descends \
+                     from no generation the centre has received"
+                ),
+            ));
+        }
+        SyncOutcome::CommitsWentBack {
+            generation,
+            head_seq,
+            known_head_seq,
+        } => {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "commits_went_back",
+                format!(
+                    "site `{site}` reports {head_seq} as its newest commit, but reported \
+                     {known_head_seq} before in outbox generation {generation}: its database was \
+                     replaced by an older copy; run `brokenray new-generation` on it with the \
+                     service stopped, and the centre takes its commits as a new stream"
+                ),
             ));
         }
         SyncOutcome::OutboxChanged { known } => {
@@ -317,6 +519,36 @@ pub async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, A
     Ok(Json(SitesOut { sites }))
 }
 
+/// The longest period one raw request may cover: a month (more than a site keeps by default).
+const MAX_RAW_REQUEST_NS: i64 = 31 * 86_400_000_000_000;
+
+/// `DELETE /api/v1/sites/{site}/raw-requests/{id}`: withdraws a pending request (admin); the
+/// site stops delivering it. One already done or cancelled is answered as it stands.
+#[utoipa::path(delete, path = "/sites/{site}/raw-requests/{id}", tag = "fleet",
+    params(("site" = String, Path, description = "The site"),
+           ("id" = i64, Path, description = "The request")),
+    responses(
+        (status = 200, description = "The request, now `cancelled` (or as it was, when it had ended)", body = RawRequestOut),
+        (status = 404, description = "No such request of the site, or this service is no centre", body = ErrorBody),
+    ),
+    security(("bearer" = ["admin"])))]
+pub async fn cancel_raw_request(
+    State(app): State<AppState>,
+    Path((site, id)): Path<(String, String)>,
+    axum::Extension(caller): axum::Extension<Caller>,
+) -> Result<Json<RawRequestOut>, ApiError> {
+    let central = centre(&app)?;
+    let site = site_of(&site)?;
+    let id: i64 = id
+        .parse()
+        .map_err(|_| ApiError::invalid_field("id", format!("`{id}` is not a request id")))?;
+    let cancelled = central
+        .cancel_raw(&site, id, caller.name.as_deref(), app.service.now_ns())
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("site `{site}` has no raw request {id}")))?;
+    Ok(Json((&cancelled).into()))
+}
+
 /// Body of `POST /api/v1/sites/{site}/raw-requests`.
 #[derive(Debug, serde::Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -340,7 +572,8 @@ pub struct RawRequestOut {
     pub from: String,
     /// Its end, excluded.
     pub to: String,
-    /// `pending` until the site has delivered all of it, then `done`.
+    /// `pending` until the site has delivered all of it, then `done`; `cancelled` when the
+    /// office withdrew it first.
     pub state: &'static str,
     /// How far the site has delivered it: every raw row measured before this time is here.
     pub delivered_to: String,
@@ -350,8 +583,11 @@ pub struct RawRequestOut {
     pub requested_by: Option<String>,
     /// When it was asked (centre's clock).
     pub created: String,
-    /// When the last of it arrived.
+    /// When the last of it arrived (or it was cancelled).
     pub done: Option<String>,
+    /// Who cancelled it, when it was.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cancelled_by: Option<String>,
 }
 
 impl From<&crate::store::RawRequestRecord> for RawRequestOut {
@@ -360,11 +596,12 @@ impl From<&crate::store::RawRequestRecord> for RawRequestOut {
             id: r.id,
             from: format_ns(r.from_ns),
             to: format_ns(r.to_ns),
-            state: if r.done_ns.is_some() {
-                "done"
-            } else {
-                "pending"
+            state: match (r.done_ns, &r.cancelled) {
+                (_, Some(_)) => "cancelled",
+                (Some(_), None) => "done",
+                (None, None) => "pending",
             },
+            cancelled_by: r.cancelled.as_ref().and_then(|(by, _)| by.clone()),
             delivered_to: format_ns(r.delivered_to_ns),
             rows: r.rows_applied,
             requested_by: r.requested_by.clone(),
@@ -416,6 +653,16 @@ pub async fn post_raw_request(
         crate::clock::parse_json_time(&r.to).map_err(|m| ApiError::invalid_field("to", m))?;
     if to_ns <= from_ns {
         return Err(ApiError::invalid_field("to", "`to` is not after `from`"));
+    }
+    if to_ns.saturating_sub(from_ns) > MAX_RAW_REQUEST_NS {
+        return Err(ApiError::invalid_field(
+            "to",
+            format!(
+                "a request covers at most {} days (a site delivers it over its link); ask for \
+                 longer periods in several requests",
+                MAX_RAW_REQUEST_NS / 86_400_000_000_000
+            ),
+        ));
     }
     super::check_texts(&[("by", r.by.as_deref())])?;
     let made = central
@@ -479,6 +726,9 @@ pub struct BacklogOut {
     pub rows: Option<u64>,
     /// Bytes on the wire (estimated from the compressed bytes per row sent so far).
     pub bytes: Option<u64>,
+    /// Raw tier: rows of the periods the centre asked for still to send (not in `rows`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub requested_rows: Option<u64>,
 }
 
 /// What was sent.
@@ -550,7 +800,7 @@ pub async fn get_upstream(State(app): State<AppState>) -> Result<Json<UpstreamOu
     let raw_kbit_s = upstream.settings.raw_kbit_s;
     Ok(Json(UpstreamOut {
         site: upstream.site.to_string(),
-        url: upstream.settings.url.to_string(),
+        url: crate::config::redacted_url(&upstream.settings.url),
         last_contact: upstream.last_contact_ns().map(format_ns),
         raw_kbit_s,
         raw_requests: upstream
@@ -572,6 +822,7 @@ pub async fn get_upstream(State(app): State<AppState>) -> Result<Json<UpstreamOu
                 backlog: BacklogOut {
                     rows: p.backlog_rows,
                     bytes: p.backlog_bytes(),
+                    requested_rows: p.requested_rows,
                 },
                 compression_ratio: (p.bytes_sent > 0)
                     .then(|| p.json_bytes_sent as f64 / p.bytes_sent as f64),

@@ -52,7 +52,9 @@ pub enum Command {
         #[arg(long, value_name = "FILE")]
         config: Option<PathBuf>,
     },
-    /// Write an online, consistent copy of the database (safe while `serve` runs).
+    /// Write an online, consistent copy of the database (safe while `serve` runs). A site's
+    /// copy starts a new generation of its outbox, so that restored it never reuses commit
+    /// numbers its centre holds.
     Backup {
         /// The installation file whose database to copy; the built-in one without it.
         #[arg(long, value_name = "FILE")]
@@ -60,6 +62,14 @@ pub enum Command {
         /// Where to write the copy (must not exist).
         #[arg(long, value_name = "FILE")]
         out: PathBuf,
+    },
+    /// Start a new generation of a site's outbox, for a database restored from a copy that
+    /// `backup` did not write (a file-system snapshot): the centre then takes its commits as a
+    /// new stream instead of refusing them. Run it with the service stopped.
+    NewGeneration {
+        /// The installation file whose database to mark; the built-in one without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
     },
     /// Rebuild a Rerun recording (.rrd) of a stored period, for review in the Rerun viewer:
     /// every stored result, sample and alarm transition of the period.
@@ -357,6 +367,26 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 out_file.display(),
                 bytes as f64 / 1e6,
                 started.elapsed().as_secs_f64()
+            )?;
+        }
+        Command::NewGeneration { config } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let config::Database::Sqlite(path) = &installation.server.database else {
+                anyhow::bail!(
+                    "{} is a PostgreSQL database: only a site's SQLite file has an outbox",
+                    installation.server.database
+                );
+            };
+            let identity = runtime(false)?
+                .block_on(crate::store::new_outbox_generation(path))
+                .with_context(|| format!("cannot start a generation in {}", path.display()))?;
+            writeln!(
+                out,
+                "{}: outbox {} now uploads in generation {} (descending from {})",
+                path.display(),
+                identity.outbox_id,
+                identity.generation,
+                identity.lineage.join(", ")
             )?;
         }
         Command::Replay {

@@ -14,6 +14,17 @@ pub const ZSTD_LEVEL: i32 = 9;
 pub struct SyncRequest {
     /// The site's outbox (random, made with its file).
     pub outbox_id: String,
+    /// The outbox's generation (absent: its first, named by `outbox_id`). A restored copy of
+    /// a site's database uploads in a generation of its own.
+    #[serde(default)]
+    pub generation: Option<String>,
+    /// The generations it descends from, the nearest first.
+    #[serde(default)]
+    pub lineage: Vec<String>,
+    /// The site's newest commit when the upload was read: a batch never goes past it, and it
+    /// never goes back within a generation. Required with a batch.
+    #[serde(default)]
+    pub head_seq: Option<i64>,
     /// The names behind the ids of the rows.
     pub registry: Registry,
     /// The rows of one tier; absent in a report of state alone.
@@ -238,6 +249,10 @@ pub struct TierBacklog {
     pub rows: u64,
     /// The last commit the centre acknowledged.
     pub acked_seq: Option<i64>,
+    /// Raw tier: rows of the periods the centre asked for still to send (absent from sites of
+    /// earlier versions).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub requested_rows: Option<u64>,
 }
 
 /// What became of an upload.

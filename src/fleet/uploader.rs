@@ -9,6 +9,9 @@
 //! are retried with back-off from 1 s to 60 s; a refusal (401, 403, 404, 409, 413, 422) stops
 //! that tier's stream, says so in `GET /api/v1/upstream`, the health check and the log, and
 //! never skips data: after the operator fixes the cause, a restart resumes where it stopped.
+//! So does an acknowledgement past the site's newest commit (the centre has commits of this
+//! outbox generation that the file does not: it was replaced by an older copy of itself), which
+//! is never recorded.
 
 use super::protocol::{
     Outcome, RawRequest, RequestedRows, SiteStatus, SyncRequest, SyncResponse, TargetStatus,
@@ -58,6 +61,9 @@ pub struct TierProgress {
     pub stopped: Option<String>,
     /// Raw tier only: rows sent for periods the centre asked for.
     pub requested_rows_sent: u64,
+    /// Raw tier only: rows of the periods the centre asked for still to send (counted with
+    /// the backlog).
+    pub requested_rows: Option<u64>,
 }
 
 impl TierProgress {
@@ -239,10 +245,9 @@ impl Link {
         if let Some(token) = &self.token {
             post = post.bearer_auth(token);
         }
-        let response = post
-            .send()
-            .await
-            .map_err(|e| Failure::Transient(format!("the centre cannot be reached: {e}")))?;
+        let response = post.send().await.map_err(|e| {
+            Failure::Transient(format!("the centre cannot be reached: {}", e.without_url()))
+        })?;
         let status = response.status();
         let text = response
             .text()
@@ -278,8 +283,21 @@ async fn pause(stopping: &mut tokio::sync::watch::Receiver<bool>, d: Duration) -
     }
 }
 
-/// Counts each tier's backlog and the acknowledged numbers from the database.
+/// Counts each tier's backlog and the acknowledged numbers from the database, and the rows of
+/// the periods the centre asked for still to send.
 async fn refresh_backlog(service: &Service, upstream: &Upstream) -> Option<Vec<TierBacklog>> {
+    let mut requested = 0u64;
+    for r in upstream.raw_requests() {
+        match service
+            .store()
+            .count_raw_in(r.delivered_to_ns, r.to_ns)
+            .await
+        {
+            Ok(n) => requested += n,
+            Err(e) => tracing::warn!(error = %e, "cannot count the rows the centre asked for"),
+        }
+    }
+    upstream.update(Tier::Raw, |p| p.requested_rows = Some(requested));
     match service.store().backlog().await {
         Ok(backlog) => Some(
             backlog
@@ -293,6 +311,7 @@ async fn refresh_backlog(service: &Service, upstream: &Upstream) -> Option<Vec<T
                         tier,
                         rows: b.rows,
                         acked_seq: b.acked_seq,
+                        requested_rows: (tier == Tier::Raw).then_some(requested),
                     }
                 })
                 .collect(),
@@ -315,6 +334,7 @@ fn backlog_now(upstream: &Upstream) -> Vec<TierBacklog> {
                 tier,
                 rows: p.backlog_rows?,
                 acked_seq: p.acked_seq,
+                requested_rows: p.requested_rows,
             })
         })
         .collect()
@@ -342,8 +362,8 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
         }
     };
     let store = service.store().clone();
-    let outbox_id = loop {
-        match store.outbox_id().await {
+    let identity = loop {
+        match store.outbox_identity().await {
             Ok(id) => break id,
             Err(e) => {
                 tracing::warn!(error = %e, "the uploader cannot read the outbox; retrying");
@@ -367,8 +387,10 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
     }
     let mut backoff = Duration::from_secs(1);
     let mut raw_allowed_at = Instant::now();
+    // Whether the raw stream goes before the next slice of a period asked for.
+    let mut stream_turn = false;
     let mut last_report: Option<Instant> = None;
-    tracing::info!(site = %upstream.site, centre = %link.url, "uploading to the centre");
+    tracing::info!(site = %upstream.site, centre = %crate::config::redacted_url(&link.url), "uploading to the centre");
     while !*stopping.borrow() {
         let report_due = last_report.is_none_or(|t| t.elapsed() >= heartbeat);
         if report_due && count_due(last_count, heartbeat) {
@@ -386,14 +408,50 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             if progress[i].1.stopped.is_some() {
                 continue;
             }
+            let stream_allowed = settings.raw_kbit_s > 0.0 && Instant::now() >= raw_allowed_at;
+            // The raw stream and the periods asked for take turns, so neither starves.
+            if tier == Tier::Raw && stream_turn && stream_allowed {
+                match store
+                    .outbox_batch(tier, cursor[i], settings.batch_rows)
+                    .await
+                {
+                    Ok(Some(batch)) => {
+                        next = Some(batch);
+                        break;
+                    }
+                    Ok(None) => upstream.update(tier, |p| p.backlog_rows = Some(0)),
+                    Err(e) => {
+                        tracing::warn!(error = %e, tier = tier.name(), "cannot read the outbox");
+                        upstream.update(tier, |p| {
+                            p.last_error = Some((service.now_ns(), e.to_string()));
+                            p.errors += 1;
+                        });
+                    }
+                }
+                stream_turn = false;
+            }
             if tier == Tier::Raw
                 && let Some(r) = upstream.raw_requests().first().copied()
             {
-                let to_ns = r
-                    .to_ns
-                    .min(r.delivered_to_ns.saturating_add(REQUEST_SLICE_NS));
-                match store.raw_rows_in(r.delivered_to_ns, to_ns).await {
-                    Ok(tables) => {
+                // A slice of a minute of rows; a stretch without any is passed in the same
+                // slice (a period of months with an hour of rows is a few uploads).
+                let to_ns = match store.next_raw_time(r.delivered_to_ns, r.to_ns).await {
+                    Ok(None) => Ok(r.to_ns),
+                    Ok(Some(t)) => Ok(r
+                        .to_ns
+                        .min(t.max(r.delivered_to_ns).saturating_add(REQUEST_SLICE_NS))),
+                    Err(e) => Err(e),
+                };
+                let rows = match to_ns {
+                    Ok(to_ns) => store
+                        .raw_rows_in(r.delivered_to_ns, to_ns)
+                        .await
+                        .map(|tables| (to_ns, tables)),
+                    Err(e) => Err(e),
+                };
+                match rows {
+                    Ok((to_ns, tables)) => {
+                        stream_turn = true;
                         requested = Some(RequestedRows {
                             request_id: r.id,
                             from_ns: r.delivered_to_ns,
@@ -414,8 +472,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                     }
                 }
             }
-            if tier == Tier::Raw && (settings.raw_kbit_s <= 0.0 || Instant::now() < raw_allowed_at)
-            {
+            if tier == Tier::Raw && !stream_allowed {
                 continue;
             }
             match store
@@ -462,8 +519,22 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             .map(|b| b.tier)
             .or(requested.as_ref().map(|_| Tier::Raw));
         let rows = next.as_ref().map_or(0, |b| b.rows() as u64);
+        // Read after the batch: at or past its last commit.
+        let head_seq = match store.outbox_head().await {
+            Ok(head) => head,
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot read the outbox's newest commit");
+                if pause(&mut stopping, backoff).await {
+                    break;
+                }
+                continue;
+            }
+        };
         let request = SyncRequest {
-            outbox_id: outbox_id.clone(),
+            outbox_id: identity.outbox_id.clone(),
+            generation: Some(identity.generation.clone()),
+            lineage: identity.lineage.clone(),
+            head_seq: Some(head_seq),
             registry,
             batch: next.map(Into::into),
             status: Some(site_status(&service, &described)),
@@ -498,6 +569,26 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                     continue;
                 };
                 let i = index(tier);
+                if let Some(acked) = answer.acked_seq
+                    && acked > head_seq
+                {
+                    // Recording it would mark commits this file has not made yet as received:
+                    // the rows they will hold would never be sent.
+                    let why = format!(
+                        "the centre acknowledges commit {acked} of this tier, but this site's \
+                         newest commit is {head_seq}: its database is older than what the centre \
+                         received (restored from a copy that did not start an outbox generation \
+                         of its own?); stop the service, run `brokenray new-generation` on the \
+                         database, and start it again"
+                    );
+                    tracing::error!(tier = tier.name(), acked, head_seq, "{why}");
+                    upstream.update(tier, |p| {
+                        p.last_error = Some((now, why.clone()));
+                        p.errors += 1;
+                        p.stopped = Some(why);
+                    });
+                    continue;
+                }
                 match answer.outcome {
                     Outcome::Applied | Outcome::Duplicate => {
                         let Some(acked) = answer.acked_seq else {

@@ -113,6 +113,24 @@ pub enum StoreError {
     /// A stored value could not be decoded (a corrupted or foreign database).
     #[error("stored data is malformed: {0}")]
     Malformed(String),
+    /// The database refuses a value it was given (a data exception or a broken constraint):
+    /// it will refuse the same again, so retrying is useless.
+    #[error("the database refuses a value: {0}")]
+    ValueRefused(String),
+}
+
+impl StoreError {
+    /// The error as [`StoreError::ValueRefused`] when the database refused a value (SQLSTATE
+    /// class 22, a data exception, or 23, an integrity constraint), unchanged otherwise.
+    pub fn refusal_of_value(self) -> StoreError {
+        if let StoreError::Database(sqlx::Error::Database(e)) = &self
+            && let Some(code) = e.code()
+            && (code.starts_with("22") || code.starts_with("23"))
+        {
+            return StoreError::ValueRefused(format!("{} (SQLSTATE {code})", e.message()));
+        }
+        self
+    }
 }
 
 // By hand rather than `#[from]`: the message already carries the cause, and a `source` would
@@ -286,13 +304,22 @@ pub async fn open_reader(
 }
 
 /// Writes a consistent copy of the database to `out` while the service may be writing to it:
-/// for SQLite a database file (`VACUUM INTO`), for PostgreSQL a `pg_dump` archive (custom
-/// format, one snapshot). Refuses to overwrite `out`. Returns the copy's size in bytes.
+/// for SQLite a database file (`VACUUM INTO`) whose outbox starts a new generation (restored,
+/// it never reuses the original's commit numbers at a centre), for PostgreSQL a `pg_dump`
+/// archive (custom format, one snapshot). Refuses to overwrite `out`. Returns the copy's size
+/// in bytes.
 pub async fn backup(database: &Database, out: &std::path::Path) -> StoreResult<u64> {
     match database {
         Database::Sqlite(path) => sqlite::backup(path, out).await,
         Database::Postgres(url) => postgres::backup(url, out).await,
     }
+}
+
+/// Starts a new generation of the outbox of the SQLite database at `path` (migrated first),
+/// for a database restored from a copy that did not start one itself (a file-system snapshot):
+/// the centre then takes its commits as a new stream. Run while no service uses the file.
+pub async fn new_outbox_generation(path: &std::path::Path) -> StoreResult<outbox::OutboxIdentity> {
+    sqlite::new_generation(path).await
 }
 
 impl Store {
@@ -319,6 +346,22 @@ impl Store {
         }
     }
 
+    /// The earliest time of a raw row measured in `[from_ns, to_ns)` (a site's outbox).
+    pub async fn next_raw_time(&self, from_ns: i64, to_ns: i64) -> StoreResult<Option<i64>> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.next_raw_time(from_ns, to_ns).await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// The raw rows measured in `[from_ns, to_ns)`, counted (a site's outbox).
+    pub async fn count_raw_in(&self, from_ns: i64, to_ns: i64) -> StoreResult<u64> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.count_raw_in(from_ns, to_ns).await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
     /// The names behind the ids of the outbox's rows.
     pub async fn registry(&self) -> StoreResult<Registry> {
         match &self.reader {
@@ -327,10 +370,18 @@ impl Store {
         }
     }
 
-    /// The outbox's identity (random, made with the file).
-    pub async fn outbox_id(&self) -> StoreResult<String> {
+    /// The outbox's identity (random, made with the file) and its generation.
+    pub async fn outbox_identity(&self) -> StoreResult<outbox::OutboxIdentity> {
         match &self.reader {
-            Reader::Sqlite(r) => r.outbox_id().await,
+            Reader::Sqlite(r) => r.outbox_identity().await,
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// The outbox's newest commit (0 before any).
+    pub async fn outbox_head(&self) -> StoreResult<i64> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.outbox_head().await,
             Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
         }
     }

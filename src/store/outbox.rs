@@ -402,6 +402,26 @@ impl OutboxBatch {
     }
 }
 
+/// Who a site's outbox is: the identity made with its file, and its generation.
+///
+/// A copy of the file (a backup, restored later) starts a new generation: its next commits
+/// reuse numbers the original gave to other rows after the copy was taken, so the centre
+/// keeps a stream per generation and takes the copy's as a new one, starting where the copy's
+/// acknowledged numbers say.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OutboxIdentity {
+    /// The outbox (random, made with the file; kept by every copy).
+    pub outbox_id: String,
+    /// The current generation (the outbox id at first, random in every copy).
+    pub generation: String,
+    /// The generations it descends from, the nearest first.
+    pub lineage: Vec<String>,
+}
+
+/// Generations a lineage keeps (the nearest ones): enough for any chain of restores the centre
+/// has not seen.
+pub const LINEAGE_KEPT: usize = 32;
+
 /// Per tier, what the site has still to send.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Backlog {

@@ -159,7 +159,8 @@ pub(super) fn aggregate(
         );
         for width_s in ROLLUP_WIDTHS_S {
             let width_ns = width_s * 1_000_000_000;
-            let start = r.time_ns.div_euclid(width_ns) * width_ns;
+            // Saturating, never wrapping: a bucket of the far past cannot land in the future.
+            let start = floor_to(r.time_ns, width_ns);
             out.entry((r.target, r.filtered, width_s, start))
                 .or_insert_with(|| Bucket::empty(start))
                 .add(&values, has_def);
@@ -440,5 +441,25 @@ mod tests {
                 assert_eq!(start % (w * s), 0, "aligned on the rollup grid");
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod far_time_tests {
+    use super::{align, floor_to};
+
+    /// The bucket of the earliest representable time stays at the start of time instead of
+    /// wrapping into the far future (where it would make a partition no upkeep can keep).
+    #[test]
+    fn buckets_of_the_ends_of_time_saturate_instead_of_wrapping() {
+        let hour = 3_600_000_000_000;
+        assert_eq!(floor_to(i64::MIN, hour), i64::MIN);
+        assert!(floor_to(i64::MIN + 1, hour) <= i64::MIN + 1);
+        assert_eq!(
+            floor_to(i64::MAX, hour),
+            i64::MAX - i64::MAX.rem_euclid(hour)
+        );
+        assert_eq!(floor_to(-1, hour), -hour);
+        assert_eq!(align(i64::MIN, 7, hour), i64::MIN);
     }
 }

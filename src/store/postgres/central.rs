@@ -12,6 +12,12 @@
 //! overlaps what was applied brings only the site's current versions. One that ends at or
 //! before `acked` changes nothing (a replay, or one overtaken by a later upload); one that
 //! starts after `acked` is refused with the number to resume from (a gap).
+//!
+//! Each generation of a site's outbox (a restored copy of its database starts one) is a stream
+//! of its own, per tier. A generation's first batch of a tier continues the nearest ancestor
+//! that has one: it may start anywhere up to that ancestor's acknowledged number (the copy
+//! recorded those acknowledgements, so it holds nothing the centre lacks below them). The
+//! newest commit a generation reports never goes back, and no batch goes past it.
 
 use super::super::outbox::{
     ColumnValues, Kind, OutboxBatch, RawRequest, Registry, RequestedRows, TableRows, Tier,
@@ -32,6 +38,12 @@ pub static FLEET_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migration
 pub struct SiteUpload<'a> {
     /// The site's outbox.
     pub outbox_id: &'a str,
+    /// The outbox's generation.
+    pub generation: &'a str,
+    /// The generations it descends from, the nearest first.
+    pub lineage: &'a [String],
+    /// The site's newest commit when it read the upload.
+    pub head_seq: Option<i64>,
     /// The names behind the ids of the batch's rows.
     pub registry: &'a Registry,
     /// The rows.
@@ -75,6 +87,22 @@ pub enum SyncOutcome {
         /// The outbox first seen.
         known: String,
     },
+    /// A generation the centre has not seen descends from none it has (nothing was applied).
+    GenerationUnknown {
+        /// The generation.
+        generation: String,
+    },
+    /// The site's newest commit is below one it reported before in the same generation: its
+    /// database was replaced by an older copy that did not start a generation of its own
+    /// (nothing was applied).
+    CommitsWentBack {
+        /// The generation.
+        generation: String,
+        /// The newest commit the upload reports.
+        head_seq: i64,
+        /// The newest the generation reported before.
+        known_head_seq: i64,
+    },
 }
 
 /// A site as the centre knows it.
@@ -105,6 +133,8 @@ pub struct SiteUpkeep {
     pub raw_results: u64,
     /// Results removed (older than the results' days; raw ones among them too).
     pub results: u64,
+    /// Why the site's upkeep failed, when it did (nothing of it was done).
+    pub failed: Option<String>,
 }
 
 /// One tier of one site at the centre.
@@ -222,6 +252,127 @@ async fn apply_rows(conn: &mut PgConnection, rows: &TableRows, replace: bool) ->
 }
 
 /// Writes the site's links and targets (ids as the site has them).
+/// Records the upload's generation (registering a new one under its nearest known ancestor)
+/// and its newest commit, in the upload's transaction; the refusal, if the upload must be
+/// refused: a generation descending from none the centre knows, or commits that went back.
+async fn generation(
+    conn: &mut PgConnection,
+    site: &SiteName,
+    upload: &SiteUpload<'_>,
+    now_ns: i64,
+) -> StoreResult<Option<SyncOutcome>> {
+    let generation = upload.generation;
+    // Serialises the site's uploads' changes of generations.
+    sqlx::query("select 1 from fleet.sites where site = $1 for update")
+        .bind(site.as_str())
+        .execute(&mut *conn)
+        .await?;
+    let known: Option<(Option<i64>,)> = sqlx::query_as(
+        "select head_seq from fleet.generations where site = $1 and generation = $2",
+    )
+    .bind(site.as_str())
+    .bind(generation)
+    .fetch_optional(&mut *conn)
+    .await?;
+    let known_head = match known {
+        Some((head,)) => head,
+        None => {
+            let generations: Vec<(String,)> =
+                sqlx::query_as("select generation from fleet.generations where site = $1")
+                    .bind(site.as_str())
+                    .fetch_all(&mut *conn)
+                    .await?;
+            let parent = upload
+                .lineage
+                .iter()
+                .find(|g| generations.iter().any(|(k,)| k == *g));
+            if parent.is_none() && !generations.is_empty() {
+                return Ok(Some(SyncOutcome::GenerationUnknown {
+                    generation: generation.to_owned(),
+                }));
+            }
+            sqlx::query(
+                "insert into fleet.generations (site, generation, parent, head_seq, \
+                 first_contact_ns, last_contact_ns) values ($1, $2, $3, null, $4, $4)",
+            )
+            .bind(site.as_str())
+            .bind(generation)
+            .bind(parent)
+            .bind(now_ns)
+            .execute(&mut *conn)
+            .await?;
+            None
+        }
+    };
+    if let (Some(head_seq), Some(known_head_seq)) = (upload.head_seq, known_head)
+        && head_seq < known_head_seq
+    {
+        return Ok(Some(SyncOutcome::CommitsWentBack {
+            generation: generation.to_owned(),
+            head_seq,
+            known_head_seq,
+        }));
+    }
+    sqlx::query(
+        "update fleet.generations set head_seq = greatest(head_seq, $3), last_contact_ns = $4 \
+         where site = $1 and generation = $2",
+    )
+    .bind(site.as_str())
+    .bind(generation)
+    .bind(upload.head_seq)
+    .bind(now_ns)
+    .execute(&mut *conn)
+    .await?;
+    if upload.batch.is_some() {
+        sqlx::query("update fleet.sites set generation = $2 where site = $1")
+            .bind(site.as_str())
+            .bind(generation)
+            .execute(&mut *conn)
+            .await?;
+    }
+    Ok(None)
+}
+
+/// Where a generation's first batch of `tier` may start at the latest: its nearest ancestor's
+/// acknowledged number for the tier (`NOTHING` when none has one).
+async fn inherited_ack(
+    conn: &mut PgConnection,
+    site: &SiteName,
+    generation: &str,
+    tier: &str,
+) -> StoreResult<i64> {
+    let mut current = generation.to_owned();
+    // A lineage is a chain the centre made itself: bounded, but guard against a cycle anyway.
+    for _ in 0..=crate::store::outbox::LINEAGE_KEPT * 4 {
+        let parent: Option<(Option<String>,)> = sqlx::query_as(
+            "select parent from fleet.generations where site = $1 and generation = $2",
+        )
+        .bind(site.as_str())
+        .bind(&current)
+        .fetch_optional(&mut *conn)
+        .await?;
+        let Some((Some(parent),)) = parent else {
+            return Ok(NOTHING);
+        };
+        let acked: Option<(i64,)> = sqlx::query_as(
+            "select acked_seq from fleet.streams where site = $1 and generation = $2 \
+             and tier = $3",
+        )
+        .bind(site.as_str())
+        .bind(&parent)
+        .bind(tier)
+        .fetch_optional(&mut *conn)
+        .await?;
+        if let Some((acked,)) = acked
+            && acked != NOTHING
+        {
+            return Ok(acked);
+        }
+        current = parent;
+    }
+    Ok(NOTHING)
+}
+
 async fn apply_registry(conn: &mut PgConnection, registry: &Registry) -> StoreResult<()> {
     for (table, id, list) in [
         ("links", "link_id", &registry.links),
@@ -316,11 +467,24 @@ pub struct RawRequestRecord {
     pub requested_by: Option<String>,
     /// When it was asked (centre's clock).
     pub created_ns: i64,
-    /// When the last of it arrived.
+    /// When the last of it arrived, or it was cancelled.
     pub done_ns: Option<i64>,
+    /// Who cancelled it and when, if it was.
+    pub cancelled: Option<(Option<String>, i64)>,
 }
 
-type RawRequestRow = (i64, i64, i64, i64, i64, Option<String>, i64, Option<i64>);
+type RawRequestRow = (
+    i64,
+    i64,
+    i64,
+    i64,
+    i64,
+    Option<String>,
+    i64,
+    Option<i64>,
+    Option<String>,
+    Option<i64>,
+);
 
 fn raw_request_of(r: RawRequestRow) -> RawRequestRecord {
     RawRequestRecord {
@@ -332,11 +496,12 @@ fn raw_request_of(r: RawRequestRow) -> RawRequestRecord {
         requested_by: r.5,
         created_ns: r.6,
         done_ns: r.7,
+        cancelled: r.9.map(|at| (r.8, at)),
     }
 }
 
 const RAW_REQUEST_COLUMNS: &str = "request_id, from_ns, to_ns, delivered_to_ns, rows_applied, \
-                                   requested_by, created_ns, done_ns";
+                                   requested_by, created_ns, done_ns, cancelled_by, cancelled_ns";
 
 impl Central {
     /// Asks `site` for its raw rows measured in `[from_ns, to_ns)`; `None` when the centre has
@@ -359,6 +524,37 @@ impl Central {
         .bind(to_ns)
         .bind(requested_by)
         .bind(now_ns)
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(row.map(raw_request_of))
+    }
+
+    /// Cancels a raw request of `site` that is still pending: no site delivers it any more.
+    /// `None` when there is no such request; the request as it stands otherwise (one already
+    /// done or cancelled is left as it is).
+    pub async fn cancel_raw(
+        &self,
+        site: &SiteName,
+        id: i64,
+        by: Option<&str>,
+        now_ns: i64,
+    ) -> StoreResult<Option<RawRequestRecord>> {
+        sqlx::query(
+            "update fleet.raw_requests set done_ns = $4, cancelled_ns = $4, cancelled_by = $3 \
+             where site = $1 and request_id = $2 and done_ns is null",
+        )
+        .bind(site.as_str())
+        .bind(id)
+        .bind(by)
+        .bind(now_ns)
+        .execute(&self.pool)
+        .await?;
+        let row: Option<RawRequestRow> = sqlx::query_as(&format!(
+            "select {RAW_REQUEST_COLUMNS} from fleet.raw_requests where site = $1 \
+             and request_id = $2"
+        ))
+        .bind(site.as_str())
+        .bind(id)
         .fetch_optional(&self.pool)
         .await?;
         Ok(row.map(raw_request_of))
@@ -513,6 +709,10 @@ impl Central {
         .bind(upload.backlog_json)
         .execute(&mut *tx)
         .await?;
+        if let Some(refused) = self::generation(&mut tx, site, &upload, now_ns).await? {
+            tx.rollback().await?;
+            return Ok(refused);
+        }
         if let Some(slice) = upload.requested {
             let outcome = apply_requested(&mut tx, site, slice, upload.registry, now_ns).await?;
             if let SyncOutcome::UnknownRequest { .. } = outcome {
@@ -528,11 +728,13 @@ impl Central {
             return Ok(SyncOutcome::Applied { acked_seq: None });
         };
         let tier = batch.tier.name();
+        let generation = upload.generation;
         sqlx::query(
-            "insert into fleet.streams (site, tier, acked_seq, updated_ns) values ($1, $2, $3, $4) \
-             on conflict (site, tier) do nothing",
+            "insert into fleet.streams (site, generation, tier, acked_seq, updated_ns) \
+             values ($1, $2, $3, $4, $5) on conflict (site, generation, tier) do nothing",
         )
         .bind(site.as_str())
+        .bind(generation)
         .bind(tier)
         .bind(NOTHING)
         .bind(now_ns)
@@ -540,17 +742,25 @@ impl Central {
         .await?;
         // Locks the tier's row: uploads of one site and tier apply one after the other.
         let (stored,): (i64,) = sqlx::query_as(
-            "select acked_seq from fleet.streams where site = $1 and tier = $2 for update",
+            "select acked_seq from fleet.streams where site = $1 and generation = $2 \
+             and tier = $3 for update",
         )
         .bind(site.as_str())
+        .bind(generation)
         .bind(tier)
         .fetch_one(&mut *tx)
         .await?;
-        let outcome = if batch.upto_seq <= stored {
+        // A generation's first batch of the tier continues its nearest ancestor's stream.
+        let start = if stored == NOTHING {
+            inherited_ack(&mut tx, site, generation, tier).await?
+        } else {
+            stored
+        };
+        let outcome = if stored != NOTHING && batch.upto_seq <= stored {
             SyncOutcome::Duplicate {
                 acked_seq: acked(stored),
             }
-        } else if batch.after_seq > stored {
+        } else if batch.after_seq > start {
             SyncOutcome::Gap {
                 acked_seq: acked(stored),
             }
@@ -568,7 +778,7 @@ impl Central {
             sqlx::query(
                 "update fleet.streams set acked_seq = $3, rows_applied = rows_applied + $4, \
                  bytes_received = bytes_received + $5, batches_applied = batches_applied + 1, \
-                 updated_ns = $6 where site = $1 and tier = $2",
+                 updated_ns = $6 where site = $1 and tier = $2 and generation = $7",
             )
             .bind(site.as_str())
             .bind(tier)
@@ -576,6 +786,7 @@ impl Central {
             .bind(i64::try_from(batch.rows()).unwrap_or(i64::MAX))
             .bind(i64::try_from(upload.wire_bytes).unwrap_or(i64::MAX))
             .bind(now_ns)
+            .bind(generation)
             .execute(&mut *tx)
             .await?;
             SyncOutcome::Applied {
@@ -605,9 +816,11 @@ impl Central {
         .fetch_all(&self.pool)
         .await?;
         type StreamRow = (String, String, i64, i64, i64, i64, i64);
+        // The streams of the generation each site uploaded from last.
         let streams: Vec<StreamRow> = sqlx::query_as(
-            "select site, tier, acked_seq, rows_applied, bytes_received, batches_applied, \
-             updated_ns from fleet.streams",
+            "select s.site, s.tier, s.acked_seq, s.rows_applied, s.bytes_received, \
+             s.batches_applied, s.updated_ns from fleet.streams s \
+             join fleet.sites t on t.site = s.site and t.generation = s.generation",
         )
         .fetch_all(&self.pool)
         .await?;
@@ -748,29 +961,45 @@ impl Central {
             if !self.schema_ready(&schema).await? {
                 continue;
             }
-            let mut tx = self.pool.begin().await?;
-            sqlx::query(&format!("set local search_path to {schema}"))
-                .execute(&mut *tx)
-                .await?;
-            // The site's uploads wait (they lock these rows) while its partitions change.
-            sqlx::query("select tier from fleet.streams where site = $1 for update")
-                .bind(&site)
-                .execute(&mut *tx)
-                .await?;
-            let samples = super::drop_before(&mut tx, "samples", raw_cutoff_ns).await?;
-            let raw_results = sqlx::query("delete from results where source = 0 and time_ns < $1")
-                .bind(raw_cutoff_ns)
-                .execute(&mut *tx)
-                .await?
-                .rows_affected();
-            let results = super::drop_before(&mut tx, "results", results_cutoff_ns).await?;
-            super::maintain(&mut tx).await?;
-            tx.commit().await?;
-            out.push(SiteUpkeep {
-                site,
-                samples,
-                raw_results,
-                results,
+            let pass = async {
+                let mut tx = self.pool.begin().await?;
+                sqlx::query(&format!("set local search_path to {schema}"))
+                    .execute(&mut *tx)
+                    .await?;
+                // The site's uploads wait (they lock these rows) while its partitions change.
+                sqlx::query("select tier from fleet.streams where site = $1 for update")
+                    .bind(&site)
+                    .execute(&mut *tx)
+                    .await?;
+                let samples = super::drop_before(&mut tx, "samples", raw_cutoff_ns).await?;
+                let raw_results =
+                    sqlx::query("delete from results where source = 0 and time_ns < $1")
+                        .bind(raw_cutoff_ns)
+                        .execute(&mut *tx)
+                        .await?
+                        .rows_affected();
+                let results = super::drop_before(&mut tx, "results", results_cutoff_ns).await?;
+                super::maintain(&mut tx).await?;
+                tx.commit().await?;
+                StoreResult::Ok((samples, raw_results, results))
+            };
+            // One site's failure (a row its partitions cannot take) is its own: reported, and
+            // the others still get their upkeep.
+            out.push(match pass.await {
+                Ok((samples, raw_results, results)) => SiteUpkeep {
+                    site,
+                    samples,
+                    raw_results,
+                    results,
+                    failed: None,
+                },
+                Err(e) => SiteUpkeep {
+                    site,
+                    samples: 0,
+                    raw_results: 0,
+                    results: 0,
+                    failed: Some(e.to_string()),
+                },
             });
         }
         Ok(out)

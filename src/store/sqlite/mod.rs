@@ -7,6 +7,7 @@
 
 mod outbox;
 mod read;
+mod wal;
 mod write;
 
 pub(super) use write::{Tx, Writer};
@@ -140,6 +141,28 @@ async fn open_inner(
     target_names: &[&String],
     now_ns: i64,
 ) -> StoreResult<(Reader, Writer, Vec<i64>, Vec<i64>)> {
+    // Opening replays the write-ahead log up to its first damaged frame and says nothing of
+    // what lies past it: look first, and say it.
+    match wal::inspect(path) {
+        Some(r) if r.lost_commits > 0 || r.lost_frames > 0 => tracing::error!(
+            database = %path.display(),
+            replayed_commits = r.replayed_commits,
+            lost_commits = r.lost_commits,
+            lost_frames = r.lost_frames,
+            "the database's write-ahead log is damaged: {} commit(s) after the first {} are \
+             lost (acknowledged writes among them); the database opens with what precedes the \
+             damage",
+            r.lost_commits,
+            r.replayed_commits
+        ),
+        Some(r) if r.replayed_commits > 0 => tracing::info!(
+            database = %path.display(),
+            commits = r.replayed_commits,
+            frames = r.replayed_frames,
+            "replaying the write-ahead log left by the last run"
+        ),
+        _ => {}
+    }
     let mut conn = options(path).connect().await?;
     claim(&mut conn, path).await?;
     MIGRATOR.run(&mut conn).await?;
@@ -266,7 +289,28 @@ pub(super) async fn backup(database: &Path, out: &Path) -> StoreResult<u64> {
         .execute(&mut conn)
         .await?;
     conn.close().await?;
+    // The copy is another life of the outbox once restored: a generation of its own.
+    new_generation(out).await?;
     Ok(std::fs::metadata(out).map(|m| m.len()).unwrap_or(0))
+}
+
+/// Starts a new outbox generation in the brokenray database at `path` (which must exist),
+/// migrating it first.
+pub(super) async fn new_generation(path: &Path) -> StoreResult<super::outbox::OutboxIdentity> {
+    if !path.exists() {
+        return Err(StoreError::Malformed(format!(
+            "no database at {}",
+            path.display()
+        )));
+    }
+    let mut conn = options(path).create_if_missing(false).connect().await?;
+    claim(&mut conn, path).await?;
+    MIGRATOR.run(&mut conn).await?;
+    let mut tx = conn.begin().await?;
+    let identity = outbox::start_generation(&mut tx).await?;
+    tx.commit().await?;
+    conn.close().await?;
+    Ok(identity)
 }
 
 #[cfg(test)]

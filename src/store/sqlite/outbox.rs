@@ -4,11 +4,46 @@
 
 use super::super::StoreResult;
 use super::super::outbox::{
-    Backlog, ColumnValues, HexBytes, OutboxBatch, Registered, Registry, SyncTable, TableRows, Tier,
+    Backlog, ColumnValues, HexBytes, LINEAGE_KEPT, OutboxBatch, OutboxIdentity, Registered,
+    Registry, SyncTable, TableRows, Tier,
 };
 use super::Reader;
 use sqlx::sqlite::SqliteRow;
 use sqlx::{Row, SqliteConnection};
+
+/// The outbox's identity and generation, read on `conn`.
+async fn identity(conn: &mut SqliteConnection) -> StoreResult<OutboxIdentity> {
+    let (outbox_id, generation, lineage): (String, String, String) =
+        sqlx::query_as("select outbox_id, generation, lineage from outbox where id = 1")
+            .fetch_one(&mut *conn)
+            .await?;
+    Ok(OutboxIdentity {
+        outbox_id,
+        generation,
+        lineage: lineage
+            .split(',')
+            .filter(|g| !g.is_empty())
+            .map(str::to_owned)
+            .collect(),
+    })
+}
+
+/// Starts a new generation of the outbox in the database on `conn`: a new random name, the
+/// current one first in the lineage (which keeps [`LINEAGE_KEPT`] names). Returns the new
+/// identity.
+pub(super) async fn start_generation(conn: &mut SqliteConnection) -> StoreResult<OutboxIdentity> {
+    let old = identity(conn).await?;
+    let mut lineage = vec![old.generation.clone()];
+    lineage.extend(old.lineage.iter().cloned());
+    lineage.truncate(LINEAGE_KEPT);
+    sqlx::query(
+        "update outbox set generation = lower(hex(randomblob(16))), lineage = ? where id = 1",
+    )
+    .bind(lineage.join(","))
+    .execute(&mut *conn)
+    .await?;
+    identity(conn).await
+}
 
 /// Appends one row's values to the columns of `rows`.
 fn push_row(rows: &mut TableRows, row: &SqliteRow) -> StoreResult<()> {
@@ -143,6 +178,41 @@ impl Reader {
         Ok(tables)
     }
 
+    /// The earliest time of a raw row (sample or raw result) measured in `[from_ns, to_ns)`.
+    pub(in crate::store) async fn next_raw_time(
+        &self,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Option<i64>> {
+        let (next,): (Option<i64>,) = sqlx::query_as(
+            "select min(t) from (select min(time_ns) as t from samples \
+             where time_ns >= ?1 and time_ns < ?2 union all select min(time_ns) from results \
+             where source = 0 and time_ns >= ?1 and time_ns < ?2)",
+        )
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(next)
+    }
+
+    /// The raw rows (samples and raw results) measured in `[from_ns, to_ns)`, counted.
+    pub(in crate::store) async fn count_raw_in(
+        &self,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<u64> {
+        let (n,): (i64,) = sqlx::query_as(
+            "select (select count(*) from samples where time_ns >= ?1 and time_ns < ?2) + \
+             (select count(*) from results where source = 0 and time_ns >= ?1 and time_ns < ?2)",
+        )
+        .bind(from_ns)
+        .bind(to_ns)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(u64::try_from(n).unwrap_or(0))
+    }
+
     /// The names behind the ids of the site's rows.
     pub(in crate::store) async fn registry(&self) -> StoreResult<Registry> {
         let read = |sql: &'static str| async move {
@@ -164,12 +234,18 @@ impl Reader {
         })
     }
 
-    /// The outbox's identity.
-    pub(in crate::store) async fn outbox_id(&self) -> StoreResult<String> {
-        let (id,): (String,) = sqlx::query_as("select outbox_id from outbox where id = 1")
+    /// The outbox's identity and generation.
+    pub(in crate::store) async fn outbox_identity(&self) -> StoreResult<OutboxIdentity> {
+        let mut conn = self.pool.acquire().await?;
+        identity(&mut conn).await
+    }
+
+    /// The newest commit (0 before any).
+    pub(in crate::store) async fn outbox_head(&self) -> StoreResult<i64> {
+        let (head,): (Option<i64>,) = sqlx::query_as("select max(seq) from commits")
             .fetch_one(&self.pool)
             .await?;
-        Ok(id)
+        Ok(head.unwrap_or(0).max(0))
     }
 
     /// Per tier, the last number the centre acknowledged and the rows above it.
