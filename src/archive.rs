@@ -8,7 +8,9 @@
 //!
 //! The size cap holds: before a frame is written the oldest frames (of any camera) are removed
 //! until it fits, so the archive never exceeds `archive_max_mb` (unless one frame alone does).
-//! Files are written under a temporary name and renamed, so a crash leaves no half frame; the
+//! Files are written under a temporary name and linked into place, so a crash leaves no half
+//! frame and an archived frame is never replaced (a second frame of the camera at the same time
+//! is not archived, and counted); the
 //! archive is read back at start (the cap counts what earlier runs kept), and temporary files
 //! left by a crash are removed then.
 //!
@@ -87,6 +89,9 @@ pub struct ArchiveCounters {
     pub dropped: AtomicU64,
     /// Frames whose writing failed.
     pub failed: AtomicU64,
+    /// Frames not archived because one of the camera at the same time is archived already
+    /// (the first stays: evidence is never replaced).
+    pub kept_first: AtomicU64,
 }
 
 /// What is on disk: every archived frame by (time, camera), and their total size.
@@ -283,10 +288,10 @@ impl Writer {
         let mut doomed = Vec::new();
         {
             let mut index = self.index.lock().unwrap_or_else(|p| p.into_inner());
-            if let Some(old) = index.files.remove(&key) {
-                // The same camera and time again (a retried frame): replaced.
-                index.bytes -= old.bytes;
-                doomed.push(old.path);
+            if index.files.contains_key(&key) {
+                // The same camera and time again: the archived frame is evidence and stays.
+                self.counters.kept_first.fetch_add(1, Relaxed);
+                return Ok(());
             }
             while index.bytes + size > self.max_bytes {
                 let Some((_, oldest)) = index.files.pop_first() else {
@@ -308,7 +313,18 @@ impl Writer {
         }
         let temporary = camera_dir.join(format!(".{name}.tmp"));
         std::fs::write(&temporary, &png)?;
-        std::fs::rename(&temporary, &path)?;
+        // A link, not a rename: it fails rather than replace a frame already there (one of an
+        // earlier run, not in the index).
+        let linked = std::fs::hard_link(&temporary, &path);
+        let _ = std::fs::remove_file(&temporary);
+        match linked {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                self.counters.kept_first.fetch_add(1, Relaxed);
+                return Ok(());
+            }
+            Err(e) => return Err(e),
+        }
         let mut index = self.index.lock().unwrap_or_else(|p| p.into_inner());
         index.bytes += size;
         index.files.insert(

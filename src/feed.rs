@@ -140,6 +140,23 @@ impl Client {
         Ok(answer)
     }
 
+    /// GETs JSON from `path`; an error names the status.
+    pub async fn get_json(&self, path: &str) -> anyhow::Result<Value> {
+        let mut request = self.http.get(format!("{}{path}", self.base));
+        if let Some(t) = &self.token {
+            request = request.bearer_auth(t);
+        }
+        let response = request
+            .send()
+            .await
+            .with_context(|| format!("cannot reach {}{path}", self.base))?;
+        let status = response.status();
+        if !status.is_success() {
+            bail!("{path} answered {status}");
+        }
+        Ok(response.json().await?)
+    }
+
     /// POSTs a camera frame file to `/api/v1/frames`: the status and the answer.
     pub async fn post_frame(
         &self,

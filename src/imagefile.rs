@@ -1,10 +1,17 @@
-//! Frame files: PNG, TIFF and binary PGM decoded into the core's grey frames, and grey frames
-//! written back as PNG or PGM (the renderer's output, the tests' input).
+//! Frame files: PNG, JPEG, TIFF and binary PGM decoded into the core's grey frames, and grey
+//! frames written back as PNG or PGM (the renderer's output, the tests' input).
 //!
 //! 8-bit files stay 8-bit; 16-bit ones stay 16-bit (the detector uses every bit). Colour is
-//! converted to luma (Rec. 709 weights, as the `image` crate does); an alpha channel is dropped.
-//! The size is read from the header before any pixel is decoded, so a frame of the wrong size,
-//! or a file that claims an enormous one, costs nothing.
+//! converted to luma (Rec. 709 weights, as the `image` crate does; a JPEG's own luma plane is
+//! taken as it is); an alpha channel is dropped. JPEG is lossy: its blocks move disc centres by
+//! hundredths of a pixel, so it is read, never written, and calibration reports say so.
+//!
+//! Memory is bounded before any pixel is decoded: the size is read from the header first, so a
+//! frame of the wrong size, or a file that claims an enormous one, costs nothing; every decoder
+//! may allocate at most [`decode_budget_bytes`] of the frame's size; PNG's ancillary chunks
+//! (text, colour profiles), which may be compressed bombs, are skipped unread. PNG goes
+//! through the `png` crate directly (the `image` crate decompresses them), JPEG through
+//! `zune-jpeg` (its luma plane, without a colour conversion), TIFF and PGM through `image`.
 
 use crate::vision::{BitDepth, GreyImage};
 use image::{ColorType, DynamicImage, ImageFormat, ImageReader, Limits};
@@ -16,6 +23,8 @@ use std::path::Path;
 pub enum FrameFormat {
     /// `image/png`.
     Png,
+    /// `image/jpeg` (lossy: read only).
+    Jpeg,
     /// `image/tiff`.
     Tiff,
     /// Binary PGM (P5), `image/x-portable-graymap`.
@@ -24,12 +33,18 @@ pub enum FrameFormat {
 
 impl FrameFormat {
     /// Every format, for messages.
-    pub const ALL: [FrameFormat; 3] = [FrameFormat::Png, FrameFormat::Tiff, FrameFormat::Pgm];
+    pub const ALL: [FrameFormat; 4] = [
+        FrameFormat::Png,
+        FrameFormat::Jpeg,
+        FrameFormat::Tiff,
+        FrameFormat::Pgm,
+    ];
 
     /// The media type.
     pub fn content_type(self) -> &'static str {
         match self {
             FrameFormat::Png => "image/png",
+            FrameFormat::Jpeg => "image/jpeg",
             FrameFormat::Tiff => "image/tiff",
             FrameFormat::Pgm => "image/x-portable-graymap",
         }
@@ -43,20 +58,28 @@ impl FrameFormat {
             .find(|f| f.content_type().eq_ignore_ascii_case(essence))
     }
 
-    /// The format a file name's extension names (`.png`, `.tif`/`.tiff`, `.pgm`).
+    /// The format a file name's extension names (`.png`, `.jpg`/`.jpeg`, `.tif`/`.tiff`,
+    /// `.pgm`).
     pub fn from_path(path: &Path) -> Option<Self> {
         let ext = path.extension()?.to_str()?.to_ascii_lowercase();
         match ext.as_str() {
             "png" => Some(FrameFormat::Png),
+            "jpg" | "jpeg" => Some(FrameFormat::Jpeg),
             "tif" | "tiff" => Some(FrameFormat::Tiff),
             "pgm" => Some(FrameFormat::Pgm),
             _ => None,
         }
     }
 
+    /// True for a lossy format (its compression moves disc centres).
+    pub fn is_lossy(self) -> bool {
+        self == FrameFormat::Jpeg
+    }
+
     fn image_format(self) -> ImageFormat {
         match self {
             FrameFormat::Png => ImageFormat::Png,
+            FrameFormat::Jpeg => ImageFormat::Jpeg,
             FrameFormat::Tiff => ImageFormat::Tiff,
             FrameFormat::Pgm => ImageFormat::Pnm,
         }
@@ -90,6 +113,12 @@ pub enum FrameFileError {
     },
 }
 
+/// The most a decoder may allocate for a frame of `width_px` x `height_px`: four 16-bit
+/// channels of every pixel (RGBA 16, the widest kind read), and a megabyte for tables.
+pub fn decode_budget_bytes(width_px: u32, height_px: u32) -> u64 {
+    u64::from(width_px) * u64::from(height_px) * 8 + (1 << 20)
+}
+
 /// Decodes a frame; with `expected` (width, height) a frame of another size is refused before
 /// its pixels are decoded.
 pub fn decode(
@@ -101,25 +130,138 @@ pub fn decode(
         format,
         reason: e.to_string(),
     };
-    let reader = || ImageReader::with_format(Cursor::new(bytes), format.image_format());
-    let (width_px, height_px) = reader().into_dimensions().map_err(|e| undecodable(&e))?;
-    if let Some((w, h)) = expected
-        && (w, h) != (width_px, height_px)
-    {
-        return Err(FrameFileError::WrongSize {
+    let check = |(width_px, height_px): (u32, u32)| match expected {
+        Some((w, h)) if (w, h) != (width_px, height_px) => Err(FrameFileError::WrongSize {
             width_px,
             height_px,
             expected_width_px: w,
             expected_height_px: h,
-        });
+        }),
+        _ => Ok(()),
+    };
+    match format {
+        FrameFormat::Png => decode_png(bytes, check).map_err(|e| match e {
+            Refusal::Size(e) => e,
+            Refusal::Decoder(m) => undecodable(&m),
+        }),
+        FrameFormat::Jpeg => decode_jpeg(bytes, check).map_err(|e| match e {
+            Refusal::Size(e) => e,
+            Refusal::Decoder(m) => undecodable(&m),
+        }),
+        FrameFormat::Tiff | FrameFormat::Pgm => {
+            let reader = || ImageReader::with_format(Cursor::new(bytes), format.image_format());
+            let (width_px, height_px) = reader().into_dimensions().map_err(|e| undecodable(&e))?;
+            check((width_px, height_px))?;
+            let mut limits = Limits::default();
+            limits.max_image_width = Some(width_px);
+            limits.max_image_height = Some(height_px);
+            limits.max_alloc = Some(decode_budget_bytes(width_px, height_px));
+            let mut reader = reader();
+            reader.limits(limits);
+            let image = reader.decode().map_err(|e| undecodable(&e))?;
+            grey_of(image).map_err(|e| undecodable(&e))
+        }
     }
-    let mut limits = Limits::default();
-    limits.max_image_width = Some(width_px);
-    limits.max_image_height = Some(height_px);
-    let mut reader = reader();
-    reader.limits(limits);
-    let image = reader.decode().map_err(|e| undecodable(&e))?;
-    grey_of(image).map_err(|e| undecodable(&e))
+}
+
+/// Why a decoder refused a frame: its size, or the data.
+enum Refusal {
+    Size(FrameFileError),
+    Decoder(String),
+}
+
+impl<E: std::fmt::Display> From<E> for Refusal {
+    fn from(e: E) -> Self {
+        Refusal::Decoder(e.to_string())
+    }
+}
+
+/// Rec. 709 luma in the `image` crate's integer weights (so that a colour frame reads the same
+/// whichever way it came).
+fn luma(r: u32, g: u32, b: u32) -> u32 {
+    (2126 * r + 7152 * g + 722 * b) / 10_000
+}
+
+/// PNG through the `png` crate: text and colour-profile chunks skipped unread, allocation
+/// bounded by the frame's size.
+fn decode_png(
+    bytes: &[u8],
+    check: impl Fn((u32, u32)) -> Result<(), FrameFileError>,
+) -> Result<GreyImage, Refusal> {
+    let header = png::Decoder::new(Cursor::new(bytes))
+        .read_header_info()?
+        .size();
+    check(header).map_err(Refusal::Size)?;
+    let (w, h) = header;
+    let limits = png::Limits {
+        bytes: usize::try_from(decode_budget_bytes(w, h)).unwrap_or(usize::MAX),
+    };
+    let mut decoder = png::Decoder::new_with_limits(Cursor::new(bytes), limits);
+    decoder.set_ignore_text_chunk(true);
+    decoder.set_ignore_iccp_chunk(true);
+    // Palettes and bit depths under 8 expanded to 8 bit; 16 bit kept.
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let mut reader = decoder.read_info()?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| Refusal::Decoder("the frame is too large to hold".to_owned()))?;
+    let mut buf = vec![0u8; size];
+    let info = reader.next_frame(&mut buf)?;
+    buf.truncate(info.buffer_size());
+    let channels = info.color_type.samples();
+    let n = (w as usize) * (h as usize);
+    let grey = match info.bit_depth {
+        png::BitDepth::Sixteen => {
+            let px = |i: usize, c: usize| {
+                let at = 2 * (i * channels + c);
+                u32::from(u16::from_be_bytes([buf[at], buf[at + 1]]))
+            };
+            let pixels: Vec<u16> = (0..n)
+                .map(|i| match channels {
+                    1 | 2 => px(i, 0) as u16,
+                    _ => luma(px(i, 0), px(i, 1), px(i, 2)) as u16,
+                })
+                .collect();
+            GreyImage::new(w, h, BitDepth::Sixteen, pixels)?
+        }
+        _ => {
+            let pixels: Vec<u8> = match channels {
+                1 => buf,
+                2 => buf.iter().step_by(2).copied().collect(),
+                _ => buf
+                    .chunks_exact(channels)
+                    .map(|p| luma(p[0].into(), p[1].into(), p[2].into()) as u8)
+                    .collect(),
+            };
+            GreyImage::from_u8(w, h, &pixels)?
+        }
+    };
+    Ok(grey)
+}
+
+/// JPEG through `zune-jpeg`: its luma plane (the Y of YCbCr, as the camera encoded it), the
+/// size checked from the header first.
+fn decode_jpeg(
+    bytes: &[u8],
+    check: impl Fn((u32, u32)) -> Result<(), FrameFileError>,
+) -> Result<GreyImage, Refusal> {
+    use zune_jpeg::zune_core::bytestream::ZCursor;
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+    let mut probe = zune_jpeg::JpegDecoder::new(ZCursor::new(bytes));
+    probe.decode_headers()?;
+    let (w, h) = probe
+        .info()
+        .map(|i| (u32::from(i.width), u32::from(i.height)))
+        .ok_or_else(|| Refusal::Decoder("no frame header".to_owned()))?;
+    check((w, h)).map_err(Refusal::Size)?;
+    let options = DecoderOptions::default()
+        .jpeg_set_out_colorspace(ColorSpace::Luma)
+        .set_max_width(w as usize)
+        .set_max_height(h as usize);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+    let pixels = decoder.decode()?;
+    Ok(GreyImage::from_u8(w, h, &pixels)?)
 }
 
 /// The grey frame of a decoded image: 8-bit kinds as 8 bit, the rest as 16 bit (a grey image

@@ -276,8 +276,11 @@ pub fn refused(e: crate::vision::VisionError) -> ApiError {
 }
 
 impl CameraCalibrationIn {
-    /// Validates the request and calibrates.
-    pub fn solve(&self) -> Result<(CameraCalibration, CameraCalibrationOut), ApiError> {
+    /// Validates the request and calibrates; `cancel` set stops the work.
+    pub fn solve(
+        &self,
+        cancel: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
+    ) -> Result<(CameraCalibration, CameraCalibrationOut), ApiError> {
         let mut problems: Vec<(Option<usize>, FieldProblem)> = Vec::new();
         let plate = self
             .plate
@@ -336,11 +339,24 @@ impl CameraCalibrationIn {
         let options = CalibrationOptions {
             fixed,
             initial,
+            cancel,
             ..CalibrationOptions::default()
         };
         let calibration = calibrate_camera(&plate, w, h, &views, &options).map_err(refused)?;
         let out = CameraCalibrationOut::from(&calibration);
         Ok((calibration, out))
+    }
+}
+
+/// How long a calibration waits for the one running before it is answered 503 `busy`.
+const CALIBRATION_WAIT: std::time::Duration = std::time::Duration::from_secs(30);
+
+/// Sets its flag when dropped: the work of a request that is gone stops.
+struct StopOnDrop(std::sync::Arc<std::sync::atomic::AtomicBool>);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
     }
 }
 
@@ -350,7 +366,8 @@ impl CameraCalibrationIn {
     responses(
         (status = 200, description = "The intrinsics with their sigmas, covariance, each view's fit and warnings", body = CameraCalibrationOut),
         (status = 400, description = "Malformed JSON", body = ErrorBody),
-        (status = 422, description = "An invalid field (`invalid_request`), or views that cannot calibrate the camera (`calibration_refused`, with the reason)", body = ErrorBody),
+        (status = 422, description = "An invalid field (`invalid_request`), or views that cannot calibrate the camera (`calibration_refused`, with the reason: over 200 views or 40000 points among them)", body = ErrorBody),
+        (status = 503, description = "Another calibration ran for 30 s while this one waited (`busy`)", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
 pub async fn post_camera_calibration(
@@ -360,6 +377,16 @@ pub async fn post_camera_calibration(
 ) -> Result<Json<CameraCalibrationOut>, ApiError> {
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     let input: CameraCalibrationIn = parse_json_body(&bytes)?;
-    let (_, out) = super::vision::blocking(move || input.solve()).await??;
+    // One calibration at a time: each may hold a core for seconds.
+    let _slot = super::take_slot(
+        &app.calibration_slots,
+        CALIBRATION_WAIT,
+        "camera calibration",
+    )
+    .await?;
+    // When the request is dropped (the client left, or its time ran out), the work stops.
+    let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let _stop = StopOnDrop(std::sync::Arc::clone(&cancel));
+    let (_, out) = super::vision::blocking(move || input.solve(Some(cancel))).await??;
     Ok(Json(out))
 }

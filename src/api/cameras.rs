@@ -389,9 +389,17 @@ pub async fn get_archived(
         ))
     })?;
     let bytes = tokio::fs::read(&frame.path).await.map_err(|e| {
+        // The server's paths are its own business: the file's name only, and the cause in
+        // the log.
+        tracing::warn!(path = %frame.path.display(), error = %e, "an archived frame cannot be read");
         ApiError::not_found(format!(
-            "the archived frame {} cannot be read (removed to stay under the cap?): {e}",
-            frame.path.display()
+            "the archived frame {} of camera `{name}` cannot be read (removed to stay under \
+             the cap?)",
+            frame
+                .path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default()
         ))
     })?;
     Ok((

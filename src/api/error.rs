@@ -240,6 +240,11 @@ impl From<ServiceError> for ApiError {
                     .with_details(problems.into_iter().map(Into::into).collect())
             }
             ServiceError::NotFound(m) => ApiError::not_found(m),
+            ServiceError::Storage(crate::store::StoreError::ValueRefused(m)) => ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                "value_refused",
+                format!("the database refuses a value of the request: {m}"),
+            ),
             ServiceError::Storage(e) => ApiError::new(
                 StatusCode::SERVICE_UNAVAILABLE,
                 "storage_unavailable",

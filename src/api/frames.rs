@@ -121,18 +121,21 @@ pub struct FrameOut {
     pub ingest: IngestResponse,
 }
 
+/// How long a frame waits for a decoding slot before it is answered 503 `busy`.
+const DECODE_WAIT: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// `POST /api/v1/frames`.
 #[utoipa::path(post, path = "/frames", tag = "ingest",
     params(FrameQuery),
-    request_body(content = Vec<u8>, description = "The frame: PNG, TIFF or binary PGM, 8 or 16 bit, the camera's size",
+    request_body(content = Vec<u8>, description = "The frame: PNG, JPEG, TIFF or binary PGM, 8 or 16 bit (colour taken as its luma), the camera's size",
         content_type = "image/png"),
     responses(
         (status = 200, description = "Markers found or not (each with the reason); found ones durably stored as samples", body = FrameOut),
         (status = 409, description = "A sample differs from the one stored at the same link and time", body = ErrorBody),
         (status = 413, description = "Body over `max_body_bytes`", body = ErrorBody),
-        (status = 415, description = "Not PNG, TIFF or PGM", body = ErrorBody),
+        (status = 415, description = "Not PNG, JPEG, TIFF or PGM", body = ErrorBody),
         (status = 422, description = "Unknown camera, missing or unbelievable time, undecodable data or a size other than the camera's (each named); nothing was stored", body = ErrorBody),
-        (status = 503, description = "The writer is not available", body = ErrorBody),
+        (status = 503, description = "The writer is not available, or every decoding slot stayed taken for 5 s (`busy`)", body = ErrorBody),
     ),
     security(("bearer" = ["ingest"])))]
 pub async fn post_frame(
@@ -172,9 +175,11 @@ pub async fn post_frame(
         app.service.installation().server.max_future_s,
     );
     let time_ns = crate::clock::parse_query_time(&text)
-        .and_then(|t| crate::clock::not_after_latest(t, latest))
+        .and_then(|t| crate::clock::accepted_time(t, latest))
         .map_err(|m| ApiError::invalid_field("time", m))?;
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
+    // At most a frame a core in decoding and search; the rest wait a little, then 503.
+    let slot = super::take_slot(&app.decode_slots, DECODE_WAIT, "decoding frames").await?;
     let snapshot = app.service.snapshot();
     let camera_name = camera.clone();
     let (out, items, image) = super::vision::blocking(move || {
@@ -204,6 +209,7 @@ pub async fn post_frame(
         let seen = observe_frame(&observer, &camera, &image, predictions)
             .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
         let (out, items) = answer(&camera, time_ns, &seen);
+        drop(slot);
         Ok::<_, ApiError>((out, items, image))
     })
     .await??;

@@ -117,3 +117,67 @@ mod tests {
         assert_eq!(offset_of("ab\ncd\nef", 3, 2), 7);
     }
 }
+
+/// The path of the first string (or object key) in `value` that holds a NUL character
+/// (`samples[3].link`; `body` for the value itself).
+pub fn path_to_nul(value: &serde_json::Value) -> Option<String> {
+    fn walk(value: &serde_json::Value, path: &mut String) -> bool {
+        match value {
+            serde_json::Value::String(s) => s.contains('\0'),
+            serde_json::Value::Array(items) => items.iter().enumerate().any(|(i, item)| {
+                let len = path.len();
+                path.push_str(&format!("[{i}]"));
+                let found = walk(item, path);
+                if !found {
+                    path.truncate(len);
+                }
+                found
+            }),
+            serde_json::Value::Object(map) => map.iter().any(|(key, item)| {
+                let len = path.len();
+                if !path.is_empty() {
+                    path.push('.');
+                }
+                path.push_str(&key.replace('\0', "\\u0000"));
+                let found = key.contains('\0') || walk(item, path);
+                if !found {
+                    path.truncate(len);
+                }
+                found
+            }),
+            _ => false,
+        }
+    }
+    let mut path = String::new();
+    walk(value, &mut path).then(|| {
+        if path.is_empty() {
+            "body".to_owned()
+        } else {
+            path
+        }
+    })
+}
+
+#[cfg(test)]
+mod nul_tests {
+    use super::path_to_nul;
+    use serde_json::json;
+
+    #[test]
+    fn the_path_to_a_nul_names_the_field_and_item() {
+        assert_eq!(
+            path_to_nul(&json!({"by": "ok", "note": "a\u{0}b"})),
+            Some("note".into())
+        );
+        assert_eq!(
+            path_to_nul(&json!({"samples": [{"link": "x"}, {"link": "\u{0}"}]})),
+            Some("samples[1].link".into())
+        );
+        assert_eq!(path_to_nul(&json!("\u{0}")), Some("body".into()));
+        assert_eq!(
+            path_to_nul(&json!({"by": "a\\u0000b"})),
+            None,
+            "a written escape"
+        );
+    }
+}

@@ -87,8 +87,13 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         ),
         (
             "brokenray_connections_refused_total",
-            "Connections closed on arrival because `max_connections` were open.",
-            &super::server::CONNECTIONS_REFUSED,
+            "Connections closed on arrival: a connection limit was reached and every connection was busy with a request.",
+            &super::server::COUNTERS.refused,
+        ),
+        (
+            "brokenray_connections_evicted_total",
+            "Idle connections (waiting for a request head) closed to make room for a newcomer.",
+            &super::server::COUNTERS.evicted,
         ),
         (
             "brokenray_rerun_queued_total",
@@ -128,7 +133,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         "brokenray_connections_open",
         "gauge",
         "Client connections open now.",
-        Metrics::get(&super::server::CONNECTIONS_OPEN),
+        Metrics::get(&super::server::COUNTERS.open),
     );
     family(
         &mut out,
@@ -312,6 +317,11 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
                 "brokenray_frames_archive_failed_total",
                 "Frames whose archiving failed (see the log).",
                 &c.failed,
+            ),
+            (
+                "brokenray_frames_archive_kept_first_total",
+                "Frames not archived because the camera's frame at the same time is archived already (evidence is never replaced).",
+                &c.kept_first,
             ),
         ] {
             single(&mut out, name, "counter", help, Metrics::get(counter));

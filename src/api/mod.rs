@@ -10,6 +10,7 @@ pub(crate) mod auth;
 pub(crate) mod calibration;
 mod cameras;
 mod dashboard;
+mod drain;
 pub(crate) mod dto;
 mod error;
 mod events;
@@ -19,7 +20,7 @@ mod ingest;
 mod jsonpath;
 mod links;
 mod metrics;
-mod server;
+pub mod server;
 mod sites;
 mod targets;
 pub(crate) mod vision;
@@ -69,6 +70,31 @@ pub struct AppState {
     pub central: Option<Arc<crate::store::Central>>,
     /// This site's uploads, when it pushes to a centre.
     pub upstream: Option<Arc<crate::fleet::Upstream>>,
+    /// A centre's uploads read and applied at once (each takes memory up to its budget).
+    pub sync_slots: Arc<tokio::sync::Semaphore>,
+    /// Camera calibrations run at once (one: each holds a core).
+    pub calibration_slots: Arc<tokio::sync::Semaphore>,
+    /// On a centre, why the last upkeep of some site failed (for `/healthz`).
+    pub upkeep_problem: Arc<std::sync::Mutex<Option<String>>>,
+    /// Frames decoded and searched at once: one a core (each takes memory up to its
+    /// camera's decode budget).
+    pub decode_slots: Arc<tokio::sync::Semaphore>,
+}
+
+/// Waits up to `wait` for one of `slots`, or answers 503 `busy` naming `what`.
+pub(crate) async fn take_slot(
+    slots: &Arc<tokio::sync::Semaphore>,
+    wait: std::time::Duration,
+    what: &str,
+) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
+    match tokio::time::timeout(wait, Arc::clone(slots).acquire_owned()).await {
+        Ok(Ok(permit)) => Ok(permit),
+        _ => Err(ApiError::new(
+            axum::http::StatusCode::SERVICE_UNAVAILABLE,
+            "busy",
+            format!("every slot for {what} is taken; retry shortly"),
+        )),
+    }
 }
 
 impl AppState {
@@ -94,6 +120,12 @@ impl AppState {
             latest_frames,
             archive,
             central: None,
+            sync_slots: Arc::new(tokio::sync::Semaphore::new(fleet::SYNC_SLOTS)),
+            upkeep_problem: Arc::default(),
+            calibration_slots: Arc::new(tokio::sync::Semaphore::new(1)),
+            decode_slots: Arc::new(tokio::sync::Semaphore::new(
+                std::thread::available_parallelism().map_or(2, |n| n.get()),
+            )),
             upstream: (service.installation().fleet)
                 .site
                 .clone()
@@ -111,6 +143,16 @@ pub fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> 
     let text = std::str::from_utf8(body).map_err(|e| {
         ApiError::bad_request("malformed_json", format!("the body is not UTF-8: {e}"))
     })?;
+    // In JSON a NUL can only be written `\u0000`: look closer only when that is there.
+    if text.contains("\\u0000")
+        && let Ok(value) = serde_json::from_str::<serde_json::Value>(text)
+        && let Some(path) = jsonpath::path_to_nul(&value)
+    {
+        return Err(ApiError::invalid_field(
+            &path,
+            "text may not hold the NUL character (U+0000)",
+        ));
+    }
     let mut de = serde_json::Deserializer::from_str(text);
     serde_path_to_error::deserialize(&mut de).map_err(|e| {
         let path = e.path().to_string();
@@ -145,6 +187,10 @@ pub struct HealthOut {
     /// was lost; the service works on: the answer stays 200.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub storage_problem: Option<String>,
+    /// On a fleet's centre, the sites whose last upkeep (retention, partitions) failed, and
+    /// why; the other sites' went on. The answer stays 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub centre_problem: Option<String>,
     /// True on a fleet's centre (it serves `GET /api/v1/sites`); absent otherwise. The
     /// dashboard reads it to show the fleet.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
@@ -217,6 +263,11 @@ async fn healthz(
             problem,
             upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
             storage_problem: app.service.storage_problem(),
+            centre_problem: app
+                .upkeep_problem
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .clone(),
             centre: app.central.is_some(),
             targets,
         }),
@@ -398,6 +449,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(fleet::list_sites))
         .routes(routes!(fleet::get_upstream))
         .routes(routes!(fleet::post_raw_request, fleet::list_raw_requests))
+        .routes(routes!(fleet::cancel_raw_request))
         .routes(routes!(sites::list_site_targets))
         .routes(routes!(sites::get_site_compensation))
         .routes(routes!(sites::get_site_stats))
@@ -462,6 +514,12 @@ pub fn router(state: AppState) -> Router {
             StatusCode::REQUEST_TIMEOUT,
             Duration::from_secs(60),
         ))
+        // Outside every refusal (the token's, the handler's): what a refused request did not
+        // send yet is read, so that its client reads the answer instead of a broken pipe.
+        .layer(axum::middleware::from_fn({
+            let limit = state.limits.max_body_bytes;
+            move |req, next| drain::drain_unread(limit, req, next)
+        }))
         // Outside the timeout, so that its 408 gets the envelope too.
         .layer(axum::middleware::from_fn(error::json_envelope))
         .layer((
@@ -511,6 +569,7 @@ pub struct App {
 /// the next one tries again.
 fn spawn_centre_upkeep(state: &AppState) -> Option<tokio::task::JoinHandle<()>> {
     let central = Arc::clone(state.central.as_ref()?);
+    let upkeep_problem = Arc::clone(&state.upkeep_problem);
     let settings = state.service.installation().fleet.central?;
     let service = state.service.clone();
     let mut stopping = service.stopping();
@@ -528,6 +587,22 @@ fn spawn_centre_upkeep(state: &AppState) -> Option<tokio::task::JoinHandle<()>> 
             let pass = central.maintain(service.now_ns(), settings.raw_days, settings.results_days);
             match pass.await {
                 Ok(sites) => {
+                    let failed: Vec<String> = sites
+                        .iter()
+                        .filter_map(|s| {
+                            let why = s.failed.as_ref()?;
+                            tracing::warn!(site = %s.site, error = %why,
+                                "the centre's upkeep of a site failed; the others went on, and it is tried again in ten minutes");
+                            Some(format!("site `{}`: {why}", s.site))
+                        })
+                        .collect();
+                    service
+                        .metrics()
+                        .centre_upkeep_failed
+                        .fetch_add(failed.len() as u64, std::sync::atomic::Ordering::Relaxed);
+                    *upkeep_problem.lock().unwrap_or_else(|p| p.into_inner()) = (!failed
+                        .is_empty())
+                    .then(|| format!("the centre's upkeep failed for {}", failed.join("; ")));
                     let pruned: u64 = sites
                         .iter()
                         .map(|s| s.samples + s.raw_results + s.results)
@@ -614,8 +689,14 @@ impl App {
         shutdown: impl Future<Output = ()> + Send + 'static,
     ) -> std::io::Result<()> {
         let settings = &self.service.installation().server;
+        let max_connections = settings
+            .max_connections
+            .unwrap_or_else(|| server::default_max_connections(server::open_files_limit()));
         let limits = server::ServerLimits {
-            max_connections: settings.max_connections,
+            max_connections,
+            max_connections_per_address: settings
+                .max_connections_per_address
+                .unwrap_or((max_connections / 4).max(16)),
             header_timeout: Duration::from_secs_f64(settings.header_timeout_s),
             shutdown_grace: Duration::from_secs_f64(settings.shutdown_grace_s),
         };

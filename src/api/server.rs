@@ -8,8 +8,14 @@
 //! * a connection must deliver a request's headers within `header_timeout_s` of being opened
 //!   or of its previous response (hyper's header-read timer), so idle and slow clients are
 //!   closed;
-//! * at most `max_connections` are open; a connection past the limit is closed at once and
-//!   counted ([`CONNECTIONS_REFUSED`]);
+//! * at most `max_connections` are open, and at most `max_connections_per_address` from one
+//!   address. When a newcomer would pass either limit, a connection that is waiting for a
+//!   request head (idle, none of its requests in progress) is closed to make room: the oldest
+//!   of the newcomer's own address when that address is at its limit, else the oldest of the
+//!   address holding the most connections. Only when every connection is busy with a request
+//!   is the newcomer closed. A client that keeps refilling idle connections therefore closes
+//!   its own, never another's, and never turns others away. Closed on arrival and closed to
+//!   make room are counted ([`ConnectionCounters`]);
 //! * at shutdown the listener closes, every connection is asked to finish its current request
 //!   (event streams end by themselves: they watch the same signal), and after
 //!   `shutdown_grace_s` whatever is still open is cut off, with a log line saying how many.
@@ -17,27 +23,241 @@
 use axum::Router;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
-use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::Duration;
+use std::collections::HashMap;
+use std::net::IpAddr;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
-use tokio::sync::{Semaphore, watch};
+use tokio::sync::{Notify, watch};
 use tower::ServiceExt as _;
 
-/// Connections closed on arrival because `max_connections` were open.
-pub static CONNECTIONS_REFUSED: AtomicU64 = AtomicU64::new(0);
-/// Connections open now.
-pub static CONNECTIONS_OPEN: AtomicU64 = AtomicU64::new(0);
+/// What the server loop counts.
+#[derive(Debug, Default)]
+pub struct ConnectionCounters {
+    /// Connections closed on arrival: the limits were reached and every connection was busy.
+    pub refused: AtomicU64,
+    /// Idle connections closed to make room for a newcomer.
+    pub evicted: AtomicU64,
+    /// Connections open now.
+    pub open: AtomicU64,
+}
+
+/// The server loop's counters (one server a process).
+pub static COUNTERS: ConnectionCounters = ConnectionCounters {
+    refused: AtomicU64::new(0),
+    evicted: AtomicU64::new(0),
+    open: AtomicU64::new(0),
+};
 
 /// How the server loop behaves.
 #[derive(Debug, Clone, Copy)]
 pub struct ServerLimits {
     /// Most connections open at once.
     pub max_connections: usize,
+    /// Most connections open at once from one address.
+    pub max_connections_per_address: usize,
     /// Time allowed for a request's headers.
     pub header_timeout: Duration,
     /// Time allowed at shutdown for requests in progress.
     pub shutdown_grace: Duration,
+}
+
+/// Open files kept for everything but client connections (the database, its journal, the
+/// archive, Rerun, outgoing HTTP).
+pub const FILES_RESERVED: u64 = 256;
+
+/// Raises this process's soft limit of open files to its hard limit (once) and returns it.
+pub fn raise_open_files_limit() -> std::io::Result<u64> {
+    #[cfg(unix)]
+    {
+        let (_, hard) = rlimit::getrlimit(rlimit::Resource::NOFILE)?;
+        rlimit::increase_nofile_limit(hard)
+    }
+    #[cfg(not(unix))]
+    {
+        Ok(u64::MAX)
+    }
+}
+
+/// The process's soft limit of open files now (`u64::MAX` where unknown).
+pub fn open_files_limit() -> u64 {
+    #[cfg(unix)]
+    {
+        rlimit::getrlimit(rlimit::Resource::NOFILE).map_or(u64::MAX, |(soft, _)| soft)
+    }
+    #[cfg(not(unix))]
+    {
+        u64::MAX
+    }
+}
+
+/// `max_connections` when the installation does not set it: 4096, or what the open-files
+/// limit leaves after [`FILES_RESERVED`] (at least 16).
+pub fn default_max_connections(open_files: u64) -> usize {
+    usize::try_from(open_files.saturating_sub(FILES_RESERVED).clamp(16, 4096)).unwrap_or(4096)
+}
+
+/// Refuses a `max_connections` the process could not hold open (with [`FILES_RESERVED`] for
+/// the rest): past the open-files limit, accepting fails and nobody gets in.
+pub fn check_connections_fit(max_connections: usize, open_files: u64) -> Result<(), String> {
+    let needed = max_connections as u64 + FILES_RESERVED;
+    if needed > open_files {
+        Err(format!(
+            "[server] max_connections = {max_connections} needs about {needed} open files, but \
+             this process may open {open_files} (`ulimit -n`, raised to the hard limit at \
+             start): lower max_connections or raise the limit"
+        ))
+    } else {
+        Ok(())
+    }
+}
+
+/// One open connection, as the admission sees it.
+struct Entry {
+    peer: IpAddr,
+    /// Requests in progress (a request counts until its answer's body has been sent).
+    busy: AtomicUsize,
+    /// When it last became idle (waiting for a request head), in ns since the server started.
+    idle_since_ns: AtomicU64,
+    /// Told when the connection must close to make room.
+    evict: Notify,
+}
+
+/// The open connections, for admission and eviction.
+struct Table {
+    started: Instant,
+    next_id: u64,
+    entries: HashMap<u64, Arc<Entry>>,
+    per_address: HashMap<IpAddr, usize>,
+}
+
+impl Table {
+    fn elapsed_ns(&self) -> u64 {
+        u64::try_from(self.started.elapsed().as_nanos()).unwrap_or(u64::MAX)
+    }
+
+    fn remove(&mut self, id: u64) {
+        if let Some(e) = self.entries.remove(&id)
+            && let Some(n) = self.per_address.get_mut(&e.peer)
+        {
+            *n -= 1;
+            if *n == 0 {
+                self.per_address.remove(&e.peer);
+            }
+        }
+    }
+
+    /// Closes the idle connection of `peer` that has waited longest for a request head; false
+    /// when every one of its connections is busy.
+    fn evict_oldest_idle(&mut self, peer: IpAddr) -> bool {
+        let oldest = self
+            .entries
+            .iter()
+            .filter(|(_, e)| e.peer == peer)
+            .filter(|(_, e)| e.busy.load(Ordering::Acquire) == 0)
+            .min_by_key(|(_, e)| e.idle_since_ns.load(Ordering::Acquire))
+            .map(|(id, _)| *id);
+        let Some(id) = oldest else {
+            return false;
+        };
+        if let Some(e) = self.entries.get(&id) {
+            e.evict.notify_one();
+        }
+        self.remove(id);
+        COUNTERS.evicted.fetch_add(1, Ordering::Relaxed);
+        true
+    }
+
+    /// Closes the oldest idle connection of the address that holds the most connections (the
+    /// greediest pays, so one client filling the slots never closes another's), or of the next
+    /// greediest when all of its are busy; false when every connection is busy.
+    fn evict_from_greediest(&mut self) -> bool {
+        let mut addresses: Vec<(IpAddr, usize)> =
+            self.per_address.iter().map(|(a, n)| (*a, *n)).collect();
+        addresses.sort_by_key(|a| std::cmp::Reverse(a.1));
+        addresses
+            .into_iter()
+            .any(|(address, _)| self.evict_oldest_idle(address))
+    }
+
+    /// Admits a connection from `peer`, closing an idle one where a limit is reached; `None`
+    /// when it must be refused.
+    fn admit(&mut self, peer: IpAddr, limits: &ServerLimits) -> Option<(u64, Arc<Entry>)> {
+        let from_peer = self.per_address.get(&peer).copied().unwrap_or(0);
+        if from_peer >= limits.max_connections_per_address && !self.evict_oldest_idle(peer) {
+            return None;
+        }
+        if self.entries.len() >= limits.max_connections && !self.evict_from_greediest() {
+            return None;
+        }
+        let id = self.next_id;
+        self.next_id += 1;
+        let entry = Arc::new(Entry {
+            peer,
+            busy: AtomicUsize::new(0),
+            idle_since_ns: AtomicU64::new(self.elapsed_ns()),
+            evict: Notify::new(),
+        });
+        self.entries.insert(id, Arc::clone(&entry));
+        *self.per_address.entry(peer).or_insert(0) += 1;
+        Some((id, entry))
+    }
+}
+
+/// A request in progress on a connection: idle again (since now) when the last one ends.
+struct Busy {
+    entry: Arc<Entry>,
+    table: Arc<Mutex<Table>>,
+}
+
+impl Busy {
+    fn new(entry: &Arc<Entry>, table: &Arc<Mutex<Table>>) -> Busy {
+        entry.busy.fetch_add(1, Ordering::AcqRel);
+        Busy {
+            entry: Arc::clone(entry),
+            table: Arc::clone(table),
+        }
+    }
+}
+
+impl Drop for Busy {
+    fn drop(&mut self) {
+        let now = self
+            .table
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .elapsed_ns();
+        self.entry.idle_since_ns.store(now, Ordering::Release);
+        self.entry.busy.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+/// An answer's body that keeps its request counted as in progress until it is sent (an event
+/// stream's connection is never idle).
+struct Tracked {
+    inner: axum::body::Body,
+    _busy: Busy,
+}
+
+impl hyper::body::Body for Tracked {
+    type Data = bytes::Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<hyper::body::Frame<Self::Data>, Self::Error>>> {
+        std::pin::Pin::new(&mut self.inner).poll_frame(cx)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> hyper::body::SizeHint {
+        self.inner.size_hint()
+    }
 }
 
 /// Serves `router` on `listener` until `stop` turns true; then stops accepting, lets requests
@@ -49,7 +269,12 @@ pub async fn serve(
     limits: ServerLimits,
     mut stop: watch::Receiver<bool>,
 ) -> usize {
-    let permits = Arc::new(Semaphore::new(limits.max_connections));
+    let table = Arc::new(Mutex::new(Table {
+        started: Instant::now(),
+        next_id: 0,
+        entries: HashMap::new(),
+        per_address: HashMap::new(),
+    }));
     let mut connections = tokio::task::JoinSet::new();
     loop {
         let accepted = tokio::select! {
@@ -59,7 +284,7 @@ pub async fn serve(
             // Reap finished connection tasks so the set does not grow.
             Some(_) = connections.join_next(), if !connections.is_empty() => continue,
         };
-        let (stream, _peer) = match accepted {
+        let (stream, peer) = match accepted {
             Ok(a) => a,
             Err(e) => {
                 // Out of file descriptors and the like: wait a moment rather than spin.
@@ -68,39 +293,58 @@ pub async fn serve(
                 continue;
             }
         };
-        let Ok(permit) = Arc::clone(&permits).try_acquire_owned() else {
-            CONNECTIONS_REFUSED.fetch_add(1, Ordering::Relaxed);
+        let admitted = table
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .admit(peer.ip(), &limits);
+        let Some((id, entry)) = admitted else {
+            COUNTERS.refused.fetch_add(1, Ordering::Relaxed);
             drop(stream);
             continue;
         };
         let _ = stream.set_nodelay(true);
         let router = router.clone();
         let mut stop = stop.clone();
+        let table = Arc::clone(&table);
         connections.spawn(async move {
-            CONNECTIONS_OPEN.fetch_add(1, Ordering::Relaxed);
-            let service = hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
-                router.clone().oneshot(req.map(axum::body::Body::new))
-            });
+            COUNTERS.open.fetch_add(1, Ordering::Relaxed);
+            let service = {
+                let (entry, table) = (Arc::clone(&entry), Arc::clone(&table));
+                hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
+                    let busy = Busy::new(&entry, &table);
+                    let answer = router.clone().oneshot(req.map(axum::body::Body::new));
+                    async move {
+                        let response = answer.await?;
+                        Ok::<_, std::convert::Infallible>(
+                            response.map(|inner| Tracked { inner, _busy: busy }),
+                        )
+                    }
+                })
+            };
             let mut builder = hyper::server::conn::http1::Builder::new();
             builder
                 .timer(TokioTimer::new())
                 .header_read_timeout(limits.header_timeout);
             let mut conn = builder.serve_connection(TokioIo::new(HeadErrors::new(stream)), service);
             let ended = tokio::select! {
-                r = &mut conn => r,
+                r = &mut conn => Some(r),
+                // Closed to make room: it was waiting for a request head.
+                () = entry.evict.notified() => None,
                 () = async { let _ = stop.wait_for(|s| *s).await; } => {
                     std::pin::Pin::new(&mut conn).graceful_shutdown();
-                    (&mut conn).await
+                    Some((&mut conn).await)
                 }
             };
-            if ended.as_ref().is_err_and(hyper::Error::is_timeout) {
-                // No request head in time: hyper closes without a word; say why.
-                let mut io = conn.into_parts().io.into_inner();
-                io.answer_timeout(limits.header_timeout).await;
+            if let Some(ended) = ended {
+                if ended.as_ref().is_err_and(hyper::Error::is_timeout) {
+                    // No request head in time: hyper closes without a word; say why.
+                    let mut io = conn.into_parts().io.into_inner();
+                    io.answer_timeout(limits.header_timeout).await;
+                }
+                log_connection_end(ended);
             }
-            log_connection_end(ended);
-            CONNECTIONS_OPEN.fetch_sub(1, Ordering::Relaxed);
-            drop(permit);
+            table.lock().unwrap_or_else(|p| p.into_inner()).remove(id);
+            COUNTERS.open.fetch_sub(1, Ordering::Relaxed);
         });
     }
     drop(listener);
@@ -122,7 +366,7 @@ pub async fn serve(
     );
     connections.abort_all();
     while connections.join_next().await.is_some() {}
-    CONNECTIONS_OPEN.store(0, Ordering::Relaxed);
+    COUNTERS.open.store(0, Ordering::Relaxed);
     cut
 }
 

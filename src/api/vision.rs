@@ -357,16 +357,18 @@ impl HandEyeIn {
         }
         let mut options = HandEyeOptions::default();
         if let Some(s) = self.sigma {
-            for (field, v) in [
-                ("sigma.rotation_arcsec", s.rotation_arcsec),
-                ("sigma.translation_mm", s.translation_mm),
+            // A measurement's noise, from a thousandth of an arc-second (or a nanometre) to
+            // a hundred degrees (or a hundred metres): beyond, the weights overflow.
+            for (field, v, lo, hi) in [
+                ("sigma.rotation_arcsec", s.rotation_arcsec, 1e-3, 3.6e5),
+                ("sigma.translation_mm", s.translation_mm, 1e-6, 1e5),
             ] {
-                if !(v.is_finite() && v > 0.0) {
+                if !(v.is_finite() && (lo..=hi).contains(&v)) {
                     problems.push((
                         None,
                         (
                             field.to_owned(),
-                            format!("must be a positive number, not {v}"),
+                            format!("must lie in [{lo}, {hi}], not {v}"),
                         ),
                     ));
                 }

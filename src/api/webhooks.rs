@@ -113,8 +113,11 @@ impl Webhooks {
                 })
                 .collect(),
         );
+        // Redirects are never followed: one could send an alarm (signed) to any host, this
+        // service's own admin API among them, and be counted as delivered.
         let client = match reqwest::Client::builder()
             .user_agent(concat!("brokenray/", env!("CARGO_PKG_VERSION")))
+            .redirect(reqwest::redirect::Policy::none())
             .build()
         {
             Ok(c) => c,
@@ -320,6 +323,22 @@ async fn attempt(
     let status = response.status();
     if status.is_success() {
         return Ok(());
+    }
+    if status.is_redirection() {
+        let to = response
+            .headers()
+            .get(reqwest::header::LOCATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| url::Url::parse(v).ok())
+            .and_then(|u| u.host_str().map(str::to_owned))
+            .unwrap_or_else(|| "elsewhere".to_owned());
+        return Err(Failure {
+            message: format!(
+                "answered {status}, a redirect to {to}: redirects are not followed (configure the \
+                 final URL)"
+            ),
+            retry: false,
+        });
     }
     Err(Failure {
         message: format!("answered {status}"),

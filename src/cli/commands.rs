@@ -182,6 +182,21 @@ pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
     for w in &installation.warnings {
         tracing::warn!(file = %installation.source, line = ?w.line, "{}", w.message);
     }
+    // Past the open-files limit accepting fails and nobody gets in: raise it, and keep the
+    // connection cap below it.
+    let open_files = crate::api::server::raise_open_files_limit()
+        .unwrap_or_else(|_| crate::api::server::open_files_limit());
+    if let Some(max) = installation.server.max_connections {
+        crate::api::server::check_connections_fit(max, open_files).map_err(anyhow::Error::msg)?;
+    }
+    tracing::info!(
+        open_files,
+        max_connections = installation
+            .server
+            .max_connections
+            .unwrap_or_else(|| crate::api::server::default_max_connections(open_files)),
+        "open files allowed"
+    );
     let source = installation.source.clone();
     let database = installation.server.database.clone();
     let targets: Vec<String> = installation.model.target_names();

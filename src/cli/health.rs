@@ -10,8 +10,8 @@ use anyhow::Context as _;
 pub fn healthcheck(listen: std::net::SocketAddr, timeout_s: f64) -> anyhow::Result<String> {
     use std::io::{Read as _, Write as _};
     anyhow::ensure!(
-        timeout_s.is_finite() && timeout_s > 0.0,
-        "--timeout-s must be a positive number of seconds"
+        timeout_s.is_finite() && timeout_s > 0.0 && timeout_s <= 3600.0,
+        "--timeout-s must be a number of seconds over 0 and at most 3600, not {timeout_s}"
     );
     let timeout = std::time::Duration::from_secs_f64(timeout_s);
     let mut addr = listen;

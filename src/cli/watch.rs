@@ -11,6 +11,12 @@
 //!   service's answer beside it (`<file>.error.json`); it is never retried.
 //! * When the service cannot be reached or answers 5xx, 408 or 429, nothing is removed: the file
 //!   is tried again after a back-off (up to 30 s), so an outage of the service loses nothing.
+//! * A file that cannot be a frame is set aside the same way, with the reason, unread and
+//!   without stopping the others: a name that is not UTF-8, a time before 1970 or past 2262
+//!   (in its name or its modification time), a size over what the camera can make (its width
+//!   times height times 8 bytes, RGBA 16 bit, and a megabyte; the sizes come from the
+//!   service's `GET /api/v1/cameras`, 64 MiB for a camera it does not list). A file that
+//!   vanishes while the folder is scanned is passed over.
 //!
 //! The folder is scanned rather than watched with inotify: the scan works on every file system
 //! (camera PCs often write to network shares, where change notifications do not arrive) and
@@ -47,6 +53,16 @@ pub struct WatchSummary {
     pub retries: u64,
 }
 
+/// The size a frame file may have when the service's cameras are not known.
+const UNKNOWN_CAMERA_MAX_BYTES: u64 = 64 << 20;
+
+/// A file in a camera's folder that cannot be a frame, and why.
+#[derive(Debug, Clone)]
+struct Unfit {
+    path: PathBuf,
+    reason: String,
+}
+
 /// A frame file waiting.
 #[derive(Debug, Clone)]
 struct Waiting {
@@ -81,8 +97,31 @@ pub async fn watch(
     let mut summary = WatchSummary::default();
     let mut backoff = Duration::ZERO;
     let progress = &settings.progress;
+    let mut sizes = camera_sizes(client).await;
     loop {
-        let waiting = scan(dir, settings.settle)?;
+        if sizes.is_none() {
+            sizes = camera_sizes(client).await;
+        }
+        let (waiting, unfit) = scan(dir, settings.settle, sizes.as_ref())?;
+        for u in unfit {
+            summary.refused += 1;
+            let answer = serde_json::to_string_pretty(&serde_json::json!({
+                "refused_by": "watch",
+                "reason": u.reason,
+            }))
+            .unwrap_or_default();
+            match set_aside(&u.path, &answer) {
+                Ok(aside) => progress.suspend(|| {
+                    eprintln!("not a frame, moved to {}: {}", aside.display(), u.reason);
+                }),
+                Err(e) => progress.suspend(|| {
+                    eprintln!(
+                        "not a frame ({}), and it cannot be moved aside: {e:#}",
+                        u.reason
+                    );
+                }),
+            }
+        }
         let mut outage = None;
         for frame in &waiting {
             match deliver(client, frame).await? {
@@ -93,7 +132,7 @@ pub async fn watch(
                 Outcome::Gone => {}
                 Outcome::Refused(answer) => {
                     summary.refused += 1;
-                    let aside = set_aside(frame, &answer)?;
+                    let aside = set_aside(&frame.path, &answer)?;
                     progress.suspend(|| {
                         eprintln!(
                             "refused, moved to {}: {}",
@@ -130,7 +169,7 @@ pub async fn watch(
             }
             None if settings.once => {
                 // Done when nothing is left, not even a file still settling.
-                if scan(dir, Duration::ZERO)?.is_empty() {
+                if scan(dir, Duration::ZERO, sizes.as_ref())?.0.is_empty() {
                     return Ok(summary);
                 }
                 if waiting.is_empty() {
@@ -148,31 +187,77 @@ pub async fn watch(
     }
 }
 
-/// The frame files under `dir/<camera>/` unchanged for `settle`, oldest first.
-fn scan(dir: &Path, settle: Duration) -> anyhow::Result<Vec<Waiting>> {
+/// The cameras' largest possible frame files (bytes) by name, from the service; `None` when
+/// it cannot say now (unreachable, or the token may not read).
+async fn camera_sizes(client: &Client) -> Option<std::collections::HashMap<String, u64>> {
+    let cameras = client.get_json("/api/v1/cameras").await.ok()?;
+    Some(
+        cameras["cameras"]
+            .as_array()?
+            .iter()
+            .filter_map(|c| {
+                let (w, h) = (c["width_px"].as_u64()?, c["height_px"].as_u64()?);
+                let budget = crate::imagefile::decode_budget_bytes(
+                    u32::try_from(w).ok()?,
+                    u32::try_from(h).ok()?,
+                );
+                Some((c["name"].as_str()?.to_owned(), budget))
+            })
+            .collect(),
+    )
+}
+
+/// The frame files under `dir/<camera>/` unchanged for `settle`, oldest first, and the files
+/// there that cannot be frames. A file that vanishes meanwhile is passed over.
+fn scan(
+    dir: &Path,
+    settle: Duration,
+    sizes: Option<&std::collections::HashMap<String, u64>>,
+) -> anyhow::Result<(Vec<Waiting>, Vec<Unfit>)> {
     let now = SystemTime::now();
     let mut out = Vec::new();
+    let mut unfit = Vec::new();
     for camera in
         std::fs::read_dir(dir).with_context(|| format!("cannot read {}", dir.display()))?
     {
-        let camera = camera?;
+        let Ok(camera) = camera else { continue };
         let Some(name) = camera.file_name().to_str().map(str::to_owned) else {
             continue;
         };
-        if name.starts_with('.') || !camera.file_type()?.is_dir() {
+        if name.starts_with('.') || !camera.file_type().is_ok_and(|t| t.is_dir()) {
             continue;
         }
-        for file in std::fs::read_dir(camera.path())? {
-            let file = file?;
+        let Ok(files) = std::fs::read_dir(camera.path()) else {
+            continue;
+        };
+        let max_bytes = sizes
+            .and_then(|s| s.get(&name).copied())
+            .unwrap_or(UNKNOWN_CAMERA_MAX_BYTES);
+        for file in files {
+            let Ok(file) = file else { continue };
             let path = file.path();
-            let hidden = file.file_name().to_str().is_none_or(|n| n.starts_with('.'));
+            let Ok(meta) = file.metadata() else {
+                continue;
+            };
+            if !meta.is_file() {
+                continue;
+            }
+            let Some(file_name) = file.file_name().to_str().map(str::to_owned) else {
+                unfit.push(Unfit {
+                    reason: format!(
+                        "the name {:?} is not UTF-8: a frame's name is its time or plain text",
+                        file.file_name()
+                    ),
+                    path,
+                });
+                continue;
+            };
+            if file_name.starts_with('.') {
+                continue;
+            }
             let Some(format) = FrameFormat::from_path(&path) else {
                 continue;
             };
-            let meta = file.metadata()?;
-            if hidden || !meta.is_file() {
-                continue;
-            }
             let age = meta
                 .modified()
                 .ok()
@@ -181,16 +266,34 @@ fn scan(dir: &Path, settle: Duration) -> anyhow::Result<Vec<Waiting>> {
             if age < settle {
                 continue;
             }
-            out.push(Waiting {
-                time_ns: super::detect::time_of(&path)?,
-                camera: name.clone(),
-                path,
-                format,
-            });
+            if meta.len() > max_bytes {
+                unfit.push(Unfit {
+                    reason: format!(
+                        "{} bytes, more than a frame of camera {name} can be ({max_bytes})",
+                        meta.len()
+                    ),
+                    path,
+                });
+                continue;
+            }
+            match super::detect::time_of(&path) {
+                Ok(time_ns) => out.push(Waiting {
+                    time_ns,
+                    camera: name.clone(),
+                    path,
+                    format,
+                }),
+                // Gone while we looked: someone else took it.
+                Err(_) if !path.exists() => {}
+                Err(e) => unfit.push(Unfit {
+                    reason: format!("{e:#}"),
+                    path,
+                }),
+            }
         }
     }
     out.sort_by(|a, b| (a.time_ns, &a.camera, &a.path).cmp(&(b.time_ns, &b.camera, &b.path)));
-    Ok(out)
+    Ok((out, unfit))
 }
 
 /// Posts one frame file.
@@ -229,20 +332,19 @@ async fn deliver(client: &Client, frame: &Waiting) -> anyhow::Result<Outcome> {
     })
 }
 
-/// Moves a refused frame into `<camera>/refused/` with the answer beside it; returns where.
-fn set_aside(frame: &Waiting, answer: &str) -> anyhow::Result<PathBuf> {
-    let parent = frame.path.parent().unwrap_or(Path::new("."));
+/// Moves a refused file into `<camera>/refused/` with the answer beside it; returns where.
+fn set_aside(path: &Path, answer: &str) -> anyhow::Result<PathBuf> {
+    let parent = path.parent().unwrap_or(Path::new("."));
     let aside = parent.join("refused");
     std::fs::create_dir_all(&aside)
         .with_context(|| format!("cannot create {}", aside.display()))?;
-    let name = frame.path.file_name().unwrap_or_default();
+    let name = path.file_name().unwrap_or_default();
     let to = aside.join(name);
     let mut error_name = name.to_os_string();
     error_name.push(".error.json");
     std::fs::write(aside.join(error_name), answer)
         .with_context(|| format!("cannot write beside {}", to.display()))?;
-    std::fs::rename(&frame.path, &to)
-        .with_context(|| format!("cannot move {} aside", frame.path.display()))?;
+    std::fs::rename(path, &to).with_context(|| format!("cannot move {} aside", path.display()))?;
     Ok(to)
 }
 

@@ -142,10 +142,23 @@ pub struct UpstreamSettings {
     pub heartbeat_s: f64,
 }
 
+/// `url` as it may be shown (logs, the API): without a user name or password it may carry.
+pub fn redacted_url(url: &url::Url) -> String {
+    let mut shown = url.clone();
+    if !shown.username().is_empty() || shown.password().is_some() {
+        let _ = shown.set_username("");
+        let _ = shown.set_password(None);
+        let text = shown.to_string();
+        // Say that credentials were there without showing them.
+        return text.replacen("://", "://<credentials>@", 1);
+    }
+    shown.to_string()
+}
+
 impl std::fmt::Debug for UpstreamSettings {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("UpstreamSettings")
-            .field("url", &self.url.as_str())
+            .field("url", &redacted_url(&self.url))
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("raw_kbit_s", &self.raw_kbit_s)
             .field("batch_rows", &self.batch_rows)
@@ -255,8 +268,13 @@ pub struct ServerSettings {
     /// Host names (with or without port) accepted in the `Host` header besides the listen
     /// address, `localhost` and the loopback addresses; checked when no token is configured.
     pub allowed_hosts: Vec<String>,
-    /// Most open client connections; more are closed as they arrive.
-    pub max_connections: usize,
+    /// Most open client connections: past it a newcomer closes the connection that has waited
+    /// longest for a request head, or is closed itself when every one is busy. `None`: 4096,
+    /// or fewer when the process may not open that many files (said at start).
+    pub max_connections: Option<usize>,
+    /// Most open connections from one address, enforced the same way (`None`: a quarter of
+    /// `max_connections`, at least 16).
+    pub max_connections_per_address: Option<usize>,
     /// A client must send a request's headers within this time of connecting or of its
     /// previous answer (s): idle and slow connections are closed after it.
     pub header_timeout_s: f64,

@@ -127,6 +127,7 @@ pub(super) struct RawServer {
     pub clock_tolerance_s: Option<f64>,
     pub allowed_hosts: Option<Vec<String>>,
     pub max_connections: Option<usize>,
+    pub max_connections_per_address: Option<usize>,
     pub header_timeout_s: Option<f64>,
     pub shutdown_grace_s: Option<f64>,
     pub max_heavy_reads: Option<usize>,

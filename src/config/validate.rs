@@ -89,6 +89,18 @@ impl Validator {
         }
     }
 
+    /// True when `value` lies in `[lo, hi]`; otherwise says so at `at`. Every number that sizes
+    /// memory or a duration is bounded this way: a value far outside what makes sense would
+    /// overflow the task that uses it, long after the service started.
+    fn within(&mut self, at: usize, what: &str, value: f64, lo: f64, hi: f64) -> bool {
+        if value.is_finite() && (lo..=hi).contains(&value) {
+            true
+        } else {
+            self.problem(at, format!("{what} must lie in [{lo}, {hi}], not {value}"));
+            false
+        }
+    }
+
     fn pose(&mut self, at: usize, what: &str, raw: &RawPose) -> Option<Pose> {
         let forms = [
             raw.q_wxyz.is_some(),
@@ -376,15 +388,13 @@ impl Validator {
                     (None, None) => None,
                 };
                 let raw_kbit_s = u.raw_kbit_s.unwrap_or(0.0);
-                if !(raw_kbit_s.is_finite() && raw_kbit_s >= 0.0) {
-                    self.problem(
-                        at,
-                        format!("upstream.raw_kbit_s must be 0 or more, not {raw_kbit_s}"),
-                    );
-                    ok = false;
+                if raw_kbit_s != 0.0 {
+                    // The wait after a batch is its bits over this: a tiny budget would make a
+                    // wait of centuries (and an uploader that dies computing it).
+                    ok &= self.within(at, "upstream.raw_kbit_s (or 0)", raw_kbit_s, 0.01, 1e7);
                 }
                 let heartbeat_s = u.heartbeat_s.unwrap_or(10.0);
-                ok &= self.positive(at, "upstream.heartbeat_s", heartbeat_s);
+                ok &= self.within(at, "upstream.heartbeat_s", heartbeat_s, 0.05, 86_400.0);
                 let batch_rows = u.batch_rows.unwrap_or(20_000);
                 if batch_rows == 0 {
                     self.problem(at, "upstream.batch_rows must be at least 1".into());
@@ -409,8 +419,8 @@ impl Validator {
                     );
                     ok = false;
                 }
-                let max_sync_mb = s.get_ref().max_sync_mb.unwrap_or(256.0);
-                ok &= self.positive(at, "central.max_sync_mb", max_sync_mb);
+                let max_sync_mb = s.get_ref().max_sync_mb.unwrap_or(128.0);
+                ok &= self.within(at, "central.max_sync_mb", max_sync_mb, 1.0, 4096.0);
                 let raw_days = s.get_ref().raw_days.unwrap_or(30.0);
                 let results_days = s.get_ref().results_days.unwrap_or(365.0);
                 ok &= self.positive(at, "central.raw_days", raw_days);
@@ -449,8 +459,8 @@ impl Validator {
         };
         let archive_every_s = f.archive_every_s.unwrap_or(60.0);
         let archive_max_mb = f.archive_max_mb.unwrap_or(1024.0);
-        let mut ok = self.positive(at, "frames.archive_every_s", archive_every_s)
-            & self.positive(at, "frames.archive_max_mb", archive_max_mb);
+        let mut ok = self.within(at, "frames.archive_every_s", archive_every_s, 0.001, 31e6)
+            & self.within(at, "frames.archive_max_mb", archive_max_mb, 0.001, 1e9);
         if f.archive_dir.as_deref() == Some("") {
             self.problem(
                 at,
@@ -575,22 +585,24 @@ impl Validator {
         Some(ServerSettings {
             listen,
             database: self.database(raw.server.database.as_ref())?,
-            max_body_bytes: raw
-                .server
-                .max_body_bytes
-                .unwrap_or(32 * 1024 * 1024)
-                .max(1024),
-            max_batch_samples: raw.server.max_batch_samples.unwrap_or(100_000).max(1),
+            max_body_bytes: self.count(
+                "server.max_body_bytes",
+                raw.server.max_body_bytes,
+                32 * 1024 * 1024,
+                1024,
+                1 << 34,
+            )?,
+            max_batch_samples: self.count(
+                "server.max_batch_samples",
+                raw.server.max_batch_samples,
+                100_000,
+                1,
+                100_000_000,
+            )?,
             events_max_hz: match raw.server.events_max_hz {
                 None => 10.0,
-                Some(hz) if hz.is_finite() && hz > 0.0 => hz,
-                Some(hz) => {
-                    self.problem(
-                        0,
-                        format!("server.events_max_hz must be a positive number, not {hz}"),
-                    );
-                    return None;
-                }
+                Some(hz) if self.within(0, "server.events_max_hz", hz, 0.001, 1000.0) => hz,
+                Some(_) => return None,
             },
             max_future_s: self.seconds("server.max_future_s", raw.server.max_future_s, 5.0)?,
             clock_tolerance_s: self.seconds(
@@ -599,7 +611,14 @@ impl Validator {
                 2.0,
             )?,
             allowed_hosts: raw.server.allowed_hosts.clone().unwrap_or_default(),
-            max_connections: raw.server.max_connections.unwrap_or(4096).max(16),
+            max_connections: match raw.server.max_connections {
+                None => None,
+                n => Some(self.count("server.max_connections", n, 0, 16, 1_000_000)?),
+            },
+            max_connections_per_address: match raw.server.max_connections_per_address {
+                None => None,
+                n => Some(self.count("server.max_connections_per_address", n, 0, 1, 1_000_000)?),
+            },
             header_timeout_s: self.seconds(
                 "server.header_timeout_s",
                 raw.server.header_timeout_s,
@@ -610,8 +629,33 @@ impl Validator {
                 raw.server.shutdown_grace_s,
                 10.0,
             )?,
-            max_heavy_reads: raw.server.max_heavy_reads.unwrap_or(2).max(1),
+            max_heavy_reads: self.count(
+                "server.max_heavy_reads",
+                raw.server.max_heavy_reads,
+                2,
+                1,
+                1024,
+            )?,
         })
+    }
+
+    /// A whole number with a default, refused (not clamped) outside `[lo, hi]`.
+    fn count(
+        &mut self,
+        key: &str,
+        value: Option<usize>,
+        default: usize,
+        lo: usize,
+        hi: usize,
+    ) -> Option<usize> {
+        match value {
+            None => Some(default),
+            Some(n) if (lo..=hi).contains(&n) => Some(n),
+            Some(n) => {
+                self.problem(0, format!("{key} must lie in [{lo}, {hi}], not {n}"));
+                None
+            }
+        }
     }
 
     /// A non-negative, finite number of seconds with a default.
@@ -660,26 +704,32 @@ impl Validator {
                 }
             }
         }
-        let mut positive = |v: &Option<toml::Spanned<f64>>, name: &str, default: f64| match v {
-            None => Some(default),
-            Some(x) if x.get_ref().is_finite() && *x.get_ref() > 0.0 => Some(*x.get_ref()),
-            Some(x) => {
-                self.problem(
-                    x.span().start,
-                    format!(
-                        "rerun.{name} must be a positive number, not {}",
-                        x.get_ref()
-                    ),
-                );
-                None
-            }
-        };
-        let memory_mb = positive(&r.serve_memory_limit_mb, "serve_memory_limit_mb", 256.0);
-        let rotate_hours = positive(&r.rotate_hours, "rotate_hours", 24.0);
-        let rotate_max_mb = positive(&r.rotate_max_mb, "rotate_max_mb", 1024.0);
-        let scene_hz = positive(&r.scene_hz, "scene_hz", 2.0);
-        let series_hz = positive(&r.series_hz, "series_hz", 10.0);
-        let image_hz = positive(&r.image_hz, "image_hz", 1.0);
+        // Rates become periods and sizes byte counts: each bounded to what makes sense.
+        let mut bounded =
+            |v: &Option<toml::Spanned<f64>>, name: &str, default: f64, lo: f64, hi: f64| match v {
+                None => Some(default),
+                Some(x) => self
+                    .within(
+                        x.span().start,
+                        &format!("rerun.{name}"),
+                        *x.get_ref(),
+                        lo,
+                        hi,
+                    )
+                    .then_some(*x.get_ref()),
+            };
+        let memory_mb = bounded(
+            &r.serve_memory_limit_mb,
+            "serve_memory_limit_mb",
+            256.0,
+            1.0,
+            1e6,
+        );
+        let rotate_hours = bounded(&r.rotate_hours, "rotate_hours", 24.0, 0.001, 87_600.0);
+        let rotate_max_mb = bounded(&r.rotate_max_mb, "rotate_max_mb", 1024.0, 0.001, 1e7);
+        let scene_hz = bounded(&r.scene_hz, "scene_hz", 2.0, 0.001, 1e6);
+        let series_hz = bounded(&r.series_hz, "series_hz", 10.0, 0.001, 1e6);
+        let image_hz = bounded(&r.image_hz, "image_hz", 1.0, 0.001, 1e6);
         let queue_capacity = match &r.queue_capacity {
             None => Some(4096),
             Some(q) if (1..=10_000_000).contains(q.get_ref()) => usize::try_from(*q.get_ref()).ok(),
@@ -1143,7 +1193,7 @@ impl Validator {
             self.problem(at, format!("{what} needs `expected_rate_hz`"));
             return None;
         };
-        if !self.positive(at, &format!("{what}: expected_rate_hz"), rate) {
+        if !self.within(at, &format!("{what}: expected_rate_hz"), rate, 1e-4, 1e5) {
             return None;
         }
         let nominal = match &l.nominal {
@@ -1305,7 +1355,7 @@ impl Validator {
                 }
             };
             let timeout_s = w.timeout_s.unwrap_or(10.0);
-            ok &= self.positive(at, &format!("{what}.timeout_s"), timeout_s);
+            ok &= self.within(at, &format!("{what}.timeout_s"), timeout_s, 0.01, 3600.0);
             let max_attempts = w.max_attempts.unwrap_or(8);
             if !(1..=100).contains(&max_attempts) {
                 self.problem(

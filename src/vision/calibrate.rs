@@ -118,7 +118,7 @@ pub struct CalibrationView {
 }
 
 /// What to solve and when to refuse.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct CalibrationOptions {
     /// Parameters kept at their value: distortion terms at zero, the principal point at the
     /// image centre, focal lengths at `initial`'s (which must then be given), unless `initial`
@@ -132,6 +132,8 @@ pub struct CalibrationOptions {
     pub max_rms_px: f64,
     /// Levenberg-Marquardt iterations at most, per round.
     pub max_iterations: usize,
+    /// Set by the caller to stop the work (its request is gone): checked every iteration.
+    pub cancel: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
 }
 
 impl Default for CalibrationOptions {
@@ -142,6 +144,7 @@ impl Default for CalibrationOptions {
             eccentricity: true,
             max_rms_px: 1.0,
             max_iterations: 100,
+            cancel: None,
         }
     }
 }
@@ -239,6 +242,8 @@ pub const MIN_VIEWS: usize = 3;
 pub const MIN_VIEW_POINTS: usize = 6;
 /// Most views accepted: the adjustment's normal equations grow with the cube of the views.
 pub const MAX_VIEWS: usize = 200;
+/// Most points accepted over all views: each iteration's work grows with them.
+pub const MAX_POINTS: usize = 40_000;
 
 impl CalibrationWarning {
     /// A short code for the kind of warning.
@@ -359,6 +364,7 @@ pub fn calibrate_camera(
             width_px,
             height_px,
             options.max_iterations,
+            options.cancel.as_deref(),
         )?;
         iterations += result.iterations;
         round += 1;
@@ -391,6 +397,13 @@ fn check_views(plate: &Plate, views: &[CalibrationView]) -> Result<(), VisionErr
         return Err(refuse(format!(
             "{} views: at most {MAX_VIEWS} are taken (a few dozen determine a camera well)",
             views.len()
+        )));
+    }
+    let points: usize = views.iter().map(|v| v.points_px.len()).sum();
+    if points > MAX_POINTS {
+        return Err(refuse(format!(
+            "{points} points over the views: at most {MAX_POINTS} are taken (a few thousand \
+             determine a camera well)"
         )));
     }
     for (v, view) in views.iter().enumerate() {
@@ -605,6 +618,7 @@ impl<'a> Problem<'a> {
         width_px: u32,
         height_px: u32,
         max_iterations: usize,
+        cancel: Option<&std::sync::atomic::AtomicBool>,
     ) -> Result<Adjusted, VisionError> {
         let size = (width_px, height_px);
         let behind = || {
@@ -619,6 +633,9 @@ impl<'a> Problem<'a> {
         let mut lambda = 1e-4;
         let mut iterations = 0;
         while iterations < max_iterations {
+            if cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed)) {
+                return Err(refuse("stopped: the request was withdrawn"));
+            }
             iterations += 1;
             let mut a = fit.information.clone();
             for i in 0..a.nrows() {

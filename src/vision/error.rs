@@ -95,6 +95,19 @@ pub enum VisionError {
         /// Allowed difference (degrees).
         tolerance_deg: f64,
     },
+    /// Hand-eye: a pair does not fit the solution of all of them (a motion measured wrong,
+    /// or pairs of different motions).
+    #[error(
+        "motion {index} does not fit the others: its rotation residual is {residual_deg:.3} deg (more than {tolerance_deg} deg); measure it again or leave it out"
+    )]
+    PairDoesNotFit {
+        /// The pair's index.
+        index: usize,
+        /// Its rotation residual (degrees).
+        residual_deg: f64,
+        /// Allowed (degrees).
+        tolerance_deg: f64,
+    },
     /// Hand-eye: all rotation axes are nearly parallel, so the rotation about them is not
     /// observable.
     #[error(

@@ -165,6 +165,27 @@ pub fn solve_hand_eye(
             }
         })
         .collect();
+    // Every pair must fit the solution within the angle tolerance: one that does not is a
+    // motion measured wrong, and the rest would be bent towards it.
+    if let Some((index, r)) = residuals
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.rotation_arcsec.total_cmp(&b.1.rotation_arcsec))
+        && r.rotation_arcsec / 3600.0 > options.angle_tolerance_deg
+    {
+        return Err(VisionError::PairDoesNotFit {
+            index,
+            residual_deg: r.rotation_arcsec / 3600.0,
+            tolerance_deg: options.angle_tolerance_deg,
+        });
+    }
+    if !covariance.iter().all(|v| v.is_finite()) {
+        return Err(VisionError::CalibrationRefused {
+            reason: "the solution's covariance cannot be computed from these motions and \
+                     sigmas (give sigmas of a measurement's real size)"
+                .to_owned(),
+        });
+    }
     let rms = |of: fn(&PairResidual) -> f64| {
         (residuals.iter().map(|r| of(r).powi(2)).sum::<f64>() / residuals.len() as f64).sqrt()
     };

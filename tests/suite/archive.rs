@@ -192,3 +192,42 @@ fn the_cap_is_never_exceeded_the_oldest_go_first_and_a_restart_counts_what_is_th
     let (bytes, _) = disk_bytes(&root);
     assert_eq!(reopened.bytes(), bytes - "camera C1, bow".len() as u64);
 }
+
+/// A second frame of a camera at the time of an archived one (another frame posted for the same
+/// time) is not archived: the evidence on disk stays the first frame, bit for bit, and the
+/// refusal is counted.
+#[test]
+fn an_archived_frame_is_never_replaced() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let settings = FrameSettings {
+        archive_dir: Some(dir.path().join("frames")),
+        archive_every_s: 1.0,
+        archive_max_mb: 100.0,
+    };
+    let archive = FrameArchive::open(&settings)
+        .expect("opens")
+        .expect("configured");
+    let first = noise(1);
+    archive.offer("C1", T0, &first, Some(ArchiveReason::NotFound));
+    settled(&archive, 1);
+    archive.offer("C1", T0, &noise(2), Some(ArchiveReason::Outlier));
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while archive.counters().kept_first.load(Relaxed) < 1 {
+        assert!(
+            Instant::now() < deadline,
+            "the second frame was not handled"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert_eq!(archive.counters().written.load(Relaxed), 1);
+    let kept = archive.get("C1", T0).expect("archived");
+    assert_eq!(kept.reason, ArchiveReason::NotFound);
+    let on_disk = decode(
+        &std::fs::read(&kept.path).expect("file"),
+        FrameFormat::Png,
+        None,
+    )
+    .expect("decodes");
+    assert_eq!(on_disk.pixels(), first.pixels(), "the first frame stays");
+    assert_eq!(disk_bytes(&dir.path().join("frames")).1, 1, "one file");
+}

@@ -90,6 +90,7 @@ fn help_lists_only_working_subcommands() {
             "default-config",
             "serve",
             "backup",
+            "new-generation",
             "replay",
             "healthcheck",
             "simulate",
@@ -602,6 +603,28 @@ fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
         inbox.join("C7").join(format!("{stamp}.png")),
     )
     .unwrap();
+    // Files that cannot be frames, beside the good ones: each set aside with its reason, the
+    // others delivered all the same.
+    let old = inbox.join("C2").join("old.png");
+    std::fs::write(&old, b"from before 1970").unwrap();
+    let touched = Command::new("touch")
+        .args(["-d", "1960-01-01T00:00:00Z", old.to_str().unwrap()])
+        .status()
+        .unwrap();
+    assert!(touched.success());
+    let huge = inbox.join("C2").join("huge.png");
+    // Sparse: no disk taken, and never read.
+    std::fs::File::create(&huge)
+        .unwrap()
+        .set_len(3 << 30)
+        .unwrap();
+    let not_utf8 = {
+        use std::os::unix::ffi::OsStrExt;
+        inbox
+            .join("C2")
+            .join(std::ffi::OsStr::from_bytes(b"\xff\xfe.png"))
+    };
+    std::fs::write(&not_utf8, b"x").unwrap();
     let frame_files = |camera: &str| -> usize {
         std::fs::read_dir(inbox.join(camera))
             .map(|d| {
@@ -660,6 +683,23 @@ fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
         .unwrap();
     assert_eq!(samples, 9, "{log}");
     drop(server);
+    // The files that cannot be frames, each aside with why.
+    let aside = inbox.join("C2").join("refused");
+    for (name, says) in [
+        (std::ffi::OsString::from("old.png"), "1970"),
+        (
+            std::ffi::OsString::from("huge.png"),
+            "bytes, more than a frame",
+        ),
+        (not_utf8.file_name().unwrap().to_owned(), "not UTF-8"),
+    ] {
+        let mut error_name = name.clone();
+        error_name.push(".error.json");
+        let error = std::fs::read_to_string(aside.join(&error_name))
+            .unwrap_or_else(|e| panic!("{name:?}: {e}\n{log}"));
+        assert!(error.contains(says), "{name:?}: {error}");
+        assert!(aside.join(&name).exists(), "{name:?} moved aside");
+    }
     // The refusals, each with the answer naming what is wrong.
     for (camera, field) in [("C1", "body"), ("C7", "camera")] {
         let aside = inbox.join(camera).join("refused");

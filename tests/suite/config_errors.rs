@@ -178,7 +178,7 @@ fn every_problem_is_reported_not_only_the_first() {
     let err = error_of(&text);
     assert_eq!(err.lines().count(), 2, "{err}");
     assert!(
-        err.contains("expected_rate_hz must be a positive number, not -1"),
+        err.contains("expected_rate_hz must lie in [0.0001, 100000], not -1"),
         "{err}"
     );
     assert!(err.contains("frame `Q` is not introduced"), "{err}");
@@ -406,7 +406,7 @@ fn the_frame_archive_settings_default_and_refuse_what_cannot_work() {
     let text = format!("{VALID}\n[frames]\narchive_dir = \"frames\"\narchive_max_mb = 0\n");
     let e = error_of(&text);
     assert!(
-        e.contains("frames.archive_max_mb must be a positive number"),
+        e.contains("frames.archive_max_mb must lie in [0.001, 1000000000], not 0"),
         "{e}"
     );
     assert!(
@@ -527,6 +527,54 @@ fn fleet_settings_are_checked_and_each_mistake_named() {
         assert!(
             e.contains(&format!("site.toml:{}:", line_of(&text, at))),
             "want the line of `{at}` in: {e}"
+        );
+    }
+}
+
+/// Values that pass as numbers but would kill a task long after start (a wait of centuries, a
+/// period of zero, a budget of terabytes): each refused by name at its line, never clamped.
+#[test]
+fn numbers_that_would_kill_a_task_later_are_refused_at_start() {
+    let site = "[site]\nname = \"s\"\n";
+    for (section, key, value) in [
+        (
+            "[upstream]\nurl = \"http://127.0.0.1:1\"\n",
+            "heartbeat_s",
+            "1e20",
+        ),
+        (
+            "[upstream]\nurl = \"http://127.0.0.1:1\"\n",
+            "raw_kbit_s",
+            "1e-300",
+        ),
+        (
+            "[[notify.webhooks]]\nurl = \"http://127.0.0.1:1/h\"\nsecret = \"s\"\n",
+            "timeout_s",
+            "1e20",
+        ),
+        ("[frames]\narchive_dir = \"f\"\n", "archive_every_s", "1e20"),
+        ("[rerun]\n", "series_hz", "1e-300"),
+    ] {
+        let text = format!("{VALID}\n{site}{section}{key} = {value}\n");
+        let e = error_of(&text);
+        assert!(e.contains(key) && e.contains("must lie in"), "{key}: {e}");
+    }
+    let central = format!(
+        "{VALID}\n[server]\ndatabase = \"postgres://u@127.0.0.1/db\"\n\n\
+         [central]\nenabled = true\nmax_sync_mb = 2e13\n"
+    );
+    let e = error_of(&central);
+    assert!(e.contains("central.max_sync_mb must lie in"), "{e}");
+    for (key, value) in [
+        ("max_body_bytes", "10"),
+        ("max_connections", "3"),
+        ("max_heavy_reads", "0"),
+    ] {
+        let text = format!("{VALID}\n[server]\n{key} = {value}\n");
+        let e = error_of(&text);
+        assert!(
+            e.contains(&format!("server.{key} must lie in")),
+            "{key} is refused, not clamped: {e}"
         );
     }
 }

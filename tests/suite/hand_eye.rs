@@ -196,3 +196,42 @@ fn too_few_small_or_inconsistent_motions_are_refused() {
         "{err}"
     );
 }
+
+/// A motion whose two halves rotate by the same angle about axes 51 degrees apart passes the
+/// angle check, but not the fit: the solution of all pairs is refused, naming that pair.
+#[test]
+fn a_pair_that_does_not_fit_the_others_is_refused_naming_it() {
+    let mut rng = StdRng::seed_from_u64(73);
+    let x = random_pose(&mut rng, 300.0);
+    let mut pairs: Vec<(Pose, Pose)> = (0..8)
+        .map(|_| {
+            let axis = random_axis(&mut rng);
+            let b = motion(&mut rng, axis);
+            (x * b * x.inverse(), b)
+        })
+        .collect();
+    // Pair 5's B: the same angle about an axis turned 51 degrees away.
+    let (a, b) = pairs[5];
+    let (axis, angle) = b.rotation.axis_angle().expect("a rotation");
+    let perpendicular = axis.cross(&Vec3::new(0.3, -0.7, 0.2)).normalize();
+    let turned = Rotation::from_axis_angle(
+        &nalgebra::Unit::new_normalize(perpendicular),
+        51f64.to_radians(),
+    ) * axis.into_inner();
+    let bent = Pose::from_parts(
+        b.translation,
+        Rotation::from_axis_angle(&nalgebra::Unit::new_normalize(turned), angle),
+    );
+    pairs[5] = (a, bent);
+    match solve_hand_eye(&pairs, &HandEyeOptions::default()) {
+        Err(VisionError::PairDoesNotFit {
+            index,
+            residual_deg,
+            tolerance_deg,
+        }) => {
+            assert_eq!(index, 5);
+            assert!(residual_deg > tolerance_deg, "{residual_deg}");
+        }
+        other => panic!("want the pair refused, got {other:?}"),
+    }
+}

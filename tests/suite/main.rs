@@ -29,6 +29,7 @@ macro_rules! on_both_backends {
 
 mod architecture;
 mod archive;
+mod bombs;
 mod camera_calibration;
 mod chain_composition;
 mod cli;

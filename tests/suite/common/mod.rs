@@ -1,6 +1,7 @@
 //! Helpers shared by the integration tests: random poses and covariances, seeded.
 #![allow(dead_code)]
 
+pub mod hostile;
 pub mod paper;
 pub mod postgres;
 pub mod process;

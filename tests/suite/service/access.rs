@@ -19,7 +19,7 @@ pub fn with_tokens() -> String {
 #[tokio::test]
 async fn tokens_and_scopes_guard_every_endpoint() {
     let app = TestApp::start(Some(&with_tokens())).await;
-    let sample = json!({"samples": [{"link": "C1_from_B", "time": 1, "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}]}).to_string();
+    let sample = json!({"samples": [{"link": "C1_from_B", "time": "2026-11-21T10:00:00Z", "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [1, 0, 0, 0]}}]}).to_string();
     let reference = json!({"pose": {"t_mm": [0, 0, 0], "q_wxyz": [1, 0, 0, 0]}}).to_string();
     let calibration = json!({"pose": {"t_mm": [0, 0, 0], "q_wxyz": [1, 0, 0, 0]}, "sigma": {"rotation_arcsec": 5, "translation_mm": 0.05}}).to_string();
     // (method, uri, body, token that may, token that may not)

@@ -242,9 +242,12 @@ async fn bad_frames_are_refused_by_name_and_nothing_is_stored() {
             assert_eq!(error["details"][0]["field"], field, "{body}");
         }
     };
-    let (s, b) = post_frame(&app, "C1", &time, "image/jpeg", png.clone()).await;
+    let (s, b) = post_frame(&app, "C1", &time, "image/gif", png.clone()).await;
     assert_eq!(s, StatusCode::UNSUPPORTED_MEDIA_TYPE);
     refused(s, &b, None, "image/png");
+    // A PNG called a JPEG: read as a JPEG, refused as undecodable.
+    let (s, b) = post_frame(&app, "C1", &time, "image/jpeg", png.clone()).await;
+    refused(s, &b, Some("body"), "not a readable Jpeg image");
     let (s, b) = app
         .request_with_headers(
             "POST",

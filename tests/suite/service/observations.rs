@@ -280,6 +280,27 @@ async fn hand_eye_over_http_recovers_x_and_refuses_parallel_axes() {
             .expect("msg")
             .contains("nearly parallel")
     );
+
+    // Sigmas whose weights would overflow: refused, each named, never a null sigma.
+    for (sigma, field) in [
+        (
+            json!({"rotation_arcsec": 1e-300, "translation_mm": 0.1}),
+            "sigma.rotation_arcsec",
+        ),
+        (
+            json!({"rotation_arcsec": 5.0, "translation_mm": 1e300}),
+            "sigma.translation_mm",
+        ),
+    ] {
+        let (status, body) = app
+            .post_json(
+                "/api/v1/calibration/hand-eye",
+                &json!({ "pairs": pairs, "sigma": sigma }),
+            )
+            .await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+        assert_eq!(body["error"]["details"][0]["field"], field, "{body}");
+    }
 }
 
 #[test]

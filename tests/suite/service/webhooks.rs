@@ -30,7 +30,7 @@ impl Received {
 }
 
 /// A receiver: `/all` and `/alarms` answer 200, `/flaky` answers 503 to its first call and 200
-/// after, `/refuse` answers 400.
+/// after, `/refuse` answers 400, `/moved` redirects to `/redirected`.
 async fn receiver() -> (String, Received) {
     let got = Received::default();
     let record = got.clone();
@@ -54,10 +54,17 @@ async fn receiver() -> (String, Received) {
                     header("x-brokenray-alarm-id"),
                     body.to_vec(),
                 ));
+                use axum::response::IntoResponse as _;
                 match path.as_str() {
-                    "/flaky" if earlier == 0 => StatusCode::SERVICE_UNAVAILABLE,
-                    "/refuse" => StatusCode::BAD_REQUEST,
-                    _ => StatusCode::NO_CONTENT,
+                    "/flaky" if earlier == 0 => StatusCode::SERVICE_UNAVAILABLE.into_response(),
+                    "/refuse" => StatusCode::BAD_REQUEST.into_response(),
+                    // Elsewhere on this receiver: a redirect followed would show as a call.
+                    "/moved" => (
+                        StatusCode::TEMPORARY_REDIRECT,
+                        [("location", "/redirected")],
+                    )
+                        .into_response(),
+                    _ => StatusCode::NO_CONTENT.into_response(),
                 }
             }
         },
@@ -275,4 +282,46 @@ async fn a_webhook_that_cannot_be_reached_is_given_up_after_its_attempts_and_sai
     // Neither the credentials nor the token are shown.
     assert_eq!(hooks[0]["host"], format!("127.0.0.1:{port}"));
     assert!(!hooks.to_string().contains("pw") && !hooks.to_string().contains("token=t"));
+}
+
+/// A webhook that answers with a redirect: not followed (the alarm never reaches the other
+/// address), a failed delivery with the reason, not retried.
+#[tokio::test]
+async fn a_redirecting_webhook_is_a_failed_delivery_never_followed() {
+    let (base, got) = receiver().await;
+    let text = installation(&base)
+        .split("[[notify.webhooks]]")
+        .next()
+        .unwrap()
+        .to_owned()
+        + &format!("[[notify.webhooks]]\nurl = \"{base}/moved\"\nsecret = \"s\"\n");
+    let app = TestApp::start(Some(&text)).await;
+    app.set_straight_reference().await;
+    let (status, _) = app
+        .post_live(
+            "/api/v1/samples",
+            &json!({"samples": [turned_sample(T0_NS, 200.0)]}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    let mut hooks = Value::Null;
+    for _ in 0..2000 {
+        hooks = app.get("/api/v1/webhooks").await.1;
+        if hooks[0]["failed"].as_u64() >= Some(1) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert!(hooks[0]["failed"].as_u64() >= Some(1), "{hooks}");
+    assert_eq!(hooks[0]["delivered"], 0, "{hooks}");
+    assert_eq!(
+        hooks[0]["attempts_failed"], hooks[0]["failed"],
+        "a redirect is not retried: {hooks}"
+    );
+    assert!(hooks.to_string().contains("redirect"), "{hooks}");
+    assert!(!got.of("/moved").is_empty());
+    assert!(
+        got.of("/redirected").is_empty(),
+        "the redirect was followed"
+    );
 }
