@@ -269,6 +269,32 @@ fn what_cannot_calibrate_is_refused_with_the_reason() {
     assert!(refusal(&plate, &camera, &views[..2], &defaults).contains("2 view(s): at least 3"));
     let many: Vec<_> = views.iter().cycle().take(201).cloned().collect();
     assert!(refusal(&plate, &camera, &many, &defaults).contains("201 views: at most 200"));
+    // Points count too: 200 views of a 63-point plate pass, of a 210-point one do not.
+    let dense: Vec<_> = views
+        .iter()
+        .cycle()
+        .take(200)
+        .map(|v| CalibrationView {
+            points_px: v.points_px.iter().cycle().take(210).copied().collect(),
+            ids: (0..210).collect(),
+            sigmas_px: None,
+        })
+        .collect();
+    let big = Plate::new(14, 15, 15.0, 7.5, false, brokenray::vision::Polarity::Dark).unwrap();
+    assert!(
+        refusal(&big, &camera, &dense, &defaults)
+            .contains("42000 points over the views: at most 40000"),
+        "{}",
+        refusal(&big, &camera, &dense, &defaults)
+    );
+    // Work whose request is gone stops.
+    let withdrawn = CalibrationOptions {
+        cancel: Some(std::sync::Arc::new(std::sync::atomic::AtomicBool::new(
+            true,
+        ))),
+        ..CalibrationOptions::default()
+    };
+    assert!(refusal(&plate, &camera, &views, &withdrawn).contains("the request was withdrawn"));
     let mut bad = views.clone();
     bad[3].ids[5] = 70;
     assert!(

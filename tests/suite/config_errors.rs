@@ -578,3 +578,16 @@ fn numbers_that_would_kill_a_task_later_are_refused_at_start() {
         );
     }
 }
+
+/// A centre's URL with credentials in it is never shown with them (the log, `/upstream`).
+#[test]
+fn credentials_in_a_url_are_not_shown() {
+    let shown = config::redacted_url(&url::Url::parse("http://ship:s3cret@centre:7878/").unwrap());
+    assert!(
+        !shown.contains("s3cret") && !shown.contains("ship"),
+        "{shown}"
+    );
+    assert!(shown.contains("centre:7878"), "{shown}");
+    let plain = config::redacted_url(&url::Url::parse("http://centre:7878/").unwrap());
+    assert_eq!(plain, "http://centre:7878/");
+}

@@ -1115,6 +1115,10 @@ async fn the_centre_applies_once_and_refuses_what_it_must_saying_why() {
     let mut far_future = bad_level.clone();
     far_future["batch"]["tables"][0]["columns"][2] = json!({"int": [9_200_000_000_000_000_000i64]});
     far_future["batch"]["tables"][0]["columns"][5] = json!({"text": ["alarm"]});
+    // A report of state that would make every reader of the fleet download megabytes.
+    let huge_report = json!({"outbox_id": "a", "registry": {"links": [], "targets": []},
+        "status": {"time": "2026-11-21T10:00:00Z", "targets": [],
+                   "problems": vec!["x".repeat(1000); 300]}});
     let refusals = refusals.into_iter().chain([
         (
             SITE,
@@ -1165,6 +1169,14 @@ async fn the_centre_applies_once_and_refuses_what_it_must_saying_why() {
             "new-generation",
         ),
         (SITE, SYNC_TOKEN, orphan, 409, "generation_unknown", "b1"),
+        (
+            SITE,
+            SYNC_TOKEN,
+            huge_report,
+            422,
+            "invalid_request",
+            "at most 262144 are kept",
+        ),
     ]);
     for (site, token, body, want, code, mentions) in refusals {
         let (status, answer) = sync(&client, base, site, token, &body).await;
@@ -1683,4 +1695,56 @@ async fn one_sites_failed_upkeep_is_reported_and_the_others_go_on() {
         "site b's upkeep ran after site a's failed: {pass:?}"
     );
     pool.close().await;
+}
+
+/// A centre that acknowledges far past what the site has made (a buggy or hostile one, or one
+/// that holds the commits of an older life of this database): the site records nothing of it,
+/// stops the stream and says why; its rows stay to send.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_site_never_records_an_acknowledgement_past_its_newest_commit() {
+    let dir = tempfile::tempdir().unwrap();
+    let centre = axum::Router::new()
+        .fallback(|| async { axum::Json(json!({"outcome": "duplicate", "acked_seq": i64::MAX})) });
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let base = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(async move { axum::serve(listener, centre).await.unwrap() });
+    let site_config = site_installation(dir.path(), &base);
+    let site = start(&site_config);
+    let client = reqwest::Client::new();
+    post_groups(&client, &site.base, 0..100, group_time, 50).await;
+    let waited = std::time::Instant::now();
+    let u = loop {
+        let u = upstream(&client, &site.base).await;
+        if u["tiers"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|t| t["stopped"].is_string())
+        {
+            break u;
+        }
+        assert!(
+            waited.elapsed() < Duration::from_secs(30),
+            "nothing stopped: {u:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let stopped = u.to_string();
+    assert!(
+        stopped.contains("newest commit") && stopped.contains("new-generation"),
+        "{u:#}"
+    );
+    drop(site);
+    let db = rusqlite::Connection::open(dir.path().join("site.db")).unwrap();
+    let (acked, head): (Option<i64>, i64) = db
+        .query_row(
+            "select (select max(acked_seq) from upstream_acks), (select max(seq) from commits)",
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
+        .unwrap();
+    assert!(
+        acked.is_none_or(|a| a <= head),
+        "recorded {acked:?} past {head}"
+    );
 }

@@ -221,6 +221,17 @@ async fn frames_with_a_marker_not_found_are_archived_as_evidence_and_listed() {
         metrics.contains("brokenray_frames_archived_total 2"),
         "{metrics}"
     );
+    // A frame gone from the disk: 404, saying which, without the server's paths.
+    std::fs::remove_file(archive_dir.path().join(file)).expect("removed");
+    let url = frames_listed[1]["url"].as_str().expect("url");
+    let (status, body) = app.get(url).await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+    let message = body["error"]["message"].as_str().expect("message");
+    assert!(message.contains("_not_found.png"), "{message}");
+    assert!(
+        !message.contains(&archive_dir.path().display().to_string()),
+        "{message}"
+    );
 }
 
 #[tokio::test]

@@ -45,6 +45,19 @@ async fn a_time_ahead_of_the_server_clock_is_refused() {
         .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
     assert_field(&body, "time");
+    // The far past too: a clock never set, or the earliest time there is (whose buckets would
+    // wrap around to the year 2262).
+    for past in [json!(i64::MIN), json!(0), json!("1999-12-31T23:59:59Z")] {
+        let (status, body) = app
+            .post_json(
+                "/api/v1/samples",
+                &sample("C1_from_B", past.clone(), nominal_pose()),
+            )
+            .await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{past}: {body}");
+        assert_field(&body, "time");
+        assert!(body.to_string().contains("before 2000"), "{body}");
+    }
     // Within `max_future_s` (5 s by default) is accepted: clocks are never exactly equal.
     let (status, body) = app
         .post_json(
