@@ -31,8 +31,8 @@ pub enum PlatePolarity {
 }
 
 /// A calibration plate: `rows` x `cols` discs; point `i` at row `i / cols`, column `i % cols`,
-/// `(col * spacing_mm, row * spacing_mm, 0)`, odd rows shifted by half a spacing when
-/// `asymmetric`.
+/// `(col * spacing_mm, row * spacing_mm, 0)`, or when `asymmetric` (OpenCV's asymmetric circle
+/// grid) at `((2 col + row mod 2) * spacing_mm, row * spacing_mm, 0)`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PlateIn {
@@ -40,12 +40,13 @@ pub struct PlateIn {
     pub rows: usize,
     /// Points per row (3 or more).
     pub cols: usize,
-    /// Distance between neighbouring points of a row, and between rows (mm).
+    /// Distance between rows, and between neighbouring points of a row on a symmetric plate
+    /// (on an asymmetric one they are twice as far apart) (mm).
     pub spacing_mm: f64,
-    /// Disc diameter (mm), less than the spacing.
+    /// Disc diameter (mm), less than the distance between neighbouring discs.
     pub diameter_mm: f64,
-    /// Odd rows shifted by half a spacing (OpenCV's asymmetric circle grid): a plate that
-    /// looks different after any turn when `rows` is odd.
+    /// OpenCV's asymmetric circle grid (`x = (2 col + row mod 2) s`, `y = row s`): a plate
+    /// that looks different after any turn when `rows` is odd.
     #[serde(default)]
     pub asymmetric: bool,
     /// `dark` (default) or `bright` discs.
@@ -161,7 +162,8 @@ pub struct CorrelationOut {
 /// Something about the views that could be better.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct CalibrationWarningOut {
-    /// `few_views`, `little_tilt`, `corners_not_reached` or `view_fits_worse`.
+    /// `few_views`, `little_tilt`, `corners_not_reached` or `view_fits_worse`; from
+    /// `calibrate-camera`, also `lossy_frames` (views that came as JPEG).
     pub kind: String,
     /// What to do, in words.
     pub message: String,

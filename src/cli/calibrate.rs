@@ -46,7 +46,7 @@ pub fn read_plates(args: &[String]) -> anyhow::Result<Vec<(String, Plate)>> {
 fn read_frame(path: &Path, expected: Option<(u32, u32)>) -> anyhow::Result<GreyImage> {
     let format = FrameFormat::from_path(path).ok_or_else(|| {
         anyhow::anyhow!(
-            "{}: not a frame file (.png, .tif, .tiff or .pgm)",
+            "{}: not a frame file (.png, .jpg, .jpeg, .tif, .tiff or .pgm)",
             path.display()
         )
     })?;
@@ -72,6 +72,23 @@ pub struct FramesCalibration {
     pub used: Vec<PathBuf>,
     /// The frames left out, with why.
     pub left_out: Vec<(PathBuf, String)>,
+    /// Frames used that came lossy (JPEG).
+    pub lossy: usize,
+}
+
+impl FramesCalibration {
+    /// What the frames' files limit, in words (JPEG's blocks move disc centres).
+    pub fn file_warning(&self) -> Option<String> {
+        (self.lossy > 0).then(|| {
+            format!(
+                "{} of the {} views came as JPEG: lossy compression moves disc centres by \
+                 hundredths of a pixel and its blocks do not average out, so it limits the \
+                 accuracy; take PNG or TIFF frames for a calibration to rely on",
+                self.lossy,
+                self.used.len()
+            )
+        })
+    }
 }
 
 /// Detects the plate in each frame and calibrates; `progress` advances a frame at a time,
@@ -89,6 +106,7 @@ pub fn calibrate_from_frames(
     let mut views = Vec::new();
     let mut used = Vec::new();
     let mut left_out = Vec::new();
+    let mut lossy = 0;
     for path in frames {
         let image = read_frame(path, size)?;
         size = Some((image.width_px(), image.height_px()));
@@ -100,6 +118,8 @@ pub fn calibrate_from_frames(
                     sigmas_px: Some(found.sigmas_px),
                 });
                 used.push(path.clone());
+                lossy +=
+                    usize::from(FrameFormat::from_path(path).is_some_and(FrameFormat::is_lossy));
             }
             Err(reason) => {
                 progress.suspend(|| writeln!(log, "{}: left out: {reason}", path.display()))?;
@@ -125,6 +145,7 @@ pub fn calibrate_from_frames(
         calibration,
         used,
         left_out,
+        lossy,
     })
 }
 
@@ -179,6 +200,9 @@ pub fn report(run: &FramesCalibration) -> String {
         );
     }
     for w in &c.warnings {
+        let _ = writeln!(s, "warning: {w}");
+    }
+    if let Some(w) = run.file_warning() {
         let _ = writeln!(s, "warning: {w}");
     }
     s

@@ -58,7 +58,7 @@ pub fn detect_files(
         };
         let format = FrameFormat::from_path(path).ok_or_else(|| {
             anyhow::anyhow!(
-                "{}: not a frame file (.png, .tif, .tiff or .pgm)",
+                "{}: not a frame file (.png, .jpg, .jpeg, .tif, .tiff or .pgm)",
                 path.display()
             )
         })?;

@@ -232,7 +232,7 @@ pub enum Command {
         /// The camera's frame name in the installation, for `--out`'s block.
         #[arg(long, value_name = "NAME")]
         camera: Option<String>,
-        /// The frames (PNG, TIFF, PGM), one view of the plate each.
+        /// The frames (PNG, JPEG, TIFF, PGM), one view of the plate each.
         #[arg(required = true, value_name = "FRAME")]
         frames: Vec<PathBuf>,
     },
@@ -258,7 +258,7 @@ pub enum Command {
         #[arg(required = true, value_name = "POSITION_DIR")]
         positions: Vec<PathBuf>,
     },
-    /// Detect a camera's markers in frame files (PNG, TIFF, PGM) and print the observations as
+    /// Detect a camera's markers in frame files (PNG, JPEG, TIFF, PGM) and print the observations as
     /// NDJSON lines ready for `POST /api/v1/observations`; markers not found are reported on
     /// stderr with the reason.
     Detect {
@@ -539,7 +539,15 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             });
             let run = run?;
             if json {
-                let body = crate::api::calibration::CameraCalibrationOut::from(&run.calibration);
+                let mut body =
+                    crate::api::calibration::CameraCalibrationOut::from(&run.calibration);
+                if let Some(message) = run.file_warning() {
+                    body.warnings
+                        .push(crate::api::calibration::CalibrationWarningOut {
+                            kind: "lossy_frames".to_owned(),
+                            message,
+                        });
+                }
                 writeln!(out, "{}", serde_json::to_string_pretty(&body)?)?;
             } else {
                 out.write_all(calibrate::report(&run).as_bytes())?;

@@ -1,8 +1,10 @@
 //! Calibration plates: disc targets in a regular grid, and finding one in a frame.
 //!
 //! Point `i` of a plate is row `i / cols`, column `i % cols`, at `(col * spacing, row * spacing,
-//! 0)` in the plate frame; on an asymmetric plate the odd rows are shifted by half a spacing
-//! along x. The plate is seen from the side its grid reads normally (x to the right, y down,
+//! 0)` in the plate frame. An asymmetric plate is OpenCV's asymmetric circle grid, the one
+//! people print: `rows` rows of `cols` discs, disc `(row, col)` at
+//! `((2 col + row mod 2) * spacing, row * spacing, 0)`, so the pitch along a row is twice the
+//! spacing and each disc's nearest neighbours lie diagonally, `sqrt(2)` spacings away. The plate is seen from the side its grid reads normally (x to the right, y down,
 //! as the image's `u` and `v`), so its +z points away from the camera.
 //!
 //! Finding the plate ([`Plate::find`]) needs no pose: the grid is grown from the detected discs.
@@ -81,9 +83,14 @@ impl Plate {
         if !(diameter_mm.is_finite() && diameter_mm > 0.0) {
             return refuse(format!("diameter_mm must be positive (got {diameter_mm})"));
         }
-        if diameter_mm >= spacing_mm {
+        let neighbour_mm = if asymmetric {
+            spacing_mm * std::f64::consts::SQRT_2
+        } else {
+            spacing_mm
+        };
+        if diameter_mm >= neighbour_mm {
             return refuse(format!(
-                "discs of {diameter_mm} mm at a spacing of {spacing_mm} mm would touch"
+                "discs of {diameter_mm} mm {neighbour_mm:.3} mm apart (a spacing of {spacing_mm} mm) would touch"
             ));
         }
         let mut plate = Self {
@@ -139,19 +146,27 @@ impl Plate {
         false
     }
 
-    /// Point `i` in the plate frame (mm).
+    /// Point `i` in the plate frame (mm): row `i / cols`, column `i % cols` at
+    /// `(col s, row s, 0)`; on an asymmetric plate (OpenCV's asymmetric circle grid) at
+    /// `((2 col + row mod 2) s, row s, 0)`, with `s` the spacing.
     pub fn point_mm(&self, i: usize) -> Vec3 {
         let (row, col) = (i / self.cols, i % self.cols);
-        let shift = if self.asymmetric && row % 2 == 1 {
-            0.5
+        let x = if self.asymmetric {
+            (2 * col + row % 2) as f64
         } else {
-            0.0
+            col as f64
         };
-        Vec3::new(
-            (col as f64 + shift) * self.spacing_mm,
-            row as f64 * self.spacing_mm,
-            0.0,
-        )
+        Vec3::new(x * self.spacing_mm, row as f64 * self.spacing_mm, 0.0)
+    }
+
+    /// Distance between a disc's centre and its nearest neighbour's (mm): the spacing, or on
+    /// an asymmetric plate `sqrt(2)` times it (its neighbours lie diagonally).
+    pub fn neighbour_mm(&self) -> f64 {
+        if self.asymmetric {
+            self.spacing_mm * std::f64::consts::SQRT_2
+        } else {
+            self.spacing_mm
+        }
     }
 
     /// Every point in the plate frame (mm), in order.
@@ -159,11 +174,13 @@ impl Plate {
         (0..self.len()).map(|i| self.point_mm(i)).collect()
     }
 
-    /// Point `i`'s integer coordinates in the lattice basis.
+    /// Point `i`'s integer coordinates in the lattice basis: `(col, row)`, or on an asymmetric
+    /// plate in the basis of its diagonal neighbours `(s, s)` and `(s, -s)`.
     fn lattice(&self, i: usize) -> [i64; 2] {
         let (row, col) = ((i / self.cols) as i64, (i % self.cols) as i64);
         if self.asymmetric {
-            [col - row.div_euclid(2), row]
+            let x = 2 * col + row % 2;
+            [(x + row) / 2, (x - row) / 2]
         } else {
             [col, row]
         }
@@ -535,13 +552,19 @@ mod tests {
 
     #[test]
     fn points_follow_the_documented_layout() {
+        // OpenCV's asymmetric circle grid: x = (2 col + row mod 2) s, y = row s.
         let plate = Plate::new(4, 5, 30.0, 15.0, true, Polarity::Dark).expect("valid");
         assert_eq!(plate.point_mm(0), Vec3::new(0.0, 0.0, 0.0));
-        assert_eq!(plate.point_mm(7), Vec3::new(75.0, 30.0, 0.0)); // row 1 (odd), col 2
-        assert_eq!(plate.point_mm(12), Vec3::new(60.0, 60.0, 0.0)); // row 2, col 2
+        assert_eq!(plate.point_mm(7), Vec3::new(150.0, 30.0, 0.0)); // row 1 (odd), col 2
+        assert_eq!(plate.point_mm(12), Vec3::new(120.0, 60.0, 0.0)); // row 2, col 2
+        assert_eq!(plate.point_mm(19), Vec3::new(270.0, 90.0, 0.0)); // row 3, col 4
+        assert!((plate.neighbour_mm() - 30.0 * 2f64.sqrt()).abs() < 1e-12);
+        // Discs as wide as the diagonal neighbours' distance would touch.
+        assert!(Plate::new(4, 5, 30.0, 42.5, true, Polarity::Dark).is_err());
+        assert!(Plate::new(4, 5, 30.0, 42.0, true, Polarity::Dark).is_ok());
         for i in 0..plate.len() {
             let l = plate.lattice(i);
-            let basis = Matrix2::new(1.0, 0.5, 0.0, 1.0) * 30.0;
+            let basis = Matrix2::new(1.0, 1.0, 1.0, -1.0) * 30.0;
             let xy = basis * Vector2::new(l[0] as f64, l[1] as f64);
             assert!((xy - plate.point_mm(i).xy()).norm() < 1e-12);
         }

@@ -309,10 +309,16 @@ fn what_cannot_calibrate_is_refused_with_the_reason() {
     bad[1].ids.truncate(5);
     bad[1].sigmas_px = None;
     assert!(refusal(&plate, &camera, &bad, &defaults).contains("view 1: 5 point(s), at least 6"));
-    // Points of one view shuffled: no camera explains it.
+    // Points of one view shuffled: no camera explains it (the closed form or the adjustment
+    // says so, whichever meets it first).
     let mut bad = views.clone();
     bad[2].ids.rotate_left(1);
-    assert!(refusal(&plate, &camera, &bad, &defaults).contains("over the limit of 1 px"));
+    let shuffled = refusal(&plate, &camera, &bad, &defaults);
+    assert!(
+        shuffled.contains("over the limit of 1 px")
+            || shuffled.contains("do not determine the focal length"),
+        "{shuffled}"
+    );
     // A focal length cannot be fixed at an unknown value.
     let fix_fx = CalibrationOptions {
         fixed: vec![Intrinsic::Fx],

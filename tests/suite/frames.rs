@@ -244,3 +244,51 @@ fn rendered_frames_give_an_unbiased_chain_three_times_better_than_published() {
         assert!(stats.t_mm.rms[i] <= PUBLISHED_MM[i] / 3.0);
     }
 }
+
+/// A JPEG frame, grey or colour, reads as its luma: within a few grey levels of the frame it
+/// was made from (the compression's loss), and of a frame's size checked before decoding.
+#[test]
+fn jpeg_frames_read_as_their_luma_and_their_size_is_checked_first() {
+    use brokenray::imagefile::{FrameFileError, FrameFormat, decode};
+    let (w, h) = (96u32, 64u32);
+    let grey: Vec<u8> = (0..w * h)
+        .map(|i| {
+            let (x, y) = (f64::from(i % w), f64::from(i / w));
+            (128.0 + 90.0 * ((x / 9.0).sin() * (y / 7.0).cos())) as u8
+        })
+        .collect();
+    let encode = |img: image::DynamicImage| {
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95)
+            .encode_image(&img)
+            .unwrap();
+        out
+    };
+    let as_grey = encode(image::DynamicImage::ImageLuma8(
+        image::GrayImage::from_raw(w, h, grey.clone()).unwrap(),
+    ));
+    let rgb: Vec<u8> = grey.iter().flat_map(|&v| [v, v, v]).collect();
+    let as_colour = encode(image::DynamicImage::ImageRgb8(
+        image::RgbImage::from_raw(w, h, rgb).unwrap(),
+    ));
+    for (what, bytes) in [("grey", &as_grey), ("colour", &as_colour)] {
+        let frame = decode(bytes, FrameFormat::Jpeg, Some((w, h))).expect(what);
+        let diffs: Vec<f64> = frame
+            .pixels()
+            .iter()
+            .zip(&grey)
+            .map(|(&a, &b)| f64::from(a) - f64::from(b))
+            .collect();
+        let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+        let worst = diffs.iter().fold(0.0f64, |m, d| m.max(d.abs()));
+        assert!(
+            mean.abs() < 0.5 && worst <= 8.0,
+            "{what}: mean {mean}, worst {worst}"
+        );
+    }
+    assert!(matches!(
+        decode(&as_grey, FrameFormat::Jpeg, Some((w + 1, h))),
+        Err(FrameFileError::WrongSize { .. })
+    ));
+    assert!(decode(b"not a jpeg", FrameFormat::Jpeg, None).is_err());
+}
