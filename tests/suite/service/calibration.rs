@@ -97,8 +97,9 @@ async fn invalid_requests_name_the_field_and_impossible_ones_say_why() {
         "{body}"
     );
 
+    // The asymmetric plate's discs are sqrt(2) x 15 mm = 21.2 mm from their neighbours.
     let mut bad_plate = request(4, &[]);
-    bad_plate["plate"]["diameter_mm"] = json!(20.0);
+    bad_plate["plate"]["diameter_mm"] = json!(22.0);
     let (status, body) = app
         .post_json("/api/v1/calibration/camera", &bad_plate)
         .await;
