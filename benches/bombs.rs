@@ -20,18 +20,6 @@ mod process;
 
 use std::time::Duration;
 
-fn installation(dir: &std::path::Path, database: &str, extra: &str) -> std::path::PathBuf {
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
-        .replace("127.0.0.1:7878", "127.0.0.1:0")
-        .replace(
-            "database = \"brokenray.db\"",
-            &format!("database = \"{database}\""),
-        );
-    let path = dir.join("bombs.toml");
-    std::fs::write(&path, format!("{text}\n{extra}\n")).unwrap();
-    path
-}
-
 /// Posts `n` copies of `body` at once to `url`; the statuses, counted.
 async fn burst(
     url: String,
@@ -101,7 +89,7 @@ fn main() {
         let dir = tempfile::tempdir().unwrap();
         let url = postgres::fresh_database();
         let centre = process::start(
-            &installation(dir.path(), &url, "[central]\nenabled = true\n"),
+            &hostile::builtin_installation(dir.path(), &url, "[central]\nenabled = true\n"),
             "warn,brokenray=info",
             false,
             Duration::from_secs(120),
@@ -127,7 +115,7 @@ fn main() {
 
         let db = dir.path().join("site.db");
         let site = process::start(
-            &installation(dir.path(), &db.display().to_string(), ""),
+            &hostile::builtin_installation(dir.path(), &db.display().to_string(), ""),
             "warn,brokenray=info",
             false,
             Duration::from_secs(120),

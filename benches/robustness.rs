@@ -10,6 +10,8 @@
 //!
 //! Run: `cargo bench --bench robustness` (Linux).
 
+#[path = "../tests/suite/common/hostile.rs"]
+mod hostile;
 #[path = "../tests/suite/common/process.rs"]
 #[allow(
     dead_code,
@@ -17,6 +19,8 @@
 )]
 mod process;
 mod support;
+
+use hostile::rss_mb;
 
 use process::Server;
 
@@ -29,21 +33,6 @@ fn start(config: &std::path::Path) -> Server {
         false,
         Duration::from_secs(120),
     )
-}
-
-/// (current, peak) resident set of a process, MB.
-fn rss_mb(pid: u32) -> (f64, f64) {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    let field = |name: &str| {
-        status
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_whitespace().nth(1))
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(f64::NAN)
-            / 1024.0
-    };
-    (field("VmRSS:"), field("VmHWM:"))
 }
 
 fn config(dir: &std::path::Path, extra: &str) -> std::path::PathBuf {

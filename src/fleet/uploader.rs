@@ -348,6 +348,49 @@ fn count_due(last: Option<(Instant, Duration)>, heartbeat: Duration) -> bool {
     last.is_none_or(|(at, took)| at.elapsed() >= heartbeat.max(took * 100))
 }
 
+/// The next batch of `tier` after `after`, if one waits; an empty tier's backlog is zero
+/// now, and a failure to read is counted and logged.
+async fn read_batch(
+    service: &Service,
+    upstream: &Upstream,
+    tier: Tier,
+    after: Option<i64>,
+    limit: usize,
+) -> Option<crate::store::outbox::OutboxBatch> {
+    match service.store().outbox_batch(tier, after, limit).await {
+        Ok(Some(batch)) => Some(batch),
+        // Nothing waits: the tier's backlog is empty now, whatever the last count.
+        Ok(None) => {
+            upstream.update(tier, |p| p.backlog_rows = Some(0));
+            None
+        }
+        Err(e) => {
+            tracing::warn!(error = %e, tier = tier.name(), "cannot read the outbox");
+            upstream.update(tier, |p| {
+                p.last_error = Some((service.now_ns(), e.to_string()));
+                p.errors += 1;
+            });
+            None
+        }
+    }
+}
+
+/// The next slice of a period the centre asked for: a minute of rows from where it was
+/// delivered to; a stretch without any is passed in the same slice (a period of months with
+/// an hour of rows is a few uploads). Its end and its rows.
+async fn requested_slice(
+    store: &crate::store::Store,
+    r: &RawRequest,
+) -> crate::store::StoreResult<(i64, Vec<crate::store::outbox::TableRows>)> {
+    let to_ns = match store.next_raw_time(r.delivered_to_ns, r.to_ns).await? {
+        None => r.to_ns,
+        Some(t) => r
+            .to_ns
+            .min(t.max(r.delivered_to_ns).saturating_add(REQUEST_SLICE_NS)),
+    };
+    Ok((to_ns, store.raw_rows_in(r.delivered_to_ns, to_ns).await?))
+}
+
 /// Runs the uploader until the service begins to stop.
 pub async fn run(service: Service, upstream: Arc<Upstream>) {
     let mut stopping = service.stopping();
@@ -408,48 +451,27 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             if progress[i].1.stopped.is_some() {
                 continue;
             }
-            let stream_allowed = settings.raw_kbit_s > 0.0 && Instant::now() >= raw_allowed_at;
-            // The raw stream and the periods asked for take turns, so neither starves.
-            if tier == Tier::Raw && stream_turn && stream_allowed {
-                match store
-                    .outbox_batch(tier, cursor[i], settings.batch_rows)
-                    .await
-                {
-                    Ok(Some(batch)) => {
-                        next = Some(batch);
-                        break;
-                    }
-                    Ok(None) => upstream.update(tier, |p| p.backlog_rows = Some(0)),
-                    Err(e) => {
-                        tracing::warn!(error = %e, tier = tier.name(), "cannot read the outbox");
-                        upstream.update(tier, |p| {
-                            p.last_error = Some((service.now_ns(), e.to_string()));
-                            p.errors += 1;
-                        });
-                    }
+            let limit = settings.batch_rows;
+            if tier != Tier::Raw {
+                next = read_batch(&service, &upstream, tier, cursor[i], limit).await;
+                if next.is_some() {
+                    break;
                 }
-                stream_turn = false;
+                continue;
             }
-            if tier == Tier::Raw
-                && let Some(r) = upstream.raw_requests().first().copied()
-            {
-                // A slice of a minute of rows; a stretch without any is passed in the same
-                // slice (a period of months with an hour of rows is a few uploads).
-                let to_ns = match store.next_raw_time(r.delivered_to_ns, r.to_ns).await {
-                    Ok(None) => Ok(r.to_ns),
-                    Ok(Some(t)) => Ok(r
-                        .to_ns
-                        .min(t.max(r.delivered_to_ns).saturating_add(REQUEST_SLICE_NS))),
-                    Err(e) => Err(e),
-                };
-                let rows = match to_ns {
-                    Ok(to_ns) => store
-                        .raw_rows_in(r.delivered_to_ns, to_ns)
-                        .await
-                        .map(|tables| (to_ns, tables)),
-                    Err(e) => Err(e),
-                };
-                match rows {
+            let stream_allowed = settings.raw_kbit_s > 0.0 && Instant::now() >= raw_allowed_at;
+            let mut stream_read = false;
+            // The raw stream and the periods asked for take turns, so neither starves.
+            if stream_turn && stream_allowed {
+                stream_turn = false;
+                stream_read = true;
+                next = read_batch(&service, &upstream, tier, cursor[i], limit).await;
+                if next.is_some() {
+                    break;
+                }
+            }
+            if let Some(r) = upstream.raw_requests().first().copied() {
+                match requested_slice(&store, &r).await {
                     Ok((to_ns, tables)) => {
                         stream_turn = true;
                         requested = Some(RequestedRows {
@@ -472,26 +494,8 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                     }
                 }
             }
-            if tier == Tier::Raw && !stream_allowed {
-                continue;
-            }
-            match store
-                .outbox_batch(tier, cursor[i], settings.batch_rows)
-                .await
-            {
-                Ok(Some(batch)) => {
-                    next = Some(batch);
-                    break;
-                }
-                // Nothing waits: the tier's backlog is empty now, whatever the last count.
-                Ok(None) => upstream.update(tier, |p| p.backlog_rows = Some(0)),
-                Err(e) => {
-                    tracing::warn!(error = %e, tier = tier.name(), "cannot read the outbox");
-                    upstream.update(tier, |p| {
-                        p.last_error = Some((service.now_ns(), e.to_string()));
-                        p.errors += 1;
-                    });
-                }
+            if stream_allowed && !stream_read {
+                next = read_batch(&service, &upstream, tier, cursor[i], limit).await;
             }
         }
         if next.is_none() && requested.is_none() && !report_due {

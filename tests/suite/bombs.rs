@@ -4,7 +4,9 @@
 //! Each is refused or absorbed within a bounded memory, and the health check answers
 //! throughout. Memory is the server's peak resident set (`VmHWM`) from `/proc`.
 
-use crate::common::hostile::{colour_profile_bomb, rss_mb, watch_health, zstd_bomb};
+use crate::common::hostile::{
+    builtin_installation, colour_profile_bomb, rss_mb, watch_health, zstd_bomb,
+};
 use crate::common::postgres;
 use crate::common::process::{self, Server};
 use serde_json::json;
@@ -22,24 +24,11 @@ fn start(config: &std::path::Path) -> Server {
     )
 }
 
-/// The built-in installation on port 0 with `database` and `extra`.
-fn installation(dir: &std::path::Path, database: &str, extra: &str) -> std::path::PathBuf {
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
-        .replace("127.0.0.1:7878", "127.0.0.1:0")
-        .replace(
-            "database = \"brokenray.db\"",
-            &format!("database = \"{database}\""),
-        );
-    let path = dir.join("bombs.toml");
-    std::fs::write(&path, format!("{text}\n{extra}\n")).unwrap();
-    path
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_zstd_bombs_to_a_centre_are_refused_within_its_memory_budget() {
     let dir = tempfile::tempdir().unwrap();
     let url = postgres::fresh_database();
-    let config = installation(dir.path(), &url, "[central]\nenabled = true\n");
+    let config = builtin_installation(dir.path(), &url, "[central]\nenabled = true\n");
     let centre = start(&config);
     // 200 MB of JSON in about 20 KB.
     let bomb = zstd_bomb(40_000_000);
@@ -98,7 +87,7 @@ async fn three_zstd_bombs_to_a_centre_are_refused_within_its_memory_budget() {
 async fn sixteen_colour_profile_bombs_at_once_cost_no_more_than_frames() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("site.db");
-    let config = installation(dir.path(), &db.display().to_string(), "");
+    let config = builtin_installation(dir.path(), &db.display().to_string(), "");
     let site = start(&config);
     let bomb = colour_profile_bomb(1280, 1024, 400);
     assert!(bomb.len() < 2 << 20, "{} bytes", bomb.len());
@@ -152,7 +141,7 @@ async fn sixteen_colour_profile_bombs_at_once_cost_no_more_than_frames() {
 async fn idle_connections_refilled_as_they_close_never_shut_out_a_newcomer() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("site.db");
-    let config = installation(dir.path(), &db.display().to_string(), "").to_path_buf();
+    let config = builtin_installation(dir.path(), &db.display().to_string(), "").to_path_buf();
     let text = std::fs::read_to_string(&config).unwrap().replacen(
         "[server]\n",
         "[server]\nmax_connections = 64\nmax_connections_per_address = 64\n",
@@ -227,7 +216,7 @@ async fn idle_connections_refilled_as_they_close_never_shut_out_a_newcomer() {
 async fn a_refusal_before_the_body_is_read_still_reaches_its_client() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("site.db");
-    let config = installation(dir.path(), &db.display().to_string(), "");
+    let config = builtin_installation(dir.path(), &db.display().to_string(), "");
     let site = start(&config);
     let body = vec![0x5au8; 1 << 20];
     let client = reqwest::Client::new();

@@ -1481,6 +1481,28 @@ async fn wait_centre_holds_site(
     }
 }
 
+/// Waits (at most 30 s) until one of the site's upload streams has stopped; its
+/// `GET /api/v1/upstream` then.
+async fn wait_stopped(client: &reqwest::Client, site: &str) -> Value {
+    let waited = std::time::Instant::now();
+    loop {
+        let u = upstream(client, site).await;
+        if u["tiers"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|t| t["stopped"].is_string())
+        {
+            return u;
+        }
+        assert!(
+            waited.elapsed() < Duration::from_secs(30),
+            "no stream stopped: {u:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 /// Replaces the site's database by `copy` (the service stopped).
 fn restore(site_db: &std::path::Path, copy: &std::path::Path) {
     for suffix in ["-wal", "-shm"] {
@@ -1560,23 +1582,7 @@ async fn a_site_restored_from_an_older_copy_loses_nothing_at_the_centre() {
     restore(&site_db, &plain);
     site = start(&site_config);
     post_groups(&client, &site.base, 600..700, group_time, 50).await;
-    let waited = std::time::Instant::now();
-    let u = loop {
-        let u = upstream(&client, &site.base).await;
-        if u["tiers"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|t| t["stopped"].is_string())
-        {
-            break u;
-        }
-        assert!(
-            waited.elapsed() < Duration::from_secs(30),
-            "no stream stopped: {u:#}"
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    };
+    let u = wait_stopped(&client, &site.base).await;
     let stopped = u["tiers"]
         .as_array()
         .unwrap()
@@ -1712,23 +1718,7 @@ async fn a_site_never_records_an_acknowledgement_past_its_newest_commit() {
     let site = start(&site_config);
     let client = reqwest::Client::new();
     post_groups(&client, &site.base, 0..100, group_time, 50).await;
-    let waited = std::time::Instant::now();
-    let u = loop {
-        let u = upstream(&client, &site.base).await;
-        if u["tiers"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|t| t["stopped"].is_string())
-        {
-            break u;
-        }
-        assert!(
-            waited.elapsed() < Duration::from_secs(30),
-            "nothing stopped: {u:#}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    };
+    let u = wait_stopped(&client, &site.base).await;
     let stopped = u.to_string();
     assert!(
         stopped.contains("newest commit") && stopped.contains("new-generation"),

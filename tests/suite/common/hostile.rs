@@ -8,6 +8,24 @@
 use std::io::Write as _;
 use std::time::{Duration, Instant};
 
+/// The built-in installation on port 0 with `database` and `extra` appended, written into
+/// `dir`.
+pub fn builtin_installation(
+    dir: &std::path::Path,
+    database: &str,
+    extra: &str,
+) -> std::path::PathBuf {
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("127.0.0.1:7878", "127.0.0.1:0")
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{database}\""),
+        );
+    let path = dir.join("hostile.toml");
+    std::fs::write(&path, format!("{text}\n{extra}\n")).unwrap();
+    path
+}
+
 /// A process's (current, peak) resident set, MB (`VmRSS`, `VmHWM` of `/proc`).
 pub fn rss_mb(pid: u32) -> (f64, f64) {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
