@@ -3,8 +3,8 @@
 result with OpenCV's and with each set's published calibration (a development script: the
 photographs are third-party data, read where they lie and never copied into the repository).
 
-    cargo build --release
-    python3 scripts/real_plates.py target/release/brokenray DIR
+    cargo build --release --examples
+    python3 scripts/real_plates.py target/release/brokenray DIR [target/release/examples/blobs]
 
 DIR holds the sets, one folder each (`industrial_calibration_10x10`, `boofcv_circles/...`).
 
@@ -13,7 +13,13 @@ For each set (a folder with its frames, a `plate.toml` or the plate given below,
 `brokenray calibrate-camera --json` on every frame and prints the views the plate was found in
 (brokenray's and OpenCV's), the intrinsics, and their differences from the published ones (the
 source's own where it has them, else OpenCV's).
+
+With the `blobs` example as a third argument it first compares the detector's discs with
+OpenCV's plate centres in every view: the centres OpenCV found that no disc of ours lies within
+a pixel of, the discs that match none of them (clutter and the text on the plates), the median
+distance between the matched centres, and the detection time per frame.
 """
+import math
 import json
 import subprocess
 import sys
@@ -22,6 +28,12 @@ from pathlib import Path
 
 # Plates the sets describe in their own words (see each set's readme).
 PLATES = {
+    # 10 x 10, spacing 25.4 mm (the source's cal_data.yaml), discs half of it, the origin disc
+    # twice as large.
+    "industrial_calibration_10x10":
+        "rows = 10\ncols = 10\nspacing_mm = 25.4\ndiameter_mm = 12.7\norigin_diameter_mm = 25.4\npolarity = \"dark\"\n",
+    "boofcv_circles/Sony_DSC-HX5V_CircleRegular":
+        "rows = 8\ncols = 10\nspacing_mm = 25.0\ndiameter_mm = 15.0\npolarity = \"dark\"\n",
     "boofcv_circles/Sony_DSC-HX5V_CircleAsym":
         "rows = 5\ncols = 4\nspacing_mm = 30.0\ndiameter_mm = 20.0\nasymmetric = true\npolarity = \"dark\"\n",
 }
@@ -51,8 +63,36 @@ def calibrate(binary, plate, frames):
     return json.loads(out.stdout), left_out, []
 
 
-def main(binary, root):
+def compare_blobs(blobs, root):
+    for name, folder, frames, baseline in sets(root):
+        centres = baseline["centres_px"]
+        files = [str(root / k) for k in centres]
+        out = subprocess.run([blobs, *files], capture_output=True, text=True, check=True)
+        missed, extra, offsets, times = 0, 0, [], []
+        for line, (k, cs) in zip(out.stdout.splitlines(), centres.items()):
+            r = json.loads(line)
+            ours = [b["c"] for b in r["blobs"]]
+            times.append(r["ms"])
+            matched = 0
+            for c in cs:
+                d = min((math.hypot(b[0] - c[0], b[1] - c[1]) for b in ours), default=99.0)
+                if d > 1.0:
+                    missed += 1
+                    print(f"    {Path(k).name}: OpenCV's centre {c[0]:.1f}, {c[1]:.1f} has no disc of ours within 1 px")
+                else:
+                    matched += 1
+                    offsets.append(d)
+            extra += len(ours) - matched
+        offsets.sort()
+        median = offsets[len(offsets) // 2] if offsets else float("nan")
+        print(f"{name}: OpenCV's centres without a disc of ours {missed} of {sum(map(len, centres.values()))}, "
+              f"other discs {extra}, median distance {median:.4f} px, detection {sum(times) / len(times):.1f} ms a frame")
+
+
+def main(binary, root, blobs=None):
     root = Path(root)
+    if blobs:
+        compare_blobs(blobs, root)
     with tempfile.TemporaryDirectory() as tmp:
         for name, folder, frames, baseline in sets(root):
             plate = folder / "plate.toml"
@@ -88,6 +128,6 @@ def main(binary, root):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
+    if len(sys.argv) not in (3, 4):
         sys.exit(__doc__)
     main(*sys.argv[1:])

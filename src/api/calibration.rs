@@ -52,6 +52,10 @@ pub struct PlateIn {
     /// `dark` (default) or `bright` discs.
     #[serde(default)]
     pub polarity: PlatePolarity,
+    /// The diameter of the disc at point 0 when it is larger than the others (mm): the
+    /// "modified circle grid", whose labelling the larger disc fixes whatever the layout.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin_diameter_mm: Option<f64>,
 }
 
 impl PlateIn {
@@ -69,6 +73,10 @@ impl PlateIn {
             self.asymmetric,
             polarity,
         )
+        .and_then(|plate| match self.origin_diameter_mm {
+            Some(d) => plate.with_origin_diameter(d),
+            None => Ok(plate),
+        })
         .map_err(|e| ("plate".to_owned(), e.to_string()))
     }
 }

@@ -67,7 +67,7 @@ fn extent(plate: &Plate) -> (Vec3, Vector2<f64>) {
         (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
         |(lo, hi), p| (lo.inf(p), hi.sup(p)),
     );
-    let d = plate.diameter_mm();
+    let d = plate.origin_diameter_mm().unwrap_or(plate.diameter_mm());
     (
         (lo + hi) / 2.0,
         Vector2::new(hi.x - lo.x + d, hi.y - lo.y + d),
@@ -77,9 +77,9 @@ fn extent(plate: &Plate) -> (Vec3, Vector2<f64>) {
 /// Whether every disc of the plate at `camera_from_plate` images at least `margin_px` inside
 /// the frame.
 fn inside(camera: &CameraModel, plate: &Plate, camera_from_plate: &Pose, margin_px: f64) -> bool {
-    let radius = plate.diameter_mm() / 2.0;
     let (w, h) = (f64::from(camera.width_px), f64::from(camera.height_px));
-    plate.points_mm().iter().all(|p| {
+    plate.points_mm().iter().enumerate().all(|(i, p)| {
+        let radius = plate.disc_diameter_mm(i) / 2.0;
         [
             (0.0, 0.0),
             (radius, 0.0),
@@ -106,10 +106,11 @@ pub fn plate_discs(plate: &Plate, camera_from_plate: &Pose) -> Vec<Disc> {
     plate
         .points_mm()
         .iter()
-        .map(|p| Disc {
+        .enumerate()
+        .map(|(i, p)| Disc {
             centre_mm: (camera_from_plate * Point3::from(*p)).coords,
             normal,
-            diameter_mm: plate.diameter_mm(),
+            diameter_mm: plate.disc_diameter_mm(i),
         })
         .collect()
 }

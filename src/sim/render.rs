@@ -7,7 +7,7 @@
 //! picture is exact for any pose, tilt and distortion up to the sampling, whose error on a disc
 //! centre is well under a thousandth of a pixel at the default 64 x 64 samples (taken where
 //! the edge runs; pixels wholly inside or outside need none). Then a Gaussian
-//! optics blur, vignetting, shot noise (Poisson, approximated as Gaussian above a few electrons)
+//! optics blur, vignetting and a gradient of the light across the scene, shot noise (Poisson, approximated as Gaussian above a few electrons)
 //! and read noise, and rounding to digital numbers (DN) clamped to the bit depth.
 //!
 //! Pixel convention: integer coordinates are pixel centres (see [`crate::vision::GreyImage`]).
@@ -47,6 +47,10 @@ pub struct RenderSettings {
     /// Relative fall-off of brightness at the image corners (`1 - vignetting` there, a quadratic
     /// in the distance from the principal point).
     pub vignetting: f64,
+    /// Light that changes across the scene: the illumination is `1 + g . (u - cx, v - cy)`
+    /// times the nominal one (at least 0.05), `g` this gradient (per px). A lamp to one side
+    /// gives a few tenths over a frame.
+    pub light_gradient_per_px: [f64; 2],
     /// Sub-pixel samples per pixel side.
     pub samples_per_side: usize,
     /// Bits per pixel of the frame.
@@ -66,6 +70,7 @@ impl Default for RenderSettings {
             read_noise_dn: 2.0,
             gain_e_per_dn: Some(40.0),
             vignetting: 0.0,
+            light_gradient_per_px: [0.0; 2],
             samples_per_side: 64,
             depth: BitDepth::Eight,
             seed: 1,
@@ -98,8 +103,11 @@ pub fn render_discs(camera: &CameraModel, discs: &[Disc], settings: &RenderSetti
         .map(|(i, c)| {
             let (u, v) = ((i % w) as f64, (i / w) as f64);
             let r2 = ((u - camera.cx_px).powi(2) + (v - camera.cy_px).powi(2)) / corner2;
+            let [gu, gv] = settings.light_gradient_per_px;
+            let light = (1.0 + gu * (u - camera.cx_px) + gv * (v - camera.cy_px)).max(0.05);
             let mean = (settings.background_dn + settings.contrast_dn * c)
-                * (1.0 - settings.vignetting * r2);
+                * (1.0 - settings.vignetting * r2)
+                * light;
             let mut var = settings.read_noise_dn.powi(2);
             if let Some(gain) = settings.gain_e_per_dn {
                 var += mean.max(0.0) / gain;

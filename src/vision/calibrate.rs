@@ -382,6 +382,39 @@ pub fn calibrate_camera(
         offsets = next;
         settled = change < 1e-5;
     };
+    // The detector's sigmas are its pixel noise only. On real frames the residuals are
+    // usually larger (the print, compression, what the lens model leaves): weighting by those
+    // sigmas alone would let the sharpest discs decide the fit. When the residuals exceed them
+    // clearly, the error beyond them is estimated from the residuals (the same for every
+    // point), added to every point's variance, and the fit run again.
+    let mut problem = problem;
+    let mut fit = fit;
+    let n_points: usize = views.iter().map(|v| v.ids.len()).sum();
+    let dof = (2 * n_points).saturating_sub(free.len() + 6 * poses.len());
+    if views.iter().any(|v| v.sigmas_px.is_some()) && dof > 0 && fit.chi2 / dof as f64 > 2.0 {
+        let residual_var = fit.view_cost_px2.iter().sum::<f64>() / dof as f64;
+        let detector_var = problem
+            .weights
+            .iter()
+            .flatten()
+            .map(|w| 1.0 / w)
+            .sum::<f64>()
+            / n_points as f64;
+        let extra_var = (residual_var - detector_var).max(0.0);
+        problem.add_variance(extra_var);
+        let result = problem.adjust(
+            &mut params,
+            &mut poses,
+            &offsets,
+            &free,
+            width_px,
+            height_px,
+            options.max_iterations,
+            options.cancel.as_deref(),
+        )?;
+        iterations += result.iterations;
+        fit = result.fit;
+    }
     let camera = from_params(&params, width_px, height_px);
     problem.report(camera, &poses, fit, &free, options, iterations)
 }
@@ -468,7 +501,8 @@ struct Problem<'a> {
     centroids_mm: Vec<Vec3>,
     /// Per view: each point's weight (1 / variance).
     weights: Vec<Vec<f64>>,
-    diameter_mm: f64,
+    /// Each plate point's disc diameter (mm).
+    diameters_mm: Vec<f64>,
     plate_points_mm: Vec<Vec3>,
 }
 
@@ -510,8 +544,17 @@ impl<'a> Problem<'a> {
             centred_mm,
             centroids_mm,
             weights,
-            diameter_mm: plate.diameter_mm(),
+            diameters_mm: (0..plate.len())
+                .map(|i| plate.disc_diameter_mm(i))
+                .collect(),
             plate_points_mm,
+        }
+    }
+
+    /// Adds `var_px2` to every point's variance (per axis).
+    fn add_variance(&mut self, var_px2: f64) {
+        for w in self.weights.iter_mut().flatten() {
+            *w = 1.0 / (1.0 / *w + var_px2);
         }
     }
 
@@ -532,9 +575,10 @@ impl<'a> Problem<'a> {
                 let normal = pose.rotation * Vec3::z();
                 self.centred_mm[v]
                     .iter()
-                    .map(|x| {
+                    .zip(&self.views[v].ids)
+                    .map(|(x, &id)| {
                         let centre = (pose * nalgebra::Point3::from(*x)).coords;
-                        disc_image_offset(camera, &centre, &normal, self.diameter_mm)
+                        disc_image_offset(camera, &centre, &normal, self.diameters_mm[id])
                             .unwrap_or_else(Vector2::zeros)
                     })
                     .collect()

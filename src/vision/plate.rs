@@ -37,6 +37,8 @@ pub struct Plate {
     diameter_mm: f64,
     asymmetric: bool,
     polarity: Polarity,
+    /// The diameter of the disc at point 0 when it is larger than the others (mm).
+    origin_diameter_mm: Option<f64>,
     /// It looks the same after a turn in its plane (a property of the layout, found once).
     symmetric: bool,
 }
@@ -100,10 +102,46 @@ impl Plate {
             diameter_mm,
             asymmetric,
             polarity,
+            origin_diameter_mm: None,
             symmetric: false,
         };
         plate.symmetric = plate.has_turn_symmetry();
         Ok(plate)
+    }
+
+    /// The plate with a larger disc at point 0 (the "modified circle grid"), which makes its
+    /// labelling unambiguous whatever the layout. Refuses a diameter not larger than the other
+    /// discs' or one that would touch its neighbours.
+    pub fn with_origin_diameter(mut self, origin_diameter_mm: f64) -> Result<Self, VisionError> {
+        let refuse = |reason: String| Err(VisionError::PlateInvalid { reason });
+        if !(origin_diameter_mm.is_finite() && origin_diameter_mm > self.diameter_mm) {
+            return refuse(format!(
+                "origin_diameter_mm must be larger than diameter_mm ({}), got {origin_diameter_mm}",
+                self.diameter_mm
+            ));
+        }
+        if (origin_diameter_mm + self.diameter_mm) / 2.0 >= self.neighbour_mm() {
+            return refuse(format!(
+                "an origin disc of {origin_diameter_mm} mm would touch its neighbours {:.3} mm away",
+                self.neighbour_mm()
+            ));
+        }
+        self.origin_diameter_mm = Some(origin_diameter_mm);
+        self.symmetric = false;
+        Ok(self)
+    }
+
+    /// The origin disc's diameter when it is larger than the others (mm).
+    pub fn origin_diameter_mm(&self) -> Option<f64> {
+        self.origin_diameter_mm
+    }
+
+    /// The diameter of point `i`'s disc (mm).
+    pub fn disc_diameter_mm(&self, i: usize) -> f64 {
+        match self.origin_diameter_mm {
+            Some(d) if i == 0 => d,
+            _ => self.diameter_mm,
+        }
     }
 
     /// Rows of points.
@@ -259,7 +297,7 @@ impl Plate {
                 blobs.len()
             )));
         }
-        let candidates = similar_in_size(blobs);
+        let candidates = similar_in_size(blobs, self.origin_area_ratio());
         let positions: Vec<Vector2<f64>> = candidates
             .iter()
             .map(|&k| Vector2::new(blobs[k].centre_px[0], blobs[k].centre_px[1]))
@@ -289,7 +327,8 @@ impl Plate {
             if grid.len() < n {
                 continue;
             }
-            match self.label(&grid, &positions, &own) {
+            let areas: Vec<f64> = candidates.iter().map(|&k| blobs[k].area_px).collect();
+            match self.label(&grid, &positions, &areas, &own) {
                 Ok(labels) => {
                     let mut points_px = vec![Vector2::zeros(); n];
                     let mut sigmas_px = vec![0.0; n];
@@ -313,14 +352,30 @@ impl Plate {
         })))
     }
 
+    /// The origin disc's image area over the others' (1 without a larger origin disc).
+    fn origin_area_ratio(&self) -> f64 {
+        self.origin_diameter_mm
+            .map_or(1.0, |d| (d / self.diameter_mm).powi(2))
+    }
+
     /// Plate point ids for the grid's discs (`grid`: lattice coordinates to disc index).
     fn label(
         &self,
         grid: &HashMap<[i64; 2], usize>,
         positions: &[Vector2<f64>],
+        areas: &[f64],
         own: &HashMap<[i64; 2], usize>,
     ) -> Result<Vec<(usize, usize)>, String> {
         let mut best: Option<(f64, Vec<(usize, usize)>)> = None;
+        // With a larger origin disc, the labelling puts point 0 on it: on the disc that stands
+        // out most from its neighbours, by more than halfway (in proportion) to the ratio
+        // expected.
+        let origin_ratio = self.origin_area_ratio();
+        let median_area = {
+            let mut a: Vec<f64> = grid.values().map(|&k| areas[k]).collect();
+            a.sort_by(f64::total_cmp);
+            a[a.len() / 2]
+        };
         for (u, _) in Self::lattice_maps() {
             let Some(t) = self.offset_onto(&u, grid.keys().copied(), own) else {
                 continue;
@@ -352,16 +407,31 @@ impl Plate {
                 continue;
             }
             // The convention among equivalent labellings: the plate's +x towards the image's
-            // right (+u), then its +y downwards.
+            // right (+u), then its +y downwards; with a larger origin disc, the one that puts
+            // point 0 on the largest disc.
             let x_dir = jac.column(0).normalize();
             let y_dir = jac.column(1).normalize();
-            let score = x_dir.x + 1e-3 * y_dir.y;
+            let score = if origin_ratio > 1.0 {
+                let Some(&(k0, _)) = labels.iter().find(|&&(_, id)| id == 0) else {
+                    continue;
+                };
+                if areas[k0] < median_area * origin_ratio.sqrt() {
+                    continue;
+                }
+                areas[k0]
+            } else {
+                x_dir.x + 1e-3 * y_dir.y
+            };
             if best.as_ref().is_none_or(|(s, _)| score > *s + 1e-12) {
                 best = Some((score, labels));
             }
         }
         match best {
             Some((_, labels)) => Ok(labels),
+            None if origin_ratio > 1.0 => Err(format!(
+                "the discs found form the plate's grid, but none of its corners holds a disc larger than the others by the origin disc's {} mm: check origin_diameter_mm, or the origin disc is hidden",
+                self.origin_diameter_mm.unwrap_or_default()
+            )),
             None => Err(format!(
                 "the discs found form a grid, but not the plate's {} x {}{}: check rows, cols and asymmetric",
                 self.rows,
@@ -389,16 +459,17 @@ fn homography_jacobian(h: &Mat3, p: &Vector2<f64>) -> Matrix2<f64> {
     )
 }
 
-/// Indices of the blobs whose area is within a factor of four of the median: a plate's discs
-/// vary with tilt and distance, specks and large reflections stand out.
-fn similar_in_size(blobs: &[Blob]) -> Vec<usize> {
+/// Indices of the blobs whose area is within a factor of four of the median (the upper bound
+/// times `larger`, the origin disc's area over the others'): a plate's discs vary with tilt
+/// and distance, specks and large reflections stand out.
+fn similar_in_size(blobs: &[Blob], larger: f64) -> Vec<usize> {
     let mut areas: Vec<f64> = blobs.iter().map(|b| b.area_px).collect();
     areas.sort_by(f64::total_cmp);
     let median = areas[areas.len() / 2];
     (0..blobs.len())
         .filter(|&k| {
             let a = blobs[k].area_px;
-            a >= median / 4.0 && a <= median * 4.0
+            a >= median / 4.0 && a <= median * 4.0 * larger
         })
         .collect()
 }
@@ -597,6 +668,45 @@ mod tests {
         let view = plate.find(&seen(&plate, &h)).expect("found");
         assert!(view.symmetric);
         check_labels(&plate, &tilted(), &view);
+    }
+
+    #[test]
+    fn a_larger_origin_disc_fixes_the_labels_of_a_symmetric_plate_under_any_turn() {
+        let plate = Plate::new(6, 6, 20.0, 10.0, false, Polarity::Dark)
+            .and_then(|p| p.with_origin_diameter(20.0))
+            .expect("valid");
+        assert!(!plate.is_symmetric(), "the origin disc breaks the turns");
+        assert_eq!(plate.disc_diameter_mm(0), 20.0);
+        assert_eq!(plate.disc_diameter_mm(1), 10.0);
+        for turn_deg in [0.0f64, 90.0, 180.0, 270.0, 35.0] {
+            let t = turn_deg.to_radians();
+            let turn = Mat3::new(t.cos(), -t.sin(), 0.0, t.sin(), t.cos(), 0.0, 0.0, 0.0, 1.0);
+            let h = tilted() * turn;
+            let mut blobs = seen(&plate, &h);
+            // The origin disc images four times as large (its area); a speck and a large
+            // blot off the grid stay out.
+            let q = h * Vector3::new(0.0, 0.0, 1.0);
+            let origin = Vector2::new(q.x / q.z, q.y / q.z);
+            for b in &mut blobs {
+                if (Vector2::new(b.centre_px[0], b.centre_px[1]) - origin).norm() < 1e-9 {
+                    b.area_px = 320.0;
+                }
+            }
+            let mut blot = blob_at(1500.0, 40.0);
+            blot.area_px = 2000.0;
+            blobs.push(blot);
+            let view = plate.find(&blobs).expect("found");
+            assert!(!view.symmetric);
+            check_labels(&plate, &h, &view);
+        }
+        // Without the larger disc, the plate cannot be labelled.
+        let even = seen(&plate, &tilted());
+        let err = plate.find(&even).expect_err("no origin disc");
+        assert!(err.to_string().contains("origin_diameter_mm"), "{err}");
+        // An origin disc no larger than the others, or touching its neighbours, is refused.
+        let base = Plate::new(6, 6, 20.0, 10.0, false, Polarity::Dark).expect("valid");
+        assert!(base.with_origin_diameter(10.0).is_err());
+        assert!(base.with_origin_diameter(30.0).is_err());
     }
 
     #[test]
