@@ -489,6 +489,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                     groups: Some(groups),
                     real_time,
                     groups_per_request: 40,
+                    render_samples_per_side: 32,
                 },
             ))?;
             let target = to.clone().unwrap_or_else(|| {

@@ -92,7 +92,7 @@ pub fn render_discs(camera: &CameraModel, discs: &[Disc], settings: &RenderSetti
             h,
         );
     }
-    let coverage = blur(&coverage, w, h, settings.blur_sigma_px);
+    let coverage = blur_where_covered(&coverage, w, h, settings.blur_sigma_px);
     let mut rng = StdRng::seed_from_u64(settings.seed);
     let max = f64::from(settings.depth.max_value());
     let corner2 = (camera.cx_px.max(w as f64 - camera.cx_px)).powi(2)
@@ -267,6 +267,43 @@ fn add_coverage(
             coverage[v * w + u] += value;
         }
     }
+}
+
+/// [`blur`] over the box that holds every covered pixel and the kernel's reach around them:
+/// outside it the coverage is zero before and after, and inside it the result is the whole
+/// frame's (the box's own edges, where they are not the frame's, hold zeros, which clamping
+/// repeats as the frame's zeros beyond them would be).
+fn blur_where_covered(image: &[f64], w: usize, h: usize, sigma: f64) -> Vec<f64> {
+    if sigma <= 0.0 {
+        return image.to_vec();
+    }
+    let (mut u0, mut u1, mut v0, mut v1) = (usize::MAX, 0, usize::MAX, 0);
+    for (i, &c) in image.iter().enumerate() {
+        if c != 0.0 {
+            let (u, v) = (i % w, i / w);
+            u0 = u0.min(u);
+            u1 = u1.max(u);
+            v0 = v0.min(v);
+            v1 = v1.max(v);
+        }
+    }
+    if u0 > u1 {
+        return image.to_vec();
+    }
+    let reach = (4.0 * sigma).ceil() as usize + 1;
+    let (u0, v0) = (u0.saturating_sub(reach), v0.saturating_sub(reach));
+    let (u1, v1) = ((u1 + reach).min(w - 1), (v1 + reach).min(h - 1));
+    let (bw, bh) = (u1 + 1 - u0, v1 + 1 - v0);
+    let mut part = Vec::with_capacity(bw * bh);
+    for v in v0..=v1 {
+        part.extend_from_slice(&image[v * w + u0..=v * w + u1]);
+    }
+    let blurred = blur(&part, bw, bh, sigma);
+    let mut out = image.to_vec();
+    for (k, v) in (v0..=v1).enumerate() {
+        out[v * w + u0..=v * w + u1].copy_from_slice(&blurred[k * bw..(k + 1) * bw]);
+    }
+    out
 }
 
 /// A separable Gaussian blur (kernel to 4 sigma, normalised; edges clamped).
