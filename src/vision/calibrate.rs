@@ -355,17 +355,24 @@ pub fn calibrate_camera(
     // settles (then once more with it) or the rounds run out.
     let mut settled = !options.eccentricity;
     let mut round = 0;
-    let fit = loop {
-        let result = problem.adjust(
-            &mut params,
-            &mut poses,
-            &offsets,
+    // One adjustment from the current estimate, with the given eccentricity offsets.
+    let adjust = |problem: &Problem,
+                  params: &mut [f64; 9],
+                  poses: &mut [Pose],
+                  offsets: &[Vec<Vector2<f64>>]| {
+        problem.adjust(
+            params,
+            poses,
+            offsets,
             &free,
             width_px,
             height_px,
             options.max_iterations,
             options.cancel.as_deref(),
-        )?;
+        )
+    };
+    let fit = loop {
+        let result = adjust(&problem, &mut params, &mut poses, &offsets)?;
         iterations += result.iterations;
         round += 1;
         if settled || round == ECCENTRICITY_ROUNDS {
@@ -402,16 +409,7 @@ pub fn calibrate_camera(
             / n_points as f64;
         let extra_var = (residual_var - detector_var).max(0.0);
         problem.add_variance(extra_var);
-        let result = problem.adjust(
-            &mut params,
-            &mut poses,
-            &offsets,
-            &free,
-            width_px,
-            height_px,
-            options.max_iterations,
-            options.cancel.as_deref(),
-        )?;
+        let result = adjust(&problem, &mut params, &mut poses, &offsets)?;
         iterations += result.iterations;
         fit = result.fit;
     }
