@@ -7,14 +7,19 @@
 //! * `observe_frame`: detection near the predicted points, identification, weighted PnP, the
 //!   eccentricity correction and PnP again (the whole per-frame work), from a good prediction
 //!   (the near search) and from one 32 px off (the near search fails, the wide one follows);
-//! * `decode png` / `decode pgm`: the 8-bit frame file decoded into a grey frame.
+//! * `decode png` / `decode pgm`: the 8-bit frame file decoded into a grey frame;
+//! * at 1600 x 1200 (the same marker, a camera of 4800 px focal length, tilted 30 degrees, 30
+//!   pieces of clutter around it): `observe_frame` tracked (a good prediction), and with no
+//!   prior (the whole frame detected, then the search from the layout alone and PnP).
 //!
 //! Rendering is outside the timed loops. Run: `cargo bench --bench detect`.
 
 use brokenray::config::default_installation;
+use brokenray::geometry::{Twist, se3_exp};
 use brokenray::imagefile::{FrameFormat, decode, encode};
-use brokenray::model::{LinkKind, Observer, observe_frame};
-use brokenray::sim::render::{RenderSettings, marker_discs, render_discs};
+use brokenray::model::{LinkKind, Observer, find_without_prior, observe_frame};
+use brokenray::sim::render::{Clutter, RenderSettings, marker_discs, render_discs, render_scene};
+use brokenray::vision::{CameraModel, SearchArea, detect_in};
 use brokenray::vision::{DetectSettings, detect};
 use criterion::{Criterion, criterion_group, criterion_main};
 use std::hint::black_box;
@@ -72,6 +77,60 @@ fn bench(c: &mut Criterion) {
             },
         );
     }
+    // 1600 x 1200: tracked, and found with no prior among clutter.
+    let mut link_1600 = link.clone();
+    link_1600.camera = CameraModel {
+        width_px: 1600,
+        height_px: 1200,
+        cx_px: 803.0,
+        cy_px: 597.0,
+        ..link.camera
+    };
+    let observer_1600 = Observer::from_links(vec![link_1600.clone()]);
+    let tilted = nominal * se3_exp(&Twist::new(0.0, 0.0, 300.0, 0.35, 0.35, 0.3));
+    let clutter = Clutter::scattered(&link_1600.camera, 30, 3000.0, 5);
+    let mut discs = marker_discs(&link_1600, &tilted);
+    discs.extend(clutter.discs.iter().copied());
+    let frame_1600 = render_scene(
+        &link_1600.camera,
+        &discs,
+        &clutter.shapes,
+        &RenderSettings::default(),
+    );
+    let whole = SearchArea::whole(1600, 1200);
+    let found = find_without_prior(&link_1600, &detect_in(&frame_1600, &settings, &whole), None)
+        .expect("found with no prior");
+    println!(
+        "1600x1200 with no prior: {} points, {} blobs in the frame",
+        found.ids.len(),
+        detect_in(&frame_1600, &settings, &whole).len()
+    );
+    c.bench_function(
+        "no prior 1600x1200: detect the whole frame, search, PnP",
+        |b| {
+            b.iter(|| {
+                let blobs = detect_in(black_box(&frame_1600), &settings, &whole);
+                find_without_prior(&link_1600, &blobs, None).map(|f| f.ids.len())
+            })
+        },
+    );
+    let blobs_1600 = detect_in(&frame_1600, &settings, &whole);
+    c.bench_function("no prior 1600x1200: the search and PnP alone", |b| {
+        b.iter(|| find_without_prior(&link_1600, black_box(&blobs_1600), None).map(|f| f.ids.len()))
+    });
+    c.bench_function(
+        "tracked 1600x1200: observe_frame from a good prediction",
+        |b| {
+            b.iter(|| {
+                observe_frame(&observer_1600, "C1", black_box(&frame_1600), |_| {
+                    vec![tilted]
+                })
+                .expect("C1's frame")
+                .markers
+                .len()
+            })
+        },
+    );
     let size = Some((frame.width_px(), frame.height_px()));
     for format in [FrameFormat::Png, FrameFormat::Pgm] {
         let bytes = encode(&frame, format).expect("encodes");

@@ -289,6 +289,48 @@ pub fn encode(image: &GreyImage, format: FrameFormat) -> Result<Vec<u8>, FrameFi
     Ok(out.into_inner())
 }
 
+/// A grey 8-bit frame as JPEG of `quality` (1 to 100): lossy, for frames as compressing
+/// cameras and camera computers send them, and for the tests and the demo that stand in for
+/// them.
+pub fn encode_jpeg(image: &GreyImage, quality: u8) -> Result<Vec<u8>, FrameFileError> {
+    use image::codecs::jpeg::JpegEncoder;
+    let dynamic = to_dynamic(image, FrameFormat::Png)?.into_luma8();
+    let mut out = Vec::new();
+    JpegEncoder::new_with_quality(&mut out, quality.clamp(1, 100))
+        .encode_image(&dynamic)
+        .map_err(|e| FrameFileError::Undecodable {
+            format: FrameFormat::Jpeg,
+            reason: e.to_string(),
+        })?;
+    Ok(out)
+}
+
+/// An 8-bit RGB frame (`rgb` row by row, three bytes a pixel) as a colour PNG, or a colour JPEG
+/// of `quality`.
+pub fn encode_rgb(
+    width_px: u32,
+    height_px: u32,
+    rgb: Vec<u8>,
+    format: FrameFormat,
+    quality: u8,
+) -> Result<Vec<u8>, FrameFileError> {
+    let failed = |reason: String| FrameFileError::Undecodable { format, reason };
+    let buffer = image::RgbImage::from_raw(width_px, height_px, rgb)
+        .ok_or_else(|| failed("the pixels do not fill the size".to_owned()))?;
+    let mut out = Cursor::new(Vec::new());
+    match format {
+        FrameFormat::Jpeg => {
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality.clamp(1, 100))
+                .encode_image(&buffer)
+                .map_err(|e| failed(e.to_string()))?
+        }
+        _ => DynamicImage::ImageRgb8(buffer)
+            .write_to(&mut out, format.image_format())
+            .map_err(|e| failed(e.to_string()))?,
+    }
+    Ok(out.into_inner())
+}
+
 /// A grey frame as PNG written for speed rather than size (fast deflate): lossless like
 /// [`encode`], several times quicker to write and somewhat larger, for frames written as they
 /// arrive (the archive, the latest frame a page asks for).

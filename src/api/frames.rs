@@ -47,6 +47,12 @@ pub enum NotFoundCode {
     TooFewPoints,
     /// PnP refused the matched points.
     PnpRefused,
+    /// Searched with no prior, no identification used every visible point.
+    NotIdentified,
+    /// Searched with no prior, two contradicting identifications fit.
+    Ambiguous,
+    /// A disc was found as a point of two markers.
+    SharedPoints,
 }
 
 impl From<&NotFound> for NotFoundCode {
@@ -57,6 +63,9 @@ impl From<&NotFound> for NotFoundCode {
             NotFound::NotInView => NotFoundCode::NotInView,
             NotFound::TooFewPoints { .. } => NotFoundCode::TooFewPoints,
             NotFound::Pnp(_) => NotFoundCode::PnpRefused,
+            NotFound::NotIdentified { .. } => NotFoundCode::NotIdentified,
+            NotFound::Ambiguous { .. } => NotFoundCode::Ambiguous,
+            NotFound::SharedPoints { .. } => NotFoundCode::SharedPoints,
         }
     }
 }

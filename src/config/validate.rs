@@ -927,6 +927,29 @@ impl Validator {
                         .collect()
                 }
             };
+            if ok && let Some(target) = &target {
+                let points: Vec<crate::geometry::Vec3> = m
+                    .points_mm
+                    .iter()
+                    .map(|p| crate::geometry::Vec3::from(*p))
+                    .collect();
+                // Within a quarter of a disc's diameter a point is where another was: the
+                // search with no prior cannot tell them apart.
+                let tolerance_mm = 0.25 * target.diameter_mm;
+                if let Some((k, onto)) = crate::model::layout_symmetries(&points, tolerance_mm)
+                    .first()
+                    .and_then(|map| map.iter().enumerate().find(|(k, m)| k != *m))
+                {
+                    let (line, _) = self.lines.locate(at);
+                    self.warnings.push(ConfigProblem {
+                        line: Some(line),
+                        column: None,
+                        message: format!(
+                            "{what}: its layout maps onto itself under a turn (point {k} onto point {onto}, within {tolerance_mm} mm): with no prediction it cannot be identified (it is tracked from its nominal pose); move a point off the symmetry"
+                        ),
+                    });
+                }
+            }
             if ok {
                 self.marker_at.insert(m.frame.clone(), at);
                 out.push(Marker {

@@ -2,15 +2,22 @@
 //! camera's markers use, only in the part of the frame the predicted marker points' gates reach
 //! (a fifth of the frame or less for a marker or two), then each marker the camera sees through
 //! a measured link identified among them ([`identify`]) from the poses the caller predicts for
-//! its link, tried in order.
+//! its link, tried in order. A marker found so on some of its points is completed with every
+//! point that images where its pose puts it; one that leaves visible points out is kept only
+//! when its pose is near the prediction (the rest are covered), else searched for afresh.
+//! A marker no prediction finds is searched for in the whole frame from its layout alone
+//! ([`find_without_prior`]). A disc found as a point of two markers refuses both.
 //!
 //! Decoding the file and choosing the predictions (the filtered pose of the link at the frame's
 //! time, the pose in the previous frame) belong to the callers; the nominal pose comes last.
 //! The frame's size is checked against the camera's here, so every caller refuses the same
 //! frames.
 
-use super::identify::{Found, NotFound, Reach, identify, identify_within, search_squares};
+use super::identify::{
+    Found, GATE_MIN_PX, NotFound, Reach, complete, identify, identify_within, search_squares,
+};
 use super::observation::{ObservationError, ObservedLink, Observer};
+use super::search::{find_without_prior, tight_match_at};
 use crate::geometry::Pose;
 use crate::vision::{DetectSettings, GreyImage, Polarity, SearchArea, detect_in};
 
@@ -125,7 +132,8 @@ pub fn observe_frame<'a>(
             }
         }
         // Then, for the markers not found so, as far as every prediction's full gates reach,
-        // each prediction in turn.
+        // each prediction in turn; a marker found so is completed with every point that
+        // images near where its pose puts it.
         if !missing.is_empty() {
             let (wide, fraction) = detect_around(
                 polarity,
@@ -136,8 +144,10 @@ pub fn observe_frame<'a>(
             );
             searched += fraction;
             last_blobs = wide.len();
+            let mut lost = Vec::new();
             for &i in &missing {
                 let mut result = Err(NotFound::NoPrediction);
+                let mut from = None;
                 for prior in &priors[i] {
                     let attempt = identify(links[i], &wide, Some(prior));
                     let found = attempt.is_ok();
@@ -146,14 +156,66 @@ pub fn observe_frame<'a>(
                         result = attempt;
                     }
                     if found {
+                        from = Some(*prior);
                         break;
                     }
                 }
+                if let (Ok(found), Some(prior)) = (&result, from) {
+                    let pose = found.solution.camera_from_marker;
+                    let (around, fraction) = detect_around(
+                        polarity,
+                        &mut search_squares(links[i], &pose, Reach::Near).into_iter(),
+                    );
+                    searched += fraction;
+                    let completed = complete(links[i], &around, found).unwrap_or(found.clone());
+                    // Points left out are believed covered only when the prediction was good;
+                    // a marker that moved far, found on a few points, may have been found on
+                    // the wrong ones, and is searched for afresh.
+                    let at = completed.solution.camera_from_marker;
+                    let (used, visible) = tight_match_at(links[i], &around, &at);
+                    let left_out = used
+                        .iter()
+                        .zip(&visible)
+                        .filter(|(u, v)| **v && u.is_none())
+                        .count();
+                    result = if left_out == 0 || predicted_alike(links[i], &prior, &at) {
+                        Ok(completed)
+                    } else {
+                        Err(NotFound::TooFewPoints {
+                            found: visible.len() - left_out,
+                            ambiguous: 0,
+                            needed: visible.iter().filter(|v| **v).count(),
+                        })
+                    };
+                }
+                if result.is_err() {
+                    lost.push(i);
+                }
                 results[i] = result;
+            }
+            // Last, the markers no prediction found, searched for in the whole frame from their
+            // layouts alone.
+            if !lost.is_empty() {
+                let (all, fraction) = detect_around(
+                    polarity,
+                    &mut std::iter::once((
+                        [
+                            0.5 * f64::from(model.width_px),
+                            0.5 * f64::from(model.height_px),
+                        ],
+                        f64::from(model.width_px.max(model.height_px)),
+                    )),
+                );
+                searched += fraction;
+                last_blobs = all.len();
+                for i in lost {
+                    results[i] = find_without_prior(links[i], &all, priors[i].first());
+                }
             }
         }
         blobs += last_blobs;
     }
+    refuse_shared(&links, &mut results);
     let markers = links
         .into_iter()
         .zip(results)
@@ -164,4 +226,41 @@ pub fn observe_frame<'a>(
         searched_fraction: searched,
         markers,
     })
+}
+
+/// Whether every point of `link`'s marker images within the near gate ([`GATE_MIN_PX`]) at
+/// `a` of where it images at `b`.
+fn predicted_alike(link: &ObservedLink, a: &Pose, b: &Pose) -> bool {
+    link.points_mm.iter().all(|p| {
+        let at = |pose: &Pose| {
+            link.camera
+                .project(&(pose * nalgebra::Point3::from(*p)).coords)
+        };
+        match (at(a), at(b)) {
+            (Some(x), Some(y)) => (x - y).norm() <= GATE_MIN_PX,
+            _ => false,
+        }
+    })
+}
+
+/// Markers found on a common disc are refused, both: a disc is one point of one marker.
+fn refuse_shared(links: &[&ObservedLink], results: &mut [Result<Found, NotFound>]) {
+    let mut shared: Vec<(usize, usize)> = Vec::new();
+    for (a, ra) in results.iter().enumerate() {
+        for (b, rb) in results.iter().enumerate().skip(a + 1) {
+            if let (Ok(fa), Ok(fb)) = (ra, rb)
+                && fa.centroids_px.iter().any(|p| fb.centroids_px.contains(p))
+            {
+                shared.push((a, b));
+            }
+        }
+    }
+    for (a, b) in shared {
+        results[a] = Err(NotFound::SharedPoints {
+            other: links[b].marker_frame.clone(),
+        });
+        results[b] = Err(NotFound::SharedPoints {
+            other: links[a].marker_frame.clone(),
+        });
+    }
 }

@@ -56,6 +56,25 @@ pub enum NotFound {
     },
     /// PnP refused the matched points (the reason, e.g. the RMS over its limit).
     Pnp(String),
+    /// With no prior, no identification of the layout used every visible point.
+    NotIdentified {
+        /// Points the best identification used.
+        used: usize,
+        /// Points it should have seen (imaged wholly inside the frame).
+        visible: usize,
+    },
+    /// With no prior, two identifications that contradict each other fit nearly as well.
+    Ambiguous {
+        /// Points the best used.
+        used: usize,
+        /// Points the rival used.
+        rival_used: usize,
+    },
+    /// A disc the marker was found on was taken by another marker of the camera too.
+    SharedPoints {
+        /// The other marker's frame.
+        other: String,
+    },
 }
 
 impl std::fmt::Display for NotFound {
@@ -81,6 +100,18 @@ impl std::fmt::Display for NotFound {
                 "{found} point(s) found near their predictions ({ambiguous} ambiguous), at least {needed} needed"
             ),
             NotFound::Pnp(reason) => write!(f, "the matched points give no pose: {reason}"),
+            NotFound::NotIdentified { used, visible } => write!(
+                f,
+                "searched with no prior: no identification of the marker's layout used every visible point (the best used {used} of {visible})"
+            ),
+            NotFound::Ambiguous { used, rival_used } => write!(
+                f,
+                "searched with no prior: two contradicting identifications fit ({used} and {rival_used} points); the layout or the clutter is ambiguous here"
+            ),
+            NotFound::SharedPoints { other } => write!(
+                f,
+                "a disc it was found on was also found as a point of marker {other}"
+            ),
         }
     }
 }
@@ -90,6 +121,8 @@ impl std::fmt::Display for NotFound {
 pub struct Found {
     /// The images of the disc centres (eccentricity corrected; px), in matched order.
     pub points_px: Vec<[f64; 2]>,
+    /// The detected centroids they were corrected from (px), in the same order.
+    pub centroids_px: Vec<[f64; 2]>,
     /// Their point ids.
     pub ids: Vec<u32>,
     /// Each point's standard deviation from the detector (px).
@@ -245,8 +278,22 @@ pub fn identify_within(
             needed,
         });
     }
+    solve_matched(link, blobs, &matched)
+}
+
+/// The pose of `link`'s marker from `matched` (point index, blob index) pairs: PnP on the
+/// blobs' centroids, each weighted by the detector's sigma, corrected for the discs'
+/// eccentricity at a first pose when the marker declares disc targets, and solved again.
+pub(super) fn solve_matched(
+    link: &ObservedLink,
+    blobs: &[Blob],
+    matched: &[(usize, usize)],
+) -> Result<Found, NotFound> {
+    let detected: Vec<Vector2<f64>> = matched
+        .iter()
+        .map(|&(_, k)| Vector2::new(blobs[k].centre_px[0], blobs[k].centre_px[1]))
+        .collect();
     let object: Vec<_> = matched.iter().map(|&(i, _)| link.points_mm[i]).collect();
-    let detected: Vec<Vector2<f64>> = matched.iter().map(|&(_, k)| centres[k]).collect();
     let sigmas: Vec<f64> = matched.iter().map(|&(_, k)| blobs[k].sigma_px()).collect();
     // The centroids are not the images of the disc centres: with disc targets, corrected at a
     // first pose and solved again.
@@ -283,9 +330,27 @@ pub fn identify_within(
         .collect();
     Ok(Found {
         points_px: corrected.iter().map(|c| [c.x, c.y]).collect(),
+        centroids_px: matched.iter().map(|&(_, k)| blobs[k].centre_px).collect(),
         ids: matched.iter().map(|&(i, _)| link.ids[i]).collect(),
         sigma_px: sigmas,
         solution,
         reprojected_px,
     })
+}
+
+/// `found` with every point that images near where its pose puts it: each point's one blob
+/// among `blobs` within a tight gate of its reprojection, solved again when that uses more
+/// points than `found` did.
+pub fn complete(link: &ObservedLink, blobs: &[Blob], found: &Found) -> Result<Found, NotFound> {
+    let (assignment, _) =
+        super::search::tight_match_at(link, blobs, &found.solution.camera_from_marker);
+    let matched: Vec<(usize, usize)> = assignment
+        .iter()
+        .enumerate()
+        .filter_map(|(i, b)| b.map(|b| (i, b)))
+        .collect();
+    if matched.len() <= found.ids.len() {
+        return Ok(found.clone());
+    }
+    solve_matched(link, blobs, &matched)
 }

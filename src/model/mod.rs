@@ -14,10 +14,12 @@
 mod frame;
 mod identify;
 mod observation;
+mod search;
 
 pub use frame::{FrameObservation, MarkerInFrame, observe_frame};
 pub use identify::{Found, NotFound, Reach, identify, identify_within, search_squares};
 pub use observation::{ObservationError, ObservedLink, Observer};
+pub use search::{find_without_prior, layout_symmetries};
 
 use crate::alarms::AlarmThresholds;
 use crate::chain::{FrameId, LinkId, Resolution, Topology};

@@ -118,6 +118,19 @@ impl Observer {
         }
     }
 
+    /// An observer of the given camera-marker links alone (a bench, a tool looking at one link).
+    pub fn from_links(links: Vec<ObservedLink>) -> Self {
+        let mut cameras: Vec<String> = links.iter().map(|l| l.camera_frame.clone()).collect();
+        let mut markers: Vec<String> = links.iter().map(|l| l.marker_frame.clone()).collect();
+        cameras.dedup();
+        markers.dedup();
+        Self {
+            links,
+            cameras,
+            markers,
+        }
+    }
+
     /// The observable links.
     pub fn links(&self) -> impl Iterator<Item = &ObservedLink> {
         self.links.iter()

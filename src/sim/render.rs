@@ -10,6 +10,11 @@
 //! optics blur, vignetting and a gradient of the light across the scene, shot noise (Poisson, approximated as Gaussian above a few electrons)
 //! and read noise, and rounding to digital numbers (DN) clamped to the bit depth.
 //!
+//! The real world's other parts: [`Clutter`] (stray discs of any size and [`Shape`]s that are
+//! not discs: bars, rings, triangles) drawn with the discs by [`render_scene`], a colour
+//! camera's Bayer mosaic and its demosaicing fringes ([`bayer_rgb`]), and JPEG compression
+//! (`crate::imagefile::encode_jpeg`, `encode_rgb`).
+//!
 //! Pixel convention: integer coordinates are pixel centres (see [`crate::vision::GreyImage`]).
 
 use crate::geometry::{Pose, Vec3};
@@ -78,8 +83,170 @@ impl Default for RenderSettings {
     }
 }
 
+/// Clutter drawn in the image at the discs' level: shapes that are not discs (a label, a
+/// bracket, a washer, a cable's sheen).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Shape {
+    /// A filled rectangle turned by `angle_rad`.
+    Bar {
+        /// Its centre (px).
+        centre_px: [f64; 2],
+        /// Half its length and half its width (px).
+        half_size_px: [f64; 2],
+        /// Its turn from +u towards +v (rad).
+        angle_rad: f64,
+    },
+    /// A ring.
+    Ring {
+        /// Its centre (px).
+        centre_px: [f64; 2],
+        /// Inner and outer radius (px).
+        radii_px: [f64; 2],
+    },
+    /// A filled triangle.
+    Triangle {
+        /// Its corners (px).
+        corners_px: [[f64; 2]; 3],
+    },
+}
+
+impl Shape {
+    fn contains(&self, u: f64, v: f64) -> bool {
+        match *self {
+            Shape::Bar {
+                centre_px,
+                half_size_px,
+                angle_rad,
+            } => {
+                let (du, dv) = (u - centre_px[0], v - centre_px[1]);
+                let (c, s) = (angle_rad.cos(), angle_rad.sin());
+                (du * c + dv * s).abs() <= half_size_px[0]
+                    && (-du * s + dv * c).abs() <= half_size_px[1]
+            }
+            Shape::Ring {
+                centre_px,
+                radii_px,
+            } => {
+                let r = (u - centre_px[0]).hypot(v - centre_px[1]);
+                r >= radii_px[0] && r <= radii_px[1]
+            }
+            Shape::Triangle {
+                corners_px: [a, b, c],
+            } => {
+                let side = |p: [f64; 2], q: [f64; 2]| {
+                    (q[0] - p[0]) * (v - p[1]) - (q[1] - p[1]) * (u - p[0])
+                };
+                let (x, y, z) = (side(a, b), side(b, c), side(c, a));
+                (x >= 0.0 && y >= 0.0 && z >= 0.0) || (x <= 0.0 && y <= 0.0 && z <= 0.0)
+            }
+        }
+    }
+
+    fn bounds(&self) -> ([f64; 2], [f64; 2]) {
+        match *self {
+            Shape::Bar {
+                centre_px,
+                half_size_px,
+                ..
+            } => {
+                let r = half_size_px[0].hypot(half_size_px[1]);
+                (
+                    [centre_px[0] - r, centre_px[1] - r],
+                    [centre_px[0] + r, centre_px[1] + r],
+                )
+            }
+            Shape::Ring {
+                centre_px,
+                radii_px,
+            } => (
+                [centre_px[0] - radii_px[1], centre_px[1] - radii_px[1]],
+                [centre_px[0] + radii_px[1], centre_px[1] + radii_px[1]],
+            ),
+            Shape::Triangle { corners_px } => {
+                let lo = corners_px
+                    .iter()
+                    .fold([f64::INFINITY; 2], |m, c| [m[0].min(c[0]), m[1].min(c[1])]);
+                let hi = corners_px.iter().fold([f64::NEG_INFINITY; 2], |m, c| {
+                    [m[0].max(c[0]), m[1].max(c[1])]
+                });
+                (lo, hi)
+            }
+        }
+    }
+}
+
+/// Things in a camera's view that belong to no marker.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Clutter {
+    /// Discs of any size (a sticker, a bolt head, a lamp's reflection).
+    pub discs: Vec<Disc>,
+    /// Shapes that are not discs.
+    pub shapes: Vec<Shape>,
+}
+
+impl Clutter {
+    /// `count` pieces of clutter scattered over `camera`'s view from `seed`: half of them stray
+    /// discs facing the camera at `depth_mm` (diameters from 5 to 40 mm, some the size of a
+    /// marker's), half bars, rings and triangles of 5 to 80 px.
+    pub fn scattered(camera: &CameraModel, count: usize, depth_mm: f64, seed: u64) -> Self {
+        use rand::Rng;
+        let mut rng = StdRng::seed_from_u64(seed);
+        let (w, h) = (f64::from(camera.width_px), f64::from(camera.height_px));
+        let mut clutter = Clutter::default();
+        for k in 0..count {
+            let (u, v) = (rng.random_range(0.0..w), rng.random_range(0.0..h));
+            if k % 2 == 0 {
+                let Ok(xy) = camera.undistort(Vector2::new(u, v)) else {
+                    continue;
+                };
+                let tilt = Vec3::new(
+                    rng.random_range(-0.5..0.5),
+                    rng.random_range(-0.5..0.5),
+                    -1.0,
+                );
+                clutter.discs.push(Disc {
+                    centre_mm: Vec3::new(xy.x, xy.y, 1.0) * depth_mm,
+                    normal: tilt,
+                    diameter_mm: rng.random_range(5.0..40.0),
+                });
+                continue;
+            }
+            let size = rng.random_range(5.0..80.0);
+            clutter.shapes.push(match k % 3 {
+                0 => Shape::Bar {
+                    centre_px: [u, v],
+                    half_size_px: [size, rng.random_range(2.0..size.max(2.5))],
+                    angle_rad: rng.random_range(0.0..std::f64::consts::PI),
+                },
+                1 => Shape::Ring {
+                    centre_px: [u, v],
+                    radii_px: [0.5 * size, size],
+                },
+                _ => Shape::Triangle {
+                    corners_px: [
+                        [u, v],
+                        [u + size, v + rng.random_range(-size..size)],
+                        [u + rng.random_range(-size..size), v + size],
+                    ],
+                },
+            });
+        }
+        clutter
+    }
+}
+
 /// Renders `discs` as seen by `camera`.
 pub fn render_discs(camera: &CameraModel, discs: &[Disc], settings: &RenderSettings) -> GreyImage {
+    render_scene(camera, discs, &[], settings)
+}
+
+/// Renders `discs` and `shapes` as seen by `camera`, the shapes at the discs' level.
+pub fn render_scene(
+    camera: &CameraModel,
+    discs: &[Disc],
+    shapes: &[Shape],
+    settings: &RenderSettings,
+) -> GreyImage {
     let (w, h) = (camera.width_px as usize, camera.height_px as usize);
     let mut coverage = vec![0.0f64; w * h];
     for disc in discs {
@@ -91,6 +258,9 @@ pub fn render_discs(camera: &CameraModel, discs: &[Disc], settings: &RenderSetti
             w,
             h,
         );
+    }
+    for shape in shapes {
+        add_shape(shape, &mut coverage, w, h);
     }
     let coverage = blur_where_covered(&coverage, w, h, settings.blur_sigma_px);
     let mut rng = StdRng::seed_from_u64(settings.seed);
@@ -267,6 +437,75 @@ fn add_coverage(
             coverage[v * w + u] += value;
         }
     }
+}
+
+/// One shape's coverage on a 4 x 4 grid per pixel, the total held at 1.
+fn add_shape(shape: &Shape, coverage: &mut [f64], w: usize, h: usize) {
+    let (lo, hi) = shape.bounds();
+    let u0 = lo[0].floor().max(0.0) as usize;
+    let v0 = lo[1].floor().max(0.0) as usize;
+    let u1 = (hi[0].ceil().max(0.0) as usize).min(w.saturating_sub(1));
+    let v1 = (hi[1].ceil().max(0.0) as usize).min(h.saturating_sub(1));
+    for v in v0..=v1 {
+        for u in u0..=u1 {
+            let mut hits = 0;
+            for j in 0..4 {
+                for i in 0..4 {
+                    let su = u as f64 - 0.375 + 0.25 * i as f64;
+                    let sv = v as f64 - 0.375 + 0.25 * j as f64;
+                    hits += usize::from(shape.contains(su, sv));
+                }
+            }
+            let c = &mut coverage[v * w + u];
+            *c = (*c + hits as f64 / 16.0).min(1.0);
+        }
+    }
+}
+
+/// A grey frame as a colour camera with a Bayer mosaic (RGGB) would give it: each photosite
+/// keeps its own channel of the scene times that channel's `gains_rgb` (the light's colour
+/// and the filters), and the colours are interpolated back bilinearly, with the fringes at
+/// edges that demosaicing leaves. 8-bit RGB, row by row.
+pub fn bayer_rgb(image: &GreyImage, gains_rgb: [f64; 3]) -> Vec<u8> {
+    let (w, h) = (image.width_px() as usize, image.height_px() as usize);
+    let px = image.pixels();
+    let channel = |u: usize, v: usize| -> usize {
+        match (v % 2, u % 2) {
+            (0, 0) => 0,
+            (1, 1) => 2,
+            _ => 1,
+        }
+    };
+    let raw: Vec<f64> = (0..w * h)
+        .map(|i| f64::from(px[i]) * gains_rgb[channel(i % w, i / w)])
+        .collect();
+    let mut out = Vec::with_capacity(w * h * 3);
+    for v in 0..h {
+        for u in 0..w {
+            for c in 0..3 {
+                if channel(u, v) == c {
+                    out.push(raw[v * w + u].round().clamp(0.0, 255.0) as u8);
+                    continue;
+                }
+                let (mut sum, mut n) = (0.0, 0.0);
+                for dv in -1i64..=1 {
+                    for du in -1i64..=1 {
+                        let (x, y) = (u as i64 + du, v as i64 + dv);
+                        if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 {
+                            continue;
+                        }
+                        let (x, y) = (x as usize, y as usize);
+                        if channel(x, y) == c {
+                            sum += raw[y * w + x];
+                            n += 1.0;
+                        }
+                    }
+                }
+                out.push((sum / n).round().clamp(0.0, 255.0) as u8);
+            }
+        }
+    }
+    out
 }
 
 /// [`blur`] over the box that holds every covered pixel and the kernel's reach around them:

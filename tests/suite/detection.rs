@@ -379,6 +379,7 @@ mod identification {
     use brokenray::geometry::{Pose, Twist, se3_exp, se3_log};
     use brokenray::model::{NotFound, ObservedLink, Observer, identify, observe_frame};
     use nalgebra::Point3;
+    use rand::SeedableRng;
 
     fn link_c1_b() -> ObservedLink {
         let inst = default_installation();
@@ -558,6 +559,121 @@ mod identification {
             identify(&link, &one_hidden, None),
             Err(NotFound::NoPrediction)
         );
+    }
+
+    /// With no prior at all the marker is found wherever it is and at a tilt, every point with
+    /// its own disc; a layout that maps onto itself is refused as ambiguous unless a hint is
+    /// near one of its turns.
+    #[test]
+    fn a_marker_is_found_with_no_prior_and_a_symmetric_one_is_refused() {
+        use brokenray::model::{find_without_prior, layout_symmetries};
+        let link = link_c1_b();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        for trial in 0..12 {
+            let truth = wander(&link, &nominal(&link), &mut rng, 150.0, 25.0);
+            let blobs = detect(&frame(&link, &truth, &[], &[]), &DetectSettings::default());
+            let found = find_without_prior(&link, &blobs, None)
+                .unwrap_or_else(|e| panic!("trial {trial}: not found: {e}"));
+            assert_labelled_right(&link, &truth, &found, trial);
+        }
+        // Four discs at the corners of a square and one in the middle: a quarter turn maps the
+        // layout onto itself.
+        let mut square = link.clone();
+        square.points_mm = vec![
+            Vec3::new(-200.0, -200.0, 0.0),
+            Vec3::new(200.0, -200.0, 0.0),
+            Vec3::new(200.0, 200.0, 0.0),
+            Vec3::new(-200.0, 200.0, 0.0),
+            Vec3::new(0.0, 0.0, 0.0),
+        ];
+        square.normals = vec![Vec3::z(); 5];
+        square.ids = (0..5).collect();
+        assert!(!layout_symmetries(&square.points_mm, 1.0).is_empty());
+        assert!(layout_symmetries(&link.points_mm, 5.0).is_empty());
+        let blobs = detect(
+            &frame(&square, &nominal(&link), &[], &[]),
+            &DetectSettings::default(),
+        );
+        assert!(matches!(
+            find_without_prior(&square, &blobs, None),
+            Err(NotFound::Ambiguous { .. })
+        ));
+        // A hint (the pose last seen) settles the turn, and only when it is near one of them.
+        let truth = nominal(&link);
+        let found = find_without_prior(&square, &blobs, Some(&truth)).expect("settled");
+        assert_labelled_right(&square, &truth, &found, 0);
+        let halfway = truth
+            * se3_exp(&Twist::new(
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                std::f64::consts::FRAC_PI_4,
+            ));
+        assert!(matches!(
+            find_without_prior(&square, &blobs, Some(&halfway)),
+            Err(NotFound::Ambiguous { .. })
+        ));
+    }
+
+    /// `nominal` moved by up to `mm` and `deg` about the marker's centre, kept in view.
+    fn wander(
+        link: &ObservedLink,
+        nominal: &Pose,
+        rng: &mut rand::rngs::StdRng,
+        mm: f64,
+        deg: f64,
+    ) -> Pose {
+        use rand::Rng;
+        loop {
+            let r = deg.to_radians();
+            let pose = nominal
+                * se3_exp(&Twist::new(
+                    rng.random_range(-mm..mm),
+                    rng.random_range(-mm..mm),
+                    rng.random_range(-mm..mm),
+                    rng.random_range(-r..r),
+                    rng.random_range(-r..r),
+                    rng.random_range(-r..r),
+                ));
+            let inside = link.points_mm.iter().all(|p| {
+                link.camera
+                    .project(&(pose * Point3::from(*p)).coords)
+                    .is_some_and(|q| {
+                        q.x > 30.0
+                            && q.y > 30.0
+                            && q.x < f64::from(link.camera.width_px) - 30.0
+                            && q.y < f64::from(link.camera.height_px) - 30.0
+                    })
+            });
+            if inside {
+                return pose;
+            }
+        }
+    }
+
+    /// Every point of `found` is the disc of its own id, and the pose is the truth.
+    fn assert_labelled_right(
+        link: &ObservedLink,
+        truth: &Pose,
+        found: &brokenray::model::Found,
+        trial: usize,
+    ) {
+        assert_eq!(
+            found.ids.len(),
+            link.points_mm.len(),
+            "trial {trial}: every point"
+        );
+        for (px, id) in found.points_px.iter().zip(&found.ids) {
+            let i = link.ids.iter().position(|x| x == id).expect("known id");
+            let truth_px = link
+                .camera
+                .project(&(truth * Point3::from(link.points_mm[i])).coords)
+                .expect("in front");
+            let e = (px[0] - truth_px.x).hypot(px[1] - truth_px.y);
+            assert!(e < 0.2, "trial {trial}: point {id} {e:.3} px from its disc");
+        }
     }
 
     #[test]

@@ -44,6 +44,7 @@ mod fleet;
 mod frames;
 mod geometry_properties;
 mod hand_eye;
+mod marker_search;
 mod pnp;
 mod service;
 mod store_backends;
