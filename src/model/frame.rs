@@ -209,7 +209,13 @@ pub fn observe_frame<'a>(
                 searched += fraction;
                 last_blobs = all.len();
                 for i in lost {
-                    results[i] = find_without_prior(links[i], &all, priors[i].first());
+                    let searched = find_without_prior(links[i], &all, priors[i].first());
+                    // A search that formed no identification at all adds nothing to the
+                    // prediction's reason (nothing of the marker near it, nor anywhere).
+                    let nothing = matches!(searched, Err(NotFound::NotIdentified { used: 0, .. }));
+                    if !nothing || matches!(results[i], Err(NotFound::NoPrediction)) {
+                        results[i] = searched;
+                    }
                 }
             }
         }

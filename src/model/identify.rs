@@ -100,6 +100,10 @@ impl std::fmt::Display for NotFound {
                 "{found} point(s) found near their predictions ({ambiguous} ambiguous), at least {needed} needed"
             ),
             NotFound::Pnp(reason) => write!(f, "the matched points give no pose: {reason}"),
+            NotFound::NotIdentified { used: 0, .. } => write!(
+                f,
+                "searched with no prior: no arrangement of the detected discs fits the marker's layout"
+            ),
             NotFound::NotIdentified { used, visible } => write!(
                 f,
                 "searched with no prior: no identification of the marker's layout used every visible point (the best used {used} of {visible})"

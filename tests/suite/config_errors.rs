@@ -308,7 +308,7 @@ fn marker_targets_are_validated_and_small_discs_warned_of() {
     let marker = |target: &str, normals: &str| {
         format!(
             "[[cameras]]\nframe = \"C1\"\nwidth = 1280\nheight = 1024\nfx = 4800.0\nfy = 4800.0\ncx = 640.0\ncy = 512.0\ndistortion = [0.0, 0.0, 0.0, 0.0, 0.0]\npixel_sigma = 0.05\n\n\
-             [[markers]]\nframe = \"B\"\npoints_mm = [[0, 0, 0], [100, 0, 0], [0, 100, 0], [100, 100, 0]]\n{target}\n{normals}\n\n\
+             [[markers]]\nframe = \"B\"\npoints_mm = [[0, 0, 0], [100, 0, 0], [0, 100, 0], [130, 100, 0]]\n{target}\n{normals}\n\n\
              [[links]]\nname = \"C1_from_B\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 25.0\nnominal = {{ t_mm = [0, 0, 3000], euler_deg = [180, 0, 0] }}\n\n\
              [[links]]\nname = \"C1_from_G\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 25.0\n\n\
              [[targets]]\nname = \"G\"\nbase = \"B\"\n"
@@ -326,6 +326,16 @@ fn marker_targets_are_validated_and_small_discs_warned_of() {
     assert_eq!(m.normals[1], [0.0, 0.0, 1.0], "normals are made unit");
     assert!((m.normals[2][1] - 0.1 / 1.01f64.sqrt()).abs() < 1e-12);
     assert!(inst.warnings.is_empty(), "{:?}", inst.warnings);
+    // A square maps onto itself under a quarter turn: it cannot be identified with no prior.
+    let square = good.replace("[130, 100, 0]", "[100, 100, 0]");
+    let inst = config::parse("site.toml", &square).expect("valid");
+    assert_eq!(inst.warnings.len(), 1, "{:?}", inst.warnings);
+    assert!(
+        inst.warnings[0].message.contains("maps onto itself"),
+        "{}",
+        inst.warnings[0].message
+    );
+    assert_eq!(inst.warnings[0].line, Some(line_of(&square, "[[markers]]")));
 
     let marker_line = line_of(&good, "[[markers]]");
     for (target, normals, expected) in [
