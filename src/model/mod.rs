@@ -19,7 +19,7 @@ mod search;
 pub use frame::{FrameObservation, MarkerInFrame, observe_frame};
 pub use identify::{Found, NotFound, Reach, identify, identify_within, search_squares};
 pub use observation::{ObservationError, ObservedLink, Observer};
-pub use search::{find_without_prior, layout_symmetries};
+pub use search::{HINT_ACCEPT_DEG, HINT_REFUSE_DEG, find_without_prior, layout_symmetries};
 
 use crate::alarms::AlarmThresholds;
 use crate::chain::{FrameId, LinkId, Resolution, Topology};
