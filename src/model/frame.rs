@@ -17,7 +17,7 @@ use super::identify::{
     Found, GATE_MIN_PX, NotFound, Reach, complete, identify, identify_within, search_squares,
 };
 use super::observation::{ObservationError, ObservedLink, Observer};
-use super::search::{find_without_prior, tight_match_at};
+use super::search::find_without_prior;
 use crate::geometry::Pose;
 use crate::vision::{DetectSettings, GreyImage, Polarity, SearchArea, detect_in};
 
@@ -167,24 +167,18 @@ pub fn observe_frame<'a>(
                         &mut search_squares(links[i], &pose, Reach::Near).into_iter(),
                     );
                     searched += fraction;
-                    let completed = complete(links[i], &around, found).unwrap_or(found.clone());
+                    let completed = complete(links[i], &around, found);
                     // Points left out are believed covered only when the prediction was good;
                     // a marker that moved far, found on a few points, may have been found on
                     // the wrong ones, and is searched for afresh.
-                    let at = completed.solution.camera_from_marker;
-                    let (used, visible) = tight_match_at(links[i], &around, &at);
-                    let left_out = used
-                        .iter()
-                        .zip(&visible)
-                        .filter(|(u, v)| **v && u.is_none())
-                        .count();
-                    result = if left_out == 0 || predicted_alike(links[i], &prior, &at) {
-                        Ok(completed)
+                    let at = completed.found.solution.camera_from_marker;
+                    result = if completed.left_out == 0 || predicted_alike(links[i], &prior, &at) {
+                        Ok(completed.found)
                     } else {
                         Err(NotFound::TooFewPoints {
-                            found: visible.len() - left_out,
+                            found: completed.found.ids.len(),
                             ambiguous: 0,
-                            needed: visible.iter().filter(|v| **v).count(),
+                            needed: completed.visible,
                         })
                     };
                 }

@@ -342,19 +342,43 @@ pub(super) fn solve_matched(
     })
 }
 
+/// A marker found on some of its points, completed by [`complete`].
+#[derive(Debug, Clone)]
+pub struct Completed {
+    /// The marker with every point that images near where its pose puts it.
+    pub found: Found,
+    /// Points that image wholly inside the frame, apart from the marker's other discs.
+    pub visible: usize,
+    /// Of those, the points no blob was found for.
+    pub left_out: usize,
+}
+
 /// `found` with every point that images near where its pose puts it: each point's one blob
 /// among `blobs` within a tight gate of its reprojection, solved again when that uses more
-/// points than `found` did.
-pub fn complete(link: &ObservedLink, blobs: &[Blob], found: &Found) -> Result<Found, NotFound> {
-    let (assignment, _) =
+/// points than `found` did (`found` is kept when that solve fails). Also says how many
+/// visible points no blob was found for.
+pub fn complete(link: &ObservedLink, blobs: &[Blob], found: &Found) -> Completed {
+    let (assignment, visible) =
         super::search::tight_match_at(link, blobs, &found.solution.camera_from_marker);
+    let left_out = assignment
+        .iter()
+        .zip(&visible)
+        .filter(|(b, v)| **v && b.is_none())
+        .count();
+    let visible = visible.iter().filter(|v| **v).count();
     let matched: Vec<(usize, usize)> = assignment
         .iter()
         .enumerate()
         .filter_map(|(i, b)| b.map(|b| (i, b)))
         .collect();
-    if matched.len() <= found.ids.len() {
-        return Ok(found.clone());
+    let found = if matched.len() <= found.ids.len() {
+        found.clone()
+    } else {
+        solve_matched(link, blobs, &matched).unwrap_or_else(|_| found.clone())
+    };
+    Completed {
+        found,
+        visible,
+        left_out,
     }
-    solve_matched(link, blobs, &matched)
 }

@@ -17,7 +17,9 @@ mod observation;
 mod search;
 
 pub use frame::{FrameObservation, MarkerInFrame, observe_frame};
-pub use identify::{Found, NotFound, Reach, identify, identify_within, search_squares};
+pub use identify::{
+    Completed, Found, NotFound, Reach, complete, identify, identify_within, search_squares,
+};
 pub use observation::{ObservationError, ObservedLink, Observer};
 pub use search::{HINT_ACCEPT_DEG, HINT_REFUSE_DEG, find_without_prior, layout_symmetries};
 

@@ -120,10 +120,15 @@ impl Observer {
 
     /// An observer of the given camera-marker links alone (a bench, a tool looking at one link).
     pub fn from_links(links: Vec<ObservedLink>) -> Self {
-        let mut cameras: Vec<String> = links.iter().map(|l| l.camera_frame.clone()).collect();
-        let mut markers: Vec<String> = links.iter().map(|l| l.marker_frame.clone()).collect();
-        cameras.dedup();
-        markers.dedup();
+        let (mut cameras, mut markers): (Vec<String>, Vec<String>) = (Vec::new(), Vec::new());
+        for l in &links {
+            if !cameras.contains(&l.camera_frame) {
+                cameras.push(l.camera_frame.clone());
+            }
+            if !markers.contains(&l.marker_frame) {
+                markers.push(l.marker_frame.clone());
+            }
+        }
         Self {
             links,
             cameras,

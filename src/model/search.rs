@@ -126,6 +126,9 @@ struct Seen {
     area_px: f64,
 }
 
+/// The side of a [`Grid`]'s cells (px): about the widest gate, so a look spans a few cells.
+const GRID_CELL_PX: f64 = 48.0;
+
 /// Blobs by position, for the nearest within a gate.
 struct Grid {
     cell_px: f64,
@@ -135,7 +138,8 @@ struct Grid {
 }
 
 impl Grid {
-    fn new(centres: &[Vector2<f64>], width_px: u32, height_px: u32, cell_px: f64) -> Self {
+    fn new(centres: &[Vector2<f64>], width_px: u32, height_px: u32) -> Self {
+        let cell_px = GRID_CELL_PX;
         let columns = (f64::from(width_px) / cell_px).ceil().max(1.0) as usize;
         let rows = (f64::from(height_px) / cell_px).ceil().max(1.0) as usize;
         let mut cells = vec![Vec::new(); columns * rows];
@@ -217,7 +221,7 @@ pub fn find_without_prior(
         .zip(&centres)
         .map(|(b, c)| see(link, b, c, radius_mm, focal_px))
         .collect();
-    let grid = Grid::new(&centres, camera.width_px, camera.height_px, 48.0);
+    let grid = Grid::new(&centres, camera.width_px, camera.height_px);
     let extent_mm = link
         .points_mm
         .iter()
@@ -497,6 +501,7 @@ fn verify(
     first: Vec<Option<usize>>,
 ) -> Option<Identification> {
     let mut assignment = first;
+    let mut visible = Vec::new();
     let mut pose = *start;
     for _ in 0..2 {
         let (object, image): (Vec<Vec3>, Vec<Vector2<f64>>) = assignment
@@ -510,9 +515,9 @@ fn verify(
         let weights = vec![1.0; object.len()];
         let refined = refine(&link.camera, &object, &image, &weights, &pose, 20)?;
         pose = refined.camera_from_marker;
-        assignment = tight_match(link, blobs, centres, grid, &pose).0;
+        (assignment, visible) = tight_match(link, centres, grid, &pose);
     }
-    let (blobs_of, visible) = tight_match(link, blobs, centres, grid, &pose);
+    let blobs_of = assignment;
     let used = blobs_of.iter().flatten().count();
     if used < MIN_POINTS {
         return None;
@@ -559,13 +564,12 @@ pub(super) fn tight_match_at(
         .iter()
         .map(|b| Vector2::new(b.centre_px[0], b.centre_px[1]))
         .collect();
-    let grid = Grid::new(&centres, link.camera.width_px, link.camera.height_px, 48.0);
-    tight_match(link, blobs, &centres, &grid, pose)
+    let grid = Grid::new(&centres, link.camera.width_px, link.camera.height_px);
+    tight_match(link, &centres, &grid, pose)
 }
 
 fn tight_match(
     link: &ObservedLink,
-    _blobs: &[Blob],
     centres: &[Vector2<f64>],
     grid: &Grid,
     pose: &Pose,

@@ -625,18 +625,8 @@ mod identification {
         mm: f64,
         deg: f64,
     ) -> Pose {
-        use rand::Rng;
         loop {
-            let r = deg.to_radians();
-            let pose = nominal
-                * se3_exp(&Twist::new(
-                    rng.random_range(-mm..mm),
-                    rng.random_range(-mm..mm),
-                    rng.random_range(-mm..mm),
-                    rng.random_range(-r..r),
-                    rng.random_range(-r..r),
-                    rng.random_range(-r..r),
-                ));
+            let pose = nominal * crate::common::jolt(rng, mm, deg);
             let inside = link.points_mm.iter().all(|p| {
                 link.camera
                     .project(&(pose * Point3::from(*p)).coords)

@@ -5,16 +5,16 @@
 //! chi-square band, the mean `G_from_B` unbiased, and its scatter against the published
 //! repeatability of the method.
 
-use crate::common::{assert_summed_nees_within, nees};
+use crate::common::{assert_summed_nees_within, jolt, nees};
 use brokenray::bank::FilterBank;
 use brokenray::config::default_installation;
-use brokenray::geometry::{Pose, PoseCov, Twist, euler_from_rotation, se3_exp};
+use brokenray::geometry::{Pose, PoseCov, euler_from_rotation};
 use brokenray::model::{LinkKind, Model, ObservedLink, Observer, observe_frame};
 use brokenray::sim::render::{RenderSettings, marker_discs, render_discs};
 use brokenray::stats::pose_stats;
 use nalgebra::Point3;
 use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use std::collections::HashMap;
 
 /// Groups (positions of the relay stations).
@@ -34,19 +34,6 @@ fn nominal(model: &Model, name: &str) -> Pose {
         LinkKind::Measured(m) => m.nominal.expect("a nominal pose"),
         LinkKind::Calibrated { parent_from_child } => parent_from_child.pose,
     }
-}
-
-/// A random rigid motion of up to `mm` and `deg` per axis.
-fn jolt(rng: &mut StdRng, mm: f64, deg: f64) -> Pose {
-    let r = deg.to_radians();
-    se3_exp(&Twist::new(
-        rng.random_range(-mm..mm),
-        rng.random_range(-mm..mm),
-        rng.random_range(-mm..mm),
-        rng.random_range(-r..r),
-        rng.random_range(-r..r),
-        rng.random_range(-r..r),
-    ))
 }
 
 /// The true measured links of one group: station 1 (C1, C2) and station 2 (M, C3) each moved

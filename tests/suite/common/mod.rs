@@ -13,6 +13,19 @@ use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
 
 /// A pose with a uniformly random rotation and a translation within +-`reach_mm` per axis.
+/// A random rigid motion of up to `mm` and `deg` per axis.
+pub fn jolt(rng: &mut StdRng, mm: f64, deg: f64) -> Pose {
+    let r = deg.to_radians();
+    se3_exp(&Twist::new(
+        rng.random_range(-mm..mm),
+        rng.random_range(-mm..mm),
+        rng.random_range(-mm..mm),
+        rng.random_range(-r..r),
+        rng.random_range(-r..r),
+        rng.random_range(-r..r),
+    ))
+}
+
 pub fn random_pose(rng: &mut StdRng, reach_mm: f64) -> Pose {
     let q = Quaternion::new(
         rng.sample::<f64, _>(StandardNormal),
