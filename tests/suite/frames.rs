@@ -13,8 +13,8 @@ use brokenray::model::{LinkKind, Model, ObservedLink, Observer, observe_frame};
 use brokenray::sim::render::{RenderSettings, marker_discs, render_discs};
 use brokenray::stats::pose_stats;
 use nalgebra::Point3;
-use rand::rngs::StdRng;
 use rand::SeedableRng;
+use rand::rngs::StdRng;
 use std::collections::HashMap;
 
 /// Groups (positions of the relay stations).
