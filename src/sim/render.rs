@@ -233,6 +233,46 @@ impl Clutter {
         }
         clutter
     }
+
+    /// The clutter that stays `margin_px` clear of every point of `points_px` (the images of a
+    /// marker's disc centres): a disc by its imaged radius, a shape by its bounding box. A piece
+    /// over a marker's disc hides that point, which a scene about clutter does not mean to do.
+    pub fn clear_of(
+        &self,
+        camera: &CameraModel,
+        points_px: &[Vector2<f64>],
+        margin_px: f64,
+    ) -> Self {
+        let box_clear = |lo: [f64; 2], hi: [f64; 2]| {
+            points_px.iter().all(|p| {
+                p.x < lo[0] - margin_px
+                    || p.x > hi[0] + margin_px
+                    || p.y < lo[1] - margin_px
+                    || p.y > hi[1] + margin_px
+            })
+        };
+        let discs = self
+            .discs
+            .iter()
+            .filter(|d| {
+                camera.project(&d.centre_mm).is_some_and(|c| {
+                    let r = 0.5 * d.diameter_mm * camera.fx_px.max(camera.fy_px) / d.centre_mm.z;
+                    box_clear([c.x - r, c.y - r], [c.x + r, c.y + r])
+                })
+            })
+            .copied()
+            .collect();
+        let shapes = self
+            .shapes
+            .iter()
+            .filter(|s| {
+                let (lo, hi) = s.bounds();
+                box_clear(lo, hi)
+            })
+            .copied()
+            .collect();
+        Clutter { discs, shapes }
+    }
 }
 
 /// Renders `discs` as seen by `camera`.

@@ -155,37 +155,10 @@ fn render(links: &[ObservedLink], poses: &[Pose], k: usize) -> Scene {
         .flat_map(|(l, p)| images(l, p))
         .flatten()
         .collect();
-    let clear = |c: &Vector2<f64>, reach: f64| marker_px.iter().all(|m| (m - c).norm() > reach);
-    let clutter = Clutter::scattered(camera, 40, 3000.0, 1000 + k as u64);
-    for d in &clutter.discs {
-        if let Some(c) = camera.project(&d.centre_mm)
-            && clear(&c, 0.5 * d.diameter_mm * camera.fx_px / 3000.0 + 12.0)
-        {
-            discs.push(*d);
-        }
-    }
-    let shapes: Vec<_> = clutter
-        .shapes
-        .iter()
-        .filter(|s| {
-            let (centre, reach) = match s {
-                brokenray::sim::render::Shape::Bar {
-                    centre_px,
-                    half_size_px,
-                    ..
-                } => (*centre_px, half_size_px[0].hypot(half_size_px[1])),
-                brokenray::sim::render::Shape::Ring {
-                    centre_px,
-                    radii_px,
-                } => (*centre_px, radii_px[1]),
-                brokenray::sim::render::Shape::Triangle { corners_px } => {
-                    (corners_px[0], 2.0 * 80.0)
-                }
-            };
-            clear(&Vector2::new(centre[0], centre[1]), reach + 12.0)
-        })
-        .copied()
-        .collect();
+    let clutter =
+        Clutter::scattered(camera, 40, 3000.0, 1000 + k as u64).clear_of(camera, &marker_px, 12.0);
+    discs.extend(clutter.discs.iter().copied());
+    let shapes = clutter.shapes;
     let mut rng = StdRng::seed_from_u64(k as u64);
     let settings = RenderSettings {
         blur_sigma_px: rng.random_range(0.5..1.5),
