@@ -5,11 +5,15 @@
 //! ellipse it images to); PnP needs the image of the disc's centre. Once a first pose places
 //! the disc (centre, normal, diameter in the camera frame), the offset between the two is
 //! computed here and subtracted from the detection. The offset is the area centroid of the
-//! projected disc minus the projection of its centre: the disc is cut into equal-area cells
-//! (rings equally spaced in `r^2`, sectors in angle), each cell's centre projected with the full
-//! camera model (distortion included) and weighted by the projection's local area
-//! magnification `|det d(u, v) / d(s, t)|`. The integrand is smooth, so 24 rings of 64 cells
-//! give the offset to about a millionth of a pixel.
+//! projected disc minus the projection of its centre, integrated over the disc in polar
+//! coordinates with `s = r^2` (so that `dA = ds dθ / 2`): Gauss-Legendre nodes in `s` and
+//! equally spaced angles, each node projected with the full camera model (distortion included)
+//! and weighted by the projection's local area magnification `|det d(u, v) / d(s, t)|`. The
+//! integrand is smooth and, averaged over the angle, a smooth function of `r^2`; equally spaced
+//! angles integrate a smooth periodic function to the rounding error and 8 Gauss nodes are
+//! exact for polynomials of degree 15, so 8 x 32 nodes give the offset to about 1e-9 px (the
+//! tests compare it with the centre of the ellipse a pinhole images the disc to, in closed
+//! form).
 //!
 //! It grows with the disc's size and tilt: a 20 mm disc at 3 m tilted by 30 degrees is offset
 //! by about 0.02 px, more than the detector's scatter. [`solve_pnp_discs`] is the whole step:
@@ -19,9 +23,16 @@ use super::{CameraModel, PnpOptions, PnpSolution, VisionError, solve_pnp_weighte
 use crate::geometry::Vec3;
 use nalgebra::{Matrix2, Matrix3x2, Vector2};
 
-/// Rings and sectors of the disc's integration grid.
-const RINGS: usize = 24;
-const SECTORS: usize = 64;
+/// Gauss-Legendre nodes and weights on `[-1, 1]` (8 points, the positive half; the rule is
+/// symmetric).
+const GAUSS_8: [(f64, f64); 4] = [
+    (0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.525_532_409_916_329, 0.313_706_645_877_887_3),
+    (0.796_666_477_413_626_7, 0.222_381_034_453_374_5),
+    (0.960_289_856_497_536_3, 0.101_228_536_290_376_3),
+];
+/// Equally spaced angles of the integration.
+const SECTORS: usize = 32;
 
 /// The centroid of the image of a disc minus the image of its centre (px): subtract it from a
 /// detected centroid to get the image of the centre. `centre_mm` and `normal` are in the camera
@@ -44,16 +55,21 @@ pub fn disc_image_offset(
     let radius = diameter_mm / 2.0;
     let image_of_centre = camera.project(centre_mm)?;
     let (mut sum, mut weight) = (Vector2::zeros(), 0.0);
-    for i in 0..RINGS {
-        let r = radius * ((i as f64 + 0.5) / RINGS as f64).sqrt();
-        for j in 0..SECTORS {
-            let t = (j as f64 + 0.5) / SECTORS as f64 * std::f64::consts::TAU;
-            let p = centre_mm + axes * Vector2::new(r * t.cos(), r * t.sin());
-            let (uv, jac) = camera.project_with_jacobian(&p)?;
-            let area: Matrix2<f64> = jac * axes;
-            let w = area.determinant().abs();
-            sum += uv * w;
-            weight += w;
+    let angles: [(f64, f64); SECTORS] = std::array::from_fn(|j| {
+        let t = (j as f64 + 0.5) / SECTORS as f64 * std::f64::consts::TAU;
+        (t.cos(), t.sin())
+    });
+    for &(x, w_node) in &GAUSS_8 {
+        for s in [0.5 * (1.0 - x), 0.5 * (1.0 + x)] {
+            let r = radius * s.sqrt();
+            for &(c, sn) in &angles {
+                let p = centre_mm + axes * Vector2::new(r * c, r * sn);
+                let (uv, jac) = camera.project_with_jacobian(&p)?;
+                let area: Matrix2<f64> = jac * axes;
+                let w = w_node * area.determinant().abs();
+                sum += uv * w;
+                weight += w;
+            }
         }
     }
     (weight > 0.0).then(|| sum / weight - image_of_centre)
@@ -86,4 +102,123 @@ pub fn solve_pnp_discs(
         .collect();
     let solution = solve_pnp_weighted(camera, points_mm, &corrected, sigmas_px, options)?;
     Ok((solution, corrected))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Matrix3;
+    use proptest::prelude::*;
+
+    /// The centre of the ellipse a pinhole images the disc to (px), in closed form: the disc's
+    /// plane maps to the normalized image by the homography `[a b c]` (two in-plane axes and
+    /// the centre), its circle `s^2 + t^2 = r^2` to the conic `H^-T diag(1, 1, -r^2) H^-1`, and
+    /// an ellipse's area centroid is its centre.
+    fn ellipse_centre(
+        camera: &CameraModel,
+        centre: &Vec3,
+        normal: &Vec3,
+        diameter: f64,
+    ) -> Vector2<f64> {
+        let n = normal.normalize();
+        let a = n.cross(&Vec3::x()).normalize();
+        let b = n.cross(&a);
+        let h = Matrix3::from_columns(&[a, b, *centre]);
+        let h_inv = h
+            .try_inverse()
+            .expect("the plane does not pass through the camera");
+        let r = 0.5 * diameter;
+        let q = h_inv.transpose() * Matrix3::from_diagonal(&Vec3::new(1.0, 1.0, -r * r)) * h_inv;
+        let m = Matrix2::new(q[(0, 0)], q[(0, 1)], q[(1, 0)], q[(1, 1)]);
+        let xy = -m.try_inverse().expect("an ellipse") * Vector2::new(q[(0, 2)], q[(1, 2)]);
+        Vector2::new(
+            camera.fx_px * xy.x + camera.cx_px,
+            camera.fy_px * xy.y + camera.cy_px,
+        )
+    }
+
+    /// The area centroid of the projected disc by brute force: a fine grid of equal cells in
+    /// the disc's plane, each projected with its own area (by its corners), no Jacobian.
+    fn brute_force(
+        camera: &CameraModel,
+        centre: &Vec3,
+        normal: &Vec3,
+        diameter: f64,
+    ) -> Vector2<f64> {
+        let n = normal.normalize();
+        let a = n.cross(&Vec3::x()).normalize();
+        let b = n.cross(&a);
+        let r = 0.5 * diameter;
+        let cells = 600;
+        let step = 2.0 * r / cells as f64;
+        let at = |s: f64, t: f64| camera.project(&(centre + a * s + b * t)).expect("in front");
+        let (mut sum, mut weight) = (Vector2::zeros(), 0.0);
+        for i in 0..cells {
+            for j in 0..cells {
+                let (s, t) = (-r + (i as f64 + 0.5) * step, -r + (j as f64 + 0.5) * step);
+                if s * s + t * t > r * r {
+                    continue;
+                }
+                let h = 0.5 * step;
+                let (p00, p10, p01, p11) = (
+                    at(s - h, t - h),
+                    at(s + h, t - h),
+                    at(s - h, t + h),
+                    at(s + h, t + h),
+                );
+                let d1 = p11 - p00;
+                let d2 = p01 - p10;
+                let w = 0.5 * (d1.x * d2.y - d1.y * d2.x).abs();
+                sum += at(s, t) * w;
+                weight += w;
+            }
+        }
+        sum / weight - camera.project(centre).expect("in front")
+    }
+
+    /// With strong distortion, near the corner of the view, the offset agrees with the brute
+    /// force's (whose own error, from the circle's staircase edge, is about 1e-4 of the offset).
+    #[test]
+    fn the_offset_under_distortion_agrees_with_a_brute_force_centroid() {
+        let camera = CameraModel {
+            distortion: [-0.35, 0.2, 0.001, -0.0008, -0.05],
+            ..CameraModel::pinhole(1400.0, 1400.0, 640.0, 512.0, 1280, 1024)
+        };
+        for (centre, normal) in [
+            (Vec3::new(900.0, 700.0, 2000.0), Vec3::new(0.5, 0.2, -0.8)),
+            (Vec3::new(-800.0, 300.0, 1500.0), Vec3::new(-0.3, 0.6, -0.7)),
+            (Vec3::new(0.0, 0.0, 1000.0), Vec3::new(0.7, 0.0, -0.7)),
+        ] {
+            let offset = disc_image_offset(&camera, &centre, &normal, 60.0).expect("in front");
+            let truth = brute_force(&camera, &centre, &normal, 60.0);
+            assert!(
+                (offset - truth).norm() < 2e-3 * truth.norm().max(0.01),
+                "{offset:?} against {truth:?}"
+            );
+        }
+    }
+
+    proptest! {
+        /// Under a pinhole the offset is the ellipse's centre minus the centre's image, for
+        /// discs from 4 to 400 px across, tilted up to 70 degrees, anywhere in the view.
+        #[test]
+        fn the_offset_is_the_imaged_ellipses_centre(
+            x in -900.0f64..900.0, y in -700.0f64..700.0, z in 400.0f64..6000.0,
+            tilt in 0.0f64..1.22, turn in 0.0f64..std::f64::consts::TAU,
+            diameter in 2.0f64..60.0,
+        ) {
+            let camera = CameraModel::pinhole(2400.0, 2400.0, 640.0, 512.0, 1280, 1024);
+            let centre = Vec3::new(x, y, z);
+            // Tilted from facing the camera (along the viewing ray) by `tilt`.
+            let facing = -centre.normalize();
+            let side = facing.cross(&Vec3::y()).normalize();
+            let up = facing.cross(&side);
+            let normal = facing * tilt.cos() + (side * turn.cos() + up * turn.sin()) * tilt.sin();
+            let offset = disc_image_offset(&camera, &centre, &normal, diameter).expect("in front");
+            let truth = ellipse_centre(&camera, &centre, &normal, diameter)
+                - camera.project(&centre).expect("in front");
+            prop_assert!((offset - truth).norm() < 1e-8 * (1.0 + truth.norm()),
+                "{offset:?} against {truth:?}");
+        }
+    }
 }
