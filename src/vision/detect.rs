@@ -337,13 +337,23 @@ impl ThresholdMap {
                 if !wanted[base + tx] {
                     continue;
                 }
-                let (mut a, mut b) = (lo[base + tx], hi[base + tx]);
-                for &p in chunk {
-                    a = a.min(p);
-                    b = b.max(p);
-                }
-                lo[base + tx] = a;
-                hi[base + tx] = b;
+                let (a, b) = match <&[u16; THRESHOLD_TILE_PX]>::try_from(chunk) {
+                    // A whole tile's row: fixed length, and as signed values (the top bit
+                    // flipped keeps the order), whose min and max every x86-64 has as vector
+                    // instructions.
+                    Ok(whole) => {
+                        let signed = whole.map(|p| (p ^ 0x8000) as i16);
+                        let (a, b) = signed
+                            .iter()
+                            .fold((i16::MAX, i16::MIN), |(a, b), &p| (a.min(p), b.max(p)));
+                        ((a as u16) ^ 0x8000, (b as u16) ^ 0x8000)
+                    }
+                    Err(_) => chunk
+                        .iter()
+                        .fold((u16::MAX, 0u16), |(a, b), &p| (a.min(p), b.max(p))),
+                };
+                lo[base + tx] = lo[base + tx].min(a);
+                hi[base + tx] = hi[base + tx].max(b);
             }
         }
         let gate = (s.min_contrast_dn * scale).max(2.0 * s.threshold_sigmas * noise);
@@ -365,38 +375,44 @@ impl ThresholdMap {
                 }
             }
         }
-        // Spread the thresholds into the tiles without contrast, a ring of tiles at a time.
-        let mut next = twice.clone();
-        loop {
-            let mut changed = false;
-            let mut missing = false;
-            for ty in 0..tiles_y {
-                for tx in 0..tiles_x {
-                    if twice[ty * tiles_x + tx].is_some() || !wanted[ty * tiles_x + tx] {
-                        continue;
-                    }
-                    let (mut sum, mut n) = (0u64, 0u64);
-                    for ny in ty.saturating_sub(1)..=(ty + 1).min(tiles_y - 1) {
-                        for nx in tx.saturating_sub(1)..=(tx + 1).min(tiles_x - 1) {
-                            if let Some(x) = twice[ny * tiles_x + nx] {
-                                sum += u64::from(x);
-                                n += 1;
-                            }
-                        }
-                    }
-                    match (sum + n / 2).checked_div(n) {
-                        Some(mean) => {
-                            next[ty * tiles_x + tx] = Some(mean as u32);
-                            changed = true;
-                        }
-                        None => missing = true,
+        // Spread the thresholds into the tiles without contrast, a ring of tiles at a time:
+        // each ring's tiles take the mean of their neighbours that had one before the ring.
+        // Only the tiles beside the last ring are looked at again, so every tile is visited a
+        // few times however far the nearest contrast is.
+        let neighbours = |i: usize| {
+            let (tx, ty) = (i % tiles_x, i / tiles_x);
+            (ty.saturating_sub(1)..=(ty + 1).min(tiles_y - 1)).flat_map(move |ny| {
+                (tx.saturating_sub(1)..=(tx + 1).min(tiles_x - 1)).map(move |nx| ny * tiles_x + nx)
+            })
+        };
+        let open = |i: usize, twice: &[Option<u32>]| twice[i].is_none() && wanted[i];
+        let mut ring: Vec<usize> = (0..tiles_x * tiles_y)
+            .filter(|&i| open(i, &twice) && neighbours(i).any(|k| twice[k].is_some()))
+            .collect();
+        let mut filled: Vec<(usize, u32)> = Vec::new();
+        while !ring.is_empty() {
+            filled.clear();
+            for &i in &ring {
+                let (mut sum, mut n) = (0u64, 0u64);
+                for k in neighbours(i) {
+                    if let Some(x) = twice[k] {
+                        sum += u64::from(x);
+                        n += 1;
                     }
                 }
+                if let Some(mean) = (sum + n / 2).checked_div(n) {
+                    filled.push((i, mean as u32));
+                }
             }
-            twice.clone_from(&next);
-            if !changed || !missing {
-                break;
+            for &(i, x) in &filled {
+                twice[i] = Some(x);
             }
+            ring.clear();
+            for &(i, _) in &filled {
+                ring.extend(neighbours(i).filter(|&k| open(k, &twice)));
+            }
+            ring.sort_unstable();
+            ring.dedup();
         }
         Self {
             tiles_x,
@@ -547,7 +563,9 @@ fn components(
     let mut previous: Vec<(usize, usize, usize)> = Vec::new();
     let mut current: Vec<(usize, usize, usize)> = Vec::new();
     let mut spans = Vec::new();
-    let mut mask = vec![false; w];
+    // One byte per pixel of the row (1: foreground), padded to whole words so that runs of
+    // background are skipped a word (8 pixels) at a time.
+    let mut mask = vec![0u8; w.next_multiple_of(8) + 8];
     for v in 0..h {
         if v % TILE_PX == 0 {
             spans = area.spans(v / TILE_PX, w);
@@ -560,29 +578,36 @@ fn components(
             let mut u = start;
             while u < end {
                 let stop = ((u / THRESHOLD_TILE_PX + 1) * THRESHOLD_TILE_PX).min(end);
+                let (out, pixels) = (&mut mask[u..stop], &row[u..stop]);
                 match thresholds.twice_at(u, v) {
                     Some(t) if thresholds.bright => {
-                        for k in u..stop {
-                            mask[k] = 2 * u32::from(row[k]) > t;
+                        for (m, &p) in out.iter_mut().zip(pixels) {
+                            *m = u8::from(2 * u32::from(p) > t);
                         }
                     }
                     Some(t) => {
-                        for k in u..stop {
-                            mask[k] = 2 * u32::from(row[k]) < t;
+                        for (m, &p) in out.iter_mut().zip(pixels) {
+                            *m = u8::from(2 * u32::from(p) < t);
                         }
                     }
-                    None => mask[u..stop].fill(false),
+                    None => out.fill(0),
                 }
                 u = stop;
             }
+            mask[end..end.next_multiple_of(8) + 8].fill(0);
             let mut u = start;
             while u < end {
-                if !mask[u] {
+                if mask[u] == 0 {
+                    // Skip background a word at a time once aligned.
+                    if u % 8 == 0 && mask[u..u + 8] == [0u8; 8] {
+                        u += 8;
+                        continue;
+                    }
                     u += 1;
                     continue;
                 }
                 let u0 = u;
-                while u < end && mask[u] {
+                while u < end && mask[u] != 0 {
                     u += 1;
                 }
                 let u1 = u - 1;
