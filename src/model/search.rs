@@ -10,11 +10,14 @@
 //! blob must pass through the second point: two linear equations in `cos` and `sin` of the
 //! angle) and tells how far the first blob's distance was off (the length of `(cos, sin)`).
 //! Every anchor blob is paired with its nearest blobs of a similar size, as every pair of
-//! marker points, both tilt signs and both faces of the discs: some thousands of hypotheses of
-//! a few tens of operations each.
+//! marker points, both tilt signs and both faces of the discs (only the face the camera sees
+//! at the link's nominal pose, when it has one: an opaque disc is not seen from behind): some
+//! thousands of hypotheses of a few tens of operations each.
 //!
 //! **Verification.** A hypothesis predicts every marker point; it survives when its points find
-//! blobs near their predictions. The blobs so matched are refined by PnP (Levenberg-Marquardt
+//! blobs near their predictions, and the first four so found fit one pose (their RMS residual
+//! within two of the tight gates below: most wrong hypotheses end here, cheaply). The blobs so
+//! matched are refined by PnP (Levenberg-Marquardt
 //! from the hypothesis), every point is predicted again at the refined pose and takes the one
 //! blob within a tight gate (a point with two is left out), twice. That gives an
 //! *identification*: which blob is which point, the points it uses, and the points that should
@@ -60,6 +63,12 @@ const DISTANCE_FACTOR: f64 = 1.4;
 const FIRST_GATE_FRACTION: f64 = 0.3;
 /// A hypothesis is given up after this many points with no blob near their prediction.
 const FIRST_MISSES: usize = 2;
+/// Levenberg-Marquardt iterations on the first four points matched: enough to place the rest
+/// (a right match converges in two or three from the hypothesis), few for a wrong one.
+const FIRST_ITERATIONS: usize = 4;
+/// The first four points matched are refused when their fit's RMS residual exceeds this many
+/// tight gates.
+const FIRST_FIT_GATES: f64 = 2.0;
 /// After refinement a point takes a blob within this many pixels ...
 const TIGHT_GATE_PX: f64 = 3.0;
 /// ... or this fraction of its disc's imaged radius, if larger.
@@ -264,11 +273,23 @@ pub fn find_without_prior(
             order
         })
         .collect();
+    // The face each disc shows the camera at the nominal pose: an opaque disc is seen from that
+    // side or not at all, so a hypothesis that shows its other face is not formed.
+    let front_faces_camera: Vec<Option<bool>> = (0..n)
+        .map(|i| {
+            link.nominal.map(|nominal| {
+                let centre = nominal * Point3::from(link.points_mm[i]);
+                (nominal.rotation * link.normals[i]).dot(&centre.coords) < 0.0
+            })
+        })
+        .collect();
     let mut tried: HashSet<Vec<Option<usize>>> = HashSet::new();
     let mut identifications: Vec<Identification> = Vec::new();
     for (a, anchor) in seen.iter().enumerate() {
         let Some(anchor) = anchor else { continue };
         let reach_px = DISTANCE_FACTOR * 1.2 * focal_px * extent_mm / anchor.distance_mm;
+        let tight_gate_px =
+            TIGHT_GATE_PX.max(TIGHT_GATE_OF_RADIUS * radius_mm * focal_px / anchor.distance_mm);
         let mut partners: Vec<(f64, usize)> = seen
             .iter()
             .enumerate()
@@ -315,7 +336,11 @@ pub fn find_without_prior(
                     let r2 = -(scale * p2 + g.along_mm * q2) / g.across_mm;
                     ((g22 * r1 - g12 * r2) / det, (g11 * r2 - g12 * r1) / det)
                 };
+                let faces_camera = normal_c.dot(&anchor.ray) < 0.0;
                 for i in 0..n {
+                    if front_faces_camera[i].is_some_and(|f| f != faces_camera) {
+                        continue;
+                    }
                     for (j, g) in pairs[i].iter().enumerate() {
                         let Some(g) = g else { continue };
                         let (c, s) = solve(1.0, g);
@@ -343,12 +368,30 @@ pub fn find_without_prior(
                                 &Rotation3::from_matrix_unchecked(rotation),
                             ),
                         );
-                        let Some((first, pose)) =
-                            first_match(link, &centres, &grid, &pose, &orders[i], a, i, b, j)
-                        else {
+                        let Some((first, pose)) = first_match(
+                            link,
+                            &centres,
+                            &grid,
+                            &pose,
+                            &orders[i],
+                            a,
+                            i,
+                            b,
+                            j,
+                            tight_gate_px,
+                        ) else {
                             continue;
                         };
-                        if !tried.insert(first.clone()) {
+                        // A match seen before, or one that agrees with an identification
+                        // already made, leads where it led.
+                        if !tried.insert(first.clone())
+                            || identifications.iter().any(|k| {
+                                first
+                                    .iter()
+                                    .zip(&k.blobs)
+                                    .all(|(f, b)| f.is_none() || f == b)
+                            })
+                        {
                             continue;
                         }
                         if let Some(found) = verify(link, blobs, &centres, &grid, &pose, first)
@@ -422,6 +465,7 @@ fn first_match(
     i: usize,
     b: usize,
     j: usize,
+    tight_gate_px: f64,
 ) -> Option<(Vec<Option<usize>>, Pose)> {
     let spacing_of = predict_all(link, pose);
     let mut pose = *pose;
@@ -463,7 +507,20 @@ fn first_match(
                 .filter_map(|(m, x)| x.map(|x| (link.points_mm[m], centres[x])))
                 .unzip();
             let weights = vec![1.0; object.len()];
-            pose = refine(&link.camera, &object, &image, &weights, &pose, 10)?.camera_from_marker;
+            let refined = refine(
+                &link.camera,
+                &object,
+                &image,
+                &weights,
+                &pose,
+                FIRST_ITERATIONS,
+            )?;
+            // Four points no pose places near their blobs are not this marker's (the tight
+            // match would leave them out): refused before the costlier verification.
+            if refined.cost_px2 / MIN_POINTS as f64 > (FIRST_FIT_GATES * tight_gate_px).powi(2) {
+                return None;
+            }
+            pose = refined.camera_from_marker;
         }
     }
     (matched >= MIN_POINTS).then_some((assignment, pose))
@@ -486,8 +543,9 @@ fn nearest_other(predicted: &[Option<Vector2<f64>>], k: usize) -> f64 {
         .iter()
         .enumerate()
         .filter(|(m, _)| *m != k)
-        .filter_map(|(_, q)| q.map(|q| (q - p).norm()))
+        .filter_map(|(_, q)| q.map(|q| (q - p).norm_squared()))
         .fold(f64::INFINITY, f64::min)
+        .sqrt()
 }
 
 /// Refines a hypothesis's matches by PnP and matches every point again at the refined pose
