@@ -185,18 +185,6 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
     let newest = bank.newest_sample_ns();
     let now_ns = service.now_ns();
     let tolerance_s = inst.server.clock_tolerance_s;
-    family(
-        &mut out,
-        "brokenray_link_samples_total",
-        "counter",
-        "Samples of a measured link.",
-    );
-    family(
-        &mut out,
-        "brokenray_link_outliers_total",
-        "counter",
-        "Outliers of a measured link.",
-    );
     if let Some(budget) = inst.retention.disk_budget_bytes {
         single(
             &mut out,
@@ -213,68 +201,85 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             Metrics::get(&m.database_used_bytes),
         );
     }
-    family(
-        &mut out,
-        "brokenray_link_rate_hz",
-        "gauge",
-        "Observed sample rate of a measured link.",
-    );
-    family(
-        &mut out,
-        "brokenray_link_behind_seconds",
-        "gauge",
-        "How far a link's newest sample is behind the newest sample of any link (measurement time).",
-    );
-    family(
-        &mut out,
-        "brokenray_link_age_seconds",
-        "gauge",
-        "Seconds from a link's newest sample to now on the server's clock.",
-    );
-    family(
-        &mut out,
-        "brokenray_link_stale",
-        "gauge",
-        "1 when a link's newest sample is older than its staleness limit on the server's clock (or behind the newest link by more than it).",
-    );
-    for l in &inst.model.links {
-        if !matches!(l.kind, LinkKind::Measured(_)) {
-            continue;
-        }
-        let st = bank.link_status(l.id);
-        let name = &l.name;
-        let _ = writeln!(
-            out,
-            "brokenray_link_samples_total{{link=\"{name}\"}} {}",
-            st.n_samples
-        );
-        let _ = writeln!(
-            out,
-            "brokenray_link_outliers_total{{link=\"{name}\"}} {}",
-            st.n_outliers
-        );
-        if let Some(rate) = bank.observed_rate_hz(l.id) {
-            let _ = writeln!(out, "brokenray_link_rate_hz{{link=\"{name}\"}} {rate}");
-        }
-        if let Some(lag) = newest.and_then(|n| bank.link_lag(l.id, n)) {
-            let _ = writeln!(
-                out,
-                "brokenray_link_behind_seconds{{link=\"{name}\"}} {}",
-                lag.behind_s
-            );
-        }
-        if let Some(last) = st.last_time_ns {
-            let _ = writeln!(
-                out,
-                "brokenray_link_age_seconds{{link=\"{name}\"}} {}",
-                (now_ns - last) as f64 / 1e9
-            );
-            let state = snapshot.link_state(l.id, now_ns, tolerance_s);
-            let _ = writeln!(
-                out,
-                "brokenray_link_stale{{link=\"{name}\"}} {}",
-                u8::from(state == crate::service::LinkState::Stale)
-            );
+    // Per measured link, one family at a time: the exposition format wants each family's
+    // samples together, after its HELP and TYPE.
+    struct LinkRow<'a> {
+        name: &'a str,
+        samples: u64,
+        outliers: u64,
+        rate_hz: Option<f64>,
+        behind_s: Option<f64>,
+        age_s: Option<f64>,
+        stale: Option<bool>,
+    }
+    let rows: Vec<LinkRow> = inst
+        .model
+        .links
+        .iter()
+        .filter(|l| matches!(l.kind, LinkKind::Measured(_)))
+        .map(|l| {
+            let st = bank.link_status(l.id);
+            LinkRow {
+                name: &l.name,
+                samples: st.n_samples,
+                outliers: st.n_outliers,
+                rate_hz: bank.observed_rate_hz(l.id),
+                behind_s: newest
+                    .and_then(|n| bank.link_lag(l.id, n))
+                    .map(|lag| lag.behind_s),
+                age_s: st.last_time_ns.map(|last| (now_ns - last) as f64 / 1e9),
+                stale: st.last_time_ns.map(|_| {
+                    snapshot.link_state(l.id, now_ns, tolerance_s)
+                        == crate::service::LinkState::Stale
+                }),
+            }
+        })
+        .collect();
+    type Field = fn(&LinkRow) -> Option<f64>;
+    let link_families: [(&str, &str, &str, Field); 6] = [
+        (
+            "brokenray_link_samples_total",
+            "counter",
+            "Samples of a measured link.",
+            |r| Some(r.samples as f64),
+        ),
+        (
+            "brokenray_link_outliers_total",
+            "counter",
+            "Outliers of a measured link.",
+            |r| Some(r.outliers as f64),
+        ),
+        (
+            "brokenray_link_rate_hz",
+            "gauge",
+            "Observed sample rate of a measured link.",
+            |r| r.rate_hz,
+        ),
+        (
+            "brokenray_link_behind_seconds",
+            "gauge",
+            "How far a link's newest sample is behind the newest sample of any link (measurement time).",
+            |r| r.behind_s,
+        ),
+        (
+            "brokenray_link_age_seconds",
+            "gauge",
+            "Seconds from a link's newest sample to now on the server's clock.",
+            |r| r.age_s,
+        ),
+        (
+            "brokenray_link_stale",
+            "gauge",
+            "1 when a link's newest sample is older than its staleness limit on the server's clock (or behind the newest link by more than it).",
+            |r| r.stale.map(|s| f64::from(u8::from(s))),
+        ),
+    ];
+    for (name, kind, help, field) in link_families {
+        family(&mut out, name, kind, help);
+        for row in &rows {
+            if let Some(v) = field(row) {
+                let _ = writeln!(out, "{name}{{link=\"{}\"}} {v}", row.name);
+            }
         }
     }
     family(

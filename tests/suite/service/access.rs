@@ -291,3 +291,224 @@ async fn live_results_are_limited_per_target_in_measurement_time() {
     }
     assert_eq!(times, [0, 120, 240, 360]);
 }
+
+/// The Prometheus text exposition format (0.0.4), read strictly: every line a comment, a HELP
+/// or TYPE line, or a sample `name{label="value",...} value`; a family's TYPE and HELP at most
+/// once and before its samples; every family's samples in one group (a scraper refuses a
+/// family that comes back after another began); no series twice. Answers the families in order
+/// with their sample counts, or what is wrong and on which line.
+fn strict_exposition(text: &str) -> Result<Vec<(String, usize)>, String> {
+    use std::collections::{HashMap, HashSet};
+    fn metric_name(s: &str) -> bool {
+        let mut chars = s.chars();
+        chars
+            .next()
+            .is_some_and(|c| c.is_ascii_alphabetic() || c == '_' || c == ':')
+            && chars.all(|c| c.is_ascii_alphanumeric() || c == '_' || c == ':')
+    }
+    // `{a="x",b="y"}` with escapes; answers the labels and the rest of the line.
+    type Labels = Vec<(String, String)>;
+    fn labels(s: &str) -> Result<(Labels, &str), String> {
+        let mut out = Vec::new();
+        let mut rest = s.strip_prefix('{').ok_or("no `{`")?;
+        loop {
+            if let Some(r) = rest.strip_prefix('}') {
+                return Ok((out, r));
+            }
+            let eq = rest.find('=').ok_or("a label without `=`")?;
+            let key = &rest[..eq];
+            if !metric_name(key) || key.contains(':') {
+                return Err(format!("bad label name `{key}`"));
+            }
+            let mut chars = rest[eq + 1..].char_indices();
+            if chars.next().map(|(_, c)| c) != Some('"') {
+                return Err(format!("label `{key}`'s value is not quoted"));
+            }
+            let mut value = String::new();
+            let end = loop {
+                match chars.next() {
+                    Some((_, '\\')) => match chars.next() {
+                        Some((_, 'n')) => value.push('\n'),
+                        Some((_, c @ ('\\' | '"'))) => value.push(c),
+                        _ => return Err(format!("bad escape in label `{key}`")),
+                    },
+                    Some((i, '"')) => break eq + 1 + i + 1,
+                    Some((_, '\n')) | None => return Err(format!("label `{key}` unterminated")),
+                    Some((_, c)) => value.push(c),
+                }
+            };
+            out.push((key.to_owned(), value));
+            rest = &rest[end..];
+            rest = rest.strip_prefix(',').unwrap_or(rest);
+        }
+    }
+    /// The families in order with their sample counts, those already over, the one open.
+    #[derive(Default)]
+    struct Groups {
+        order: Vec<(String, usize)>,
+        closed: HashSet<String>,
+        current: Option<String>,
+    }
+    impl Groups {
+        fn enter(&mut self, family: &str, line: usize) -> Result<(), String> {
+            if self.current.as_deref() == Some(family) {
+                return Ok(());
+            }
+            if let Some(previous) = self.current.take() {
+                self.closed.insert(previous);
+            }
+            if self.closed.contains(family) {
+                return Err(format!(
+                    "line {line}: family `{family}` comes back after another began"
+                ));
+            }
+            self.current = Some(family.to_owned());
+            self.order.push((family.to_owned(), 0));
+            Ok(())
+        }
+    }
+    let mut groups = Groups::default();
+    let mut kinds: HashMap<String, String> = HashMap::new();
+    let mut helps: HashSet<String> = HashSet::new();
+    let mut series: HashSet<String> = HashSet::new();
+    for (k, line) in text.lines().enumerate() {
+        let n = k + 1;
+        if line.trim().is_empty() {
+            continue;
+        }
+        if let Some(comment) = line.strip_prefix('#') {
+            let words: Vec<&str> = comment.trim_start().splitn(3, ' ').collect();
+            match words.as_slice() {
+                ["TYPE", name, kind] => {
+                    if !metric_name(name) {
+                        return Err(format!("line {n}: bad name `{name}`"));
+                    }
+                    if !["counter", "gauge", "histogram", "summary", "untyped"].contains(kind) {
+                        return Err(format!("line {n}: unknown type `{kind}`"));
+                    }
+                    if groups.order.iter().any(|(f, c)| f == name && *c > 0) {
+                        return Err(format!("line {n}: TYPE of `{name}` after its samples"));
+                    }
+                    if kinds
+                        .insert((*name).to_owned(), (*kind).to_owned())
+                        .is_some()
+                    {
+                        return Err(format!("line {n}: TYPE of `{name}` twice"));
+                    }
+                    groups.enter(name, n)?;
+                }
+                ["HELP", name, ..] => {
+                    if !helps.insert((*name).to_owned()) {
+                        return Err(format!("line {n}: HELP of `{name}` twice"));
+                    }
+                    groups.enter(name, n)?;
+                }
+                _ => {}
+            }
+            continue;
+        }
+        let name_end = line.find(['{', ' ']).ok_or(format!("line {n}: no value"))?;
+        let name = &line[..name_end];
+        if !metric_name(name) {
+            return Err(format!("line {n}: bad name `{name}`"));
+        }
+        let (labels, rest) = if line[name_end..].starts_with('{') {
+            labels(&line[name_end..]).map_err(|e| format!("line {n}: {e}"))?
+        } else {
+            (Vec::new(), &line[name_end..])
+        };
+        let value = rest
+            .strip_prefix(' ')
+            .ok_or(format!("line {n}: no space before the value"))?;
+        let value = value.split(' ').next().unwrap_or_default();
+        if !matches!(value, "NaN" | "+Inf" | "-Inf") && value.parse::<f64>().is_err() {
+            return Err(format!("line {n}: bad value `{value}`"));
+        }
+        // The family: the name, or for a histogram or summary the name less its suffix.
+        let family = ["_bucket", "_sum", "_count"]
+            .iter()
+            .filter_map(|s| name.strip_suffix(s))
+            .find(|base| {
+                matches!(
+                    kinds.get(*base).map(String::as_str),
+                    Some("histogram" | "summary")
+                )
+            })
+            .unwrap_or(name);
+        if kinds.get(family).map(String::as_str) == Some("histogram")
+            && name.ends_with("_bucket")
+            && !labels.iter().any(|(k, _)| k == "le")
+        {
+            return Err(format!("line {n}: a bucket without `le`"));
+        }
+        groups.enter(family, n)?;
+        if let Some(last) = groups.order.last_mut() {
+            last.1 += 1;
+        }
+        let mut sorted = labels.clone();
+        sorted.sort();
+        if !series.insert(format!("{name}{sorted:?}")) {
+            return Err(format!("line {n}: series `{name}{sorted:?}` twice"));
+        }
+    }
+    Ok(groups.order)
+}
+
+#[test]
+fn the_strict_reader_refuses_what_a_scraper_refuses() {
+    let good =
+        "# HELP a_total A.\n# TYPE a_total counter\na_total{x=\"1\"} 2\na_total{x=\"2\"} 3\n";
+    assert_eq!(
+        strict_exposition(good).unwrap(),
+        vec![("a_total".to_owned(), 2)]
+    );
+    for bad in [
+        // Two families interleaved.
+        "# TYPE a_total counter\n# TYPE b_total counter\na_total 1\nb_total 1\na_total{x=\"2\"} 1\n",
+        "# TYPE a counter\na 1\n# TYPE a counter\n",
+        "a{x=\"1} 2\n",
+        "a{x=\"1\"} two\n",
+        "a 1\na 2\n",
+        "# TYPE h histogram\nh_bucket 1\n",
+    ] {
+        assert!(strict_exposition(bad).is_err(), "accepted:\n{bad}");
+    }
+}
+
+/// `/metrics` with samples of several links, rejections and a writer at work reads as strict
+/// exposition text: every family one group, each link family holding every measured link.
+#[tokio::test]
+async fn metrics_are_strict_exposition_text_with_every_family_in_one_group() {
+    let app = TestApp::start(None).await;
+    for k in 0..3 {
+        app.post_json("/api/v1/samples", &nominal_group(k)).await;
+    }
+    app.post_json("/api/v1/samples", &json!({"samples": []}))
+        .await;
+    let (status, text) = app.get("/metrics").await;
+    assert_eq!(status, StatusCode::OK);
+    let text = text.as_str().unwrap();
+    let families = strict_exposition(text).unwrap_or_else(|e| panic!("{e}\n{text}"));
+    let measured = app
+        .service
+        .installation()
+        .model
+        .links
+        .iter()
+        .filter(|l| matches!(l.kind, brokenray::model::LinkKind::Measured(_)))
+        .count();
+    assert!(measured >= 2, "the test needs two measured links");
+    for name in [
+        "brokenray_link_samples_total",
+        "brokenray_link_outliers_total",
+        "brokenray_link_rate_hz",
+        "brokenray_link_age_seconds",
+        "brokenray_link_stale",
+    ] {
+        let count = families
+            .iter()
+            .find(|(f, _)| f == name)
+            .map_or(0, |(_, c)| *c);
+        assert_eq!(count, measured, "{name}: one sample per measured link");
+    }
+}
