@@ -15,6 +15,33 @@ pub(super) fn family(out: &mut String, name: &str, kind: &str, help: &str) {
 }
 
 /// A family of one unlabelled value.
+/// A family of [`labelled_families`]: name, type, help, and the row's value.
+pub(super) type Family<R> = (
+    &'static str,
+    &'static str,
+    &'static str,
+    fn(&R) -> Option<f64>,
+);
+
+/// Families of one sample per row, labelled `label` = the row's name: each family's HELP and
+/// TYPE, then its samples together (the exposition format wants every family one group); a row
+/// whose field is `None` has no sample in that family.
+pub(super) fn labelled_families<R>(
+    out: &mut String,
+    label: &str,
+    rows: &[(&str, R)],
+    families: &[Family<R>],
+) {
+    for (name, kind, help, field) in families {
+        family(out, name, kind, help);
+        for (value, row) in rows {
+            if let Some(v) = field(row) {
+                let _ = writeln!(out, "{name}{{{label}=\"{value}\"}} {v}");
+            }
+        }
+    }
+}
+
 fn single(out: &mut String, name: &str, kind: &str, help: &str, value: impl std::fmt::Display) {
     family(out, name, kind, help);
     let _ = writeln!(out, "{name} {value}");
@@ -201,10 +228,8 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             Metrics::get(&m.database_used_bytes),
         );
     }
-    // Per measured link, one family at a time: the exposition format wants each family's
-    // samples together, after its HELP and TYPE.
-    struct LinkRow<'a> {
-        name: &'a str,
+    // Per measured link, written one family at a time.
+    struct LinkRow {
         samples: u64,
         outliers: u64,
         rate_hz: Option<f64>,
@@ -212,15 +237,14 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
         age_s: Option<f64>,
         stale: Option<bool>,
     }
-    let rows: Vec<LinkRow> = inst
+    let rows: Vec<(&str, LinkRow)> = inst
         .model
         .links
         .iter()
         .filter(|l| matches!(l.kind, LinkKind::Measured(_)))
         .map(|l| {
             let st = bank.link_status(l.id);
-            LinkRow {
-                name: &l.name,
+            let row = LinkRow {
                 samples: st.n_samples,
                 outliers: st.n_outliers,
                 rate_hz: bank.observed_rate_hz(l.id),
@@ -232,11 +256,11 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
                     snapshot.link_state(l.id, now_ns, tolerance_s)
                         == crate::service::LinkState::Stale
                 }),
-            }
+            };
+            (l.name.as_str(), row)
         })
         .collect();
-    type Field = fn(&LinkRow) -> Option<f64>;
-    let link_families: [(&str, &str, &str, Field); 6] = [
+    let link_families: [Family<LinkRow>; 6] = [
         (
             "brokenray_link_samples_total",
             "counter",
@@ -274,14 +298,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
             |r| r.stale.map(|s| f64::from(u8::from(s))),
         ),
     ];
-    for (name, kind, help, field) in link_families {
-        family(&mut out, name, kind, help);
-        for row in &rows {
-            if let Some(v) = field(row) {
-                let _ = writeln!(out, "{name}{{link=\"{}\"}} {v}", row.name);
-            }
-        }
-    }
+    labelled_families(&mut out, "link", &rows, &link_families);
     family(
         &mut out,
         "brokenray_target_age_seconds",
@@ -354,8 +371,7 @@ pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
 /// A fleet's site: its uploads per tier.
 fn upstream_metrics(out: &mut String, upstream: &crate::fleet::Upstream) {
     let progress = upstream.progress();
-    type Field = fn(&crate::fleet::TierProgress) -> Option<f64>;
-    let families: [(&str, &str, &str, Field); 6] = [
+    let families: [Family<crate::fleet::TierProgress>; 6] = [
         (
             "brokenray_upstream_acked_seq",
             "gauge",
@@ -393,12 +409,9 @@ fn upstream_metrics(out: &mut String, upstream: &crate::fleet::Upstream) {
             |p| Some(if p.stopped.is_some() { 1.0 } else { 0.0 }),
         ),
     ];
-    for (name, kind, help, field) in families {
-        family(out, name, kind, help);
-        for (tier, p) in &progress {
-            if let Some(v) = field(p) {
-                let _ = writeln!(out, "{name}{{tier=\"{}\"}} {v}", tier.name());
-            }
-        }
-    }
+    let rows: Vec<(&str, crate::fleet::TierProgress)> = progress
+        .into_iter()
+        .map(|(tier, p)| (tier.name(), p))
+        .collect();
+    labelled_families(out, "tier", &rows, &families);
 }
