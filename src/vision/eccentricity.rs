@@ -43,14 +43,7 @@ pub fn disc_image_offset(
     normal: &Vec3,
     diameter_mm: f64,
 ) -> Option<Vector2<f64>> {
-    let n = normal.try_normalize(1e-12)?;
-    let helper = if n.x.abs() < 0.9 {
-        Vec3::x()
-    } else {
-        Vec3::y()
-    };
-    let a = n.cross(&helper).normalize();
-    let b = n.cross(&a);
+    let (a, b) = plane_axes(normal)?;
     let axes = Matrix3x2::from_columns(&[a, b]);
     let radius = diameter_mm / 2.0;
     let image_of_centre = camera.project(centre_mm)?;
@@ -73,6 +66,18 @@ pub fn disc_image_offset(
         }
     }
     (weight > 0.0).then(|| sum / weight - image_of_centre)
+}
+
+/// Two orthonormal axes of the plane whose normal is `normal` (`None` for a zero normal).
+fn plane_axes(normal: &Vec3) -> Option<(Vec3, Vec3)> {
+    let n = normal.try_normalize(1e-12)?;
+    let helper = if n.x.abs() < 0.9 {
+        Vec3::x()
+    } else {
+        Vec3::y()
+    };
+    let a = n.cross(&helper).normalize();
+    Some((a, n.cross(&a)))
 }
 
 /// PnP on disc targets: solved on the detected centroids, each corrected by its disc's
@@ -120,9 +125,7 @@ mod tests {
         normal: &Vec3,
         diameter: f64,
     ) -> Vector2<f64> {
-        let n = normal.normalize();
-        let a = n.cross(&Vec3::x()).normalize();
-        let b = n.cross(&a);
+        let (a, b) = plane_axes(normal).expect("a normal");
         let h = Matrix3::from_columns(&[a, b, *centre]);
         let h_inv = h
             .try_inverse()
@@ -145,9 +148,7 @@ mod tests {
         normal: &Vec3,
         diameter: f64,
     ) -> Vector2<f64> {
-        let n = normal.normalize();
-        let a = n.cross(&Vec3::x()).normalize();
-        let b = n.cross(&a);
+        let (a, b) = plane_axes(normal).expect("a normal");
         let r = 0.5 * diameter;
         let cells = 600;
         let step = 2.0 * r / cells as f64;
