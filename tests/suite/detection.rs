@@ -449,13 +449,7 @@ mod identification {
         ids.sort_unstable();
         assert_eq!(ids, link.ids, "every point identified, each once");
         // Each corrected point is the image of its disc's centre.
-        for (px, id) in found.points_px.iter().zip(&found.ids) {
-            let i = link.ids.iter().position(|x| x == id).expect("known id");
-            let truth_px = link
-                .camera
-                .project(&(truth * Point3::from(link.points_mm[i])).coords)
-                .expect("in front");
-            let e = (px[0] - truth_px.x).hypot(px[1] - truth_px.y);
+        for (id, e) in point_errors_px(&link, &truth, &found) {
             assert!(
                 e < 0.05,
                 "point {id}: {e:.4} px from the image of its centre"
@@ -643,6 +637,28 @@ mod identification {
         }
     }
 
+    /// Each found point's id and its distance (px) from the image of its disc's centre at
+    /// `truth`.
+    fn point_errors_px(
+        link: &ObservedLink,
+        truth: &Pose,
+        found: &brokenray::model::Found,
+    ) -> Vec<(u32, f64)> {
+        found
+            .points_px
+            .iter()
+            .zip(&found.ids)
+            .map(|(px, id)| {
+                let i = link.ids.iter().position(|x| x == id).expect("known id");
+                let truth_px = link
+                    .camera
+                    .project(&(truth * Point3::from(link.points_mm[i])).coords)
+                    .expect("in front");
+                (*id, (px[0] - truth_px.x).hypot(px[1] - truth_px.y))
+            })
+            .collect()
+    }
+
     /// Every point of `found` is the disc of its own id, and the pose is the truth.
     fn assert_labelled_right(
         link: &ObservedLink,
@@ -655,13 +671,7 @@ mod identification {
             link.points_mm.len(),
             "trial {trial}: every point"
         );
-        for (px, id) in found.points_px.iter().zip(&found.ids) {
-            let i = link.ids.iter().position(|x| x == id).expect("known id");
-            let truth_px = link
-                .camera
-                .project(&(truth * Point3::from(link.points_mm[i])).coords)
-                .expect("in front");
-            let e = (px[0] - truth_px.x).hypot(px[1] - truth_px.y);
+        for (id, e) in point_errors_px(link, truth, found) {
             assert!(e < 0.2, "trial {trial}: point {id} {e:.3} px from its disc");
         }
     }
@@ -682,16 +692,8 @@ mod identification {
         );
         assert_eq!(blobs.len(), link.points_mm.len() + 1);
         let found = identify(&link, &blobs, Some(&prior)).expect("found from the others");
-        for (px, id) in found.points_px.iter().zip(&found.ids) {
-            let i = link.ids.iter().position(|x| x == id).expect("known id");
-            let truth_px = link
-                .camera
-                .project(&(truth * Point3::from(link.points_mm[i])).coords)
-                .expect("in front");
-            assert!(
-                (px[0] - truth_px.x).hypot(px[1] - truth_px.y) < 0.05,
-                "point {id} is labelled with another disc"
-            );
+        for (id, e) in point_errors_px(&link, &truth, &found) {
+            assert!(e < 0.05, "point {id} is labelled with another disc");
         }
     }
 }
