@@ -382,16 +382,7 @@ pub fn find_without_prior(
                         ) else {
                             continue;
                         };
-                        // A match seen before, or one that agrees with an identification
-                        // already made, leads where it led.
-                        if !tried.insert(first.clone())
-                            || identifications.iter().any(|k| {
-                                first
-                                    .iter()
-                                    .zip(&k.blobs)
-                                    .all(|(f, b)| f.is_none() || f == b)
-                            })
-                        {
+                        if !tried.insert(first.clone()) {
                             continue;
                         }
                         if let Some(found) = verify(link, blobs, &centres, &grid, &pose, first)
