@@ -337,21 +337,9 @@ impl ThresholdMap {
                 if !wanted[base + tx] {
                     continue;
                 }
-                let (a, b) = match <&[u16; THRESHOLD_TILE_PX]>::try_from(chunk) {
-                    // A whole tile's row: fixed length, and as signed values (the top bit
-                    // flipped keeps the order), whose min and max every x86-64 has as vector
-                    // instructions.
-                    Ok(whole) => {
-                        let signed = whole.map(|p| (p ^ 0x8000) as i16);
-                        let (a, b) = signed
-                            .iter()
-                            .fold((i16::MAX, i16::MIN), |(a, b), &p| (a.min(p), b.max(p)));
-                        ((a as u16) ^ 0x8000, (b as u16) ^ 0x8000)
-                    }
-                    Err(_) => chunk
-                        .iter()
-                        .fold((u16::MAX, 0u16), |(a, b), &p| (a.min(p), b.max(p))),
-                };
+                let (a, b) = chunk
+                    .iter()
+                    .fold((u16::MAX, 0u16), |(a, b), &p| (a.min(p), b.max(p)));
                 lo[base + tx] = lo[base + tx].min(a);
                 hi[base + tx] = hi[base + tx].max(b);
             }
