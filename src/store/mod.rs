@@ -32,6 +32,8 @@ pub mod outbox;
 pub mod postgres;
 pub(crate) mod rollup;
 mod rows;
+pub mod schema;
+mod sql;
 pub mod sqlite;
 
 pub use codec::{Quality, SampleValues, StoredUncertainty};
@@ -421,8 +423,15 @@ impl Store {
         limit: i64,
     ) -> StoreResult<Vec<StoredSample>> {
         let id = self.link_ids[link.0];
-        let rows =
-            on_backend!(&self.reader, Reader, r => r.samples(id, from_ns, to_ns, limit).await)?;
+        let rows: Vec<rows::SampleRow> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(&sql::SAMPLES_IN)
+                .bind(id)
+                .bind(from_ns)
+                .bind(to_ns)
+                .bind(limit)
+                .fetch_all(&r.pool)
+                .await
+        })?;
         rows.into_iter().map(rows::SampleRow::into_sample).collect()
     }
 
@@ -436,7 +445,16 @@ impl Store {
         limit: i64,
     ) -> StoreResult<Vec<StoredResult>> {
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        let rows = on_backend!(&self.reader, Reader, r => r.results(id, source, from_ns, to_ns, limit).await)?;
+        let rows: Vec<rows::ResultRow> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(&sql::RESULTS_IN)
+                .bind(id)
+                .bind(source)
+                .bind(from_ns)
+                .bind(to_ns)
+                .bind(limit)
+                .fetch_all(&r.pool)
+                .await
+        })?;
         rows.into_iter().map(rows::ResultRow::into_result).collect()
     }
 
@@ -451,7 +469,26 @@ impl Store {
         to_ns: i64,
     ) -> StoreResult<(Option<crate::stats::PoseStats>, Option<(i64, i64)>)> {
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        on_backend!(&self.reader, Reader, r => r.pose_stats(id, source, from_ns, to_ns).await)
+        match &self.reader {
+            Reader::Sqlite(r) => r.pose_stats(id, source, from_ns, to_ns).await,
+            Reader::Postgres(r) => {
+                use futures::TryStreamExt as _;
+                type PoseRow = (i64, f64, f64, f64, f64, f64, f64, f64);
+                let mut rows = sqlx::query_as::<_, PoseRow>(sql::RESULT_POSES_IN)
+                    .bind(id)
+                    .bind(source)
+                    .bind(from_ns)
+                    .bind(to_ns)
+                    .fetch(&r.pool);
+                let mut acc = crate::stats::PoseStatsAccumulator::default();
+                let mut span: Option<(i64, i64)> = None;
+                while let Some((t, tx, ty, tz, qw, qx, qy, qz)) = rows.try_next().await? {
+                    acc.push(&codec::pose_from_columns([tx, ty, tz, qw, qx, qy, qz]));
+                    span = Some((span.map_or(t, |(first, _)| first), t));
+                }
+                Ok((acc.finish(), span))
+            }
+        }
     }
 
     /// How many results of a target are stored in `[from_ns, to_ns]`.
@@ -463,14 +500,29 @@ impl Store {
         to_ns: i64,
     ) -> StoreResult<u64> {
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        let n = on_backend!(&self.reader, Reader, r => r.count_results(id, source, from_ns, to_ns).await)?;
+        let (n,): (i64,) = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(sql::COUNT_RESULTS)
+                .bind(id)
+                .bind(source)
+                .bind(from_ns)
+                .bind(to_ns)
+                .fetch_one(&r.pool)
+                .await
+        })?;
         Ok(u64::try_from(n).unwrap_or(0))
     }
 
     /// How many samples of a link are stored in `[from_ns, to_ns]`.
     pub async fn count_samples(&self, link: LinkId, from_ns: i64, to_ns: i64) -> StoreResult<u64> {
         let id = self.link_ids[link.0];
-        let n = on_backend!(&self.reader, Reader, r => r.count_samples(id, from_ns, to_ns).await)?;
+        let (n,): (i64,) = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(sql::COUNT_SAMPLES)
+                .bind(id)
+                .bind(from_ns)
+                .bind(to_ns)
+                .fetch_one(&r.pool)
+                .await
+        })?;
         Ok(u64::try_from(n).unwrap_or(0))
     }
 
@@ -483,8 +535,21 @@ impl Store {
         at_ns: i64,
     ) -> StoreResult<(Option<StoredResult>, Option<StoredResult>)> {
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        let before = on_backend!(&self.reader, Reader, r => r.result_next_to(id, source, at_ns, false).await)?;
-        let after = on_backend!(&self.reader, Reader, r => r.result_next_to(id, source, at_ns, true).await)?;
+        let mut around = [None, None];
+        for (i, statement) in [&sql::RESULT_AT_OR_BEFORE, &sql::RESULT_AFTER]
+            .into_iter()
+            .enumerate()
+        {
+            around[i] = on_backend!(&self.reader, Reader, r => {
+                sqlx::query_as::<_, rows::ResultRow>(statement)
+                    .bind(id)
+                    .bind(source)
+                    .bind(at_ns)
+                    .fetch_optional(&r.pool)
+                    .await
+            })?;
+        }
+        let [before, after] = around;
         Ok((
             before.map(rows::ResultRow::into_result).transpose()?,
             after.map(rows::ResultRow::into_result).transpose()?,
@@ -503,7 +568,9 @@ impl Store {
     /// Every reference version of a target, oldest first.
     pub async fn references(&self, target: usize) -> StoreResult<Vec<StoredReference>> {
         let id = self.target_ids[target];
-        let rows = on_backend!(&self.reader, Reader, r => r.references(id).await)?;
+        let rows: Vec<rows::ReferenceRow> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(&sql::REFERENCES_OF).bind(id).fetch_all(&r.pool).await
+        })?;
         rows.into_iter()
             .map(rows::ReferenceRow::into_reference)
             .collect()
@@ -512,7 +579,9 @@ impl Store {
     /// Every calibration version of a link, oldest first.
     pub async fn calibrations(&self, link: LinkId) -> StoreResult<Vec<StoredCalibration>> {
         let id = self.link_ids[link.0];
-        let rows = on_backend!(&self.reader, Reader, r => r.calibrations(id).await)?;
+        let rows: Vec<rows::CalibrationRow> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(&sql::CALIBRATIONS_OF).bind(id).fetch_all(&r.pool).await
+        })?;
         rows.into_iter()
             .map(rows::CalibrationRow::into_calibration)
             .collect()
@@ -522,7 +591,9 @@ impl Store {
     pub async fn last_link_resets(
         &self,
     ) -> StoreResult<Vec<(LinkId, i64, Option<String>, Option<String>)>> {
-        let rows = on_backend!(&self.reader, Reader, r => r.last_link_resets().await)?;
+        let rows: Vec<(i64, i64, Option<String>, Option<String>)> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(sql::LAST_LINK_RESETS).fetch_all(&r.pool).await
+        })?;
         Ok(rows
             .into_iter()
             .filter_map(|(id, t, by, note)| {
@@ -536,12 +607,16 @@ impl Store {
 
     /// The persisted filter state: `(installation digest, state)`.
     pub async fn filter_state(&self) -> StoreResult<Option<(String, String)>> {
-        on_backend!(&self.reader, Reader, r => r.filter_state().await)
+        Ok(on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(sql::FILTER_STATE).fetch_optional(&r.pool).await
+        })?)
     }
 
     /// One alarm transition by id.
     pub async fn alarm(&self, id: i64) -> StoreResult<Option<StoredAlarm>> {
-        let row = on_backend!(&self.reader, Reader, r => r.alarm(id).await)?;
+        let row: Option<rows::AlarmRow> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(&sql::ALARM_BY_ID).bind(id).fetch_optional(&r.pool).await
+        })?;
         row.map(|row| rows::alarm_of_row(row, &self.target_ids))
             .transpose()
     }
@@ -557,7 +632,20 @@ impl Store {
         newest_first: bool,
     ) -> StoreResult<Vec<StoredAlarm>> {
         let id = target.map(|t| self.target_ids[t]);
-        let rows = on_backend!(&self.reader, Reader, r => r.alarms(id, from_ns, to_ns, limit, newest_first).await)?;
+        let statement: &str = if newest_first {
+            &sql::ALARMS_NEWEST_FIRST
+        } else {
+            &sql::ALARMS_OLDEST_FIRST
+        };
+        let rows: Vec<rows::AlarmRow> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(statement)
+                .bind(id)
+                .bind(from_ns)
+                .bind(to_ns)
+                .bind(limit)
+                .fetch_all(&r.pool)
+                .await
+        })?;
         rows.into_iter()
             .map(|row| rows::alarm_of_row(row, &self.target_ids))
             .collect()
@@ -572,9 +660,14 @@ impl Store {
             .iter()
             .enumerate()
         {
-            let level =
-                on_backend!(&self.reader, Reader, r => r.last_alarm_level(id, kind.name()).await)?;
-            if let Some(level) = level {
+            let level: Option<(String,)> = on_backend!(&self.reader, Reader, r => {
+                sqlx::query_as(sql::LAST_ALARM_LEVEL)
+                    .bind(id)
+                    .bind(kind.name())
+                    .fetch_optional(&r.pool)
+                    .await
+            })?;
+            if let Some((level,)) = level {
                 out[i] = Level::parse(&level).unwrap_or(Level::None);
             }
         }
@@ -737,8 +830,15 @@ impl WriteTx<'_> {
         to_ns: i64,
     ) -> StoreResult<Vec<(i64, SampleValues)>> {
         let id = self.link_ids[link.0];
-        let rows =
-            on_backend!(&mut self.tx, Tx, t => t.existing_samples(id, from_ns, to_ns).await)?;
+        let rows = on_backend!(&mut self.tx, Tx, t => {
+            sqlx::query_as::<_, rows::SampleRow>(&sql::SAMPLES_IN)
+                .bind(id)
+                .bind(from_ns)
+                .bind(to_ns)
+                .bind(i64::MAX)
+                .fetch_all(&mut *t.conn)
+                .await
+        })?;
         rows.into_iter()
             .map(|r| Ok((r.time_ns, r.values()?)))
             .collect()
@@ -896,7 +996,12 @@ impl WriteTx<'_> {
         &mut self,
         id: i64,
     ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
-        on_backend!(&mut self.tx, Tx, t => t.alarm_ack_state(id).await)
+        Ok(on_backend!(&mut self.tx, Tx, t => {
+            sqlx::query_as(sql::ALARM_ACK_STATE)
+                .bind(id)
+                .fetch_optional(&mut *t.conn)
+                .await
+        })?)
     }
 
     /// Records an acknowledgement of alarm `id`.
@@ -969,7 +1074,16 @@ impl WriteTx<'_> {
         to_ns: i64,
     ) -> StoreResult<Vec<PoseCov>> {
         let id = self.target_ids[target];
-        let rows = on_backend!(&mut self.tx, Tx, t => t.results_in(id, 1, from_ns, to_ns).await)?;
+        let rows: Vec<rows::ResultRow> = on_backend!(&mut self.tx, Tx, t => {
+            sqlx::query_as(&sql::RESULTS_IN)
+                .bind(id)
+                .bind(1_i64)
+                .bind(from_ns)
+                .bind(to_ns)
+                .bind(i64::MAX)
+                .fetch_all(&mut *t.conn)
+                .await
+        })?;
         rows.into_iter()
             .map(|r| r.into_result().map(|r| r.estimate))
             .collect()
@@ -1027,7 +1141,16 @@ impl WriteTx<'_> {
         state_json: &str,
         now_ns: i64,
     ) -> StoreResult<()> {
-        on_backend!(&mut self.tx, Tx, t => t.save_filter_state(digest, state_json, now_ns).await)
+        on_backend!(&mut self.tx, Tx, t => {
+            sqlx::query(sql::SAVE_FILTER_STATE)
+                .bind(digest)
+                .bind(state_json)
+                .bind(now_ns)
+                .execute(&mut *t.conn)
+                .await
+                .map(|_| ())
+        })?;
+        Ok(())
     }
 }
 

@@ -81,49 +81,9 @@ pub enum SyncTable {
     RawResults,
 }
 
-/// The type of a column on the wire.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Kind {
-    /// A 64-bit integer.
-    Int,
-    /// A 64-bit float.
-    Real,
-    /// UTF-8 text.
-    Text,
-    /// Bytes.
-    Blob,
-    /// A boolean (an integer 0 or 1 in SQLite).
-    Bool,
-}
-
+pub use super::schema::Kind;
+use super::schema::{self, Table};
 use Kind::{Blob, Bool, Int, Real, Text};
-
-const POSE: [(&str, Kind); 7] = [
-    ("tx_mm", Real),
-    ("ty_mm", Real),
-    ("tz_mm", Real),
-    ("qw", Real),
-    ("qx", Real),
-    ("qy", Real),
-    ("qz", Real),
-];
-
-macro_rules! columns {
-    ($($name:literal : $kind:ident),* ; pose ; $($rest:literal : $rkind:ident),*) => {
-        &[$(($name, $kind),)* POSE[0], POSE[1], POSE[2], POSE[3], POSE[4], POSE[5], POSE[6],
-          $(($rest, $rkind)),*]
-    };
-    ($($name:literal : $kind:ident),*) => { &[$(($name, $kind)),*] };
-}
-
-const RESULT_COLUMNS: &[(&str, Kind)] = columns!(
-    "target_id": Int, "source": Int, "time_ns": Int; pose;
-    "cov": Blob, "sigma_rx_arcsec": Real, "sigma_ry_arcsec": Real, "sigma_rz_arcsec": Real,
-    "sigma_tx_mm": Real, "sigma_ty_mm": Real, "sigma_tz_mm": Real, "status": Text,
-    "age_s": Real, "chi2": Real, "reference_version": Int, "def_rx_arcsec": Real,
-    "def_ry_arcsec": Real, "def_rz_arcsec": Real, "def_tx_mm": Real, "def_ty_mm": Real,
-    "def_tz_mm": Real
-);
 
 impl SyncTable {
     /// The table's name on the wire.
@@ -152,17 +112,22 @@ impl SyncTable {
         }
     }
 
-    /// The table's name in both schemas (several streams may share one).
-    pub fn table(self) -> &'static str {
+    /// The table in both schemas (several streams may share one).
+    pub fn schema(self) -> Table {
         match self {
-            SyncTable::Alarms => "alarms",
-            SyncTable::References => "target_references",
-            SyncTable::Calibrations => "calibrations",
-            SyncTable::LinkResets => "link_resets",
-            SyncTable::FilteredResults | SyncTable::RawResults => "results",
-            SyncTable::Rollups => "rollups",
-            SyncTable::Samples => "samples",
+            SyncTable::Alarms => schema::ALARMS,
+            SyncTable::References => schema::REFERENCES,
+            SyncTable::Calibrations => schema::CALIBRATIONS,
+            SyncTable::LinkResets => schema::LINK_RESETS,
+            SyncTable::FilteredResults | SyncTable::RawResults => schema::RESULTS,
+            SyncTable::Rollups => schema::ROLLUPS,
+            SyncTable::Samples => schema::SAMPLES,
         }
+    }
+
+    /// The table's name in both schemas.
+    pub fn table(self) -> &'static str {
+        self.schema().name
     }
 
     /// The rows of the table that belong to this stream (an SQL condition), if not all.
@@ -189,39 +154,9 @@ impl SyncTable {
         }
     }
 
-    /// The columns that travel, in order, with their types.
+    /// The columns that travel, in order, with their types: the table's own.
     pub fn columns(self) -> &'static [(&'static str, Kind)] {
-        match self {
-            SyncTable::Alarms => columns!(
-                "alarm_id": Int, "target_id": Int, "time_ns": Int, "kind": Text,
-                "from_level": Text, "to_level": Text, "value": Real, "message": Text,
-                "created_ns": Int, "unit": Text, "acknowledged_by": Text,
-                "acknowledged_ns": Int, "ack_note": Text
-            ),
-            SyncTable::References => columns!(
-                "target_id": Int, "version": Int; pose;
-                "cov": Blob, "origin": Text, "window_from_ns": Int, "window_to_ns": Int,
-                "window_count": Int, "created_ns": Int
-            ),
-            SyncTable::Calibrations => columns!(
-                "link_id": Int, "version": Int, "valid_from_ns": Int; pose;
-                "cov": Blob, "created_ns": Int
-            ),
-            SyncTable::LinkResets => columns!(
-                "link_id": Int, "created_ns": Int, "by_name": Text, "note": Text
-            ),
-            SyncTable::FilteredResults | SyncTable::RawResults => RESULT_COLUMNS,
-            SyncTable::Rollups => columns!(
-                "target_id": Int, "source": Int, "width_s": Int, "bucket_ns": Int, "n": Int,
-                "n_def": Int, "stats": Blob
-            ),
-            SyncTable::Samples => columns!(
-                "link_id": Int, "time_ns": Int; pose;
-                "uncertainty_kind": Int, "uncertainty": Blob, "reprojection_rms_px": Real,
-                "points": Int, "disposition": Text, "outlier": Bool, "nis": Real,
-                "received_ns": Int
-            ),
-        }
+        self.schema().columns
     }
 
     /// Whether the centre must write the key column of an identity (`alarm_id`).

@@ -1,7 +1,7 @@
 //! Rollups: per bucket, the count and min, sum and max of every result component, so a history
 //! at any scale reads a bounded number of rows and a spike survives downsampling.
 
-use super::{NewResult, Reader, Store, StoreResult};
+use super::{NewResult, Reader, Store, StoreResult, sql};
 use crate::geometry::{PoseCov, ReportedSigmas, euler_from_rotation};
 use std::collections::HashMap;
 
@@ -310,11 +310,22 @@ impl Store {
             i64::from(filtered),
             ROLLUP_WIDTHS_S[0],
         );
-        let first =
-            on_backend!(&self.reader, Reader, r => r.rollup_end(id, source, width_s, false).await)?;
-        let last =
-            on_backend!(&self.reader, Reader, r => r.rollup_end(id, source, width_s, true).await)?;
-        if let (Some(lo), Some(hi)) = (first, last) {
+        let mut ends = [None, None];
+        for (i, statement) in [sql::ROLLUP_FIRST, sql::ROLLUP_LAST]
+            .into_iter()
+            .enumerate()
+        {
+            let end: Option<(i64,)> = on_backend!(&self.reader, Reader, r => {
+                sqlx::query_as(statement)
+                    .bind(id)
+                    .bind(source)
+                    .bind(width_s)
+                    .fetch_optional(&r.pool)
+                    .await
+            })?;
+            ends[i] = end.map(|(b,)| b);
+        }
+        if let [Some(lo), Some(hi)] = ends {
             return Ok(Some((lo, hi + width_s * 1_000_000_000 - 1)));
         }
         let first = self
@@ -344,7 +355,16 @@ impl Store {
             i64::from(filtered),
             floor_to(from_ns, width_ns),
         );
-        let rows = on_backend!(&self.reader, Reader, r => r.rollup_rows(id, source, width_s, from, to_ns).await)?;
+        let rows: Vec<(i64, i64, i64, Vec<u8>)> = on_backend!(&self.reader, Reader, r => {
+            sqlx::query_as(sql::ROLLUP_ROWS)
+                .bind(id)
+                .bind(source)
+                .bind(width_s)
+                .bind(from)
+                .bind(to_ns)
+                .fetch_all(&r.pool)
+                .await
+        })?;
         rows.iter()
             .map(|(start, n, n_def, stats)| decode_bucket(*start, *n, *n_def, stats))
             .collect()
@@ -364,7 +384,7 @@ impl Store {
     ) -> StoreResult<Vec<Bucket>> {
         let mut buckets: std::collections::BTreeMap<i64, Bucket> =
             std::collections::BTreeMap::new();
-        let add = |row: super::rows::ResultRow| -> StoreResult<()> {
+        let mut add = |row: super::rows::ResultRow| -> StoreResult<()> {
             let r = row.into_result()?;
             let (values, has_def) = components(
                 &r.estimate,
@@ -379,7 +399,20 @@ impl Store {
             Ok(())
         };
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        on_backend!(&self.reader, Reader, r => r.for_each_result(id, source, from_ns, to_ns, add).await)?;
+        on_backend!(&self.reader, Reader, r => {
+            use futures::TryStreamExt as _;
+            let mut rows = sqlx::query_as::<_, super::rows::ResultRow>(&sql::RESULTS_IN)
+                .bind(id)
+                .bind(source)
+                .bind(from_ns)
+                .bind(to_ns)
+                .bind(i64::MAX)
+                .fetch(&r.pool);
+            while let Some(row) = rows.try_next().await? {
+                add(row)?;
+            }
+            StoreResult::Ok(())
+        })?;
         Ok(buckets.into_values().collect())
     }
 }

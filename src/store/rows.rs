@@ -8,25 +8,26 @@ use super::codec::{decode_mat6, pose_from_columns};
 use super::{Quality, SampleValues, StoreError, StoreResult, StoredUncertainty};
 use crate::geometry::PoseCov;
 
-/// The columns of a sample read, in order.
-pub(super) const SAMPLE_COLUMNS: &str = "time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, uncertainty_kind, uncertainty, \
-     reprojection_rms_px, points, disposition, outlier, nis, received_ns";
+/// The seven pose columns every row with a pose has.
+#[derive(sqlx::FromRow)]
+pub(super) struct PoseColumns {
+    tx_mm: f64,
+    ty_mm: f64,
+    tz_mm: f64,
+    qw: f64,
+    qx: f64,
+    qy: f64,
+    qz: f64,
+}
 
-/// The columns of a result read, in order.
-pub(super) const RESULT_COLUMNS: &str = "time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, status, age_s, chi2, \
-     reference_version, def_rx_arcsec, def_ry_arcsec, def_rz_arcsec, def_tx_mm, def_ty_mm, def_tz_mm";
-
-/// The columns of an alarm read, in [`AlarmRow`] order.
-pub(super) const ALARM_COLUMNS: &str = "alarm_id, target_id, time_ns, kind, from_level, to_level, value, \
-     message, unit, acknowledged_by, acknowledged_ns, ack_note";
-
-/// The columns of a reference read.
-pub(super) const REFERENCE_COLUMNS: &str = "version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, origin, \
-     window_from_ns, window_to_ns, window_count, created_ns";
-
-/// The columns of a calibration read.
-pub(super) const CALIBRATION_COLUMNS: &str =
-    "version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns";
+impl PoseColumns {
+    /// The pose they hold.
+    fn pose(&self) -> crate::geometry::Pose {
+        pose_from_columns([
+            self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
+        ])
+    }
+}
 
 /// A stored rollup row: key (target id, source, width, bucket start), counts, statistics.
 pub(super) type RollupRow = (i64, i64, i64, i64, i64, i64, Vec<u8>);
@@ -38,13 +39,8 @@ pub(super) type RollupKey = (i64, i64, i64, i64);
 #[derive(sqlx::FromRow)]
 pub(super) struct SampleRow {
     pub time_ns: i64,
-    tx_mm: f64,
-    ty_mm: f64,
-    tz_mm: f64,
-    qw: f64,
-    qx: f64,
-    qy: f64,
-    qz: f64,
+    #[sqlx(flatten)]
+    pose: PoseColumns,
     uncertainty_kind: i64,
     uncertainty: Option<Vec<u8>>,
     reprojection_rms_px: Option<f64>,
@@ -59,9 +55,7 @@ impl SampleRow {
     /// The sample's values as given.
     pub(super) fn values(&self) -> StoreResult<SampleValues> {
         Ok(SampleValues {
-            pose: pose_from_columns([
-                self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
-            ]),
+            pose: self.pose.pose(),
             uncertainty: StoredUncertainty::from_columns(
                 self.uncertainty_kind,
                 self.uncertainty.as_deref(),
@@ -114,13 +108,8 @@ pub struct StoredSample {
 #[derive(sqlx::FromRow)]
 pub(super) struct ResultRow {
     pub time_ns: i64,
-    tx_mm: f64,
-    ty_mm: f64,
-    tz_mm: f64,
-    qw: f64,
-    qx: f64,
-    qy: f64,
-    qz: f64,
+    #[sqlx(flatten)]
+    pose: PoseColumns,
     cov: Vec<u8>,
     status: String,
     age_s: f64,
@@ -154,9 +143,7 @@ impl ResultRow {
         Ok(StoredResult {
             time_ns: self.time_ns,
             estimate: PoseCov {
-                pose: pose_from_columns([
-                    self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
-                ]),
+                pose: self.pose.pose(),
                 cov: decode_mat6(&self.cov)?,
             },
             status: crate::bank::TargetStatus::parse(&self.status).ok_or_else(|| {
@@ -193,13 +180,8 @@ pub struct StoredResult {
 #[derive(sqlx::FromRow)]
 pub(super) struct ReferenceRow {
     version: i64,
-    tx_mm: f64,
-    ty_mm: f64,
-    tz_mm: f64,
-    qw: f64,
-    qx: f64,
-    qy: f64,
-    qz: f64,
+    #[sqlx(flatten)]
+    pose: PoseColumns,
     cov: Vec<u8>,
     origin: String,
     window_from_ns: Option<i64>,
@@ -230,9 +212,7 @@ impl ReferenceRow {
             version: self.version,
             reference: crate::deformation::Reference {
                 g0_from_b: PoseCov {
-                    pose: pose_from_columns([
-                        self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
-                    ]),
+                    pose: self.pose.pose(),
                     cov: decode_mat6(&self.cov)?,
                 },
                 origin,
@@ -258,13 +238,8 @@ pub struct StoredReference {
 pub(super) struct CalibrationRow {
     version: i64,
     valid_from_ns: i64,
-    tx_mm: f64,
-    ty_mm: f64,
-    tz_mm: f64,
-    qw: f64,
-    qx: f64,
-    qy: f64,
-    qz: f64,
+    #[sqlx(flatten)]
+    pose: PoseColumns,
     cov: Vec<u8>,
     created_ns: i64,
 }
@@ -276,9 +251,7 @@ impl CalibrationRow {
             version: self.version,
             valid_from_ns: self.valid_from_ns,
             parent_from_child: PoseCov {
-                pose: pose_from_columns([
-                    self.tx_mm, self.ty_mm, self.tz_mm, self.qw, self.qx, self.qy, self.qz,
-                ]),
+                pose: self.pose.pose(),
                 cov: decode_mat6(&self.cov)?,
             },
             created_ns: self.created_ns,
@@ -323,26 +296,40 @@ pub struct Acknowledgement {
     pub note: Option<String>,
 }
 
-/// The columns of an alarm row, in [`ALARM_COLUMNS`] order.
-pub(super) type AlarmRow = (
-    i64,
-    i64,
-    i64,
-    String,
-    String,
-    String,
-    f64,
-    String,
-    Option<String>,
-    Option<String>,
-    Option<i64>,
-    Option<String>,
-);
+/// An alarm row.
+#[derive(sqlx::FromRow)]
+pub(super) struct AlarmRow {
+    alarm_id: i64,
+    target_id: i64,
+    time_ns: i64,
+    kind: String,
+    from_level: String,
+    to_level: String,
+    value: f64,
+    message: String,
+    unit: Option<String>,
+    acknowledged_by: Option<String>,
+    acknowledged_ns: Option<i64>,
+    ack_note: Option<String>,
+}
 
 /// The alarm of a row; `target_ids` maps the row's target id to the installation's index.
 pub(super) fn alarm_of_row(row: AlarmRow, target_ids: &[i64]) -> StoreResult<StoredAlarm> {
     use crate::alarms::{AlarmKind, Level, ValueUnit};
-    let (id, tid, time_ns, kind, from, to, value, message, unit, by, at_ns, note) = row;
+    let AlarmRow {
+        alarm_id: id,
+        target_id: tid,
+        time_ns,
+        kind,
+        from_level: from,
+        to_level: to,
+        value,
+        message,
+        unit,
+        acknowledged_by: by,
+        acknowledged_ns: at_ns,
+        ack_note: note,
+    } = row;
     let malformed = || StoreError::Malformed(format!("alarm {id} of kind `{kind}`"));
     let kind_ = AlarmKind::parse(&kind).ok_or_else(malformed)?;
     let unit = match unit {
@@ -415,13 +402,3 @@ pub(super) struct VersionColumns {
     pub pose: [f64; 7],
     pub cov: Vec<u8>,
 }
-
-/// The columns `insert into results` names, in [`ResultColumns`] order.
-pub(super) const RESULT_INSERT_COLUMNS: &str = "target_id, source, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
-     sigma_rx_arcsec, sigma_ry_arcsec, sigma_rz_arcsec, sigma_tx_mm, sigma_ty_mm, sigma_tz_mm, \
-     status, age_s, chi2, reference_version, def_rx_arcsec, def_ry_arcsec, def_rz_arcsec, \
-     def_tx_mm, def_ty_mm, def_tz_mm";
-
-/// The columns `insert into samples` names, in [`SampleColumns`] order.
-pub(super) const SAMPLE_INSERT_COLUMNS: &str = "link_id, time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, \
-     uncertainty_kind, uncertainty, reprojection_rms_px, points, disposition, outlier, nis, received_ns";

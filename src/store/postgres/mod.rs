@@ -9,7 +9,7 @@
 //! a long stop) into their own, at start-up and with each retention pass.
 
 pub(crate) mod central;
-mod read;
+
 mod write;
 
 pub(super) use write::{Tx, Writer};
@@ -36,7 +36,7 @@ const PARTITIONED: [&str; 3] = ["samples", "results", "rollups"];
 /// The read side of a PostgreSQL database.
 #[derive(Debug, Clone)]
 pub(super) struct Reader {
-    pool: PgPool,
+    pub(in crate::store) pool: PgPool,
     /// A connection of its own for the health check, so that busy readers cannot fail it.
     health_conn: std::sync::Arc<tokio::sync::Mutex<Option<PgConnection>>>,
     options: std::sync::Arc<PgConnectOptions>,

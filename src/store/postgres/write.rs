@@ -12,10 +12,8 @@
 //! to plan); rollups and the keys to look up as one statement each, every column an array
 //! expanded by `unnest`.
 
-use super::super::rows::{
-    RESULT_COLUMNS, RESULT_INSERT_COLUMNS, ResultColumns, ResultRow, RollupKey, RollupRow,
-    SAMPLE_COLUMNS, SAMPLE_INSERT_COLUMNS, SampleColumns, SampleRow, VersionColumns,
-};
+use super::super::rows::{ResultColumns, RollupKey, RollupRow, SampleColumns, VersionColumns};
+use super::super::schema::{RESULTS, SAMPLES, Table};
 use super::super::{StoreError, StoreResult, WindowOrigin};
 use sqlx::postgres::{PgConnectOptions, PgConnection};
 use sqlx::{ConnectOptions, Connection};
@@ -36,7 +34,7 @@ pub(in crate::store) struct Writer {
 /// One write transaction. Dropped without [`Tx::commit`], it is rolled back when the next
 /// begins.
 pub(in crate::store) struct Tx<'c> {
-    conn: &'c mut PgConnection,
+    pub(in crate::store) conn: &'c mut PgConnection,
     clean: &'c mut bool,
 }
 
@@ -117,32 +115,57 @@ impl Writer {
     }
 }
 
-/// Rows in PostgreSQL's binary `COPY` format: a header, then per row the field count and
-/// each field as its length (-1 for null) and its bytes in network order, then a trailer.
+/// Rows of one table in PostgreSQL's binary `COPY` format: a header, then per row the field
+/// count (the table's width) and each field as its length (-1 for null) and its bytes in
+/// network order, then a trailer. A row with other than the table's fields is caught at
+/// [`CopyRows::finish`], before anything is sent.
 struct CopyRows {
+    table: Table,
     buf: Vec<u8>,
+    /// Fields written to the current row.
+    fields: usize,
+    /// Whether a row had other than the table's width.
+    misshapen: bool,
 }
 
 impl CopyRows {
-    fn new() -> Self {
+    fn new(table: Table) -> Self {
         let mut buf = Vec::with_capacity(1 << 16);
         buf.extend_from_slice(b"PGCOPY\n\xff\r\n\0");
         buf.extend_from_slice(&0i32.to_be_bytes()); // flags
         buf.extend_from_slice(&0i32.to_be_bytes()); // header extension
-        Self { buf }
+        Self {
+            table,
+            buf,
+            fields: table.width(),
+            misshapen: false,
+        }
     }
 
-    fn row(&mut self, fields: i16) {
-        self.buf.extend_from_slice(&fields.to_be_bytes());
+    /// Starts a row.
+    fn row(&mut self) {
+        self.end_row();
+        let width = i16::try_from(self.table.width()).unwrap_or(i16::MAX);
+        self.buf.extend_from_slice(&width.to_be_bytes());
+    }
+
+    fn end_row(&mut self) {
+        self.misshapen |= self.fields != self.table.width();
+        self.fields = 0;
+    }
+
+    fn field(&mut self, len: i32, bytes: &[u8]) {
+        self.fields += 1;
+        self.buf.extend_from_slice(&len.to_be_bytes());
+        self.buf.extend_from_slice(bytes);
     }
 
     fn null(&mut self) {
-        self.buf.extend_from_slice(&(-1i32).to_be_bytes());
+        self.field(-1, &[]);
     }
 
     fn i64(&mut self, v: i64) {
-        self.buf.extend_from_slice(&8i32.to_be_bytes());
-        self.buf.extend_from_slice(&v.to_be_bytes());
+        self.field(8, &v.to_be_bytes());
     }
 
     fn i64_or_null(&mut self, v: Option<i64>) {
@@ -153,8 +176,7 @@ impl CopyRows {
     }
 
     fn f64(&mut self, v: f64) {
-        self.buf.extend_from_slice(&8i32.to_be_bytes());
-        self.buf.extend_from_slice(&v.to_be_bytes());
+        self.field(8, &v.to_be_bytes());
     }
 
     fn f64_or_null(&mut self, v: Option<f64>) {
@@ -165,8 +187,7 @@ impl CopyRows {
     }
 
     fn bool(&mut self, v: bool) {
-        self.buf.extend_from_slice(&1i32.to_be_bytes());
-        self.buf.push(u8::from(v));
+        self.field(1, &[u8::from(v)]);
     }
 
     /// A `bytea` or `text` field (text's binary form is its UTF-8).
@@ -175,17 +196,24 @@ impl CopyRows {
             Some(v) => {
                 // Fields are a few hundred bytes at most; one over 2 GB would make the server
                 // refuse the copy (its length no longer matches), never store a wrong value.
-                let len = i32::try_from(v.len()).unwrap_or(i32::MAX);
-                self.buf.extend_from_slice(&len.to_be_bytes());
-                self.buf.extend_from_slice(v);
+                self.field(i32::try_from(v.len()).unwrap_or(i32::MAX), v);
             }
             None => self.null(),
         }
     }
 
-    fn finish(mut self) -> Vec<u8> {
+    /// The rows with their trailer; an error when a row had other than the table's fields.
+    fn finish(mut self) -> StoreResult<Vec<u8>> {
+        self.end_row();
+        if self.misshapen {
+            return Err(StoreError::Malformed(format!(
+                "a row for `{}` without its {} fields",
+                self.table.name,
+                self.table.width()
+            )));
+        }
         self.buf.extend_from_slice(&(-1i16).to_be_bytes());
-        self.buf
+        Ok(self.buf)
     }
 }
 
@@ -197,23 +225,6 @@ impl Tx<'_> {
         Ok(())
     }
 
-    pub(in crate::store) async fn existing_samples(
-        &mut self,
-        link_id: i64,
-        from_ns: i64,
-        to_ns: i64,
-    ) -> StoreResult<Vec<SampleRow>> {
-        Ok(sqlx::query_as(&format!(
-            "select {SAMPLE_COLUMNS} from samples where link_id = $1 and time_ns >= $2 \
-             and time_ns <= $3 order by time_ns"
-        ))
-        .bind(link_id)
-        .bind(from_ns)
-        .bind(to_ns)
-        .fetch_all(&mut *self.conn)
-        .await?)
-    }
-
     /// Inserts samples by binary `COPY` (the fastest way into PostgreSQL: no statement to
     /// plan, rows in the server's own format).
     pub(in crate::store) async fn insert_samples(
@@ -223,9 +234,9 @@ impl Tx<'_> {
         if samples.is_empty() {
             return Ok(());
         }
-        let mut rows = CopyRows::new();
+        let mut rows = CopyRows::new(SAMPLES);
         for s in samples {
-            rows.row(17);
+            rows.row();
             rows.i64(s.link_id);
             rows.i64(s.time_ns);
             for v in s.pose {
@@ -240,7 +251,7 @@ impl Tx<'_> {
             rows.f64_or_null(s.nis);
             rows.i64(s.received_ns);
         }
-        self.copy_in("samples", SAMPLE_INSERT_COLUMNS, rows).await
+        self.copy_in(rows).await
     }
 
     /// Inserts results; one at an existing key replaces it: the rows at the batch's keys are
@@ -276,9 +287,9 @@ impl Tx<'_> {
             .execute(&mut *self.conn)
             .await?;
         }
-        let mut rows = CopyRows::new();
+        let mut rows = CopyRows::new(RESULTS);
         for r in results {
-            rows.row(27);
+            rows.row();
             rows.i64(r.target_id);
             rows.i64(r.source);
             rows.i64(r.time_ns);
@@ -297,18 +308,19 @@ impl Tx<'_> {
                 rows.f64_or_null(r.deformation.map(|(_, d)| d[i]));
             }
         }
-        self.copy_in("results", RESULT_INSERT_COLUMNS, rows).await
+        self.copy_in(rows).await
     }
 
     /// `COPY table (columns) FROM STDIN` of binary rows.
-    async fn copy_in(&mut self, table: &str, columns: &str, rows: CopyRows) -> StoreResult<()> {
-        let mut copy = self
-            .conn
-            .copy_in_raw(&format!(
-                "copy {table} ({columns}) from stdin with (format binary)"
-            ))
-            .await?;
-        if let Err(e) = copy.send(rows.finish()).await {
+    async fn copy_in(&mut self, rows: CopyRows) -> StoreResult<()> {
+        let statement = format!(
+            "copy {} ({}) from stdin with (format binary)",
+            rows.table.name,
+            rows.table.list()
+        );
+        let rows = rows.finish()?;
+        let mut copy = self.conn.copy_in_raw(&statement).await?;
+        if let Err(e) = copy.send(rows).await {
             let _ = copy.abort("the rows could not be sent").await;
             return Err(e.into());
         }
@@ -398,18 +410,6 @@ impl Tx<'_> {
         Ok(id)
     }
 
-    pub(in crate::store) async fn alarm_ack_state(
-        &mut self,
-        id: i64,
-    ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
-        Ok(sqlx::query_as(
-            "select to_level, acknowledged_by, ack_note from alarms where alarm_id = $1",
-        )
-        .bind(id)
-        .fetch_optional(&mut *self.conn)
-        .await?)
-    }
-
     pub(in crate::store) async fn acknowledge_alarm(
         &mut self,
         id: i64,
@@ -441,25 +441,6 @@ impl Tx<'_> {
         let results = super::drop_before(&mut *self.conn, "results", results_before_ns).await?;
         super::maintain(&mut *self.conn).await?;
         Ok((samples, results))
-    }
-
-    pub(in crate::store) async fn results_in(
-        &mut self,
-        target_id: i64,
-        source: i64,
-        from_ns: i64,
-        to_ns: i64,
-    ) -> StoreResult<Vec<ResultRow>> {
-        Ok(sqlx::query_as(&format!(
-            "select {RESULT_COLUMNS} from results where target_id = $1 and source = $2 \
-             and time_ns >= $3 and time_ns <= $4 order by time_ns"
-        ))
-        .bind(target_id)
-        .bind(source)
-        .bind(from_ns)
-        .bind(to_ns)
-        .fetch_all(&mut *self.conn)
-        .await?)
     }
 
     /// Stores the next reference version of a target; returns it.
@@ -543,25 +524,6 @@ impl Tx<'_> {
         .bind(now_ns)
         .bind(by)
         .bind(note)
-        .execute(&mut *self.conn)
-        .await?;
-        Ok(())
-    }
-
-    pub(in crate::store) async fn save_filter_state(
-        &mut self,
-        digest: &str,
-        state_json: &str,
-        now_ns: i64,
-    ) -> StoreResult<()> {
-        sqlx::query(
-            "insert into filter_state (id, installation_digest, state, updated_ns) values (1, $1, $2, $3) \
-             on conflict (id) do update set installation_digest = excluded.installation_digest, \
-             state = excluded.state, updated_ns = excluded.updated_ns",
-        )
-        .bind(digest)
-        .bind(state_json)
-        .bind(now_ns)
         .execute(&mut *self.conn)
         .await?;
         Ok(())

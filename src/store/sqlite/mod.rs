@@ -68,7 +68,7 @@ pub(crate) fn check_identity(path: &Path, identity: FileIdentity) -> StoreResult
 /// The read side of an SQLite database.
 #[derive(Debug, Clone)]
 pub(super) struct Reader {
-    pool: SqlitePool,
+    pub(in crate::store) pool: SqlitePool,
     /// A connection of its own for the health check, so that busy readers cannot fail it.
     health_conn: std::sync::Arc<tokio::sync::Mutex<Option<sqlx::SqliteConnection>>>,
     path: PathBuf,

@@ -11,10 +11,8 @@
 //! inode), so a deleted or replaced file is never written to in silence.
 
 use super::super::outbox::{KeepUnsent, Tier};
-use super::super::rows::{
-    RESULT_COLUMNS, RESULT_INSERT_COLUMNS, ResultColumns, ResultRow, RollupKey, RollupRow,
-    SAMPLE_COLUMNS, SAMPLE_INSERT_COLUMNS, SampleColumns, SampleRow, VersionColumns,
-};
+use super::super::rows::{ResultColumns, RollupKey, RollupRow, SampleColumns, VersionColumns};
+use super::super::schema::{RESULTS, SAMPLES};
 use super::super::{BudgetCut, StoreResult, WindowOrigin};
 use super::{FileIdentity, check_identity};
 use sqlx::{ConnectOptions, Connection, QueryBuilder, Sqlite, SqliteConnection};
@@ -37,7 +35,7 @@ pub(in crate::store) struct Writer {
 /// One write transaction. Dropped without [`Tx::commit`], it is rolled back (the next
 /// transaction starts on a fresh connection).
 pub(in crate::store) struct Tx<'c> {
-    conn: &'c mut SqliteConnection,
+    pub(in crate::store) conn: &'c mut SqliteConnection,
     clean: &'c mut bool,
     path: &'c Path,
     identity: FileIdentity,
@@ -126,23 +124,6 @@ impl Tx<'_> {
         check_identity(self.path, self.identity)
     }
 
-    pub(in crate::store) async fn existing_samples(
-        &mut self,
-        link_id: i64,
-        from_ns: i64,
-        to_ns: i64,
-    ) -> StoreResult<Vec<SampleRow>> {
-        Ok(sqlx::query_as(&format!(
-            "select {SAMPLE_COLUMNS} from samples where link_id = ? and time_ns >= ? \
-             and time_ns <= ? order by time_ns"
-        ))
-        .bind(link_id)
-        .bind(from_ns)
-        .bind(to_ns)
-        .fetch_all(&mut *self.conn)
-        .await?)
-    }
-
     /// Inserts samples, many rows a statement.
     pub(in crate::store) async fn insert_samples(
         &mut self,
@@ -150,7 +131,8 @@ impl Tx<'_> {
     ) -> StoreResult<()> {
         for chunk in samples.chunks(ROWS_PER_STATEMENT) {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(format!(
-                "insert into samples ({SAMPLE_INSERT_COLUMNS}, commit_seq) "
+                "insert into samples ({}, commit_seq) ",
+                SAMPLES.list()
             ));
             qb.push_values(chunk, |mut b, s| {
                 b.push_bind(s.link_id).push_bind(s.time_ns);
@@ -179,7 +161,8 @@ impl Tx<'_> {
     ) -> StoreResult<()> {
         for chunk in results.chunks(ROWS_PER_STATEMENT / 2) {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(format!(
-                "insert or replace into results ({RESULT_INSERT_COLUMNS}, commit_seq) "
+                "insert or replace into results ({}, commit_seq) ",
+                RESULTS.list()
             ));
             qb.push_values(chunk, |mut b, r| {
                 b.push_bind(r.target_id)
@@ -288,18 +271,6 @@ impl Tx<'_> {
         .fetch_one(&mut *self.conn)
         .await?;
         Ok(id)
-    }
-
-    pub(in crate::store) async fn alarm_ack_state(
-        &mut self,
-        id: i64,
-    ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
-        Ok(sqlx::query_as(
-            "select to_level, acknowledged_by, ack_note from alarms where alarm_id = ?",
-        )
-        .bind(id)
-        .fetch_optional(&mut *self.conn)
-        .await?)
     }
 
     pub(in crate::store) async fn acknowledge_alarm(
@@ -521,25 +492,6 @@ impl Tx<'_> {
             .collect())
     }
 
-    pub(in crate::store) async fn results_in(
-        &mut self,
-        target_id: i64,
-        source: i64,
-        from_ns: i64,
-        to_ns: i64,
-    ) -> StoreResult<Vec<ResultRow>> {
-        Ok(sqlx::query_as(&format!(
-            "select {RESULT_COLUMNS} from results where target_id = ? and source = ? \
-             and time_ns >= ? and time_ns <= ? order by time_ns"
-        ))
-        .bind(target_id)
-        .bind(source)
-        .bind(from_ns)
-        .bind(to_ns)
-        .fetch_all(&mut *self.conn)
-        .await?)
-    }
-
     /// Stores the next reference version of a target; returns it.
     pub(in crate::store) async fn insert_reference(
         &mut self,
@@ -634,25 +586,6 @@ impl Tx<'_> {
         .bind(by)
         .bind(note)
         .bind(self.seq)
-        .execute(&mut *self.conn)
-        .await?;
-        Ok(())
-    }
-
-    pub(in crate::store) async fn save_filter_state(
-        &mut self,
-        digest: &str,
-        state_json: &str,
-        now_ns: i64,
-    ) -> StoreResult<()> {
-        sqlx::query(
-            "insert into filter_state (id, installation_digest, state, updated_ns) values (1, ?, ?, ?) \
-             on conflict (id) do update set installation_digest = excluded.installation_digest, \
-             state = excluded.state, updated_ns = excluded.updated_ns",
-        )
-        .bind(digest)
-        .bind(state_json)
-        .bind(now_ns)
         .execute(&mut *self.conn)
         .await?;
         Ok(())

@@ -1,0 +1,135 @@
+//! The statements both backends run, each written once.
+//!
+//! Placeholders are `$1, $2, ...`, which PostgreSQL takes and SQLite takes as numbered
+//! parameters (a number used twice is one parameter, bound once). Column lists come from the
+//! table descriptions of [`super::schema`]. What differs between the engines (PostgreSQL's
+//! `COPY` and partition upkeep, SQLite's outbox column and multi-row inserts) stays in the
+//! backends' modules.
+
+use super::schema::{ALARMS, CALIBRATIONS, REFERENCES, RESULTS, SAMPLES};
+use std::sync::LazyLock;
+
+/// Samples of a link in a time window, oldest first: `$1` link id, `$2`..`$3` the window
+/// (ns, inclusive), `$4` the most rows.
+pub(super) static SAMPLES_IN: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {} from samples where link_id = $1 and time_ns >= $2 and time_ns <= $3 \
+         order by time_ns limit $4",
+        SAMPLES.list()
+    )
+});
+
+/// Results of a target and source in a time window, oldest first: `$1` target id, `$2`
+/// source, `$3`..`$4` the window (ns, inclusive), `$5` the most rows.
+pub(super) static RESULTS_IN: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {} from results where target_id = $1 and source = $2 \
+         and time_ns >= $3 and time_ns <= $4 order by time_ns limit $5",
+        RESULTS.list()
+    )
+});
+
+/// The time and pose of results, as [`RESULTS_IN`] without a limit: what the statistics of a
+/// window fold.
+pub(super) const RESULT_POSES_IN: &str = "select time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz \
+     from results where target_id = $1 and source = $2 and time_ns >= $3 and time_ns <= $4 \
+     order by time_ns";
+
+/// How many results of a target and source lie in a window.
+pub(super) const COUNT_RESULTS: &str = "select count(*) from results where target_id = $1 \
+     and source = $2 and time_ns >= $3 and time_ns <= $4";
+
+/// How many samples of a link lie in a window.
+pub(super) const COUNT_SAMPLES: &str =
+    "select count(*) from samples where link_id = $1 and time_ns >= $2 and time_ns <= $3";
+
+/// The newest result of a target and source at or before `$3`.
+pub(super) static RESULT_AT_OR_BEFORE: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {} from results where target_id = $1 and source = $2 and time_ns <= $3 \
+         order by time_ns desc limit 1",
+        RESULTS.list()
+    )
+});
+
+/// The oldest result of a target and source after `$3`.
+pub(super) static RESULT_AFTER: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {} from results where target_id = $1 and source = $2 and time_ns > $3 \
+         order by time_ns asc limit 1",
+        RESULTS.list()
+    )
+});
+
+/// Every reference version of a target, oldest first.
+pub(super) static REFERENCES_OF: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {} from target_references where target_id = $1 order by version",
+        REFERENCES.list()
+    )
+});
+
+/// Every calibration version of a link, oldest first.
+pub(super) static CALIBRATIONS_OF: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {} from calibrations where link_id = $1 order by version",
+        CALIBRATIONS.list()
+    )
+});
+
+/// The newest manual restart of each link's filter.
+pub(super) const LAST_LINK_RESETS: &str = "select r.link_id, r.created_ns, r.by_name, r.note \
+     from link_resets r \
+     where r.created_ns = (select max(created_ns) from link_resets where link_id = r.link_id)";
+
+/// The persisted filter state.
+pub(super) const FILTER_STATE: &str =
+    "select installation_digest, state from filter_state where id = 1";
+
+/// Saves the filter state: `$1` the installation's digest, `$2` the state, `$3` now (ns).
+pub(super) const SAVE_FILTER_STATE: &str = "insert into filter_state \
+     (id, installation_digest, state, updated_ns) values (1, $1, $2, $3) \
+     on conflict (id) do update set installation_digest = excluded.installation_digest, \
+     state = excluded.state, updated_ns = excluded.updated_ns";
+
+/// One alarm transition by id.
+pub(super) static ALARM_BY_ID: LazyLock<String> =
+    LazyLock::new(|| format!("select {} from alarms where alarm_id = $1", ALARMS.list()));
+
+/// Alarm transitions of one target (`$1`, or all when null) in a window, oldest first.
+pub(super) static ALARMS_OLDEST_FIRST: LazyLock<String> =
+    LazyLock::new(|| alarms_in("time_ns, target_id, kind"));
+
+/// As [`ALARMS_OLDEST_FIRST`], newest first.
+pub(super) static ALARMS_NEWEST_FIRST: LazyLock<String> =
+    LazyLock::new(|| alarms_in("time_ns desc, target_id desc, kind desc"));
+
+fn alarms_in(order: &str) -> String {
+    format!(
+        "select {} from alarms where ($1 is null or target_id = $1) \
+         and time_ns >= $2 and time_ns <= $3 order by {order} limit $4",
+        ALARMS.list()
+    )
+}
+
+/// The level an alarm kind (`$2`) of a target (`$1`) was last left at.
+pub(super) const LAST_ALARM_LEVEL: &str = "select to_level from alarms \
+     where target_id = $1 and kind = $2 order by time_ns desc limit 1";
+
+/// The level and acknowledgement of an alarm transition.
+pub(super) const ALARM_ACK_STATE: &str =
+    "select to_level, acknowledged_by, ack_note from alarms where alarm_id = $1";
+
+/// The first bucket start of a rollup level (`$1` target, `$2` source, `$3` width). Each end
+/// is its own indexed lookup (SQLite optimises a lone `min` or `max`, not both in one query).
+pub(super) const ROLLUP_FIRST: &str = "select bucket_ns from rollups \
+     where target_id = $1 and source = $2 and width_s = $3 order by bucket_ns asc limit 1";
+
+/// The last bucket start of a rollup level.
+pub(super) const ROLLUP_LAST: &str = "select bucket_ns from rollups \
+     where target_id = $1 and source = $2 and width_s = $3 order by bucket_ns desc limit 1";
+
+/// Rollup rows `(start, n, n_def, stats)` of one level with starts in `[$4, $5]`.
+pub(super) const ROLLUP_ROWS: &str = "select bucket_ns, n, n_def, stats from rollups \
+     where target_id = $1 and source = $2 and width_s = $3 \
+     and bucket_ns >= $4 and bucket_ns <= $5 order by bucket_ns";
