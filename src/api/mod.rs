@@ -191,6 +191,11 @@ pub struct HealthOut {
     /// why; the other sites' went on. The answer stays 200.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub centre_problem: Option<String>,
+    /// The background tasks (uploader, webhook delivery, retention, liveness, the centre's
+    /// upkeep) that stopped while the service runs, and why. The service must be restarted:
+    /// the answer is 503.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tasks_problem: Option<String>,
     /// True on a fleet's centre (it serves `GET /api/v1/sites`); absent otherwise. The
     /// dashboard reads it to show the fleet.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
@@ -215,7 +220,7 @@ pub struct TargetHealthOut {
 #[utoipa::path(get, path = "/healthz", tag = "operations",
     responses(
         (status = 200, description = "The database answers and the writer runs", body = HealthOut),
-        (status = 503, description = "The database or the writer is in trouble (the last commit failed, the database file was removed or replaced, it does not answer); `problem` says what", body = HealthOut),
+        (status = 503, description = "The database or the writer is in trouble (the last commit failed, the database file was removed or replaced, it does not answer; `problem` says what), or a background task stopped (`tasks_problem` says which and why)", body = HealthOut),
     ),
     security(()))]
 async fn healthz(
@@ -226,6 +231,8 @@ async fn healthz(
     let database = health.reachable;
     let writer = alive && health.writer_ok;
     let ok = database && writer;
+    let tasks_problem = app.service.tasks_problem();
+    let ok = ok && tasks_problem.is_none();
     let problem = if alive {
         health.problem
     } else {
@@ -263,6 +270,7 @@ async fn healthz(
             problem,
             upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
             storage_problem: app.service.storage_problem(),
+            tasks_problem,
             centre_problem: app
                 .upkeep_problem
                 .lock()
@@ -573,7 +581,8 @@ fn spawn_centre_upkeep(state: &AppState) -> Option<tokio::task::JoinHandle<()>> 
     let settings = state.service.installation().fleet.central?;
     let service = state.service.clone();
     let mut stopping = service.stopping();
-    Some(tokio::spawn(async move {
+    let watched = state.service.clone();
+    Some(watched.spawn_watched("centre upkeep", async move {
         let mut every = tokio::time::interval(Duration::from_secs(600));
         every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -634,10 +643,10 @@ fn spawn_centre_upkeep(state: &AppState) -> Option<tokio::task::JoinHandle<()>> 
 /// Starts the uploader of a site that pushes to a centre.
 fn spawn_uploader(state: &AppState) -> Option<tokio::task::JoinHandle<()>> {
     let upstream = Arc::clone(state.upstream.as_ref()?);
-    Some(tokio::spawn(crate::fleet::uploader::run(
-        state.service.clone(),
-        upstream,
-    )))
+    Some(state.service.spawn_watched(
+        "uploader",
+        crate::fleet::uploader::run(state.service.clone(), upstream),
+    ))
 }
 
 impl App {

@@ -131,18 +131,15 @@ impl Webhooks {
         for i in 0..hooks.len() {
             let (tx, rx) = mpsc::channel::<Arc<Delivery>>(QUEUE_CAPACITY);
             queues.push(tx);
-            tasks.push(tokio::spawn(deliver_all(
-                Arc::clone(&hooks),
-                i,
-                rx,
-                client.clone(),
-                service.clock(),
-            )));
+            tasks.push(service.spawn_watched(
+                "webhook delivery",
+                deliver_all(Arc::clone(&hooks), i, rx, client.clone(), service.clock()),
+            ));
         }
         let names: Vec<String> = service.installation().model.target_names();
         let dispatch_hooks = Arc::clone(&hooks);
         let clock = service.clock();
-        tasks.push(tokio::spawn(async move {
+        tasks.push(service.spawn_watched("webhook dispatch", async move {
             while let Some(alarm) = feed.recv().await {
                 let Some(name) = names.get(alarm.target) else {
                     continue;

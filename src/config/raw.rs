@@ -120,17 +120,17 @@ pub(super) struct RawOscillation {
 pub(super) struct RawServer {
     pub listen: Option<Spanned<String>>,
     pub database: Option<Spanned<String>>,
-    pub max_body_bytes: Option<usize>,
-    pub max_batch_samples: Option<usize>,
-    pub events_max_hz: Option<f64>,
-    pub max_future_s: Option<f64>,
-    pub clock_tolerance_s: Option<f64>,
+    pub max_body_bytes: Option<Spanned<usize>>,
+    pub max_batch_samples: Option<Spanned<usize>>,
+    pub events_max_hz: Option<Spanned<f64>>,
+    pub max_future_s: Option<Spanned<f64>>,
+    pub clock_tolerance_s: Option<Spanned<f64>>,
     pub allowed_hosts: Option<Vec<String>>,
-    pub max_connections: Option<usize>,
-    pub max_connections_per_address: Option<usize>,
-    pub header_timeout_s: Option<f64>,
-    pub shutdown_grace_s: Option<f64>,
-    pub max_heavy_reads: Option<usize>,
+    pub max_connections: Option<Spanned<usize>>,
+    pub max_connections_per_address: Option<Spanned<usize>>,
+    pub header_timeout_s: Option<Spanned<f64>>,
+    pub shutdown_grace_s: Option<Spanned<f64>>,
+    pub max_heavy_reads: Option<Spanned<usize>>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -24,6 +24,11 @@ use crate::model::{
 };
 use crate::vision::{CameraModel, Polarity};
 use std::net::SocketAddr;
+use toml::Spanned;
+
+/// The longest duration the file may give (seconds; a leap year). Durations become timers, and
+/// a timer of 1e20 s overflows in the task that sets it.
+const MAX_DURATION_S: f64 = 366.0 * 86_400.0;
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -394,7 +399,7 @@ impl Validator {
                     ok &= self.within(at, "upstream.raw_kbit_s (or 0)", raw_kbit_s, 0.01, 1e7);
                 }
                 let heartbeat_s = u.heartbeat_s.unwrap_or(10.0);
-                ok &= self.within(at, "upstream.heartbeat_s", heartbeat_s, 0.05, 86_400.0);
+                ok &= self.duration(at, "upstream.heartbeat_s", heartbeat_s, 0.05, 86_400.0);
                 let batch_rows = u.batch_rows.unwrap_or(20_000);
                 if batch_rows == 0 {
                     self.problem(at, "upstream.batch_rows must be at least 1".into());
@@ -459,7 +464,7 @@ impl Validator {
         };
         let archive_every_s = f.archive_every_s.unwrap_or(60.0);
         let archive_max_mb = f.archive_max_mb.unwrap_or(1024.0);
-        let mut ok = self.within(at, "frames.archive_every_s", archive_every_s, 0.001, 31e6)
+        let mut ok = self.duration(at, "frames.archive_every_s", archive_every_s, 0.001, 31e6)
             & self.within(at, "frames.archive_max_mb", archive_max_mb, 0.001, 1e9);
         if f.archive_dir.as_deref() == Some("") {
             self.problem(
@@ -582,56 +587,80 @@ impl Validator {
                 }
             },
         };
+        let r = &raw.server;
         Some(ServerSettings {
             listen,
-            database: self.database(raw.server.database.as_ref())?,
+            database: self.database(r.database.as_ref())?,
             max_body_bytes: self.count(
                 "server.max_body_bytes",
-                raw.server.max_body_bytes,
+                r.max_body_bytes.as_ref(),
                 32 * 1024 * 1024,
                 1024,
                 1 << 34,
             )?,
             max_batch_samples: self.count(
                 "server.max_batch_samples",
-                raw.server.max_batch_samples,
+                r.max_batch_samples.as_ref(),
                 100_000,
                 1,
                 100_000_000,
             )?,
-            events_max_hz: match raw.server.events_max_hz {
+            events_max_hz: match &r.events_max_hz {
                 None => 10.0,
-                Some(hz) if self.within(0, "server.events_max_hz", hz, 0.001, 1000.0) => hz,
-                Some(_) => return None,
+                Some(hz) => {
+                    let (at, hz) = (hz.span().start, *hz.get_ref());
+                    if !self.within(at, "server.events_max_hz", hz, 0.001, 1000.0) {
+                        return None;
+                    }
+                    hz
+                }
             },
-            max_future_s: self.seconds("server.max_future_s", raw.server.max_future_s, 5.0)?,
+            max_future_s: self.seconds(
+                "server.max_future_s",
+                r.max_future_s.as_ref(),
+                5.0,
+                0.0,
+                MAX_DURATION_S,
+            )?,
             clock_tolerance_s: self.seconds(
                 "server.clock_tolerance_s",
-                raw.server.clock_tolerance_s,
+                r.clock_tolerance_s.as_ref(),
                 2.0,
+                0.0,
+                MAX_DURATION_S,
             )?,
-            allowed_hosts: raw.server.allowed_hosts.clone().unwrap_or_default(),
-            max_connections: match raw.server.max_connections {
+            allowed_hosts: r.allowed_hosts.clone().unwrap_or_default(),
+            max_connections: match &r.max_connections {
                 None => None,
-                n => Some(self.count("server.max_connections", n, 0, 16, 1_000_000)?),
+                n => Some(self.count("server.max_connections", n.as_ref(), 0, 16, 1_000_000)?),
             },
-            max_connections_per_address: match raw.server.max_connections_per_address {
+            max_connections_per_address: match &r.max_connections_per_address {
                 None => None,
-                n => Some(self.count("server.max_connections_per_address", n, 0, 1, 1_000_000)?),
+                n => Some(self.count(
+                    "server.max_connections_per_address",
+                    n.as_ref(),
+                    0,
+                    1,
+                    1_000_000,
+                )?),
             },
             header_timeout_s: self.seconds(
                 "server.header_timeout_s",
-                raw.server.header_timeout_s,
+                r.header_timeout_s.as_ref(),
                 10.0,
+                0.0,
+                1e6,
             )?,
             shutdown_grace_s: self.seconds(
                 "server.shutdown_grace_s",
-                raw.server.shutdown_grace_s,
+                r.shutdown_grace_s.as_ref(),
                 10.0,
+                0.0,
+                1e6,
             )?,
             max_heavy_reads: self.count(
                 "server.max_heavy_reads",
-                raw.server.max_heavy_reads,
+                r.max_heavy_reads.as_ref(),
                 2,
                 1,
                 1024,
@@ -639,37 +668,64 @@ impl Validator {
         })
     }
 
-    /// A whole number with a default, refused (not clamped) outside `[lo, hi]`.
+    /// A whole number with a default, refused (not clamped) outside `[lo, hi]`, at its line.
     fn count(
         &mut self,
         key: &str,
-        value: Option<usize>,
+        value: Option<&Spanned<usize>>,
         default: usize,
         lo: usize,
         hi: usize,
     ) -> Option<usize> {
-        match value {
-            None => Some(default),
-            Some(n) if (lo..=hi).contains(&n) => Some(n),
-            Some(n) => {
-                self.problem(0, format!("{key} must lie in [{lo}, {hi}], not {n}"));
-                None
-            }
+        let Some(value) = value else {
+            return Some(default);
+        };
+        let n = *value.get_ref();
+        if (lo..=hi).contains(&n) {
+            Some(n)
+        } else {
+            self.problem(
+                value.span().start,
+                format!("{key} must lie in [{lo}, {hi}], not {n}"),
+            );
+            None
         }
     }
 
-    /// A non-negative, finite number of seconds with a default.
-    fn seconds(&mut self, key: &str, value: Option<f64>, default: f64) -> Option<f64> {
-        match value {
-            None => Some(default),
-            Some(s) if (0.0..=1e6).contains(&s) => Some(s),
-            Some(s) => {
-                self.problem(
-                    0,
-                    format!("{key} must be a number of seconds from 0 to 1e6, not {s}"),
-                );
-                None
-            }
+    /// A duration in seconds with a default, refused outside `[lo_s, hi_s]` at its line. Every
+    /// duration of the file goes through here or [`Validator::duration`]: one bounded beyond
+    /// [`MAX_DURATION_S`] would overflow the timer that uses it, long after the start.
+    fn seconds(
+        &mut self,
+        key: &str,
+        value: Option<&Spanned<f64>>,
+        default: f64,
+        lo_s: f64,
+        hi_s: f64,
+    ) -> Option<f64> {
+        let Some(value) = value else {
+            return Some(default);
+        };
+        let s = *value.get_ref();
+        self.duration(value.span().start, key, s, lo_s, hi_s)
+            .then_some(s)
+    }
+
+    /// True when `value_s` is a duration in `[lo_s, hi_s]` (`hi_s` at most
+    /// [`MAX_DURATION_S`]); otherwise says so at `at`.
+    fn duration(&mut self, at: usize, key: &str, value_s: f64, lo_s: f64, hi_s: f64) -> bool {
+        debug_assert!(
+            hi_s <= MAX_DURATION_S,
+            "{key}: a bound past the longest duration"
+        );
+        if value_s.is_finite() && (lo_s..=hi_s.min(MAX_DURATION_S)).contains(&value_s) {
+            true
+        } else {
+            self.problem(
+                at,
+                format!("{key} must lie in [{lo_s}, {hi_s}] seconds, not {value_s}"),
+            );
+            false
         }
     }
 
@@ -1151,11 +1207,19 @@ impl Validator {
                 );
                 ok = false;
             }
-            ok &= self.positive(at, &format!("{what}: oscillation.period_s"), o.period_s);
-            ok &= self.positive(
+            ok &= self.duration(
+                at,
+                &format!("{what}: oscillation.period_s"),
+                o.period_s,
+                1e-6,
+                MAX_DURATION_S,
+            );
+            ok &= self.duration(
                 at,
                 &format!("{what}: oscillation.correlation_time_s"),
                 o.correlation_time_s,
+                1e-6,
+                MAX_DURATION_S,
             );
             for v in o.rotation_arcsec.per_axis() {
                 ok &= self.positive(at, &format!("{what}: oscillation.rotation_arcsec"), v);
@@ -1312,12 +1376,13 @@ impl Validator {
             );
         }
         let dwell_s = a.dwell_s.unwrap_or(1.0);
-        if !(dwell_s.is_finite() && dwell_s >= 0.0) {
-            self.problem(
-                at,
-                format!("{what}: dwell_s must be zero or more seconds, not {dwell_s}"),
-            );
-        }
+        self.duration(
+            at,
+            &format!("{what}: dwell_s"),
+            dwell_s,
+            0.0,
+            MAX_DURATION_S,
+        );
         for (name, v) in [
             ("rate_rotation_arcsec_per_s", a.rate_rotation_arcsec_per_s),
             ("rate_translation_mm_per_s", a.rate_translation_mm_per_s),
@@ -1378,7 +1443,7 @@ impl Validator {
                 }
             };
             let timeout_s = w.timeout_s.unwrap_or(10.0);
-            ok &= self.within(at, &format!("{what}.timeout_s"), timeout_s, 0.01, 3600.0);
+            ok &= self.duration(at, &format!("{what}.timeout_s"), timeout_s, 0.01, 3600.0);
             let max_attempts = w.max_attempts.unwrap_or(8);
             if !(1..=100).contains(&max_attempts) {
                 self.problem(

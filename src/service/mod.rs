@@ -14,8 +14,10 @@
 
 mod metrics;
 mod pipeline;
+mod tasks;
 
 pub use metrics::Metrics;
+pub use tasks::TaskWatch;
 
 pub use pipeline::{IngestItem, IngestReport};
 
@@ -335,6 +337,8 @@ struct Inner {
     heavy_reads: Arc<tokio::sync::Semaphore>,
     /// The last removal the disk budget forced (see [`Service::storage_problem`]).
     storage_problem: std::sync::Mutex<Option<String>>,
+    /// The background tasks, watched.
+    tasks: TaskWatch,
 }
 
 /// What one pass of retention removed.
@@ -510,6 +514,7 @@ impl Service {
             clock: Arc::clone(&clock),
             alarm_feed: std::sync::Mutex::new(alarm_rx),
             storage_problem: std::sync::Mutex::new(None),
+            tasks: TaskWatch::default(),
             heavy_reads: Arc::new(tokio::sync::Semaphore::new(
                 installation.server.max_heavy_reads,
             )),
@@ -539,7 +544,7 @@ impl Service {
         let service = Service { inner };
         // Retention runs every ten minutes through the pipeline; the task ends with the service.
         let weak = Arc::downgrade(&service.inner);
-        tokio::spawn(async move {
+        service.spawn_watched("retention", async move {
             let mut every = tokio::time::interval(std::time::Duration::from_secs(600));
             every.tick().await;
             loop {
@@ -556,7 +561,7 @@ impl Service {
         });
         // Staleness is judged every second on the server's clock, whether data comes or not.
         let weak = Arc::downgrade(&service.inner);
-        tokio::spawn(async move {
+        service.spawn_watched("liveness", async move {
             let mut every =
                 tokio::time::interval(std::time::Duration::from_secs_f64(LIVENESS_CHECK_S));
             every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -640,6 +645,20 @@ impl Service {
     /// Marks the start of shutdown: live event streams end.
     pub fn begin_shutdown(&self) {
         self.inner.stopping.send_replace(true);
+    }
+
+    /// Spawns a background task that lives as long as the service: one that ends before
+    /// shutdown begins is reported by [`Service::tasks_problem`].
+    pub fn spawn_watched<F>(&self, name: &'static str, task: F) -> tokio::task::JoinHandle<()>
+    where
+        F: std::future::Future<Output = ()> + Send + 'static,
+    {
+        self.inner.tasks.spawn(name, self.stopping(), task)
+    }
+
+    /// The background tasks that stopped while the service runs, and why.
+    pub fn tasks_problem(&self) -> Option<String> {
+        self.inner.tasks.problem()
     }
 
     /// Turns true when shutdown begins.

@@ -579,12 +579,19 @@ fn numbers_that_would_kill_a_task_later_are_refused_at_start() {
         ("max_body_bytes", "10"),
         ("max_connections", "3"),
         ("max_heavy_reads", "0"),
+        ("header_timeout_s", "1e20"),
+        ("shutdown_grace_s", "-1"),
     ] {
         let text = format!("{VALID}\n[server]\n{key} = {value}\n");
         let e = error_of(&text);
         assert!(
             e.contains(&format!("server.{key} must lie in")),
             "{key} is refused, not clamped: {e}"
+        );
+        let line = line_of(&text, &format!("{key} = {value}"));
+        assert!(
+            e.contains(&format!("site.toml:{line}:")),
+            "server.{key} is reported at its line {line}: {e}"
         );
     }
 }
