@@ -9,6 +9,7 @@
 //! page load, and they hold no data (the page sends the token with its API calls).
 
 use super::error::ApiError;
+use crate::api::error::ErrorCode;
 use crate::config::{Scope, TokenSpec};
 use axum::extract::Request;
 use axum::http::{Method, StatusCode, header};
@@ -158,7 +159,7 @@ pub async fn require_token(
     let Some(given) = given else {
         return Err(ApiError::new(
             StatusCode::UNAUTHORIZED,
-            "unauthorized",
+            ErrorCode::Unauthorized,
             "this request needs `Authorization: Bearer <token>`",
         ));
     };
@@ -166,7 +167,7 @@ pub async fn require_token(
     let Some(token) = tokens.iter().find(|t| t.sha256_hex == hash) else {
         return Err(ApiError::new(
             StatusCode::UNAUTHORIZED,
-            "unauthorized",
+            ErrorCode::Unauthorized,
             "the token is not known",
         ));
     };
@@ -175,7 +176,7 @@ pub async fn require_token(
     if !token.scopes.contains(&needed) && !admin_may {
         return Err(ApiError::new(
             StatusCode::FORBIDDEN,
-            "forbidden",
+            ErrorCode::Forbidden,
             format!(
                 "token `{}` lacks the `{}` scope this request needs",
                 token.name,
@@ -258,7 +259,7 @@ pub async fn local_only(
     {
         return Err(ApiError::new(
             StatusCode::FORBIDDEN,
-            "host_not_allowed",
+            ErrorCode::HostNotAllowed,
             format!(
                 "`Host: {host}` is not a name of this service; without tokens it answers only to \
                  localhost, IP addresses and `[server] allowed_hosts`"
@@ -273,7 +274,7 @@ pub async fn local_only(
         if !origin_host.is_some_and(|h| guard.allows(h)) {
             return Err(ApiError::new(
                 StatusCode::FORBIDDEN,
-                "origin_not_allowed",
+                ErrorCode::OriginNotAllowed,
                 format!(
                     "requests from the web origin `{text}` are refused: without tokens only pages \
                      of this service may call it"
@@ -312,7 +313,7 @@ pub async fn local_only(
         if refused {
             return Err(ApiError::new(
                 StatusCode::UNSUPPORTED_MEDIA_TYPE,
-                "unsupported_media_type",
+                ErrorCode::UnsupportedMediaType,
                 format!(
                     "a write must be sent as `Content-Type: application/json` (or \
                      application/x-ndjson; a frame as image/png, image/tiff or \

@@ -8,6 +8,7 @@ use super::dto::{FieldProblem, PoseOut, invalid};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::read_body;
 use super::parse_json_body;
+use crate::api::error::ErrorCode;
 use crate::vision::{
     CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, Intrinsic, Plate,
     Polarity, calibrate_camera, intrinsics_of,
@@ -280,7 +281,7 @@ pub fn parse_fix(fix: &[String]) -> Result<Vec<Intrinsic>, FieldProblem> {
 pub fn refused(e: crate::vision::VisionError) -> ApiError {
     ApiError::new(
         StatusCode::UNPROCESSABLE_ENTITY,
-        "calibration_refused",
+        ErrorCode::CalibrationRefused,
         e.to_string(),
     )
 }

@@ -2,6 +2,7 @@
 //! knows these shapes (`docs/interface.md`, "HTTP API" and "Conventions"); field names carry their units.
 
 use super::error::{ApiError, ErrorDetail};
+use crate::api::error::ErrorCode;
 use crate::geometry::{
     ARCSEC_PER_RAD, MAX_ROTATION_SIGMA_ARCSEC, MAX_TRANSLATION_SIGMA_MM, Mat6, Pose, PoseCov,
     ReportedSigmas, check_covariance, euler_from_rotation, pose_from_parts, quaternion_wxyz,
@@ -339,7 +340,7 @@ pub fn invalid(
 ) -> ApiError {
     ApiError::new(
         axum::http::StatusCode::UNPROCESSABLE_ENTITY,
-        "invalid_request",
+        ErrorCode::InvalidRequest,
         message,
     )
     .with_details(

@@ -37,13 +37,164 @@ pub const MAX_DETAILS: usize = 100;
 /// The longest detail message (characters); a longer one is cut (it may quote a value sent).
 const MAX_DETAIL_CHARS: usize = 300;
 
+/// The stable machine-readable code of every error answer (`error.code`). Serialised as its
+/// snake_case name; `docs/interface.md` lists them all.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize, utoipa::ToSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// The request is not what the endpoint takes (a framework refusal without more to say).
+    BadRequest,
+    /// The request line or headers do not parse as HTTP.
+    MalformedRequest,
+    /// The body is not JSON, or not UTF-8.
+    MalformedJson,
+    /// The body is not in its stated encoding (a fleet upload that is not zstd or not its JSON).
+    MalformedBody,
+    /// The body could not be read to its end (the client stopped sending).
+    UnreadableBody,
+    /// No token, or one the service does not know.
+    Unauthorized,
+    /// The token lacks the scope, or does not speak for this site.
+    Forbidden,
+    /// The `Host` header is not one the service answers to.
+    HostNotAllowed,
+    /// A browser request from another origin.
+    OriginNotAllowed,
+    /// No such route, target, link, camera, alarm or site.
+    NotFound,
+    /// The route exists, the method does not.
+    MethodNotAllowed,
+    /// The request's headers did not arrive in time.
+    RequestTimeout,
+    /// The request contradicts what is stored (a duplicate with other values).
+    Conflict,
+    /// The body exceeds its limit.
+    PayloadTooLarge,
+    /// More items than `[server] max_batch_samples`.
+    BatchTooLarge,
+    /// A `Content-Type` the endpoint does not take.
+    UnsupportedMediaType,
+    /// A field has a value the endpoint refuses; `details` name it.
+    InvalidRequest,
+    /// Samples refused item by item; `details` name each.
+    InvalidSamples,
+    /// The calibration could not be computed from what was sent.
+    CalibrationRefused,
+    /// The link is measured, not calibrated.
+    NotCalibrated,
+    /// The request's headers exceed their limit.
+    HeadersTooLarge,
+    /// The database does not answer or a commit failed; nothing was stored.
+    StorageUnavailable,
+    /// The database refused a value; nothing was stored.
+    ValueRefused,
+    /// Every slot for this kind of work is taken; retry shortly.
+    Busy,
+    /// A site's upload does not follow what the centre holds of its stream.
+    OutboxChanged,
+    /// A site's outbox generation descends from none the centre knows.
+    GenerationUnknown,
+    /// A site's commits went back within one generation (a restored copy).
+    CommitsWentBack,
+    /// The writer is not running.
+    WriterStopped,
+    /// The service is stopping.
+    ShuttingDown,
+    /// The viewer could not be reached or written to.
+    VisualisationFailed,
+    /// Something that should not fail did; the message says what.
+    Internal,
+}
+
+impl ErrorCode {
+    /// Every code, in the order `docs/interface.md` lists them.
+    pub const ALL: [ErrorCode; 31] = [
+        ErrorCode::BadRequest,
+        ErrorCode::MalformedRequest,
+        ErrorCode::MalformedJson,
+        ErrorCode::MalformedBody,
+        ErrorCode::UnreadableBody,
+        ErrorCode::Unauthorized,
+        ErrorCode::Forbidden,
+        ErrorCode::HostNotAllowed,
+        ErrorCode::OriginNotAllowed,
+        ErrorCode::NotFound,
+        ErrorCode::MethodNotAllowed,
+        ErrorCode::RequestTimeout,
+        ErrorCode::Conflict,
+        ErrorCode::PayloadTooLarge,
+        ErrorCode::BatchTooLarge,
+        ErrorCode::UnsupportedMediaType,
+        ErrorCode::InvalidRequest,
+        ErrorCode::InvalidSamples,
+        ErrorCode::CalibrationRefused,
+        ErrorCode::NotCalibrated,
+        ErrorCode::HeadersTooLarge,
+        ErrorCode::StorageUnavailable,
+        ErrorCode::ValueRefused,
+        ErrorCode::Busy,
+        ErrorCode::OutboxChanged,
+        ErrorCode::GenerationUnknown,
+        ErrorCode::CommitsWentBack,
+        ErrorCode::WriterStopped,
+        ErrorCode::ShuttingDown,
+        ErrorCode::VisualisationFailed,
+        ErrorCode::Internal,
+    ];
+
+    /// The code's name on the wire.
+    pub fn name(self) -> &'static str {
+        match self {
+            ErrorCode::BadRequest => "bad_request",
+            ErrorCode::MalformedRequest => "malformed_request",
+            ErrorCode::MalformedJson => "malformed_json",
+            ErrorCode::MalformedBody => "malformed_body",
+            ErrorCode::UnreadableBody => "unreadable_body",
+            ErrorCode::Unauthorized => "unauthorized",
+            ErrorCode::Forbidden => "forbidden",
+            ErrorCode::HostNotAllowed => "host_not_allowed",
+            ErrorCode::OriginNotAllowed => "origin_not_allowed",
+            ErrorCode::NotFound => "not_found",
+            ErrorCode::MethodNotAllowed => "method_not_allowed",
+            ErrorCode::RequestTimeout => "request_timeout",
+            ErrorCode::Conflict => "conflict",
+            ErrorCode::PayloadTooLarge => "payload_too_large",
+            ErrorCode::BatchTooLarge => "batch_too_large",
+            ErrorCode::UnsupportedMediaType => "unsupported_media_type",
+            ErrorCode::InvalidRequest => "invalid_request",
+            ErrorCode::InvalidSamples => "invalid_samples",
+            ErrorCode::CalibrationRefused => "calibration_refused",
+            ErrorCode::NotCalibrated => "not_calibrated",
+            ErrorCode::HeadersTooLarge => "headers_too_large",
+            ErrorCode::StorageUnavailable => "storage_unavailable",
+            ErrorCode::ValueRefused => "value_refused",
+            ErrorCode::Busy => "busy",
+            ErrorCode::OutboxChanged => "outbox_changed",
+            ErrorCode::GenerationUnknown => "generation_unknown",
+            ErrorCode::CommitsWentBack => "commits_went_back",
+            ErrorCode::WriterStopped => "writer_stopped",
+            ErrorCode::ShuttingDown => "shutting_down",
+            ErrorCode::VisualisationFailed => "visualisation_failed",
+            ErrorCode::Internal => "internal",
+        }
+    }
+}
+
+impl std::fmt::Display for ErrorCode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// An error answer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ApiError {
     /// The HTTP status.
     pub status: StatusCode,
     /// A stable machine-readable code (`invalid_samples`, `conflict`, `not_found`, ...).
-    pub code: &'static str,
+    pub code: ErrorCode,
     /// A sentence for people.
     pub message: String,
     /// The items and fields concerned (at most `MAX_DETAILS`, 100).
@@ -63,7 +214,7 @@ pub struct ErrorBody {
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct ErrorContent {
     /// A stable machine-readable code (`invalid_samples`, `conflict`, `not_found`, ...).
-    pub code: String,
+    pub code: ErrorCode,
     /// A sentence for people.
     pub message: String,
     /// The items and fields concerned: the first hundred.
@@ -79,7 +230,7 @@ fn is_zero(n: &usize) -> bool {
 
 impl ApiError {
     /// A new error without details.
-    pub fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> Self {
+    pub fn new(status: StatusCode, code: ErrorCode, message: impl Into<String>) -> Self {
         Self {
             status,
             code,
@@ -123,18 +274,22 @@ impl ApiError {
     }
 
     /// 400 Bad Request.
-    pub fn bad_request(code: &'static str, message: impl Into<String>) -> Self {
+    pub fn bad_request(code: ErrorCode, message: impl Into<String>) -> Self {
         Self::new(StatusCode::BAD_REQUEST, code, message)
     }
 
     /// 500: something that should not fail did (the message says what).
     pub fn internal(message: impl Into<String>) -> Self {
-        Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", message)
+        Self::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            ErrorCode::Internal,
+            message,
+        )
     }
 
     /// 404 Not Found.
     pub fn not_found(message: impl Into<String>) -> Self {
-        Self::new(StatusCode::NOT_FOUND, "not_found", message)
+        Self::new(StatusCode::NOT_FOUND, ErrorCode::NotFound, message)
     }
 
     /// 422 with one detail naming a field.
@@ -142,7 +297,7 @@ impl ApiError {
         let message = message.into();
         Self::new(
             StatusCode::UNPROCESSABLE_ENTITY,
-            "invalid_request",
+            ErrorCode::InvalidRequest,
             format!("`{field}`: {message}"),
         )
         .with_details(vec![ErrorDetail {
@@ -173,10 +328,15 @@ pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 12] = [
 /// A whole HTTP/1.1 response carrying the error envelope, for the answers the connection
 /// layer writes itself (before any handler runs), closing the connection; counted like every
 /// refusal.
-pub fn raw_response(status: StatusCode, code: &str, message: &str, field: Option<&str>) -> Vec<u8> {
+pub fn raw_response(
+    status: StatusCode,
+    code: ErrorCode,
+    message: &str,
+    field: Option<&str>,
+) -> Vec<u8> {
     count_rejection(status);
     let body = serde_json::json!({"error": {
-        "code": code,
+        "code": code.name(),
         "message": message,
         "details": field.map_or_else(Vec::new, |f| vec![serde_json::json!({"field": f, "message": message})]),
     }})
@@ -206,7 +366,7 @@ impl IntoResponse for ApiError {
         count_rejection(self.status);
         if self.status.is_server_error() {
             // Logged once here; the body says nothing of the internals.
-            tracing::error!(code = self.code, message = %self.message, "request failed");
+            tracing::error!(code = self.code.name(), message = %self.message, "request failed");
         }
         let message = if self.status.is_server_error() {
             "the service could not complete the request; nothing of it was stored".to_owned()
@@ -217,7 +377,7 @@ impl IntoResponse for ApiError {
             self.status,
             Json(ErrorBody {
                 error: ErrorContent {
-                    code: self.code.to_owned(),
+                    code: self.code,
                     message,
                     details: self.details,
                     details_omitted: self.details_omitted,
@@ -231,41 +391,45 @@ impl IntoResponse for ApiError {
 impl From<ServiceError> for ApiError {
     fn from(e: ServiceError) -> Self {
         match e {
-            ServiceError::Invalid { message, problems } => {
-                ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid_request", message)
-                    .with_details(problems.into_iter().map(Into::into).collect())
-            }
+            ServiceError::Invalid { message, problems } => ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                ErrorCode::InvalidRequest,
+                message,
+            )
+            .with_details(problems.into_iter().map(Into::into).collect()),
             ServiceError::Conflict { message, problems } => {
-                ApiError::new(StatusCode::CONFLICT, "conflict", message)
+                ApiError::new(StatusCode::CONFLICT, ErrorCode::Conflict, message)
                     .with_details(problems.into_iter().map(Into::into).collect())
             }
             ServiceError::NotFound(m) => ApiError::not_found(m),
             ServiceError::Storage(crate::store::StoreError::ValueRefused(m)) => ApiError::new(
                 StatusCode::UNPROCESSABLE_ENTITY,
-                "value_refused",
+                ErrorCode::ValueRefused,
                 format!("the database refuses a value of the request: {m}"),
             ),
             ServiceError::Storage(e) => ApiError::new(
                 StatusCode::SERVICE_UNAVAILABLE,
-                "storage_unavailable",
+                ErrorCode::StorageUnavailable,
                 e.to_string(),
             ),
-            ServiceError::CommitFailed(m) => {
-                ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "storage_unavailable", m)
-            }
+            ServiceError::CommitFailed(m) => ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                ErrorCode::StorageUnavailable,
+                m,
+            ),
             ServiceError::WriterStopped => ApiError::new(
                 StatusCode::INTERNAL_SERVER_ERROR,
-                "writer_stopped",
+                ErrorCode::WriterStopped,
                 "the writer stopped before answering",
             ),
             ServiceError::Viz(e) => ApiError::new(
                 StatusCode::INTERNAL_SERVER_ERROR,
-                "visualisation_failed",
+                ErrorCode::VisualisationFailed,
                 e.to_string(),
             ),
             ServiceError::ShuttingDown => ApiError::new(
                 StatusCode::SERVICE_UNAVAILABLE,
-                "shutting_down",
+                ErrorCode::ShuttingDown,
                 "the service is shutting down",
             ),
         }
@@ -279,18 +443,20 @@ impl From<crate::store::StoreError> for ApiError {
 }
 
 /// The stable code of an error status that a layer below the handlers answered.
-fn code_of(status: StatusCode) -> &'static str {
+fn code_of(status: StatusCode) -> ErrorCode {
     match status.as_u16() {
-        400 => "bad_request",
-        404 => "not_found",
-        405 => "method_not_allowed",
-        408 => "request_timeout",
-        413 => "payload_too_large",
-        415 => "unsupported_media_type",
-        422 => "invalid_request",
-        431 => "headers_too_large",
-        s if s >= 500 => "internal",
-        _ => "error",
+        401 => ErrorCode::Unauthorized,
+        403 => ErrorCode::Forbidden,
+        404 => ErrorCode::NotFound,
+        405 => ErrorCode::MethodNotAllowed,
+        408 => ErrorCode::RequestTimeout,
+        409 => ErrorCode::Conflict,
+        413 => ErrorCode::PayloadTooLarge,
+        415 => ErrorCode::UnsupportedMediaType,
+        422 => ErrorCode::InvalidRequest,
+        431 => ErrorCode::HeadersTooLarge,
+        s if s >= 500 => ErrorCode::Internal,
+        _ => ErrorCode::BadRequest,
     }
 }
 
@@ -330,7 +496,7 @@ pub async fn json_envelope(
     // "Failed to deserialize query string: limit: invalid digit found in string"
     if let Some(rest) = text.strip_prefix("Failed to deserialize query string: ") {
         error.status = StatusCode::UNPROCESSABLE_ENTITY;
-        error.code = "invalid_request";
+        error.code = ErrorCode::InvalidRequest;
         if let Some((field, why)) = rest.split_once(": ") {
             error = error.with_details(vec![ErrorDetail {
                 index: None,

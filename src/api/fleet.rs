@@ -4,6 +4,7 @@
 use super::AppState;
 use super::auth::Caller;
 use super::error::{ApiError, ErrorBody};
+use crate::api::error::ErrorCode;
 use crate::clock::format_ns;
 use crate::config::SiteName;
 use crate::fleet::protocol::{
@@ -57,7 +58,11 @@ fn window_log_max(budget: usize) -> u32 {
 }
 
 fn too_large(message: String) -> ApiError {
-    ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, "payload_too_large", message)
+    ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        ErrorCode::PayloadTooLarge,
+        message,
+    )
 }
 
 /// The body of an upload: decompressed when `Content-Encoding: zstd`, within `budget` bytes of
@@ -89,8 +94,9 @@ fn decompress(headers: &HeaderMap, body: &Bytes, budget: usize) -> Result<Vec<u8
             {
                 return Err(over("says it is"));
             }
-            let mut decoder = zstd::stream::read::Decoder::new(&body[..])
-                .map_err(|e| ApiError::bad_request("malformed_body", format!("not zstd: {e}")))?;
+            let mut decoder = zstd::stream::read::Decoder::new(&body[..]).map_err(|e| {
+                ApiError::bad_request(ErrorCode::MalformedBody, format!("not zstd: {e}"))
+            })?;
             decoder
                 .window_log_max(window_log_max(budget))
                 .map_err(|e| ApiError::internal(format!("zstd decoder: {e}")))?;
@@ -100,7 +106,7 @@ fn decompress(headers: &HeaderMap, body: &Bytes, budget: usize) -> Result<Vec<u8
                 .read_to_end(&mut out)
                 .map_err(|e| {
                     ApiError::bad_request(
-                        "malformed_body",
+                        ErrorCode::MalformedBody,
                         format!("the zstd stream is broken or needs too large a window: {e}"),
                     )
                 })?;
@@ -112,7 +118,7 @@ fn decompress(headers: &HeaderMap, body: &Bytes, budget: usize) -> Result<Vec<u8
         Some(other) => {
             return Err(ApiError::new(
                 StatusCode::UNSUPPORTED_MEDIA_TYPE,
-                "unsupported_media_type",
+                ErrorCode::UnsupportedMediaType,
                 format!("Content-Encoding `{other}`: only zstd or none"),
             ));
         }
@@ -222,7 +228,7 @@ pub async fn post_sync(
     if caller.authenticated && caller.site.as_ref() != Some(&site) {
         return Err(ApiError::new(
             StatusCode::FORBIDDEN,
-            "forbidden",
+            ErrorCode::Forbidden,
             format!("this token does not upload for site `{site}`"),
         ));
     }
@@ -362,7 +368,7 @@ pub async fn post_sync(
         SyncOutcome::GenerationUnknown { generation } => {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
-                "generation_unknown",
+                ErrorCode::GenerationUnknown,
                 format!(
                     "site `{site}` uploads in outbox generation {generation}, which descends \
                      from no generation the centre has received"
@@ -376,7 +382,7 @@ pub async fn post_sync(
         } => {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
-                "commits_went_back",
+                ErrorCode::CommitsWentBack,
                 format!(
                     "site `{site}` reports {head_seq} as its newest commit, but reported \
                      {known_head_seq} before in outbox generation {generation}: its database was \
@@ -388,7 +394,7 @@ pub async fn post_sync(
         SyncOutcome::OutboxChanged { known } => {
             return Err(ApiError::new(
                 StatusCode::CONFLICT,
-                "outbox_changed",
+                ErrorCode::OutboxChanged,
                 format!(
                     "site `{site}` uploads from outbox {}, but the centre has been receiving outbox {known}: \
                      the site's database was replaced or another site uses this name",

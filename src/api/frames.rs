@@ -10,6 +10,7 @@ use super::AppState;
 use super::dto::{PoseOut, SigmaOut};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, read_body};
+use crate::api::error::ErrorCode;
 use crate::archive::ArchiveReason;
 use crate::clock::format_ns;
 use crate::geometry::{Pose, PoseCov};
@@ -161,7 +162,7 @@ pub async fn post_frame(
         let accepted: Vec<&str> = FrameFormat::ALL.iter().map(|f| f.content_type()).collect();
         ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "unsupported_media_type",
+            ErrorCode::UnsupportedMediaType,
             format!(
                 "a frame is sent as {}, not `{content_type}`",
                 accepted.join(", ")

@@ -9,6 +9,7 @@ use super::AppState;
 use super::dto::{SampleIn, covariance_from, invalid};
 use super::error::{ApiError, ErrorBody, ErrorDetail};
 use super::jsonpath::{item_index, offset_of, path_at};
+use crate::api::error::ErrorCode;
 use crate::bank::{MeasurementUncertainty, Sample};
 use crate::clock::{latest_accepted_ns, parse_measurement_time};
 use crate::config::Installation;
@@ -170,7 +171,7 @@ pub async fn read_body(
     let too_large = || {
         ApiError::new(
             StatusCode::PAYLOAD_TOO_LARGE,
-            "payload_too_large",
+            ErrorCode::PayloadTooLarge,
             format!("the request body exceeds the limit of {limit} bytes; send smaller batches"),
         )
     };
@@ -190,7 +191,7 @@ pub async fn read_body(
             too_large()
         } else {
             ApiError::bad_request(
-                "unreadable_body",
+                ErrorCode::UnreadableBody,
                 format!("the request body could not be read: {e}"),
             )
         }
@@ -397,15 +398,17 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
         read.map_err(|e| {
             if e.is_syntax() || e.is_eof() {
                 let (index, field, message) = syntax_problem(text, &e, "");
-                ApiError::bad_request("malformed_json", message).with_details(vec![ErrorDetail {
-                    index,
-                    field: Some(field).filter(|f| !f.is_empty()),
-                    message: "malformed JSON here".into(),
-                }])
+                ApiError::bad_request(ErrorCode::MalformedJson, message).with_details(vec![
+                    ErrorDetail {
+                        index,
+                        field: Some(field).filter(|f| !f.is_empty()),
+                        message: "malformed JSON here".into(),
+                    },
+                ])
             } else {
                 ApiError::new(
                     StatusCode::UNPROCESSABLE_ENTITY,
-                    "invalid_request",
+                    ErrorCode::InvalidRequest,
                     format!("the body must be {{\"samples\": [...]}}: {e}"),
                 )
             }
@@ -415,7 +418,7 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
         let listed = c.problems.len();
         let mut e = ApiError::new(
             StatusCode::UNPROCESSABLE_ENTITY,
-            "invalid_samples",
+            ErrorCode::InvalidSamples,
             format!(
                 "{} sample(s) could not be read; nothing was stored",
                 c.n_problems
@@ -436,7 +439,7 @@ pub fn check_batch_size(what: &str, len: usize, limit: usize) -> Result<(), ApiE
     if len > limit {
         return Err(ApiError::new(
             StatusCode::PAYLOAD_TOO_LARGE,
-            "batch_too_large",
+            ErrorCode::BatchTooLarge,
             format!("the batch has {len} {what}, more than the limit of {limit}; split it"),
         ));
     }
@@ -465,7 +468,10 @@ pub async fn post_samples(
 ) -> Result<Json<IngestResponse>, ApiError> {
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     let text = std::str::from_utf8(&bytes).map_err(|e| {
-        ApiError::bad_request("malformed_json", format!("the body is not UTF-8: {e}"))
+        ApiError::bad_request(
+            ErrorCode::MalformedJson,
+            format!("the body is not UTF-8: {e}"),
+        )
     })?;
     let items = parse_batch(text, is_ndjson(&headers))?;
     check_batch_size("samples", items.len(), app.limits.max_batch_samples)?;

@@ -3,6 +3,7 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use super::error::{ApiError, ErrorBody};
+use crate::api::error::ErrorCode;
 use crate::chain::LinkId;
 use crate::clock::{format_ns, parse_json_time};
 use crate::geometry::PoseCov;
@@ -317,7 +318,7 @@ fn calibrated(spec: &LinkSpec) -> Result<PoseCov, ApiError> {
         LinkKind::Calibrated { parent_from_child } => Ok(*parent_from_child),
         LinkKind::Measured(_) => Err(ApiError::new(
             StatusCode::UNPROCESSABLE_ENTITY,
-            "not_calibrated",
+            ErrorCode::NotCalibrated,
             format!(
                 "`{}` is a measured link; only calibrated links take calibrations",
                 spec.name

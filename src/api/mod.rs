@@ -27,7 +27,7 @@ pub(crate) mod vision;
 mod webhooks;
 
 pub use auth::sha256_hex;
-pub use error::{ApiError, ErrorDetail};
+pub use error::{ApiError, ErrorCode, ErrorDetail};
 
 use crate::config::Installation;
 use crate::service::{PipelineHandle, Service};
@@ -91,7 +91,7 @@ pub(crate) async fn take_slot(
         Ok(Ok(permit)) => Ok(permit),
         _ => Err(ApiError::new(
             axum::http::StatusCode::SERVICE_UNAVAILABLE,
-            "busy",
+            ErrorCode::Busy,
             format!("every slot for {what} is taken; retry shortly"),
         )),
     }
@@ -141,7 +141,10 @@ impl AppState {
 /// well-formed body of the wrong shape).
 pub fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
     let text = std::str::from_utf8(body).map_err(|e| {
-        ApiError::bad_request("malformed_json", format!("the body is not UTF-8: {e}"))
+        ApiError::bad_request(
+            ErrorCode::MalformedJson,
+            format!("the body is not UTF-8: {e}"),
+        )
     })?;
     // In JSON a NUL can only be written `\u0000`: look closer only when that is there.
     if text.contains("\\u0000")
@@ -158,7 +161,7 @@ pub fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> 
         let path = e.path().to_string();
         let inner = e.into_inner();
         if inner.is_syntax() || inner.is_eof() {
-            ApiError::bad_request("malformed_json", format!("malformed JSON: {inner}"))
+            ApiError::bad_request(ErrorCode::MalformedJson, format!("malformed JSON: {inner}"))
         } else {
             ApiError::invalid_field(if path == "." { "body" } else { &path }, inner.to_string())
         }

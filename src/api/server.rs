@@ -20,6 +20,7 @@
 //!   (event streams end by themselves: they watch the same signal), and after
 //!   `shutdown_grace_s` whatever is still open is cut off, with a log line saying how many.
 
+use crate::api::error::ErrorCode;
 use axum::Router;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
@@ -396,7 +397,7 @@ impl HeadErrors<tokio::net::TcpStream> {
         use tokio::io::AsyncWriteExt as _;
         let body = super::error::raw_response(
             axum::http::StatusCode::REQUEST_TIMEOUT,
-            "request_timeout",
+            ErrorCode::RequestTimeout,
             &format!(
                 "no complete request head within {} s (`[server] header_timeout_s`)",
                 limit.as_secs_f64()
@@ -425,14 +426,14 @@ fn replacement_for(head: &[u8]) -> Option<Vec<u8>> {
     if own(b"431 ") {
         Some(super::error::raw_response(
             StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
-            "headers_too_large",
+            ErrorCode::HeadersTooLarge,
             "the request's header section is too large (at most 100 fields and about 400 KB)",
             Some("headers"),
         ))
     } else if own(b"400 ") {
         Some(super::error::raw_response(
             StatusCode::BAD_REQUEST,
-            "malformed_request",
+            ErrorCode::MalformedRequest,
             "the request is not valid HTTP/1.1",
             None,
         ))

@@ -197,3 +197,45 @@ async fn each_operation_needs_the_scope_the_document_states() {
         }
     }
 }
+
+/// The row of `docs/interface.md`'s vocabulary table whose first cell is `what`: its words.
+fn documented_words(what: &str) -> Vec<String> {
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/interface.md"))
+        .expect("docs/interface.md");
+    let row = text
+        .lines()
+        .find(|l| l.starts_with(&format!("| {what} |")))
+        .unwrap_or_else(|| panic!("no row `{what}` in docs/interface.md"));
+    let words = row.split('|').nth(2).expect("a second cell");
+    words
+        .split(',')
+        .map(|w| w.trim().trim_matches('`').to_owned())
+        .collect()
+}
+
+/// The interface's list of error codes is the service's, word for word and in order; each code
+/// is serialised as its name, and the OpenAPI document lists the same values.
+#[test]
+fn the_documented_error_codes_are_exactly_the_enums() {
+    use brokenray::api::ErrorCode;
+    let names: Vec<String> = ErrorCode::ALL.iter().map(|c| c.name().to_owned()).collect();
+    assert_eq!(documented_words("error `code`"), names);
+    for code in ErrorCode::ALL {
+        assert_eq!(
+            serde_json::to_value(code).unwrap(),
+            Value::String(code.name().to_owned())
+        );
+    }
+    let doc: Value = serde_json::to_value(brokenray::api::openapi()).unwrap();
+    let listed: Vec<String> = doc["components"]["schemas"]["ErrorCode"]["enum"]
+        .as_array()
+        .expect("the document lists the codes")
+        .iter()
+        .map(|v| v.as_str().unwrap().to_owned())
+        .collect();
+    let mut sorted_names = names.clone();
+    sorted_names.sort();
+    let mut sorted_listed = listed;
+    sorted_listed.sort();
+    assert_eq!(sorted_listed, sorted_names);
+}
