@@ -26,6 +26,15 @@ fn start(config: &std::path::Path) -> Server {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_zstd_bombs_to_a_centre_are_refused_within_its_memory_budget() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::three_zstd_bombs_to_a_centre_are_refused_within_its_memory_budget"
+        ),
+    ) {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let url = postgres::fresh_database();
     let config = builtin_installation(dir.path(), &url, "[central]\nenabled = true\n");

@@ -779,6 +779,15 @@ async fn idle_and_slow_clients_cannot_hold_the_service() {
 /// once (a commit whose answer was lost with the connection may already be stored).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_postgres_crash_during_ingest_loses_nothing_acknowledged() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::a_postgres_crash_during_ingest_loses_nothing_acknowledged"
+        ),
+    ) {
+        return;
+    }
     let cluster = crate::common::postgres::Cluster::own();
     let dir = tempfile::tempdir().unwrap();
     let config = site_with_database(&dir, &cluster.create_database());
@@ -870,6 +879,15 @@ async fn a_postgres_crash_during_ingest_loses_nothing_acknowledged() {
 /// the backup began; never over an existing file.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_postgres_backup_while_serving_restores_with_pg_restore() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::a_postgres_backup_while_serving_restores_with_pg_restore"
+        ),
+    ) {
+        return;
+    }
     let cluster = crate::common::postgres::cluster();
     let dir = tempfile::tempdir().unwrap();
     let config = site_with_database(&dir, &cluster.create_database());

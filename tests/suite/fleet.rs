@@ -453,6 +453,24 @@ async fn events(client: &reqwest::Client, site: &str) {
 /// the centre's rows equal the site's, exactly once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn faults_of_the_link_leave_the_centre_equal_to_the_site() {
+    if crate::common::skip_without(
+        crate::common::Needs::Browser,
+        concat!(
+            module_path!(),
+            "::faults_of_the_link_leave_the_centre_equal_to_the_site"
+        ),
+    ) {
+        return;
+    }
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::faults_of_the_link_leave_the_centre_equal_to_the_site"
+        ),
+    ) {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let (centre_config, centre_url) = centre_installation(dir.path());
     let centre = start(&centre_config);
@@ -758,6 +776,15 @@ async fn the_centre_answers_for_the_site_as_the_site_does(
 /// rows then equal the site's, exactly once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill"
+        ),
+    ) {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let (centre_config, centre_url) = centre_installation(dir.path());
     let centre = start(&centre_config);
@@ -995,6 +1022,15 @@ fn reset_upload(outbox: &str, after: Option<i64>, upto: i64) -> Value {
 /// refused upload stored.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_centre_applies_once_and_refuses_what_it_must_saying_why() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::the_centre_applies_once_and_refuses_what_it_must_saying_why"
+        ),
+    ) {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let (config, url) = centre_installation(dir.path());
     let centre = start(&config);
@@ -1250,6 +1286,15 @@ async fn site_rows_in(
 /// is refused for a read token, an unknown site and an empty period.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_period_of_raw_samples_arrives_on_request() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::a_period_of_raw_samples_arrives_on_request"
+        ),
+    ) {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let (centre_config, centre_url) = centre_installation(dir.path());
     let centre = start(&centre_config);
@@ -1518,6 +1563,15 @@ fn restore(site_db: &std::path::Path, copy: &std::path::Path) {
 /// Each time, the centre ends holding every row of each life, none lost, none twice.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_site_restored_from_an_older_copy_loses_nothing_at_the_centre() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::a_site_restored_from_an_older_copy_loses_nothing_at_the_centre"
+        ),
+    ) {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let (centre_config, centre_url) = centre_installation(dir.path());
     let centre = start(&centre_config);
@@ -1638,6 +1692,15 @@ async fn a_site_restored_from_an_older_copy_loses_nothing_at_the_centre() {
 /// the door) is reported and skipped: the next site's upkeep still runs and prunes its old rows.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_sites_failed_upkeep_is_reported_and_the_others_go_on() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::one_sites_failed_upkeep_is_reported_and_the_others_go_on"
+        ),
+    ) {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let url = postgres::fresh_database();
     let extra = format!(

@@ -17,6 +17,12 @@ macro_rules! on_both_backends {
                 }
                 #[$test]
                 async fn postgres() {
+                    if crate::common::skip_without(
+                        crate::common::Needs::Postgres,
+                        concat!(module_path!(), "::postgres"),
+                    ) {
+                        return;
+                    }
                     super::$name(crate::service::helpers::Backend::Postgres).await
                 }
             }

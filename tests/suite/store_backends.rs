@@ -504,6 +504,15 @@ fn at(url: &str) -> Installation {
 /// writer are refused at start-up with the reason, and no message shows the password.
 #[tokio::test]
 async fn postgres_start_up_refusals_name_the_reason() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        concat!(
+            module_path!(),
+            "::postgres_start_up_refusals_name_the_reason"
+        ),
+    ) {
+        return;
+    }
     for (text, expected) in [
         ("postgres://brokenray@127.0.0.1:5432", "names no database"),
         ("postgres://[::1", "not a valid PostgreSQL URL"),

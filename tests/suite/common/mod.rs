@@ -11,6 +11,8 @@ use nalgebra::{Quaternion, Translation3};
 use rand::Rng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
 
 /// A pose with a uniformly random rotation and a translation within +-`reach_mm` per axis.
 /// A random rigid motion of up to `mm` and `deg` per axis.
@@ -82,4 +84,94 @@ pub fn assert_summed_nees_within(nees_sum: f64, trials: usize, tail: f64) {
         "summed NEES {nees_sum:.1} outside [{lower:.1}, {upper:.1}] of chi2({dof}) (mean {:.3}, expected 6)",
         nees_sum / trials as f64
     );
+}
+
+/// What some tests need beyond Rust.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Needs {
+    /// PostgreSQL 15 and pg_partman (a throwaway cluster is started from them).
+    Postgres,
+    /// Node.js, playwright-core under `tests/browser` and Chromium (the dashboard's tests).
+    Browser,
+}
+
+/// The PostgreSQL 15 binaries the tests start clusters from.
+pub fn pg_bin() -> PathBuf {
+    std::env::var_os("BROKENRAY_PG_BIN")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("/usr/lib/postgresql/15/bin"))
+}
+
+/// An executable on the `PATH`.
+pub fn on_path(name: &str) -> Option<PathBuf> {
+    std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|p| p.join(name))
+            .find(|p| p.is_file())
+    })
+}
+
+impl Needs {
+    /// What is missing, and how to get it; `None` when nothing is.
+    pub fn missing(self) -> Option<String> {
+        match self {
+            Needs::Postgres => {
+                let bin = pg_bin();
+                if !bin.join("initdb").exists() {
+                    return Some(format!(
+                        "PostgreSQL 15 (no {}; Debian: apt-get install postgresql \
+                         postgresql-15-partman, or set BROKENRAY_PG_BIN)",
+                        bin.join("initdb").display()
+                    ));
+                }
+                let partman = Path::new("/usr/share/postgresql/15/extension/pg_partman.control");
+                if std::env::var_os("BROKENRAY_PG_BIN").is_none() && !partman.exists() {
+                    return Some(
+                        "pg_partman (Debian: apt-get install postgresql-15-partman)".to_owned(),
+                    );
+                }
+                None
+            }
+            Needs::Browser => {
+                let mut missing = Vec::new();
+                if on_path("node").is_none() {
+                    missing.push("Node.js (Debian: nodejs npm)");
+                }
+                let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/browser");
+                if !dir
+                    .join("node_modules/playwright-core/package.json")
+                    .is_file()
+                {
+                    missing.push("playwright-core (npm ci --prefix tests/browser)");
+                }
+                if std::env::var_os("BROKENRAY_CHROMIUM").is_none()
+                    && on_path("chromium").is_none()
+                    && on_path("chromium-browser").is_none()
+                {
+                    missing.push("Chromium (Debian: chromium, or set BROKENRAY_CHROMIUM)");
+                }
+                (!missing.is_empty()).then(|| missing.join(", "))
+            }
+        }
+    }
+}
+
+/// True when `test` must be skipped because this machine lacks what `needs` names; it then
+/// says so on the terminal (past the test harness's capture), with how to get it. When the
+/// environment sets `BROKENRAY_REQUIRE_ALL` (as `scripts/test` and CI do), a missing tool
+/// fails the test instead: nothing is skipped there.
+pub fn skip_without(needs: Needs, test: &str) -> bool {
+    let Some(missing) = needs.missing() else {
+        return false;
+    };
+    assert!(
+        std::env::var_os("BROKENRAY_REQUIRE_ALL").is_none(),
+        "{test} needs {missing}; `scripts/test` installs what is missing"
+    );
+    let _ = writeln!(
+        std::io::stderr().lock(),
+        "\n*** SKIPPED {test}: this machine lacks {missing}. `scripts/test` installs it and \
+         runs everything. ***"
+    );
+    true
 }

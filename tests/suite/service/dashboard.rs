@@ -243,18 +243,10 @@ pub(crate) struct Browser {
     dir: PathBuf,
 }
 
-fn on_path(name: &str) -> Option<PathBuf> {
-    std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|p| p.join(name))
-            .find(|p| p.is_file())
-    })
-}
-
 /// Finds the browser tools, or says what is missing and how `scripts/test` installs it.
 pub(crate) fn browser() -> Browser {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/browser");
-    let node = on_path("node").expect(
+    let node = crate::common::on_path("node").expect(
         "the dashboard test needs Node.js (`node`): `scripts/test` installs it (Debian: nodejs npm)",
     );
     assert!(
@@ -265,8 +257,8 @@ pub(crate) fn browser() -> Browser {
     );
     let chromium = std::env::var_os("BROKENRAY_CHROMIUM")
         .map(PathBuf::from)
-        .or_else(|| on_path("chromium"))
-        .or_else(|| on_path("chromium-browser"))
+        .or_else(|| crate::common::on_path("chromium"))
+        .or_else(|| crate::common::on_path("chromium-browser"))
         .expect(
             "the dashboard test needs Chromium: `scripts/test` installs it (Debian: chromium), \
              or set BROKENRAY_CHROMIUM to a Chromium executable",
@@ -285,6 +277,12 @@ fn ship_installation() -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_dashboard_works_in_a_real_browser() {
+    if crate::common::skip_without(
+        crate::common::Needs::Browser,
+        concat!(module_path!(), "::the_dashboard_works_in_a_real_browser"),
+    ) {
+        return;
+    }
     let tools = browser();
     let app = TestApp::start(Some(&ship_installation())).await;
     follow_real_time(&app);
@@ -447,6 +445,15 @@ async fn serve(app: &TestApp) -> (String, tokio::task::JoinHandle<std::io::Resul
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn with_tokens_the_dashboard_asks_for_one_and_sends_it() {
+    if crate::common::skip_without(
+        crate::common::Needs::Browser,
+        concat!(
+            module_path!(),
+            "::with_tokens_the_dashboard_asks_for_one_and_sends_it"
+        ),
+    ) {
+        return;
+    }
     let tools = browser();
     let app = TestApp::start(Some(&with_tokens())).await;
     follow_real_time(&app);
