@@ -53,7 +53,10 @@ impl Cluster {
     }
 
     fn start_new() -> Cluster {
-        let bin = super::pg_bin();
+        // As `common::pg_bin` (this file is also compiled into benches without `common`).
+        let bin = std::env::var_os("BROKENRAY_PG_BIN")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("/usr/lib/postgresql/15/bin"));
         assert!(
             bin.join("initdb").exists(),
             "PostgreSQL 15 is not installed (no {}): `scripts/test` installs it \
