@@ -176,15 +176,6 @@ pub struct TargetLiveness {
     pub worst: Option<(LinkId, LinkLag)>,
 }
 
-/// A measured link's filtered pose at a time.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct LinkEstimate {
-    /// The link.
-    pub link: LinkId,
-    /// `parent_from_child` with covariance.
-    pub parent_from_child: PoseCov,
-}
-
 #[derive(Debug, Clone, Default)]
 struct Group {
     samples: HashMap<LinkId, PoseCov>,
@@ -591,11 +582,6 @@ impl FilterBank {
             }
         }
         frontier
-    }
-
-    /// The time of the newest filtered result of a target.
-    pub fn last_result_ns(&self, target: usize) -> Option<i64> {
-        self.frontier_ns[target]
     }
 
     /// Adds a sample to its measurement group and returns the raw results it completes, or

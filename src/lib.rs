@@ -36,6 +36,7 @@
 //! module docs of [`geometry`], the mathematics in `docs/method.md`.
 
 #![warn(clippy::unwrap_used, clippy::expect_used)]
+#![warn(unreachable_pub)]
 
 pub mod alarms;
 pub mod api;

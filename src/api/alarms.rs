@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 /// An alarm transition as answered.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct AlarmOut {
+pub(super) struct AlarmOut {
     /// Its id (for `POST /api/v1/alarms/{id}/ack`).
     pub id: i64,
     /// Target.
@@ -41,7 +41,7 @@ pub struct AlarmOut {
 
 impl AlarmOut {
     /// From a stored transition of the target named `target`.
-    pub fn new(target: String, a: &StoredAlarm) -> Self {
+    pub(super) fn new(target: String, a: &StoredAlarm) -> Self {
         let t = &a.transition;
         Self {
             id: a.id,
@@ -64,7 +64,7 @@ impl AlarmOut {
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
-pub struct AlarmsQuery {
+pub(super) struct AlarmsQuery {
     /// One target only.
     pub target: Option<String>,
     /// Start.
@@ -80,7 +80,7 @@ pub struct AlarmsQuery {
 
 /// `GET .../alarms`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct AlarmsOut {
+pub(super) struct AlarmsOut {
     /// Transitions, oldest first (newest first with `order=desc`).
     pub alarms: Vec<AlarmOut>,
 }
@@ -94,7 +94,7 @@ pub struct AlarmsOut {
         (status = 422, description = "Invalid query", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_alarms(
+pub(super) async fn list_alarms(
     State(app): State<AppState>,
     Query(q): Query<AlarmsQuery>,
 ) -> Result<Json<AlarmsOut>, ApiError> {
@@ -137,7 +137,7 @@ pub(super) async fn alarms_of(
 /// Body of `POST /api/v1/alarms/{id}/ack`.
 #[derive(Debug, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct AckIn {
+pub(super) struct AckIn {
     /// Who acknowledges (a name for the record).
     pub by: String,
     /// What was seen or done (optional).
@@ -158,7 +158,7 @@ pub struct AckIn {
         (status = 422, description = "No `by`, a text too long, or a transition back to `none`", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn post_ack(
+pub(super) async fn post_ack(
     State(app): State<AppState>,
     Path(id): Path<String>,
     body: axum::body::Bytes,

@@ -22,7 +22,7 @@ use std::sync::Arc;
 /// scope once, in its `#[utoipa::path(security(...))]`, and this table is what the middleware
 /// enforces (`security(())` means open to all: the health check and the dashboard's files).
 #[derive(Debug, Clone, Default)]
-pub struct ScopeTable {
+pub(crate) struct ScopeTable {
     /// Method, path template split into segments (`None` for a `{parameter}`), and the scope
     /// (`None`: open).
     routes: Vec<(Method, Vec<Option<String>>, Option<Scope>)>,
@@ -31,7 +31,7 @@ pub struct ScopeTable {
 impl ScopeTable {
     /// The table of an OpenAPI document (as JSON). An operation whose scope is not one of
     /// `read`, `ingest`, `admin` is a defect of its declaration: it needs `admin`.
-    pub fn from_openapi(doc: &serde_json::Value) -> Self {
+    pub(crate) fn from_openapi(doc: &serde_json::Value) -> Self {
         let mut routes = Vec::new();
         let Some(paths) = doc["paths"].as_object() else {
             return Self::default();
@@ -80,7 +80,7 @@ impl ScopeTable {
 
     /// The scope a request needs; `None` when it is open to all. A path no operation has (a
     /// 404 to come) needs `read`, or `admin` to change something.
-    pub fn required(&self, method: &Method, path: &str) -> Option<Scope> {
+    pub(crate) fn required(&self, method: &Method, path: &str) -> Option<Scope> {
         let parts: Vec<&str> = path.split('/').collect();
         let matches = |segments: &[Option<String>]| {
             segments.len() == parts.len()
@@ -115,7 +115,7 @@ fn is_write(method: &Method) -> bool {
 
 /// Who made a request, for handlers that check more than a scope: set by [`require_token`].
 #[derive(Debug, Clone)]
-pub struct Caller {
+pub(crate) struct Caller {
     /// False when no tokens are configured (every request is local) or the route is open.
     pub authenticated: bool,
     /// The site a `sync` token uploads for.
@@ -130,7 +130,7 @@ pub fn sha256_hex(token: &str) -> String {
 }
 
 /// Checks the bearer token of a request against the configured tokens.
-pub async fn require_token(
+pub(crate) async fn require_token(
     tokens: Arc<Vec<TokenSpec>>,
     scopes: Arc<ScopeTable>,
     request: Request,
@@ -200,13 +200,13 @@ pub async fn require_token(
 /// (`[server] allowed_hosts`); an `Origin`, when sent, must name such a host too; and writes
 /// must be JSON or NDJSON, which a page cannot send cross-site without a preflight.
 #[derive(Debug, Clone)]
-pub struct LocalOnly {
+pub(crate) struct LocalOnly {
     allowed_hosts: Vec<String>,
 }
 
 impl LocalOnly {
     /// The guard, with extra host names (with or without a port) from the configuration.
-    pub fn new(allowed_hosts: &[String]) -> Self {
+    pub(crate) fn new(allowed_hosts: &[String]) -> Self {
         Self {
             allowed_hosts: allowed_hosts
                 .iter()
@@ -240,7 +240,7 @@ fn host_name(authority: &str) -> &str {
 }
 
 /// Applies [`LocalOnly`] when it is given (no tokens configured).
-pub async fn local_only(
+pub(crate) async fn local_only(
     guard: Option<Arc<LocalOnly>>,
     request: Request,
     next: Next,

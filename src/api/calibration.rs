@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 /// Dark discs on a light plate, or bright ones.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "lowercase")]
-pub enum PlatePolarity {
+pub(crate) enum PlatePolarity {
     /// Dark discs on a light plate (printed plates).
     #[default]
     Dark,
@@ -36,7 +36,7 @@ pub enum PlatePolarity {
 /// grid) at `((2 col + row mod 2) * spacing_mm, row * spacing_mm, 0)`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct PlateIn {
+pub(crate) struct PlateIn {
     /// Rows of points (3 or more).
     pub rows: usize,
     /// Points per row (3 or more).
@@ -61,7 +61,7 @@ pub struct PlateIn {
 
 impl PlateIn {
     /// The plate, or what is wrong with it (field `plate`).
-    pub fn to_plate(&self) -> Result<Plate, FieldProblem> {
+    pub(crate) fn to_plate(&self) -> Result<Plate, FieldProblem> {
         let polarity = match self.polarity {
             PlatePolarity::Dark => Polarity::Dark,
             PlatePolarity::Bright => Polarity::Bright,
@@ -85,7 +85,7 @@ impl PlateIn {
 /// One view: the plate points found in one frame.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct PlateViewIn {
+pub(crate) struct PlateViewIn {
     /// Detected centres `[u, v]` (px, pixel centres at integers).
     pub points_px: Vec<[f64; 2]>,
     /// The plate point of each.
@@ -99,7 +99,7 @@ pub struct PlateViewIn {
 /// Intrinsics in JSON: a camera's, their sigmas, or the known values of fixed ones.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct Intrinsics {
+pub(crate) struct Intrinsics {
     /// Focal length along x (px).
     pub fx: f64,
     /// Focal length along y (px).
@@ -128,7 +128,7 @@ impl From<[f64; 9]> for Intrinsics {
 /// A calibration request.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct CameraCalibrationIn {
+pub(crate) struct CameraCalibrationIn {
     /// The plate.
     pub plate: PlateIn,
     /// `[width, height]` of the frames (px).
@@ -146,7 +146,7 @@ pub struct CameraCalibrationIn {
 
 /// One view's fit.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
-pub struct ViewFitOut {
+pub(crate) struct ViewFitOut {
     /// Reprojection RMS of its points (px).
     pub rms_px: f64,
     /// `camera_from_plate`.
@@ -159,7 +159,7 @@ pub struct ViewFitOut {
 
 /// Two intrinsics whose estimates are correlated by more than 0.9.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
-pub struct CorrelationOut {
+pub(crate) struct CorrelationOut {
     /// One parameter.
     pub a: String,
     /// The other.
@@ -170,7 +170,7 @@ pub struct CorrelationOut {
 
 /// Something about the views that could be better.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
-pub struct CalibrationWarningOut {
+pub(crate) struct CalibrationWarningOut {
     /// `few_views`, `little_tilt`, `corners_not_reached` or `view_fits_worse`; from
     /// `calibrate-camera`, also `lossy_frames` (views that came as JPEG).
     pub kind: String,
@@ -180,7 +180,7 @@ pub struct CalibrationWarningOut {
 
 /// A calibrated camera.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
-pub struct CameraCalibrationOut {
+pub(crate) struct CameraCalibrationOut {
     /// The intrinsics.
     pub camera: Intrinsics,
     /// Their standard deviations (0 for fixed ones).
@@ -212,7 +212,7 @@ pub struct CameraCalibrationOut {
 }
 
 /// The installation's `pixel_sigma` for a calibration: its RMS per axis, at least 0.001 px.
-pub fn pixel_sigma_of(c: &CameraCalibration) -> f64 {
+pub(crate) fn pixel_sigma_of(c: &CameraCalibration) -> f64 {
     (c.rms_px / std::f64::consts::SQRT_2).max(0.001)
 }
 
@@ -261,7 +261,7 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
 }
 
 /// The fixed parameters named in `fix`, or the unknown names.
-pub fn parse_fix(fix: &[String]) -> Result<Vec<Intrinsic>, FieldProblem> {
+pub(crate) fn parse_fix(fix: &[String]) -> Result<Vec<Intrinsic>, FieldProblem> {
     let mut out = Vec::with_capacity(fix.len());
     for name in fix {
         match Intrinsic::parse(name.trim()) {
@@ -278,7 +278,7 @@ pub fn parse_fix(fix: &[String]) -> Result<Vec<Intrinsic>, FieldProblem> {
 }
 
 /// A refusal of the calibration itself (422 `calibration_refused`).
-pub fn refused(e: crate::vision::VisionError) -> ApiError {
+pub(crate) fn refused(e: crate::vision::VisionError) -> ApiError {
     ApiError::new(
         StatusCode::UNPROCESSABLE_ENTITY,
         ErrorCode::CalibrationRefused,
@@ -288,7 +288,7 @@ pub fn refused(e: crate::vision::VisionError) -> ApiError {
 
 impl CameraCalibrationIn {
     /// Validates the request and calibrates; `cancel` set stops the work.
-    pub fn solve(
+    pub(crate) fn solve(
         &self,
         cancel: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
     ) -> Result<(CameraCalibration, CameraCalibrationOut), ApiError> {
@@ -381,7 +381,7 @@ impl Drop for StopOnDrop {
         (status = 503, description = "Another calibration ran for 30 s while this one waited (`busy`)", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn post_camera_calibration(
+pub(crate) async fn post_camera_calibration(
     State(app): State<AppState>,
     headers: HeaderMap,
     body: Body,

@@ -84,7 +84,7 @@ impl LatestFrames {
 
 /// One marker in a camera's newest frame, in short.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CameraMarkerOut {
+pub(super) struct CameraMarkerOut {
     /// The marker's frame.
     pub marker: String,
     /// The measured link `<camera>_from_<marker>`.
@@ -104,7 +104,7 @@ pub struct CameraMarkerOut {
 
 /// A camera's newest frame, in short.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CameraFrameOut {
+pub(super) struct CameraFrameOut {
     /// Measurement time (RFC 3339).
     pub time: String,
     /// How long before the server's clock now it was taken (s).
@@ -117,7 +117,7 @@ pub struct CameraFrameOut {
 
 /// A camera and its newest frame.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CameraOut {
+pub(super) struct CameraOut {
     /// The camera's frame.
     pub name: String,
     /// Image width (px).
@@ -133,7 +133,7 @@ pub struct CameraOut {
 
 /// Every camera.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CamerasOut {
+pub(super) struct CamerasOut {
     /// In installation order.
     pub cameras: Vec<CameraOut>,
 }
@@ -142,7 +142,7 @@ pub struct CamerasOut {
 #[utoipa::path(get, path = "/cameras", tag = "cameras",
     responses((status = 200, description = "Every camera with its newest frame's time and what was found in it", body = CamerasOut)),
     security(("bearer" = ["read"])))]
-pub async fn list_cameras(State(app): State<AppState>) -> Json<CamerasOut> {
+pub(super) async fn list_cameras(State(app): State<AppState>) -> Json<CamerasOut> {
     let now_ns = app.service.now_ns();
     let observer = app.service.observer();
     let cameras = app
@@ -202,7 +202,7 @@ fn latest_of(app: &AppState, name: &str) -> Result<Arc<Latest>, ApiError> {
         (status = 404, description = "Unknown camera, or no frame yet", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_frame(
+pub(super) async fn get_frame(
     State(app): State<AppState>,
     Path(name): Path<String>,
     headers: HeaderMap,
@@ -250,7 +250,7 @@ pub async fn get_frame(
         (status = 404, description = "Unknown camera, or no frame yet", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_detections(
+pub(super) async fn get_detections(
     State(app): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<Response, ApiError> {
@@ -262,7 +262,7 @@ pub async fn get_detections(
 #[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
-pub struct ArchivedQuery {
+pub(super) struct ArchivedQuery {
     /// First measurement time (RFC 3339 or integer nanoseconds); default: the oldest.
     pub from: Option<String>,
     /// Last measurement time; default: the newest.
@@ -273,7 +273,7 @@ pub struct ArchivedQuery {
 
 /// One archived frame.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ArchivedOut {
+pub(super) struct ArchivedOut {
     /// Measurement time (RFC 3339).
     pub time: String,
     /// Why it was kept.
@@ -288,7 +288,7 @@ pub struct ArchivedOut {
 
 /// A camera's archived frames.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ArchivedListOut {
+pub(super) struct ArchivedListOut {
     /// The camera.
     pub camera: String,
     /// Oldest first.
@@ -316,7 +316,7 @@ fn archive_of<'a>(app: &'a AppState, name: &str) -> Result<&'a FrameArchive, Api
         (status = 422, description = "An unreadable time or limit", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_archived(
+pub(super) async fn list_archived(
     State(app): State<AppState>,
     Path(name): Path<String>,
     axum::extract::Query(q): axum::extract::Query<ArchivedQuery>,
@@ -375,7 +375,7 @@ pub async fn list_archived(
         (status = 422, description = "An unreadable time", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_archived(
+pub(super) async fn get_archived(
     State(app): State<AppState>,
     Path((name, time)): Path<(String, String)>,
 ) -> Result<Response, ApiError> {

@@ -152,7 +152,7 @@ fn serve(index: usize, headers: &HeaderMap) -> Response {
         (status = 304, description = "Not modified since the ETag given in `If-None-Match`"),
     ),
     security(()))]
-pub async fn get_index(headers: HeaderMap) -> Response {
+pub(super) async fn get_index(headers: HeaderMap) -> Response {
     serve(0, &headers)
 }
 
@@ -165,7 +165,10 @@ pub async fn get_index(headers: HeaderMap) -> Response {
         (status = 404, description = "No such file", body = ErrorBody),
     ),
     security(()))]
-pub async fn get_asset(Path(file): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
+pub(super) async fn get_asset(
+    Path(file): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
     let index = ASSETS
         .iter()
         .position(|a| a.name == file && a.name != "index.html")

@@ -59,7 +59,7 @@ impl hyper::body::Body for Shared {
 
 /// Runs the request, then reads and discards what the handler left of its body (at most
 /// `limit` bytes, for at most [`DRAIN_FOR`]) before the answer goes out.
-pub async fn drain_unread(limit: usize, request: Request, next: Next) -> Response {
+pub(super) async fn drain_unread(limit: usize, request: Request, next: Next) -> Response {
     let (parts, body) = request.into_parts();
     let shared = Arc::new(Mutex::new(Some(body)));
     let request = Request::from_parts(parts, Body::new(Shared(Arc::clone(&shared))));

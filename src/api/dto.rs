@@ -14,7 +14,7 @@ use serde_json::Value;
 /// A pose as sent: `t_mm` with exactly one of `q_wxyz`, `euler_deg`, `r`.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct PoseIn {
+pub(crate) struct PoseIn {
     /// Translation (mm).
     pub t_mm: [f64; 3],
     /// Unit quaternion `[w, x, y, z]`.
@@ -28,7 +28,7 @@ pub struct PoseIn {
 /// Sigmas as sent: each a number (all axes) or three numbers.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct SigmaIn {
+pub(crate) struct SigmaIn {
     /// Rotation sigma (arc-seconds).
     #[schema(schema_with = sigma_schema)]
     pub rotation_arcsec: Value,
@@ -40,7 +40,7 @@ pub struct SigmaIn {
 /// Pose-estimation quality as sent.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct QualityIn {
+pub(crate) struct QualityIn {
     /// Reprojection RMS (px).
     pub reprojection_rms_px: Option<f64>,
     /// Number of points.
@@ -50,7 +50,7 @@ pub struct QualityIn {
 /// One sample as sent.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct SampleIn {
+pub(crate) struct SampleIn {
     /// The measured link's name.
     pub link: String,
     /// RFC 3339 text or integer nanoseconds.
@@ -68,7 +68,7 @@ pub struct SampleIn {
 
 /// The OpenAPI schema of a time as sent: RFC 3339 text, or integer nanoseconds since the Unix
 /// epoch (UTC).
-pub fn time_schema() -> utoipa::openapi::schema::Schema {
+pub(crate) fn time_schema() -> utoipa::openapi::schema::Schema {
     use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, OneOfBuilder, SchemaFormat, Type};
     OneOfBuilder::new()
         .item(
@@ -89,7 +89,7 @@ pub fn time_schema() -> utoipa::openapi::schema::Schema {
 }
 
 /// The OpenAPI schema of a sigma as sent: one positive number for all three axes, or three.
-pub fn sigma_schema() -> utoipa::openapi::schema::Schema {
+pub(crate) fn sigma_schema() -> utoipa::openapi::schema::Schema {
     use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, OneOfBuilder, Type};
     let number = || {
         ObjectBuilder::new()
@@ -111,7 +111,7 @@ pub fn sigma_schema() -> utoipa::openapi::schema::Schema {
 
 /// At most the first 80 characters of an offending value, for an error message (a message
 /// never echoes a whole junk value back).
-pub fn clip(text: &str) -> String {
+pub(crate) fn clip(text: &str) -> String {
     match text.char_indices().nth(80) {
         Some((i, _)) => format!("{}...", &text[..i]),
         None => text.to_owned(),
@@ -119,7 +119,7 @@ pub fn clip(text: &str) -> String {
 }
 
 /// A problem found while converting one field.
-pub type FieldProblem = (String, String);
+pub(crate) type FieldProblem = (String, String);
 
 fn finite(field: &str, values: &[f64]) -> Result<(), FieldProblem> {
     match values.iter().position(|v| !v.is_finite()) {
@@ -132,7 +132,7 @@ impl PoseIn {
     /// The pose, validated; `prefix` names the field in problems (`pose`). Several rotation
     /// forms may be given (a pose as this API answers it has `q_wxyz` and `euler_deg`) when
     /// they agree within 1e-6 rad; `q_wxyz`, then `r`, then `euler_deg` is used.
-    pub fn to_pose(&self, prefix: &str) -> Result<Pose, FieldProblem> {
+    pub(crate) fn to_pose(&self, prefix: &str) -> Result<Pose, FieldProblem> {
         finite(&format!("{prefix}.t_mm"), &self.t_mm)?;
         let mut forms: Vec<(String, crate::geometry::Rotation)> = Vec::new();
         if let Some(q) = self.q_wxyz {
@@ -228,7 +228,7 @@ fn scalar_or_3(field: &str, v: &Value, max: f64) -> Result<[f64; 3], FieldProble
 
 impl SigmaIn {
     /// The sigmas, validated (positive, finite).
-    pub fn to_sigmas(&self, prefix: &str) -> Result<ReportedSigmas, FieldProblem> {
+    pub(crate) fn to_sigmas(&self, prefix: &str) -> Result<ReportedSigmas, FieldProblem> {
         Ok(ReportedSigmas {
             rotation_arcsec: scalar_or_3(
                 &format!("{prefix}.rotation_arcsec"),
@@ -245,7 +245,7 @@ impl SigmaIn {
 }
 
 /// A covariance given as 36 numbers, row-major, checked symmetric positive definite.
-pub fn covariance_from(field: &str, values: &[f64]) -> Result<Mat6, FieldProblem> {
+pub(crate) fn covariance_from(field: &str, values: &[f64]) -> Result<Mat6, FieldProblem> {
     if values.len() != 36 {
         return Err((
             field.to_owned(),
@@ -284,7 +284,7 @@ pub fn covariance_from(field: &str, values: &[f64]) -> Result<Mat6, FieldProblem
 
 /// A pose as answered.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
-pub struct PoseOut {
+pub(crate) struct PoseOut {
     /// Translation (mm).
     pub t_mm: [f64; 3],
     /// Quaternion `[w, x, y, z]`, `w >= 0`.
@@ -305,7 +305,7 @@ impl From<&Pose> for PoseOut {
 
 /// Sigmas as answered.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
-pub struct SigmaOut {
+pub(crate) struct SigmaOut {
     /// Per axis (arc-seconds).
     pub rotation_arcsec: [f64; 3],
     /// Per translation component (mm).
@@ -328,13 +328,13 @@ impl From<&PoseCov> for SigmaOut {
 }
 
 /// The rotation vector of a pose in arc-seconds.
-pub fn rotation_vector_arcsec(p: &Pose) -> [f64; 3] {
+pub(crate) fn rotation_vector_arcsec(p: &Pose) -> [f64; 3] {
     let v = crate::geometry::so3_log(&p.rotation) * ARCSEC_PER_RAD;
     [v.x, v.y, v.z]
 }
 
 /// Turns a list of field problems into a 422.
-pub fn invalid(
+pub(crate) fn invalid(
     message: impl Into<String>,
     problems: Vec<(Option<usize>, FieldProblem)>,
 ) -> ApiError {

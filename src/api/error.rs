@@ -32,7 +32,7 @@ impl From<ItemProblem> for ErrorDetail {
 
 /// At most this many details are listed in an error answer; the rest are counted
 /// (`details_omitted`), so that a body of junk cannot make an answer larger than itself.
-pub const MAX_DETAILS: usize = 100;
+pub(super) const MAX_DETAILS: usize = 100;
 
 /// The longest detail message (characters); a longer one is cut (it may quote a value sent).
 const MAX_DETAIL_CHARS: usize = 300;
@@ -205,14 +205,14 @@ pub struct ApiError {
 
 /// The body of every error answer.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ErrorBody {
+pub(super) struct ErrorBody {
     /// The error.
     pub error: ErrorContent,
 }
 
 /// What went wrong.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ErrorContent {
+pub(super) struct ErrorContent {
     /// A stable machine-readable code (`invalid_samples`, `conflict`, `not_found`, ...).
     pub code: ErrorCode,
     /// A sentence for people.
@@ -310,7 +310,7 @@ impl ApiError {
 
 /// Refused requests since start, by status code (400, 401, 403, 404, 405, 408, 409, 413, 415,
 /// 422, 431, 5xx).
-pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 12] = [
+pub(super) static REJECTED: [(u16, std::sync::atomic::AtomicU64); 12] = [
     (400, std::sync::atomic::AtomicU64::new(0)),
     (401, std::sync::atomic::AtomicU64::new(0)),
     (403, std::sync::atomic::AtomicU64::new(0)),
@@ -328,7 +328,7 @@ pub static REJECTED: [(u16, std::sync::atomic::AtomicU64); 12] = [
 /// A whole HTTP/1.1 response carrying the error envelope, for the answers the connection
 /// layer writes itself (before any handler runs), closing the connection; counted like every
 /// refusal.
-pub fn raw_response(
+pub(super) fn raw_response(
     status: StatusCode,
     code: ErrorCode,
     message: &str,
@@ -464,7 +464,7 @@ fn code_of(status: StatusCode) -> ErrorCode {
 /// (a query string that does not parse, a method not allowed, a body over the limit, a request
 /// timeout) come with a plain-text or empty body; this rewrites them as `{"error": {...}}`,
 /// naming the query field where the text names one, and counts them like any refusal.
-pub async fn json_envelope(
+pub(super) async fn json_envelope(
     request: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> Response {

@@ -15,7 +15,7 @@ use tokio::sync::broadcast::error::RecvError;
 #[utoipa::path(get, path = "/events", tag = "events",
     responses((status = 200, description = "Server-Sent Events: `result` (data: a compensation, as `GET /targets/{name}/compensation`) and `alarm` (data: an alarm transition)", content_type = "text/event-stream", body = String)),
     security(("bearer" = ["read"])))]
-pub async fn get_events(
+pub(super) async fn get_events(
     State(app): State<AppState>,
 ) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let rx = app.service.subscribe();

@@ -216,7 +216,7 @@ fn check_tables(
         (status = 422, description = "The upload is malformed; the field is named", body = ErrorBody),
     ),
     security(("bearer" = ["sync"])))]
-pub async fn post_sync(
+pub(super) async fn post_sync(
     State(app): State<AppState>,
     Path(site): Path<String>,
     axum::Extension(caller): axum::Extension<Caller>,
@@ -413,7 +413,7 @@ pub async fn post_sync(
 
 /// One tier of a site at the centre.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct SiteTierOut {
+pub(super) struct SiteTierOut {
     /// `events`, `results` or `raw`.
     pub tier: &'static str,
     /// The last of the site's commits applied (absent: nothing yet).
@@ -430,7 +430,7 @@ pub struct SiteTierOut {
 
 /// A site of the fleet.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct SiteOut {
+pub(super) struct SiteOut {
     /// Its name.
     pub site: String,
     /// Its last upload or report (centre's clock).
@@ -454,7 +454,7 @@ pub struct SiteOut {
 
 /// `GET /api/v1/sites`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct SitesOut {
+pub(super) struct SitesOut {
     /// Every site the centre has heard from, by name.
     pub sites: Vec<SiteOut>,
 }
@@ -467,7 +467,7 @@ pub struct SitesOut {
         (status = 404, description = "This service is no centre", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, ApiError> {
+pub(super) async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, ApiError> {
     let central = centre(&app)?;
     let records = central.sites().await?;
     let sites = records
@@ -538,7 +538,7 @@ const MAX_RAW_REQUEST_NS: i64 = 31 * 86_400_000_000_000;
         (status = 404, description = "No such request of the site, or this service is no centre", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn cancel_raw_request(
+pub(super) async fn cancel_raw_request(
     State(app): State<AppState>,
     Path((site, id)): Path<(String, String)>,
     axum::Extension(caller): axum::Extension<Caller>,
@@ -558,7 +558,7 @@ pub async fn cancel_raw_request(
 /// Body of `POST /api/v1/sites/{site}/raw-requests`.
 #[derive(Debug, serde::Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct RawRequestIn {
+pub(super) struct RawRequestIn {
     /// The period's start (RFC 3339 or integer ns, measurement time).
     #[schema(schema_with = super::dto::time_schema)]
     pub from: serde_json::Value,
@@ -571,7 +571,7 @@ pub struct RawRequestIn {
 
 /// A period of raw rows asked of a site.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct RawRequestOut {
+pub(super) struct RawRequestOut {
     /// Its id.
     pub id: i64,
     /// The period's start.
@@ -619,7 +619,7 @@ impl From<&crate::store::RawRequestRecord> for RawRequestOut {
 
 /// `GET .../raw-requests`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct RawRequestsOut {
+pub(super) struct RawRequestsOut {
     /// The site.
     pub site: String,
     /// Its requests, the newest first.
@@ -645,7 +645,7 @@ pub(super) fn centre(app: &AppState) -> Result<&crate::store::Central, ApiError>
         (status = 422, description = "Invalid period", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn post_raw_request(
+pub(super) async fn post_raw_request(
     State(app): State<AppState>,
     Path(site): Path<String>,
     body: Bytes,
@@ -689,7 +689,7 @@ pub async fn post_raw_request(
         (status = 404, description = "This service is no centre", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_raw_requests(
+pub(super) async fn list_raw_requests(
     State(app): State<AppState>,
     Path(site): Path<String>,
 ) -> Result<Json<RawRequestsOut>, ApiError> {
@@ -704,7 +704,7 @@ pub async fn list_raw_requests(
 
 /// One tier of this site's uploads.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct UpstreamTierOut {
+pub(super) struct UpstreamTierOut {
     /// `events`, `results` or `raw`.
     pub tier: &'static str,
     /// The last of this site's commits the centre acknowledged (absent: none yet).
@@ -727,7 +727,7 @@ pub struct UpstreamTierOut {
 
 /// A backlog (null until the uploader has counted it, just after start).
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct BacklogOut {
+pub(super) struct BacklogOut {
     /// Rows.
     pub rows: Option<u64>,
     /// Bytes on the wire (estimated from the compressed bytes per row sent so far).
@@ -739,7 +739,7 @@ pub struct BacklogOut {
 
 /// What was sent.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct SentOut {
+pub(super) struct SentOut {
     /// Batches.
     pub batches: u64,
     /// Rows.
@@ -752,7 +752,7 @@ pub struct SentOut {
 
 /// A failure and when.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ErrorAtOut {
+pub(super) struct ErrorAtOut {
     /// When (server clock).
     pub time: String,
     /// What.
@@ -761,7 +761,7 @@ pub struct ErrorAtOut {
 
 /// `GET /api/v1/upstream`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct UpstreamOut {
+pub(super) struct UpstreamOut {
     /// This site.
     pub site: String,
     /// The centre.
@@ -779,7 +779,7 @@ pub struct UpstreamOut {
 
 /// A period the centre asked this site for.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct PendingRawOut {
+pub(super) struct PendingRawOut {
     /// The centre's id of the request.
     pub id: i64,
     /// The period's start.
@@ -797,7 +797,9 @@ pub struct PendingRawOut {
         (status = 404, description = "This service uploads to no centre", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_upstream(State(app): State<AppState>) -> Result<Json<UpstreamOut>, ApiError> {
+pub(super) async fn get_upstream(
+    State(app): State<AppState>,
+) -> Result<Json<UpstreamOut>, ApiError> {
     let Some(upstream) = &app.upstream else {
         return Err(ApiError::not_found(
             "this service uploads to no centre (`[upstream]` in the installation)",

@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
-pub struct FrameQuery {
+pub(super) struct FrameQuery {
     /// The camera's frame (required).
     pub camera: Option<String>,
     /// The frame's measurement time, RFC 3339 or integer nanoseconds (required).
@@ -37,7 +37,7 @@ pub struct FrameQuery {
 /// Why a marker was not found, as a stable code.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
-pub enum NotFoundCode {
+pub(super) enum NotFoundCode {
     /// The marker declares no disc target.
     NoTarget,
     /// No filtered or nominal pose to predict its points from.
@@ -73,7 +73,7 @@ impl From<&NotFound> for NotFoundCode {
 
 /// What the frame showed of one marker.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct FrameMarkerOut {
+pub(super) struct FrameMarkerOut {
     /// The marker's frame.
     pub marker: String,
     /// The measured link `<camera>_from_<marker>`.
@@ -115,7 +115,7 @@ pub struct FrameMarkerOut {
 
 /// The answer to a frame.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct FrameOut {
+pub(super) struct FrameOut {
     /// The camera.
     pub camera: String,
     /// The frame's time (RFC 3339).
@@ -148,7 +148,7 @@ const DECODE_WAIT: std::time::Duration = std::time::Duration::from_secs(5);
         (status = 503, description = "The writer is not available, or every decoding slot stayed taken for 5 s (`busy`)", body = ErrorBody),
     ),
     security(("bearer" = ["ingest"])))]
-pub async fn post_frame(
+pub(super) async fn post_frame(
     State(app): State<AppState>,
     Query(q): Query<FrameQuery>,
     headers: HeaderMap,

@@ -26,7 +26,7 @@ use std::collections::HashSet;
 
 /// The answer to an accepted batch.
 #[derive(Debug, Default, Clone, Serialize, utoipa::ToSchema)]
-pub struct IngestResponse {
+pub(crate) struct IngestResponse {
     /// Samples in the batch, all durably stored.
     pub accepted: usize,
     /// Newly stored.
@@ -63,7 +63,7 @@ impl From<IngestReport> for IngestResponse {
 /// A JSON batch of samples.
 #[derive(serde::Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct SamplesBatch {
+pub(super) struct SamplesBatch {
     /// The samples, each stored or none.
     pub samples: Vec<SampleIn>,
 }
@@ -163,7 +163,7 @@ impl<'de> serde::de::Visitor<'de> for ItemsSeed<'_> {
 }
 
 /// Reads the body up to the limit: 413 past it.
-pub async fn read_body(
+pub(super) async fn read_body(
     body: Body,
     headers: &HeaderMap,
     limit: usize,
@@ -234,10 +234,10 @@ fn parse_item(text: &str) -> Result<SampleIn, (String, String)> {
 }
 
 /// Problems of a batch: the item index and the field problem.
-pub type Problems = Vec<(Option<usize>, (String, String))>;
+pub(super) type Problems = Vec<(Option<usize>, (String, String))>;
 
 /// Converts parsed items into validated samples, listing every problem.
-pub fn validate_samples(
+pub(super) fn validate_samples(
     installation: &Installation,
     items: Vec<(usize, SampleIn)>,
     latest_ns: i64,
@@ -371,7 +371,7 @@ fn is_ndjson(headers: &HeaderMap) -> bool {
 
 /// Parses a request body into items, every problem listed (the first
 /// [`super::error::MAX_DETAILS`] of them in the details, with the count in the message).
-pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, ApiError> {
+pub(super) fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, ApiError> {
     let mut c = Collected::default();
     if ndjson {
         for (index, line) in text.lines().filter(|l| !l.trim().is_empty()).enumerate() {
@@ -432,7 +432,7 @@ pub fn parse_batch(text: &str, ndjson: bool) -> Result<Vec<(usize, SampleIn)>, A
 }
 
 /// Refuses an empty batch (422) and one over the limit (413); `what` names the items.
-pub fn check_batch_size(what: &str, len: usize, limit: usize) -> Result<(), ApiError> {
+pub(super) fn check_batch_size(what: &str, len: usize, limit: usize) -> Result<(), ApiError> {
     if len == 0 {
         return Err(ApiError::invalid_field(what, "the batch is empty"));
     }
@@ -461,7 +461,7 @@ pub fn check_batch_size(what: &str, len: usize, limit: usize) -> Result<(), ApiE
         (status = 503, description = "The writer is not available", body = ErrorBody),
     ),
     security(("bearer" = ["ingest"])))]
-pub async fn post_samples(
+pub(super) async fn post_samples(
     State(app): State<AppState>,
     headers: HeaderMap,
     body: Body,

@@ -12,7 +12,7 @@ enum Frame {
 }
 
 /// The path of the value being read at byte `offset` of `text`.
-pub fn path_at(text: &str, offset: usize) -> String {
+pub(super) fn path_at(text: &str, offset: usize) -> String {
     let bytes = text.as_bytes();
     let end = offset.min(bytes.len());
     let mut stack: Vec<Frame> = Vec::new();
@@ -78,7 +78,7 @@ pub fn path_at(text: &str, offset: usize) -> String {
 }
 
 /// The byte offset of a 1-based line and column (as serde_json reports them).
-pub fn offset_of(text: &str, line: usize, column: usize) -> usize {
+pub(super) fn offset_of(text: &str, line: usize, column: usize) -> usize {
     let line_start: usize = text
         .split_inclusive('\n')
         .take(line.saturating_sub(1))
@@ -88,7 +88,7 @@ pub fn offset_of(text: &str, line: usize, column: usize) -> usize {
 }
 
 /// The index of the item in a `{"samples": [...]}` batch that a path names, if any.
-pub fn item_index(path: &str, array_key: &str) -> Option<usize> {
+pub(super) fn item_index(path: &str, array_key: &str) -> Option<usize> {
     let rest = path.strip_prefix(array_key)?.strip_prefix('[')?;
     rest.split(']').next()?.parse().ok()
 }
@@ -120,7 +120,7 @@ mod tests {
 
 /// The path of the first string (or object key) in `value` that holds a NUL character
 /// (`samples[3].link`; `body` for the value itself).
-pub fn path_to_nul(value: &serde_json::Value) -> Option<String> {
+pub(super) fn path_to_nul(value: &serde_json::Value) -> Option<String> {
     fn walk(value: &serde_json::Value, path: &mut String) -> bool {
         match value {
             serde_json::Value::String(s) => s.contains('\0'),

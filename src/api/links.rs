@@ -25,7 +25,7 @@ fn link_spec(app: &AppState, name: &str) -> Result<LinkSpec, ApiError> {
 
 /// A link as listed.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct LinkOut {
+pub(super) struct LinkOut {
     /// `<parent>_from_<child>`.
     pub name: String,
     /// `measured` or `calibrated`.
@@ -62,7 +62,7 @@ pub struct LinkOut {
 
 /// A manual restart of a link's filter.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct LinkResetOut {
+pub(super) struct LinkResetOut {
     /// The link.
     pub link: String,
     /// When it was asked for (server clock).
@@ -76,7 +76,7 @@ pub struct LinkResetOut {
 /// Body of `POST .../reset` (optional).
 #[derive(Debug, Default, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct LinkResetIn {
+pub(super) struct LinkResetIn {
     /// Who asks (a name for the record).
     pub by: Option<String>,
     /// Why (for the record).
@@ -97,7 +97,7 @@ pub struct LinkResetIn {
         (status = 422, description = "A calibrated link, or a malformed body", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn post_reset(
+pub(super) async fn post_reset(
     State(app): State<AppState>,
     Path(name): Path<String>,
     body: axum::body::Bytes,
@@ -131,7 +131,9 @@ pub async fn post_reset(
 #[utoipa::path(get, path = "/links", tag = "links",
     responses((status = 200, description = "Every link with its counters, rate and status", body = [LinkOut])),
     security(("bearer" = ["read"])))]
-pub async fn list_links(State(app): State<AppState>) -> Result<Json<Vec<LinkOut>>, ApiError> {
+pub(super) async fn list_links(
+    State(app): State<AppState>,
+) -> Result<Json<Vec<LinkOut>>, ApiError> {
     let inst = app.service.installation();
     let resets = app.service.store().last_link_resets().await?;
     let snapshot = app.service.snapshot();
@@ -187,7 +189,7 @@ pub async fn list_links(State(app): State<AppState>) -> Result<Json<Vec<LinkOut>
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
-pub struct SamplesQuery {
+pub(super) struct SamplesQuery {
     /// Start.
     pub from: Option<String>,
     /// End.
@@ -198,7 +200,7 @@ pub struct SamplesQuery {
 
 /// A stored sample as answered.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct SampleOut {
+pub(super) struct SampleOut {
     /// Measurement time.
     pub time: String,
     /// The measured pose.
@@ -223,7 +225,7 @@ pub struct SampleOut {
 
 /// `GET .../samples`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct SamplesOut {
+pub(super) struct SamplesOut {
     /// Link.
     pub link: String,
     /// Samples, oldest first.
@@ -239,7 +241,7 @@ pub struct SamplesOut {
         (status = 422, description = "Invalid query", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_samples(
+pub(super) async fn list_samples(
     State(app): State<AppState>,
     Path(name): Path<String>,
     Query(q): Query<SamplesQuery>,
@@ -284,7 +286,7 @@ pub async fn list_samples(
 /// Body of `PUT .../calibration`.
 #[derive(Debug, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct CalibrationIn {
+pub(super) struct CalibrationIn {
     /// `parent_from_child`.
     pub pose: PoseIn,
     /// Its sigmas (or `covariance`).
@@ -298,7 +300,7 @@ pub struct CalibrationIn {
 
 /// A calibration as answered.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CalibrationOut {
+pub(super) struct CalibrationOut {
     /// Link.
     pub link: String,
     /// Version (0: the installation file's).
@@ -338,7 +340,7 @@ fn calibrated(spec: &LinkSpec) -> Result<PoseCov, ApiError> {
         (status = 422, description = "Invalid calibration, or a measured link", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn put_calibration(
+pub(super) async fn put_calibration(
     State(app): State<AppState>,
     Path(name): Path<String>,
     body: axum::body::Bytes,
@@ -389,7 +391,7 @@ pub async fn put_calibration(
 
 /// `GET .../calibrations`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CalibrationsOut {
+pub(super) struct CalibrationsOut {
     /// Link.
     pub link: String,
     /// The installation file's (version 0), then every stored version.
@@ -405,7 +407,7 @@ pub struct CalibrationsOut {
         (status = 422, description = "A measured link", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_calibrations(
+pub(super) async fn list_calibrations(
     State(app): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<Json<CalibrationsOut>, ApiError> {

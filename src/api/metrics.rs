@@ -51,7 +51,7 @@ fn single(out: &mut String, name: &str, kind: &str, help: &str, value: impl std:
 #[utoipa::path(get, path = "/metrics", tag = "operations",
     responses((status = 200, description = "Prometheus text exposition", content_type = "text/plain; version=0.0.4", body = String)),
     security(("bearer" = ["read"])))]
-pub async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
+pub(super) async fn get_metrics(State(app): State<AppState>) -> impl IntoResponse {
     let service = &app.service;
     let m = service.metrics();
     let viz = service.viz_counters();

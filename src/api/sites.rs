@@ -96,7 +96,7 @@ async fn site_view(app: &AppState, site: &str) -> Result<SiteView, ApiError> {
         (status = 404, description = "No such site at this centre, no rows of it yet, or this service is no centre", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_site_targets(
+pub(super) async fn list_site_targets(
     State(app): State<AppState>,
     Path(site): Path<String>,
 ) -> Result<Json<Vec<TargetOut>>, ApiError> {
@@ -127,7 +127,7 @@ pub async fn list_site_targets(
         (status = 422, description = "Invalid `at`", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_site_compensation(
+pub(super) async fn get_site_compensation(
     State(app): State<AppState>,
     Path((site, name)): Path<(String, String)>,
     Query(q): Query<AtQuery>,
@@ -179,7 +179,7 @@ pub async fn get_site_compensation(
         (status = 422, description = "Invalid window", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_site_stats(
+pub(super) async fn get_site_stats(
     State(app): State<AppState>,
     Path((site, name)): Path<(String, String)>,
     Query(q): Query<WindowQuery>,
@@ -202,7 +202,7 @@ pub async fn get_site_stats(
         (status = 422, description = "Invalid query", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_site_history(
+pub(super) async fn get_site_history(
     State(app): State<AppState>,
     Path((site, name)): Path<(String, String)>,
     Query(q): Query<HistoryQuery>,
@@ -221,7 +221,7 @@ pub async fn get_site_history(
         (status = 404, description = "Unknown site or target, or no reference yet", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_site_reference(
+pub(super) async fn get_site_reference(
     State(app): State<AppState>,
     Path((site, name)): Path<(String, String)>,
 ) -> Result<Json<ReferenceOut>, ApiError> {
@@ -248,7 +248,7 @@ pub async fn get_site_reference(
         (status = 404, description = "Unknown site or target", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_site_references(
+pub(super) async fn list_site_references(
     State(app): State<AppState>,
     Path((site, name)): Path<(String, String)>,
 ) -> Result<Json<ReferencesOut>, ApiError> {
@@ -266,7 +266,7 @@ pub async fn list_site_references(
         (status = 422, description = "Invalid query", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_site_alarms(
+pub(super) async fn list_site_alarms(
     State(app): State<AppState>,
     Path(site): Path<String>,
     Query(q): Query<AlarmsQuery>,

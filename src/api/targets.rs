@@ -26,11 +26,11 @@ pub(super) fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetS
         .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))
 }
 
-pub use crate::fleet::protocol::{PathOut, ThresholdsOut};
+pub(super) use crate::fleet::protocol::{PathOut, ThresholdsOut};
 
 /// A target as listed.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct TargetOut {
+pub(super) struct TargetOut {
     /// Its name (frame).
     pub name: String,
     /// Its base frame.
@@ -51,7 +51,7 @@ pub struct TargetOut {
 #[utoipa::path(get, path = "/targets", tag = "targets",
     responses((status = 200, description = "Every target with its paths and status", body = [TargetOut])),
     security(("bearer" = ["read"])))]
-pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
+pub(super) async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
     let snapshot = app.service.snapshot();
     Json(
         crate::fleet::protocol::describe_targets(&app.service.installation().model)
@@ -71,7 +71,7 @@ pub async fn list_targets(State(app): State<AppState>) -> Json<Vec<TargetOut>> {
 
 impl TargetOut {
     /// A target as its installation describes it, with its status and newest result's time.
-    pub fn new(
+    pub(super) fn new(
         d: crate::fleet::protocol::TargetDescription,
         status: &'static str,
         time_ns: Option<i64>,
@@ -90,7 +90,7 @@ impl TargetOut {
 
 /// A reference as answered.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ReferenceOut {
+pub(super) struct ReferenceOut {
     /// Translation of `G0_from_B` (mm).
     pub t_mm: [f64; 3],
     /// Rotation (quaternion).
@@ -111,7 +111,7 @@ pub struct ReferenceOut {
 
 /// A reference's window.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct WindowOut {
+pub(super) struct WindowOut {
     /// Start.
     pub from: String,
     /// End.
@@ -153,7 +153,7 @@ impl From<&CurrentReference> for ReferenceOut {
 
 /// A deformation as answered (`G0_from_G`).
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct DeformationOut {
+pub(super) struct DeformationOut {
     /// Rotation vector (arc-seconds, reference target axes).
     pub rotation_arcsec: [f64; 3],
     /// Translation (mm, reference target coordinates).
@@ -164,7 +164,7 @@ pub struct DeformationOut {
 
 /// A correction as answered (`G_from_G0`).
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CorrectionOut {
+pub(super) struct CorrectionOut {
     /// Rotation (quaternion).
     pub q_wxyz: [f64; 4],
     /// Translation (mm).
@@ -177,7 +177,7 @@ pub struct CorrectionOut {
 
 /// Redundant paths' agreement.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ConsistencyOut {
+pub(super) struct ConsistencyOut {
     /// Chi-square of the paths' disagreement.
     pub chi2: f64,
     /// Degrees of freedom.
@@ -189,7 +189,7 @@ pub struct ConsistencyOut {
 /// Where a compensation's value comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
-pub enum CompensationSource {
+pub(super) enum CompensationSource {
     /// The newest filtered result.
     Live,
     /// The filters predicted to a later time.
@@ -201,7 +201,7 @@ pub enum CompensationSource {
 /// Which results a statistic or a history is computed from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
-pub enum ResultSource {
+pub(super) enum ResultSource {
     /// Each measurement group composed as measured.
     Raw,
     /// The filtered results.
@@ -220,7 +220,7 @@ impl ResultSource {
 
 /// `GET .../compensation`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct CompensationOut {
+pub(super) struct CompensationOut {
     /// Target name.
     pub target: String,
     /// Base frame.
@@ -432,7 +432,7 @@ fn live(app: &AppState, ti: usize, estimate: &TargetEstimate) -> Evaluated {
 }
 
 /// The compensation JSON of a live result of target `ti` (for the event stream).
-pub fn live_compensation(
+pub(super) fn live_compensation(
     app: &AppState,
     spec: &TargetSpec,
     ti: usize,
@@ -450,7 +450,7 @@ pub fn live_compensation(
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
-pub struct AtQuery {
+pub(super) struct AtQuery {
     /// A past or future time (RFC 3339 or integer ns); the newest result without it.
     pub at: Option<String>,
 }
@@ -464,7 +464,7 @@ pub struct AtQuery {
         (status = 422, description = "Invalid `at`", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_compensation(
+pub(super) async fn get_compensation(
     State(app): State<AppState>,
     Path(name): Path<String>,
     Query(q): Query<AtQuery>,
@@ -517,7 +517,7 @@ pub async fn get_compensation(
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
-pub struct WindowQuery {
+pub(super) struct WindowQuery {
     /// Start (RFC 3339 or integer ns); the beginning of time without it.
     pub from: Option<String>,
     /// End; the end of time without it.
@@ -527,7 +527,7 @@ pub struct WindowQuery {
 }
 
 /// Parses `from`, `to` and `source` of a window query.
-pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
+pub(super) fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
     let (from, to) = super::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
     let filtered = super::query_choice(
         "source",
@@ -540,7 +540,7 @@ pub fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
 
 /// Three statistics.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ComponentsOut {
+pub(super) struct ComponentsOut {
     /// Minimum.
     pub min: [f64; 3],
     /// Maximum.
@@ -553,7 +553,7 @@ pub struct ComponentsOut {
 
 /// `GET .../stats`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct StatsOut {
+pub(super) struct StatsOut {
     /// Target.
     pub target: String,
     /// The results it is computed from.
@@ -579,7 +579,7 @@ pub struct StatsOut {
         (status = 422, description = "Invalid window", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_stats(
+pub(super) async fn get_stats(
     State(app): State<AppState>,
     Path(name): Path<String>,
     Query(q): Query<WindowQuery>,
@@ -621,7 +621,7 @@ pub(super) async fn stats_of(
 /// Body of `POST .../reference`.
 #[derive(Debug, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct ReferenceIn {
+pub(super) struct ReferenceIn {
     /// Window start (with `to`).
     #[schema(schema_with = super::dto::time_schema)]
     pub from: Option<serde_json::Value>,
@@ -643,7 +643,7 @@ pub struct ReferenceIn {
         (status = 422, description = "Invalid reference, or an empty window", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn post_reference(
+pub(super) async fn post_reference(
     State(app): State<AppState>,
     Path(name): Path<String>,
     body: axum::body::Bytes,
@@ -684,7 +684,7 @@ pub async fn post_reference(
         (status = 404, description = "Unknown target, or no reference yet", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_reference(
+pub(super) async fn get_reference(
     State(app): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<Json<ReferenceOut>, ApiError> {
@@ -699,7 +699,7 @@ pub async fn get_reference(
 
 /// `GET .../references`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ReferencesOut {
+pub(super) struct ReferencesOut {
     /// Target.
     pub target: String,
     /// Every version, oldest first.
@@ -714,7 +714,7 @@ pub struct ReferencesOut {
         (status = 404, description = "Unknown target", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn list_references(
+pub(super) async fn list_references(
     State(app): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<Json<ReferencesOut>, ApiError> {
@@ -750,7 +750,7 @@ pub(super) fn current_of(r: &crate::store::StoredReference) -> CurrentReference 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
-pub struct HistoryQuery {
+pub(super) struct HistoryQuery {
     /// Start (RFC 3339 or integer ns); the first result without it.
     pub from: Option<String>,
     /// End; the last result without it.
@@ -767,7 +767,7 @@ pub struct HistoryQuery {
 
 /// One component's series.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct SeriesOut {
+pub(super) struct SeriesOut {
     /// Minimum per bucket (`null` where the bucket has no value of it).
     pub min: Vec<Option<f64>>,
     /// Mean per bucket.
@@ -778,7 +778,7 @@ pub struct SeriesOut {
 
 /// `GET .../history`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct HistoryOut {
+pub(super) struct HistoryOut {
     /// Target.
     pub target: String,
     /// The results it is built from.
@@ -812,7 +812,7 @@ pub struct HistoryOut {
         (status = 422, description = "Invalid query", body = ErrorBody),
     ),
     security(("bearer" = ["read"])))]
-pub async fn get_history(
+pub(super) async fn get_history(
     State(app): State<AppState>,
     Path(name): Path<String>,
     Query(q): Query<HistoryQuery>,

@@ -24,7 +24,7 @@ use std::collections::HashSet;
 /// One camera image of one marker: the measured pixel of each marker point.
 #[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct ObservationIn {
+pub(crate) struct ObservationIn {
     /// The camera's frame.
     pub camera: String,
     /// The marker's frame.
@@ -46,14 +46,14 @@ pub struct ObservationIn {
 /// A batch of observations, each solved and stored, or none.
 #[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct ObservationsBatch {
+pub(crate) struct ObservationsBatch {
     /// The observations.
     pub observations: Vec<ObservationIn>,
 }
 
 /// The pose PnP computed for one observation.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct ObservedPoseOut {
+pub(crate) struct ObservedPoseOut {
     /// The measured link `<camera>_from_<marker>`.
     pub link: String,
     /// The observation's time (RFC 3339).
@@ -74,7 +74,7 @@ pub struct ObservedPoseOut {
 
 /// The answer to an accepted batch of observations.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct ObservationsResponse {
+pub(crate) struct ObservationsResponse {
     /// What ingesting the computed samples did.
     #[serde(flatten)]
     pub ingest: IngestResponse,
@@ -94,7 +94,7 @@ pub struct ObservationsResponse {
         (status = 503, description = "The writer is not available", body = ErrorBody),
     ),
     security(("bearer" = ["ingest"])))]
-pub async fn post_observations(
+pub(crate) async fn post_observations(
     State(app): State<AppState>,
     headers: HeaderMap,
     body: Body,
@@ -231,7 +231,7 @@ pub(super) fn solved_item(
 /// One motion of the station: `a` seen by the first sensor, `b` by the second.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct HandEyePairIn {
+pub(crate) struct HandEyePairIn {
     /// Motion `A_i`.
     pub a: PoseIn,
     /// Motion `B_i`.
@@ -241,7 +241,7 @@ pub struct HandEyePairIn {
 /// The noise of the measured motions, for weighting the refinement.
 #[derive(Debug, Clone, Copy, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct HandEyeSigmaIn {
+pub(crate) struct HandEyeSigmaIn {
     /// Rotation (arc-seconds).
     pub rotation_arcsec: f64,
     /// Translation (mm).
@@ -251,7 +251,7 @@ pub struct HandEyeSigmaIn {
 /// `A_i X = X B_i`: the motions, at least three about non-parallel axes.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-pub struct HandEyeIn {
+pub(crate) struct HandEyeIn {
     /// The motions.
     pub pairs: Vec<HandEyePairIn>,
     /// Their noise (default 10 arc-seconds, 0.1 mm).
@@ -260,7 +260,7 @@ pub struct HandEyeIn {
 
 /// How one pair agrees with X.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct PairResidualOut {
+pub(crate) struct PairResidualOut {
     /// Rotation of `A_i X (X B_i)^-1` (arc-seconds).
     pub rotation_arcsec: f64,
     /// Translation of `A_i X (X B_i)^-1` (mm).
@@ -269,7 +269,7 @@ pub struct PairResidualOut {
 
 /// The fit's residuals.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct HandEyeResidualsOut {
+pub(crate) struct HandEyeResidualsOut {
     /// Per pair, in input order.
     pub pairs: Vec<PairResidualOut>,
     /// RMS of the rotation residuals (arc-seconds).
@@ -280,7 +280,7 @@ pub struct HandEyeResidualsOut {
 
 /// The rotation spread of the input motions.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct SpreadOut {
+pub(crate) struct SpreadOut {
     /// Smallest rotation of a motion (degrees).
     pub min_rotation_deg: f64,
     /// Largest rotation of a motion (degrees).
@@ -291,7 +291,7 @@ pub struct SpreadOut {
 
 /// The solved station link.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub struct HandEyeOut {
+pub(crate) struct HandEyeOut {
     /// X.
     pub x: PoseOut,
     /// X's sigmas (from the weighted fit, scaled by its variance factor).
@@ -344,7 +344,7 @@ impl From<&HandEyeSolution> for HandEyeOut {
 
 impl HandEyeIn {
     /// Validates the poses and solves; every invalid pose is named, a refusal says why.
-    pub fn solve(&self) -> Result<HandEyeOut, ApiError> {
+    pub(crate) fn solve(&self) -> Result<HandEyeOut, ApiError> {
         let mut problems = Vec::new();
         let mut pairs: Vec<(Pose, Pose)> = Vec::with_capacity(self.pairs.len());
         for (i, p) in self.pairs.iter().enumerate() {
@@ -396,7 +396,7 @@ impl HandEyeIn {
         (status = 422, description = "An invalid pose, or motions that cannot determine X (too few, too small, inconsistent, parallel axes)", body = ErrorBody),
     ),
     security(("bearer" = ["admin"])))]
-pub async fn post_hand_eye(
+pub(crate) async fn post_hand_eye(
     State(app): State<AppState>,
     headers: HeaderMap,
     body: Body,

@@ -33,7 +33,7 @@ const QUEUE_CAPACITY: usize = 1000;
 const MAX_BACKOFF: Duration = Duration::from_secs(60);
 
 /// The signature header's value for `body`: `sha256=` and the lowercase hex HMAC-SHA256.
-pub fn signature(secret: &str, body: &[u8]) -> String {
+pub(super) fn signature(secret: &str, body: &[u8]) -> String {
     use hmac::Mac as _;
     // HMAC takes a key of any length: this cannot fail.
     let Ok(mut mac) = hmac::Hmac::<sha2::Sha256>::new_from_slice(secret.as_bytes()) else {
@@ -387,7 +387,7 @@ async fn deliver_all(
 
 /// A webhook as `GET /api/v1/webhooks` shows it.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
-pub struct WebhookOut {
+pub(super) struct WebhookOut {
     /// Its position in `[[notify.webhooks]]`.
     pub index: usize,
     /// The URL's host and port (the rest may carry credentials).
@@ -418,7 +418,7 @@ pub struct WebhookOut {
 #[utoipa::path(get, path = "/webhooks", tag = "alarms",
     responses((status = 200, description = "Each webhook's deliveries, failures and last error", body = [WebhookOut])),
     security(("bearer" = ["read"])))]
-pub async fn list_webhooks(State(app): State<AppState>) -> Json<Vec<WebhookOut>> {
+pub(super) async fn list_webhooks(State(app): State<AppState>) -> Json<Vec<WebhookOut>> {
     Json(app.webhooks.status())
 }
 

@@ -22,7 +22,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// Reads a plate file (TOML, the fields of `PlateIn`).
-pub fn read_plate(path: &Path) -> anyhow::Result<Plate> {
+pub(super) fn read_plate(path: &Path) -> anyhow::Result<Plate> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read the plate file {}", path.display()))?;
     let spec: PlateIn =
@@ -32,7 +32,7 @@ pub fn read_plate(path: &Path) -> anyhow::Result<Plate> {
 }
 
 /// Reads `--plate CAMERA=PLATE.toml` arguments.
-pub fn read_plates(args: &[String]) -> anyhow::Result<Vec<(String, Plate)>> {
+pub(super) fn read_plates(args: &[String]) -> anyhow::Result<Vec<(String, Plate)>> {
     args.iter()
         .map(|p| {
             let (camera, file) = p
@@ -65,7 +65,7 @@ fn find_plate(plate: &Plate, image: &GreyImage) -> Result<PlateView, String> {
 }
 
 /// A calibration from frame files, with the frames it used and those it left out.
-pub struct FramesCalibration {
+pub(super) struct FramesCalibration {
     /// The result.
     pub calibration: CameraCalibration,
     /// The frames used, in view order.
@@ -78,7 +78,7 @@ pub struct FramesCalibration {
 
 impl FramesCalibration {
     /// What the frames' files limit, in words (JPEG's blocks move disc centres).
-    pub fn file_warning(&self) -> Option<String> {
+    pub(super) fn file_warning(&self) -> Option<String> {
         (self.lossy > 0).then(|| {
             format!(
                 "{} of the {} views came as JPEG: lossy compression moves disc centres by \
@@ -93,7 +93,7 @@ impl FramesCalibration {
 
 /// Detects the plate in each frame and calibrates; `progress` advances a frame at a time,
 /// frames left out are reported on `log`.
-pub fn calibrate_from_frames(
+pub(super) fn calibrate_from_frames(
     plate: &Plate,
     frames: &[PathBuf],
     fix: &[String],
@@ -150,7 +150,7 @@ pub fn calibrate_from_frames(
 }
 
 /// The report `calibrate-camera` prints.
-pub fn report(run: &FramesCalibration) -> String {
+pub(super) fn report(run: &FramesCalibration) -> String {
     use std::fmt::Write as _;
     let c = &run.calibration;
     let mut s = String::new();
@@ -209,7 +209,7 @@ pub fn report(run: &FramesCalibration) -> String {
 }
 
 /// A `[[cameras]]` block for the installation file.
-pub fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
+pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
     let m = &c.camera;
     let d = m.distortion;
     let mut fixed: Vec<&str> = c.fixed.iter().map(|p| p.name()).collect();
@@ -335,7 +335,7 @@ fn station(
 }
 
 /// A station's calibrated link from frames at several positions.
-pub struct StationCalibration {
+pub(super) struct StationCalibration {
     /// The solution, as `POST /calibration/hand-eye` answers.
     pub result: HandEyeOut,
     /// The motions used (`A_i`, `B_i`), from the first position to each other.
@@ -347,7 +347,7 @@ pub struct StationCalibration {
 /// Calibrates the calibrated link `link` (`parent_from_child`) of `installation` from
 /// `positions` (one directory per position of the station, holding `<camera>.png` of each
 /// camera involved). `plates` names the plate each camera of the station looks at.
-pub fn calibrate_station(
+pub(super) fn calibrate_station(
     installation: &Installation,
     link: &str,
     plates: &[(String, Plate)],
@@ -507,7 +507,7 @@ fn plate_pose(
 
 /// Renders `views` random views of `plate` as `camera` of the installation sees them into the
 /// new directory `dir` (`view_NN.png`, `truth.json`); returns how many were written.
-pub fn render_plate_views(
+pub(super) fn render_plate_views(
     installation: &Installation,
     camera: &str,
     plate: &Plate,
@@ -572,7 +572,7 @@ pub fn render_plate_views(
 /// watches it, from the link's nominal pose), and `truth.json` with the link's true pose (the
 /// installation's) and the motions. Returns how many positions were written.
 #[allow(clippy::too_many_arguments)]
-pub fn render_station_views(
+pub(super) fn render_station_views(
     installation: &Installation,
     link: &str,
     plates: &[(String, Plate)],

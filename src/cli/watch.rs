@@ -30,7 +30,7 @@ use std::time::{Duration, SystemTime};
 
 /// How a watch runs.
 #[derive(Debug, Clone)]
-pub struct WatchSettings {
+pub(super) struct WatchSettings {
     /// Time between scans when nothing is waiting.
     pub poll: Duration,
     /// A file is taken when unchanged for this long.
@@ -44,7 +44,7 @@ pub struct WatchSettings {
 
 /// What a watch did.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub struct WatchSummary {
+pub(super) struct WatchSummary {
     /// Frames the service took (and that were removed).
     pub posted: u64,
     /// Frames it refused (moved aside).
@@ -83,7 +83,7 @@ enum Outcome {
 
 /// Watches `dir` until `stop` resolves (or, with `once`, until what was there is delivered or
 /// refused).
-pub async fn watch(
+pub(super) async fn watch(
     dir: &Path,
     client: &Client,
     settings: &WatchSettings,

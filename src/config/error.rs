@@ -53,14 +53,14 @@ pub(super) struct LineIndex {
 }
 
 impl LineIndex {
-    pub fn new(text: &str) -> Self {
+    pub(super) fn new(text: &str) -> Self {
         let mut line_starts = vec![0];
         line_starts.extend(text.match_indices('\n').map(|(i, _)| i + 1));
         Self { line_starts }
     }
 
     /// `(line, column)`, both 1-based, of a byte offset.
-    pub fn locate(&self, offset: usize) -> (usize, usize) {
+    pub(super) fn locate(&self, offset: usize) -> (usize, usize) {
         let line = self.line_starts.partition_point(|&s| s <= offset);
         let start = self.line_starts[line - 1];
         (line, offset - start + 1)

@@ -211,7 +211,7 @@ pub(super) enum ScalarOr3 {
 }
 
 impl ScalarOr3 {
-    pub fn per_axis(self) -> [f64; 3] {
+    pub(super) fn per_axis(self) -> [f64; 3] {
         match self {
             ScalarOr3::Scalar(v) => [v; 3],
             ScalarOr3::PerAxis(v) => v,

@@ -170,11 +170,6 @@ impl LinkFilter {
         self.gate
     }
 
-    /// True once a sample has started the filter.
-    pub fn is_initialized(&self) -> bool {
-        self.state.is_some()
-    }
-
     /// The time of the state (ns), once initialised.
     pub fn time_ns(&self) -> Option<i64> {
         self.state.as_ref().map(|_| self.time_ns)
@@ -346,14 +341,6 @@ impl LinkFilter {
         } else {
             Self::pose_of(&self.propagated(state, dt_s))
         }))
-    }
-
-    /// The twist rate of the `constant_velocity` model (mm/s, rad/s), if that is the model.
-    pub fn twist_rate(&self) -> Option<Twist> {
-        match &self.state {
-            Some(State::ConstantVelocity { nu, .. }) => Some(*nu),
-            _ => None,
-        }
     }
 
     /// Feeds one measurement `z` (the link pose `parent_from_child` with its covariance) taken

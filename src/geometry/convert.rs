@@ -12,10 +12,10 @@ use nalgebra::{Quaternion, Rotation3, Translation3};
 pub const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
 
 /// How far from 1 a quaternion's norm may be before it is refused (it is normalised otherwise).
-pub const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
+pub(super) const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
 
 /// How far `R^T R` may be from the identity (max abs entry) for a matrix to count as a rotation.
-pub const ROTATION_ORTHOGONALITY_TOLERANCE: f64 = 1e-6;
+pub(super) const ROTATION_ORTHOGONALITY_TOLERANCE: f64 = 1e-6;
 
 /// The largest translation component a pose may have (mm): 100 km. Every structure this
 /// service measures is far smaller; a larger number is a unit mistake or garbage, and letting

@@ -16,12 +16,12 @@ use crate::vision::{Blob, MIN_POINTS, PnpSolution, solve_pnp_discs, solve_pnp_we
 use nalgebra::Vector2;
 
 /// A point's gate: at most this far from its prediction (px) ...
-pub const GATE_MIN_PX: f64 = 15.0;
+pub(super) const GATE_MIN_PX: f64 = 15.0;
 /// ... or this fraction of the distance to the nearest other predicted point, if larger
 /// (then never so far that it reaches a neighbour's blob).
-pub const GATE_FRACTION_OF_SPACING: f64 = 0.4;
+pub(super) const GATE_FRACTION_OF_SPACING: f64 = 0.4;
 /// A second blob within this factor of the nearest one's distance makes a point ambiguous.
-pub const AMBIGUITY_FACTOR: f64 = 1.5;
+pub(super) const AMBIGUITY_FACTOR: f64 = 1.5;
 
 /// How far around each predicted point identification looks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -6,14 +6,14 @@ use crate::geometry::{PoseCov, ReportedSigmas, euler_from_rotation};
 use std::collections::HashMap;
 
 /// Bucket widths of the rollup levels (s).
-pub const ROLLUP_WIDTHS_S: [i64; 5] = [1, 10, 60, 600, 3600];
+pub(crate) const ROLLUP_WIDTHS_S: [i64; 5] = [1, 10, 60, 600, 3600];
 
 /// How many components a result has.
-pub const N_COMPONENTS: usize = 18;
+pub(crate) const N_COMPONENTS: usize = 18;
 
 /// The components, in column order: Euler angles (deg), translation (mm), deformation rotation
 /// (arcsec) and translation (mm), sigmas of rotation (arcsec) and translation (mm).
-pub const COMPONENTS: [&str; N_COMPONENTS] = [
+pub(crate) const COMPONENTS: [&str; N_COMPONENTS] = [
     "euler_x_deg",
     "euler_y_deg",
     "euler_z_deg",
@@ -111,7 +111,7 @@ impl Bucket {
 }
 
 /// The components of a result, given its reported sigmas.
-pub fn components(
+pub(crate) fn components(
     estimate: &PoseCov,
     s: &ReportedSigmas,
     deformation: Option<([f64; 3], [f64; 3])>,
@@ -218,7 +218,7 @@ pub struct History {
 /// (`None`, when even the finest rollup is too coarse); the bucket width (ns) and the time the
 /// buckets are aligned on. A rollup-read bucket is a whole number of rollup buckets, aligned
 /// on the rollup grid, and the count stays within `max_points` after the alignment.
-pub fn history_plan(from_ns: i64, to_ns: i64, max_points: usize) -> (Option<i64>, i64, i64) {
+pub(crate) fn history_plan(from_ns: i64, to_ns: i64, max_points: usize) -> (Option<i64>, i64, i64) {
     let max_points = max_points.max(1) as f64;
     let span = (to_ns as i128 - from_ns as i128 + 1) as f64;
     let wanted_ns = (span / max_points).ceil().max(1.0) as i64;
@@ -419,7 +419,7 @@ impl Store {
 
 /// The start of the bucket of width `width_ns` (aligned on `start_ns`) that holds `time_ns`;
 /// computed wide so that no time, however far from `start_ns`, overflows.
-pub fn align(time_ns: i64, start_ns: i64, width_ns: i64) -> i64 {
+pub(crate) fn align(time_ns: i64, start_ns: i64, width_ns: i64) -> i64 {
     let (t, s, w) = (
         i128::from(time_ns),
         i128::from(start_ns),
@@ -430,7 +430,7 @@ pub fn align(time_ns: i64, start_ns: i64, width_ns: i64) -> i64 {
 }
 
 /// `time_ns` rounded down to a multiple of `width_ns`, saturating at the ends of time.
-pub fn floor_to(time_ns: i64, width_ns: i64) -> i64 {
+pub(crate) fn floor_to(time_ns: i64, width_ns: i64) -> i64 {
     let w = i128::from(width_ns.max(1));
     let floored = i128::from(time_ns).div_euclid(w) * w;
     floored.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64

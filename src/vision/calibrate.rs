@@ -243,7 +243,7 @@ pub const MIN_VIEW_POINTS: usize = 6;
 /// Most views accepted: the adjustment's normal equations grow with the cube of the views.
 pub const MAX_VIEWS: usize = 200;
 /// Most points accepted over all views: each iteration's work grows with them.
-pub const MAX_POINTS: usize = 40_000;
+pub(super) const MAX_POINTS: usize = 40_000;
 
 impl CalibrationWarning {
     /// A short code for the kind of warning.

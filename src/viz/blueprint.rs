@@ -13,7 +13,7 @@ use rerun::blueprint::{
 };
 
 /// The blueprint of an installation's recordings.
-pub fn blueprint(inst: &Installation) -> Blueprint {
+pub(super) fn blueprint(inst: &Installation) -> Blueprint {
     let per_target: Vec<ContainerLike> = inst
         .model
         .targets

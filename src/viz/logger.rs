@@ -27,7 +27,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 /// The application id of every recording; the viewer groups recordings by it.
-pub const APPLICATION_ID: &str = "brokenray";
+pub(super) const APPLICATION_ID: &str = "brokenray";
 
 /// Where each frame sits in the entity tree, and which link places it.
 #[derive(Debug, Clone)]
@@ -49,7 +49,7 @@ struct Rotation {
 }
 
 /// Writes records to Rerun.
-pub struct Logger {
+pub(super) struct Logger {
     inst: Arc<Installation>,
     /// Every stream; each record goes to each.
     streams: Vec<RecordingStream>,
@@ -97,7 +97,10 @@ fn file_name(dir: &Path) -> PathBuf {
 impl Logger {
     /// The streams of the live service, from `[rerun]`: `save`, `connect` and `serve` may be
     /// combined; all share one recording id, so a viewer merges them.
-    pub fn live(inst: &Arc<Installation>, counters: Arc<VizCounters>) -> Result<Self, VizError> {
+    pub(super) fn live(
+        inst: &Arc<Installation>,
+        counters: Arc<VizCounters>,
+    ) -> Result<Self, VizError> {
         let s = &inst.rerun;
         let recording_id = format!("brokenray-{}", crate::clock::wall_now_ns());
         let builder = || {
@@ -162,7 +165,7 @@ impl Logger {
     }
 
     /// One file, no rotation (for `replay`).
-    pub fn to_file(
+    pub(super) fn to_file(
         inst: &Arc<Installation>,
         path: &Path,
         name: &str,
@@ -363,14 +366,14 @@ impl Logger {
     }
 
     /// Writes one record to every stream (and rotates the file when due).
-    pub fn log(&mut self, record: &Record) {
+    pub(super) fn log(&mut self, record: &Record) {
         self.log_batch(std::slice::from_ref(record));
     }
 
     /// Writes records to every stream (and rotates the file when due). The frequent kinds
     /// (samples, results, scenes) go as columns, one chunk per entity and batch, which costs a
     /// fraction of a row-by-row `log` per value; the rare ones row by row.
-    pub fn log_batch(&mut self, records: &[Record]) {
+    pub(super) fn log_batch(&mut self, records: &[Record]) {
         if records.is_empty() {
             return;
         }
@@ -666,7 +669,7 @@ impl Logger {
 
     /// Writes out what is buffered and closes the streams. A remote viewer gets a bounded
     /// time; files are always completed (their footer written).
-    pub fn close(self) {
+    pub(super) fn close(self) {
         for (i, rec) in self.streams.into_iter().enumerate() {
             if Some(i) == self.remote {
                 if rec.flush_with_timeout(Duration::from_secs(2)).is_err() {

@@ -22,7 +22,7 @@ const PAGE: i64 = 20_000;
 
 /// What was written.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct ReplaySummary {
+pub(crate) struct ReplaySummary {
     /// Filtered results.
     pub filtered: u64,
     /// Raw results.
@@ -37,7 +37,7 @@ pub struct ReplaySummary {
 
 /// Errors of a replay.
 #[derive(Debug, thiserror::Error)]
-pub enum ReplayError {
+pub(crate) enum ReplayError {
     /// The database could not be read.
     #[error(transparent)]
     Store(#[from] crate::store::StoreError),
@@ -51,7 +51,7 @@ pub enum ReplayError {
 
 /// Writes the period `[from_ns, to_ns]` of `targets` (indices; all when empty) to `out`.
 /// `progress` is told the number of rows done and the total.
-pub async fn replay(
+pub(crate) async fn replay(
     inst: &Arc<Installation>,
     store: &Store,
     targets: &[usize],

@@ -30,7 +30,7 @@ use sqlx::{ConnectOptions, Connection};
 use std::collections::{HashMap, HashSet};
 
 /// The centre's own migrations (`migrations-central/`), applied in the schema `fleet`.
-pub static FLEET_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migrations-central");
+pub(crate) static FLEET_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migrations-central");
 
 /// What a site sends in one request: its identity and state, and a batch of one tier (none in
 /// a report of state alone).
@@ -167,7 +167,7 @@ pub struct Central {
 }
 
 /// The schema of a site's rows.
-pub fn site_schema(site_id: i64) -> String {
+pub(crate) fn site_schema(site_id: i64) -> String {
     format!("site_{site_id}")
 }
 
