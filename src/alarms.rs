@@ -449,9 +449,84 @@ impl AlarmMonitor {
     }
 }
 
+/// What acknowledging a stored transition does.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Acknowledging {
+    /// Record the acknowledgement.
+    Record,
+    /// The same person already acknowledged it with the same note: nothing to write (a
+    /// retried request).
+    AlreadyRecorded,
+}
+
+/// Why a transition cannot be acknowledged.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum AckRefusal {
+    /// A return to `none`: there is nothing to acknowledge.
+    ReturnToNone,
+    /// Someone else (or the same person with another note) acknowledged it already.
+    AlreadyAcknowledged {
+        /// Who did.
+        by: String,
+    },
+}
+
+/// Whether a transition to `to` whose acknowledgement so far is `previous` (`(by, note)`)
+/// takes the acknowledgement of `by` with `note`.
+pub fn acknowledging(
+    to: Level,
+    previous: Option<(&str, Option<&str>)>,
+    by: &str,
+    note: Option<&str>,
+) -> Result<Acknowledging, AckRefusal> {
+    if to == Level::None {
+        return Err(AckRefusal::ReturnToNone);
+    }
+    match previous {
+        None => Ok(Acknowledging::Record),
+        Some((prev_by, prev_note)) if prev_by == by && prev_note == note => {
+            Ok(Acknowledging::AlreadyRecorded)
+        }
+        Some((prev_by, _)) => Err(AckRefusal::AlreadyAcknowledged {
+            by: prev_by.to_owned(),
+        }),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_acknowledgement_is_recorded_once_and_refused_to_another() {
+        assert_eq!(
+            acknowledging(Level::Alarm, None, "ana", Some("seen")),
+            Ok(Acknowledging::Record)
+        );
+        assert_eq!(
+            acknowledging(
+                Level::Warn,
+                Some(("ana", Some("seen"))),
+                "ana",
+                Some("seen")
+            ),
+            Ok(Acknowledging::AlreadyRecorded),
+            "a retry is no conflict"
+        );
+        assert_eq!(
+            acknowledging(Level::Warn, Some(("ana", Some("seen"))), "ana", None),
+            Err(AckRefusal::AlreadyAcknowledged { by: "ana".into() }),
+            "another note is a conflict"
+        );
+        assert_eq!(
+            acknowledging(Level::Alarm, Some(("ana", None)), "bo", None),
+            Err(AckRefusal::AlreadyAcknowledged { by: "ana".into() })
+        );
+        assert_eq!(
+            acknowledging(Level::None, None, "ana", None),
+            Err(AckRefusal::ReturnToNone)
+        );
+    }
 
     fn thresholds() -> AlarmThresholds {
         AlarmThresholds {

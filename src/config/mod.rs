@@ -83,6 +83,21 @@ pub struct RetentionSettings {
     pub disk_budget_bytes: Option<u64>,
 }
 
+impl RetentionSettings {
+    /// The times before which samples and results go, `(samples, results)` (ns), counted back
+    /// from the newest result `newest_ns` but never from later than the server's clock
+    /// `now_ns` (one result stamped in the future must not make the real history look old);
+    /// `None` while there is no result.
+    pub fn cutoffs_ns(&self, newest_ns: Option<i64>, now_ns: i64) -> Option<(i64, i64)> {
+        let from = newest_ns?.min(now_ns);
+        let days = |d: f64| (d * 86_400e9) as i64;
+        Some((
+            from.saturating_sub(days(self.samples_days)),
+            from.saturating_sub(days(self.results_days)),
+        ))
+    }
+}
+
 /// A site's name in a fleet (`[site] name`): 1 to 48 characters, lowercase letters, digits,
 /// `-` and `_`, starting with a letter or digit. It names the site at the centre, in URLs and
 /// in the centre's database.
@@ -505,4 +520,34 @@ pub fn parse(source: &str, text: &str) -> Result<Installation, ConfigError> {
         file: source.to_owned(),
         problems,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::RetentionSettings;
+
+    #[test]
+    fn retention_counts_back_from_the_newest_result_but_never_from_the_future() {
+        let r = RetentionSettings {
+            samples_days: 1.0,
+            results_days: 2.0,
+            disk_budget_bytes: None,
+        };
+        let day = 86_400_000_000_000_i64;
+        assert_eq!(r.cutoffs_ns(None, 10 * day), None, "nothing to count from");
+        assert_eq!(
+            r.cutoffs_ns(Some(5 * day), 10 * day),
+            Some((4 * day, 3 * day))
+        );
+        assert_eq!(
+            r.cutoffs_ns(Some(50 * day), 10 * day),
+            Some((9 * day, 8 * day)),
+            "a result stamped in the future counts from the clock"
+        );
+        assert_eq!(
+            r.cutoffs_ns(Some(i64::MIN + 1), i64::MAX).map(|c| c.0),
+            Some(i64::MIN),
+            "saturates, never wraps"
+        );
+    }
 }

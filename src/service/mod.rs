@@ -12,7 +12,9 @@
 //! and reference per target, link counters, and a view of the filters for predictions), which
 //! readers use without touching the pipeline.
 
+mod job;
 mod metrics;
+use job::Job;
 mod pipeline;
 mod tasks;
 
@@ -254,55 +256,6 @@ pub enum ReferenceRequest {
         from_ns: i64,
         /// End (ns).
         to_ns: i64,
-    },
-}
-
-#[allow(
-    clippy::large_enum_variant,
-    reason = "one per request on the queue; boxing buys nothing"
-)]
-pub(crate) enum Job {
-    Ingest {
-        items: Vec<IngestItem>,
-        reply: oneshot::Sender<ServiceResult<IngestReport>>,
-    },
-    SetReference {
-        target: usize,
-        request: ReferenceRequest,
-        reply: oneshot::Sender<ServiceResult<CurrentReference>>,
-    },
-    Prune {
-        retention: crate::config::RetentionSettings,
-        /// On a fleet's site: whether raw samples are uploaded (what is not yet acknowledged
-        /// is then kept); `None` when nothing is uploaded.
-        upstream_raw: Option<bool>,
-        reply: oneshot::Sender<ServiceResult<Pruned>>,
-    },
-    RecordAck {
-        tier: crate::store::outbox::Tier,
-        seq: i64,
-        reply: oneshot::Sender<ServiceResult<()>>,
-    },
-    AddCalibration {
-        link: crate::chain::LinkId,
-        valid_from_ns: i64,
-        parent_from_child: PoseCov,
-        reply: oneshot::Sender<ServiceResult<i64>>,
-    },
-    ResetLink {
-        link: crate::chain::LinkId,
-        by: Option<String>,
-        note: Option<String>,
-        reply: oneshot::Sender<ServiceResult<i64>>,
-    },
-    CheckLiveness {
-        reply: oneshot::Sender<ServiceResult<usize>>,
-    },
-    AcknowledgeAlarm {
-        id: i64,
-        by: String,
-        note: Option<String>,
-        reply: oneshot::Sender<ServiceResult<()>>,
     },
 }
 
@@ -602,7 +555,7 @@ impl Service {
     /// Judges every target's staleness now (the service does so every second by itself);
     /// returns how many stale alarms changed level, each stored and sent live.
     pub async fn check_liveness(&self) -> ServiceResult<usize> {
-        self.submit(|reply| Job::CheckLiveness { reply }).await
+        self.submit((), Job::CheckLiveness).await
     }
 
     /// The installation.
@@ -691,14 +644,12 @@ impl Service {
         !self.inner.jobs.is_closed()
     }
 
-    async fn submit<T>(
-        &self,
-        make: impl FnOnce(oneshot::Sender<ServiceResult<T>>) -> Job,
-    ) -> ServiceResult<T> {
+    /// Queues a job for the writer and waits for its answer.
+    async fn submit<R, A>(&self, request: R, job: fn(job::Call<R, A>) -> Job) -> ServiceResult<A> {
         let (reply, answer) = oneshot::channel();
         self.inner
             .jobs
-            .send(make(reply))
+            .send(job(job::Call::new(request, reply)))
             .await
             .map_err(|_| ServiceError::ShuttingDown)?;
         answer.await.map_err(|_| ServiceError::WriterStopped)?
@@ -707,7 +658,7 @@ impl Service {
     /// Ingests validated samples atomically: all are durably stored (or were already, as
     /// identical retries) when this returns `Ok`; none is when it returns an error.
     pub async fn ingest(&self, items: Vec<IngestItem>) -> ServiceResult<IngestReport> {
-        self.submit(|reply| Job::Ingest { items, reply }).await
+        self.submit(items, Job::Ingest).await
     }
 
     /// Sets a target's reference (a new version).
@@ -716,12 +667,8 @@ impl Service {
         target: usize,
         request: ReferenceRequest,
     ) -> ServiceResult<CurrentReference> {
-        self.submit(|reply| Job::SetReference {
-            target,
-            request,
-            reply,
-        })
-        .await
+        self.submit(job::SetReference { target, request }, Job::SetReference)
+            .await
     }
 
     /// Deletes samples and results older than the retention ages (counted back from the newest
@@ -739,11 +686,13 @@ impl Service {
         let upstream_raw =
             (self.inner.installation.fleet.upstream.as_ref()).map(|u| u.raw_kbit_s > 0.0);
         let pruned = self
-            .submit(|reply| Job::Prune {
-                retention,
-                upstream_raw,
-                reply,
-            })
+            .submit(
+                job::Prune {
+                    retention,
+                    upstream_raw,
+                },
+                Job::Prune,
+            )
             .await?;
         if let (Some(cut), Some(budget)) = (pruned.budget, retention.disk_budget_bytes)
             && cut.rows() > 0
@@ -802,7 +751,7 @@ impl Service {
         tier: crate::store::outbox::Tier,
         seq: i64,
     ) -> ServiceResult<()> {
-        self.submit(|reply| Job::RecordAck { tier, seq, reply })
+        self.submit(job::RecordAck { tier, seq }, Job::RecordAck)
             .await
     }
 
@@ -815,13 +764,8 @@ impl Service {
         by: Option<String>,
         note: Option<String>,
     ) -> ServiceResult<i64> {
-        self.submit(|reply| Job::ResetLink {
-            link,
-            by,
-            note,
-            reply,
-        })
-        .await
+        self.submit(job::ResetLink { link, by, note }, Job::ResetLink)
+            .await
     }
 
     /// Acknowledges alarm transition `id`: who, and an optional note, recorded with the server's
@@ -833,12 +777,10 @@ impl Service {
         by: String,
         note: Option<String>,
     ) -> ServiceResult<crate::store::StoredAlarm> {
-        self.submit(|reply| Job::AcknowledgeAlarm {
-            id,
-            by,
-            note,
-            reply,
-        })
+        self.submit(
+            job::AcknowledgeAlarm { id, by, note },
+            Job::AcknowledgeAlarm,
+        )
         .await?;
         self.inner
             .store
@@ -855,12 +797,14 @@ impl Service {
         valid_from_ns: i64,
         parent_from_child: PoseCov,
     ) -> ServiceResult<i64> {
-        self.submit(|reply| Job::AddCalibration {
-            link,
-            valid_from_ns,
-            parent_from_child,
-            reply,
-        })
+        self.submit(
+            job::AddCalibration {
+                link,
+                valid_from_ns,
+                parent_from_child,
+            },
+            Job::AddCalibration,
+        )
         .await
     }
 }

@@ -1,21 +1,22 @@
 //! The pipeline task: the one writer. See the module docs of [`crate::service`].
 
+use super::job::{self, Job};
 use super::{
-    CurrentReference, ItemProblem, Job, Pruned, ReferenceRequest, ServiceError, ServiceResult,
-    Snapshot, TargetView,
+    CurrentReference, ItemProblem, Pruned, ReferenceRequest, ServiceError, ServiceResult, Snapshot,
+    TargetView,
 };
 use crate::bank::{BankRecord, FilterBank, Sample, TargetEstimate};
 use crate::chain::LinkId;
 use crate::deformation::{Deformation, Reference};
 use crate::filter::Disposition;
 use crate::store::WriteTx;
-use crate::store::outbox::{KeepUnsent, Tier};
+use crate::store::outbox::KeepUnsent;
 use crate::store::{
     NewResult, NewSample, Quality, SampleValues, StoreError, StoredAlarm, WriteConn,
 };
 use crate::viz::Series;
 use std::collections::{BTreeMap, HashMap};
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::mpsc;
 
 /// At most this many queued jobs share one commit (bounds the latency of the first).
 const MAX_JOBS_PER_COMMIT: usize = 256;
@@ -74,169 +75,214 @@ pub(super) struct Pipeline {
     clock_tolerance_s: f64,
 }
 
-#[allow(
-    clippy::large_enum_variant,
-    reason = "one per request in a commit group; boxing buys nothing"
-)]
-enum Pending {
-    Ingest(
-        oneshot::Sender<ServiceResult<IngestReport>>,
-        ServiceResult<IngestReport>,
-    ),
-    Reference(
-        oneshot::Sender<ServiceResult<CurrentReference>>,
-        ServiceResult<CurrentReference>,
-    ),
-    Calibration(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
-    Reset(oneshot::Sender<ServiceResult<i64>>, ServiceResult<i64>),
-    Prune(
-        oneshot::Sender<ServiceResult<Pruned>>,
-        ServiceResult<Pruned>,
-    ),
-    Liveness(oneshot::Sender<ServiceResult<usize>>, ServiceResult<usize>),
-    Acknowledge(oneshot::Sender<ServiceResult<()>>, ServiceResult<()>),
-    Ack(oneshot::Sender<ServiceResult<()>>, ServiceResult<()>),
+/// What a commit group's jobs changed besides their answers, acted on after the commit (or
+/// undone when it fails).
+#[derive(Default)]
+struct Effects {
+    /// Alarm transitions stored, for the notifier and live events.
+    transitions: Vec<StoredAlarm>,
+    /// What goes to the visualisation.
+    viz_records: Vec<crate::viz::Record>,
+    /// Calibrations added to the bank, removed again if the commit fails.
+    added_calibrations: Vec<(LinkId, i64)>,
 }
 
-/// What a job asks the transaction to do; its reply waits in a [`Pending`].
-#[allow(
-    clippy::large_enum_variant,
-    reason = "one per request in a commit group; boxing buys nothing"
-)]
-enum Work {
-    Ingest(Vec<IngestItem>),
-    SetReference {
-        target: usize,
-        request: ReferenceRequest,
-    },
-    Prune {
-        retention: crate::config::RetentionSettings,
-        upstream_raw: Option<bool>,
-    },
-    RecordAck {
-        tier: crate::store::outbox::Tier,
-        seq: i64,
-    },
-    AddCalibration {
-        link: LinkId,
-        valid_from_ns: i64,
-        parent_from_child: crate::geometry::PoseCov,
-    },
-    ResetLink {
-        link: LinkId,
-        by: Option<String>,
-        note: Option<String>,
-    },
-    Liveness,
-    Acknowledge {
-        id: i64,
-        by: String,
-        note: Option<String>,
-    },
+/// What a job may touch inside the transaction.
+struct Step<'a, 'c> {
+    tx: &'a mut WriteTx<'c>,
+    bank: &'a mut FilterBank,
+    targets: &'a mut [TargetView],
+    /// The visualisation, when it records.
+    viz: Option<&'a mut crate::viz::VizSender>,
+    now: i64,
+    /// `[server] clock_tolerance_s`.
+    clock_tolerance_s: f64,
+    effects: &'a mut Effects,
 }
 
-/// The result of a job not applied (yet): what it answers if the transaction fails first.
-fn unapplied<T>() -> ServiceResult<T> {
-    Err(ServiceError::CommitFailed(
-        "the transaction failed before this request was applied".into(),
-    ))
-}
-
-impl Job {
-    /// The reply, with an "unapplied" result until the job is done, and the work. Taken apart
-    /// before the transaction begins, so that every requester is answered whatever fails.
-    fn split(self) -> (Pending, Work) {
-        match self {
-            Job::Ingest { items, reply } => {
-                (Pending::Ingest(reply, unapplied()), Work::Ingest(items))
-            }
-            Job::SetReference {
-                target,
-                request,
-                reply,
-            } => (
-                Pending::Reference(reply, unapplied()),
-                Work::SetReference { target, request },
-            ),
-            Job::Prune {
-                retention,
-                upstream_raw,
-                reply,
-            } => (
-                Pending::Prune(reply, unapplied()),
-                Work::Prune {
-                    retention,
-                    upstream_raw,
-                },
-            ),
-            Job::RecordAck { tier, seq, reply } => (
-                Pending::Ack(reply, unapplied()),
-                Work::RecordAck { tier, seq },
-            ),
-            Job::CheckLiveness { reply } => (Pending::Liveness(reply, unapplied()), Work::Liveness),
-            Job::AcknowledgeAlarm {
-                id,
-                by,
-                note,
-                reply,
-            } => (
-                Pending::Acknowledge(reply, unapplied()),
-                Work::Acknowledge { id, by, note },
-            ),
-            Job::ResetLink {
-                link,
-                by,
-                note,
-                reply,
-            } => (
-                Pending::Reset(reply, unapplied()),
-                Work::ResetLink { link, by, note },
-            ),
-            Job::AddCalibration {
-                link,
-                valid_from_ns,
-                parent_from_child,
-                reply,
-            } => (
-                Pending::Calibration(reply, unapplied()),
-                Work::AddCalibration {
-                    link,
-                    valid_from_ns,
-                    parent_from_child,
-                },
-            ),
+/// Does one job in the transaction, setting its answer. An `Err` fails the whole transaction.
+async fn apply(job: &mut Job, step: &mut Step<'_, '_>) -> Result<(), StoreError> {
+    match job {
+        Job::Ingest(call) => {
+            call.answer = apply_ingest(step, std::mem::take(&mut call.request)).await?;
         }
+        Job::SetReference(call) => call.answer = apply_reference(step, &call.request).await?,
+        Job::Prune(call) => call.answer = Ok(apply_prune(step, &call.request).await?),
+        Job::RecordAck(call) => {
+            let r = &call.request;
+            step.tx.record_ack(r.tier, r.seq, step.now).await?;
+            call.answer = Ok(());
+        }
+        Job::AddCalibration(call) => call.answer = apply_calibration(step, &call.request).await?,
+        Job::ResetLink(call) => call.answer = apply_reset(step, &call.request).await?,
+        Job::CheckLiveness(call) => {
+            let raised = judge_liveness(step.bank, step.targets, step.now, step.clock_tolerance_s);
+            let t = store_alarms(step.tx, raised, step.now).await?;
+            call.answer = Ok(t.len());
+            step.effects.transitions.extend(t);
+        }
+        Job::AcknowledgeAlarm(call) => call.answer = apply_acknowledge(step, &call.request).await?,
     }
+    Ok(())
 }
 
-impl Pending {
-    fn answer(self) {
-        // A requester that gave up (closed connection) no longer listens: nothing to do.
-        let _ = match self {
-            Pending::Ingest(tx, r) => tx.send(r).map_err(|_| ()),
-            Pending::Reference(tx, r) => tx.send(r).map_err(|_| ()),
-            Pending::Calibration(tx, r) => tx.send(r).map_err(|_| ()),
-            Pending::Reset(tx, r) => tx.send(r).map_err(|_| ()),
-            Pending::Prune(tx, r) => tx.send(r).map_err(|_| ()),
-            Pending::Liveness(tx, r) => tx.send(r).map_err(|_| ()),
-            Pending::Acknowledge(tx, r) => tx.send(r).map_err(|_| ()),
-            Pending::Ack(tx, r) => tx.send(r).map_err(|_| ()),
-        };
-    }
+async fn apply_ingest(
+    step: &mut Step<'_, '_>,
+    items: Vec<IngestItem>,
+) -> Result<ServiceResult<IngestReport>, StoreError> {
+    let mut t = Vec::new();
+    let collect = step.viz.as_deref_mut().map(|sender| VizCollect {
+        sender,
+        records: &mut step.effects.viz_records,
+    });
+    let answer = ingest(
+        step.tx,
+        step.bank,
+        step.targets,
+        items,
+        step.now,
+        &mut t,
+        collect,
+    )
+    .await?;
+    step.effects.transitions.extend(t);
+    Ok(answer)
+}
 
-    fn fail(self, message: &str) {
-        let err = || ServiceError::CommitFailed(message.to_owned());
-        let _ = match self {
-            Pending::Ingest(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-            Pending::Reference(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-            Pending::Calibration(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-            Pending::Reset(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-            Pending::Prune(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-            Pending::Liveness(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-            Pending::Acknowledge(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-            Pending::Ack(tx, _) => tx.send(Err(err())).map_err(|_| ()),
-        };
+async fn apply_reference(
+    step: &mut Step<'_, '_>,
+    r: &job::SetReference,
+) -> Result<ServiceResult<CurrentReference>, StoreError> {
+    let answer = set_reference(step.tx, step.targets, r.target, r.request, step.now).await?;
+    if step.viz.is_some()
+        && let Ok(current) = &answer
+    {
+        step.effects
+            .viz_records
+            .push(crate::viz::Record::Reference {
+                target: r.target,
+                time_ns: step.targets[r.target]
+                    .latest
+                    .as_ref()
+                    .map_or(step.now, |l| l.time_ns),
+                g0_from_b: current.reference.g0_from_b.pose,
+            });
     }
+    Ok(answer)
+}
+
+/// One pass of retention: the ages, then the disk budget; a site keeps what the centre has
+/// not acknowledged (unless the budget forces otherwise).
+async fn apply_prune(step: &mut Step<'_, '_>, r: &job::Prune) -> Result<Pruned, StoreError> {
+    let keep = match r.upstream_raw {
+        None => KeepUnsent::default(),
+        Some(raw) => KeepUnsent::from_acks(&step.tx.upstream_acks().await?, raw),
+    };
+    let newest = step
+        .targets
+        .iter()
+        .filter_map(|t| t.latest.as_ref().map(|l| l.time_ns))
+        .max();
+    let (samples, results) = match r.retention.cutoffs_ns(newest, step.now) {
+        Some((samples_before, results_before)) => {
+            step.tx.prune(samples_before, results_before, keep).await?
+        }
+        None => (0, 0),
+    };
+    let budget = match r.retention.disk_budget_bytes {
+        Some(b) => Some(step.tx.shrink_to_budget(b, keep).await?),
+        None => None,
+    };
+    Ok(Pruned {
+        samples,
+        results,
+        budget,
+    })
+}
+
+async fn apply_calibration(
+    step: &mut Step<'_, '_>,
+    r: &job::AddCalibration,
+) -> Result<ServiceResult<i64>, StoreError> {
+    let version = step
+        .tx
+        .insert_calibration(r.link, r.valid_from_ns, &r.parent_from_child, step.now)
+        .await?;
+    Ok(
+        if step
+            .bank
+            .add_calibration(r.link, r.valid_from_ns, r.parent_from_child)
+        {
+            step.effects
+                .added_calibrations
+                .push((r.link, r.valid_from_ns));
+            Ok(version)
+        } else {
+            Err(ServiceError::Invalid {
+                message: "only calibrated links take calibrations".into(),
+                problems: Vec::new(),
+            })
+        },
+    )
+}
+
+async fn apply_reset(
+    step: &mut Step<'_, '_>,
+    r: &job::ResetLink,
+) -> Result<ServiceResult<i64>, StoreError> {
+    if !step.bank.reset_link(r.link) {
+        return Ok(Err(ServiceError::Invalid {
+            message: "only measured links have a filter to reset".into(),
+            problems: Vec::new(),
+        }));
+    }
+    step.tx
+        .insert_link_reset(r.link, r.by.as_deref(), r.note.as_deref(), step.now)
+        .await?;
+    Ok(Ok(step.now))
+}
+
+async fn apply_acknowledge(
+    step: &mut Step<'_, '_>,
+    r: &job::AcknowledgeAlarm,
+) -> Result<ServiceResult<()>, StoreError> {
+    use crate::alarms::{AckRefusal, Acknowledging, Level, acknowledging};
+    let id = r.id;
+    let Some((to, prev_by, prev_note)) = step.tx.alarm_ack_state(id).await? else {
+        return Ok(Err(ServiceError::NotFound(format!("no alarm {id}"))));
+    };
+    let Some(to) = Level::parse(&to) else {
+        // A damaged row refuses this request alone, not the group's transaction.
+        return Ok(Err(ServiceError::Storage(StoreError::Malformed(format!(
+            "alarm {id} has the unknown level `{to}`"
+        )))));
+    };
+    let previous = prev_by.as_deref().map(|b| (b, prev_note.as_deref()));
+    Ok(
+        match acknowledging(to, previous, &r.by, r.note.as_deref()) {
+            Ok(Acknowledging::AlreadyRecorded) => Ok(()),
+            Ok(Acknowledging::Record) => {
+                step.tx
+                    .acknowledge_alarm(id, &r.by, r.note.as_deref(), step.now)
+                    .await?;
+                Ok(())
+            }
+            Err(AckRefusal::ReturnToNone) => Err(ServiceError::Invalid {
+                message: format!(
+                    "alarm {id} is a return to `none`: there is nothing to acknowledge"
+                ),
+                problems: vec![ItemProblem {
+                    index: None,
+                    field: Some("id".into()),
+                    message: "a transition back to `none`".into(),
+                }],
+            }),
+            Err(AckRefusal::AlreadyAcknowledged { by }) => Err(ServiceError::Conflict {
+                message: format!("alarm {id} was already acknowledged by `{by}`"),
+                problems: Vec::new(),
+            }),
+        },
+    )
 }
 
 /// Where the pipeline's work goes besides the database, and the clock it reads.
@@ -351,192 +397,45 @@ impl Pipeline {
         let now = self.clock.now_ns();
         // Liveness checks alone write only when a stale alarm changes: judged first on a copy,
         // and without a transaction when nothing changes (the usual case, every second).
-        if jobs.iter().all(|j| matches!(j, Job::CheckLiveness { .. })) {
+        if jobs.iter().all(|j| matches!(j, Job::CheckLiveness(_))) {
             let mut probe = self.targets.clone();
             if judge_liveness(&self.bank, &mut probe, now, self.clock_tolerance_s).is_empty() {
                 self.targets = probe;
-                for j in jobs {
-                    if let Job::CheckLiveness { reply } = j {
-                        let _ = reply.send(Ok(0));
+                for mut job in jobs {
+                    if let Job::CheckLiveness(call) = &mut job {
+                        call.answer = Ok(0);
                     }
+                    job.answer();
                 }
                 return false;
             }
         }
         let started = std::time::Instant::now();
         let targets_before = self.targets.clone();
-        let mut added_calibrations: Vec<(LinkId, i64)> = Vec::new();
-        let mut transitions: Vec<StoredAlarm> = Vec::new();
-        let mut viz_records: Vec<crate::viz::Record> = Vec::new();
-        let (mut pending, work): (Vec<Pending>, Vec<Work>) =
-            jobs.into_iter().map(Job::split).unzip();
-        let record_viz = self.viz.enabled();
-        let tolerance_s = self.clock_tolerance_s;
+        let mut jobs = jobs;
+        let mut effects = Effects::default();
         let Pipeline {
             viz,
             write,
             bank,
             targets,
             digest,
+            clock_tolerance_s,
             ..
         } = self;
         let outcome: Result<BankRecord, StoreError> = async {
             let mut tx = write.begin(now).await?;
-            for (work, slot) in work.into_iter().zip(pending.iter_mut()) {
-                match (work, slot) {
-                    (Work::Ingest(items), Pending::Ingest(_, result)) => {
-                        let mut t = Vec::new();
-                        let collect = record_viz.then_some(VizCollect {
-                            sender: &mut *viz,
-                            records: &mut viz_records,
-                        });
-                        *result =
-                            ingest(&mut tx, bank, targets, items, now, &mut t, collect).await?;
-                        transitions.extend(t);
-                    }
-                    (Work::SetReference { target, request }, Pending::Reference(_, result)) => {
-                        let r = set_reference(&mut tx, targets, target, request, now).await?;
-                        if record_viz && let Ok(current) = &r {
-                            viz_records.push(crate::viz::Record::Reference {
-                                target,
-                                time_ns: targets[target].latest.as_ref().map_or(now, |l| l.time_ns),
-                                g0_from_b: current.reference.g0_from_b.pose,
-                            });
-                        }
-                        *result = r;
-                    }
-                    (Work::RecordAck { tier, seq }, Pending::Ack(_, result)) => {
-                        tx.record_ack(tier, seq, now).await?;
-                        *result = Ok(());
-                    }
-                    (
-                        Work::Prune {
-                            retention,
-                            upstream_raw,
-                        },
-                        Pending::Prune(_, result),
-                    ) => {
-                        // A site keeps what the centre has not acknowledged.
-                        let keep = match upstream_raw {
-                            None => KeepUnsent::default(),
-                            Some(raw) => {
-                                let acks = tx.upstream_acks().await?;
-                                let acked = |tier| {
-                                    acks.iter()
-                                        .find(|(t, _)| *t == tier)
-                                        .map_or(i64::MIN, |(_, s)| *s)
-                                };
-                                KeepUnsent {
-                                    results: Some(acked(Tier::Results)),
-                                    raw: raw.then(|| acked(Tier::Raw)),
-                                }
-                            }
-                        };
-                        // Counted back from the newest result, but never from later than the
-                        // server's clock: one result stamped in the future must not make the
-                        // real history look old.
-                        let newest = targets
-                            .iter()
-                            .filter_map(|t| t.latest.as_ref().map(|l| l.time_ns))
-                            .max()
-                            .map(|n| n.min(now));
-                        let (samples, results) = match newest {
-                            Some(n) => {
-                                let days = |d: f64| (d * 86_400e9) as i64;
-                                tx.prune(
-                                    n.saturating_sub(days(retention.samples_days)),
-                                    n.saturating_sub(days(retention.results_days)),
-                                    keep,
-                                )
-                                .await?
-                            }
-                            None => (0, 0),
-                        };
-                        // Past the disk budget, the oldest rows go whatever their age.
-                        let budget = match retention.disk_budget_bytes {
-                            Some(b) => Some(tx.shrink_to_budget(b, keep).await?),
-                            None => None,
-                        };
-                        *result = Ok(Pruned {
-                            samples,
-                            results,
-                            budget,
-                        });
-                    }
-                    (
-                        Work::AddCalibration {
-                            link,
-                            valid_from_ns,
-                            parent_from_child,
-                        },
-                        Pending::Calibration(_, result),
-                    ) => {
-                        let version = tx
-                            .insert_calibration(link, valid_from_ns, &parent_from_child, now)
-                            .await?;
-                        *result = if bank.add_calibration(link, valid_from_ns, parent_from_child) {
-                            added_calibrations.push((link, valid_from_ns));
-                            Ok(version)
-                        } else {
-                            Err(ServiceError::Invalid {
-                                message: "only calibrated links take calibrations".into(),
-                                problems: Vec::new(),
-                            })
-                        };
-                    }
-                    (Work::Liveness, Pending::Liveness(_, result)) => {
-                        let t = store_alarms(&mut tx, judge_liveness(bank, targets, now, tolerance_s), now)
-                            .await?;
-                        *result = Ok(t.len());
-                        transitions.extend(t);
-                    }
-                    (Work::Acknowledge { id, by, note }, Pending::Acknowledge(_, result)) => {
-                        *result = match tx.alarm_ack_state(id).await? {
-                            None => Err(ServiceError::NotFound(format!("no alarm {id}"))),
-                            Some((to, ..)) if to == crate::alarms::Level::None.name() => {
-                                Err(ServiceError::Invalid {
-                                    message: format!(
-                                        "alarm {id} is a return to `none`: there is nothing to acknowledge"
-                                    ),
-                                    problems: vec![ItemProblem {
-                                        index: None,
-                                        field: Some("id".into()),
-                                        message: "a transition back to `none`".into(),
-                                    }],
-                                })
-                            }
-                            Some((_, Some(prev_by), prev_note)) => {
-                                if prev_by == by && prev_note == note {
-                                    Ok(())
-                                } else {
-                                    Err(ServiceError::Conflict {
-                                        message: format!(
-                                            "alarm {id} was already acknowledged by `{prev_by}`"
-                                        ),
-                                        problems: Vec::new(),
-                                    })
-                                }
-                            }
-                            Some(_) => {
-                                tx.acknowledge_alarm(id, &by, note.as_deref(), now).await?;
-                                Ok(())
-                            }
-                        };
-                    }
-                    (Work::ResetLink { link, by, note }, Pending::Reset(_, result)) => {
-                        *result = if bank.reset_link(link) {
-                            tx.insert_link_reset(link, by.as_deref(), note.as_deref(), now)
-                                .await?;
-                            Ok(now)
-                        } else {
-                            Err(ServiceError::Invalid {
-                                message: "only measured links have a filter to reset".into(),
-                                problems: Vec::new(),
-                            })
-                        };
-                    }
-                    _ => unreachable!("a job's work and reply are split together"),
-                }
+            let mut step = Step {
+                tx: &mut tx,
+                bank,
+                targets,
+                viz: viz.enabled().then_some(viz),
+                now,
+                clock_tolerance_s: *clock_tolerance_s,
+                effects: &mut effects,
+            };
+            for job in &mut jobs {
+                apply(job, &mut step).await?;
             }
             let record = bank.record();
             let json = serde_json::to_string(&record).map_err(|e| {
@@ -547,6 +446,11 @@ impl Pipeline {
             Ok(record)
         }
         .await;
+        let Effects {
+            transitions,
+            mut viz_records,
+            added_calibrations,
+        } = effects;
         match outcome {
             Ok(record) => {
                 self.write.health().record_ok();
@@ -554,8 +458,10 @@ impl Pipeline {
                 use std::sync::atomic::Ordering::Relaxed;
                 let m = &self.metrics;
                 m.commit(u64::try_from(started.elapsed().as_micros()).unwrap_or(u64::MAX));
-                for p in &pending {
-                    if let Pending::Ingest(_, Ok(r)) = p {
+                for job in &jobs {
+                    if let Job::Ingest(call) = job
+                        && let Ok(r) = &call.answer
+                    {
                         m.ingest_requests.fetch_add(1, Relaxed);
                         m.samples_stored.fetch_add(r.stored as u64, Relaxed);
                         m.samples_duplicate.fetch_add(r.duplicates as u64, Relaxed);
@@ -563,8 +469,8 @@ impl Pipeline {
                         m.filter_restarts.fetch_add(r.reinitialized as u64, Relaxed);
                     }
                 }
-                for p in pending {
-                    p.answer();
+                for job in jobs {
+                    job.answer();
                 }
                 self.publish_events();
                 for a in &transitions {
@@ -601,8 +507,8 @@ impl Pipeline {
                 }
                 self.targets = targets_before;
                 let message = format!("the database did not accept the write: {e}");
-                for p in pending {
-                    p.fail(&message);
+                for job in jobs {
+                    job.fail(&message);
                 }
                 false
             }

@@ -376,6 +376,24 @@ pub struct KeepUnsent {
     pub raw: Option<i64>,
 }
 
+impl KeepUnsent {
+    /// What a site keeps given the centre's acknowledgements `acks` (the last number per
+    /// tier): filtered results past their tier's, and when raw samples are uploaded
+    /// (`raw_uploaded`) samples and raw results past theirs. A tier never acknowledged keeps
+    /// everything.
+    pub fn from_acks(acks: &[(Tier, i64)], raw_uploaded: bool) -> KeepUnsent {
+        let acked = |tier| {
+            acks.iter()
+                .find(|(t, _)| *t == tier)
+                .map_or(i64::MIN, |(_, s)| *s)
+        };
+        KeepUnsent {
+            results: Some(acked(Tier::Results)),
+            raw: raw_uploaded.then(|| acked(Tier::Raw)),
+        }
+    }
+}
+
 /// One slice of a period's raw rows (samples and raw results measured in `[from_ns, to_ns)`),
 /// as the site has them now: the part of a fleet's upload that answers a [`RawRequest`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -406,4 +424,37 @@ pub struct RawRequest {
     pub to_ns: i64,
     /// How far the site has delivered it (from `from_ns`).
     pub delivered_to_ns: i64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{KeepUnsent, Tier};
+
+    #[test]
+    fn a_site_keeps_what_the_centre_has_not_acknowledged() {
+        let acks = [(Tier::Results, 40), (Tier::Raw, 7), (Tier::Events, 99)];
+        assert_eq!(
+            KeepUnsent::from_acks(&acks, true),
+            KeepUnsent {
+                results: Some(40),
+                raw: Some(7)
+            }
+        );
+        assert_eq!(
+            KeepUnsent::from_acks(&acks, false),
+            KeepUnsent {
+                results: Some(40),
+                raw: None
+            },
+            "raw rows not uploaded are not held back"
+        );
+        assert_eq!(
+            KeepUnsent::from_acks(&[], true),
+            KeepUnsent {
+                results: Some(i64::MIN),
+                raw: Some(i64::MIN)
+            },
+            "a tier never acknowledged keeps everything"
+        );
+    }
 }
