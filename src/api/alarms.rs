@@ -2,10 +2,11 @@
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
+use super::query::Query;
 use crate::clock::format_ns;
 use crate::store::StoredAlarm;
 use axum::Json;
-use axum::extract::{Path, Query, State};
+use axum::extract::{Path, State};
 use serde::{Deserialize, Serialize};
 
 /// An alarm transition as answered.

@@ -211,11 +211,6 @@ pub(crate) struct CameraCalibrationOut {
     pub iterations: usize,
 }
 
-/// The installation's `pixel_sigma` for a calibration: its RMS per axis, at least 0.001 px.
-pub(crate) fn pixel_sigma_of(c: &CameraCalibration) -> f64 {
-    (c.rms_px / std::f64::consts::SQRT_2).max(0.001)
-}
-
 impl From<&CameraCalibration> for CameraCalibrationOut {
     fn from(c: &CameraCalibration) -> Self {
         Self {
@@ -254,7 +249,7 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
                 })
                 .collect(),
             image_size: [c.camera.width_px, c.camera.height_px],
-            pixel_sigma: pixel_sigma_of(c),
+            pixel_sigma: c.pixel_sigma(),
             iterations: c.iterations,
         }
     }

@@ -319,7 +319,7 @@ fn archive_of<'a>(app: &'a AppState, name: &str) -> Result<&'a FrameArchive, Api
 pub(super) async fn list_archived(
     State(app): State<AppState>,
     Path(name): Path<String>,
-    axum::extract::Query(q): axum::extract::Query<ArchivedQuery>,
+    super::query::Query(q): super::query::Query<ArchivedQuery>,
 ) -> Result<Json<ArchivedListOut>, ApiError> {
     let archive = archive_of(&app, &name)?;
     let time = |field: &str, text: &Option<String>, default: i64| match text {

@@ -462,8 +462,9 @@ fn code_of(status: StatusCode) -> ErrorCode {
 
 /// Puts every error answer into the one envelope: answers of the framework and its layers
 /// (a query string that does not parse, a method not allowed, a body over the limit, a request
-/// timeout) come with a plain-text or empty body; this rewrites them as `{"error": {...}}`,
-/// naming the query field where the text names one, and counts them like any refusal.
+/// timeout) come with a plain-text or empty body; this rewrites them as `{"error": {...}}` and
+/// counts them like any refusal. Query strings are read by [`super::query::Query`], whose
+/// refusals are already ours.
 pub(super) async fn json_envelope(
     request: axum::extract::Request,
     next: axum::middleware::Next,
@@ -493,18 +494,6 @@ pub(super) async fn json_envelope(
         text.clone()
     };
     let mut error = ApiError::new(status, code_of(status), message);
-    // "Failed to deserialize query string: limit: invalid digit found in string"
-    if let Some(rest) = text.strip_prefix("Failed to deserialize query string: ") {
-        error.status = StatusCode::UNPROCESSABLE_ENTITY;
-        error.code = ErrorCode::InvalidRequest;
-        if let Some((field, why)) = rest.split_once(": ") {
-            error = error.with_details(vec![ErrorDetail {
-                index: None,
-                field: Some(field.trim().to_owned()),
-                message: why.trim().to_owned(),
-            }]);
-        }
-    }
     if status == StatusCode::METHOD_NOT_ALLOWED {
         let allowed = allow
             .as_ref()

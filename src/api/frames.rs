@@ -10,6 +10,7 @@ use super::AppState;
 use super::dto::{PoseOut, SigmaOut};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, read_body};
+use super::query::Query;
 use crate::api::error::ErrorCode;
 use crate::archive::ArchiveReason;
 use crate::clock::format_ns;
@@ -19,7 +20,7 @@ use crate::model::{FrameObservation, NotFound, ObservedLink, observe_frame};
 use crate::service::IngestItem;
 use axum::Json;
 use axum::body::Body;
-use axum::extract::{Query, State};
+use axum::extract::State;
 use axum::http::{HeaderMap, StatusCode, header};
 use serde::{Deserialize, Serialize};
 

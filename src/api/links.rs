@@ -3,6 +3,7 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use super::error::{ApiError, ErrorBody};
+use super::query::Query;
 use crate::api::error::ErrorCode;
 use crate::chain::LinkId;
 use crate::clock::{format_ns, parse_json_time};
@@ -10,7 +11,7 @@ use crate::geometry::PoseCov;
 use crate::model::{LinkKind, LinkSpec};
 use crate::store::StoredUncertainty;
 use axum::Json;
-use axum::extract::{Path, Query, State};
+use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use serde::{Deserialize, Serialize};
 

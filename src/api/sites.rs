@@ -13,6 +13,7 @@ use super::AppState;
 use super::alarms::{AlarmsOut, AlarmsQuery, alarms_of};
 use super::error::{ApiError, ErrorBody};
 use super::fleet::{centre, site_of};
+use super::query::Query;
 use super::targets::{
     AtQuery, CompensationOut, CompensationSource, Described, Evaluated, HistoryQuery, ReferenceOut,
     ReferencesOut, StatsOut, TargetOut, WindowQuery, compensation_out, current_of, from_history,
@@ -23,7 +24,7 @@ use crate::clock::parse_query_time;
 use crate::fleet::protocol::{SiteStatus, TargetDescription};
 use crate::store::Store;
 use axum::Json;
-use axum::extract::{Path, Query, State};
+use axum::extract::{Path, State};
 
 /// A site's copy at the centre: its store, its targets' names by index, and its last report.
 struct SiteView {

@@ -3,6 +3,7 @@
 use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::{ApiError, ErrorBody};
+use super::query::Query;
 use crate::bank::{TargetEstimate, TargetStatus};
 use crate::clock::{format_ns, parse_query_time};
 use crate::deformation::{Deformation, ReferenceOrigin};
@@ -10,7 +11,7 @@ use crate::geometry::PoseCov;
 use crate::model::TargetSpec;
 use crate::service::{CurrentReference, ReferenceRequest};
 use axum::Json;
-use axum::extract::{Path, Query, State};
+use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use serde::{Deserialize, Serialize};
 

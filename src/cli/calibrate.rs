@@ -6,7 +6,7 @@
 //! detector. A frame in which the plate is not wholly found is left out with the reason (on
 //! the log), never used in part.
 
-use crate::api::calibration::{PlateIn, parse_fix, pixel_sigma_of};
+use crate::api::calibration::{PlateIn, parse_fix};
 use crate::api::vision::HandEyeOut;
 use crate::config::Installation;
 use crate::geometry::{ARCSEC_PER_RAD, Pose};
@@ -246,7 +246,7 @@ pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
         d[2],
         d[3],
         d[4],
-        (pixel_sigma_of(c) * 1e4).round() / 1e4,
+        (c.pixel_sigma() * 1e4).round() / 1e4,
     )
 }
 

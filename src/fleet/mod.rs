@@ -10,6 +10,7 @@
 //! (`GET /api/v1/sites`). The wire format is in [`protocol`].
 
 pub mod protocol;
+pub mod upkeep;
 pub mod uploader;
 
 pub use uploader::{TierProgress, Upstream};

@@ -316,6 +316,15 @@ pub struct CameraCalibration {
     pub iterations: usize,
 }
 
+impl CameraCalibration {
+    /// The error of a point predicted with this calibration, per image axis (px): its RMS
+    /// reprojection error spread over the two axes, at least 0.001 px. It is what an
+    /// installation's `pixel_sigma` for this camera should say.
+    pub fn pixel_sigma(&self) -> f64 {
+        (self.rms_px / std::f64::consts::SQRT_2).max(0.001)
+    }
+}
+
 /// Eccentricity rounds at most (the correction changes by a small fraction each round).
 const ECCENTRICITY_ROUNDS: usize = 4;
 
