@@ -308,33 +308,15 @@ impl ApiError {
     }
 }
 
-/// Refused requests since start, by status code (400, 401, 403, 404, 405, 408, 409, 413, 415,
-/// 422, 431, 5xx).
-pub(super) static REJECTED: [(u16, std::sync::atomic::AtomicU64); 12] = [
-    (400, std::sync::atomic::AtomicU64::new(0)),
-    (401, std::sync::atomic::AtomicU64::new(0)),
-    (403, std::sync::atomic::AtomicU64::new(0)),
-    (404, std::sync::atomic::AtomicU64::new(0)),
-    (405, std::sync::atomic::AtomicU64::new(0)),
-    (408, std::sync::atomic::AtomicU64::new(0)),
-    (409, std::sync::atomic::AtomicU64::new(0)),
-    (413, std::sync::atomic::AtomicU64::new(0)),
-    (415, std::sync::atomic::AtomicU64::new(0)),
-    (422, std::sync::atomic::AtomicU64::new(0)),
-    (431, std::sync::atomic::AtomicU64::new(0)),
-    (500, std::sync::atomic::AtomicU64::new(0)),
-];
-
 /// A whole HTTP/1.1 response carrying the error envelope, for the answers the connection
-/// layer writes itself (before any handler runs), closing the connection; counted like every
-/// refusal.
+/// layer writes itself (before any handler runs), closing the connection. The caller counts
+/// it.
 pub(super) fn raw_response(
     status: StatusCode,
     code: ErrorCode,
     message: &str,
     field: Option<&str>,
 ) -> Vec<u8> {
-    count_rejection(status);
     let body = serde_json::json!({"error": {
         "code": code.name(),
         "message": message,
@@ -350,20 +332,8 @@ pub(super) fn raw_response(
     .into_bytes()
 }
 
-fn count_rejection(status: StatusCode) {
-    let code = if status.is_server_error() {
-        500
-    } else {
-        status.as_u16()
-    };
-    if let Some((_, counter)) = REJECTED.iter().find(|(c, _)| *c == code) {
-        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    }
-}
-
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        count_rejection(self.status);
         if self.status.is_server_error() {
             // Logged once here; the body says nothing of the internals.
             tracing::error!(code = self.code.name(), message = %self.message, "request failed");
@@ -462,15 +432,19 @@ fn code_of(status: StatusCode) -> ErrorCode {
 
 /// Puts every error answer into the one envelope: answers of the framework and its layers
 /// (a query string that does not parse, a method not allowed, a body over the limit, a request
-/// timeout) come with a plain-text or empty body; this rewrites them as `{"error": {...}}` and
-/// counts them like any refusal. Query strings are read by [`super::query::Query`], whose
+/// timeout) come with a plain-text or empty body; this rewrites them as `{"error": {...}}`.
+/// Every refusal that passes (the handlers' and the framework's) is counted here, once. Query strings are read by [`super::query::Query`], whose
 /// refusals are already ours.
 pub(super) async fn json_envelope(
+    axum::extract::State(metrics): axum::extract::State<std::sync::Arc<crate::service::Metrics>>,
     request: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> Response {
     let response = next.run(request).await;
     let status = response.status();
+    if status.is_client_error() || status.is_server_error() {
+        metrics.count_rejection(status.as_u16());
+    }
     let is_json = response
         .headers()
         .get(axum::http::header::CONTENT_TYPE)

@@ -1,7 +1,6 @@
 //! `GET /metrics`: Prometheus text exposition.
 
 use super::AppState;
-use super::error::REJECTED;
 use crate::model::LinkKind;
 use crate::service::Metrics;
 use axum::extract::State;
@@ -115,12 +114,12 @@ pub(super) async fn get_metrics(State(app): State<AppState>) -> impl IntoRespons
         (
             "brokenray_connections_refused_total",
             "Connections closed on arrival: a connection limit was reached and every connection was busy with a request.",
-            &super::server::COUNTERS.refused,
+            &m.connections.refused,
         ),
         (
             "brokenray_connections_evicted_total",
             "Idle connections (waiting for a request head) closed to make room for a newcomer.",
-            &super::server::COUNTERS.evicted,
+            &m.connections.evicted,
         ),
         (
             "brokenray_rerun_queued_total",
@@ -160,7 +159,7 @@ pub(super) async fn get_metrics(State(app): State<AppState>) -> impl IntoRespons
         "brokenray_connections_open",
         "gauge",
         "Client connections open now.",
-        Metrics::get(&super::server::COUNTERS.open),
+        Metrics::get(&m.connections.open),
     );
     family(
         &mut out,
@@ -168,7 +167,7 @@ pub(super) async fn get_metrics(State(app): State<AppState>) -> impl IntoRespons
         "counter",
         "Requests refused, by status code (500: any 5xx).",
     );
-    for (code, counter) in &REJECTED {
+    for (code, counter) in crate::service::REJECTION_STATUSES.iter().zip(&m.rejected) {
         let _ = writeln!(
             out,
             "brokenray_requests_rejected_total{{status=\"{code}\"}} {}",

@@ -533,7 +533,10 @@ pub fn router(state: AppState) -> Router {
             move |req, next| drain::drain_unread(limit, req, next)
         }))
         // Outside the timeout, so that its 408 gets the envelope too.
-        .layer(axum::middleware::from_fn(error::json_envelope))
+        .layer(axum::middleware::from_fn_with_state(
+            state.service.metrics_handle(),
+            error::json_envelope,
+        ))
         .layer((
             TraceLayer::new_for_http(),
             // gzip when the client accepts it (history JSON shrinks about threefold); never the
@@ -669,7 +672,8 @@ impl App {
             service.begin_shutdown();
             let _ = stop_tx.send(true);
         });
-        server::serve(self.listener, router(state), limits, stop_rx).await;
+        let metrics = self.service.metrics_handle();
+        server::serve(self.listener, router(state), limits, metrics, stop_rx).await;
         // The uploader holds a service handle; it ends when shutdown begins.
         if let Some(uploader) = uploader {
             let _ = uploader.await;

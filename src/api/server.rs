@@ -15,7 +15,7 @@
 //!   address holding the most connections. Only when every connection is busy with a request
 //!   is the newcomer closed. A client that keeps refilling idle connections therefore closes
 //!   its own, never another's, and never turns others away. Closed on arrival and closed to
-//!   make room are counted ([`ConnectionCounters`]);
+//!   make room are counted ([`crate::service::ConnectionCounters`]);
 //! * at shutdown the listener closes, every connection is asked to finish its current request
 //!   (event streams end by themselves: they watch the same signal), and after
 //!   `shutdown_grace_s` whatever is still open is cut off, with a log line saying how many.
@@ -32,24 +32,6 @@ use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
 use tokio::sync::{Notify, watch};
 use tower::ServiceExt as _;
-
-/// What the server loop counts.
-#[derive(Debug, Default)]
-pub struct ConnectionCounters {
-    /// Connections closed on arrival: the limits were reached and every connection was busy.
-    pub refused: AtomicU64,
-    /// Idle connections closed to make room for a newcomer.
-    pub evicted: AtomicU64,
-    /// Connections open now.
-    pub open: AtomicU64,
-}
-
-/// The server loop's counters (one server a process).
-pub static COUNTERS: ConnectionCounters = ConnectionCounters {
-    refused: AtomicU64::new(0),
-    evicted: AtomicU64::new(0),
-    open: AtomicU64::new(0),
-};
 
 /// How the server loop behaves.
 #[derive(Debug, Clone, Copy)]
@@ -127,6 +109,8 @@ struct Entry {
 
 /// The open connections, for admission and eviction.
 struct Table {
+    /// Where evictions are counted.
+    metrics: Arc<crate::service::Metrics>,
     started: Instant,
     next_id: u64,
     entries: HashMap<u64, Arc<Entry>>,
@@ -166,7 +150,10 @@ impl Table {
             e.evict.notify_one();
         }
         self.remove(id);
-        COUNTERS.evicted.fetch_add(1, Ordering::Relaxed);
+        self.metrics
+            .connections
+            .evicted
+            .fetch_add(1, Ordering::Relaxed);
         true
     }
 
@@ -268,9 +255,11 @@ pub async fn serve(
     listener: TcpListener,
     router: Router,
     limits: ServerLimits,
+    metrics: Arc<crate::service::Metrics>,
     mut stop: watch::Receiver<bool>,
 ) -> usize {
     let table = Arc::new(Mutex::new(Table {
+        metrics: Arc::clone(&metrics),
         started: Instant::now(),
         next_id: 0,
         entries: HashMap::new(),
@@ -299,7 +288,7 @@ pub async fn serve(
             .unwrap_or_else(|p| p.into_inner())
             .admit(peer.ip(), &limits);
         let Some((id, entry)) = admitted else {
-            COUNTERS.refused.fetch_add(1, Ordering::Relaxed);
+            metrics.connections.refused.fetch_add(1, Ordering::Relaxed);
             drop(stream);
             continue;
         };
@@ -307,8 +296,9 @@ pub async fn serve(
         let router = router.clone();
         let mut stop = stop.clone();
         let table = Arc::clone(&table);
+        let metrics = Arc::clone(&metrics);
         connections.spawn(async move {
-            COUNTERS.open.fetch_add(1, Ordering::Relaxed);
+            metrics.connections.open.fetch_add(1, Ordering::Relaxed);
             let service = {
                 let (entry, table) = (Arc::clone(&entry), Arc::clone(&table));
                 hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
@@ -326,7 +316,10 @@ pub async fn serve(
             builder
                 .timer(TokioTimer::new())
                 .header_read_timeout(limits.header_timeout);
-            let mut conn = builder.serve_connection(TokioIo::new(HeadErrors::new(stream)), service);
+            let mut conn = builder.serve_connection(
+                TokioIo::new(HeadErrors::new(stream, Arc::clone(&metrics))),
+                service,
+            );
             let ended = tokio::select! {
                 r = &mut conn => Some(r),
                 // Closed to make room: it was waiting for a request head.
@@ -345,7 +338,7 @@ pub async fn serve(
                 log_connection_end(ended);
             }
             table.lock().unwrap_or_else(|p| p.into_inner()).remove(id);
-            COUNTERS.open.fetch_sub(1, Ordering::Relaxed);
+            metrics.connections.open.fetch_sub(1, Ordering::Relaxed);
         });
     }
     drop(listener);
@@ -367,7 +360,7 @@ pub async fn serve(
     );
     connections.abort_all();
     while connections.join_next().await.is_some() {}
-    COUNTERS.open.store(0, Ordering::Relaxed);
+    metrics.connections.open.store(0, Ordering::Relaxed);
     cut
 }
 
@@ -379,14 +372,17 @@ pub async fn serve(
 /// 408 written after hyper has given the connection up.
 struct HeadErrors<S> {
     inner: S,
+    /// Where the answers written here are counted.
+    metrics: Arc<crate::service::Metrics>,
     /// A replacement being written: the bytes and how many are out.
     replacing: Option<(Vec<u8>, usize)>,
 }
 
 impl HeadErrors<tokio::net::TcpStream> {
-    fn new(inner: tokio::net::TcpStream) -> Self {
+    fn new(inner: tokio::net::TcpStream, metrics: Arc<crate::service::Metrics>) -> Self {
         Self {
             inner,
+            metrics,
             replacing: None,
         }
     }
@@ -395,6 +391,7 @@ impl HeadErrors<tokio::net::TcpStream> {
     /// and closes.
     async fn answer_timeout(&mut self, limit: Duration) {
         use tokio::io::AsyncWriteExt as _;
+        self.metrics.count_rejection(408);
         let body = super::error::raw_response(
             axum::http::StatusCode::REQUEST_TIMEOUT,
             ErrorCode::RequestTimeout,
@@ -414,7 +411,7 @@ impl HeadErrors<tokio::net::TcpStream> {
 
 /// The JSON answer to write instead of `head`, when `head` is one of hyper's own bodiless
 /// error answers.
-fn replacement_for(head: &[u8]) -> Option<Vec<u8>> {
+fn replacement_for(head: &[u8]) -> Option<(u16, Vec<u8>)> {
     use axum::http::StatusCode;
     let own = |status: &[u8]| {
         head.starts_with(b"HTTP/1.")
@@ -424,18 +421,24 @@ fn replacement_for(head: &[u8]) -> Option<Vec<u8>> {
                 .any(|w| w.eq_ignore_ascii_case(b"content-length: 0\r\n"))
     };
     if own(b"431 ") {
-        Some(super::error::raw_response(
-            StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
-            ErrorCode::HeadersTooLarge,
-            "the request's header section is too large (at most 100 fields and about 400 KB)",
-            Some("headers"),
+        Some((
+            431,
+            super::error::raw_response(
+                StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
+                ErrorCode::HeadersTooLarge,
+                "the request's header section is too large (at most 100 fields and about 400 KB)",
+                Some("headers"),
+            ),
         ))
     } else if own(b"400 ") {
-        Some(super::error::raw_response(
-            StatusCode::BAD_REQUEST,
-            ErrorCode::MalformedRequest,
-            "the request is not valid HTTP/1.1",
-            None,
+        Some((
+            400,
+            super::error::raw_response(
+                StatusCode::BAD_REQUEST,
+                ErrorCode::MalformedRequest,
+                "the request is not valid HTTP/1.1",
+                None,
+            ),
         ))
     } else {
         None
@@ -461,7 +464,10 @@ impl<S: tokio::io::AsyncWrite + Unpin> tokio::io::AsyncWrite for HeadErrors<S> {
         use std::task::Poll;
         let this = self.get_mut();
         if this.replacing.is_none() {
-            this.replacing = replacement_for(buf).map(|r| (r, 0));
+            this.replacing = replacement_for(buf).map(|(status, r)| {
+                this.metrics.count_rejection(status);
+                (r, 0)
+            });
         }
         let Some((bytes, done)) = &mut this.replacing else {
             return std::pin::Pin::new(&mut this.inner).poll_write(cx, buf);

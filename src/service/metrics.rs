@@ -1,5 +1,6 @@
-//! Process-wide counters for `GET /metrics`, shared by the pipeline (which counts) and the
-//! readers (which render them). Atomics only: counting never waits.
+//! A service's counters for `GET /metrics`, shared by the pipeline and the server (which
+//! count) and the readers (which render them). Atomics only: counting never waits. Each
+//! service has its own, so two services in one process (tests) count apart.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -36,7 +37,26 @@ pub struct Metrics {
     pub budget_unsent_removed: AtomicU64,
     /// The SQLite file's bytes in use at the last retention pass under a disk budget.
     pub database_used_bytes: AtomicU64,
+    /// Requests refused, by [`REJECTION_STATUSES`].
+    pub rejected: [AtomicU64; 12],
+    /// The server loop's connections.
+    pub connections: ConnectionCounters,
 }
+
+/// What the server loop counts of its connections.
+#[derive(Debug, Default)]
+pub struct ConnectionCounters {
+    /// Connections closed on arrival: the limits were reached and every connection was busy.
+    pub refused: AtomicU64,
+    /// Idle connections closed to make room for a newcomer.
+    pub evicted: AtomicU64,
+    /// Connections open now.
+    pub open: AtomicU64,
+}
+
+/// The statuses refusals are counted under (500: any 5xx).
+pub const REJECTION_STATUSES: [u16; 12] =
+    [400, 401, 403, 404, 405, 408, 409, 413, 415, 422, 431, 500];
 
 impl Metrics {
     /// Records one commit's duration.
@@ -44,6 +64,15 @@ impl Metrics {
         self.commits.fetch_add(1, Ordering::Relaxed);
         self.commit_micros_sum.fetch_add(micros, Ordering::Relaxed);
         self.commit_micros_max.fetch_max(micros, Ordering::Relaxed);
+    }
+
+    /// Counts a refused request by its status (every 5xx as 500; others not listed are not
+    /// counted).
+    pub fn count_rejection(&self, status: u16) {
+        let status = if status >= 500 { 500 } else { status };
+        if let Some(i) = REJECTION_STATUSES.iter().position(|s| *s == status) {
+            self.rejected[i].fetch_add(1, Ordering::Relaxed);
+        }
     }
 
     /// Reads a counter.

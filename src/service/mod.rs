@@ -18,7 +18,7 @@ use job::Job;
 mod pipeline;
 mod tasks;
 
-pub use metrics::Metrics;
+pub use metrics::{ConnectionCounters, Metrics, REJECTION_STATUSES};
 pub use tasks::TaskWatch;
 
 pub use pipeline::{IngestItem, IngestReport};
@@ -632,6 +632,11 @@ impl Service {
     /// The pipeline's counters.
     pub fn metrics(&self) -> &Metrics {
         &self.inner.metrics
+    }
+
+    /// The counters, shared (for the server loop, which counts the refusals it writes itself).
+    pub fn metrics_handle(&self) -> Arc<Metrics> {
+        Arc::clone(&self.inner.metrics)
     }
 
     /// Jobs waiting for the pipeline.
