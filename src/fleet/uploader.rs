@@ -229,13 +229,19 @@ impl Link {
     }
 
     /// Posts one upload, compressed; returns the answer and the bytes sent (compressed,
-    /// uncompressed).
-    async fn post(&self, request: &SyncRequest) -> Result<(SyncResponse, u64, u64), Failure> {
-        let json = serde_json::to_vec(request)
-            .map_err(|e| Failure::Refused(format!("cannot encode the upload: {e}")))?;
-        let body = zstd::bulk::compress(&json, ZSTD_LEVEL)
-            .map_err(|e| Failure::Refused(format!("cannot compress the upload: {e}")))?;
-        let sizes = (body.len() as u64, json.len() as u64);
+    /// uncompressed). The JSON is encoded and compressed on a blocking thread (a batch is
+    /// megabytes: never on the async workers).
+    async fn post(&self, request: SyncRequest) -> Result<(SyncResponse, u64, u64), Failure> {
+        let (body, json_len) = tokio::task::spawn_blocking(move || {
+            let json = serde_json::to_vec(&request)
+                .map_err(|e| Failure::Refused(format!("cannot encode the upload: {e}")))?;
+            let body = zstd::bulk::compress(&json, ZSTD_LEVEL)
+                .map_err(|e| Failure::Refused(format!("cannot compress the upload: {e}")))?;
+            Ok::<_, Failure>((body, json.len()))
+        })
+        .await
+        .map_err(|e| Failure::Refused(format!("the upload's encoder failed: {e}")))??;
+        let sizes = (body.len() as u64, json_len as u64);
         let mut post = self
             .client
             .post(self.url.clone())
@@ -545,7 +551,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             backlog: backlog_now(&upstream),
             requested,
         };
-        match link.post(&request).await {
+        match link.post(request).await {
             Ok((answer, bytes, json_bytes)) => {
                 let now = service.now_ns();
                 upstream.contact(now);
