@@ -59,6 +59,18 @@ pub struct RawResult {
     pub consistency: Option<Consistency>,
 }
 
+impl RawResult {
+    /// Its status: degraded when its redundant paths disagree beyond chance, ok otherwise (a
+    /// raw result is never stale: it is made from samples of one instant).
+    pub fn status(&self) -> TargetStatus {
+        if self.consistency.is_some_and(|c| !c.is_consistent()) {
+            TargetStatus::Degraded
+        } else {
+            TargetStatus::Ok
+        }
+    }
+}
+
 /// What ingesting one sample did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SampleOutcome {

@@ -621,11 +621,7 @@ fn raw_row(
         filtered: false,
         time_ns: raw.time_ns,
         estimate: raw.target_from_base,
-        status: if raw.consistency.is_some_and(|c| !c.is_consistent()) {
-            crate::bank::TargetStatus::Degraded
-        } else {
-            crate::bank::TargetStatus::Ok
-        },
+        status: raw.status(),
         age_s: 0.0,
         chi2: raw.consistency.map(|c| c.chi2),
         deformation,
