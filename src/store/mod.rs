@@ -27,6 +27,14 @@ macro_rules! on_backend {
     };
 }
 
+/// Runs one statement on whichever backend `$value` holds: `sqlx::query_as($sql)` with the
+/// `$arg`s bound in order, then `$fetch` on the connection or pool `$conn`.
+macro_rules! query_on {
+    ($value:expr, $enum:ident, $b:ident => $conn:expr, $sql:expr, [$($arg:expr),* $(,)?], $fetch:ident) => {
+        on_backend!($value, $enum, $b => sqlx::query_as($sql)$(.bind($arg))*.$fetch($conn).await)
+    };
+}
+
 mod codec;
 pub mod outbox;
 pub mod postgres;
@@ -423,15 +431,11 @@ impl Store {
         limit: i64,
     ) -> StoreResult<Vec<StoredSample>> {
         let id = self.link_ids[link.0];
-        let rows: Vec<rows::SampleRow> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(&sql::SAMPLES_IN)
-                .bind(id)
-                .bind(from_ns)
-                .bind(to_ns)
-                .bind(limit)
-                .fetch_all(&r.pool)
-                .await
-        })?;
+        let rows: Vec<rows::SampleRow> = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            &sql::SAMPLES_IN, [id, from_ns, to_ns, limit],
+            fetch_all
+        )?;
         rows.into_iter().map(rows::SampleRow::into_sample).collect()
     }
 
@@ -445,16 +449,11 @@ impl Store {
         limit: i64,
     ) -> StoreResult<Vec<StoredResult>> {
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        let rows: Vec<rows::ResultRow> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(&sql::RESULTS_IN)
-                .bind(id)
-                .bind(source)
-                .bind(from_ns)
-                .bind(to_ns)
-                .bind(limit)
-                .fetch_all(&r.pool)
-                .await
-        })?;
+        let rows: Vec<rows::ResultRow> = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            &sql::RESULTS_IN, [id, source, from_ns, to_ns, limit],
+            fetch_all
+        )?;
         rows.into_iter().map(rows::ResultRow::into_result).collect()
     }
 
@@ -500,29 +499,22 @@ impl Store {
         to_ns: i64,
     ) -> StoreResult<u64> {
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        let (n,): (i64,) = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(sql::COUNT_RESULTS)
-                .bind(id)
-                .bind(source)
-                .bind(from_ns)
-                .bind(to_ns)
-                .fetch_one(&r.pool)
-                .await
-        })?;
+        let (n,): (i64,) = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            sql::COUNT_RESULTS, [id, source, from_ns, to_ns],
+            fetch_one
+        )?;
         Ok(u64::try_from(n).unwrap_or(0))
     }
 
     /// How many samples of a link are stored in `[from_ns, to_ns]`.
     pub async fn count_samples(&self, link: LinkId, from_ns: i64, to_ns: i64) -> StoreResult<u64> {
         let id = self.link_ids[link.0];
-        let (n,): (i64,) = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(sql::COUNT_SAMPLES)
-                .bind(id)
-                .bind(from_ns)
-                .bind(to_ns)
-                .fetch_one(&r.pool)
-                .await
-        })?;
+        let (n,): (i64,) = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            sql::COUNT_SAMPLES, [id, from_ns, to_ns],
+            fetch_one
+        )?;
         Ok(u64::try_from(n).unwrap_or(0))
     }
 
@@ -535,19 +527,16 @@ impl Store {
         at_ns: i64,
     ) -> StoreResult<(Option<StoredResult>, Option<StoredResult>)> {
         let (id, source) = (self.target_ids[target], i64::from(filtered));
-        let mut around = [None, None];
+        let mut around: [Option<rows::ResultRow>; 2] = [None, None];
         for (i, statement) in [&sql::RESULT_AT_OR_BEFORE, &sql::RESULT_AFTER]
             .into_iter()
             .enumerate()
         {
-            around[i] = on_backend!(&self.reader, Reader, r => {
-                sqlx::query_as::<_, rows::ResultRow>(statement)
-                    .bind(id)
-                    .bind(source)
-                    .bind(at_ns)
-                    .fetch_optional(&r.pool)
-                    .await
-            })?;
+            around[i] = query_on!(
+                &self.reader, Reader, r => &r.pool,
+                statement, [id, source, at_ns],
+                fetch_optional
+            )?;
         }
         let [before, after] = around;
         Ok((
@@ -568,9 +557,8 @@ impl Store {
     /// Every reference version of a target, oldest first.
     pub async fn references(&self, target: usize) -> StoreResult<Vec<StoredReference>> {
         let id = self.target_ids[target];
-        let rows: Vec<rows::ReferenceRow> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(&sql::REFERENCES_OF).bind(id).fetch_all(&r.pool).await
-        })?;
+        let rows: Vec<rows::ReferenceRow> =
+            query_on!(&self.reader, Reader, r => &r.pool, &sql::REFERENCES_OF, [id], fetch_all)?;
         rows.into_iter()
             .map(rows::ReferenceRow::into_reference)
             .collect()
@@ -579,9 +567,8 @@ impl Store {
     /// Every calibration version of a link, oldest first.
     pub async fn calibrations(&self, link: LinkId) -> StoreResult<Vec<StoredCalibration>> {
         let id = self.link_ids[link.0];
-        let rows: Vec<rows::CalibrationRow> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(&sql::CALIBRATIONS_OF).bind(id).fetch_all(&r.pool).await
-        })?;
+        let rows: Vec<rows::CalibrationRow> =
+            query_on!(&self.reader, Reader, r => &r.pool, &sql::CALIBRATIONS_OF, [id], fetch_all)?;
         rows.into_iter()
             .map(rows::CalibrationRow::into_calibration)
             .collect()
@@ -591,9 +578,8 @@ impl Store {
     pub async fn last_link_resets(
         &self,
     ) -> StoreResult<Vec<(LinkId, i64, Option<String>, Option<String>)>> {
-        let rows: Vec<(i64, i64, Option<String>, Option<String>)> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(sql::LAST_LINK_RESETS).fetch_all(&r.pool).await
-        })?;
+        let rows: Vec<(i64, i64, Option<String>, Option<String>)> =
+            query_on!(&self.reader, Reader, r => &r.pool, sql::LAST_LINK_RESETS, [], fetch_all)?;
         Ok(rows
             .into_iter()
             .filter_map(|(id, t, by, note)| {
@@ -607,16 +593,13 @@ impl Store {
 
     /// The persisted filter state: `(installation digest, state)`.
     pub async fn filter_state(&self) -> StoreResult<Option<(String, String)>> {
-        Ok(on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(sql::FILTER_STATE).fetch_optional(&r.pool).await
-        })?)
+        Ok(query_on!(&self.reader, Reader, r => &r.pool, sql::FILTER_STATE, [], fetch_optional)?)
     }
 
     /// One alarm transition by id.
     pub async fn alarm(&self, id: i64) -> StoreResult<Option<StoredAlarm>> {
-        let row: Option<rows::AlarmRow> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(&sql::ALARM_BY_ID).bind(id).fetch_optional(&r.pool).await
-        })?;
+        let row: Option<rows::AlarmRow> =
+            query_on!(&self.reader, Reader, r => &r.pool, &sql::ALARM_BY_ID, [id], fetch_optional)?;
         row.map(|row| rows::alarm_of_row(row, &self.target_ids))
             .transpose()
     }
@@ -637,15 +620,11 @@ impl Store {
         } else {
             &sql::ALARMS_OLDEST_FIRST
         };
-        let rows: Vec<rows::AlarmRow> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(statement)
-                .bind(id)
-                .bind(from_ns)
-                .bind(to_ns)
-                .bind(limit)
-                .fetch_all(&r.pool)
-                .await
-        })?;
+        let rows: Vec<rows::AlarmRow> = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            statement, [id, from_ns, to_ns, limit],
+            fetch_all
+        )?;
         rows.into_iter()
             .map(|row| rows::alarm_of_row(row, &self.target_ids))
             .collect()
@@ -660,13 +639,11 @@ impl Store {
             .iter()
             .enumerate()
         {
-            let level: Option<(String,)> = on_backend!(&self.reader, Reader, r => {
-                sqlx::query_as(sql::LAST_ALARM_LEVEL)
-                    .bind(id)
-                    .bind(kind.name())
-                    .fetch_optional(&r.pool)
-                    .await
-            })?;
+            let level: Option<(String,)> = query_on!(
+                &self.reader, Reader, r => &r.pool,
+                sql::LAST_ALARM_LEVEL, [id, kind.name()],
+                fetch_optional
+            )?;
             if let Some((level,)) = level {
                 out[i] = Level::parse(&level).unwrap_or(Level::None);
             }
@@ -830,15 +807,11 @@ impl WriteTx<'_> {
         to_ns: i64,
     ) -> StoreResult<Vec<(i64, SampleValues)>> {
         let id = self.link_ids[link.0];
-        let rows = on_backend!(&mut self.tx, Tx, t => {
-            sqlx::query_as::<_, rows::SampleRow>(&sql::SAMPLES_IN)
-                .bind(id)
-                .bind(from_ns)
-                .bind(to_ns)
-                .bind(i64::MAX)
-                .fetch_all(&mut *t.conn)
-                .await
-        })?;
+        let rows: Vec<rows::SampleRow> = query_on!(
+            &mut self.tx, Tx, t => &mut *t.conn,
+            &sql::SAMPLES_IN, [id, from_ns, to_ns, i64::MAX],
+            fetch_all
+        )?;
         rows.into_iter()
             .map(|r| Ok((r.time_ns, r.values()?)))
             .collect()
@@ -996,12 +969,11 @@ impl WriteTx<'_> {
         &mut self,
         id: i64,
     ) -> StoreResult<Option<(String, Option<String>, Option<String>)>> {
-        Ok(on_backend!(&mut self.tx, Tx, t => {
-            sqlx::query_as(sql::ALARM_ACK_STATE)
-                .bind(id)
-                .fetch_optional(&mut *t.conn)
-                .await
-        })?)
+        Ok(query_on!(
+            &mut self.tx, Tx, t => &mut *t.conn,
+            sql::ALARM_ACK_STATE, [id],
+            fetch_optional
+        )?)
     }
 
     /// Records an acknowledgement of alarm `id`.
@@ -1074,16 +1046,11 @@ impl WriteTx<'_> {
         to_ns: i64,
     ) -> StoreResult<Vec<PoseCov>> {
         let id = self.target_ids[target];
-        let rows: Vec<rows::ResultRow> = on_backend!(&mut self.tx, Tx, t => {
-            sqlx::query_as(&sql::RESULTS_IN)
-                .bind(id)
-                .bind(1_i64)
-                .bind(from_ns)
-                .bind(to_ns)
-                .bind(i64::MAX)
-                .fetch_all(&mut *t.conn)
-                .await
-        })?;
+        let rows: Vec<rows::ResultRow> = query_on!(
+            &mut self.tx, Tx, t => &mut *t.conn,
+            &sql::RESULTS_IN, [id, 1_i64, from_ns, to_ns, i64::MAX],
+            fetch_all
+        )?;
         rows.into_iter()
             .map(|r| r.into_result().map(|r| r.estimate))
             .collect()

@@ -315,14 +315,11 @@ impl Store {
             .into_iter()
             .enumerate()
         {
-            let end: Option<(i64,)> = on_backend!(&self.reader, Reader, r => {
-                sqlx::query_as(statement)
-                    .bind(id)
-                    .bind(source)
-                    .bind(width_s)
-                    .fetch_optional(&r.pool)
-                    .await
-            })?;
+            let end: Option<(i64,)> = query_on!(
+                &self.reader, Reader, r => &r.pool,
+                statement, [id, source, width_s],
+                fetch_optional
+            )?;
             ends[i] = end.map(|(b,)| b);
         }
         if let [Some(lo), Some(hi)] = ends {
@@ -355,16 +352,11 @@ impl Store {
             i64::from(filtered),
             floor_to(from_ns, width_ns),
         );
-        let rows: Vec<(i64, i64, i64, Vec<u8>)> = on_backend!(&self.reader, Reader, r => {
-            sqlx::query_as(sql::ROLLUP_ROWS)
-                .bind(id)
-                .bind(source)
-                .bind(width_s)
-                .bind(from)
-                .bind(to_ns)
-                .fetch_all(&r.pool)
-                .await
-        })?;
+        let rows: Vec<(i64, i64, i64, Vec<u8>)> = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            sql::ROLLUP_ROWS, [id, source, width_s, from, to_ns],
+            fetch_all
+        )?;
         rows.iter()
             .map(|(start, n, n_def, stats)| decode_bucket(*start, *n, *n_def, stats))
             .collect()
