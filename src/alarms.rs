@@ -38,112 +38,46 @@ pub struct AlarmThresholds {
     pub rate_translation_mm_per_s: Option<f64>,
 }
 
-/// An alarm level.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum Level {
-    /// Nothing to report.
-    None,
-    /// Over the warn threshold.
-    Warn,
-    /// Over the alarm threshold.
-    Alarm,
-}
-
-impl Level {
-    /// The name on the wire.
-    pub fn name(self) -> &'static str {
-        match self {
-            Level::None => "none",
-            Level::Warn => "warn",
-            Level::Alarm => "alarm",
-        }
-    }
-
-    /// Parses a name.
-    pub fn parse(s: &str) -> Option<Level> {
-        match s {
-            "none" => Some(Level::None),
-            "warn" => Some(Level::Warn),
-            "alarm" => Some(Level::Alarm),
-            _ => None,
-        }
+crate::words! {
+    /// An alarm level.
+    #[derive(PartialOrd, Ord)]
+    pub enum Level("alarm level") {
+        /// Nothing to report.
+        None = "none",
+        /// Over the warn threshold.
+        Warn = "warn",
+        /// Over the alarm threshold.
+        Alarm = "alarm",
     }
 }
 
-/// What an alarm is about.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum AlarmKind {
-    /// The deformation's magnitude.
-    Deformation,
-    /// The rate of change of the target's pose.
-    Rate,
-    /// Data stopped arriving.
-    Stale,
-}
-
-impl AlarmKind {
-    /// The name on the wire.
-    pub fn name(self) -> &'static str {
-        match self {
-            AlarmKind::Deformation => "deformation",
-            AlarmKind::Rate => "rate",
-            AlarmKind::Stale => "stale",
-        }
-    }
-
-    /// Parses a name.
-    pub fn parse(s: &str) -> Option<AlarmKind> {
-        match s {
-            "deformation" => Some(AlarmKind::Deformation),
-            "rate" => Some(AlarmKind::Rate),
-            "stale" => Some(AlarmKind::Stale),
-            _ => None,
-        }
+crate::words! {
+    /// What an alarm is about.
+    pub enum AlarmKind("alarm kind") {
+        /// The deformation's magnitude.
+        Deformation = "deformation",
+        /// The rate of change of the target's pose.
+        Rate = "rate",
+        /// Data stopped arriving.
+        Stale = "stale",
     }
 }
 
-/// The unit of a transition's deciding value.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum ValueUnit {
-    /// Arc-seconds (a deformation rotation).
-    Arcsec,
-    /// Millimetres (a deformation translation).
-    Mm,
-    /// Arc-seconds per second (a rotation rate).
-    ArcsecPerS,
-    /// Millimetres per second (a translation rate).
-    MmPerS,
-    /// Seconds (the age of a link's newest sample).
-    S,
-    /// No value (stale transitions stored before ages were recorded).
-    None,
-}
-
-impl ValueUnit {
-    /// The name on the wire and in the database.
-    pub fn name(self) -> &'static str {
-        match self {
-            ValueUnit::Arcsec => "arcsec",
-            ValueUnit::Mm => "mm",
-            ValueUnit::ArcsecPerS => "arcsec_per_s",
-            ValueUnit::MmPerS => "mm_per_s",
-            ValueUnit::S => "s",
-            ValueUnit::None => "none",
-        }
-    }
-
-    /// Parses a name.
-    pub fn parse(s: &str) -> Option<ValueUnit> {
-        [
-            ValueUnit::Arcsec,
-            ValueUnit::Mm,
-            ValueUnit::ArcsecPerS,
-            ValueUnit::MmPerS,
-            ValueUnit::S,
-            ValueUnit::None,
-        ]
-        .into_iter()
-        .find(|u| u.name() == s)
+crate::words! {
+    /// The unit of a transition's deciding value.
+    pub enum ValueUnit("alarm unit") {
+        /// Arc-seconds (a deformation rotation).
+        Arcsec = "arcsec",
+        /// Millimetres (a deformation translation).
+        Mm = "mm",
+        /// Arc-seconds per second (a rotation rate).
+        ArcsecPerS = "arcsec_per_s",
+        /// Millimetres per second (a translation rate).
+        MmPerS = "mm_per_s",
+        /// Seconds (the age of a link's newest sample).
+        S = "s",
+        /// No value (stale transitions stored before ages were recorded).
+        None = "none",
     }
 }
 

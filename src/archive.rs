@@ -32,34 +32,16 @@ use std::sync::{Arc, Mutex};
 /// Frames waiting for the writer; more are not archived (and counted).
 const QUEUE: usize = 16;
 
-/// Why a frame was kept.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, utoipa::ToSchema,
-)]
-#[serde(rename_all = "snake_case")]
-pub enum ArchiveReason {
-    /// The camera's frame of its period.
-    Periodic,
-    /// A marker of the camera was not found.
-    NotFound,
-    /// A sample from the frame was judged an outlier.
-    Outlier,
-}
-
-impl ArchiveReason {
-    const ALL: [ArchiveReason; 3] = [
-        ArchiveReason::Periodic,
-        ArchiveReason::NotFound,
-        ArchiveReason::Outlier,
-    ];
-
-    /// The word in file names.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            ArchiveReason::Periodic => "periodic",
-            ArchiveReason::NotFound => "not_found",
-            ArchiveReason::Outlier => "outlier",
-        }
+crate::words! {
+    /// Why a frame was kept.
+    #[derive(PartialOrd, Ord)]
+    pub enum ArchiveReason("archive reason") {
+        /// The camera's frame of its period.
+        Periodic = "periodic",
+        /// A marker of the camera was not found.
+        NotFound = "not_found",
+        /// A sample from the frame was judged an outlier.
+        Outlier = "outlier",
     }
 }
 
@@ -355,16 +337,14 @@ pub fn archived_in(dir: &Path, from_ns: i64, to_ns: i64) -> std::io::Result<Vec<
 
 /// `<time>_<reason>.png`.
 fn file_name(time_ns: i64, reason: ArchiveReason) -> String {
-    format!("{}_{}.png", format_ns_fixed(time_ns), reason.as_str())
+    format!("{}_{}.png", format_ns_fixed(time_ns), reason.name())
 }
 
 /// The time and reason of an archive file's name.
 fn parse_name(name: &str) -> Option<(i64, ArchiveReason)> {
     let stem = name.strip_suffix(".png")?;
     let (time, reason) = stem.split_once('_')?;
-    let reason = ArchiveReason::ALL
-        .into_iter()
-        .find(|r| r.as_str() == reason)?;
+    let reason = ArchiveReason::parse(reason)?;
     Some((parse_rfc3339_ns(time).ok()?, reason))
 }
 
@@ -425,7 +405,7 @@ mod tests {
     #[test]
     fn names_carry_the_time_and_reason_and_parse_back() {
         let t = 1_795_255_200_040_000_000;
-        for reason in ArchiveReason::ALL {
+        for &reason in ArchiveReason::ALL {
             let name = file_name(t, reason);
             assert_eq!(parse_name(&name), Some((t, reason)), "{name}");
         }

@@ -93,45 +93,31 @@ pub struct SampleOutcome {
     pub filtered_results: Vec<TargetEstimate>,
 }
 
-/// The state of a target's result.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum TargetStatus {
-    /// Every link is current and redundant paths agree.
-    Ok,
-    /// A link on the path has had no sample for longer than its staleness limit.
-    Stale,
-    /// Redundant paths disagree, or one of them has no data yet.
-    Degraded,
-    /// Some measured link on every path has had no sample yet.
-    Initializing,
-    /// The time asked for is after the newest sample: the result is a prediction.
-    Predicted,
+crate::words! {
+    /// Which results of a target: each measurement group composed as measured, or the
+    /// filtered estimate.
+    #[derive(PartialOrd, Ord)]
+    pub enum ResultSource("result source") {
+        /// Each measurement group composed as measured.
+        Raw = "raw",
+        /// The filtered results.
+        Filtered = "filtered",
+    }
 }
 
-impl TargetStatus {
-    /// Every status.
-    pub const ALL: [TargetStatus; 5] = [
-        TargetStatus::Ok,
-        TargetStatus::Stale,
-        TargetStatus::Degraded,
-        TargetStatus::Initializing,
-        TargetStatus::Predicted,
-    ];
-
-    /// The name used on the wire and in the database.
-    pub fn name(self) -> &'static str {
-        match self {
-            TargetStatus::Ok => "ok",
-            TargetStatus::Stale => "stale",
-            TargetStatus::Degraded => "degraded",
-            TargetStatus::Initializing => "initializing",
-            TargetStatus::Predicted => "predicted",
-        }
-    }
-
-    /// The status of a name; `None` for anything else.
-    pub fn parse(name: &str) -> Option<TargetStatus> {
-        Self::ALL.into_iter().find(|s| s.name() == name)
+crate::words! {
+    /// The state of a target's result.
+    pub enum TargetStatus("target status") {
+        /// Every link is current and redundant paths agree.
+        Ok = "ok",
+        /// A link on the path has had no sample for longer than its staleness limit.
+        Stale = "stale",
+        /// Redundant paths disagree, or one of them has no data yet.
+        Degraded = "degraded",
+        /// Some measured link on every path has had no sample yet.
+        Initializing = "initializing",
+        /// The time asked for is after the newest sample: the result is a prediction.
+        Predicted = "predicted",
     }
 }
 

@@ -59,3 +59,4 @@ pub mod stats;
 pub mod store;
 pub mod vision;
 pub mod viz;
+pub mod words;

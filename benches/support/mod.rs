@@ -1,5 +1,6 @@
 //! What several benches share: a database filled with synthetic filtered results.
 
+use brokenray::bank::ResultSource;
 use brokenray::config::Installation;
 use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
 use brokenray::store::{self, NewResult};
@@ -21,7 +22,7 @@ pub async fn fill_filtered_results(inst: &Installation, n: i64) {
                 let t = k as f64 / 25.0;
                 NewResult {
                     target: 0,
-                    filtered: true,
+                    source: ResultSource::Filtered,
                     time_ns: T0 + k * PERIOD_NS,
                     estimate: PoseCov {
                         pose: Pose::from_parts(

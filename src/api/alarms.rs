@@ -19,17 +19,17 @@ pub(super) struct AlarmOut {
     /// When: measurement time for `deformation` and `rate`, the server's clock for `stale`.
     pub time: String,
     /// `deformation`, `rate` or `stale`.
-    pub kind: &'static str,
+    pub kind: crate::alarms::AlarmKind,
     /// Level before: `none`, `warn` or `alarm`.
-    pub from: &'static str,
+    pub from: crate::alarms::Level,
     /// Level after.
-    pub to: &'static str,
+    pub to: crate::alarms::Level,
     /// The deciding value, in `unit`: of the rotation and the translation, the one that is the
     /// larger fraction of its threshold; for stale, the age of the oldest link.
     pub value: f64,
     /// `arcsec`, `mm` (deformation), `arcsec_per_s`, `mm_per_s` (rate), `s` (stale), or `none`
     /// (stale transitions stored before ages were).
-    pub unit: &'static str,
+    pub unit: crate::alarms::ValueUnit,
     /// A sentence.
     pub message: String,
     /// Who acknowledged it; null until someone does.
@@ -48,11 +48,11 @@ impl AlarmOut {
             id: a.id,
             target,
             time: format_ns(t.time_ns),
-            kind: t.kind.name(),
-            from: t.from.name(),
-            to: t.to.name(),
+            kind: t.kind,
+            from: t.from,
+            to: t.to,
             value: t.value,
-            unit: t.unit.name(),
+            unit: t.unit,
             message: t.message.clone(),
             acknowledged_by: a.ack.as_ref().map(|k| k.by.clone()),
             acknowledged_at: a.ack.as_ref().map(|k| format_ns(k.at_ns)),

@@ -161,9 +161,9 @@ pub(crate) struct ViewFitOut {
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub(crate) struct CorrelationOut {
     /// One parameter.
-    pub a: String,
+    pub a: Intrinsic,
     /// The other.
-    pub b: String,
+    pub b: Intrinsic,
     /// Their correlation coefficient.
     pub r: f64,
 }
@@ -171,9 +171,8 @@ pub(crate) struct CorrelationOut {
 /// Something about the views that could be better.
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub(crate) struct CalibrationWarningOut {
-    /// `few_views`, `little_tilt`, `corners_not_reached` or `view_fits_worse`; from
-    /// `calibrate-camera`, also `lossy_frames` (views that came as JPEG).
-    pub kind: String,
+    /// What is wrong; `lossy_frames` (views that came as JPEG) only from `calibrate-camera`.
+    pub kind: crate::vision::WarningKind,
     /// What to do, in words.
     pub message: String,
 }
@@ -188,9 +187,9 @@ pub(crate) struct CameraCalibrationOut {
     /// Their covariance, 81 numbers row-major in the order of `parameters`.
     pub covariance: Vec<f64>,
     /// `["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]`.
-    pub parameters: Vec<String>,
+    pub parameters: Vec<Intrinsic>,
     /// Those kept fixed.
-    pub fixed: Vec<String>,
+    pub fixed: Vec<Intrinsic>,
     /// Reprojection RMS over every point (px; the length of the residual, both axes).
     pub rms_px: f64,
     /// The factor the covariance was scaled by: `chi2 / (2 n - p)` (near 1 when the detector's
@@ -217,8 +216,8 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
             camera: intrinsics_of(&c.camera).into(),
             sigma: c.sigma.into(),
             covariance: c.covariance.iter().flatten().copied().collect(),
-            parameters: Intrinsic::ALL.iter().map(|p| p.name().to_owned()).collect(),
-            fixed: c.fixed.iter().map(|p| p.name().to_owned()).collect(),
+            parameters: Intrinsic::ALL.to_vec(),
+            fixed: c.fixed.clone(),
             rms_px: c.rms_px,
             variance_factor: c.variance_factor,
             views: c
@@ -235,8 +234,8 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
                 .correlations
                 .iter()
                 .map(|k| CorrelationOut {
-                    a: k.a.name().to_owned(),
-                    b: k.b.name().to_owned(),
+                    a: k.a,
+                    b: k.b,
                     r: k.r,
                 })
                 .collect(),
@@ -244,7 +243,7 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
                 .warnings
                 .iter()
                 .map(|w| CalibrationWarningOut {
-                    kind: w.kind().to_owned(),
+                    kind: w.kind(),
                     message: w.to_string(),
                 })
                 .collect(),

@@ -37,154 +37,73 @@ pub(super) const MAX_DETAILS: usize = 100;
 /// The longest detail message (characters); a longer one is cut (it may quote a value sent).
 const MAX_DETAIL_CHARS: usize = 300;
 
-/// The stable machine-readable code of every error answer (`error.code`). Serialised as its
-/// snake_case name; `docs/interface.md` lists them all.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize, utoipa::ToSchema,
-)]
-#[serde(rename_all = "snake_case")]
-pub enum ErrorCode {
-    /// The request is not what the endpoint takes (a framework refusal without more to say).
-    BadRequest,
-    /// The request line or headers do not parse as HTTP.
-    MalformedRequest,
-    /// The body is not JSON, or not UTF-8.
-    MalformedJson,
-    /// The body is not in its stated encoding (a fleet upload that is not zstd or not its JSON).
-    MalformedBody,
-    /// The body could not be read to its end (the client stopped sending).
-    UnreadableBody,
-    /// No token, or one the service does not know.
-    Unauthorized,
-    /// The token lacks the scope, or does not speak for this site.
-    Forbidden,
-    /// The `Host` header is not one the service answers to.
-    HostNotAllowed,
-    /// A browser request from another origin.
-    OriginNotAllowed,
-    /// No such route, target, link, camera, alarm or site.
-    NotFound,
-    /// The route exists, the method does not.
-    MethodNotAllowed,
-    /// The request's headers did not arrive in time.
-    RequestTimeout,
-    /// The request contradicts what is stored (a duplicate with other values).
-    Conflict,
-    /// The body exceeds its limit.
-    PayloadTooLarge,
-    /// More items than `[server] max_batch_samples`.
-    BatchTooLarge,
-    /// A `Content-Type` the endpoint does not take.
-    UnsupportedMediaType,
-    /// A field has a value the endpoint refuses; `details` name it.
-    InvalidRequest,
-    /// Samples refused item by item; `details` name each.
-    InvalidSamples,
-    /// The calibration could not be computed from what was sent.
-    CalibrationRefused,
-    /// The link is measured, not calibrated.
-    NotCalibrated,
-    /// The request's headers exceed their limit.
-    HeadersTooLarge,
-    /// The database does not answer or a commit failed; nothing was stored.
-    StorageUnavailable,
-    /// The database refused a value; nothing was stored.
-    ValueRefused,
-    /// Every slot for this kind of work is taken; retry shortly.
-    Busy,
-    /// A site's upload does not follow what the centre holds of its stream.
-    OutboxChanged,
-    /// A site's outbox generation descends from none the centre knows.
-    GenerationUnknown,
-    /// A site's commits went back within one generation (a restored copy).
-    CommitsWentBack,
-    /// The writer is not running.
-    WriterStopped,
-    /// The service is stopping.
-    ShuttingDown,
-    /// The viewer could not be reached or written to.
-    VisualisationFailed,
-    /// Something that should not fail did; the message says what.
-    Internal,
-}
-
-impl ErrorCode {
-    /// Every code, in the order `docs/interface.md` lists them.
-    pub const ALL: [ErrorCode; 31] = [
-        ErrorCode::BadRequest,
-        ErrorCode::MalformedRequest,
-        ErrorCode::MalformedJson,
-        ErrorCode::MalformedBody,
-        ErrorCode::UnreadableBody,
-        ErrorCode::Unauthorized,
-        ErrorCode::Forbidden,
-        ErrorCode::HostNotAllowed,
-        ErrorCode::OriginNotAllowed,
-        ErrorCode::NotFound,
-        ErrorCode::MethodNotAllowed,
-        ErrorCode::RequestTimeout,
-        ErrorCode::Conflict,
-        ErrorCode::PayloadTooLarge,
-        ErrorCode::BatchTooLarge,
-        ErrorCode::UnsupportedMediaType,
-        ErrorCode::InvalidRequest,
-        ErrorCode::InvalidSamples,
-        ErrorCode::CalibrationRefused,
-        ErrorCode::NotCalibrated,
-        ErrorCode::HeadersTooLarge,
-        ErrorCode::StorageUnavailable,
-        ErrorCode::ValueRefused,
-        ErrorCode::Busy,
-        ErrorCode::OutboxChanged,
-        ErrorCode::GenerationUnknown,
-        ErrorCode::CommitsWentBack,
-        ErrorCode::WriterStopped,
-        ErrorCode::ShuttingDown,
-        ErrorCode::VisualisationFailed,
-        ErrorCode::Internal,
-    ];
-
-    /// The code's name on the wire.
-    pub fn name(self) -> &'static str {
-        match self {
-            ErrorCode::BadRequest => "bad_request",
-            ErrorCode::MalformedRequest => "malformed_request",
-            ErrorCode::MalformedJson => "malformed_json",
-            ErrorCode::MalformedBody => "malformed_body",
-            ErrorCode::UnreadableBody => "unreadable_body",
-            ErrorCode::Unauthorized => "unauthorized",
-            ErrorCode::Forbidden => "forbidden",
-            ErrorCode::HostNotAllowed => "host_not_allowed",
-            ErrorCode::OriginNotAllowed => "origin_not_allowed",
-            ErrorCode::NotFound => "not_found",
-            ErrorCode::MethodNotAllowed => "method_not_allowed",
-            ErrorCode::RequestTimeout => "request_timeout",
-            ErrorCode::Conflict => "conflict",
-            ErrorCode::PayloadTooLarge => "payload_too_large",
-            ErrorCode::BatchTooLarge => "batch_too_large",
-            ErrorCode::UnsupportedMediaType => "unsupported_media_type",
-            ErrorCode::InvalidRequest => "invalid_request",
-            ErrorCode::InvalidSamples => "invalid_samples",
-            ErrorCode::CalibrationRefused => "calibration_refused",
-            ErrorCode::NotCalibrated => "not_calibrated",
-            ErrorCode::HeadersTooLarge => "headers_too_large",
-            ErrorCode::StorageUnavailable => "storage_unavailable",
-            ErrorCode::ValueRefused => "value_refused",
-            ErrorCode::Busy => "busy",
-            ErrorCode::OutboxChanged => "outbox_changed",
-            ErrorCode::GenerationUnknown => "generation_unknown",
-            ErrorCode::CommitsWentBack => "commits_went_back",
-            ErrorCode::WriterStopped => "writer_stopped",
-            ErrorCode::ShuttingDown => "shutting_down",
-            ErrorCode::VisualisationFailed => "visualisation_failed",
-            ErrorCode::Internal => "internal",
-        }
-    }
-}
-
-impl std::fmt::Display for ErrorCode {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
+crate::words! {
+    /// The stable machine-readable code of every error answer (`error.code`). Serialised as its
+    /// snake_case name; `docs/interface.md` lists them all.
+    #[derive()]
+    pub enum ErrorCode("error code") {
+        /// The request is not what the endpoint takes (a framework refusal without more to say).
+        BadRequest = "bad_request",
+        /// The request line or headers do not parse as HTTP.
+        MalformedRequest = "malformed_request",
+        /// The body is not JSON, or not UTF-8.
+        MalformedJson = "malformed_json",
+        /// The body is not in its stated encoding (a fleet upload that is not zstd or not its JSON).
+        MalformedBody = "malformed_body",
+        /// The body could not be read to its end (the client stopped sending).
+        UnreadableBody = "unreadable_body",
+        /// No token, or one the service does not know.
+        Unauthorized = "unauthorized",
+        /// The token lacks the scope, or does not speak for this site.
+        Forbidden = "forbidden",
+        /// The `Host` header is not one the service answers to.
+        HostNotAllowed = "host_not_allowed",
+        /// A browser request from another origin.
+        OriginNotAllowed = "origin_not_allowed",
+        /// No such route, target, link, camera, alarm or site.
+        NotFound = "not_found",
+        /// The route exists, the method does not.
+        MethodNotAllowed = "method_not_allowed",
+        /// The request's headers did not arrive in time.
+        RequestTimeout = "request_timeout",
+        /// The request contradicts what is stored (a duplicate with other values).
+        Conflict = "conflict",
+        /// The body exceeds its limit.
+        PayloadTooLarge = "payload_too_large",
+        /// More items than `[server] max_batch_samples`.
+        BatchTooLarge = "batch_too_large",
+        /// A `Content-Type` the endpoint does not take.
+        UnsupportedMediaType = "unsupported_media_type",
+        /// A field has a value the endpoint refuses; `details` name it.
+        InvalidRequest = "invalid_request",
+        /// Samples refused item by item; `details` name each.
+        InvalidSamples = "invalid_samples",
+        /// The calibration could not be computed from what was sent.
+        CalibrationRefused = "calibration_refused",
+        /// The link is measured, not calibrated.
+        NotCalibrated = "not_calibrated",
+        /// The request's headers exceed their limit.
+        HeadersTooLarge = "headers_too_large",
+        /// The database does not answer or a commit failed; nothing was stored.
+        StorageUnavailable = "storage_unavailable",
+        /// The database refused a value; nothing was stored.
+        ValueRefused = "value_refused",
+        /// Every slot for this kind of work is taken; retry shortly.
+        Busy = "busy",
+        /// A site's upload does not follow what the centre holds of its stream.
+        OutboxChanged = "outbox_changed",
+        /// A site's outbox generation descends from none the centre knows.
+        GenerationUnknown = "generation_unknown",
+        /// A site's commits went back within one generation (a restored copy).
+        CommitsWentBack = "commits_went_back",
+        /// The writer is not running.
+        WriterStopped = "writer_stopped",
+        /// The service is stopping.
+        ShuttingDown = "shutting_down",
+        /// The viewer could not be reached or written to.
+        VisualisationFailed = "visualisation_failed",
+        /// Something that should not fail did; the message says what.
+        Internal = "internal",
     }
 }
 

@@ -415,7 +415,7 @@ pub(super) async fn post_sync(
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub(super) struct SiteTierOut {
     /// `events`, `results` or `raw`.
-    pub tier: &'static str,
+    pub tier: crate::store::outbox::Tier,
     /// The last of the site's commits applied (absent: nothing yet).
     pub acked_seq: Option<i64>,
     /// Rows still at the site, as it last reported.
@@ -442,7 +442,7 @@ pub(super) struct SiteOut {
     /// Its targets, as it last reported.
     pub targets: Vec<TargetStatus>,
     /// Its worst alarm level (`none`, `warn`, `alarm`).
-    pub alarm: &'static str,
+    pub alarm: crate::alarms::Level,
     /// When the site made its last report (its clock).
     pub reported: Option<String>,
     /// What is wrong at the site, as it last reported (the disk budget removed rows before
@@ -490,8 +490,7 @@ pub(super) async fn list_sites(State(app): State<AppState>) -> Result<Json<Sites
                 .iter()
                 .filter_map(|t| crate::alarms::Level::parse(&t.alarm))
                 .max()
-                .unwrap_or(crate::alarms::Level::None)
-                .name();
+                .unwrap_or(crate::alarms::Level::None);
             SiteOut {
                 last_contact: format_ns(r.last_contact_ns),
                 first_contact: format_ns(r.first_contact_ns),
@@ -510,7 +509,7 @@ pub(super) async fn list_sites(State(app): State<AppState>) -> Result<Json<Sites
                     .streams
                     .iter()
                     .map(|s| SiteTierOut {
-                        tier: s.tier.name(),
+                        tier: s.tier,
                         acked_seq: s.acked_seq,
                         backlog_rows: reported.iter().find(|b| b.tier == s.tier).map(|b| b.rows),
                         rows_applied: s.rows_applied,
@@ -580,7 +579,7 @@ pub(super) struct RawRequestOut {
     pub to: String,
     /// `pending` until the site has delivered all of it, then `done`; `cancelled` when the
     /// office withdrew it first.
-    pub state: &'static str,
+    pub state: super::vocab::RawRequestState,
     /// How far the site has delivered it: every raw row measured before this time is here.
     pub delivered_to: String,
     /// Rows applied (samples and raw results).
@@ -603,9 +602,9 @@ impl From<&crate::store::RawRequestRecord> for RawRequestOut {
             from: format_ns(r.from_ns),
             to: format_ns(r.to_ns),
             state: match (r.done_ns, &r.cancelled) {
-                (_, Some(_)) => "cancelled",
-                (Some(_), None) => "done",
-                (None, None) => "pending",
+                (_, Some(_)) => super::vocab::RawRequestState::Cancelled,
+                (Some(_), None) => super::vocab::RawRequestState::Done,
+                (None, None) => super::vocab::RawRequestState::Pending,
             },
             cancelled_by: r.cancelled.as_ref().and_then(|(by, _)| by.clone()),
             delivered_to: format_ns(r.delivered_to_ns),
@@ -706,7 +705,7 @@ pub(super) async fn list_raw_requests(
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub(super) struct UpstreamTierOut {
     /// `events`, `results` or `raw`.
-    pub tier: &'static str,
+    pub tier: crate::store::outbox::Tier,
     /// The last of this site's commits the centre acknowledged (absent: none yet).
     pub acked_seq: Option<i64>,
     /// Still to send: rows, and bytes on the wire (estimated from what was sent).
@@ -825,7 +824,7 @@ pub(super) async fn get_upstream(
             .progress()
             .into_iter()
             .map(|(tier, p)| UpstreamTierOut {
-                tier: tier.name(),
+                tier,
                 acked_seq: p.acked_seq,
                 backlog: BacklogOut {
                     rows: p.backlog_rows,

@@ -35,26 +35,26 @@ pub(super) struct FrameQuery {
     pub time: Option<String>,
 }
 
-/// Why a marker was not found, as a stable code.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub(super) enum NotFoundCode {
-    /// The marker declares no disc target.
-    NoTarget,
-    /// No filtered or nominal pose to predict its points from.
-    NoPrediction,
-    /// Not in front of the camera at the predicted pose.
-    NotInView,
-    /// Too few points found near their predictions.
-    TooFewPoints,
-    /// PnP refused the matched points.
-    PnpRefused,
-    /// Searched with no prior, no identification used every visible point.
-    NotIdentified,
-    /// Searched with no prior, two contradicting identifications fit.
-    Ambiguous,
-    /// A disc was found as a point of two markers.
-    SharedPoints,
+crate::words! {
+    /// Why a marker was not found, as a stable code.
+    pub enum NotFoundCode("reason code") {
+        /// The marker declares no disc target.
+        NoTarget = "no_target",
+        /// No filtered or nominal pose to predict its points from.
+        NoPrediction = "no_prediction",
+        /// Not in front of the camera at the predicted pose.
+        NotInView = "not_in_view",
+        /// Too few points found near their predictions.
+        TooFewPoints = "too_few_points",
+        /// PnP refused the matched points.
+        PnpRefused = "pnp_refused",
+        /// Searched with no prior, no identification used every visible point.
+        NotIdentified = "not_identified",
+        /// Searched with no prior, two contradicting identifications fit.
+        Ambiguous = "ambiguous",
+        /// A disc was found as a point of two markers.
+        SharedPoints = "shared_points",
+    }
 }
 
 impl From<&NotFound> for NotFoundCode {

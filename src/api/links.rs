@@ -30,13 +30,13 @@ pub(super) struct LinkOut {
     /// `<parent>_from_<child>`.
     pub name: String,
     /// `measured` or `calibrated`.
-    pub kind: &'static str,
+    pub kind: super::vocab::LinkKindName,
     /// Parent frame.
     pub parent: String,
     /// Child frame.
     pub child: String,
     /// Filter model (measured links).
-    pub model: Option<&'static str>,
+    pub model: Option<crate::filter::MotionModel>,
     /// Samples received.
     pub n_samples: u64,
     /// Of which outliers.
@@ -56,7 +56,7 @@ pub(super) struct LinkOut {
     /// (`stale_after_periods` of its expected period) on the server's clock, plus `[server]
     /// clock_tolerance_s`, or behind the newest link's sample by more than the limit;
     /// `no_data` before its first sample (and after a reset); `calibrated`.
-    pub status: &'static str,
+    pub status: crate::service::LinkState,
     /// The newest manual restart of the link's filter, if any.
     pub last_reset: Option<LinkResetOut>,
 }
@@ -148,12 +148,14 @@ pub(super) async fn list_links(
             .map(|l| {
                 let ends = inst.model.topology.link(l.id);
                 let st = bank.link_status(l.id);
-                let status = snapshot.link_state(l.id, now_ns, tolerance_s).name();
+                let status = snapshot.link_state(l.id, now_ns, tolerance_s);
                 let (kind, model, expected) = match &l.kind {
-                    LinkKind::Calibrated { .. } => ("calibrated", None, None),
+                    LinkKind::Calibrated { .. } => {
+                        (super::vocab::LinkKindName::Calibrated, None, None)
+                    }
                     LinkKind::Measured(m) => (
-                        "measured",
-                        Some(m.tuning.model.name()),
+                        super::vocab::LinkKindName::Measured,
+                        Some(m.tuning.model),
                         Some(m.expected_rate_hz),
                     ),
                 };
@@ -217,7 +219,7 @@ pub(super) struct SampleOut {
     /// Flagged as an outlier.
     pub outlier: bool,
     /// What the filter did: `initialized`, `fused`, `outlier`, `reinitialized`, `out_of_order`.
-    pub disposition: &'static str,
+    pub disposition: crate::filter::DispositionKind,
     /// Normalised innovation squared.
     pub nis: Option<f64>,
     /// When the service received it.
@@ -275,7 +277,7 @@ pub(super) async fn list_samples(
                     reprojection_rms_px: s.values.quality.reprojection_rms_px,
                     points: s.values.quality.points,
                     outlier: s.outlier,
-                    disposition: s.disposition.name(),
+                    disposition: s.disposition,
                     nis: s.nis,
                     received: format_ns(s.received_ns),
                 }

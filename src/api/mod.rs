@@ -25,6 +25,7 @@ pub mod server;
 mod sites;
 mod targets;
 pub(crate) mod vision;
+pub mod vocab;
 mod webhooks;
 
 pub use auth::sha256_hex;
@@ -173,7 +174,7 @@ pub fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> 
 #[derive(Debug, serde::Serialize, utoipa::ToSchema)]
 pub struct HealthOut {
     /// `ok` or `unavailable`.
-    pub status: &'static str,
+    pub status: vocab::HealthStatus,
     /// The database answers.
     pub database: bool,
     /// The single writer (the pipeline task) runs and its last commit succeeded.
@@ -214,7 +215,7 @@ pub struct HealthOut {
 #[derive(Debug, serde::Serialize, utoipa::ToSchema)]
 pub struct TargetHealthOut {
     /// As in the target's compensation: `ok`, `stale`, `degraded`, `initializing`, ...
-    pub status: &'static str,
+    pub status: crate::bank::TargetStatus,
     /// Seconds from its newest result to now on the server's clock; null before any result.
     pub age_s: Option<f64>,
 }
@@ -255,7 +256,7 @@ async fn healthz(
             (
                 t.name.clone(),
                 TargetHealthOut {
-                    status: now.status.name(),
+                    status: now.status,
                     age_s: now.age_s,
                 },
             )
@@ -268,7 +269,11 @@ async fn healthz(
             StatusCode::SERVICE_UNAVAILABLE
         },
         axum::Json(HealthOut {
-            status: if ok { "ok" } else { "unavailable" },
+            status: if ok {
+                vocab::HealthStatus::Ok
+            } else {
+                vocab::HealthStatus::Unavailable
+            },
             database,
             writer,
             problem,

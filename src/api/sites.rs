@@ -19,7 +19,7 @@ use super::targets::{
     ReferencesOut, StatsOut, TargetOut, WindowQuery, compensation_out, current_of, from_history,
     history_of, references_of, stats_of,
 };
-use crate::bank::TargetStatus;
+use crate::bank::{ResultSource, TargetStatus};
 use crate::clock::parse_query_time;
 use crate::fleet::protocol::{SiteStatus, TargetDescription};
 use crate::store::Store;
@@ -104,16 +104,12 @@ pub(super) async fn list_site_targets(
     let view = site_view(&app, &site).await?;
     let mut out = Vec::with_capacity(view.status.described.len());
     for (i, d) in view.status.described.iter().enumerate() {
-        let latest = view.store.latest_result(i, true).await?;
+        let latest = view.store.latest_result(i, ResultSource::Filtered).await?;
         let status = view
             .reported_status(&d.name)
             .or(latest.as_ref().map(|l| l.status))
             .unwrap_or(TargetStatus::Initializing);
-        out.push(TargetOut::new(
-            d.clone(),
-            status.name(),
-            latest.map(|l| l.time_ns),
-        ));
+        out.push(TargetOut::new(d.clone(), status, latest.map(|l| l.time_ns)));
     }
     Ok(Json(out))
 }
@@ -146,7 +142,7 @@ pub(super) async fn get_site_compensation(
         let e = from_history(&view.store, ti, &name, at_ns).await?;
         return Ok(Json(compensation_out(&target, e, reference.as_ref())));
     }
-    let Some(latest) = view.store.latest_result(ti, true).await? else {
+    let Some(latest) = view.store.latest_result(ti, ResultSource::Filtered).await? else {
         return Ok(Json(compensation_out(
             &target,
             Evaluated::none(CompensationSource::History),
@@ -165,8 +161,7 @@ pub(super) async fn get_site_compensation(
     out.alarm = levels
         .into_iter()
         .max()
-        .unwrap_or(crate::alarms::Level::None)
-        .name();
+        .unwrap_or(crate::alarms::Level::None);
     Ok(Json(out))
 }
 

@@ -4,7 +4,7 @@ use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::{ApiError, ErrorBody};
 use super::query::Query;
-use crate::bank::{TargetEstimate, TargetStatus};
+use crate::bank::{ResultSource, TargetEstimate, TargetStatus};
 use crate::clock::{format_ns, parse_query_time};
 use crate::deformation::{Deformation, ReferenceOrigin};
 use crate::geometry::PoseCov;
@@ -37,7 +37,7 @@ pub(super) struct TargetOut {
     /// Its base frame.
     pub base: String,
     /// Current status.
-    pub status: &'static str,
+    pub status: TargetStatus,
     /// Time of the newest filtered result.
     pub time: Option<String>,
     /// Independent paths (fused).
@@ -62,7 +62,7 @@ pub(super) async fn list_targets(State(app): State<AppState>) -> Json<Vec<Target
                 let latest = snapshot.targets[i].latest.as_ref();
                 TargetOut::new(
                     d,
-                    latest.map_or("initializing", |l| l.status.name()),
+                    latest.map_or(TargetStatus::Initializing, |l| l.status),
                     latest.map(|l| l.time_ns),
                 )
             })
@@ -74,7 +74,7 @@ impl TargetOut {
     /// A target as its installation describes it, with its status and newest result's time.
     pub(super) fn new(
         d: crate::fleet::protocol::TargetDescription,
-        status: &'static str,
+        status: TargetStatus,
         time_ns: Option<i64>,
     ) -> Self {
         TargetOut {
@@ -103,7 +103,7 @@ pub(super) struct ReferenceOut {
     /// Its version.
     pub version: i64,
     /// `explicit` or `window`.
-    pub origin: &'static str,
+    pub origin: super::vocab::ReferenceOriginKind,
     /// The averaged window, for a `window` reference.
     pub window: Option<WindowOut>,
     /// Its own uncertainty (zero for an explicit one).
@@ -125,13 +125,13 @@ impl From<&CurrentReference> for ReferenceOut {
     fn from(r: &CurrentReference) -> Self {
         let p = PoseOut::from(&r.reference.g0_from_b.pose);
         let (origin, window) = match r.reference.origin {
-            ReferenceOrigin::Explicit => ("explicit", None),
+            ReferenceOrigin::Explicit => (super::vocab::ReferenceOriginKind::Explicit, None),
             ReferenceOrigin::Window {
                 from_ns,
                 to_ns,
                 count,
             } => (
-                "window",
+                super::vocab::ReferenceOriginKind::Window,
                 Some(WindowOut {
                     from: format_ns(from_ns),
                     to: format_ns(to_ns),
@@ -187,35 +187,15 @@ pub(super) struct ConsistencyOut {
     pub threshold: f64,
 }
 
-/// Where a compensation's value comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub(super) enum CompensationSource {
-    /// The newest filtered result.
-    Live,
-    /// The filters predicted to a later time.
-    Predicted,
-    /// Stored results, interpolated.
-    History,
-}
-
-/// Which results a statistic or a history is computed from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, utoipa::ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub(super) enum ResultSource {
-    /// Each measurement group composed as measured.
-    Raw,
-    /// The filtered results.
-    Filtered,
-}
-
-impl ResultSource {
-    fn of(filtered: bool) -> Self {
-        if filtered {
-            ResultSource::Filtered
-        } else {
-            ResultSource::Raw
-        }
+crate::words! {
+    /// Where a compensation's value comes from.
+    pub enum CompensationSource("compensation source") {
+        /// The newest filtered result.
+        Live = "live",
+        /// The filters predicted to a later time.
+        Predicted = "predicted",
+        /// Stored results, interpolated.
+        History = "history",
     }
 }
 
@@ -232,7 +212,7 @@ pub(super) struct CompensationOut {
     /// for: seconds from the newest sample behind it to that time. Null before any result.
     pub age_s: Option<f64>,
     /// `ok`, `stale`, `degraded`, `initializing` or `predicted`.
-    pub status: &'static str,
+    pub status: TargetStatus,
     /// Where the value comes from.
     pub source: CompensationSource,
     /// `G_from_B`.
@@ -247,7 +227,7 @@ pub(super) struct CompensationOut {
     pub correction: Option<CorrectionOut>,
     /// `none`, `warn` or `alarm`: live, the target's alarm state (hysteresis, dwell, rate,
     /// stale); for another time, the deformation against the thresholds.
-    pub alarm: &'static str,
+    pub alarm: crate::alarms::Level,
     /// Redundant paths' agreement, where several were fused.
     pub consistency: Option<ConsistencyOut>,
 }
@@ -296,7 +276,9 @@ pub(super) async fn from_history(
     name: &str,
     at_ns: i64,
 ) -> Result<Evaluated, ApiError> {
-    let (before, after) = store.results_around(ti, true, at_ns).await?;
+    let (before, after) = store
+        .results_around(ti, ResultSource::Filtered, at_ns)
+        .await?;
     let Some(before) = before else {
         return Err(ApiError::not_found(format!(
             "target `{name}` has no filtered result at or before {}",
@@ -376,7 +358,7 @@ pub(super) fn compensation_out(
         base: target.base.to_owned(),
         time: time_ns.map(format_ns),
         age_s,
-        status: status.name(),
+        status,
         source,
         pose: estimate.as_ref().map(|e| (&e.pose).into()),
         sigma: estimate.as_ref().map(Into::into),
@@ -399,14 +381,13 @@ pub(super) fn compensation_out(
                 sigma: c.sigmas.into(),
             }
         }),
-        alarm: deformation.map_or("none", |d| {
+        alarm: deformation.map_or(crate::alarms::Level::None, |d| {
             let m = d.deformation();
             crate::alarms::threshold_level(
                 &target.thresholds,
                 m.rotation_magnitude_arcsec(),
                 m.translation_magnitude_mm(),
             )
-            .name()
         }),
         consistency: consistency.map(|c| ConsistencyOut {
             chi2: c.chi2,
@@ -480,7 +461,7 @@ pub(super) async fn get_compensation(
             Some(l) => {
                 let mut out = compensation_out(&target, live(&app, ti, l), reference);
                 // Live: the alarm state with its hysteresis, dwell, rate and stale tracks.
-                out.alarm = view.alarms.level().name();
+                out.alarm = view.alarms.level();
                 out
             }
             None => compensation_out(
@@ -528,15 +509,18 @@ pub(super) struct WindowQuery {
 }
 
 /// Parses `from`, `to` and `source` of a window query.
-pub(super) fn parse_window(q: &WindowQuery) -> Result<(i64, i64, bool), ApiError> {
+pub(super) fn parse_window(q: &WindowQuery) -> Result<(i64, i64, ResultSource), ApiError> {
     let (from, to) = super::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
-    let filtered = super::query_choice(
+    let source = super::query_choice(
         "source",
         q.source.as_deref(),
-        true,
-        &[("raw", false), ("filtered", true)],
+        ResultSource::Filtered,
+        &[
+            ("raw", ResultSource::Raw),
+            ("filtered", ResultSource::Filtered),
+        ],
     )?;
-    Ok((from, to, filtered))
+    Ok((from, to, source))
 }
 
 /// Three statistics.
@@ -599,9 +583,9 @@ pub(super) async fn stats_of(
     name: String,
     q: &WindowQuery,
 ) -> Result<StatsOut, ApiError> {
-    let (from, to, filtered) = parse_window(q)?;
+    let (from, to, source) = parse_window(q)?;
     let _permit = app.service.heavy_read().await;
-    let (stats, first_last) = store.pose_stats(ti, filtered, from, to).await?;
+    let (stats, first_last) = store.pose_stats(ti, source, from, to).await?;
     let comp = |c: crate::stats::ComponentStats| ComponentsOut {
         min: c.min,
         max: c.max,
@@ -610,7 +594,7 @@ pub(super) async fn stats_of(
     };
     Ok(StatsOut {
         target: name,
-        source: ResultSource::of(filtered),
+        source,
         count: stats.map_or(0, |s| s.count),
         from: first_last.map(|(first, _)| format_ns(if from == i64::MIN { first } else { from })),
         to: first_last.map(|(_, last)| format_ns(if to == i64::MAX { last } else { to })),
@@ -832,7 +816,7 @@ pub(super) async fn history_of(
 ) -> Result<axum::response::Response, ApiError> {
     use crate::store::rollup::{Bucket, COMPONENTS, N_COMPONENTS};
     use axum::response::IntoResponse;
-    let (from_q, to_q, filtered) = parse_window(&WindowQuery {
+    let (from_q, to_q, source) = parse_window(&WindowQuery {
         from: q.from.clone(),
         to: q.to.clone(),
         source: q.source.clone(),
@@ -868,9 +852,7 @@ pub(super) async fn history_of(
     };
     // Reading every result of a long window is heavy: at most `max_heavy_reads` at once.
     let _permit = app.service.heavy_read().await;
-    let history = store
-        .history(ti, filtered, from_q, to_q, max_points)
-        .await?;
+    let history = store.history(ti, source, from_q, to_q, max_points).await?;
     let buckets = &history.buckets;
     let value = |b: &Bucket, i: usize, which: u8| -> Option<f64> {
         match which {
@@ -930,7 +912,7 @@ pub(super) async fn history_of(
     }
     Ok(Json(HistoryOut {
         target: name.to_owned(),
-        source: ResultSource::of(filtered),
+        source,
         from: history.window_ns.map(|(from, _)| format_ns(from)),
         to: history.window_ns.map(|(_, to)| format_ns(to)),
         bucket_s: history.bucket_ns as f64 / 1e9,

@@ -270,7 +270,7 @@ impl Webhooks {
                 WebhookOut {
                     index: i,
                     host: h.spec.host().to_owned(),
-                    min_level: h.spec.min_level.name(),
+                    min_level: h.spec.min_level,
                     delivered: c.delivered.load(Relaxed),
                     failed: c.failed.load(Relaxed),
                     dropped: c.dropped.load(Relaxed),
@@ -393,7 +393,7 @@ pub(super) struct WebhookOut {
     /// The URL's host and port (the rest may carry credentials).
     pub host: String,
     /// `warn` or `alarm`.
-    pub min_level: &'static str,
+    pub min_level: NotifyLevel,
     /// Notifications delivered.
     pub delivered: u64,
     /// Notifications given up after `max_attempts`, or refused by the receiver (4xx).

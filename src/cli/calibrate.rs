@@ -165,7 +165,7 @@ pub(super) fn report(run: &FramesCalibration) -> String {
         c.variance_factor
     );
     let values = intrinsics_of(&c.camera);
-    for p in Intrinsic::ALL {
+    for &p in Intrinsic::ALL {
         let i = p.index();
         if c.fixed.contains(&p) {
             let _ = writeln!(s, "  {:<3} {:>14.6}   (fixed)", p.name(), values[i]);

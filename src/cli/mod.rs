@@ -545,7 +545,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 if let Some(message) = run.file_warning() {
                     body.warnings
                         .push(crate::api::calibration::CalibrationWarningOut {
-                            kind: "lossy_frames".to_owned(),
+                            kind: crate::vision::WarningKind::LossyFrames,
                             message,
                         });
                 }

@@ -300,6 +300,20 @@ pub struct ServerSettings {
     pub max_heavy_reads: usize,
 }
 
+crate::words! {
+    /// What goes to Rerun (`[rerun] mode`: one word, or a list of the last three).
+    pub enum RerunMode("rerun mode") {
+        /// Nothing.
+        Off = "off",
+        /// A recording file per run.
+        Save = "save",
+        /// Streamed to a viewer.
+        Connect = "connect",
+        /// Served to viewers that connect.
+        Serve = "serve",
+    }
+}
+
 /// Rerun settings: which sinks, where, and how much goes to them.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RerunSettings {
@@ -339,28 +353,17 @@ impl RerunSettings {
     }
 }
 
-/// What a bearer token may do.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Scope {
-    /// Read results, history, statistics.
-    Read,
-    /// Post samples and observations.
-    Ingest,
-    /// Set references and calibrations.
-    Admin,
-    /// Upload a site's history to the centre; only for the token's own site.
-    Sync,
-}
-
-impl Scope {
-    /// The scope's name in the configuration and the API's description.
-    pub fn name(self) -> &'static str {
-        match self {
-            Scope::Read => "read",
-            Scope::Ingest => "ingest",
-            Scope::Admin => "admin",
-            Scope::Sync => "sync",
-        }
+crate::words! {
+    /// What a bearer token may do.
+    pub enum Scope("token scope") {
+        /// Read results, history, statistics.
+        Read = "read",
+        /// Post samples and observations.
+        Ingest = "ingest",
+        /// Set references and calibrations.
+        Admin = "admin",
+        /// Upload a site's history to the centre; only for the token's own site.
+        Sync = "sync",
     }
 }
 
@@ -384,22 +387,14 @@ pub struct NotifySettings {
     pub webhooks: Vec<WebhookSpec>,
 }
 
-/// The lowest alarm level a webhook is told about.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum NotifyLevel {
-    /// Transitions to or from `warn` or `alarm`.
-    Warn,
-    /// Transitions to or from `alarm`.
-    Alarm,
-}
-
-impl NotifyLevel {
-    /// The name in the file.
-    pub fn name(self) -> &'static str {
-        match self {
-            NotifyLevel::Warn => "warn",
-            NotifyLevel::Alarm => "alarm",
-        }
+crate::words! {
+    /// The lowest alarm level a webhook is told about.
+    #[derive(PartialOrd, Ord)]
+    pub enum NotifyLevel("webhook level") {
+        /// Transitions to or from `warn` or `alarm`.
+        Warn = "warn",
+        /// Transitions to or from `alarm`.
+        Alarm = "alarm",
     }
 }
 

@@ -9,8 +9,8 @@ use super::error::LineIndex;
 use super::raw::{self, RawFile, RawPose, RawSigma};
 use super::{
     AuthSettings, CentralSettings, ConfigProblem, FleetSettings, FrameSettings, Installation,
-    NotifyLevel, NotifySettings, RerunSettings, RetentionSettings, Scope, ServerSettings, SiteName,
-    TokenSpec, UpstreamSettings, WebhookSpec,
+    NotifyLevel, NotifySettings, RerunMode, RerunSettings, RetentionSettings, Scope,
+    ServerSettings, SiteName, TokenSpec, UpstreamSettings, WebhookSpec,
 };
 use crate::alarms::AlarmThresholds;
 use crate::chain::{ChainError, Topology};
@@ -739,19 +739,20 @@ impl Validator {
                 raw::RawModes::Several(v) => v.iter().map(String::as_str).collect(),
             };
             for name in &names {
-                match *name {
-                    "off" if names.len() == 1 => {}
-                    "save" => save = true,
-                    "connect" => connect = true,
-                    "serve" => serve = true,
-                    other => {
+                match RerunMode::parse(name) {
+                    Some(RerunMode::Off) if names.len() == 1 => {}
+                    Some(RerunMode::Save) => save = true,
+                    Some(RerunMode::Connect) => connect = true,
+                    Some(RerunMode::Serve) => serve = true,
+                    found => {
                         self.problem(
                             m.span().start,
-                            if other == "off" {
+                            if found == Some(RerunMode::Off) {
                                 "rerun.mode `off` cannot be combined with other modes".to_owned()
                             } else {
                                 format!(
-                                    "rerun.mode `{other}` is not one of off, save, connect, serve"
+                                    "rerun.mode `{name}` is not one of {}",
+                                    RerunMode::WORDS.join(", ")
                                 )
                             },
                         );

@@ -47,45 +47,19 @@ pub enum Disposition {
     },
 }
 
-/// What the filter did with a sample, without the numbers: what is stored with it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum DispositionKind {
-    /// The first sample.
-    Initialized,
-    /// Fused.
-    Fused,
-    /// Over the gate, not fused.
-    Outlier,
-    /// The filter restarted from a run of consistent outliers.
-    Reinitialized,
-    /// Older than the filter's time, not fused.
-    OutOfOrder,
-}
-
-impl DispositionKind {
-    /// Every kind.
-    pub const ALL: [DispositionKind; 5] = [
-        DispositionKind::Initialized,
-        DispositionKind::Fused,
-        DispositionKind::Outlier,
-        DispositionKind::Reinitialized,
-        DispositionKind::OutOfOrder,
-    ];
-
-    /// The name stored with the sample and shown on the wire.
-    pub fn name(self) -> &'static str {
-        match self {
-            DispositionKind::Initialized => "initialized",
-            DispositionKind::Fused => "fused",
-            DispositionKind::Outlier => "outlier",
-            DispositionKind::Reinitialized => "reinitialized",
-            DispositionKind::OutOfOrder => "out_of_order",
-        }
-    }
-
-    /// The kind of a name; `None` for anything else.
-    pub fn parse(name: &str) -> Option<DispositionKind> {
-        Self::ALL.into_iter().find(|k| k.name() == name)
+crate::words! {
+    /// What the filter did with a sample, without the numbers: what is stored with it.
+    pub enum DispositionKind("disposition") {
+        /// The first sample.
+        Initialized = "initialized",
+        /// Fused.
+        Fused = "fused",
+        /// Over the gate, not fused.
+        Outlier = "outlier",
+        /// The filter restarted from a run of consistent outliers.
+        Reinitialized = "reinitialized",
+        /// Older than the filter's time, not fused.
+        OutOfOrder = "out_of_order",
     }
 }
 

@@ -77,10 +77,10 @@ mod tests {
     /// Every stored name reads back as what was stored, and nothing else reads at all.
     #[test]
     fn stored_vocabularies_round_trip_and_refuse_unknown_names() {
-        for s in TargetStatus::ALL {
+        for &s in TargetStatus::ALL {
             assert_eq!(TargetStatus::parse(s.name()), Some(s));
         }
-        for k in DispositionKind::ALL {
+        for &k in DispositionKind::ALL {
             assert_eq!(DispositionKind::parse(k.name()), Some(k));
         }
         let names: std::collections::HashSet<_> =

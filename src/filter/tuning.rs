@@ -2,25 +2,15 @@
 
 use crate::geometry::{ARCSEC_PER_RAD, Twist};
 
-/// How a measured link's pose is expected to move.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum MotionModel {
-    /// Random walk: constant pose plus process noise.
-    Static,
-    /// White-noise acceleration of the twist.
-    ConstantVelocity,
-    /// Second-order Gauss-Markov oscillation per axis around a slowly drifting mean.
-    Oscillatory,
-}
-
-impl MotionModel {
-    /// The name used in the configuration file.
-    pub fn name(self) -> &'static str {
-        match self {
-            MotionModel::Static => "static",
-            MotionModel::ConstantVelocity => "constant_velocity",
-            MotionModel::Oscillatory => "oscillatory",
-        }
+crate::words! {
+    /// How a measured link's pose is expected to move.
+    pub enum MotionModel("filter model") {
+        /// Random walk: constant pose plus process noise.
+        Static = "static",
+        /// White-noise acceleration of the twist.
+        ConstantVelocity = "constant_velocity",
+        /// Second-order Gauss-Markov oscillation per axis around a slowly drifting mean.
+        Oscillatory = "oscillatory",
     }
 }
 

@@ -255,16 +255,16 @@ pub struct TierBacklog {
     pub requested_rows: Option<u64>,
 }
 
-/// What became of an upload.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum Outcome {
-    /// Applied (or a report of state recorded).
-    Applied,
-    /// Nothing to apply: the centre has it already.
-    Duplicate,
-    /// The batch starts after what the centre has: resume from `acked_seq`.
-    Gap,
+crate::words! {
+    /// What became of an upload.
+    pub enum Outcome("upload outcome") {
+        /// Applied (or a report of state recorded).
+        Applied = "applied",
+        /// Nothing to apply: the centre has it already.
+        Duplicate = "duplicate",
+        /// The batch starts after what the centre has: resume from `acked_seq`.
+        Gap = "gap",
+    }
 }
 
 /// The centre's answer.

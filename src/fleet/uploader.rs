@@ -125,8 +125,8 @@ impl Upstream {
     pub fn progress(&self) -> Vec<(Tier, TierProgress)> {
         let tiers = self.tiers.lock().unwrap_or_else(|p| p.into_inner());
         Tier::ALL
-            .into_iter()
-            .map(|t| (t, tiers[index(t)].clone()))
+            .iter()
+            .map(|&t| (t, tiers[index(t)].clone()))
             .collect()
     }
 
@@ -403,7 +403,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
     let link = match Link::new(&upstream) {
         Ok(link) => link,
         Err(e) => {
-            for tier in Tier::ALL {
+            for &tier in Tier::ALL {
                 upstream.update(tier, |p| p.stopped = Some(e.clone()));
             }
             tracing::error!(error = %e, "the uploader cannot start");
@@ -452,7 +452,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
         let mut next = None;
         let mut requested = None;
         let progress = upstream.progress();
-        for tier in Tier::ALL {
+        for &tier in Tier::ALL {
             let i = index(tier);
             if progress[i].1.stopped.is_some() {
                 continue;

@@ -163,30 +163,19 @@ pub struct TargetNow {
     pub liveness: crate::bank::TargetLiveness,
 }
 
-/// A link's state at a time of the server's clock.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum LinkState {
-    /// A calibrated link: no samples to wait for.
-    Calibrated,
-    /// A measured link without a sample yet (or since a reset).
-    NoData,
-    /// A measured link whose newest sample is older than its staleness limit on the server's
-    /// clock (plus `[server] clock_tolerance_s`), or behind the newest link's sample by more
-    /// than the limit in measurement time.
-    Stale,
-    /// A measured link that delivers.
-    Ok,
-}
-
-impl LinkState {
-    /// The name on the wire.
-    pub fn name(self) -> &'static str {
-        match self {
-            LinkState::Calibrated => "calibrated",
-            LinkState::NoData => "no_data",
-            LinkState::Stale => "stale",
-            LinkState::Ok => "ok",
-        }
+crate::words! {
+    /// A link's state at a time of the server's clock.
+    pub enum LinkState("link status") {
+        /// A calibrated link: no samples to wait for.
+        Calibrated = "calibrated",
+        /// A measured link without a sample yet (or since a reset).
+        NoData = "no_data",
+        /// A measured link whose newest sample is older than its staleness limit on the server's
+        /// clock (plus `[server] clock_tolerance_s`), or behind the newest link's sample by more
+        /// than the limit in measurement time.
+        Stale = "stale",
+        /// A measured link that delivers.
+        Ok = "ok",
     }
 }
 
@@ -412,7 +401,7 @@ impl Service {
                 created_ns: r.created_ns,
             });
             let latest = store
-                .latest_result(ti, true)
+                .latest_result(ti, crate::bank::ResultSource::Filtered)
                 .await?
                 .map(|r| TargetEstimate {
                     target: ti,

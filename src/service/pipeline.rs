@@ -5,7 +5,7 @@ use super::{
     CurrentReference, ItemProblem, Pruned, ReferenceRequest, ServiceError, ServiceResult, Snapshot,
     TargetView,
 };
-use crate::bank::{BankRecord, FilterBank, Sample, TargetEstimate};
+use crate::bank::{BankRecord, FilterBank, ResultSource, Sample, TargetEstimate};
 use crate::chain::LinkId;
 use crate::deformation::{Deformation, Reference};
 use crate::filter::Disposition;
@@ -360,7 +360,15 @@ impl Pipeline {
         }
         let newest = records
             .iter()
-            .filter(|r| matches!(r, crate::viz::Record::Result { filtered: true, .. }))
+            .filter(|r| {
+                matches!(
+                    r,
+                    crate::viz::Record::Result {
+                        source: ResultSource::Filtered,
+                        ..
+                    }
+                )
+            })
             .map(crate::viz::Record::time_ns)
             .max();
         for r in records {
@@ -618,7 +626,7 @@ fn raw_row(
 ) -> NewResult {
     NewResult {
         target: raw.target,
-        filtered: false,
+        source: ResultSource::Raw,
         time_ns: raw.time_ns,
         estimate: raw.target_from_base,
         status: raw.status(),
@@ -721,7 +729,7 @@ async fn ingest(
     // Filter in time order, links in a fixed order within one time.
     fresh.sort_by_key(|(item, _, _)| (item.sample.time_ns, item.sample.link));
     let mut sample_rows = Vec::with_capacity(fresh.len());
-    let mut result_rows: BTreeMap<(usize, bool, i64), NewResult> = BTreeMap::new();
+    let mut result_rows: BTreeMap<(usize, ResultSource, i64), NewResult> = BTreeMap::new();
     let mut latest: HashMap<usize, TargetEstimate> = HashMap::new();
     let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
     // Samples too old for the groups kept in memory (a backfill): their groups are completed
@@ -781,12 +789,15 @@ async fn ingest(
                 v.records.push(crate::viz::Record::Result {
                     target: raw.target,
                     time_ns: raw.time_ns,
-                    filtered: false,
+                    source: ResultSource::Raw,
                     target_from_base: raw.target_from_base,
                     deformation: deformation.map(|(_, d)| d),
                 });
             }
-            result_rows.insert((raw.target, false, raw.time_ns), raw_row(raw, deformation));
+            result_rows.insert(
+                (raw.target, ResultSource::Raw, raw.time_ns),
+                raw_row(raw, deformation),
+            );
         }
         for est in outcome.filtered_results {
             let Some(pose) = est.target_from_base else {
@@ -800,16 +811,16 @@ async fn ingest(
                 v.records.push(crate::viz::Record::Result {
                     target: est.target,
                     time_ns: est.time_ns,
-                    filtered: true,
+                    source: ResultSource::Filtered,
                     target_from_base: pose,
                     deformation: deformation.map(|(_, d)| d),
                 });
             }
             result_rows.insert(
-                (est.target, true, est.time_ns),
+                (est.target, ResultSource::Filtered, est.time_ns),
                 NewResult {
                     target: est.target,
-                    filtered: true,
+                    source: ResultSource::Filtered,
                     time_ns: est.time_ns,
                     estimate: pose,
                     status: est.status,
@@ -859,7 +870,10 @@ async fn ingest(
         for raw in bank.raw_results_of_group(link, time_ns, &group) {
             report.raw_results += 1;
             let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
-            result_rows.insert((raw.target, false, raw.time_ns), raw_row(&raw, deformation));
+            result_rows.insert(
+                (raw.target, ResultSource::Raw, raw.time_ns),
+                raw_row(&raw, deformation),
+            );
         }
     }
     tx.insert_samples(&sample_rows).await?;

@@ -147,3 +147,11 @@ impl SampleValues {
                 == other.quality.reprojection_rms_px.map(f64::to_bits)
     }
 }
+
+/// The `source` column of a result: 0 raw, 1 filtered.
+pub(crate) fn source_column(source: crate::bank::ResultSource) -> i64 {
+    match source {
+        crate::bank::ResultSource::Raw => 0,
+        crate::bank::ResultSource::Filtered => 1,
+    }
+}

@@ -53,6 +53,7 @@ pub use rows::{
 };
 pub use sqlite::APPLICATION_ID;
 
+use crate::bank::ResultSource;
 use crate::chain::LinkId;
 use crate::config::Database;
 use crate::deformation::SmallMotion;
@@ -443,12 +444,12 @@ impl Store {
     pub async fn results(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
         from_ns: i64,
         to_ns: i64,
         limit: i64,
     ) -> StoreResult<Vec<StoredResult>> {
-        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let (id, source) = (self.target_ids[target], codec::source_column(source));
         let rows: Vec<rows::ResultRow> = query_on!(
             &self.reader, Reader, r => &r.pool,
             &sql::RESULTS_IN, [id, source, from_ns, to_ns, limit],
@@ -463,11 +464,11 @@ impl Store {
     pub async fn pose_stats(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
         from_ns: i64,
         to_ns: i64,
     ) -> StoreResult<(Option<crate::stats::PoseStats>, Option<(i64, i64)>)> {
-        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let (id, source) = (self.target_ids[target], codec::source_column(source));
         match &self.reader {
             Reader::Sqlite(r) => r.pose_stats(id, source, from_ns, to_ns).await,
             Reader::Postgres(r) => {
@@ -494,11 +495,11 @@ impl Store {
     pub async fn count_results(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
         from_ns: i64,
         to_ns: i64,
     ) -> StoreResult<u64> {
-        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let (id, source) = (self.target_ids[target], codec::source_column(source));
         let (n,): (i64,) = query_on!(
             &self.reader, Reader, r => &r.pool,
             sql::COUNT_RESULTS, [id, source, from_ns, to_ns],
@@ -523,10 +524,10 @@ impl Store {
     pub async fn results_around(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
         at_ns: i64,
     ) -> StoreResult<(Option<StoredResult>, Option<StoredResult>)> {
-        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let (id, source) = (self.target_ids[target], codec::source_column(source));
         let mut around: [Option<rows::ResultRow>; 2] = [None, None];
         for (i, statement) in [&sql::RESULT_AT_OR_BEFORE, &sql::RESULT_AFTER]
             .into_iter()
@@ -549,9 +550,9 @@ impl Store {
     pub async fn latest_result(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
     ) -> StoreResult<Option<StoredResult>> {
-        Ok(self.results_around(target, filtered, i64::MAX).await?.0)
+        Ok(self.results_around(target, source, i64::MAX).await?.0)
     }
 
     /// Every reference version of a target, oldest first.
@@ -704,8 +705,8 @@ pub struct NewSample {
 pub struct NewResult {
     /// Target index in the installation.
     pub target: usize,
-    /// False for a raw result, true for a filtered one.
-    pub filtered: bool,
+    /// Raw or filtered.
+    pub source: ResultSource,
     /// Its time (ns).
     pub time_ns: i64,
     /// `target_from_base` with covariance.
@@ -858,7 +859,7 @@ impl WriteTx<'_> {
             .map(|r| r.estimate.reported_sigmas())
             .collect();
         let mut columns: Vec<ResultColumns> = Vec::with_capacity(results.len());
-        let mut at_key: std::collections::HashMap<(usize, bool, i64), usize> =
+        let mut at_key: std::collections::HashMap<(usize, ResultSource, i64), usize> =
             std::collections::HashMap::with_capacity(results.len());
         for (r, s) in results.iter().zip(&sigmas) {
             let pose = pose_columns(&r.estimate.pose);
@@ -881,7 +882,7 @@ impl WriteTx<'_> {
             let [x, y, z] = s.translation_mm;
             let row = ResultColumns {
                 target_id: self.target_ids[r.target],
-                source: i64::from(r.filtered),
+                source: codec::source_column(r.source),
                 time_ns: r.time_ns,
                 pose,
                 cov: encode_mat6(&r.estimate.cov),
@@ -892,7 +893,7 @@ impl WriteTx<'_> {
                 deformation,
             };
             // One row a key: a statement may not write the same key twice on every engine.
-            match at_key.entry((r.target, r.filtered, r.time_ns)) {
+            match at_key.entry((r.target, r.source, r.time_ns)) {
                 std::collections::hash_map::Entry::Occupied(e) => columns[*e.get()] = row,
                 std::collections::hash_map::Entry::Vacant(e) => {
                     e.insert(columns.len());
@@ -915,9 +916,14 @@ impl WriteTx<'_> {
         use std::collections::HashMap;
         let mut fresh: Vec<(rows::RollupKey, Bucket)> = rollup::aggregate(results, sigmas)
             .into_iter()
-            .map(|((target, filtered, width_s, start), b)| {
+            .map(|((target, source, width_s, start), b)| {
                 (
-                    (self.target_ids[target], i64::from(filtered), width_s, start),
+                    (
+                        self.target_ids[target],
+                        codec::source_column(source),
+                        width_s,
+                        start,
+                    ),
                     b,
                 )
             })

@@ -13,37 +13,21 @@
 
 use serde::{Deserialize, Serialize};
 
-/// The tiers of upload, the most urgent first.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Tier {
-    /// Alarm transitions (and their acknowledgements), references, calibrations, filter
-    /// resets: small, and what an operator ashore must see first.
-    Events,
-    /// Filtered results and the rollups of all results: the history.
-    Results,
-    /// Raw samples and raw results: large, sent under a bandwidth budget.
-    Raw,
+crate::words! {
+    /// The tiers of upload, the most urgent first.
+    #[derive(PartialOrd, Ord)]
+    pub enum Tier("upload tier") {
+        /// Alarm transitions (and their acknowledgements), references, calibrations, filter
+        /// resets: small, and what an operator ashore must see first.
+        Events = "events",
+        /// Filtered results and the rollups of all results: the history.
+        Results = "results",
+        /// Raw samples and raw results: large, sent under a bandwidth budget.
+        Raw = "raw",
+    }
 }
 
 impl Tier {
-    /// Every tier, most urgent first.
-    pub const ALL: [Tier; 3] = [Tier::Events, Tier::Results, Tier::Raw];
-
-    /// The tier's name in the API and the database.
-    pub fn name(self) -> &'static str {
-        match self {
-            Tier::Events => "events",
-            Tier::Results => "results",
-            Tier::Raw => "raw",
-        }
-    }
-
-    /// The tier of a name.
-    pub fn parse(name: &str) -> Option<Tier> {
-        Tier::ALL.into_iter().find(|t| t.name() == name)
-    }
-
     /// The tables of the tier's stream.
     pub fn tables(self) -> &'static [SyncTable] {
         match self {

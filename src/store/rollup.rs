@@ -1,7 +1,8 @@
 //! Rollups: per bucket, the count and min, sum and max of every result component, so a history
 //! at any scale reads a bounded number of rows and a spike survives downsampling.
 
-use super::{NewResult, Reader, Store, StoreResult, sql};
+use super::{NewResult, Reader, Store, StoreResult, codec, sql};
+use crate::bank::ResultSource;
 use crate::geometry::{PoseCov, ReportedSigmas, euler_from_rotation};
 use std::collections::HashMap;
 
@@ -148,8 +149,8 @@ pub(crate) fn components(
 pub(super) fn aggregate(
     results: &[NewResult],
     sigmas: &[ReportedSigmas],
-) -> HashMap<(usize, bool, i64, i64), Bucket> {
-    let mut out: HashMap<(usize, bool, i64, i64), Bucket> = HashMap::new();
+) -> HashMap<(usize, ResultSource, i64, i64), Bucket> {
+    let mut out: HashMap<(usize, ResultSource, i64, i64), Bucket> = HashMap::new();
     for (r, s) in results.iter().zip(sigmas) {
         let (values, has_def) = components(
             &r.estimate,
@@ -161,7 +162,7 @@ pub(super) fn aggregate(
             let width_ns = width_s * 1_000_000_000;
             // Saturating, never wrapping: a bucket of the far past cannot land in the future.
             let start = floor_to(r.time_ns, width_ns);
-            out.entry((r.target, r.filtered, width_s, start))
+            out.entry((r.target, r.source, width_s, start))
                 .or_insert_with(|| Bucket::empty(start))
                 .add(&values, has_def);
         }
@@ -248,12 +249,12 @@ impl Store {
     pub async fn history(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
         from_ns: i64,
         to_ns: i64,
         max_points: usize,
     ) -> StoreResult<History> {
-        let bounds = self.result_bounds(target, filtered).await?;
+        let bounds = self.result_bounds(target, source).await?;
         let Some((lo, hi)) = bounds else {
             return Ok(History {
                 window_ns: None,
@@ -274,9 +275,9 @@ impl Store {
         }
         let (level, width_ns, start) = history_plan(from, to, max_points);
         let rows = match level {
-            Some(w) => self.rollup_buckets(target, filtered, w, from, to).await?,
+            Some(w) => self.rollup_buckets(target, source, w, from, to).await?,
             None => {
-                self.result_buckets(target, filtered, from, to, start, width_ns)
+                self.result_buckets(target, source, from, to, start, width_ns)
                     .await?
             }
         };
@@ -303,11 +304,11 @@ impl Store {
     pub async fn result_bounds(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
     ) -> StoreResult<Option<(i64, i64)>> {
-        let (id, source, width_s) = (
+        let (id, column, width_s) = (
             self.target_ids[target],
-            i64::from(filtered),
+            codec::source_column(source),
             ROLLUP_WIDTHS_S[0],
         );
         let mut ends = [None, None];
@@ -317,7 +318,7 @@ impl Store {
         {
             let end: Option<(i64,)> = query_on!(
                 &self.reader, Reader, r => &r.pool,
-                statement, [id, source, width_s],
+                statement, [id, column, width_s],
                 fetch_optional
             )?;
             ends[i] = end.map(|(b,)| b);
@@ -326,14 +327,11 @@ impl Store {
             return Ok(Some((lo, hi + width_s * 1_000_000_000 - 1)));
         }
         let first = self
-            .results_around(target, filtered, i64::MIN)
+            .results_around(target, source, i64::MIN)
             .await?
             .1
             .map(|r| r.time_ns);
-        let last = self
-            .latest_result(target, filtered)
-            .await?
-            .map(|r| r.time_ns);
+        let last = self.latest_result(target, source).await?.map(|r| r.time_ns);
         Ok(first.zip(last))
     }
 
@@ -341,7 +339,7 @@ impl Store {
     pub async fn rollup_buckets(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
         width_s: i64,
         from_ns: i64,
         to_ns: i64,
@@ -349,7 +347,7 @@ impl Store {
         let width_ns = width_s * 1_000_000_000;
         let (id, source, from) = (
             self.target_ids[target],
-            i64::from(filtered),
+            codec::source_column(source),
             floor_to(from_ns, width_ns),
         );
         let rows: Vec<(i64, i64, i64, Vec<u8>)> = query_on!(
@@ -368,7 +366,7 @@ impl Store {
     pub async fn result_buckets(
         &self,
         target: usize,
-        filtered: bool,
+        source: ResultSource,
         from_ns: i64,
         to_ns: i64,
         start_ns: i64,
@@ -390,7 +388,7 @@ impl Store {
                 .add(&values, has_def);
             Ok(())
         };
-        let (id, source) = (self.target_ids[target], i64::from(filtered));
+        let (id, source) = (self.target_ids[target], codec::source_column(source));
         on_backend!(&self.reader, Reader, r => {
             use futures::TryStreamExt as _;
             let mut rows = sqlx::query_as::<_, super::rows::ResultRow>(&sql::RESULTS_IN)

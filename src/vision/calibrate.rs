@@ -25,53 +25,32 @@ use super::{CameraModel, Plate, VisionError, disc_image_offset, ippe::homography
 use crate::geometry::{Mat3, Pose, Rotation, Vec3, se3_exp, skew};
 use nalgebra::{DMatrix, DVector, Matrix2x3, SMatrix, Translation3, Vector2, Vector6};
 
-/// One intrinsic parameter of [`CameraModel`], in the order of covariances and sigmas.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Intrinsic {
-    /// Focal length along x.
-    Fx,
-    /// Focal length along y.
-    Fy,
-    /// Principal point x.
-    Cx,
-    /// Principal point y.
-    Cy,
-    /// First radial term.
-    K1,
-    /// Second radial term.
-    K2,
-    /// First tangential term.
-    P1,
-    /// Second tangential term.
-    P2,
-    /// Third radial term.
-    K3,
+crate::words! {
+    /// One intrinsic parameter of [`CameraModel`], in the order of covariances and sigmas.
+    #[derive(PartialOrd, Ord)]
+    pub enum Intrinsic("intrinsic parameter") {
+        /// Focal length along x.
+        Fx = "fx",
+        /// Focal length along y.
+        Fy = "fy",
+        /// Principal point x.
+        Cx = "cx",
+        /// Principal point y.
+        Cy = "cy",
+        /// First radial term.
+        K1 = "k1",
+        /// Second radial term.
+        K2 = "k2",
+        /// First tangential term.
+        P1 = "p1",
+        /// Second tangential term.
+        P2 = "p2",
+        /// Third radial term.
+        K3 = "k3",
+    }
 }
 
 impl Intrinsic {
-    /// Every parameter, in order.
-    pub const ALL: [Intrinsic; 9] = [
-        Intrinsic::Fx,
-        Intrinsic::Fy,
-        Intrinsic::Cx,
-        Intrinsic::Cy,
-        Intrinsic::K1,
-        Intrinsic::K2,
-        Intrinsic::P1,
-        Intrinsic::P2,
-        Intrinsic::K3,
-    ];
-
-    /// Its name (`fx` ... `k3`).
-    pub fn name(self) -> &'static str {
-        ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"][self.index()]
-    }
-
-    /// The parameter of a name.
-    pub fn parse(name: &str) -> Option<Self> {
-        Self::ALL.into_iter().find(|p| p.name() == name)
-    }
-
     /// Its position in [`Intrinsic::ALL`].
     pub fn index(self) -> usize {
         self as usize
@@ -173,28 +152,17 @@ pub struct Correlation {
     pub r: f64,
 }
 
-/// A corner of the image.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ImageCorner {
-    /// Top left.
-    TopLeft,
-    /// Top right.
-    TopRight,
-    /// Bottom left.
-    BottomLeft,
-    /// Bottom right.
-    BottomRight,
-}
-
-impl ImageCorner {
-    /// Its name (`top_left` ...).
-    pub fn name(self) -> &'static str {
-        match self {
-            ImageCorner::TopLeft => "top_left",
-            ImageCorner::TopRight => "top_right",
-            ImageCorner::BottomLeft => "bottom_left",
-            ImageCorner::BottomRight => "bottom_right",
-        }
+crate::words! {
+    /// A corner of the image.
+    pub enum ImageCorner("image corner") {
+        /// Top left.
+        TopLeft = "top_left",
+        /// Top right.
+        TopRight = "top_right",
+        /// Bottom left.
+        BottomLeft = "bottom_left",
+        /// Bottom right.
+        BottomRight = "bottom_right",
     }
 }
 
@@ -245,14 +213,31 @@ pub const MAX_VIEWS: usize = 200;
 /// Most points accepted over all views: each iteration's work grows with them.
 pub(super) const MAX_POINTS: usize = 40_000;
 
+crate::words! {
+    /// The kind of a [`CalibrationWarning`].
+    pub enum WarningKind("calibration warning kind") {
+        /// Fewer views than recommended.
+        FewViews = "few_views",
+        /// The plate is not tilted enough.
+        LittleTilt = "little_tilt",
+        /// Image corners without a plate point.
+        CornersNotReached = "corners_not_reached",
+        /// A view fits much worse than the others.
+        ViewFitsWorse = "view_fits_worse",
+        /// Views that came as JPEG, whose compression moves disc edges (`calibrate-camera`
+        /// reads files; the calibration itself never makes this one).
+        LossyFrames = "lossy_frames",
+    }
+}
+
 impl CalibrationWarning {
-    /// A short code for the kind of warning.
-    pub fn kind(&self) -> &'static str {
+    /// The kind of warning.
+    pub fn kind(&self) -> WarningKind {
         match self {
-            CalibrationWarning::FewViews { .. } => "few_views",
-            CalibrationWarning::LittleTilt { .. } => "little_tilt",
-            CalibrationWarning::CornersNotReached { .. } => "corners_not_reached",
-            CalibrationWarning::ViewFitsWorse { .. } => "view_fits_worse",
+            CalibrationWarning::FewViews { .. } => WarningKind::FewViews,
+            CalibrationWarning::LittleTilt { .. } => WarningKind::LittleTilt,
+            CalibrationWarning::CornersNotReached { .. } => WarningKind::CornersNotReached,
+            CalibrationWarning::ViewFitsWorse { .. } => WarningKind::ViewFitsWorse,
         }
     }
 }

@@ -45,13 +45,14 @@ use super::image::GreyImage;
 /// Side of the tiles a search area is made of (px).
 pub const TILE_PX: usize = 64;
 
-/// Bright discs on a dark field, or dark on bright.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Polarity {
-    /// Light discs on a dark background (retro-reflective targets under on-axis light).
-    Bright,
-    /// Dark discs on a light background.
-    Dark,
+crate::words! {
+    /// Bright discs on a dark field, or dark on bright.
+    pub enum Polarity("polarity") {
+        /// Light discs on a dark background (retro-reflective targets under on-axis light).
+        Bright = "bright",
+        /// Dark discs on a light background.
+        Dark = "dark",
+    }
 }
 
 impl Polarity {

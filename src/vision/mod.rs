@@ -36,7 +36,7 @@ mod sqpnp;
 pub use calibrate::{
     CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
     ImageCorner, Intrinsic, MAX_VIEWS, MIN_VIEW_POINTS, MIN_VIEWS, RECOMMENDED_TILT_DEG,
-    RECOMMENDED_VIEWS, ViewFit, calibrate_camera, intrinsics_of,
+    RECOMMENDED_VIEWS, ViewFit, WarningKind, calibrate_camera, intrinsics_of,
 };
 pub use camera::CameraModel;
 pub use detect::{Blob, DetectSettings, Polarity, SearchArea, TILE_PX, detect, detect_in};

@@ -458,13 +458,13 @@ impl Logger {
                 }
                 Record::Result {
                     target,
-                    filtered,
+                    source,
                     target_from_base,
                     deformation,
                     ..
                 } => {
                     let name = &inst.model.targets[*target].name;
-                    let which = if *filtered { "filtered" } else { "raw" };
+                    let which = source.name();
                     out.transform(
                         format!("{}/{name}_{which}", self.target_base[*target]),
                         t,
@@ -483,7 +483,7 @@ impl Logger {
                         for (quantity, value, sigma) in quantities {
                             let base = format!("plots/{name}/{quantity}");
                             out.scalar(format!("{base}/{which}"), t, &value);
-                            if *filtered {
+                            if *source == crate::bank::ResultSource::Filtered {
                                 let plus: [f64; 3] =
                                     std::array::from_fn(|i| value[i] + 3.0 * sigma[i]);
                                 let minus: [f64; 3] =

@@ -52,7 +52,7 @@ pub enum Record {
         /// Its time (ns).
         time_ns: i64,
         /// Filtered, or raw.
-        filtered: bool,
+        source: crate::bank::ResultSource,
         /// `target_from_base`.
         target_from_base: PoseCov,
         /// `G0_from_G` against the reference in force, with sigmas.
@@ -277,10 +277,8 @@ impl Decimator {
             | Record::Alarm { .. }
             | Record::Frame { .. } => return true,
             Record::Sample { link, .. } => Series::Link(*link),
-            Record::Result {
-                target, filtered, ..
-            } => {
-                if *filtered {
+            Record::Result { target, source, .. } => {
+                if *source == crate::bank::ResultSource::Filtered {
                     Series::Filtered(*target)
                 } else {
                     Series::Raw(*target)

@@ -10,6 +10,7 @@
 
 use super::logger::Logger;
 use super::{Decimator, Record, VizCounters};
+use crate::bank::ResultSource;
 use crate::config::Installation;
 use crate::deformation::Deformation;
 use crate::model::LinkKind;
@@ -76,8 +77,8 @@ pub(crate) async fn replay(
     links.dedup();
     let mut total = 0u64;
     for &t in &targets {
-        for filtered in [true, false] {
-            total += store.count_results(t, filtered, from_ns, to_ns).await?;
+        for &source in ResultSource::ALL {
+            total += store.count_results(t, source, from_ns, to_ns).await?;
         }
     }
     for &l in &links {
@@ -104,10 +105,10 @@ pub(crate) async fn replay(
                 g0_from_b: r.reference.g0_from_b.pose,
             });
         }
-        for filtered in [true, false] {
+        for &source in ResultSource::ALL {
             let mut cursor = from_ns;
             loop {
-                let page = store.results(t, filtered, cursor, to_ns, PAGE).await?;
+                let page = store.results(t, source, cursor, to_ns, PAGE).await?;
                 let Some(last) = page.last().map(|r| r.time_ns) else {
                     break;
                 };
@@ -122,17 +123,16 @@ pub(crate) async fn replay(
                     batch.push(Record::Result {
                         target: t,
                         time_ns: r.time_ns,
-                        filtered,
+                        source,
                         target_from_base: r.estimate,
                         deformation,
                     });
                 }
                 logger.log_batch(&batch);
                 let n = page.len() as u64;
-                if filtered {
-                    summary.filtered += n;
-                } else {
-                    summary.raw += n;
+                match source {
+                    ResultSource::Filtered => summary.filtered += n,
+                    ResultSource::Raw => summary.raw += n,
                 }
                 done += n;
                 progress(done, total);
@@ -244,7 +244,7 @@ pub(crate) async fn replay(
             };
             let evidence = match frame.reason {
                 crate::archive::ArchiveReason::Periodic => None,
-                reason => Some(format!("frame archived as evidence: {}", reason.as_str())),
+                reason => Some(format!("frame archived as evidence: {}", reason.name())),
             };
             logger.log(&Record::Frame {
                 camera,

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 /// The core, bottom up: a module may use the modules of lower layers only.
 const CORE_LAYERS: &[&[&str]] = &[
-    &["geometry"],
+    &["words", "geometry"],
     &["chain", "deformation", "stats"],
     &["filter", "vision", "alarms"],
     &["model"],

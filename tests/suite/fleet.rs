@@ -391,7 +391,7 @@ where
 /// Whether the centre's copy of every uploaded table equals the site's (raw tier included);
 /// the first difference otherwise.
 async fn copies_equal(site_db: &std::path::Path, centre_url: &str) -> Result<(), String> {
-    for tier in Tier::ALL {
+    for &tier in Tier::ALL {
         for &table in tier.tables() {
             let site = site_rows(site_db, table).await;
             let centre = centre_rows(centre_url, table).await;
@@ -413,7 +413,7 @@ async fn copies_equal(site_db: &std::path::Path, centre_url: &str) -> Result<(),
 /// Every uploaded table has rows at the site but those in `may_be_empty`: the test exercises
 /// them.
 async fn assert_exercised(site_db: &std::path::Path, may_be_empty: &[SyncTable]) {
-    for tier in Tier::ALL {
+    for &tier in Tier::ALL {
         for &table in tier.tables() {
             assert!(
                 may_be_empty.contains(&table) || !site_rows(site_db, table).await.is_empty(),

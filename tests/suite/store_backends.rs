@@ -3,6 +3,7 @@
 
 use crate::service::helpers::{Backend, ONE_LINK, T0_NS, installation_at};
 use brokenray::alarms::{AlarmKind, Level, Transition, ValueUnit};
+use brokenray::bank::ResultSource;
 use brokenray::chain::LinkId;
 use brokenray::config::Installation;
 use brokenray::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, rotation_from_euler};
@@ -59,7 +60,7 @@ fn sample(k: i64, time_ns: i64) -> NewSample {
 fn result(k: i64, time_ns: i64) -> NewResult {
     NewResult {
         target: 0,
-        filtered: true,
+        source: ResultSource::Filtered,
         time_ns,
         estimate: PoseCov {
             pose: pose(k),
@@ -118,7 +119,7 @@ async fn samples_and_results_read_back_exactly(backend: Backend) {
         );
     }
     let back = store
-        .results(0, true, i64::MIN, i64::MAX, i64::MAX)
+        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
         .await
         .unwrap();
     assert_eq!(back.len(), results.len());
@@ -139,25 +140,28 @@ async fn samples_and_results_read_back_exactly(backend: Backend) {
     );
     assert_eq!(
         store
-            .count_results(0, true, T0_NS, T0_NS + 100 * S)
+            .count_results(0, ResultSource::Filtered, T0_NS, T0_NS + 100 * S)
             .await
             .unwrap(),
         1001
     );
     assert!(
         store
-            .results(0, false, i64::MIN, i64::MAX, 10)
+            .results(0, ResultSource::Raw, i64::MIN, i64::MAX, 10)
             .await
             .unwrap()
             .is_empty()
     );
     let (before, after) = store
-        .results_around(0, true, T0_NS + 55 * S + 1)
+        .results_around(0, ResultSource::Filtered, T0_NS + 55 * S + 1)
         .await
         .unwrap();
     assert_eq!(before.unwrap().time_ns, T0_NS + 55 * S);
     assert_eq!(after.unwrap().time_ns, T0_NS + 55 * S + S / 10);
-    let (stats, span) = store.pose_stats(0, true, i64::MIN, i64::MAX).await.unwrap();
+    let (stats, span) = store
+        .pose_stats(0, ResultSource::Filtered, i64::MIN, i64::MAX)
+        .await
+        .unwrap();
     assert!(stats.is_some());
     assert_eq!(span, Some((T0_NS, T0_NS + 11_999 * S / 10)));
     write.close().await.unwrap();
@@ -175,7 +179,7 @@ async fn a_result_at_an_existing_key_is_replaced(backend: Backend) {
     last.age_s = 11.0;
     commit_results(&mut write, &[again, result(5, T0_NS + S), last]).await;
     let back = store
-        .results(0, true, i64::MIN, i64::MAX, i64::MAX)
+        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
         .await
         .unwrap();
     assert_eq!(back.len(), 2);
@@ -201,9 +205,15 @@ async fn a_transaction_dropped_without_commit_leaves_nothing(backend: Backend) {
         .unwrap();
     assert_eq!(stored.len(), 1);
     assert_eq!(stored[0].time_ns, T0_NS + S);
-    assert!(store.latest_result(0, true).await.unwrap().is_none());
+    assert!(
+        store
+            .latest_result(0, ResultSource::Filtered)
+            .await
+            .unwrap()
+            .is_none()
+    );
     let history = store
-        .history(0, true, i64::MIN, i64::MAX, 100)
+        .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, 100)
         .await
         .unwrap();
     assert!(
@@ -368,7 +378,7 @@ async fn retention_removes_old_rows_and_keeps_rollups(backend: Backend) {
     assert_eq!(left[0].time_ns, day0 + 2 * DAY);
     assert_eq!(
         store
-            .count_results(0, true, i64::MIN, i64::MAX)
+            .count_results(0, ResultSource::Filtered, i64::MIN, i64::MAX)
             .await
             .unwrap(),
         (per_day + per_day / 2) as u64
@@ -381,7 +391,7 @@ async fn retention_removes_old_rows_and_keeps_rollups(backend: Backend) {
         );
     }
     let history = store
-        .history(0, true, i64::MIN, i64::MAX, 100)
+        .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, 100)
         .await
         .unwrap();
     let counted: i64 = history.buckets.iter().map(|b| b.n).sum();
@@ -402,12 +412,12 @@ async fn rollups_agree_with_the_results_they_summarise(backend: Backend) {
         commit_results(&mut write, &rows).await;
     }
     let all = store
-        .results(0, true, i64::MIN, i64::MAX, i64::MAX)
+        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
         .await
         .unwrap();
     for max_points in [40, 5_000] {
         let h = store
-            .history(0, true, i64::MIN, i64::MAX, max_points)
+            .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, max_points)
             .await
             .unwrap();
         assert_eq!(h.resolution_s.is_some(), max_points == 40);
@@ -480,13 +490,13 @@ async fn rows_before_the_partitions_are_moved_into_their_own_by_maintenance(back
     assert_eq!(back.len(), samples.len());
     assert_eq!(
         store
-            .count_results(0, true, i64::MIN, i64::MAX)
+            .count_results(0, ResultSource::Filtered, i64::MIN, i64::MAX)
             .await
             .unwrap(),
         2_000
     );
     let history = store
-        .history(0, true, i64::MIN, i64::MAX, 10)
+        .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, 10)
         .await
         .unwrap();
     assert_eq!(history.buckets.iter().map(|b| b.n).sum::<i64>(), 2_000);
@@ -562,7 +572,13 @@ async fn postgres_start_up_refusals_name_the_reason() {
     assert!(err.contains("another brokenray service"), "{err}");
     // A reader (replay) opens beside the writer.
     let reader = store::open_reader(&inst, T0_NS).await.expect("a reader");
-    assert!(reader.latest_result(0, true).await.unwrap().is_none());
+    assert!(
+        reader
+            .latest_result(0, ResultSource::Filtered)
+            .await
+            .unwrap()
+            .is_none()
+    );
     reader.close().await;
     write.close().await.unwrap();
     store.close().await;

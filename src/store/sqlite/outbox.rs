@@ -254,7 +254,7 @@ impl Reader {
             .fetch_all(&self.pool)
             .await?;
         let mut out = Vec::new();
-        for tier in Tier::ALL {
+        for &tier in Tier::ALL {
             let acked_seq = acks.iter().find(|(t, _)| t == tier.name()).map(|(_, s)| *s);
             let mut rows = 0u64;
             for &table in tier.tables() {
@@ -303,7 +303,7 @@ mod tests {
         let mut conn = sqlx::ConnectOptions::connect(&super::super::options(&path))
             .await
             .unwrap();
-        for tier in Tier::ALL {
+        for &tier in Tier::ALL {
             for &table in tier.tables() {
                 let schema: Vec<(String, String)> = sqlx::query_as(&format!(
                     "select name, lower(type) from pragma_table_info('{}') where name != 'commit_seq'",

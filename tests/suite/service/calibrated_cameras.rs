@@ -91,7 +91,8 @@ fn propagated(calibrations: &[(&str, CameraModel, CameraCalibration)]) -> DMatri
     let mut cov = DMatrix::<f64>::zeros(6, 6);
     for (name, truth, c) in calibrations {
         let free: Vec<Intrinsic> = Intrinsic::ALL
-            .into_iter()
+            .iter()
+            .copied()
             .filter(|p| c.sigma[p.index()] > 0.0)
             .collect();
         let base = chain_through(name, truth);

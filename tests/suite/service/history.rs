@@ -3,6 +3,7 @@
 
 use super::helpers::{Backend, ONE_LINK, T0_NS, TestApp, installation_at};
 use axum::http::StatusCode;
+use brokenray::bank::ResultSource;
 use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
 use brokenray::store::{self, NewResult};
 use nalgebra::Translation3;
@@ -24,7 +25,7 @@ fn result(k: i64) -> NewResult {
     );
     NewResult {
         target: 0,
-        filtered: true,
+        source: ResultSource::Filtered,
         time_ns: T0_NS + k * (SPAN_NS / N),
         estimate: PoseCov {
             pose,
@@ -84,7 +85,7 @@ async fn a_month_of_results_downsamples_without_losing_a_spike(backend: Backend)
     let stored = app
         .service
         .store()
-        .results(0, true, i64::MIN, i64::MAX, i64::MAX)
+        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
         .await
         .unwrap();
     assert_eq!(stored.len() as i64, N);

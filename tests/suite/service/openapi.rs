@@ -198,44 +198,197 @@ async fn each_operation_needs_the_scope_the_document_states() {
     }
 }
 
-/// The row of `docs/interface.md`'s vocabulary table whose first cell is `what`: its words.
-fn documented_words(what: &str) -> Vec<String> {
+/// The rows of `docs/interface.md`'s vocabulary table: each first cell and its words.
+fn documented_vocabularies() -> Vec<(String, Vec<String>)> {
     let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/interface.md"))
         .expect("docs/interface.md");
-    let row = text
+    let section = text
+        .split("## Vocabularies")
+        .nth(1)
+        .and_then(|rest| rest.split("\n## ").next())
+        .expect("a Vocabularies section");
+    section
         .lines()
-        .find(|l| l.starts_with(&format!("| {what} |")))
-        .unwrap_or_else(|| panic!("no row `{what}` in docs/interface.md"));
-    let words = row.split('|').nth(2).expect("a second cell");
-    words
-        .split(',')
-        .map(|w| w.trim().trim_matches('`').to_owned())
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| where") && !l.starts_with("|---"))
+        .map(|row| {
+            let cells: Vec<&str> = row.split(" | ").collect();
+            let what = cells[0].trim_start_matches("| ").to_owned();
+            let words = cells[1]
+                .trim_end_matches(" |")
+                .split(',')
+                .map(|w| w.trim().trim_matches('`').to_owned())
+                .collect();
+            (what, words)
+        })
         .collect()
 }
 
-/// The interface's list of error codes is the service's, word for word and in order; each code
-/// is serialised as its name, and the OpenAPI document lists the same values.
+/// The words of a vocabulary, in order.
+fn words_of<W: brokenray::words::Word>() -> Vec<String> {
+    W::words().into_iter().map(str::to_owned).collect()
+}
+
+/// `docs/interface.md`'s vocabulary table is the code's, row for row and word for word in
+/// order: every row is one enum, every vocabulary the API sends is listed in the OpenAPI
+/// document with the same words, and each value is serialised as its word.
 #[test]
-fn the_documented_error_codes_are_exactly_the_enums() {
+fn the_documented_vocabularies_are_exactly_the_enums() {
     use brokenray::api::ErrorCode;
-    let names: Vec<String> = ErrorCode::ALL.iter().map(|c| c.name().to_owned()).collect();
-    assert_eq!(documented_words("error `code`"), names);
+    use brokenray::api::vocab::{
+        CompensationSource, HealthStatus, LinkKindName, NotFoundCode, RawRequestState,
+        ReferenceOriginKind,
+    };
+    let emit: Vec<String> = <brokenray::feed::Emit as clap::ValueEnum>::value_variants()
+        .iter()
+        .filter_map(clap::ValueEnum::to_possible_value)
+        .map(|v| v.get_name().to_owned())
+        .collect();
+    // Each row: the table's first cell, the enum's words, and its schema in the API's document
+    // (None: not an API vocabulary).
+    let expected: Vec<(&str, Vec<String>, Option<&str>)> = vec![
+        (
+            "target `status` (compensation, stored results, `/healthz`)",
+            words_of::<brokenray::bank::TargetStatus>(),
+            Some("TargetStatus"),
+        ),
+        (
+            "`/healthz` `status`",
+            words_of::<HealthStatus>(),
+            Some("HealthStatus"),
+        ),
+        (
+            "link `kind` (`GET /api/v1/links`)",
+            words_of::<LinkKindName>(),
+            Some("LinkKindName"),
+        ),
+        (
+            "link `status` (`GET /api/v1/links`)",
+            words_of::<brokenray::service::LinkState>(),
+            Some("LinkState"),
+        ),
+        (
+            "what the filter did with a sample (`disposition`)",
+            words_of::<brokenray::filter::DispositionKind>(),
+            Some("DispositionKind"),
+        ),
+        (
+            "result `source` (stats, history)",
+            words_of::<brokenray::bank::ResultSource>(),
+            Some("ResultSource"),
+        ),
+        (
+            "compensation `source`",
+            words_of::<CompensationSource>(),
+            Some("CompensationSource"),
+        ),
+        (
+            "reference `origin`",
+            words_of::<ReferenceOriginKind>(),
+            Some("ReferenceOriginKind"),
+        ),
+        (
+            "alarm `kind`",
+            words_of::<brokenray::alarms::AlarmKind>(),
+            Some("AlarmKind"),
+        ),
+        (
+            "alarm level (`from`, `to`, a target's `alarm`)",
+            words_of::<brokenray::alarms::Level>(),
+            Some("Level"),
+        ),
+        (
+            "alarm `unit`",
+            words_of::<brokenray::alarms::ValueUnit>(),
+            Some("ValueUnit"),
+        ),
+        (
+            "filter `model`",
+            words_of::<brokenray::filter::MotionModel>(),
+            Some("MotionModel"),
+        ),
+        (
+            "token `scopes`",
+            words_of::<brokenray::config::Scope>(),
+            None,
+        ),
+        (
+            "upload `tier` (fleet)",
+            words_of::<brokenray::store::outbox::Tier>(),
+            Some("Tier"),
+        ),
+        (
+            "upload `outcome` (fleet)",
+            words_of::<brokenray::fleet::protocol::Outcome>(),
+            Some("Outcome"),
+        ),
+        (
+            "raw request `state` (fleet)",
+            words_of::<RawRequestState>(),
+            Some("RawRequestState"),
+        ),
+        (
+            "webhook `min_level`",
+            words_of::<brokenray::config::NotifyLevel>(),
+            Some("NotifyLevel"),
+        ),
+        (
+            "`[rerun] mode`",
+            words_of::<brokenray::config::RerunMode>(),
+            None,
+        ),
+        (
+            "why a marker was not found in a frame (`reason_code`)",
+            words_of::<NotFoundCode>(),
+            Some("NotFoundCode"),
+        ),
+        (
+            "why an archived frame was kept (`reason`)",
+            words_of::<brokenray::archive::ArchiveReason>(),
+            Some("ArchiveReason"),
+        ),
+        (
+            "marker target and plate `polarity`",
+            words_of::<brokenray::vision::Polarity>(),
+            None,
+        ),
+        (
+            "intrinsics (`fix`, `parameters`, `correlations`)",
+            words_of::<brokenray::vision::Intrinsic>(),
+            Some("Intrinsic"),
+        ),
+        (
+            "camera calibration warning `kind`",
+            words_of::<brokenray::vision::WarningKind>(),
+            Some("WarningKind"),
+        ),
+        ("what `simulate` and `demo` send (`--emit`)", emit, None),
+        ("error `code`", words_of::<ErrorCode>(), Some("ErrorCode")),
+    ];
+    let documented = documented_vocabularies();
+    let rows: Vec<&str> = documented.iter().map(|(w, _)| w.as_str()).collect();
+    let known: Vec<&str> = expected.iter().map(|(w, _, _)| *w).collect();
+    assert_eq!(
+        rows, known,
+        "the table's rows are the code's vocabularies, in order"
+    );
+    for ((what, words), (_, enum_words, _)) in documented.iter().zip(&expected) {
+        assert_eq!(words, enum_words, "{what}");
+    }
+    let doc: Value = serde_json::to_value(brokenray::api::openapi()).unwrap();
+    for (what, words, schema) in &expected {
+        let Some(schema) = schema else { continue };
+        let listed: Vec<String> = doc["components"]["schemas"][schema]["enum"]
+            .as_array()
+            .unwrap_or_else(|| panic!("the document lists the words of {schema} ({what})"))
+            .iter()
+            .map(|v| v.as_str().unwrap().to_owned())
+            .collect();
+        assert_eq!(&listed, words, "{schema}");
+    }
     for code in ErrorCode::ALL {
         assert_eq!(
             serde_json::to_value(code).unwrap(),
             Value::String(code.name().to_owned())
         );
     }
-    let doc: Value = serde_json::to_value(brokenray::api::openapi()).unwrap();
-    let listed: Vec<String> = doc["components"]["schemas"]["ErrorCode"]["enum"]
-        .as_array()
-        .expect("the document lists the codes")
-        .iter()
-        .map(|v| v.as_str().unwrap().to_owned())
-        .collect();
-    let mut sorted_names = names.clone();
-    sorted_names.sort();
-    let mut sorted_listed = listed;
-    sorted_listed.sort();
-    assert_eq!(sorted_listed, sorted_names);
 }
