@@ -61,6 +61,11 @@ impl AlarmOut {
     }
 }
 
+/// A notification's body: the alarm exactly as `GET /api/v1/alarms` shows it.
+pub(super) fn encode_alarm(target: &str, alarm: &StoredAlarm) -> serde_json::Result<Vec<u8>> {
+    serde_json::to_vec(&AlarmOut::new(target.to_owned(), alarm))
+}
+
 /// Query of `alarms`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]

@@ -16,92 +16,84 @@ use axum::http::{Method, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::Response;
 use sha2::{Digest, Sha256};
+use std::collections::HashMap;
 use std::sync::Arc;
 
 /// The scope of every operation, read from the OpenAPI document: each handler declares its
 /// scope once, in its `#[utoipa::path(security(...))]`, and this table is what the middleware
-/// enforces (`security(())` means open to all: the health check and the dashboard's files).
+/// enforces (`security(())` means open to all: the health check and the dashboard's files),
+/// looked up by the method and the route axum matched.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct ScopeTable {
-    /// Method, path template split into segments (`None` for a `{parameter}`), and the scope
-    /// (`None`: open).
-    routes: Vec<(Method, Vec<Option<String>>, Option<Scope>)>,
+    /// By method and route template (`/api/v1/targets/{name}`): the scope (`None`: open).
+    routes: HashMap<(Method, String), Option<Scope>>,
 }
 
 impl ScopeTable {
-    /// The table of an OpenAPI document (as JSON). An operation whose scope is not one of
-    /// `read`, `ingest`, `admin` is a defect of its declaration: it needs `admin`.
-    pub(crate) fn from_openapi(doc: &serde_json::Value) -> Self {
-        let mut routes = Vec::new();
-        let Some(paths) = doc["paths"].as_object() else {
-            return Self::default();
-        };
-        for (template, item) in paths {
-            let segments: Vec<Option<String>> = template
-                .split('/')
-                .map(|seg| (!seg.starts_with('{')).then(|| seg.to_owned()))
-                .collect();
-            let Some(ops) = item.as_object() else {
-                continue;
-            };
-            for (method, op) in ops {
-                let Ok(method) = method.to_ascii_uppercase().parse::<Method>() else {
-                    continue;
-                };
-                let declared: Vec<&str> = op["security"]
-                    .as_array()
-                    .into_iter()
-                    .flatten()
-                    .filter_map(|req| req.as_object())
-                    .flat_map(|req| req.values())
-                    .filter_map(|scopes| scopes.as_array())
-                    .flatten()
-                    .filter_map(|v| v.as_str())
-                    .collect();
-                let open = op["security"].as_array().is_some_and(|reqs| {
-                    reqs.iter()
-                        .any(|r| r.as_object().is_some_and(|o| o.is_empty()))
-                });
-                let scope = if open && declared.is_empty() {
-                    None
-                } else {
-                    Some(match declared.first().copied() {
-                        Some("read") => Scope::Read,
-                        Some("ingest") => Scope::Ingest,
-                        Some("sync") => Scope::Sync,
-                        _ => Scope::Admin,
-                    })
-                };
-                routes.push((method, segments.clone(), scope));
+    /// The table of an OpenAPI document. An operation whose scope is not one of ours is a
+    /// defect of its declaration: it needs `admin`.
+    pub(crate) fn from_openapi(doc: &utoipa::openapi::OpenApi) -> Self {
+        let mut routes = HashMap::new();
+        for (template, item) in &doc.paths.paths {
+            for (method, op) in [
+                (Method::GET, &item.get),
+                (Method::PUT, &item.put),
+                (Method::POST, &item.post),
+                (Method::DELETE, &item.delete),
+                (Method::PATCH, &item.patch),
+                (Method::OPTIONS, &item.options),
+                (Method::HEAD, &item.head),
+                (Method::TRACE, &item.trace),
+            ] {
+                if let Some(op) = op {
+                    let scope = declared_scope(op.security.as_deref().unwrap_or_default());
+                    routes.insert((method, template.clone()), scope);
+                }
             }
         }
         Self { routes }
     }
 
-    /// The scope a request needs; `None` when it is open to all. A path no operation has (a
-    /// 404 to come) needs `read`, or `admin` to change something.
-    pub(crate) fn required(&self, method: &Method, path: &str) -> Option<Scope> {
-        let parts: Vec<&str> = path.split('/').collect();
-        let matches = |segments: &[Option<String>]| {
-            segments.len() == parts.len()
-                && segments.iter().zip(&parts).all(|(s, p)| match s {
-                    Some(literal) => literal == p,
-                    None => !p.is_empty(),
-                })
-        };
-        if let Some((_, _, scope)) = self
-            .routes
-            .iter()
-            .find(|(m, segments, _)| m == method && matches(segments))
-        {
+    /// The scope a request needs, from its method and the route it matched (none: no route
+    /// did); `None` when it is open to all. A request no operation has (a 404 or 405 to come)
+    /// needs `read`, or `admin` to change something.
+    pub(crate) fn required(&self, method: &Method, route: Option<&str>) -> Option<Scope> {
+        if let Some(scope) = route.and_then(|r| self.routes.get(&(method.clone(), r.to_owned()))) {
             return *scope;
         }
-        // A method the path does not have (405 to come) or an unknown path (404).
         Some(if is_write(method) {
             Scope::Admin
         } else {
             Scope::Read
         })
+    }
+}
+
+/// The scope of an operation's security requirements: none when one of them is empty (open
+/// to all) and no scope is named, else the first scope named (`admin` for a word that is not
+/// a scope).
+fn declared_scope(
+    requirements: &[utoipa::openapi::security::SecurityRequirement],
+) -> Option<Scope> {
+    // A requirement's scheme-to-scopes map is private to utoipa; its JSON form is the map.
+    let maps: Vec<serde_json::Map<String, serde_json::Value>> = requirements
+        .iter()
+        .filter_map(|r| match serde_json::to_value(r) {
+            Ok(serde_json::Value::Object(m)) => Some(m),
+            _ => None,
+        })
+        .collect();
+    let first = maps
+        .iter()
+        .flat_map(|m| m.values())
+        .filter_map(|scopes| scopes.as_array())
+        .flatten()
+        .find_map(|v| v.as_str());
+    let open = maps.iter().any(serde_json::Map::is_empty);
+    match first {
+        None if open => None,
+        Some(word) => Some(Scope::parse(word).unwrap_or(Scope::Admin)),
+        None => Some(Scope::Admin),
     }
 }
 
@@ -136,7 +128,11 @@ pub(crate) async fn require_token(
     request: Request,
     next: Next,
 ) -> Result<Response, ApiError> {
-    let needed = scopes.required(request.method(), request.uri().path());
+    let route = request
+        .extensions()
+        .get::<axum::extract::MatchedPath>()
+        .map(|m| m.as_str().to_owned());
+    let needed = scopes.required(request.method(), route.as_deref());
     let Some(needed) = needed.filter(|_| !tokens.is_empty()) else {
         let mut request = request;
         request.extensions_mut().insert(Caller {
@@ -340,43 +336,51 @@ mod tests {
 
     #[test]
     fn the_scope_table_follows_the_declarations_of_the_document() {
-        let doc = serde_json::json!({"paths": {
-            "/healthz": {"get": {"security": [{}]}},
-            "/api/v1/samples": {"post": {"security": [{"bearer": ["ingest"]}]}},
-            "/api/v1/targets/{name}/reference": {
-                "get": {"security": [{"bearer": ["read"]}]},
-                "post": {"security": [{"bearer": ["admin"]}]}
-            },
-            "/api/v1/odd": {"get": {"security": [{"bearer": ["superuser"]}]}}
-        }});
+        let doc: utoipa::openapi::OpenApi = serde_json::from_value(serde_json::json!({
+            "openapi": "3.1.0",
+            "info": {"title": "t", "version": "1"},
+            "paths": {
+                "/healthz": {"get": {"security": [{}], "responses": {}}},
+                "/api/v1/samples": {"post": {"security": [{"bearer": ["ingest"]}], "responses": {}}},
+                "/api/v1/targets/{name}/reference": {
+                    "get": {"security": [{"bearer": ["read"]}], "responses": {}},
+                    "post": {"security": [{"bearer": ["admin"]}], "responses": {}}
+                },
+                "/api/v1/odd": {"get": {"security": [{"bearer": ["superuser"]}], "responses": {}}},
+                "/api/v1/undeclared": {"get": {"responses": {}}}
+            }
+        }))
+        .unwrap();
         let t = ScopeTable::from_openapi(&doc);
-        assert_eq!(t.required(&Method::GET, "/healthz"), None);
+        assert_eq!(t.required(&Method::GET, Some("/healthz")), None);
         assert_eq!(
-            t.required(&Method::POST, "/api/v1/samples"),
+            t.required(&Method::POST, Some("/api/v1/samples")),
             Some(Scope::Ingest)
         );
         assert_eq!(
-            t.required(&Method::GET, "/api/v1/targets/G/reference"),
+            t.required(&Method::GET, Some("/api/v1/targets/{name}/reference")),
             Some(Scope::Read)
         );
         assert_eq!(
-            t.required(&Method::POST, "/api/v1/targets/G/reference"),
+            t.required(&Method::POST, Some("/api/v1/targets/{name}/reference")),
             Some(Scope::Admin)
         );
-        // A parameter is one non-empty segment.
+        // No route matched: read to look, admin to change; a method the route does not have
+        // likewise; an unknown scope, or none declared, is admin's.
+        assert_eq!(t.required(&Method::GET, None), Some(Scope::Read));
+        assert_eq!(t.required(&Method::POST, None), Some(Scope::Admin));
         assert_eq!(
-            t.required(&Method::GET, "/api/v1/targets//reference"),
-            Some(Scope::Read)
+            t.required(&Method::DELETE, Some("/healthz")),
+            Some(Scope::Admin)
         );
         assert_eq!(
-            t.required(&Method::POST, "/api/v1/targets//reference"),
-            Some(Scope::Admin),
-            "an unknown path that changes something needs admin"
+            t.required(&Method::GET, Some("/api/v1/odd")),
+            Some(Scope::Admin)
         );
-        // Not in the document: read to look, admin to change; an unknown scope is admin's.
-        assert_eq!(t.required(&Method::GET, "/nowhere"), Some(Scope::Read));
-        assert_eq!(t.required(&Method::DELETE, "/healthz"), Some(Scope::Admin));
-        assert_eq!(t.required(&Method::GET, "/api/v1/odd"), Some(Scope::Admin));
+        assert_eq!(
+            t.required(&Method::GET, Some("/api/v1/undeclared")),
+            Some(Scope::Admin)
+        );
     }
 
     #[test]

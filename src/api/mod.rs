@@ -63,7 +63,7 @@ pub struct AppState {
     /// Size limits.
     pub limits: Limits,
     /// Alarm notifications.
-    pub webhooks: webhooks::Webhooks,
+    pub webhooks: crate::notify::Webhooks,
     /// The newest frame of every camera.
     pub latest_frames: Arc<cameras::LatestFrames>,
     /// The frame archive, when one is configured.
@@ -118,7 +118,7 @@ impl AppState {
                 .map(|c| c.frame.as_str()),
         ));
         Ok(Self {
-            webhooks: webhooks::Webhooks::start(&service),
+            webhooks: crate::notify::Webhooks::start(&service, alarms::encode_alarm),
             latest_frames,
             archive,
             central: None,
@@ -513,9 +513,7 @@ pub fn router(state: AppState) -> Router {
     // The routes are the same every time: keep the first document.
     let _ = DOC.set(doc);
     // Each operation's scope as its annotation declares it: the one source of truth.
-    let scopes = Arc::new(auth::ScopeTable::from_openapi(
-        &serde_json::to_value(openapi()).unwrap_or_default(),
-    ));
+    let scopes = Arc::new(auth::ScopeTable::from_openapi(openapi()));
     router
         .fallback(api_not_found)
         .layer(axum::middleware::from_fn(move |req, next| {
