@@ -129,7 +129,8 @@ pub enum Command {
         /// Seed of the noise and motion.
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// Time of the first group (RFC 3339 or integer ns); now without it.
+        /// Time of the first group (RFC 3339 or integer ns). Without it: now for a run in real
+        /// time; else the duration before now, so that the run ends now.
         #[arg(long, value_name = "TIME")]
         start: Option<String>,
         /// A running service to post to (`http://127.0.0.1:7878`), in real time unless `--fast`.
@@ -433,10 +434,20 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             let installation = config::load_or_default(config.as_deref())?;
             let duration_s =
                 crate::feed::parse_duration_s(&duration).map_err(anyhow::Error::msg)?;
+            let real_time = to.is_some() && !fast;
             let start_ns = match &start {
                 Some(t) => crate::clock::parse_query_time(t)
                     .map_err(|e| anyhow::anyhow!("--start: {e}"))?,
-                None => now_ns(),
+                None => {
+                    let start_ns = default_start_ns(now_ns(), duration_s, real_time);
+                    if !real_time {
+                        eprintln!(
+                            "the run starts at {} ({duration} before now) so that it ends now: a service refuses measurements from its future (give --start to choose)",
+                            crate::clock::format_ns(start_ns)
+                        );
+                    }
+                    start_ns
+                }
             };
             let settings = crate::sim::SimSettings {
                 scenario: scenario.parse().map_err(anyhow::Error::msg)?,
@@ -475,7 +486,6 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 .as_deref()
                 .map(|p| create_new(p).map(std::io::BufWriter::new))
                 .transpose()?;
-            let real_time = to.is_some() && !fast;
             let runtime = runtime(true)?;
             let summary = runtime.block_on(simulate(
                 &installation,
@@ -795,6 +805,17 @@ fn runtime(multi_thread: bool) -> anyhow::Result<tokio::runtime::Runtime> {
         .context("cannot start the async runtime")
 }
 
+/// The time of a simulated run's first group when `--start` is not given: now for a run sent
+/// in real time; otherwise (`--fast`, or a file) the run's duration before now, so that its
+/// last group is not in the future, which a service refuses.
+fn default_start_ns(now_ns: i64, duration_s: f64, real_time: bool) -> i64 {
+    if real_time {
+        now_ns
+    } else {
+        now_ns.saturating_sub((duration_s * 1e9).round() as i64)
+    }
+}
+
 fn create_new(path: &std::path::Path) -> anyhow::Result<std::fs::File> {
     std::fs::OpenOptions::new()
         .write(true)
@@ -837,4 +858,17 @@ fn progress_bar(groups: Option<u64>) -> indicatif::ProgressBar {
 /// seeded by the operating system), on any platform.
 fn random_token() -> anyhow::Result<String> {
     Ok(hex::encode(rand::random::<[u8; 32]>()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::default_start_ns;
+
+    #[test]
+    fn a_run_faster_than_real_time_ends_now_unless_told_otherwise() {
+        let now = 1_800_000_000_000_000_000;
+        assert_eq!(default_start_ns(now, 300.0, true), now);
+        assert_eq!(default_start_ns(now, 300.0, false), now - 300_000_000_000);
+        assert_eq!(default_start_ns(now, 0.04, false), now - 40_000_000);
+    }
 }

@@ -233,6 +233,56 @@ fn simulate_writes_observations_or_samples_with_the_ground_truth() {
     assert!(first["quality"]["reprojection_rms_px"].as_f64().unwrap() < 0.5);
 }
 
+/// Without `--start`, a run that is not sent in real time ends now (a service refuses
+/// measurements from its future), and says so.
+#[test]
+fn a_simulated_run_faster_than_real_time_ends_now() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run.ndjson");
+    let wall_ns = || {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_nanos() as i64
+    };
+    let before_ns = wall_ns();
+    let run = brokenray(&[
+        "simulate",
+        "--duration",
+        "60s",
+        "--rate",
+        "2",
+        "--emit",
+        "samples",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let after_ns = wall_ns();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(
+        String::from_utf8_lossy(&run.stderr).contains("so that it ends now"),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let lines = read_ndjson(&out);
+    let time = |v: &serde_json::Value| {
+        brokenray::clock::parse_query_time(v["time"].as_str().unwrap()).unwrap()
+    };
+    let (first, last) = (time(&lines[0]), time(lines.last().unwrap()));
+    // 120 groups, 0.5 s apart: the last half a period before the run's now.
+    assert_eq!(last - first, 59_500_000_000);
+    assert!(last <= after_ns, "the last group is not in the future");
+    assert!(
+        last >= before_ns - 1_000_000_000,
+        "the run ends now: {}",
+        (before_ns - last) as f64 / 1e9
+    );
+}
+
 #[test]
 fn simulated_frames_are_detected_into_observations_of_the_true_poses() {
     let dir = tempfile::tempdir().unwrap();
