@@ -34,6 +34,18 @@ pub enum ReferenceOrigin {
     },
 }
 
+/// A version of a target's reference: its number (1, 2, ...) and when it was set (ns, the
+/// server's clock).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReferenceVersion {
+    /// Its version.
+    pub version: i64,
+    /// The reference.
+    pub reference: Reference,
+    /// When it was set (ns).
+    pub created_ns: i64,
+}
+
 /// A target's zero reading.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Reference {

@@ -5,11 +5,11 @@ use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use super::error::{ApiError, ErrorBody};
 use super::query::Query;
 use crate::api::error::ErrorCode;
+use crate::bank::MeasurementUncertainty;
 use crate::chain::LinkId;
 use crate::clock::{format_ns, parse_json_time};
 use crate::geometry::PoseCov;
 use crate::model::{LinkKind, LinkSpec};
-use crate::store::StoredUncertainty;
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
@@ -263,9 +263,9 @@ pub(super) async fn list_samples(
             .into_iter()
             .map(|s| {
                 let (sigma, covariance) = match s.values.uncertainty {
-                    StoredUncertainty::Default => (None, None),
-                    StoredUncertainty::Sigmas(sg) => (Some(sg.into()), None),
-                    StoredUncertainty::Covariance(c) => {
+                    MeasurementUncertainty::Default => (None, None),
+                    MeasurementUncertainty::Sigmas(sg) => (Some(sg.into()), None),
+                    MeasurementUncertainty::Covariance(c) => {
                         (None, Some(c.transpose().as_slice().to_vec()))
                     }
                 };

@@ -16,8 +16,8 @@ use super::fleet::{centre, site_of};
 use super::query::Query;
 use super::targets::{
     AtQuery, CompensationOut, CompensationSource, Described, Evaluated, HistoryQuery, ReferenceOut,
-    ReferencesOut, StatsOut, TargetOut, WindowQuery, compensation_out, current_of, from_history,
-    history_of, references_of, stats_of,
+    ReferencesOut, StatsOut, TargetOut, WindowQuery, compensation_out, from_history, history_of,
+    references_of, stats_of,
 };
 use crate::bank::{ResultSource, TargetStatus};
 use crate::clock::parse_query_time;
@@ -136,7 +136,7 @@ pub(super) async fn get_site_compensation(
         base: &d.base,
         thresholds: d.alarms.thresholds(),
     };
-    let reference = view.store.references(ti).await?.last().map(current_of);
+    let reference = view.store.references(ti).await?.last().copied();
     if let Some(at) = q.at {
         let at_ns = parse_query_time(&at).map_err(|m| ApiError::invalid_field("at", m))?;
         let e = from_history(&view.store, ti, &name, at_ns).await?;
@@ -227,7 +227,7 @@ pub(super) async fn get_site_reference(
         .references(ti)
         .await?
         .last()
-        .map(|r| Json((&current_of(r)).into()))
+        .map(|r| Json(r.into()))
         .ok_or_else(|| {
             ApiError::not_found(format!(
                 "target `{name}` of site `{site}` has no reference yet"

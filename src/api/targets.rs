@@ -6,10 +6,11 @@ use super::error::{ApiError, ErrorBody};
 use super::query::Query;
 use crate::bank::{ResultSource, TargetEstimate, TargetStatus};
 use crate::clock::{format_ns, parse_query_time};
+use crate::deformation::ReferenceVersion;
 use crate::deformation::{Deformation, ReferenceOrigin};
 use crate::geometry::PoseCov;
 use crate::model::TargetSpec;
-use crate::service::{CurrentReference, ReferenceRequest};
+use crate::service::ReferenceRequest;
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
@@ -121,8 +122,8 @@ pub(super) struct WindowOut {
     pub count: usize,
 }
 
-impl From<&CurrentReference> for ReferenceOut {
-    fn from(r: &CurrentReference) -> Self {
+impl From<&ReferenceVersion> for ReferenceOut {
+    fn from(r: &ReferenceVersion) -> Self {
         let p = PoseOut::from(&r.reference.g0_from_b.pose);
         let (origin, window) = match r.reference.origin {
             ReferenceOrigin::Explicit => (super::vocab::ReferenceOriginKind::Explicit, None),
@@ -339,7 +340,7 @@ impl<'a> Described<'a> {
 pub(super) fn compensation_out(
     target: &Described<'_>,
     e: Evaluated,
-    reference: Option<&CurrentReference>,
+    reference: Option<&ReferenceVersion>,
 ) -> CompensationOut {
     let Evaluated {
         time_ns,
@@ -419,7 +420,7 @@ pub(super) fn live_compensation(
     spec: &TargetSpec,
     ti: usize,
     estimate: &TargetEstimate,
-    reference: Option<&CurrentReference>,
+    reference: Option<&ReferenceVersion>,
 ) -> CompensationOut {
     compensation_out(
         &Described::of(app, spec),
@@ -718,19 +719,11 @@ pub(super) async fn references_of(
     let stored = store.references(ti).await?;
     Ok(ReferencesOut {
         target: name,
-        references: stored.iter().map(|r| (&current_of(r)).into()).collect(),
+        references: stored.iter().map(Into::into).collect(),
     })
 }
 
 /// A stored reference version as the service holds its current one.
-pub(super) fn current_of(r: &crate::store::StoredReference) -> CurrentReference {
-    CurrentReference {
-        version: r.version,
-        reference: r.reference,
-        created_ns: r.created_ns,
-    }
-}
-
 /// Query of `history`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]

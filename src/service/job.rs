@@ -5,10 +5,7 @@
 //! statement, the commit, a cancelled task), every requester is answered: with its answer
 //! after the commit, or with the commit's failure.
 
-use super::{
-    CurrentReference, IngestItem, IngestReport, Pruned, ReferenceRequest, ServiceError,
-    ServiceResult,
-};
+use super::{IngestItem, IngestReport, Pruned, ReferenceRequest, ServiceError, ServiceResult};
 use crate::chain::LinkId;
 use crate::geometry::PoseCov;
 use tokio::sync::oneshot;
@@ -96,7 +93,7 @@ pub(crate) struct AcknowledgeAlarm {
 )]
 pub(crate) enum Job {
     Ingest(Call<Vec<IngestItem>, IngestReport>),
-    SetReference(Call<SetReference, CurrentReference>),
+    SetReference(Call<SetReference, crate::deformation::ReferenceVersion>),
     Prune(Call<Prune, Pruned>),
     RecordAck(Call<RecordAck, ()>),
     AddCalibration(Call<AddCalibration, i64>),

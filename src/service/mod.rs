@@ -14,6 +14,7 @@
 
 mod job;
 mod metrics;
+use crate::deformation::ReferenceVersion;
 use job::Job;
 mod pipeline;
 mod tasks;
@@ -25,7 +26,7 @@ pub use pipeline::{IngestItem, IngestReport};
 
 use crate::bank::{FilterBank, TargetEstimate, TargetStatus};
 use crate::config::Installation;
-use crate::deformation::{Deformation, Reference};
+use crate::deformation::Deformation;
 use crate::geometry::{Pose, PoseCov};
 use crate::store::{self, Store, StoreError};
 use std::sync::{Arc, RwLock};
@@ -84,24 +85,13 @@ pub enum ServiceError {
 /// Result alias of the service.
 pub type ServiceResult<T> = Result<T, ServiceError>;
 
-/// A target's current reference.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CurrentReference {
-    /// Its version.
-    pub version: i64,
-    /// The reference.
-    pub reference: Reference,
-    /// When it was set (ns, wall clock).
-    pub created_ns: i64,
-}
-
 /// What readers see of one target.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TargetView {
     /// The newest filtered result.
     pub latest: Option<TargetEstimate>,
     /// The current reference.
-    pub reference: Option<CurrentReference>,
+    pub reference: Option<ReferenceVersion>,
     /// The alarm state, fed with every filtered result.
     pub alarms: crate::alarms::AlarmMonitor,
 }
@@ -128,7 +118,7 @@ pub enum LiveEvent {
         /// The result.
         estimate: TargetEstimate,
         /// The reference in force.
-        reference: Option<CurrentReference>,
+        reference: Option<ReferenceVersion>,
     },
     /// An alarm transition, as stored (with its id).
     Alarm(crate::store::StoredAlarm),
@@ -395,11 +385,7 @@ impl Service {
         }
         let mut targets = Vec::with_capacity(installation.model.targets.len());
         for (ti, _) in installation.model.targets.iter().enumerate() {
-            let reference = store.references(ti).await?.pop().map(|r| CurrentReference {
-                version: r.version,
-                reference: r.reference,
-                created_ns: r.created_ns,
-            });
+            let reference = store.references(ti).await?.pop();
             let latest = store
                 .latest_result(ti, crate::bank::ResultSource::Filtered)
                 .await?
@@ -660,7 +646,7 @@ impl Service {
         &self,
         target: usize,
         request: ReferenceRequest,
-    ) -> ServiceResult<CurrentReference> {
+    ) -> ServiceResult<ReferenceVersion> {
         self.submit(job::SetReference { target, request }, Job::SetReference)
             .await
     }

@@ -2,11 +2,11 @@
 
 use super::job::{self, Job};
 use super::{
-    CurrentReference, ItemProblem, Pruned, ReferenceRequest, ServiceError, ServiceResult, Snapshot,
-    TargetView,
+    ItemProblem, Pruned, ReferenceRequest, ServiceError, ServiceResult, Snapshot, TargetView,
 };
 use crate::bank::{BankRecord, FilterBank, ResultSource, Sample, TargetEstimate};
 use crate::chain::LinkId;
+use crate::deformation::ReferenceVersion;
 use crate::deformation::{Deformation, Reference};
 use crate::filter::Disposition;
 use crate::store::WriteTx;
@@ -152,7 +152,7 @@ async fn apply_ingest(
 async fn apply_reference(
     step: &mut Step<'_, '_>,
     r: &job::SetReference,
-) -> Result<ServiceResult<CurrentReference>, StoreError> {
+) -> Result<ServiceResult<ReferenceVersion>, StoreError> {
     let answer = set_reference(step.tx, step.targets, r.target, r.request, step.now).await?;
     if step.viz.is_some()
         && let Ok(current) = &answer
@@ -701,7 +701,7 @@ async fn ingest(
     for (item, z) in items.into_iter().zip(measurements) {
         let values = SampleValues {
             pose: item.sample.parent_from_child,
-            uncertainty: item.sample.uncertainty.into(),
+            uncertainty: item.sample.uncertainty,
             quality: item.quality,
         };
         match stored.get(&(item.sample.link, item.sample.time_ns)) {
@@ -860,7 +860,7 @@ async fn ingest(
                     link: l,
                     time_ns,
                     parent_from_child: v.pose,
-                    uncertainty: v.uncertainty.into(),
+                    uncertainty: v.uncertainty,
                 };
                 if let Ok(z) = bank.measurement(&sample) {
                     group.insert(l, z);
@@ -892,7 +892,7 @@ async fn set_reference(
     target: usize,
     request: ReferenceRequest,
     now: i64,
-) -> Result<ServiceResult<CurrentReference>, StoreError> {
+) -> Result<ServiceResult<ReferenceVersion>, StoreError> {
     let reference = match request {
         ReferenceRequest::Explicit(pose) => Reference::explicit(pose),
         ReferenceRequest::Window { from_ns, to_ns } => {
@@ -913,7 +913,7 @@ async fn set_reference(
         }
     };
     let version = tx.insert_reference(target, &reference, now).await?;
-    let current = CurrentReference {
+    let current = ReferenceVersion {
         version,
         reference,
         created_ns: now,

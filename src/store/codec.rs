@@ -50,64 +50,34 @@ pub(crate) fn pose_from_columns(c: [f64; 7]) -> Pose {
     )
 }
 
-/// How a sample's uncertainty was given, as stored.
-#[derive(Debug, Clone, Copy, PartialEq)]
-#[allow(clippy::large_enum_variant, reason = "one per stored sample, by value")]
-pub enum StoredUncertainty {
-    /// The link's default.
-    Default,
-    /// Per-axis sigmas.
-    Sigmas(ReportedSigmas),
-    /// A full covariance.
-    Covariance(Mat6),
-}
-
-impl From<MeasurementUncertainty> for StoredUncertainty {
-    fn from(u: MeasurementUncertainty) -> Self {
-        match u {
-            MeasurementUncertainty::Default => StoredUncertainty::Default,
-            MeasurementUncertainty::Sigmas(s) => StoredUncertainty::Sigmas(s),
-            MeasurementUncertainty::Covariance(c) => StoredUncertainty::Covariance(c),
-        }
-    }
-}
-
-impl From<StoredUncertainty> for MeasurementUncertainty {
-    fn from(u: StoredUncertainty) -> Self {
-        match u {
-            StoredUncertainty::Default => MeasurementUncertainty::Default,
-            StoredUncertainty::Sigmas(s) => MeasurementUncertainty::Sigmas(s),
-            StoredUncertainty::Covariance(c) => MeasurementUncertainty::Covariance(c),
-        }
-    }
-}
-
-impl StoredUncertainty {
+/// A sample's uncertainty as stored: a kind (0 the link's default, 1 sigmas, 2 a covariance)
+/// and its bytes.
+impl MeasurementUncertainty {
     pub(crate) fn columns(&self) -> (i64, Option<Vec<u8>>) {
         match self {
-            StoredUncertainty::Default => (0, None),
-            StoredUncertainty::Sigmas(s) => {
+            MeasurementUncertainty::Default => (0, None),
+            MeasurementUncertainty::Sigmas(s) => {
                 let mut out = Vec::with_capacity(48);
                 for v in s.rotation_arcsec.iter().chain(&s.translation_mm) {
                     out.extend_from_slice(&v.to_le_bytes());
                 }
                 (1, Some(out))
             }
-            StoredUncertainty::Covariance(c) => (2, Some(encode_mat6(c))),
+            MeasurementUncertainty::Covariance(c) => (2, Some(encode_mat6(c))),
         }
     }
 
     pub(crate) fn from_columns(kind: i64, blob: Option<&[u8]>) -> Result<Self, StoreError> {
         match (kind, blob) {
-            (0, _) => Ok(StoredUncertainty::Default),
+            (0, _) => Ok(MeasurementUncertainty::Default),
             (1, Some(b)) => {
                 let v = decode_f64s(b, 6)?;
-                Ok(StoredUncertainty::Sigmas(ReportedSigmas {
+                Ok(MeasurementUncertainty::Sigmas(ReportedSigmas {
                     rotation_arcsec: [v[0], v[1], v[2]],
                     translation_mm: [v[3], v[4], v[5]],
                 }))
             }
-            (2, Some(b)) => Ok(StoredUncertainty::Covariance(decode_mat6(b)?)),
+            (2, Some(b)) => Ok(MeasurementUncertainty::Covariance(decode_mat6(b)?)),
             _ => Err(StoreError::Malformed(format!("uncertainty kind {kind}"))),
         }
     }
@@ -128,7 +98,7 @@ pub struct SampleValues {
     /// The measured pose.
     pub pose: Pose,
     /// Its uncertainty as given.
-    pub uncertainty: StoredUncertainty,
+    pub uncertainty: MeasurementUncertainty,
     /// Its quality as given.
     pub quality: Quality,
 }

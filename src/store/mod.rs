@@ -44,13 +44,11 @@ pub mod schema;
 mod sql;
 pub mod sqlite;
 
-pub use codec::{Quality, SampleValues, StoredUncertainty};
+pub use codec::{Quality, SampleValues};
 pub use postgres::central::{
     Central, RawRequestRecord, SiteRecord, SiteUpkeep, SiteUpload, StreamRecord, SyncOutcome,
 };
-pub use rows::{
-    Acknowledgement, StoredAlarm, StoredCalibration, StoredReference, StoredResult, StoredSample,
-};
+pub use rows::{Acknowledgement, StoredAlarm, StoredCalibration, StoredResult, StoredSample};
 pub use sqlite::APPLICATION_ID;
 
 use crate::bank::ResultSource;
@@ -556,7 +554,10 @@ impl Store {
     }
 
     /// Every reference version of a target, oldest first.
-    pub async fn references(&self, target: usize) -> StoreResult<Vec<StoredReference>> {
+    pub async fn references(
+        &self,
+        target: usize,
+    ) -> StoreResult<Vec<crate::deformation::ReferenceVersion>> {
         let id = self.target_ids[target];
         let rows: Vec<rows::ReferenceRow> =
             query_on!(&self.reader, Reader, r => &r.pool, &sql::REFERENCES_OF, [id], fetch_all)?;

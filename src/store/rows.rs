@@ -5,7 +5,9 @@
 //! conversions, with their checks of stored vocabularies, exist once.
 
 use super::codec::{decode_mat6, pose_from_columns};
-use super::{Quality, SampleValues, StoreError, StoreResult, StoredUncertainty};
+use super::{Quality, SampleValues, StoreError, StoreResult};
+use crate::bank::MeasurementUncertainty;
+use crate::deformation::ReferenceVersion;
 use crate::geometry::PoseCov;
 
 /// The seven pose columns every row with a pose has.
@@ -56,7 +58,7 @@ impl SampleRow {
     pub(super) fn values(&self) -> StoreResult<SampleValues> {
         Ok(SampleValues {
             pose: self.pose.pose(),
-            uncertainty: StoredUncertainty::from_columns(
+            uncertainty: MeasurementUncertainty::from_columns(
                 self.uncertainty_kind,
                 self.uncertainty.as_deref(),
             )?,
@@ -192,7 +194,7 @@ pub(super) struct ReferenceRow {
 
 impl ReferenceRow {
     /// The stored reference version.
-    pub(super) fn into_reference(self) -> StoreResult<StoredReference> {
+    pub(super) fn into_reference(self) -> StoreResult<ReferenceVersion> {
         let origin = match (
             self.origin.as_str(),
             self.window_from_ns,
@@ -208,7 +210,7 @@ impl ReferenceRow {
             }
             _ => crate::deformation::ReferenceOrigin::Explicit,
         };
-        Ok(StoredReference {
+        Ok(ReferenceVersion {
             version: self.version,
             reference: crate::deformation::Reference {
                 g0_from_b: PoseCov {
@@ -220,17 +222,6 @@ impl ReferenceRow {
             created_ns: self.created_ns,
         })
     }
-}
-
-/// A stored reference version.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StoredReference {
-    /// Its version (1, 2, ...).
-    pub version: i64,
-    /// The reference.
-    pub reference: crate::deformation::Reference,
-    /// When it was set (ns).
-    pub created_ns: i64,
 }
 
 /// A calibration row.

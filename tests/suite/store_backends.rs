@@ -3,13 +3,11 @@
 
 use crate::service::helpers::{Backend, ONE_LINK, T0_NS, installation_at};
 use brokenray::alarms::{AlarmKind, Level, Transition, ValueUnit};
-use brokenray::bank::ResultSource;
+use brokenray::bank::{MeasurementUncertainty, ResultSource};
 use brokenray::chain::LinkId;
 use brokenray::config::Installation;
 use brokenray::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, rotation_from_euler};
-use brokenray::store::{
-    self, NewResult, NewSample, Quality, SampleValues, Store, StoredUncertainty, WriteConn,
-};
+use brokenray::store::{self, NewResult, NewSample, Quality, SampleValues, Store, WriteConn};
 use nalgebra::Translation3;
 
 const S: i64 = 1_000_000_000;
@@ -32,12 +30,12 @@ fn pose(k: i64) -> Pose {
 
 fn sample(k: i64, time_ns: i64) -> NewSample {
     let uncertainty = match k % 3 {
-        0 => StoredUncertainty::Default,
-        1 => StoredUncertainty::Sigmas(ReportedSigmas {
+        0 => MeasurementUncertainty::Default,
+        1 => MeasurementUncertainty::Sigmas(ReportedSigmas {
             rotation_arcsec: [1.0, 2.0, 3.0 + k as f64],
             translation_mm: [0.1, 0.2, 0.3],
         }),
-        _ => StoredUncertainty::Covariance(Mat6::identity() * (1e-8 * (k + 1) as f64)),
+        _ => MeasurementUncertainty::Covariance(Mat6::identity() * (1e-8 * (k + 1) as f64)),
     };
     NewSample {
         link: LinkId(0),
