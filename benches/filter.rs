@@ -5,6 +5,7 @@
 use brokenray::bank::{FilterBank, MeasurementUncertainty, Sample};
 use brokenray::filter::{FilterTuning, LinkFilter, MotionModel};
 use brokenray::geometry::{ARCSEC_PER_RAD, Mat6, Pose, PoseCov, Twist, se3_exp};
+use brokenray::model::TargetId;
 use brokenray::{config, model};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use std::hint::black_box;
@@ -101,7 +102,7 @@ fn bench_evaluate(c: &mut Criterion) {
     }
     c.bench_function("evaluate_target_default_chain", |b| {
         b.iter(|| {
-            bank.evaluate(0, black_box(49 * 40_000_000 + 20_000_000))
+            bank.evaluate(TargetId(0), black_box(49 * 40_000_000 + 20_000_000))
                 .expect("evaluate")
         })
     });

@@ -1,12 +1,25 @@
 //! The filter bank: one filter ([`crate::filter::LinkFilter`]) per measured link of a
-//! [`crate::model::Model`]; targets evaluated by composing the predicted
-//! links of their paths; raw results from measurement groups.
+//! [`crate::model::Model`], and one per target; raw results from measurement groups.
+//!
+//! **Filtering where the deformation is.** A target's filtered pose is the filter of its own
+//! raw results (each measurement group composed along the target's paths, with the composed
+//! covariance), not the composition of separately filtered links: a relay station's motion
+//! enters two links of a path and cancels exactly in their composition, which each link's
+//! filter, lagging that motion with its own gains, would no longer do. The link filters stay
+//! for what is the link's own: outlier gating, the links endpoint, liveness, and bringing a
+//! sample exposed at another instant to its group's time. A target's motion model is the most
+//! dynamic of its measured links'; the oscillation's strengths, period and drift are fitted
+//! from its raw results ([`crate::filter::MotionEstimator`]) and its normalised innovations
+//! watched ([`crate::filter::InnovationWindow`]), so a model that does not fit the data says so.
 
 use crate::chain::{Consistency, LinkId, compose_path, fuse};
 use crate::filter::{
-    BankSettings, Disposition, FilterError, LinkFilter, LinkFilterRecord, NS_PER_S,
+    BankSettings, Bounds, Disposition, FilterError, FilterTuning, InnovationReport,
+    InnovationWindow, LinkFilter, LinkFilterRecord, MotionEstimator, MotionFit, MotionModel,
+    NS_PER_S,
 };
-use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas};
+use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, adjoint};
+use crate::model::TargetId;
 use crate::model::{LinkKind, Model};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
@@ -46,11 +59,31 @@ pub struct Sample {
     pub uncertainty: MeasurementUncertainty,
 }
 
+/// Half the shortest expected period of the model's measured links (ns): how far apart the
+/// exposures of one measurement group may be unless the installation says otherwise. Cameras
+/// that expose together are far inside it; a group never takes two periods of one link.
+pub fn default_group_tolerance_ns(model: &Model) -> i64 {
+    let fastest_hz = model
+        .links
+        .iter()
+        .filter_map(|l| match &l.kind {
+            LinkKind::Measured(m) => Some(m.expected_rate_hz),
+            LinkKind::Calibrated { .. } => None,
+        })
+        .filter(|r| r.is_finite() && *r > 0.0)
+        .fold(0.0f64, f64::max);
+    if fastest_hz > 0.0 {
+        (0.5e9 / fastest_hz).round() as i64
+    } else {
+        0
+    }
+}
+
 /// A raw result: the composition of the raw samples of one measurement group.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RawResult {
     /// Index of the target in the model.
-    pub target: usize,
+    pub target: TargetId,
     /// The group's time (ns).
     pub time_ns: i64,
     /// `target_from_base` composed from the raw samples.
@@ -125,7 +158,7 @@ crate::words! {
 #[derive(Debug, Clone, PartialEq)]
 pub struct TargetEstimate {
     /// Index of the target in the model.
-    pub target: usize,
+    pub target: TargetId,
     /// The time evaluated (ns).
     pub time_ns: i64,
     /// Its status.
@@ -151,6 +184,22 @@ pub struct LinkStatus {
     pub n_reinitializations: u64,
     /// Time of the newest sample (ns).
     pub last_time_ns: Option<i64>,
+    /// Samples whose measurement group left memory without completing a raw result of any
+    /// target the link serves (since start: a link whose exposures are never within the group
+    /// tolerance of the others' shows here).
+    pub n_ungrouped: u64,
+    /// Samples whose measurement group has left memory, completed or not (since start).
+    pub n_grouped_closed: u64,
+}
+
+impl LinkStatus {
+    /// What is wrong with the link's grouping, when most of its samples (of at least 50 whose
+    /// groups closed) never made a raw result: its exposures are not within the group
+    /// tolerance of the other links' on its targets' paths.
+    pub fn grouping_problem(&self) -> Option<(u64, u64)> {
+        (self.n_grouped_closed >= 50 && 2 * self.n_ungrouped > self.n_grouped_closed)
+            .then_some((self.n_ungrouped, self.n_grouped_closed))
+    }
 }
 
 /// How far a measured link is behind a time (see [`FilterBank::link_lag`]).
@@ -174,10 +223,131 @@ pub struct TargetLiveness {
     pub worst: Option<(LinkId, LinkLag)>,
 }
 
+/// The samples of one instant, within the group tolerance: each link's measurement and its own
+/// exposure time.
 #[derive(Debug, Clone, Default)]
 struct Group {
-    samples: HashMap<LinkId, PoseCov>,
+    samples: HashMap<LinkId, (i64, PoseCov)>,
     emitted: Vec<bool>,
+}
+
+/// How many innovations a target's consistency is judged over.
+const CONSISTENCY_WINDOW: usize = 250;
+
+/// How many innovations a target's consistency needs before it is judged.
+pub const CONSISTENCY_JUDGED_FROM: usize = CONSISTENCY_WINDOW / 2;
+
+/// Two-sided probability of the band a target's mean NIS stays in when its filter fits.
+const CONSISTENCY_PROBABILITY: f64 = 0.999;
+
+/// A target's filter: fed by the target's raw results (see the module docs).
+#[derive(Debug, Clone)]
+struct TargetTrack {
+    filter: LinkFilter,
+    /// Past states, oldest first, each after a fused result or a restart.
+    history: VecDeque<LinkFilter>,
+    /// The tuning the target starts with (the most dynamic of its links').
+    base_tuning: FilterTuning,
+    /// Fits the oscillation from the data (`oscillatory` only).
+    estimator: Option<MotionEstimator>,
+    /// The newest fit in force, if any.
+    fit: Option<MotionFit>,
+    consistency: InnovationWindow,
+}
+
+impl TargetTrack {
+    fn new(tuning: FilterTuning) -> Self {
+        Self {
+            filter: LinkFilter::new(tuning),
+            history: VecDeque::new(),
+            base_tuning: tuning,
+            estimator: (tuning.model == MotionModel::Oscillatory)
+                .then(|| MotionEstimator::new(Bounds::default())),
+            fit: None,
+            consistency: InnovationWindow::new(6, CONSISTENCY_WINDOW, CONSISTENCY_PROBABILITY),
+        }
+    }
+
+    /// Back to the start (a rollback or a reset).
+    fn reset(&mut self) {
+        *self = Self::new(self.base_tuning);
+    }
+
+    /// Feeds one raw result.
+    fn update(&mut self, time_ns: i64, z: &PoseCov) -> Disposition {
+        let disposition = self.filter.update(time_ns, z);
+        match disposition {
+            Disposition::Fused { nis } => self.consistency.push(nis),
+            Disposition::Reinitialized { .. } => {
+                self.history.clear();
+                self.consistency.clear();
+                if let Some(e) = &mut self.estimator {
+                    e.clear();
+                }
+            }
+            _ => {}
+        }
+        if matches!(
+            disposition,
+            Disposition::Initialized
+                | Disposition::Fused { .. }
+                | Disposition::Reinitialized { .. }
+        ) {
+            if let Some(fit) = self.estimator.as_mut().and_then(|e| e.push(time_ns, z)) {
+                self.filter.retune(fit.applied_to(&self.base_tuning));
+                self.fit = Some(fit);
+            }
+            self.history.push_back(self.filter.clone());
+            if self.history.len() > LINK_HISTORY {
+                self.history.pop_front();
+            }
+        }
+        disposition
+    }
+
+    /// The state to evaluate `time_ns` from: the newest at or before it.
+    fn state_for(&self, time_ns: i64) -> Option<&LinkFilter> {
+        if self.filter.time_ns().is_some_and(|t| t <= time_ns) {
+            return Some(&self.filter);
+        }
+        self.history
+            .iter()
+            .rev()
+            .find(|f| f.time_ns().is_some_and(|t| t <= time_ns))
+    }
+}
+
+/// How a target is filtered now: its model, the tuning in force (fitted from the data or as
+/// configured) and since when, and whether its filter fits its data.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TargetTuning {
+    /// The tuning in force.
+    pub tuning: FilterTuning,
+    /// The fit it comes from (`None`: as configured, no fit yet or not adaptive).
+    pub fit: Option<MotionFit>,
+    /// The filter's normalised innovations over the recent window.
+    pub consistency: InnovationReport,
+}
+
+/// The most dynamic motion model of a target's measured links, with that link's tuning: what
+/// the target's own filter starts from.
+fn target_tuning_of(model: &Model, target: TargetId) -> FilterTuning {
+    let rank = |m: MotionModel| match m {
+        MotionModel::Static => 0,
+        MotionModel::ConstantVelocity => 1,
+        MotionModel::Oscillatory => 2,
+    };
+    let mut best: Option<FilterTuning> = None;
+    for path in &model.targets[target.0].resolution.paths {
+        for l in path.links() {
+            if let LinkKind::Measured(m) = &model.links[l.0].kind
+                && best.is_none_or(|b| rank(m.tuning.model) > rank(b.model))
+            {
+                best = Some(m.tuning);
+            }
+        }
+    }
+    best.unwrap_or_else(|| FilterTuning::default_for(MotionModel::Static))
 }
 
 /// A measured link's filter and its recent past states.
@@ -199,6 +369,9 @@ pub struct BankRecord {
     pub counters: Vec<(String, u64, u64, u64, Option<i64>)>,
     /// Per target, by name: the time of the newest filtered result.
     pub frontiers: Vec<(String, i64)>,
+    /// Per target, by name: its own filter's state.
+    #[serde(default)]
+    pub targets: Vec<(String, LinkFilterRecord)>,
 }
 
 /// One filter per measured link of an model.
@@ -212,10 +385,14 @@ pub struct FilterBank {
     calibrations: Vec<Vec<(i64, PoseCov)>>,
     status: Vec<LinkStatus>,
     groups: BTreeMap<i64, Group>,
+    /// How far apart the exposures of one group may be (ns).
+    group_tolerance_ns: i64,
     /// Per link: the targets whose independent paths use it.
-    targets_of_link: Vec<Vec<usize>>,
+    targets_of_link: Vec<Vec<TargetId>>,
     /// Per target: the time of the newest filtered result.
     frontier_ns: Vec<Option<i64>>,
+    /// Per target: its own filter.
+    tracks: Vec<TargetTrack>,
 }
 
 impl FilterBank {
@@ -228,7 +405,7 @@ impl FilterBank {
     pub fn shared(model: Arc<Model>) -> Self {
         let n = model.links.len();
         let mut targets_of_link = vec![Vec::new(); n];
-        for (ti, t) in model.targets.iter().enumerate() {
+        for (ti, t) in model.target_ids() {
             for path in &t.resolution.paths {
                 for l in path.links() {
                     if !targets_of_link[l.0].contains(&ti) {
@@ -268,11 +445,21 @@ impl FilterBank {
                     n_outliers: 0,
                     n_reinitializations: 0,
                     last_time_ns: None,
+                    n_ungrouped: 0,
+                    n_grouped_closed: 0,
                 };
                 n
             ],
             groups: BTreeMap::new(),
+            group_tolerance_ns: model
+                .filter
+                .group_tolerance_ns
+                .unwrap_or_else(|| default_group_tolerance_ns(&model)),
             targets_of_link,
+            tracks: model
+                .target_ids()
+                .map(|(ti, _)| TargetTrack::new(target_tuning_of(&model, ti)))
+                .collect(),
             model,
         }
     }
@@ -297,9 +484,33 @@ impl FilterBank {
             calibrations: self.calibrations.clone(),
             status: self.status.clone(),
             groups: BTreeMap::new(),
+            group_tolerance_ns: self.group_tolerance_ns,
             targets_of_link: self.targets_of_link.clone(),
             frontier_ns: self.frontier_ns.clone(),
+            tracks: self
+                .tracks
+                .iter()
+                .map(|t| TargetTrack {
+                    filter: t.filter.clone(),
+                    history: VecDeque::new(),
+                    base_tuning: t.base_tuning,
+                    // The view evaluates; it does not fit (the window is the writer's).
+                    estimator: None,
+                    fit: t.fit,
+                    consistency: t.consistency.clone(),
+                })
+                .collect(),
         }
+    }
+
+    /// How a target is filtered now (see [`TargetTuning`]).
+    pub fn target_tuning(&self, target: TargetId) -> Option<TargetTuning> {
+        let track = self.tracks.get(target.0)?;
+        Some(TargetTuning {
+            tuning: *track.filter.tuning(),
+            fit: track.fit,
+            consistency: track.consistency.report(),
+        })
     }
 
     /// The measurement model the bank filters.
@@ -307,8 +518,8 @@ impl FilterBank {
         &self.model
     }
 
-    /// Adds a calibration of a calibrated link, valid from `valid_from_ns` (until a later one).
-    /// Returns false for a measured link.
+    /// Adds a calibration of a calibrated link, valid from `valid_from_ns` (until a later one);
+    /// the filters of the targets it serves start again. Returns false for a measured link.
     pub fn add_calibration(
         &mut self,
         link: LinkId,
@@ -319,6 +530,11 @@ impl FilterBank {
             Some(list) if !list.is_empty() => {
                 let at = list.partition_point(|(t, _)| *t <= valid_from_ns);
                 list.insert(at, (valid_from_ns, parent_from_child));
+                // The targets' raw results step with the new calibration: their filters start
+                // again from the next one instead of taking the step for a deformation.
+                for &ti in &self.targets_of_link[link.0] {
+                    self.tracks[ti.0].reset();
+                }
                 true
             }
             _ => false,
@@ -349,9 +565,12 @@ impl FilterBank {
                 n_outliers: 0,
                 n_reinitializations: 0,
                 last_time_ns: None,
+                n_ungrouped: 0,
+                n_grouped_closed: 0,
             };
         }
         self.frontier_ns.iter_mut().for_each(|f| *f = None);
+        self.tracks.iter_mut().for_each(TargetTrack::reset);
         self.groups.clear();
         self.restore(record)
     }
@@ -380,7 +599,7 @@ impl FilterBank {
     }
 
     /// The targets a link's independent paths serve.
-    pub fn targets_of_link(&self, link: LinkId) -> &[usize] {
+    pub fn targets_of_link(&self, link: LinkId) -> &[TargetId] {
         &self.targets_of_link[link.0]
     }
 
@@ -422,9 +641,14 @@ impl FilterBank {
     /// any measured link on any of its paths is behind by more than its limit plus
     /// `tolerance_s`. Links without a sample yet are not stale (they have no data, which the
     /// target's status says).
-    pub fn target_liveness(&self, target: usize, time_ns: i64, tolerance_s: f64) -> TargetLiveness {
+    pub fn target_liveness(
+        &self,
+        target: TargetId,
+        time_ns: i64,
+        tolerance_s: f64,
+    ) -> TargetLiveness {
         let mut worst: Option<(LinkId, LinkLag)> = None;
-        let Some(spec) = self.model.targets.get(target) else {
+        let Some(spec) = self.model.targets.get(target.0) else {
             return TargetLiveness {
                 stale: false,
                 worst,
@@ -536,16 +760,19 @@ impl FilterBank {
             Some(r) => (r, false),
             None => (Vec::new(), true),
         };
+        // Each raw result feeds its target's filter; the target is evaluated at its time.
         let mut filtered_results = Vec::new();
-        for ti in self.targets_of_link[link.0].clone() {
-            let Some(frontier) = self.frontier(ti) else {
-                continue;
-            };
-            if self.frontier_ns[ti].is_some_and(|f| frontier <= f) {
+        for raw in &raw_results {
+            let ti = raw.target;
+            if self.frontier_ns[ti.0].is_some_and(|f| raw.time_ns <= f) {
                 continue;
             }
-            if let Ok(estimate) = self.evaluate(ti, frontier) {
-                self.frontier_ns[ti] = Some(frontier);
+            let d = self.tracks[ti.0].update(raw.time_ns, &raw.target_from_base);
+            if d.is_outlier() || matches!(d, Disposition::OutOfOrder { .. }) {
+                continue;
+            }
+            if let Ok(estimate) = self.evaluate(ti, raw.time_ns) {
+                self.frontier_ns[ti.0] = Some(raw.time_ns);
                 filtered_results.push(estimate);
             }
         }
@@ -562,8 +789,8 @@ impl FilterBank {
 
     /// The time every measured link of the target's available paths has reached: the newest
     /// time at which the target can be evaluated from data rather than prediction.
-    pub fn frontier(&self, target: usize) -> Option<i64> {
-        let spec = &self.model.targets[target];
+    pub fn frontier(&self, target: TargetId) -> Option<i64> {
+        let spec = &self.model.targets[target.0];
         let mut frontier: Option<i64> = None;
         for path in &spec.resolution.paths {
             let mut path_min: Option<i64> = Some(i64::MAX);
@@ -582,48 +809,136 @@ impl FilterBank {
         frontier
     }
 
+    /// How far apart (ns) the exposures of one measurement group may be.
+    pub fn group_tolerance_ns(&self) -> i64 {
+        self.group_tolerance_ns
+    }
+
     /// Adds a sample to its measurement group and returns the raw results it completes, or
     /// `None` when the sample is older than every group kept in memory.
+    ///
+    /// A sample joins the group nearest its time within the group tolerance that has no sample
+    /// of its link yet, else starts one at its own time: the group's time is its first
+    /// sample's. Each sample is brought to the group's time by its link's filter (see
+    /// [`Self::at_group_time`]) when the group is composed.
     fn add_to_group(&mut self, link: LinkId, time_ns: i64, z: PoseCov) -> Option<Vec<RawResult>> {
         let n_targets = self.model.targets.len();
+        let tolerance = self.group_tolerance_ns;
         let oldest_kept = self.groups.keys().next().copied();
         if self.groups.len() >= self.settings.group_window
-            && oldest_kept.is_some_and(|o| time_ns < o)
+            && oldest_kept.is_some_and(|o| time_ns < o.saturating_sub(tolerance))
         {
             // Older than every group still assembled: only the store can complete it.
             return None;
         }
-        let group = self.groups.entry(time_ns).or_insert_with(|| Group {
+        let key = self
+            .groups
+            .range(time_ns.saturating_sub(tolerance)..=time_ns.saturating_add(tolerance))
+            .filter(|(_, g)| !g.samples.contains_key(&link))
+            .min_by_key(|(k, _)| (**k - time_ns).unsigned_abs())
+            .map_or(time_ns, |(k, _)| *k);
+        let group = self.groups.entry(key).or_insert_with(|| Group {
             samples: HashMap::new(),
             emitted: vec![false; n_targets],
         });
-        group.samples.insert(link, z);
-        let group = &self.groups[&time_ns];
-        let out = self.compose_group(link, time_ns, &group.samples, &group.emitted);
-        if let Some(g) = self.groups.get_mut(&time_ns) {
+        group.samples.insert(link, (time_ns, z));
+        let group = &self.groups[&key];
+        let samples = self.at_group_time(key, &group.samples);
+        let out = self.compose_group(link, key, &samples, &group.emitted);
+        if let Some(g) = self.groups.get_mut(&key) {
             for r in &out {
-                g.emitted[r.target] = true;
+                g.emitted[r.target.0] = true;
             }
         }
         while self.groups.len() > self.settings.group_window {
-            self.groups.pop_first();
+            if let Some((_, gone)) = self.groups.pop_first() {
+                self.count_ungrouped(&gone);
+            }
         }
         Some(out)
     }
 
-    /// The raw results of a measurement group given all its samples (`samples`: the
-    /// measurements of every link at `time_ns`, as [`Self::measurement`] makes them), for the
-    /// targets on `link`'s paths that the group completes. For groups too old for memory
-    /// ([`SampleOutcome::needs_stored_group`]): the caller reads the other links' samples of
-    /// that time from the store.
+    /// Counts, for each sample of a group leaving memory, whether the group completed nothing
+    /// its link serves.
+    fn count_ungrouped(&mut self, group: &Group) {
+        for l in group.samples.keys() {
+            self.status[l.0].n_grouped_closed += 1;
+            if !self.targets_of_link[l.0]
+                .iter()
+                .any(|t| group.emitted.get(t.0).copied().unwrap_or(false))
+            {
+                self.status[l.0].n_ungrouped += 1;
+            }
+        }
+    }
+
+    /// The samples of a group brought to the group's time `group_ns`: a sample exposed at
+    /// another time is moved by its link's motion between the two times as the link's filter
+    /// predicts it from its state before both, its covariance widened by what the prediction
+    /// adds over that interval (per axis), so that a raw result composes one instant.
+    /// Without a filter state before both times (a link's first samples) a sample is taken as
+    /// it is.
+    fn at_group_time(
+        &self,
+        group_ns: i64,
+        samples: &HashMap<LinkId, (i64, PoseCov)>,
+    ) -> HashMap<LinkId, PoseCov> {
+        samples
+            .iter()
+            .map(|(&l, &(t, z))| (l, self.moved(l, t, group_ns, z)))
+            .collect()
+    }
+
+    /// Sample `z` of link `l` exposed at `from_ns`, moved to `to_ns` (see
+    /// [`Self::at_group_time`]).
+    fn moved(&self, l: LinkId, from_ns: i64, to_ns: i64, z: PoseCov) -> PoseCov {
+        if from_ns == to_ns {
+            return z;
+        }
+        let Some(slot) = self.measured.get(l.0).and_then(Option::as_ref) else {
+            return z;
+        };
+        let early = from_ns.min(to_ns);
+        let state = if slot.filter.time_ns().is_some_and(|t| t <= early) {
+            Some(&slot.filter)
+        } else {
+            slot.history
+                .iter()
+                .rev()
+                .find(|f| f.time_ns().is_some_and(|t| t <= early))
+        };
+        let predicted = |t: i64| state.and_then(|f| f.predict(t)).and_then(Result::ok);
+        let (Some(at_from), Some(at_to)) = (predicted(from_ns), predicted(to_ns)) else {
+            return z;
+        };
+        let delta = at_to.pose * at_from.pose.inverse();
+        let (earlier, later) = if from_ns < to_ns {
+            (&at_from.cov, &at_to.cov)
+        } else {
+            (&at_to.cov, &at_from.cov)
+        };
+        let added = Mat6::from_diagonal(&(later - earlier).diagonal().map(|v| v.max(0.0)));
+        let ad = adjoint(&delta);
+        PoseCov {
+            pose: delta * z.pose,
+            cov: ad * z.cov * ad.transpose() + added,
+        }
+    }
+
+    /// The raw results of a measurement group at `time_ns` given all its samples (`samples`:
+    /// each link's measurement, as [`Self::measurement`] makes it, with its own exposure time
+    /// within the group tolerance), for the targets on `link`'s paths that the group
+    /// completes. For groups too old for memory ([`SampleOutcome::needs_stored_group`]): the
+    /// caller reads the other links' samples of that instant from the store.
     pub fn raw_results_of_group(
         &self,
         link: LinkId,
         time_ns: i64,
-        samples: &HashMap<LinkId, PoseCov>,
+        samples: &HashMap<LinkId, (i64, PoseCov)>,
     ) -> Vec<RawResult> {
         let none = vec![false; self.model.targets.len()];
-        self.compose_group(link, time_ns, samples, &none)
+        let moved = self.at_group_time(time_ns, samples);
+        self.compose_group(link, time_ns, &moved, &none)
     }
 
     /// Composes, for each target on `link`'s paths not yet `emitted`, the raw result of a
@@ -637,10 +952,10 @@ impl FilterBank {
     ) -> Vec<RawResult> {
         let mut out = Vec::new();
         for &ti in &self.targets_of_link[link.0] {
-            if emitted[ti] {
+            if emitted[ti.0] {
                 continue;
             }
-            let target = &self.model.targets[ti];
+            let target = &self.model.targets[ti.0];
             let mut estimates = Vec::new();
             let mut complete = true;
             for path in &target.resolution.paths {
@@ -716,8 +1031,8 @@ impl FilterBank {
     }
 
     /// The newest time any filter of the target's paths has reached (ns).
-    pub fn latest_time_ns(&self, target: usize) -> Option<i64> {
-        self.model.targets[target]
+    pub fn latest_time_ns(&self, target: TargetId) -> Option<i64> {
+        self.model.targets[target.0]
             .resolution
             .paths
             .iter()
@@ -740,7 +1055,8 @@ impl FilterBank {
         slot.recent_times.clear();
         self.status[link.0].last_time_ns = None;
         for &ti in &self.targets_of_link[link.0] {
-            self.frontier_ns[ti] = None;
+            self.frontier_ns[ti.0] = None;
+            self.tracks[ti.0].reset();
         }
         self.groups.clear();
         true
@@ -781,6 +1097,16 @@ impl FilterBank {
                 .enumerate()
                 .filter_map(|(i, f)| f.map(|f| (self.model.targets[i].name.clone(), f)))
                 .collect(),
+            targets: self
+                .tracks
+                .iter()
+                .enumerate()
+                .filter_map(|(i, t)| {
+                    t.filter
+                        .record()
+                        .map(|r| (self.model.targets[i].name.clone(), r))
+                })
+                .collect(),
         }
     }
 
@@ -813,6 +1139,9 @@ impl FilterBank {
                     n_outliers: *o,
                     n_reinitializations: *re,
                     last_time_ns: *last,
+                    // Counted since start: groups are not kept across restarts.
+                    n_ungrouped: 0,
+                    n_grouped_closed: 0,
                 };
             }
         }
@@ -821,17 +1150,32 @@ impl FilterBank {
                 self.frontier_ns[i] = Some(*f);
             }
         }
+        for (name, r) in &record.targets {
+            let Some(ti) = self.model.target_id(name) else {
+                skipped.push(format!("target `{name}` is no longer in the installation"));
+                continue;
+            };
+            let track = &mut self.tracks[ti.0];
+            match LinkFilter::restore(track.base_tuning, r) {
+                Ok(f) => {
+                    track.history.clear();
+                    track.history.push_back(f.clone());
+                    track.filter = f;
+                }
+                Err(e) => skipped.push(format!("target `{name}`: {e}")),
+            }
+        }
         skipped
     }
 
     /// Evaluates a target at `time_ns`: predicts every measured link of its paths to that
     /// time, composes each path with covariance and fuses the paths that have data.
-    pub fn evaluate(&self, target: usize, time_ns: i64) -> Result<TargetEstimate, FilterError> {
+    pub fn evaluate(&self, target: TargetId, time_ns: i64) -> Result<TargetEstimate, FilterError> {
         let spec = self
             .model
             .targets
-            .get(target)
-            .ok_or_else(|| FilterError::UnknownTarget(target.to_string()))?;
+            .get(target.0)
+            .ok_or_else(|| FilterError::UnknownTarget(target.0.to_string()))?;
         let mut estimates = Vec::new();
         let mut newest_ns: Option<i64> = None;
         let mut stale = false;
@@ -873,6 +1217,15 @@ impl FilterBank {
             });
         }
         let fused = fuse(&estimates, self.settings.consistency_probability)?;
+        // The target's own filter where it has a state for that time; before its first raw
+        // result, the composition of the filtered links.
+        let pose = match self.tracks[target.0]
+            .state_for(time_ns)
+            .and_then(|f| f.predict(time_ns))
+        {
+            Some(Ok(p)) => p,
+            _ => fused.estimate,
+        };
         let age_s = newest_ns.map_or(0.0, |n| ((time_ns - n) as f64 / NS_PER_S).max(0.0));
         let inconsistent = fused.consistency.is_some_and(|c| !c.is_consistent());
         let status = if stale {
@@ -888,7 +1241,7 @@ impl FilterBank {
             target,
             time_ns,
             status,
-            target_from_base: Some(fused.estimate),
+            target_from_base: Some(pose),
             age_s,
             consistency: fused.consistency,
             paths_used,

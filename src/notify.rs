@@ -141,7 +141,7 @@ impl Webhooks {
         let clock = service.clock();
         tasks.push(service.spawn_watched("webhook dispatch", async move {
             while let Some(alarm) = feed.recv().await {
-                let Some(name) = names.get(alarm.target) else {
+                let Some(name) = names.get(alarm.target.0) else {
                     continue;
                 };
                 let body = match encode(name, &alarm) {

@@ -273,6 +273,7 @@ pub fn render(sources: &Sources<'_>) -> String {
     struct LinkRow {
         samples: u64,
         outliers: u64,
+        ungrouped: u64,
         rate_hz: Option<f64>,
         behind_s: Option<f64>,
         age_s: Option<f64>,
@@ -288,6 +289,7 @@ pub fn render(sources: &Sources<'_>) -> String {
             let row = LinkRow {
                 samples: st.n_samples,
                 outliers: st.n_outliers,
+                ungrouped: st.n_ungrouped,
                 rate_hz: bank.observed_rate_hz(l.id),
                 behind_s: newest
                     .and_then(|n| bank.link_lag(l.id, n))
@@ -301,7 +303,7 @@ pub fn render(sources: &Sources<'_>) -> String {
             (l.name.as_str(), row)
         })
         .collect();
-    let link_families: [Family<LinkRow>; 6] = [
+    let link_families: [Family<LinkRow>; 7] = [
         (
             "brokenray_link_samples_total",
             "counter",
@@ -313,6 +315,12 @@ pub fn render(sources: &Sources<'_>) -> String {
             "counter",
             "Outliers of a measured link.",
             |r| Some(r.outliers as f64),
+        ),
+        (
+            "brokenray_link_samples_ungrouped_total",
+            "counter",
+            "Samples of a measured link whose measurement group closed without a raw result (since start).",
+            |r| Some(r.ungrouped as f64),
         ),
         (
             "brokenray_link_rate_hz",
@@ -345,7 +353,7 @@ pub fn render(sources: &Sources<'_>) -> String {
         "gauge",
         "Seconds from a target's newest filtered result to now on the server's clock, labelled with its status now.",
     );
-    for (i, t) in inst.model.targets.iter().enumerate() {
+    for (i, t) in inst.model.target_ids() {
         let now = snapshot.target_now(i, now_ns, tolerance_s);
         if let Some(age_s) = now.age_s {
             out.sample(

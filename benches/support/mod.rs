@@ -21,7 +21,7 @@ pub async fn fill_filtered_results(inst: &Installation, n: i64) {
             .map(|k| {
                 let t = k as f64 / 25.0;
                 NewResult {
-                    target: 0,
+                    target: brokenray::model::TargetId(0),
                     source: ResultSource::Filtered,
                     time_ns: T0 + k * PERIOD_NS,
                     estimate: PoseCov {

@@ -119,6 +119,7 @@ pub(super) async fn alarms_of(
             names
                 .iter()
                 .position(|n| n == name)
+                .map(crate::model::TargetId)
                 .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))?,
         ),
         None => None,
@@ -135,7 +136,7 @@ pub(super) async fn alarms_of(
     Ok(AlarmsOut {
         alarms: stored
             .iter()
-            .map(|a| AlarmOut::new(names[a.target].clone(), a))
+            .map(|a| AlarmOut::new(names[a.target.0].clone(), a))
             .collect(),
     })
 }
@@ -178,7 +179,7 @@ pub(super) async fn post_ack(
     }
     super::check_texts(&[("by", Some(&ack.by)), ("note", ack.note.as_deref())])?;
     let stored = app.service.acknowledge_alarm(id, ack.by, ack.note).await?;
-    let name = app.service.installation().model.targets[stored.target]
+    let name = app.service.installation().model.targets[stored.target.0]
         .name
         .clone();
     Ok(Json(AlarmOut::new(name, &stored)))

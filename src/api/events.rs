@@ -33,7 +33,7 @@ pub(super) async fn get_events(
                 estimate,
                 reference,
             }) => {
-                let spec = app.service.installation().model.targets[target].clone();
+                let spec = app.service.installation().model.targets[target.0].clone();
                 let body = super::targets::live_compensation(
                     &app,
                     &spec,
@@ -48,7 +48,7 @@ pub(super) async fn get_events(
                 Some((Ok(event), (rx, app, stop)))
             }
             Ok(LiveEvent::Alarm(alarm)) => {
-                let name = app.service.installation().model.targets[alarm.target]
+                let name = app.service.installation().model.targets[alarm.target.0]
                     .name
                     .clone();
                 let body = super::alarms::AlarmOut::new(name, &alarm);

@@ -41,6 +41,10 @@ pub(super) struct LinkOut {
     pub n_samples: u64,
     /// Of which outliers.
     pub n_outliers: u64,
+    /// Samples whose measurement group left memory without a raw result of any target the
+    /// link serves, since the service started (exposures not within `[filter]
+    /// group_tolerance_ms` of the other links').
+    pub n_ungrouped: u64,
     /// Filter restarts after consistent outlier runs.
     pub n_reinitializations: u64,
     /// Newest sample time.
@@ -167,6 +171,7 @@ pub(super) async fn list_links(
                     model,
                     n_samples: st.n_samples,
                     n_outliers: st.n_outliers,
+                    n_ungrouped: st.n_ungrouped,
                     n_reinitializations: st.n_reinitializations,
                     last_time: st.last_time_ns.map(format_ns),
                     age_s: st.last_time_ns.map(|t| (now_ns - t) as f64 / 1e9),

@@ -196,6 +196,17 @@ pub struct HealthOut {
     /// why; the other sites' went on. The answer stays 200.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub centre_problem: Option<String>,
+    /// Measured links most of whose samples never make a measurement group with the other
+    /// links of their targets (exposures farther apart than `[filter] group_tolerance_ms`):
+    /// no raw results are formed from them. The filtered results go on: the answer stays 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grouping_problem: Option<String>,
+    /// Targets whose filter no longer fits its data: the mean normalised innovation of its
+    /// recent results is outside the band a fitting filter stays in (a motion model that
+    /// does not suit the structure, or measurement sigmas set too small). The results go on,
+    /// their sigmas not to be trusted: the answer stays 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub filter_problem: Option<String>,
     /// The background tasks (uploader, webhook delivery, retention, liveness, the centre's
     /// upkeep) that stopped while the service runs, and why. The service must be restarted:
     /// the answer is 503.
@@ -246,13 +257,54 @@ async fn healthz(
     let snapshot = app.service.snapshot();
     let now_ns = app.service.now_ns();
     let inst = app.service.installation();
+    let grouping: Vec<String> = inst
+        .model
+        .links
+        .iter()
+        .filter_map(|l| {
+            let (ungrouped, closed) = snapshot.bank.link_status(l.id).grouping_problem()?;
+            Some(format!(
+                "link `{}`: {ungrouped} of its {closed} samples since the start made no measurement group \
+                 (exposures more than {:.1} ms from the other links'; set [filter] \
+                 group_tolerance_ms or synchronise the cameras)",
+                l.name,
+                snapshot.bank.group_tolerance_ns() as f64 / 1e6
+            ))
+        })
+        .collect();
+    let grouping_problem = (!grouping.is_empty()).then(|| grouping.join("; "));
+    let filtering: Vec<String> = inst
+        .model
+        .target_ids()
+        .filter_map(|(ti, t)| {
+            let tuning = snapshot.bank.target_tuning(ti)?;
+            let c = tuning.consistency;
+            (c.samples >= crate::bank::CONSISTENCY_JUDGED_FROM && !c.fits()).then(|| {
+                format!(
+                    "target `{}`: mean normalised innovation {:.1} over its last {} results, \
+                     outside the {:.1} to {:.1} a filter that fits its data stays in (model `{}`)",
+                    t.name,
+                    c.mean_nis,
+                    c.samples,
+                    c.band.0,
+                    c.band.1,
+                    tuning.tuning.model.name()
+                )
+            })
+        })
+        .collect();
+    let filter_problem = (!filtering.is_empty()).then(|| filtering.join("; "));
     let targets = inst
         .model
         .targets
         .iter()
         .enumerate()
         .map(|(i, t)| {
-            let now = snapshot.target_now(i, now_ns, inst.server.clock_tolerance_s);
+            let now = snapshot.target_now(
+                crate::model::TargetId(i),
+                now_ns,
+                inst.server.clock_tolerance_s,
+            );
             (
                 t.name.clone(),
                 TargetHealthOut {
@@ -280,6 +332,8 @@ async fn healthz(
             upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
             storage_problem: app.service.storage_problem(),
             tasks_problem,
+            grouping_problem,
+            filter_problem,
             centre_problem: app
                 .upkeep_problem
                 .lock()
@@ -452,6 +506,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(targets::get_stats))
         .routes(routes!(targets::get_history))
         .routes(routes!(targets::get_reference, targets::post_reference))
+        .routes(routes!(targets::get_filter))
         .routes(routes!(targets::list_references))
         .routes(routes!(events::get_events))
         .routes(routes!(alarms::list_alarms))

@@ -22,6 +22,7 @@ use super::targets::{
 use crate::bank::{ResultSource, TargetStatus};
 use crate::clock::parse_query_time;
 use crate::fleet::protocol::{SiteStatus, TargetDescription};
+use crate::model::TargetId;
 use crate::store::Store;
 use axum::Json;
 use axum::extract::{Path, State};
@@ -37,11 +38,12 @@ struct SiteView {
 
 impl SiteView {
     /// The described target `name`: its index and description, or 404.
-    fn target(&self, site: &str, name: &str) -> Result<(usize, &TargetDescription), ApiError> {
+    fn target(&self, site: &str, name: &str) -> Result<(TargetId, &TargetDescription), ApiError> {
         self.status
             .described
             .iter()
             .enumerate()
+            .map(|(i, d)| (TargetId(i), d))
             .find(|(_, d)| d.name == name)
             .ok_or_else(|| {
                 ApiError::not_found(format!(
@@ -104,7 +106,10 @@ pub(super) async fn list_site_targets(
     let view = site_view(&app, &site).await?;
     let mut out = Vec::with_capacity(view.status.described.len());
     for (i, d) in view.status.described.iter().enumerate() {
-        let latest = view.store.latest_result(i, ResultSource::Filtered).await?;
+        let latest = view
+            .store
+            .latest_result(TargetId(i), ResultSource::Filtered)
+            .await?;
         let status = view
             .reported_status(&d.name)
             .or(latest.as_ref().map(|l| l.status))

@@ -9,6 +9,7 @@ use crate::clock::{format_ns, parse_query_time};
 use crate::deformation::ReferenceVersion;
 use crate::deformation::{Deformation, ReferenceOrigin};
 use crate::geometry::PoseCov;
+use crate::model::TargetId;
 use crate::model::TargetSpec;
 use crate::service::ReferenceRequest;
 use axum::Json;
@@ -16,13 +17,11 @@ use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use serde::{Deserialize, Serialize};
 
-pub(super) fn target_index(app: &AppState, name: &str) -> Result<(usize, TargetSpec), ApiError> {
+pub(super) fn target_index(app: &AppState, name: &str) -> Result<(TargetId, TargetSpec), ApiError> {
     app.service
         .installation()
         .model
-        .targets
-        .iter()
-        .enumerate()
+        .target_ids()
         .find(|(_, t)| t.name == name)
         .map(|(i, t)| (i, t.clone()))
         .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))
@@ -273,7 +272,7 @@ impl Evaluated {
 /// 404 before the first.
 pub(super) async fn from_history(
     store: &crate::store::Store,
-    ti: usize,
+    ti: TargetId,
     name: &str,
     at_ns: i64,
 ) -> Result<Evaluated, ApiError> {
@@ -400,7 +399,7 @@ pub(super) fn compensation_out(
 
 /// A live result judged now on the server's clock (status `stale` when a link of the target
 /// stopped, the age from the result's time to now).
-fn live(app: &AppState, ti: usize, estimate: &TargetEstimate) -> Evaluated {
+fn live(app: &AppState, ti: TargetId, estimate: &TargetEstimate) -> Evaluated {
     let now = app.service.snapshot().judge(
         ti,
         Some(estimate),
@@ -418,7 +417,7 @@ fn live(app: &AppState, ti: usize, estimate: &TargetEstimate) -> Evaluated {
 pub(super) fn live_compensation(
     app: &AppState,
     spec: &TargetSpec,
-    ti: usize,
+    ti: TargetId,
     estimate: &TargetEstimate,
     reference: Option<&ReferenceVersion>,
 ) -> CompensationOut {
@@ -455,7 +454,7 @@ pub(super) async fn get_compensation(
     let (ti, spec) = target_index(&app, &name)?;
     let target = Described::of(&app, &spec);
     let snapshot = app.service.snapshot();
-    let view = &snapshot.targets[ti];
+    let view = &snapshot.targets[ti.0];
     let reference = view.reference.as_ref();
     let Some(at) = q.at else {
         return Ok(Json(match &view.latest {
@@ -580,7 +579,7 @@ pub(super) async fn get_stats(
 pub(super) async fn stats_of(
     app: &AppState,
     store: &crate::store::Store,
-    ti: usize,
+    ti: TargetId,
     name: String,
     q: &WindowQuery,
 ) -> Result<StatsOut, ApiError> {
@@ -676,11 +675,86 @@ pub(super) async fn get_reference(
 ) -> Result<Json<ReferenceOut>, ApiError> {
     let (ti, _) = target_index(&app, &name)?;
     let snapshot = app.service.snapshot();
-    snapshot.targets[ti]
+    snapshot.targets[ti.0]
         .reference
         .as_ref()
         .map(|r| Json(r.into()))
         .ok_or_else(|| ApiError::not_found(format!("target `{name}` has no reference yet")))
+}
+
+/// `GET .../filter`: how the target is filtered now.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub(super) struct TargetFilterOut {
+    /// Target.
+    pub target: String,
+    /// The motion model (the most dynamic of the target's measured links').
+    pub model: crate::filter::MotionModel,
+    /// Whether the tuning below was fitted from the target's own results (`true`) or is the
+    /// configured one (`false`: not adaptive, or too little data yet).
+    pub fitted: bool,
+    /// Measurement time of the fit in force, when fitted.
+    pub since: Option<String>,
+    /// Raw results the fit used.
+    pub fit_samples: Option<usize>,
+    /// The oscillation's period (s).
+    pub oscillation_period_s: f64,
+    /// The oscillation's stationary sigma per axis, rotation (arc-seconds).
+    pub oscillation_rotation_arcsec: [f64; 3],
+    /// The oscillation's stationary sigma per axis, translation (mm).
+    pub oscillation_translation_mm: [f64; 3],
+    /// The mean's random walk, rotation (arc-seconds per square-root second).
+    pub drift_rotation_arcsec_per_sqrt_s: f64,
+    /// The mean's random walk, translation (mm per square-root second).
+    pub drift_translation_mm_per_sqrt_s: f64,
+    /// Mean normalised innovation squared of the recent results (6 when the filter fits).
+    pub mean_nis: Option<f64>,
+    /// How many results that mean is over.
+    pub nis_samples: usize,
+    /// The band a fitting filter's mean stays in (99.9 %).
+    pub nis_band: [f64; 2],
+    /// False when the mean is outside its band: the model or its tuning does not fit the data.
+    pub consistent: bool,
+}
+
+/// `GET /api/v1/targets/{name}/filter`.
+#[utoipa::path(get, path = "/targets/{name}/filter", tag = "targets",
+    params(("name" = String, Path, description = "Target frame")),
+    responses(
+        (status = 200, description = "The target filter's model, its tuning (fitted from the data or configured) and its consistency", body = TargetFilterOut),
+        (status = 404, description = "Unknown target", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub(super) async fn get_filter(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+) -> Result<Json<TargetFilterOut>, ApiError> {
+    let (ti, _) = target_index(&app, &name)?;
+    let snapshot = app.service.snapshot();
+    let t = snapshot
+        .bank
+        .target_tuning(ti)
+        .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))?;
+    let o = &t.tuning.oscillation;
+    Ok(Json(TargetFilterOut {
+        target: name,
+        model: t.tuning.model,
+        fitted: t.fit.is_some(),
+        since: t.fit.map(|f| format_ns(f.time_ns)),
+        fit_samples: t.fit.map(|f| f.samples),
+        oscillation_period_s: o.period_s,
+        oscillation_rotation_arcsec: o.rotation_arcsec,
+        oscillation_translation_mm: o.translation_mm,
+        drift_rotation_arcsec_per_sqrt_s: t.tuning.random_walk_rotation_arcsec_per_sqrt_s,
+        drift_translation_mm_per_sqrt_s: t.tuning.random_walk_translation_mm_per_sqrt_s,
+        mean_nis: t
+            .consistency
+            .mean_nis
+            .is_finite()
+            .then_some(t.consistency.mean_nis),
+        nis_samples: t.consistency.samples,
+        nis_band: [t.consistency.band.0, t.consistency.band.1],
+        consistent: t.consistency.fits(),
+    }))
 }
 
 /// `GET .../references`.
@@ -713,7 +787,7 @@ pub(super) async fn list_references(
 /// Every reference version of target `ti` of `store`, named `name`, oldest first.
 pub(super) async fn references_of(
     store: &crate::store::Store,
-    ti: usize,
+    ti: TargetId,
     name: String,
 ) -> Result<ReferencesOut, ApiError> {
     let stored = store.references(ti).await?;
@@ -803,7 +877,7 @@ pub(super) async fn get_history(
 pub(super) async fn history_of(
     app: &AppState,
     store: &crate::store::Store,
-    ti: usize,
+    ti: TargetId,
     name: &str,
     q: HistoryQuery,
 ) -> Result<axum::response::Response, ApiError> {

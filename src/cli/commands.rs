@@ -25,9 +25,7 @@ pub(super) fn replay(
         Some(name) => vec![
             installation
                 .model
-                .targets
-                .iter()
-                .position(|t| t.name == name)
+                .target_id(name)
                 .ok_or_else(|| anyhow::anyhow!("--target: unknown target `{name}`"))?,
         ],
     };

@@ -90,6 +90,7 @@ pub(super) struct RawFilter {
     pub reinit_after_outliers: Option<usize>,
     pub stale_after_periods: Option<f64>,
     pub consistency_probability: Option<f64>,
+    pub group_tolerance_ms: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, Deserialize)]

@@ -522,10 +522,21 @@ impl Validator {
         if f.reinit_after_outliers == Some(0) {
             self.problem(at, "filter.reinit_after_outliers must be at least 1".into());
         }
+        let tolerance_ok = match f.group_tolerance_ms {
+            Some(ms) if !(0.0..=10_000.0).contains(&ms) => {
+                self.problem(
+                    at,
+                    format!("filter.group_tolerance_ms must be from 0 to 10000 (got {ms})"),
+                );
+                false
+            }
+            _ => true,
+        };
         gate?;
-        (stale_ok && f.reinit_after_outliers != Some(0)).then_some(BankSettings {
+        (stale_ok && tolerance_ok && f.reinit_after_outliers != Some(0)).then_some(BankSettings {
             stale_after_periods: stale,
             consistency_probability: consistency?,
+            group_tolerance_ns: f.group_tolerance_ms.map(|ms| (ms * 1e6).round() as i64),
             ..defaults
         })
     }

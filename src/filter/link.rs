@@ -139,6 +139,15 @@ impl LinkFilter {
         &self.tuning
     }
 
+    /// Changes the tuning from now on, keeping the state: the process noise of the next
+    /// prediction is the new tuning's. The motion model cannot change (its state differs).
+    pub fn retune(&mut self, tuning: FilterTuning) {
+        if tuning.model == self.tuning.model {
+            self.gate = chi_square_quantile(6, tuning.gate_probability);
+            self.tuning = tuning;
+        }
+    }
+
     /// The gate on the normalised innovation squared.
     pub fn gate(&self) -> f64 {
         self.gate

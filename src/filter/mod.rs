@@ -25,9 +25,12 @@
 //!
 //! Time is integer nanoseconds of the measurement, never the wall clock.
 
+mod adapt;
 mod kalman;
 mod link;
 mod tuning;
+
+pub use adapt::{Bounds, InnovationReport, InnovationWindow, MotionEstimator, MotionFit};
 
 pub use link::{
     CV_RATE_PRIOR_S, Disposition, DispositionKind, LinkFilter, LinkFilterRecord, OutlierRecord,

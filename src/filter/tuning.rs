@@ -129,6 +129,9 @@ pub struct BankSettings {
     pub consistency_probability: f64,
     /// How many recent timestamps are kept to assemble measurement groups into raw results.
     pub group_window: usize,
+    /// How far apart (ns) the exposures of one measurement group may be; `None`: half the
+    /// shortest expected period of the measured links.
+    pub group_tolerance_ns: Option<i64>,
 }
 
 impl Default for BankSettings {
@@ -137,6 +140,7 @@ impl Default for BankSettings {
             stale_after_periods: 5.0,
             consistency_probability: 0.999,
             group_window: 64,
+            group_tolerance_ns: None,
         }
     }
 }

@@ -182,7 +182,11 @@ fn site_status(service: &Service, described: &[super::protocol::TargetDescriptio
             .iter()
             .enumerate()
             .map(|(i, t)| {
-                let now = snapshot.target_now(i, now_ns, inst.server.clock_tolerance_s);
+                let now = snapshot.target_now(
+                    crate::model::TargetId(i),
+                    now_ns,
+                    inst.server.clock_tolerance_s,
+                );
                 let view = &snapshot.targets[i];
                 TargetStatus {
                     name: t.name.clone(),

@@ -29,6 +29,11 @@ use crate::filter::{BankSettings, FilterTuning};
 use crate::geometry::{Pose, PoseCov, ReportedSigmas};
 use crate::vision::{CameraModel, Polarity};
 
+/// Index of a target in a [`Model`]'s `targets`: what the bank, the store and the service
+/// call a target by.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct TargetId(pub usize);
+
 /// The measurement model of one installation.
 #[derive(Debug, Clone)]
 pub struct Model {
@@ -173,6 +178,22 @@ impl Model {
     /// The target with this name.
     pub fn target(&self, name: &str) -> Option<&TargetSpec> {
         self.targets.iter().find(|t| t.name == name)
+    }
+
+    /// The id of the target with this name.
+    pub fn target_id(&self, name: &str) -> Option<TargetId> {
+        self.targets
+            .iter()
+            .position(|t| t.name == name)
+            .map(TargetId)
+    }
+
+    /// Every target's id, with its settings, in the installation's order.
+    pub fn target_ids(&self) -> impl Iterator<Item = (TargetId, &TargetSpec)> {
+        self.targets
+            .iter()
+            .enumerate()
+            .map(|(i, t)| (TargetId(i), t))
     }
 
     /// The camera on this frame.

@@ -8,6 +8,7 @@
 use super::{IngestItem, IngestReport, Pruned, ReferenceRequest, ServiceError, ServiceResult};
 use crate::chain::LinkId;
 use crate::geometry::PoseCov;
+use crate::model::TargetId;
 use tokio::sync::oneshot;
 
 /// A request to the writer, its reply channel, and the answer it will give.
@@ -47,7 +48,7 @@ impl<R, A> Call<R, A> {
 
 /// A new reference for a target.
 pub(crate) struct SetReference {
-    pub(crate) target: usize,
+    pub(crate) target: TargetId,
     pub(crate) request: ReferenceRequest,
 }
 

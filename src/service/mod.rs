@@ -15,6 +15,7 @@
 mod job;
 mod metrics;
 use crate::deformation::ReferenceVersion;
+use crate::model::TargetId;
 use job::Job;
 mod pipeline;
 mod tasks;
@@ -114,7 +115,7 @@ pub enum LiveEvent {
     /// A new filtered result of a target (rate-limited per target).
     Result {
         /// Target index.
-        target: usize,
+        target: TargetId,
         /// The result.
         estimate: TargetEstimate,
         /// The reference in force.
@@ -172,8 +173,8 @@ crate::words! {
 impl Snapshot {
     /// Target `ti` at `now_ns` on the server's clock, with `tolerance_s` of skew allowed: its
     /// newest result judged by [`Self::judge`].
-    pub fn target_now(&self, ti: usize, now_ns: i64, tolerance_s: f64) -> TargetNow {
-        let latest = self.targets.get(ti).and_then(|t| t.latest.as_ref());
+    pub fn target_now(&self, ti: TargetId, now_ns: i64, tolerance_s: f64) -> TargetNow {
+        let latest = self.targets.get(ti.0).and_then(|t| t.latest.as_ref());
         self.judge(ti, latest, now_ns, tolerance_s)
     }
 
@@ -182,7 +183,7 @@ impl Snapshot {
     /// `tolerance_s`), and its age from the result's time to now.
     pub fn judge(
         &self,
-        ti: usize,
+        ti: TargetId,
         result: Option<&TargetEstimate>,
         now_ns: i64,
         tolerance_s: f64,
@@ -384,7 +385,7 @@ impl Service {
             }
         }
         let mut targets = Vec::with_capacity(installation.model.targets.len());
-        for (ti, _) in installation.model.targets.iter().enumerate() {
+        for (ti, _) in installation.model.target_ids() {
             let reference = store.references(ti).await?.pop();
             let latest = store
                 .latest_result(ti, crate::bank::ResultSource::Filtered)
@@ -400,7 +401,7 @@ impl Service {
                 });
             let [deformation, rate, stale] = store.alarm_levels(ti).await?;
             let alarms = crate::alarms::AlarmMonitor::new(
-                installation.model.targets[ti].alarms,
+                installation.model.targets[ti.0].alarms,
                 deformation,
                 rate,
                 stale,
@@ -644,7 +645,7 @@ impl Service {
     /// Sets a target's reference (a new version).
     pub async fn set_reference(
         &self,
-        target: usize,
+        target: TargetId,
         request: ReferenceRequest,
     ) -> ServiceResult<ReferenceVersion> {
         self.submit(job::SetReference { target, request }, Job::SetReference)

@@ -9,6 +9,7 @@ use crate::chain::LinkId;
 use crate::deformation::ReferenceVersion;
 use crate::deformation::{Deformation, Reference};
 use crate::filter::Disposition;
+use crate::model::TargetId;
 use crate::store::WriteTx;
 use crate::store::outbox::KeepUnsent;
 use crate::store::{
@@ -161,7 +162,7 @@ async fn apply_reference(
             .viz_records
             .push(crate::viz::Record::Reference {
                 target: r.target,
-                time_ns: step.targets[r.target]
+                time_ns: step.targets[r.target.0]
                     .latest
                     .as_ref()
                     .map_or(step.now, |l| l.time_ns),
@@ -339,11 +340,12 @@ impl Pipeline {
     fn publish_events(&mut self) {
         let min_interval_ns = (1e9 / self.events_max_hz) as i64;
         for (ti, view) in self.targets.iter().enumerate() {
+            let ti = TargetId(ti);
             let Some(latest) = &view.latest else { continue };
-            if self.last_event_ns[ti].is_some_and(|t| latest.time_ns < t + min_interval_ns) {
+            if self.last_event_ns[ti.0].is_some_and(|t| latest.time_ns < t + min_interval_ns) {
                 continue;
             }
-            self.last_event_ns[ti] = Some(latest.time_ns);
+            self.last_event_ns[ti.0] = Some(latest.time_ns);
             let _ = self.events.send(super::LiveEvent::Result {
                 target: ti,
                 estimate: latest.clone(),
@@ -557,7 +559,7 @@ pub(super) async fn run(
 /// Stores alarm transitions `(target, transition)`; returns them with their ids.
 async fn store_alarms(
     tx: &mut WriteTx<'_>,
-    raised: Vec<(usize, crate::alarms::Transition)>,
+    raised: Vec<(TargetId, crate::alarms::Transition)>,
     now: i64,
 ) -> Result<Vec<StoredAlarm>, StoreError> {
     let mut out = Vec::with_capacity(raised.len());
@@ -579,10 +581,11 @@ fn judge_liveness(
     targets: &mut [TargetView],
     now_ns: i64,
     tolerance_s: f64,
-) -> Vec<(usize, crate::alarms::Transition)> {
+) -> Vec<(TargetId, crate::alarms::Transition)> {
     let model = bank.model();
     let mut out = Vec::new();
     for (ti, view) in targets.iter_mut().enumerate() {
+        let ti = TargetId(ti);
         let Some((link, lag)) = bank.target_liveness(ti, now_ns, tolerance_s).worst else {
             continue;
         };
@@ -609,10 +612,10 @@ fn nis_of(d: &Disposition) -> Option<f64> {
 
 fn deformation_of(
     targets: &[TargetView],
-    target: usize,
+    target: TargetId,
     estimate: &crate::geometry::PoseCov,
 ) -> Option<(i64, crate::deformation::SmallMotion)> {
-    let r = targets[target].reference?;
+    let r = targets[target.0].reference?;
     Some((
         r.version,
         Deformation::new(&r.reference, estimate).deformation(),
@@ -729,9 +732,9 @@ async fn ingest(
     // Filter in time order, links in a fixed order within one time.
     fresh.sort_by_key(|(item, _, _)| (item.sample.time_ns, item.sample.link));
     let mut sample_rows = Vec::with_capacity(fresh.len());
-    let mut result_rows: BTreeMap<(usize, ResultSource, i64), NewResult> = BTreeMap::new();
-    let mut latest: HashMap<usize, TargetEstimate> = HashMap::new();
-    let mut transitions: Vec<(usize, crate::alarms::Transition)> = Vec::new();
+    let mut result_rows: BTreeMap<(TargetId, ResultSource, i64), NewResult> = BTreeMap::new();
+    let mut latest: HashMap<TargetId, TargetEstimate> = HashMap::new();
+    let mut transitions: Vec<(TargetId, crate::alarms::Transition)> = Vec::new();
     // Samples too old for the groups kept in memory (a backfill): their groups are completed
     // from this job's samples and the store's after the loop.
     let mut stored_groups: Vec<(LinkId, i64, crate::geometry::PoseCov)> = Vec::new();
@@ -831,7 +834,7 @@ async fn ingest(
             );
             let magnitudes = deformation
                 .map(|(_, d)| (d.rotation_magnitude_arcsec(), d.translation_magnitude_mm()));
-            for t in targets[est.target]
+            for t in targets[est.target.0]
                 .alarms
                 .update(est.time_ns, &pose.pose, magnitudes)
             {
@@ -840,34 +843,57 @@ async fn ingest(
             latest.insert(est.target, est);
         }
     }
-    // Backfilled groups: the other links' samples of the same time come from this job or the
-    // store. A group completes once, when its last sample arrives.
-    // This job's samples of each such time (all of them needed the store too: a group's samples
-    // are adjacent in time order, so the bank decided the same for each), then the store's.
-    let mut by_time: HashMap<i64, HashMap<LinkId, crate::geometry::PoseCov>> = HashMap::new();
-    for (link, time_ns, z) in &stored_groups {
-        by_time.entry(*time_ns).or_default().insert(*link, *z);
-    }
-    for &(link, time_ns, _) in &stored_groups {
-        let mut group = by_time.get(&time_ns).cloned().unwrap_or_default();
+    // Backfilled groups: the other links' samples of the same instant (within the group
+    // tolerance) come from this job or the store. A group completes once, when its last
+    // sample arrives: from this job's latest sample of it (ties: the highest link id), at its
+    // earliest sample's time.
+    let tolerance = bank.group_tolerance_ns();
+    for &(link, time_ns, z) in &stored_groups {
+        let mut group: HashMap<LinkId, (i64, crate::geometry::PoseCov)> = HashMap::new();
+        group.insert(link, (time_ns, z));
+        let mut latest_of_job = (time_ns, link);
         for (l, spec) in bank.model().links.iter().enumerate() {
             let l = LinkId(l);
-            if group.contains_key(&l) || !matches!(spec.kind, crate::model::LinkKind::Measured(_)) {
+            if l == link || !matches!(spec.kind, crate::model::LinkKind::Measured(_)) {
                 continue;
             }
-            if let Some((_, v)) = tx.existing_samples(l, time_ns, time_ns).await?.first() {
-                let sample = crate::bank::Sample {
-                    link: l,
-                    time_ns,
-                    parent_from_child: v.pose,
-                    uncertainty: v.uncertainty,
-                };
-                if let Ok(z) = bank.measurement(&sample) {
-                    group.insert(l, z);
-                }
+            // This job's sample of that instant, else the store's: the nearest in time.
+            let in_job = stored_groups
+                .iter()
+                .filter(|(other, t, _)| *other == l && (t - time_ns).abs() <= tolerance)
+                .min_by_key(|(_, t, _)| (t - time_ns).unsigned_abs())
+                .map(|&(_, t, z)| (t, z));
+            if let Some((t, _)) = in_job {
+                latest_of_job = latest_of_job.max((t, l));
+            }
+            let found = match in_job {
+                Some(found) => Some(found),
+                None => tx
+                    .existing_samples(l, time_ns - tolerance, time_ns + tolerance)
+                    .await?
+                    .into_iter()
+                    .min_by_key(|(t, _)| (t - time_ns).unsigned_abs())
+                    .and_then(|(t, v)| {
+                        let sample = crate::bank::Sample {
+                            link: l,
+                            time_ns: t,
+                            parent_from_child: v.pose,
+                            uncertainty: v.uncertainty,
+                        };
+                        bank.measurement(&sample).ok().map(|z| (t, z))
+                    }),
+            };
+            if let Some(found) = found {
+                group.insert(l, found);
             }
         }
-        for raw in bank.raw_results_of_group(link, time_ns, &group) {
+        if latest_of_job != (time_ns, link) {
+            continue;
+        }
+        let Some(group_ns) = group.values().map(|(t, _)| *t).min() else {
+            continue;
+        };
+        for raw in bank.raw_results_of_group(link, group_ns, &group) {
             report.raw_results += 1;
             let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
             result_rows.insert(
@@ -881,7 +907,7 @@ async fn ingest(
     tx.insert_results(&rows).await?;
     *new_transitions = store_alarms(tx, transitions, now).await?;
     for (t, est) in latest {
-        targets[t].latest = Some(est);
+        targets[t.0].latest = Some(est);
     }
     Ok(Ok(report))
 }
@@ -889,7 +915,7 @@ async fn ingest(
 async fn set_reference(
     tx: &mut WriteTx<'_>,
     targets: &mut [TargetView],
-    target: usize,
+    target: TargetId,
     request: ReferenceRequest,
     now: i64,
 ) -> Result<ServiceResult<ReferenceVersion>, StoreError> {
@@ -918,6 +944,6 @@ async fn set_reference(
         reference,
         created_ns: now,
     };
-    targets[target].reference = Some(current);
+    targets[target.0].reference = Some(current);
     Ok(Ok(current))
 }

@@ -185,6 +185,12 @@ pub struct Simulator {
     rng: StdRng,
     index: u64,
     last_t_s: f64,
+    /// Keep the targets' bodies still (only the relay stations move).
+    still_target: bool,
+    /// How far apart (ns) the cameras' exposures are spread within a group.
+    exposure_spread_ns: i64,
+    /// Each body's motion at the previous group, to extrapolate to an exposure's own time.
+    last_xi: Vec<Twist>,
 }
 
 impl Simulator {
@@ -345,13 +351,50 @@ impl Simulator {
             rng,
             index: 0,
             last_t_s: 0.0,
+            still_target: false,
+            exposure_spread_ns: 0,
+            last_xi: Vec::new(),
         })
+    }
+
+    /// Keeps every target's body still relative to its base while the relay stations move as
+    /// the scenario says: the true `target_from_base` is then constant, and any motion of the
+    /// stations must cancel in it.
+    pub fn set_still_target(&mut self, still: bool) {
+        self.still_target = still;
+    }
+
+    /// Spreads the cameras' exposures over `spread_ns` within each group: the cameras, in the
+    /// installation's order, expose at equal steps from the group's time (the first) to
+    /// `spread_ns` after it (the last), and each observation shows the bodies at its camera's
+    /// exposure (their motion extrapolated from the last two groups over that offset).
+    pub fn set_exposure_spread_ns(&mut self, spread_ns: i64) {
+        self.exposure_spread_ns = spread_ns.max(0);
+    }
+
+    /// When `camera` exposes after the group's time (ns), by
+    /// [`Self::set_exposure_spread_ns`]; 0 for a camera the simulator does not know.
+    pub fn exposure_offset_ns(&self, camera: &str) -> i64 {
+        let mut cameras: Vec<&str> = Vec::new();
+        for link in self.observer.links() {
+            if !cameras.contains(&link.camera_frame.as_str()) {
+                cameras.push(&link.camera_frame);
+            }
+        }
+        let Some(k) = cameras.iter().position(|c| *c == camera) else {
+            return 0;
+        };
+        if cameras.len() < 2 {
+            return 0;
+        }
+        (self.exposure_spread_ns as f64 * k as f64 / (cameras.len() - 1) as f64).round() as i64
     }
 
     /// The body's motion `xi(t)` (left of nothing: applied about its own origin).
     fn body_motion(&mut self, b: usize, t_s: f64) -> Twist {
         let scale = match self.bodies[b].role {
             Role::Base => return Twist::zeros(),
+            Role::Target if self.still_target => return Twist::zeros(),
             Role::Target => 1.0,
             Role::Station => 0.5,
         };
@@ -404,14 +447,28 @@ impl Simulator {
         let t_s = self.index as f64 / self.settings.rate_hz;
         let time_ns = self.settings.start_ns + (t_s * 1e9).round() as i64;
         self.index += 1;
-        let moves: Vec<Pose> = (0..self.bodies.len())
-            .map(|b| {
-                let xi = self.body_motion(b, t_s);
-                let w0 = self.bodies[b].world_from_body0;
-                w0 * se3_exp(&xi) * w0.inverse()
-            })
+        let dt_s = t_s - self.last_t_s;
+        let xis: Vec<Twist> = (0..self.bodies.len())
+            .map(|b| self.body_motion(b, t_s))
             .collect();
-        self.last_t_s = t_s;
+        // Each body's motion `offset_s` after the group's time, extrapolated linearly from the
+        // last two groups (the first group has no rate: it is taken as it is).
+        let moves_at = |offset_s: f64| -> Vec<Pose> {
+            xis.iter()
+                .enumerate()
+                .map(|(b, xi)| {
+                    let xi = match self.last_xi.get(b) {
+                        Some(last) if dt_s > 0.0 && offset_s != 0.0 => {
+                            xi + (xi - last) * (offset_s / dt_s)
+                        }
+                        _ => *xi,
+                    };
+                    let w0 = self.bodies[b].world_from_body0;
+                    w0 * se3_exp(&xi) * w0.inverse()
+                })
+                .collect()
+        };
+        let moves = moves_at(0.0);
         let world = |f: FrameId| moves[self.frame_body[f.0]] * self.world_from_frame0[f.0];
         let link_truth: Vec<(String, Pose)> = self
             .measured
@@ -425,8 +482,20 @@ impl Simulator {
             .collect();
         let mut observations = Vec::new();
         let mut samples = Vec::new();
+        let spread = self.exposure_spread_ns != 0;
         for (simulated, (_, camera_from_marker)) in self.measured.iter().zip(&link_truth) {
             if let Some(link) = &simulated.observed {
+                let exposed;
+                let camera_from_marker = if spread {
+                    let offset_s = self.exposure_offset_ns(&link.camera_frame) as f64 / 1e9;
+                    let moves = moves_at(offset_s);
+                    let world =
+                        |f: FrameId| moves[self.frame_body[f.0]] * self.world_from_frame0[f.0];
+                    exposed = world(simulated.parent).inverse() * world(simulated.child);
+                    &exposed
+                } else {
+                    camera_from_marker
+                };
                 let sigma_px = self
                     .settings
                     .pixel_sigma_px
@@ -479,6 +548,8 @@ impl Simulator {
                 });
             }
         }
+        self.last_t_s = t_s;
+        self.last_xi = xis;
         SimGroup {
             time_ns,
             observations,

@@ -56,6 +56,7 @@ use crate::chain::LinkId;
 use crate::config::Database;
 use crate::deformation::SmallMotion;
 use crate::geometry::{PoseCov, ReportedSigmas};
+use crate::model::TargetId;
 use codec::{encode_mat6, pose_columns};
 use outbox::{Backlog, KeepUnsent, OutboxBatch, Registry, TableRows, Tier};
 use rows::{ResultColumns, SampleColumns, VersionColumns};
@@ -441,13 +442,13 @@ impl Store {
     /// Stored results of a target in `[from_ns, to_ns]`, oldest first, at most `limit`.
     pub async fn results(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
         from_ns: i64,
         to_ns: i64,
         limit: i64,
     ) -> StoreResult<Vec<StoredResult>> {
-        let (id, source) = (self.target_ids[target], codec::source_column(source));
+        let (id, source) = (self.target_ids[target.0], codec::source_column(source));
         let rows: Vec<rows::ResultRow> = query_on!(
             &self.reader, Reader, r => &r.pool,
             &sql::RESULTS_IN, [id, source, from_ns, to_ns, limit],
@@ -461,12 +462,12 @@ impl Store {
     /// memory does not grow with the window.
     pub async fn pose_stats(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
         from_ns: i64,
         to_ns: i64,
     ) -> StoreResult<(Option<crate::stats::PoseStats>, Option<(i64, i64)>)> {
-        let (id, source) = (self.target_ids[target], codec::source_column(source));
+        let (id, source) = (self.target_ids[target.0], codec::source_column(source));
         match &self.reader {
             Reader::Sqlite(r) => r.pose_stats(id, source, from_ns, to_ns).await,
             Reader::Postgres(r) => {
@@ -492,12 +493,12 @@ impl Store {
     /// How many results of a target are stored in `[from_ns, to_ns]`.
     pub async fn count_results(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
         from_ns: i64,
         to_ns: i64,
     ) -> StoreResult<u64> {
-        let (id, source) = (self.target_ids[target], codec::source_column(source));
+        let (id, source) = (self.target_ids[target.0], codec::source_column(source));
         let (n,): (i64,) = query_on!(
             &self.reader, Reader, r => &r.pool,
             sql::COUNT_RESULTS, [id, source, from_ns, to_ns],
@@ -521,11 +522,11 @@ impl Store {
     /// oldest after it.
     pub async fn results_around(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
         at_ns: i64,
     ) -> StoreResult<(Option<StoredResult>, Option<StoredResult>)> {
-        let (id, source) = (self.target_ids[target], codec::source_column(source));
+        let (id, source) = (self.target_ids[target.0], codec::source_column(source));
         let mut around: [Option<rows::ResultRow>; 2] = [None, None];
         for (i, statement) in [&sql::RESULT_AT_OR_BEFORE, &sql::RESULT_AFTER]
             .into_iter()
@@ -547,7 +548,7 @@ impl Store {
     /// The newest stored result of a target.
     pub async fn latest_result(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
     ) -> StoreResult<Option<StoredResult>> {
         Ok(self.results_around(target, source, i64::MAX).await?.0)
@@ -556,9 +557,9 @@ impl Store {
     /// Every reference version of a target, oldest first.
     pub async fn references(
         &self,
-        target: usize,
+        target: TargetId,
     ) -> StoreResult<Vec<crate::deformation::ReferenceVersion>> {
-        let id = self.target_ids[target];
+        let id = self.target_ids[target.0];
         let rows: Vec<rows::ReferenceRow> =
             query_on!(&self.reader, Reader, r => &r.pool, &sql::REFERENCES_OF, [id], fetch_all)?;
         rows.into_iter()
@@ -610,13 +611,13 @@ impl Store {
     /// oldest first, or with `newest_first` the newest (so a limit keeps the latest ones).
     pub async fn alarms(
         &self,
-        target: Option<usize>,
+        target: Option<TargetId>,
         from_ns: i64,
         to_ns: i64,
         limit: i64,
         newest_first: bool,
     ) -> StoreResult<Vec<StoredAlarm>> {
-        let id = target.map(|t| self.target_ids[t]);
+        let id = target.map(|t| self.target_ids[t.0]);
         let statement: &str = if newest_first {
             &sql::ALARMS_NEWEST_FIRST
         } else {
@@ -633,9 +634,9 @@ impl Store {
     }
 
     /// The level each alarm kind of a target was last left at (`none` when never raised).
-    pub async fn alarm_levels(&self, target: usize) -> StoreResult<[crate::alarms::Level; 3]> {
+    pub async fn alarm_levels(&self, target: TargetId) -> StoreResult<[crate::alarms::Level; 3]> {
         use crate::alarms::{AlarmKind, Level};
-        let id = self.target_ids[target];
+        let id = self.target_ids[target.0];
         let mut out = [Level::None; 3];
         for (i, kind) in [AlarmKind::Deformation, AlarmKind::Rate, AlarmKind::Stale]
             .iter()
@@ -705,7 +706,7 @@ pub struct NewSample {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct NewResult {
     /// Target index in the installation.
-    pub target: usize,
+    pub target: TargetId,
     /// Raw or filtered.
     pub source: ResultSource,
     /// Its time (ns).
@@ -860,7 +861,7 @@ impl WriteTx<'_> {
             .map(|r| r.estimate.reported_sigmas())
             .collect();
         let mut columns: Vec<ResultColumns> = Vec::with_capacity(results.len());
-        let mut at_key: std::collections::HashMap<(usize, ResultSource, i64), usize> =
+        let mut at_key: std::collections::HashMap<(TargetId, ResultSource, i64), usize> =
             std::collections::HashMap::with_capacity(results.len());
         for (r, s) in results.iter().zip(&sigmas) {
             let pose = pose_columns(&r.estimate.pose);
@@ -882,7 +883,7 @@ impl WriteTx<'_> {
             let [a, b, c] = s.rotation_arcsec;
             let [x, y, z] = s.translation_mm;
             let row = ResultColumns {
-                target_id: self.target_ids[r.target],
+                target_id: self.target_ids[r.target.0],
                 source: codec::source_column(r.source),
                 time_ns: r.time_ns,
                 pose,
@@ -920,7 +921,7 @@ impl WriteTx<'_> {
             .map(|((target, source, width_s, start), b)| {
                 (
                     (
-                        self.target_ids[target],
+                        self.target_ids[target.0],
                         codec::source_column(source),
                         width_s,
                         start,
@@ -961,12 +962,12 @@ impl WriteTx<'_> {
     /// keeps the id and any acknowledgement.
     pub async fn insert_alarm(
         &mut self,
-        target: usize,
+        target: TargetId,
         t: &crate::alarms::Transition,
         now_ns: i64,
     ) -> StoreResult<i64> {
         finite("alarm value", &[t.value])?;
-        let id = self.target_ids[target];
+        let id = self.target_ids[target.0];
         on_backend!(&mut self.tx, Tx, x => x.insert_alarm(id, t, now_ns).await)
     }
 
@@ -1048,11 +1049,11 @@ impl WriteTx<'_> {
     /// The filtered results of a target in `[from_ns, to_ns]`, oldest first.
     pub async fn filtered_poses(
         &mut self,
-        target: usize,
+        target: TargetId,
         from_ns: i64,
         to_ns: i64,
     ) -> StoreResult<Vec<PoseCov>> {
-        let id = self.target_ids[target];
+        let id = self.target_ids[target.0];
         let rows: Vec<rows::ResultRow> = query_on!(
             &mut self.tx, Tx, t => &mut *t.conn,
             &sql::RESULTS_IN, [id, 1_i64, from_ns, to_ns, i64::MAX],
@@ -1066,7 +1067,7 @@ impl WriteTx<'_> {
     /// Stores a new reference version of a target; returns its version.
     pub async fn insert_reference(
         &mut self,
-        target: usize,
+        target: TargetId,
         reference: &crate::deformation::Reference,
         now_ns: i64,
     ) -> StoreResult<i64> {
@@ -1079,7 +1080,7 @@ impl WriteTx<'_> {
                 count,
             } => ("window", Some(from_ns), Some(to_ns), Some(count as i64)),
         };
-        let id = self.target_ids[target];
+        let id = self.target_ids[target.0];
         on_backend!(&mut self.tx, Tx, t => t.insert_reference(id, &columns, &origin, now_ns).await)
     }
 

@@ -4,6 +4,7 @@
 use super::{NewResult, Reader, Store, StoreResult, codec, sql};
 use crate::bank::ResultSource;
 use crate::geometry::{PoseCov, ReportedSigmas, euler_from_rotation};
+use crate::model::TargetId;
 use std::collections::HashMap;
 
 /// Bucket widths of the rollup levels (s).
@@ -149,8 +150,8 @@ pub(crate) fn components(
 pub(super) fn aggregate(
     results: &[NewResult],
     sigmas: &[ReportedSigmas],
-) -> HashMap<(usize, ResultSource, i64, i64), Bucket> {
-    let mut out: HashMap<(usize, ResultSource, i64, i64), Bucket> = HashMap::new();
+) -> HashMap<(TargetId, ResultSource, i64, i64), Bucket> {
+    let mut out: HashMap<(TargetId, ResultSource, i64, i64), Bucket> = HashMap::new();
     for (r, s) in results.iter().zip(sigmas) {
         let (values, has_def) = components(
             &r.estimate,
@@ -248,7 +249,7 @@ impl Store {
     /// as the finest rollup, otherwise from the results (streamed, memory that of the buckets).
     pub async fn history(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
         from_ns: i64,
         to_ns: i64,
@@ -303,11 +304,11 @@ impl Store {
     /// own indexed lookup.
     pub async fn result_bounds(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
     ) -> StoreResult<Option<(i64, i64)>> {
         let (id, column, width_s) = (
-            self.target_ids[target],
+            self.target_ids[target.0],
             codec::source_column(source),
             ROLLUP_WIDTHS_S[0],
         );
@@ -338,7 +339,7 @@ impl Store {
     /// The rollup buckets of width `width_s` overlapping `[from_ns, to_ns]`, oldest first.
     pub async fn rollup_buckets(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
         width_s: i64,
         from_ns: i64,
@@ -346,7 +347,7 @@ impl Store {
     ) -> StoreResult<Vec<Bucket>> {
         let width_ns = width_s * 1_000_000_000;
         let (id, source, from) = (
-            self.target_ids[target],
+            self.target_ids[target.0],
             codec::source_column(source),
             floor_to(from_ns, width_ns),
         );
@@ -365,7 +366,7 @@ impl Store {
     /// streamed: memory is that of the buckets, however many results the window holds.
     pub async fn result_buckets(
         &self,
-        target: usize,
+        target: TargetId,
         source: ResultSource,
         from_ns: i64,
         to_ns: i64,
@@ -388,7 +389,7 @@ impl Store {
                 .add(&values, has_def);
             Ok(())
         };
-        let (id, source) = (self.target_ids[target], codec::source_column(source));
+        let (id, source) = (self.target_ids[target.0], codec::source_column(source));
         on_backend!(&self.reader, Reader, r => {
             use futures::TryStreamExt as _;
             let mut rows = sqlx::query_as::<_, super::rows::ResultRow>(&sql::RESULTS_IN)

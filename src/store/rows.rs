@@ -9,6 +9,7 @@ use super::{Quality, SampleValues, StoreError, StoreResult};
 use crate::bank::MeasurementUncertainty;
 use crate::deformation::ReferenceVersion;
 use crate::geometry::PoseCov;
+use crate::model::TargetId;
 
 /// The seven pose columns every row with a pose has.
 #[derive(sqlx::FromRow)]
@@ -269,7 +270,7 @@ pub struct StoredAlarm {
     /// Its id.
     pub id: i64,
     /// Target index in the installation.
-    pub target: usize,
+    pub target: TargetId,
     /// The transition.
     pub transition: crate::alarms::Transition,
     /// Its acknowledgement, once given.
@@ -337,6 +338,7 @@ pub(super) fn alarm_of_row(row: AlarmRow, target_ids: &[i64]) -> StoreResult<Sto
         target: target_ids
             .iter()
             .position(|t| *t == tid)
+            .map(TargetId)
             .ok_or_else(malformed)?,
         transition: crate::alarms::Transition {
             kind: kind_,

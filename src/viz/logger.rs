@@ -463,10 +463,10 @@ impl Logger {
                     deformation,
                     ..
                 } => {
-                    let name = &inst.model.targets[*target].name;
+                    let name = &inst.model.targets[target.0].name;
                     let which = source.name();
                     out.transform(
-                        format!("{}/{name}_{which}", self.target_base[*target]),
+                        format!("{}/{name}_{which}", self.target_base[target.0]),
                         t,
                         &target_from_base.pose,
                         true,
@@ -517,8 +517,8 @@ impl Logger {
             Record::Reference {
                 target, g0_from_b, ..
             } => {
-                let name = &inst.model.targets[*target].name;
-                let frame = format!("{}/{name}_reference", self.target_base[*target]);
+                let name = &inst.model.targets[target.0].name;
+                let frame = format!("{}/{name}_reference", self.target_base[target.0]);
                 self.count(rec.log(frame.as_str(), &tree_transform(g0_from_b, true)));
             }
             Record::Frame {
@@ -528,7 +528,7 @@ impl Logger {
                 ..
             } => self.log_frame(rec, *camera, image, marks),
             Record::Alarm { target, transition } => {
-                let name = &inst.model.targets[*target].name;
+                let name = &inst.model.targets[target.0].name;
                 self.count(rec.log(
                     format!("alarms/{name}"),
                     &rerun::StateChange::single(transition.to.name()),

@@ -19,6 +19,7 @@ use crate::alarms::Transition;
 use crate::config::{Installation, RerunSettings};
 use crate::deformation::SmallMotion;
 use crate::geometry::{Pose, PoseCov};
+use crate::model::TargetId;
 use crate::vision::GreyImage;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -48,7 +49,7 @@ pub enum Record {
     /// A raw (from one sample group) or filtered result of a target.
     Result {
         /// Target index.
-        target: usize,
+        target: TargetId,
         /// Its time (ns).
         time_ns: i64,
         /// Filtered, or raw.
@@ -68,7 +69,7 @@ pub enum Record {
     /// A target's reference (from when it is in force).
     Reference {
         /// Target index.
-        target: usize,
+        target: TargetId,
         /// Time (ns).
         time_ns: i64,
         /// `G0_from_B`.
@@ -77,7 +78,7 @@ pub enum Record {
     /// An alarm transition.
     Alarm {
         /// Target index.
-        target: usize,
+        target: TargetId,
         /// The transition.
         transition: Transition,
     },
@@ -234,8 +235,8 @@ impl Decimator {
         match kind {
             Series::Scene => 0,
             Series::Link(l) => 1 + 4 * l,
-            Series::Raw(t) => 2 + 4 * t,
-            Series::Filtered(t) => 3 + 4 * t,
+            Series::Raw(t) => 2 + 4 * t.0,
+            Series::Filtered(t) => 3 + 4 * t.0,
             Series::Camera(c) => 4 + 4 * c,
         }
     }
@@ -297,10 +298,10 @@ pub enum Series {
     Scene,
     /// A link's samples (by link index).
     Link(usize),
-    /// A target's raw results (by target index).
-    Raw(usize),
-    /// A target's filtered results (by target index).
-    Filtered(usize),
+    /// A target's raw results.
+    Raw(TargetId),
+    /// A target's filtered results.
+    Filtered(TargetId),
     /// A camera's frames (by camera index).
     Camera(usize),
 }

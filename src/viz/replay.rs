@@ -14,6 +14,7 @@ use crate::bank::ResultSource;
 use crate::config::Installation;
 use crate::deformation::Deformation;
 use crate::model::LinkKind;
+use crate::model::TargetId;
 use crate::store::Store;
 use std::path::Path;
 use std::sync::Arc;
@@ -55,20 +56,20 @@ pub(crate) enum ReplayError {
 pub(crate) async fn replay(
     inst: &Arc<Installation>,
     store: &Store,
-    targets: &[usize],
+    targets: &[TargetId],
     from_ns: i64,
     to_ns: i64,
     out: &Path,
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<ReplaySummary, ReplayError> {
-    let targets: Vec<usize> = if targets.is_empty() {
-        (0..inst.model.targets.len()).collect()
+    let targets: Vec<TargetId> = if targets.is_empty() {
+        inst.model.target_ids().map(|(t, _)| t).collect()
     } else {
         targets.to_vec()
     };
     let mut links: Vec<usize> = targets
         .iter()
-        .flat_map(|&t| inst.model.targets[t].resolution.paths.iter())
+        .flat_map(|&t| inst.model.targets[t.0].resolution.paths.iter())
         .flat_map(|p| p.links())
         .map(|l| l.0)
         .filter(|&l| matches!(inst.model.links[l].kind, LinkKind::Measured(_)))

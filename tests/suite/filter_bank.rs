@@ -5,6 +5,7 @@ use brokenray::bank::{FilterBank, MeasurementUncertainty, Sample, TargetStatus};
 use brokenray::config::{self, Installation};
 use brokenray::geometry::{Pose, se3_log};
 use brokenray::model::LinkKind;
+use brokenray::model::TargetId;
 
 const T0: i64 = 1_790_000_000_000_000_000;
 const PERIOD_NS: i64 = 40_000_000;
@@ -43,7 +44,7 @@ fn noise_free_nominal_samples_give_the_papers_chain_product() {
         }
     }
     let t = T0 + 19 * PERIOD_NS;
-    let est = bank.evaluate(0, t).unwrap();
+    let est = bank.evaluate(TargetId(0), t).unwrap();
     assert_eq!(est.status, TargetStatus::Ok);
     assert_eq!(est.age_s, 0.0);
     // G_from_B = G_from_C3 * C3_from_M * M_from_C2 * C2_from_C1 * C1_from_B, written out.
@@ -68,12 +69,14 @@ fn a_group_with_every_measured_link_gives_one_raw_result() {
         .ingest(&sample(&inst, "C2_from_M", t, nominal(&inst, "C2_from_M")))
         .unwrap();
     assert!(a.raw_results.is_empty() && b.raw_results.is_empty());
-    // Another link at a different time does not complete the group.
+    // Another link exposed farther away than the group tolerance (half the 40 ms period)
+    // does not complete the group.
+    assert_eq!(bank.group_tolerance_ns(), 20_000_000);
     let c = bank
         .ingest(&sample(
             &inst,
             "C3_from_G",
-            t + 1,
+            t + 30_000_000,
             nominal(&inst, "C3_from_G"),
         ))
         .unwrap();
@@ -83,7 +86,7 @@ fn a_group_with_every_measured_link_gives_one_raw_result() {
         .unwrap();
     assert_eq!(d.raw_results.len(), 1);
     assert_eq!(d.raw_results[0].time_ns, t);
-    // Out of order for the filter (t < t + 1) but still completes its group.
+    // Out of order for the filter (t < t + 30 ms) but still completes its group.
     assert!(matches!(
         d.disposition,
         brokenray::filter::Disposition::OutOfOrder { .. }
@@ -100,33 +103,41 @@ fn statuses_follow_the_data() {
     let inst = config::default_installation();
     let mut bank = FilterBank::new(&inst.model);
     assert_eq!(
-        bank.evaluate(0, T0).unwrap().status,
+        bank.evaluate(TargetId(0), T0).unwrap().status,
         TargetStatus::Initializing
     );
     bank.ingest(&sample(&inst, "C1_from_B", T0, nominal(&inst, "C1_from_B")))
         .unwrap();
-    let partial = bank.evaluate(0, T0).unwrap();
+    let partial = bank.evaluate(TargetId(0), T0).unwrap();
     assert_eq!(partial.status, TargetStatus::Initializing);
     assert!(partial.target_from_base.is_none());
     for name in &MEASURED[1..] {
         bank.ingest(&sample(&inst, name, T0, nominal(&inst, name)))
             .unwrap();
     }
-    assert_eq!(bank.evaluate(0, T0).unwrap().status, TargetStatus::Ok);
+    assert_eq!(
+        bank.evaluate(TargetId(0), T0).unwrap().status,
+        TargetStatus::Ok
+    );
     // 0.1 s later: a prediction, with its age.
-    let later = bank.evaluate(0, T0 + 100_000_000).unwrap();
+    let later = bank.evaluate(TargetId(0), T0 + 100_000_000).unwrap();
     assert_eq!(later.status, TargetStatus::Predicted);
     assert_relative_eq!(later.age_s, 0.1, epsilon = 1e-12);
     // Covariance grows with the prediction.
-    let now_cov = bank.evaluate(0, T0).unwrap().target_from_base.unwrap().cov;
+    let now_cov = bank
+        .evaluate(TargetId(0), T0)
+        .unwrap()
+        .target_from_base
+        .unwrap()
+        .cov;
     assert!(later.target_from_base.unwrap().cov.trace() > now_cov.trace());
     // Five expected periods (5 / 25 Hz = 0.2 s) without a sample: stale.
     assert_eq!(
-        bank.evaluate(0, T0 + 250_000_000).unwrap().status,
+        bank.evaluate(TargetId(0), T0 + 250_000_000).unwrap().status,
         TargetStatus::Stale
     );
     assert!(
-        bank.evaluate(0, T0 - 1).is_err(),
+        bank.evaluate(TargetId(0), T0 - 1).is_err(),
         "no evaluation before the filters' time"
     );
 }
@@ -163,7 +174,7 @@ fn redundant_paths_that_disagree_degrade_the_target() {
             .ingest(&sample(&inst, "C4_from_G", T0, bumped))
             .unwrap();
         assert_eq!(out.raw_results.len(), 1);
-        let est = bank.evaluate(0, T0).unwrap();
+        let est = bank.evaluate(TargetId(0), T0).unwrap();
         assert_eq!(est.paths_used, 2);
         assert_eq!(est.status, expected, "bump of {bump_deg} degree");
     }
@@ -177,4 +188,113 @@ fn a_sample_on_a_calibrated_link_is_refused() {
         .ingest(&sample(&inst, "C2_from_C1", T0, Pose::identity()))
         .unwrap_err();
     assert_eq!(err.to_string(), "`C2_from_C1` is not a measured link");
+}
+
+/// With the target still and the relay stations swaying as on a ship, the stations' motion
+/// cancels in the filtered `G_from_B` as it does in the raw one: the target is filtered from
+/// its composed raw results, not composed from links each filtered with its own lag (which
+/// left tens of arc-seconds of wobble here).
+#[test]
+fn station_motion_cancels_in_the_filtered_result() {
+    use brokenray::filter::{FilterTuning, MotionModel};
+    use brokenray::geometry::ARCSEC_PER_RAD;
+    use brokenray::sim::{Scenario, SimSettings, Simulator};
+    let mut inst = config::default_installation();
+    for spec in &mut std::sync::Arc::make_mut(&mut inst.model).links {
+        if let LinkKind::Measured(m) = &mut spec.kind {
+            m.tuning = FilterTuning::default_for(MotionModel::Oscillatory);
+        }
+    }
+    let settings = SimSettings {
+        scenario: Scenario::Ship,
+        rate_hz: 25.0,
+        start_ns: T0,
+        duration_s: Some(60.0),
+        pixel_sigma_px: Some(0.0),
+        outlier_rate: 0.0,
+        seed: 5,
+    };
+    let mut sim = Simulator::new(&inst.model, settings).unwrap();
+    sim.set_still_target(true);
+    let mut bank = FilterBank::shared(inst.model.clone());
+    let (mut worst_arcsec, mut worst_mm, mut results) = (0.0f64, 0.0f64, 0);
+    let mut station_swing_arcsec = 0.0f64;
+    let first = sim.next_group();
+    let c1_from_b0 = first.link_truth[0].1;
+    for g in std::iter::once(first).chain((1..1500).map(|_| sim.next_group())) {
+        let truth = g.truth[0].1;
+        station_swing_arcsec = station_swing_arcsec.max(
+            brokenray::geometry::so3_log(
+                &(g.link_truth[0].1.rotation * c1_from_b0.rotation.inverse()),
+            )
+            .norm()
+                * ARCSEC_PER_RAD,
+        );
+        for (name, pose) in &g.link_truth {
+            let out = bank.ingest(&sample(&inst, name, g.time_ns, *pose)).unwrap();
+            for f in &out.filtered_results {
+                let e = se3_log(&(f.target_from_base.unwrap().pose * truth.inverse()));
+                worst_arcsec = worst_arcsec.max(e.fixed_rows::<3>(3).norm() * ARCSEC_PER_RAD);
+                worst_mm = worst_mm.max(
+                    (f.target_from_base.unwrap().pose.translation.vector
+                        - truth.translation.vector)
+                        .norm(),
+                );
+                results += 1;
+            }
+        }
+    }
+    assert_eq!(results, 1500, "one filtered result per group");
+    assert!(
+        station_swing_arcsec > 60.0,
+        "the stations swing {station_swing_arcsec} arcsec"
+    );
+    assert!(
+        worst_arcsec < 0.01,
+        "filtered G_from_B wobbles {worst_arcsec} arcsec"
+    );
+    assert!(worst_mm < 1e-4, "filtered G_from_B wobbles {worst_mm} mm");
+}
+
+/// Cameras that expose 7 ms apart, each sample stamped with its own exposure, still make one
+/// raw result per group (the default tolerance is half the 40 ms period); with a tolerance
+/// tighter than their spread no group completes, and every link says so.
+#[test]
+fn cameras_that_expose_apart_make_raw_results_within_the_tolerance() {
+    let run = |tolerance_ns: Option<i64>| {
+        let mut inst = config::default_installation();
+        std::sync::Arc::make_mut(&mut inst.model)
+            .filter
+            .group_tolerance_ns = tolerance_ns;
+        let mut bank = FilterBank::shared(inst.model.clone());
+        let mut raw = 0;
+        for k in 0..200 {
+            for (i, name) in MEASURED.iter().enumerate() {
+                let t = T0 + k * PERIOD_NS + i as i64 * 7_000_000;
+                let out = bank
+                    .ingest(&sample(&inst, name, t, nominal(&inst, name)))
+                    .unwrap();
+                raw += out.raw_results.len();
+                for r in &out.raw_results {
+                    // The group's time is its first exposure's.
+                    assert_eq!((r.time_ns - T0) % PERIOD_NS, 0);
+                }
+            }
+        }
+        let problems = MEASURED
+            .iter()
+            .filter(|n| {
+                let id = inst.model.topology.link_id(n).unwrap();
+                bank.link_status(id).grouping_problem().is_some()
+            })
+            .count();
+        (raw, problems, bank.group_tolerance_ns())
+    };
+    assert_eq!(run(None), (200, 0, 20_000_000));
+    let (raw, problems, _) = run(Some(1_000_000));
+    assert_eq!(raw, 0);
+    assert_eq!(
+        problems, 3,
+        "every link reports that its samples make no group"
+    );
 }

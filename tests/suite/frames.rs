@@ -180,7 +180,7 @@ fn rendered_frames_give_an_unbiased_chain_three_times_better_than_published() {
             }
             *nees_by_link.entry(name.clone()).or_default() +=
                 nees(&measured.pose, &truth, &measured.cov);
-            samples.insert(link.link, *measured);
+            samples.insert(link.link, (g as i64, *measured));
         }
         let any = *samples.keys().next().expect("a link");
         let raw = bank.raw_results_of_group(any, g as i64, &samples);

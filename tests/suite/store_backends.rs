@@ -7,6 +7,7 @@ use brokenray::bank::{MeasurementUncertainty, ResultSource};
 use brokenray::chain::LinkId;
 use brokenray::config::Installation;
 use brokenray::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, rotation_from_euler};
+use brokenray::model::TargetId;
 use brokenray::store::{self, NewResult, NewSample, Quality, SampleValues, Store, WriteConn};
 use nalgebra::Translation3;
 
@@ -57,7 +58,7 @@ fn sample(k: i64, time_ns: i64) -> NewSample {
 
 fn result(k: i64, time_ns: i64) -> NewResult {
     NewResult {
-        target: 0,
+        target: TargetId(0),
         source: ResultSource::Filtered,
         time_ns,
         estimate: PoseCov {
@@ -117,7 +118,13 @@ async fn samples_and_results_read_back_exactly(backend: Backend) {
         );
     }
     let back = store
-        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
+        .results(
+            TargetId(0),
+            ResultSource::Filtered,
+            i64::MIN,
+            i64::MAX,
+            i64::MAX,
+        )
         .await
         .unwrap();
     assert_eq!(back.len(), results.len());
@@ -138,26 +145,26 @@ async fn samples_and_results_read_back_exactly(backend: Backend) {
     );
     assert_eq!(
         store
-            .count_results(0, ResultSource::Filtered, T0_NS, T0_NS + 100 * S)
+            .count_results(TargetId(0), ResultSource::Filtered, T0_NS, T0_NS + 100 * S)
             .await
             .unwrap(),
         1001
     );
     assert!(
         store
-            .results(0, ResultSource::Raw, i64::MIN, i64::MAX, 10)
+            .results(TargetId(0), ResultSource::Raw, i64::MIN, i64::MAX, 10)
             .await
             .unwrap()
             .is_empty()
     );
     let (before, after) = store
-        .results_around(0, ResultSource::Filtered, T0_NS + 55 * S + 1)
+        .results_around(TargetId(0), ResultSource::Filtered, T0_NS + 55 * S + 1)
         .await
         .unwrap();
     assert_eq!(before.unwrap().time_ns, T0_NS + 55 * S);
     assert_eq!(after.unwrap().time_ns, T0_NS + 55 * S + S / 10);
     let (stats, span) = store
-        .pose_stats(0, ResultSource::Filtered, i64::MIN, i64::MAX)
+        .pose_stats(TargetId(0), ResultSource::Filtered, i64::MIN, i64::MAX)
         .await
         .unwrap();
     assert!(stats.is_some());
@@ -177,7 +184,13 @@ async fn a_result_at_an_existing_key_is_replaced(backend: Backend) {
     last.age_s = 11.0;
     commit_results(&mut write, &[again, result(5, T0_NS + S), last]).await;
     let back = store
-        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
+        .results(
+            TargetId(0),
+            ResultSource::Filtered,
+            i64::MIN,
+            i64::MAX,
+            i64::MAX,
+        )
         .await
         .unwrap();
     assert_eq!(back.len(), 2);
@@ -205,13 +218,13 @@ async fn a_transaction_dropped_without_commit_leaves_nothing(backend: Backend) {
     assert_eq!(stored[0].time_ns, T0_NS + S);
     assert!(
         store
-            .latest_result(0, ResultSource::Filtered)
+            .latest_result(TargetId(0), ResultSource::Filtered)
             .await
             .unwrap()
             .is_none()
     );
     let history = store
-        .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, 100)
+        .history(TargetId(0), ResultSource::Filtered, i64::MIN, i64::MAX, 100)
         .await
         .unwrap();
     assert!(
@@ -247,9 +260,16 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
         message: "rotation 61.5 arcsec".into(),
     };
     let mut tx = write.begin(0).await.unwrap();
-    assert_eq!(tx.insert_reference(0, &reference, T0_NS).await.unwrap(), 1);
     assert_eq!(
-        tx.insert_reference(0, &reference, T0_NS + 1).await.unwrap(),
+        tx.insert_reference(TargetId(0), &reference, T0_NS)
+            .await
+            .unwrap(),
+        1
+    );
+    assert_eq!(
+        tx.insert_reference(TargetId(0), &reference, T0_NS + 1)
+            .await
+            .unwrap(),
         2
     );
     assert_eq!(
@@ -258,14 +278,19 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
             .unwrap(),
         1
     );
-    let id = tx.insert_alarm(0, &transition, T0_NS).await.unwrap();
+    let id = tx
+        .insert_alarm(TargetId(0), &transition, T0_NS)
+        .await
+        .unwrap();
     tx.acknowledge_alarm(id, "ops", Some("seen"), T0_NS + 9)
         .await
         .unwrap();
     let mut recomputed = transition.clone();
     recomputed.to = Level::Alarm;
     assert_eq!(
-        tx.insert_alarm(0, &recomputed, T0_NS + 10).await.unwrap(),
+        tx.insert_alarm(TargetId(0), &recomputed, T0_NS + 10)
+            .await
+            .unwrap(),
         id
     );
     tx.insert_link_reset(LinkId(0), Some("ops"), Some("lens cleaned"), T0_NS + 20)
@@ -279,7 +304,7 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
         .unwrap();
     tx.commit().await.unwrap();
 
-    let references = store.references(0).await.unwrap();
+    let references = store.references(TargetId(0)).await.unwrap();
     assert_eq!(references.len(), 2);
     assert_eq!(references[1].version, 2);
     assert_eq!(references[1].reference, reference);
@@ -295,14 +320,14 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
     );
     assert_eq!(
         store
-            .alarms(Some(0), i64::MIN, i64::MAX, 10, true)
+            .alarms(Some(TargetId(0)), i64::MIN, i64::MAX, 10, true)
             .await
             .unwrap()
             .len(),
         1
     );
     assert_eq!(
-        store.alarm_levels(0).await.unwrap(),
+        store.alarm_levels(TargetId(0)).await.unwrap(),
         [Level::Alarm, Level::None, Level::None]
     );
     let resets = store.last_link_resets().await.unwrap();
@@ -376,7 +401,7 @@ async fn retention_removes_old_rows_and_keeps_rollups(backend: Backend) {
     assert_eq!(left[0].time_ns, day0 + 2 * DAY);
     assert_eq!(
         store
-            .count_results(0, ResultSource::Filtered, i64::MIN, i64::MAX)
+            .count_results(TargetId(0), ResultSource::Filtered, i64::MIN, i64::MAX)
             .await
             .unwrap(),
         (per_day + per_day / 2) as u64
@@ -389,7 +414,7 @@ async fn retention_removes_old_rows_and_keeps_rollups(backend: Backend) {
         );
     }
     let history = store
-        .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, 100)
+        .history(TargetId(0), ResultSource::Filtered, i64::MIN, i64::MAX, 100)
         .await
         .unwrap();
     let counted: i64 = history.buckets.iter().map(|b| b.n).sum();
@@ -410,12 +435,24 @@ async fn rollups_agree_with_the_results_they_summarise(backend: Backend) {
         commit_results(&mut write, &rows).await;
     }
     let all = store
-        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
+        .results(
+            TargetId(0),
+            ResultSource::Filtered,
+            i64::MIN,
+            i64::MAX,
+            i64::MAX,
+        )
         .await
         .unwrap();
     for max_points in [40, 5_000] {
         let h = store
-            .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, max_points)
+            .history(
+                TargetId(0),
+                ResultSource::Filtered,
+                i64::MIN,
+                i64::MAX,
+                max_points,
+            )
             .await
             .unwrap();
         assert_eq!(h.resolution_s.is_some(), max_points == 40);
@@ -488,13 +525,13 @@ async fn rows_before_the_partitions_are_moved_into_their_own_by_maintenance(back
     assert_eq!(back.len(), samples.len());
     assert_eq!(
         store
-            .count_results(0, ResultSource::Filtered, i64::MIN, i64::MAX)
+            .count_results(TargetId(0), ResultSource::Filtered, i64::MIN, i64::MAX)
             .await
             .unwrap(),
         2_000
     );
     let history = store
-        .history(0, ResultSource::Filtered, i64::MIN, i64::MAX, 10)
+        .history(TargetId(0), ResultSource::Filtered, i64::MIN, i64::MAX, 10)
         .await
         .unwrap();
     assert_eq!(history.buckets.iter().map(|b| b.n).sum::<i64>(), 2_000);
@@ -572,7 +609,7 @@ async fn postgres_start_up_refusals_name_the_reason() {
     let reader = store::open_reader(&inst, T0_NS).await.expect("a reader");
     assert!(
         reader
-            .latest_result(0, ResultSource::Filtered)
+            .latest_result(TargetId(0), ResultSource::Filtered)
             .await
             .unwrap()
             .is_none()

@@ -50,11 +50,17 @@ async function loadSites() {
 }
 
 // `/healthz` (open, no token): whether this service is a centre, and what it reports wrong
-// that the page must show (a stopped upload stream, rows the disk budget removed).
+// that the page must show (a stopped upload stream, rows the disk budget removed, samples that
+// make no measurement group, a target filter that no longer fits its data).
 async function health() {
   const response = await fetch('/healthz');
   const h = await response.json();
-  for (const [key, text] of [['upstream', h.upstream_problem], ['storage', h.storage_problem]]) {
+  for (const [key, text] of [
+    ['upstream', h.upstream_problem],
+    ['storage', h.storage_problem],
+    ['grouping', h.grouping_problem],
+    ['filter', h.filter_problem],
+  ]) {
     if (text) showMessage('health-' + key, text);
     else clearMessage('health-' + key);
   }

@@ -109,6 +109,12 @@ impl Writer {
             if !self.clean {
                 let _ = sqlx::query("rollback").execute(&mut conn).await;
             }
+            // Released before the connection closes: the server ends a closed session's
+            // backend on its own time, and the next writer must not find the lock still held.
+            let _ = sqlx::query("select pg_advisory_unlock($1)")
+                .bind(super::WRITER_LOCK)
+                .execute(&mut conn)
+                .await;
             conn.close().await?;
         }
         Ok(())

@@ -5,6 +5,7 @@ use super::helpers::{Backend, ONE_LINK, T0_NS, TestApp, installation_at};
 use axum::http::StatusCode;
 use brokenray::bank::ResultSource;
 use brokenray::geometry::{Mat6, Pose, PoseCov, rotation_from_euler};
+use brokenray::model::TargetId;
 use brokenray::store::{self, NewResult};
 use nalgebra::Translation3;
 
@@ -24,7 +25,7 @@ fn result(k: i64) -> NewResult {
         rotation_from_euler([-0.0718 + 1e-5 * (t * 1.3).sin(), 0.026, 2.87]).unwrap(),
     );
     NewResult {
-        target: 0,
+        target: TargetId(0),
         source: ResultSource::Filtered,
         time_ns: T0_NS + k * (SPAN_NS / N),
         estimate: PoseCov {
@@ -85,7 +86,13 @@ async fn a_month_of_results_downsamples_without_losing_a_spike(backend: Backend)
     let stored = app
         .service
         .store()
-        .results(0, ResultSource::Filtered, i64::MIN, i64::MAX, i64::MAX)
+        .results(
+            TargetId(0),
+            ResultSource::Filtered,
+            i64::MIN,
+            i64::MAX,
+            i64::MAX,
+        )
         .await
         .unwrap();
     assert_eq!(stored.len() as i64, N);

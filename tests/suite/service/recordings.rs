@@ -5,6 +5,7 @@ use super::helpers::{T0_NS, TestApp, installation, pose_json};
 use axum::http::StatusCode;
 use brokenray::bank::ResultSource;
 use brokenray::geometry::{Pose, Vec3, se3_exp};
+use brokenray::model::TargetId;
 use rerun::external::re_log_encoding::DecoderApp;
 use rerun::log::{Chunk, LogMsg};
 use serde_json::{Value, json};
@@ -288,7 +289,13 @@ async fn replay_writes_one_filtered_point_per_stored_result() {
     let stored = app
         .service
         .store()
-        .results(0, ResultSource::Filtered, from_ns, to_ns, i64::MAX)
+        .results(
+            TargetId(0),
+            ResultSource::Filtered,
+            from_ns,
+            to_ns,
+            i64::MAX,
+        )
         .await
         .unwrap();
     assert!(stored.len() >= 40, "{} stored results", stored.len());
