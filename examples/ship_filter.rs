@@ -80,6 +80,7 @@ struct Args {
     rate_hz: f64,
     still_target: bool,
     offset_ms: f64,
+    floor_s: f64,
 }
 
 fn args() -> Args {
@@ -90,6 +91,7 @@ fn args() -> Args {
         rate_hz: 25.0,
         still_target: false,
         offset_ms: 0.0,
+        floor_s: 20.0,
     };
     let mut it = std::env::args().skip(1);
     while let Some(k) = it.next() {
@@ -101,6 +103,7 @@ fn args() -> Args {
             "--rate-hz" => a.rate_hz = v().parse().expect("rate"),
             "--still-target" => a.still_target = true,
             "--offset-ms" => a.offset_ms = v().parse().expect("offset"),
+            "--floor-s" => a.floor_s = v().parse().expect("floor length"),
             other => panic!("unknown flag {other}"),
         }
     }
@@ -152,6 +155,7 @@ fn main() {
         let mut truth_at: HashMap<i64, Pose> = HashMap::new();
         let mut truths: Vec<(i64, Pose)> = Vec::new();
         let mut raws: Vec<(i64, Pose)> = Vec::new();
+        let (mut raw_nees, mut raw_n) = (0.0, 0usize);
         let mut filtered: Vec<(i64, PoseCov)> = Vec::new();
         for _ in 0..n_groups {
             let group = sim.next_group();
@@ -177,6 +181,12 @@ fn main() {
                 let out = bank.ingest(s).expect("ingest");
                 for r in out.raw_results.iter().filter(|r| r.target == target) {
                     raws.push((r.time_ns, r.target_from_base.pose));
+                    if let Some(truth) = truth_at.get(&r.time_ns)
+                        && let Some((n, _)) = nees(&r.target_from_base, truth)
+                    {
+                        raw_nees += n;
+                        raw_n += 1;
+                    }
                 }
                 for f in out.filtered_results.iter().filter(|f| f.target == target) {
                     if let Some(p) = f.target_from_base {
@@ -226,8 +236,8 @@ fn main() {
             }
         }
         let names = ["tx_mm", "ty_mm", "tz_mm", "rx_as", "ry_as", "rz_as"];
-        // Floor taps: 3 s of history.
-        let taps = (3.0 * args.rate_hz).round() as usize;
+        // The floor's taps: `--floor-s` of history.
+        let taps = (args.floor_s * args.rate_hz).round() as usize;
         let skip = (10.0 * args.rate_hz) as usize;
         for i in 0..6 {
             let input: Vec<f64> = raw_x.iter().map(|x| x[i]).collect();
@@ -246,9 +256,25 @@ fn main() {
                 f / floor
             );
         }
+        if let Some(t) = bank.target_tuning(target) {
+            let o = &t.tuning.oscillation;
+            println!(
+                "seed {seed}: tuning at the end: period {:.1} s, rotation {:.1?} arcsec, translation {:.3?} mm, drift {:.3} arcsec/sqrt(s) {:.4} mm/sqrt(s); mean NIS {:.2} over {} (band {:.2} to {:.2})",
+                o.period_s,
+                o.rotation_arcsec,
+                o.translation_mm,
+                t.tuning.random_walk_rotation_arcsec_per_sqrt_s,
+                t.tuning.random_walk_translation_mm_per_sqrt_s,
+                t.consistency.mean_nis,
+                t.consistency.samples,
+                t.consistency.band.0,
+                t.consistency.band.1
+            );
+        }
         println!(
-            "seed {seed}: NEES {:.2} over {n_nees} filtered results; {} raw results of {} groups",
+            "seed {seed}: NEES {:.2} over {n_nees} filtered results, raw {:.2}; {} raw results of {} groups",
             nees_sum / n_nees.max(1) as f64,
+            raw_nees / raw_n.max(1) as f64,
             raws.len(),
             n_groups
         );

@@ -246,8 +246,11 @@ struct TargetTrack {
     filter: LinkFilter,
     /// Past states, oldest first, each after a fused result or a restart.
     history: VecDeque<LinkFilter>,
-    /// The tuning the target starts with (the most dynamic of its links').
+    /// The tuning the target starts with (the installation's, or the most dynamic of its
+    /// links').
     base_tuning: FilterTuning,
+    /// Whether the oscillation's strengths are fitted from the data.
+    fit_from_data: bool,
     /// Fits the oscillation from the data (`oscillatory` only).
     estimator: Option<MotionEstimator>,
     /// The newest fit in force, if any.
@@ -256,12 +259,13 @@ struct TargetTrack {
 }
 
 impl TargetTrack {
-    fn new(tuning: FilterTuning) -> Self {
+    fn new(tuning: FilterTuning, fit_from_data: bool) -> Self {
         Self {
             filter: LinkFilter::new(tuning),
             history: VecDeque::new(),
             base_tuning: tuning,
-            estimator: (tuning.model == MotionModel::Oscillatory)
+            fit_from_data,
+            estimator: (fit_from_data && tuning.model == MotionModel::Oscillatory)
                 .then(|| MotionEstimator::new(Bounds::default())),
             fit: None,
             consistency: InnovationWindow::new(6, CONSISTENCY_WINDOW, CONSISTENCY_PROBABILITY),
@@ -270,7 +274,7 @@ impl TargetTrack {
 
     /// Back to the start (a rollback or a reset).
     fn reset(&mut self) {
-        *self = Self::new(self.base_tuning);
+        *self = Self::new(self.base_tuning, self.fit_from_data);
     }
 
     /// Feeds one raw result.
@@ -278,9 +282,15 @@ impl TargetTrack {
         let disposition = self.filter.update(time_ns, z);
         match disposition {
             Disposition::Fused { nis } => self.consistency.push(nis),
-            Disposition::Reinitialized { .. } => {
+            // An outlier is an innovation too, counted at the gate: a glint now and then
+            // leaves the mean where it was, a model that does not fit (most samples over the
+            // gate, as `static` on a ship) takes it out of its band.
+            Disposition::Outlier { nis, .. } => self.consistency.push(nis.min(self.filter.gate())),
+            Disposition::Reinitialized { nis, .. } => {
+                // The window goes on across a restart: a model that keeps restarting does
+                // not fit its data either.
+                self.consistency.push(nis.min(self.filter.gate()));
                 self.history.clear();
-                self.consistency.clear();
                 if let Some(e) = &mut self.estimator {
                     e.clear();
                 }
@@ -458,7 +468,10 @@ impl FilterBank {
             targets_of_link,
             tracks: model
                 .target_ids()
-                .map(|(ti, _)| TargetTrack::new(target_tuning_of(&model, ti)))
+                .map(|(ti, t)| match t.filter {
+                    Some(f) => TargetTrack::new(f.tuning, f.fit_from_data),
+                    None => TargetTrack::new(target_tuning_of(&model, ti), true),
+                })
                 .collect(),
             model,
         }
@@ -494,6 +507,7 @@ impl FilterBank {
                     filter: t.filter.clone(),
                     history: VecDeque::new(),
                     base_tuning: t.base_tuning,
+                    fit_from_data: t.fit_from_data,
                     // The view evaluates; it does not fit (the window is the writer's).
                     estimator: None,
                     fit: t.fit,

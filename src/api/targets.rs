@@ -698,6 +698,8 @@ pub(super) struct TargetFilterOut {
     pub fit_samples: Option<usize>,
     /// The oscillation's period (s).
     pub oscillation_period_s: f64,
+    /// How long the oscillation keeps its phase (s): `1 / mu`, its damping.
+    pub oscillation_correlation_time_s: f64,
     /// The oscillation's stationary sigma per axis, rotation (arc-seconds).
     pub oscillation_rotation_arcsec: [f64; 3],
     /// The oscillation's stationary sigma per axis, translation (mm).
@@ -742,6 +744,7 @@ pub(super) async fn get_filter(
         since: t.fit.map(|f| format_ns(f.time_ns)),
         fit_samples: t.fit.map(|f| f.samples),
         oscillation_period_s: o.period_s,
+        oscillation_correlation_time_s: o.correlation_time_s,
         oscillation_rotation_arcsec: o.rotation_arcsec,
         oscillation_translation_mm: o.translation_mm,
         drift_rotation_arcsec_per_sqrt_s: t.tuning.random_walk_rotation_arcsec_per_sqrt_s,

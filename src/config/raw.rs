@@ -251,6 +251,18 @@ pub(super) struct RawTarget {
     pub base: String,
     #[serde(default)]
     pub alarms: RawAlarms,
+    pub filter: Option<RawTargetFilter>,
+}
+
+/// `[targets.filter]`: the target filter's model and tuning instead of its links'.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawTargetFilter {
+    pub model: Option<String>,
+    pub fit_from_data: Option<bool>,
+    pub random_walk: Option<RawRandomWalk>,
+    pub acceleration_noise: Option<RawAcceleration>,
+    pub oscillation: Option<RawOscillation>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -1159,17 +1159,67 @@ impl Validator {
         })
     }
 
+    /// A motion model by its name.
+    fn motion_model(&mut self, at: usize, what: &str, name: &str) -> Option<MotionModel> {
+        let model = MotionModel::parse(name);
+        if model.is_none() {
+            self.problem(
+                at,
+                format!(
+                    "{what}: model `{name}` is not one of static, constant_velocity, oscillatory"
+                ),
+            );
+        }
+        model
+    }
+
+    /// A target's `[targets.filter]`: its filter's model and tuning instead of its links'.
+    fn target_filter(
+        &mut self,
+        at: usize,
+        target: &str,
+        f: &raw::RawTargetFilter,
+        raw_filter: &raw::RawFilter,
+    ) -> Option<crate::model::TargetFilter> {
+        let what = format!("target `{target}` filter");
+        let Some(name) = f.model.as_deref() else {
+            self.problem(at, format!("{what} needs `model`"));
+            return None;
+        };
+        let model = self.motion_model(at, &what, name)?;
+        let fit_from_data = f.fit_from_data.unwrap_or(true);
+        if fit_from_data && model != MotionModel::Oscillatory {
+            self.problem(
+                at,
+                format!("{what}: `fit_from_data` applies to the oscillatory model (set it false, or leave it out)"),
+            );
+            return None;
+        }
+        let keys = TuningKeys {
+            random_walk: f.random_walk,
+            acceleration_noise: f.acceleration_noise,
+            oscillation: f.oscillation,
+        };
+        let tuning = self.tuning(at, &what, model, keys, raw_filter)?;
+        Some(crate::model::TargetFilter {
+            tuning,
+            fit_from_data: fit_from_data && model == MotionModel::Oscillatory,
+        })
+    }
+
+    /// A motion model's tuning from its keys (`random_walk`, `acceleration_noise`,
+    /// `oscillation`), each checked against the model it applies to.
     fn tuning(
         &mut self,
         at: usize,
         what: &str,
         model: MotionModel,
-        l: &raw::RawLink,
+        keys: TuningKeys,
         raw_filter: &raw::RawFilter,
     ) -> Option<FilterTuning> {
         let mut t = FilterTuning::default_for(model);
         let mut ok = true;
-        if let Some(rw) = l.random_walk {
+        if let Some(rw) = keys.random_walk {
             if model == MotionModel::ConstantVelocity {
                 self.problem(
                     at,
@@ -1190,7 +1240,7 @@ impl Validator {
             t.random_walk_rotation_arcsec_per_sqrt_s = rw.rotation_arcsec_per_sqrt_s;
             t.random_walk_translation_mm_per_sqrt_s = rw.translation_mm_per_sqrt_s;
         }
-        if let Some(a) = l.acceleration_noise {
+        if let Some(a) = keys.acceleration_noise {
             if model != MotionModel::ConstantVelocity {
                 self.problem(
                     at,
@@ -1211,7 +1261,7 @@ impl Validator {
             t.acceleration_rotation_arcsec_per_s_sqrt_s = a.rotation_arcsec_per_s_sqrt_s;
             t.acceleration_translation_mm_per_s_sqrt_s = a.translation_mm_per_s_sqrt_s;
         }
-        if let Some(o) = l.oscillation {
+        if let Some(o) = keys.oscillation {
             if model != MotionModel::Oscillatory {
                 self.problem(
                     at,
@@ -1268,18 +1318,7 @@ impl Validator {
                 format!("{what}: `pose` is for calibrated links; a measured link's designed pose is `nominal`"),
             );
         }
-        let model = match l.model.as_deref().unwrap_or("static") {
-            "static" => MotionModel::Static,
-            "constant_velocity" => MotionModel::ConstantVelocity,
-            "oscillatory" => MotionModel::Oscillatory,
-            other => {
-                self.problem(
-                    at,
-                    format!("{what}: model `{other}` is not one of static, constant_velocity, oscillatory"),
-                );
-                return None;
-            }
-        };
+        let model = self.motion_model(at, &what, l.model.as_deref().unwrap_or("static"))?;
         let Some(raw_sigma) = &l.sigma else {
             self.problem(
                 at,
@@ -1299,7 +1338,12 @@ impl Validator {
             Some(p) => Some(self.pose(at, &format!("{what}: nominal"), p)?),
             None => None,
         };
-        let tuning = self.tuning(at, &what, model, l, raw_filter)?;
+        let keys = TuningKeys {
+            random_walk: l.random_walk,
+            acceleration_noise: l.acceleration_noise,
+            oscillation: l.oscillation,
+        };
+        let tuning = self.tuning(at, &what, model, keys, raw_filter)?;
         Some(LinkKind::Measured(MeasuredLink {
             tuning,
             default_sigmas: sigmas,
@@ -1328,6 +1372,20 @@ impl Validator {
                 continue;
             }
             let alarms = self.alarms(at, &t.name, &t.alarms);
+            let filter = match &t.filter {
+                Some(f) => match self.target_filter(
+                    at,
+                    &t.name,
+                    f,
+                    raw.filter
+                        .as_ref()
+                        .map_or(&raw::RawFilter::default(), |f| f.get_ref()),
+                ) {
+                    Some(f) => Some(f),
+                    None => continue,
+                },
+                None => None,
+            };
             let resolution = match topology.resolve(&t.base, &t.name) {
                 Ok(r) => r,
                 Err(ChainError::UnknownFrame(f)) => {
@@ -1348,6 +1406,7 @@ impl Validator {
                 base: resolution.base,
                 resolution,
                 alarms,
+                filter,
             });
         }
         out
@@ -1556,4 +1615,12 @@ impl Validator {
         }
         AuthSettings { tokens }
     }
+}
+
+/// The tuning keys of a measured link or a target's filter.
+#[derive(Debug, Clone, Copy)]
+struct TuningKeys {
+    random_walk: Option<raw::RawRandomWalk>,
+    acceleration_noise: Option<raw::RawAcceleration>,
+    oscillation: Option<raw::RawOscillation>,
 }

@@ -1,16 +1,21 @@
 //! Tuning from the data: the strengths of a motion model estimated from the measurements
 //! themselves, and the filter's own consistency watched.
 //!
-//! [`MotionEstimator`] keeps a window of measured poses (each as its left perturbation
+//! [`MotionEstimator`] keeps a window (180 s) of measured poses (each as its left perturbation
 //! `Log(Z * A^-1)` about an anchor `A`, with its covariance) and refits, every few seconds, per
 //! axis:
 //!
-//! * the **oscillation's sigma**: the variance of the series about a straight line (the slow
-//!   drift removed), less the measurements' own mean variance (noise that the filter already
-//!   knows), so `sigma^2 = var(x - trend) - mean(R_ii)`;
-//! * the **period**: from the series' autocorrelation at a lag of a second,
-//!   `rho(tau) = c(tau) / sigma^2` (noise is independent between groups, so it is not in
-//!   `c(tau)`), and `rho = cos(2 pi tau / period)` for an oscillation;
+//! * the **oscillation's sigma**: the covariance of neighbouring values of the series about a
+//!   straight line (the slow drift removed), through the fitted oscillator's correlation over
+//!   one step, `sigma^2 = c(dt) / rho(dt)`: measurement noise is independent between groups,
+//!   so it is not in `c(dt)`, and an error of the measurements' own sigmas does not leak into
+//!   it (it would into `var(x) - mean(R)`, which on a noisy axis is a small difference of
+//!   large numbers);
+//! * the **period and correlation time**: from the series' autocorrelation at lags of 0.5 to
+//!   4 s, `rho(tau) = c(tau) / sigma^2` (noise is independent between groups, so it is not in
+//!   `c(tau)`), pooled over the axes that stand out of the noise, fitted by the oscillator's
+//!   own `rho(tau) = exp(-mu tau) (cos(lambda tau) + mu / lambda sin(lambda tau))` (the
+//!   damping sets how much of the motion a filter cannot predict);
 //! * the **drift**: the trend's slope `s`, as the random walk whose spread over the window `W`
 //!   matches it (`q = s^2 W`).
 //!
@@ -37,6 +42,8 @@ pub struct Bounds {
     pub refit_every_s: f64,
     /// Period range (s).
     pub period_s: (f64, f64),
+    /// Correlation time range (s): `1 / mu`, how long the oscillation keeps its phase.
+    pub correlation_time_s: (f64, f64),
     /// Oscillation sigma range, rotation (arc-seconds).
     pub rotation_arcsec: (f64, f64),
     /// Oscillation sigma range, translation (mm).
@@ -50,10 +57,11 @@ pub struct Bounds {
 impl Default for Bounds {
     fn default() -> Self {
         Self {
-            window_s: 60.0,
+            window_s: 180.0,
             min_data_s: 20.0,
             refit_every_s: 5.0,
             period_s: (2.0, 60.0),
+            correlation_time_s: (2.0, 200.0),
             rotation_arcsec: (0.5, 3600.0),
             translation_mm: (0.005, 50.0),
             drift_rotation_arcsec_per_sqrt_s: (0.01, 20.0),
@@ -81,10 +89,7 @@ impl MotionFit {
     /// `tuning` with this fit's strengths.
     pub fn applied_to(&self, tuning: &FilterTuning) -> FilterTuning {
         FilterTuning {
-            oscillation: OscillationTuning {
-                correlation_time_s: tuning.oscillation.correlation_time_s,
-                ..self.oscillation
-            },
+            oscillation: self.oscillation,
             random_walk_rotation_arcsec_per_sqrt_s: self.drift_rotation_arcsec_per_sqrt_s,
             random_walk_translation_mm_per_sqrt_s: self.drift_translation_mm_per_sqrt_s,
             ..*tuning
@@ -163,16 +168,20 @@ impl MotionEstimator {
             .map(|(t, _, _)| (t - t0) as f64 / 1e9)
             .collect();
         let span_s = ts[n - 1];
-        // The lag of the autocorrelation: a second, in samples at the window's mean rate.
+        // The autocorrelation's lags: every half second up to four, in samples at the
+        // window's mean rate.
         let dt_mean = span_s / (n - 1) as f64;
-        let lag = ((1.0 / dt_mean).round() as usize).clamp(1, n / 4);
-        let tau_s = lag as f64 * dt_mean;
+        let lags: Vec<usize> = (1..=8)
+            .map(|j| ((0.5 * j as f64 / dt_mean).round() as usize).clamp(1, n / 4))
+            .collect();
         let t_mean = ts.iter().sum::<f64>() / n as f64;
         let t_var = ts.iter().map(|t| (t - t_mean).powi(2)).sum::<f64>();
         let b = &self.bounds;
-        let mut sigma = [0.0; 6];
+        let mut lag1_c = [0.0; 6];
         let mut slope = [0.0; 6];
-        let mut periods: Vec<(f64, f64)> = Vec::new();
+        // Pooled over the axes that stand out of the noise: sum of c(tau_j), sum of var_x.
+        let mut pooled_c = vec![0.0; lags.len()];
+        let mut pooled_var = 0.0;
         for axis in 0..6 {
             let xs: Vec<f64> = self.window.iter().map(|(_, x, _)| x[axis]).collect();
             let x_mean = xs.iter().sum::<f64>() / n as f64;
@@ -187,41 +196,51 @@ impl MotionEstimator {
                 .zip(&xs)
                 .map(|(t, x)| x - x_mean - s * (t - t_mean))
                 .collect();
-            let var_total = d.iter().map(|v| v * v).sum::<f64>() / n as f64;
             let noise = self.window.iter().map(|(_, _, r)| r[axis]).sum::<f64>() / n as f64;
-            let var_x = (var_total - noise).max(0.0);
-            let c_tau = d.iter().zip(&d[lag..]).map(|(a, b)| a * b).sum::<f64>() / (n - lag) as f64;
-            // Axes whose oscillation stands clear of the noise say what the period is.
-            if var_x > 3.0 * noise && var_x > 0.0 {
-                let rho = (c_tau / var_x).clamp(-1.0, 1.0);
-                let omega = rho.acos() / tau_s;
-                if omega > 0.0 {
-                    periods.push((
-                        2.0 * std::f64::consts::PI / omega,
-                        var_x / noise.max(1e-300),
-                    ));
+            // The covariance of neighbouring results: the motion's variance, to the few
+            // parts in a thousand the motion changes in one step, and free of the noise
+            // (independent between groups), so no error of the measurements' sigmas leaks
+            // into it as it would into `var(x) - mean(R)`.
+            let var_x =
+                (d.iter().zip(&d[1..]).map(|(a, b)| a * b).sum::<f64>() / (n - 1) as f64).max(0.0);
+            // Axes whose oscillation stands clear of what the noise leaves in its estimate
+            // (the covariance of n independent noise pairs scatters by 1/sqrt(n) of the noise
+            // variance) say what its dynamics are; each weighs by the inverse of its noise.
+            let resolvable = 5.0 * noise / (n as f64).sqrt();
+            if var_x > resolvable && noise > 0.0 {
+                let w = 1.0 / noise;
+                for (c, &lag) in pooled_c.iter_mut().zip(&lags) {
+                    *c += w * d.iter().zip(&d[lag..]).map(|(a, b)| a * b).sum::<f64>()
+                        / (n - lag) as f64;
                 }
+                pooled_var += w * var_x;
             }
-            sigma[axis] = var_x.sqrt();
+            lag1_c[axis] = var_x;
             slope[axis] = s;
         }
-        let period_s = if periods.is_empty() {
-            // Nothing stands out of the noise: the middle of the range.
-            (b.period_s.0 * b.period_s.1).sqrt()
-        } else {
-            // The median, weighted by how far each axis stands out of the noise.
-            periods.sort_by(|a, b| a.0.total_cmp(&b.0));
-            let total: f64 = periods.iter().map(|p| p.1).sum();
-            let mut acc = 0.0;
-            periods
+        let (period_s, correlation_time_s) = if pooled_var > 0.0 {
+            let rho: Vec<(f64, f64)> = lags
                 .iter()
-                .find(|p| {
-                    acc += p.1;
-                    acc >= total / 2.0
-                })
-                .map_or(periods[0].0, |p| p.0)
-        }
-        .clamp(b.period_s.0, b.period_s.1);
+                .zip(&pooled_c)
+                .map(|(&lag, c)| (lag as f64 * dt_mean, c / pooled_var))
+                .collect();
+            fit_oscillator(&rho, b)
+        } else {
+            // Nothing stands out of the noise: the middle of the ranges.
+            (
+                (b.period_s.0 * b.period_s.1).sqrt(),
+                (b.correlation_time_s.0 * b.correlation_time_s.1).sqrt(),
+            )
+        };
+        // The motion's variance from its covariance at one step, through the fitted
+        // oscillator's correlation over that step.
+        let rho_step = oscillator_rho(
+            1.0 / correlation_time_s,
+            std::f64::consts::TAU / period_s,
+            dt_mean,
+        )
+        .max(0.5);
+        let sigma: [f64; 6] = std::array::from_fn(|i| (lag1_c[i] / rho_step).sqrt());
         let clamp = |v: f64, r: (f64, f64)| v.clamp(r.0, r.1);
         let window_s = span_s.max(1.0);
         let drift = |axes: std::ops::Range<usize>| {
@@ -232,7 +251,7 @@ impl MotionEstimator {
         Some(MotionFit {
             oscillation: OscillationTuning {
                 period_s,
-                correlation_time_s: f64::NAN,
+                correlation_time_s,
                 rotation_arcsec: std::array::from_fn(|i| {
                     clamp(sigma[3 + i] * ARCSEC_PER_RAD, b.rotation_arcsec)
                 }),
@@ -247,6 +266,39 @@ impl MotionEstimator {
             samples: n,
         })
     }
+}
+
+/// The autocorrelation of the model's oscillation at lag `tau_s`:
+/// `rho(tau) = exp(-mu tau) (cos(lambda tau) + mu / lambda sin(lambda tau))`.
+fn oscillator_rho(mu: f64, lambda: f64, tau_s: f64) -> f64 {
+    (-mu * tau_s).exp() * ((lambda * tau_s).cos() + mu / lambda * (lambda * tau_s).sin())
+}
+
+/// `(period_s, correlation_time_s)` of the oscillator whose autocorrelation is nearest the
+/// measured `(lag_s, rho)` pairs (least squares over a grid in the logarithms of both, within
+/// the bounds).
+fn fit_oscillator(rho: &[(f64, f64)], b: &Bounds) -> (f64, f64) {
+    const STEPS: usize = 64;
+    let log_grid = |(lo, hi): (f64, f64), k: usize| {
+        (lo.ln() + (hi.ln() - lo.ln()) * k as f64 / (STEPS - 1) as f64).exp()
+    };
+    let mut best = (f64::INFINITY, 0.0, 0.0);
+    for i in 0..STEPS {
+        let period = log_grid(b.period_s, i);
+        let lambda = std::f64::consts::TAU / period;
+        for j in 0..STEPS {
+            let tc = log_grid(b.correlation_time_s, j);
+            let mu = 1.0 / tc;
+            let err: f64 = rho
+                .iter()
+                .map(|&(tau, r)| (oscillator_rho(mu, lambda, tau) - r).powi(2))
+                .sum();
+            if err < best.0 {
+                best = (err, period, tc);
+            }
+        }
+    }
+    (best.1, best.2)
 }
 
 /// The normalised innovations of a filter over a window, judged against their chi-square band.
@@ -297,11 +349,6 @@ impl InnovationWindow {
         while self.window.len() > self.capacity {
             self.window.pop_front();
         }
-    }
-
-    /// Forgets every innovation.
-    pub fn clear(&mut self) {
-        self.window.clear();
     }
 
     /// The window's mean and band.
@@ -384,6 +431,64 @@ mod tests {
         }
     }
 
+    /// A randomly excited damped oscillation (the hull's wave-driven flexure) under noise
+    /// larger than itself: its sigma, period and correlation time are recovered from the
+    /// data, the noise's sigma not needed to be exact (it is given 10 % too large).
+    #[test]
+    fn a_damped_oscillation_under_noise_is_recovered() {
+        let mut rng = StdRng::seed_from_u64(21);
+        let (period, tc, sigma_as, noise_as, h): (f64, f64, f64, f64, f64) =
+            (8.0, 12.7, 100.0, 117.0, 0.04);
+        let (mu, lambda) = (1.0 / tc, std::f64::consts::TAU / period);
+        // AR(2) with the continuous process's poles exp((-mu +- i lambda) h).
+        let a1 = 2.0 * (-mu * h).exp() * (lambda * h).cos();
+        let a2 = -(-2.0 * mu * h).exp();
+        // Its stationary variance per unit driving variance.
+        let gain = (1.0 - a2) / ((1.0 + a2) * ((1.0 - a2).powi(2) - a1 * a1));
+        let drive = Normal::new(0.0, (sigma_as / ARCSEC_PER_RAD) / gain.sqrt()).unwrap();
+        let noise = Normal::new(0.0, noise_as / ARCSEC_PER_RAD).unwrap();
+        let r = (1.1 * noise_as / ARCSEC_PER_RAD).powi(2);
+        let cov = Mat6::from_diagonal(&Twist::new(1.0, 1.0, 1.0, r, r, r));
+        let mut est = MotionEstimator::new(Bounds::default());
+        let mut state = [[0.0f64; 2]; 3];
+        let mut fits = Vec::new();
+        for k in 0..45_000 {
+            let mut xi = Twist::zeros();
+            for (i, s) in state.iter_mut().enumerate() {
+                let x = a1 * s[0] + a2 * s[1] + drive.sample(&mut rng);
+                *s = [x, s[0]];
+                xi[3 + i] = x + noise.sample(&mut rng);
+            }
+            let z = PoseCov {
+                pose: se3_exp(&xi),
+                cov,
+            };
+            if let Some(f) = est.push((k as f64 * h * 1e9) as i64, &z) {
+                fits.push(f);
+            }
+        }
+        // Fits over the last 20 minutes, each of a 3-minute window.
+        let late: Vec<&MotionFit> = fits.iter().skip(fits.len() / 3).collect();
+        let mean = |f: &dyn Fn(&MotionFit) -> f64| {
+            late.iter().map(|x| f(x)).sum::<f64>() / late.len() as f64
+        };
+        let sigma = mean(&|f| f.oscillation.rotation_arcsec.iter().sum::<f64>() / 3.0);
+        let period_fit = mean(&|f| f.oscillation.period_s);
+        let tc_fit = mean(&|f| f.oscillation.correlation_time_s);
+        assert!(
+            (sigma / sigma_as - 1.0).abs() < 0.1,
+            "sigma {sigma} against {sigma_as}"
+        );
+        assert!(
+            (period_fit / period - 1.0).abs() < 0.1,
+            "period {period_fit} against {period}"
+        );
+        assert!(
+            (tc_fit / tc - 1.0).abs() < 0.35,
+            "correlation time {tc_fit} against {tc}"
+        );
+    }
+
     /// Pure noise about a fixed pose: the oscillation found is at the floor of its bounds, not
     /// an invented motion.
     #[test]
@@ -416,10 +521,12 @@ mod tests {
                     .fold(worst, |a, b| a.max(*b));
             }
         }
-        // The noise variance's estimate over 1500 samples scatters by sqrt(2/1500) of it: an
-        // oscillation below sqrt(4.5 sqrt(2/1500)) of the noise (8 of 20 arc-seconds), the
-        // largest excess of a few hundred fits, cannot be told from noise. Nothing above.
-        let limit = 20.0 * (4.5 * (2.0f64 / 1500.0).sqrt()).sqrt();
+        // A fit sees 180 s (4500 samples): the covariance of neighbouring noise values
+        // scatters by 1/sqrt(4500) of the noise variance, so an oscillation below
+        // sqrt(4.5 / sqrt(4500)) of the noise (5.2 of 20 arc-seconds), the largest excess of
+        // a few hundred fits, cannot be told from noise. Nothing above it is invented.
+        let n = Bounds::default().window_s * 25.0;
+        let limit = 20.0 * (4.5 / n.sqrt()).sqrt();
         assert!(
             worst < limit,
             "invented {worst} arc-seconds of oscillation (limit {limit})"

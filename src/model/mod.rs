@@ -157,6 +157,19 @@ pub struct TargetSpec {
     pub resolution: Resolution,
     /// Deformation thresholds.
     pub alarms: AlarmThresholds,
+    /// Its filter's model and tuning as the installation sets them; `None`: the most dynamic
+    /// of its measured links', fitted from the data when oscillatory.
+    pub filter: Option<TargetFilter>,
+}
+
+/// A target filter's model and tuning set by the installation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TargetFilter {
+    /// The model and its tuning to start from.
+    pub tuning: FilterTuning,
+    /// Whether the oscillation's strengths are fitted from the data (oscillatory only), or
+    /// kept as set.
+    pub fit_from_data: bool,
 }
 
 impl Model {

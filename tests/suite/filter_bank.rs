@@ -298,3 +298,97 @@ fn cameras_that_expose_apart_make_raw_results_within_the_tolerance() {
         "every link reports that its samples make no group"
     );
 }
+
+/// On a ship, each target's filter says whether its model fits: the `oscillatory` model with
+/// its strengths fitted from the data keeps its normalised innovations in their band, and
+/// fits the motion's period; `static`, which cannot follow a hull's flexure, leaves it.
+#[test]
+fn a_target_filter_says_whether_its_model_fits_the_ship() {
+    use brokenray::bank::CONSISTENCY_JUDGED_FROM;
+    use brokenray::filter::{FilterTuning, MotionModel};
+    use brokenray::model::Observer;
+    use brokenray::sim::{Scenario, SimSettings, Simulator};
+    let run = |model: MotionModel| {
+        let mut inst = config::default_installation();
+        for spec in &mut std::sync::Arc::make_mut(&mut inst.model).links {
+            if let LinkKind::Measured(m) = &mut spec.kind {
+                m.tuning = FilterTuning::default_for(model);
+            }
+        }
+        let settings = SimSettings {
+            scenario: Scenario::Ship,
+            rate_hz: 25.0,
+            start_ns: T0,
+            duration_s: Some(120.0),
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed: 9,
+        };
+        let mut sim = Simulator::new(&inst.model, settings).unwrap();
+        let observer = Observer::new(&inst.model);
+        let mut bank = FilterBank::shared(inst.model.clone());
+        for _ in 0..3000 {
+            let g = sim.next_group();
+            for o in &g.observations {
+                let (link, s) = observer
+                    .solve(&o.camera, &o.marker, &o.points_px, None, None)
+                    .unwrap();
+                bank.ingest(&Sample {
+                    link: link.link,
+                    time_ns: g.time_ns,
+                    parent_from_child: s.camera_from_marker,
+                    uncertainty: MeasurementUncertainty::Covariance(s.covariance),
+                })
+                .unwrap();
+            }
+        }
+        bank.target_tuning(TargetId(0)).unwrap()
+    };
+    let fitted = run(MotionModel::Oscillatory);
+    let c = fitted.consistency;
+    assert!(c.samples >= CONSISTENCY_JUDGED_FROM);
+    assert!(c.fits(), "oscillatory on a ship: {c:?}");
+    let fit = fitted.fit.expect("a fit after two minutes");
+    // The hull's motion is an 8 s and a 15 s oscillation: one oscillator fits between them.
+    assert!(
+        (8.0..=15.0).contains(&fit.oscillation.period_s),
+        "period {}",
+        fit.oscillation.period_s
+    );
+    let c = run(MotionModel::Static).consistency;
+    assert!(c.samples >= CONSISTENCY_JUDGED_FROM);
+    assert!(
+        !c.fits(),
+        "static on a ship must not look as if it fits: {c:?}"
+    );
+    assert!(c.mean_nis > c.band.1);
+}
+
+/// A target's filter set in the installation is the one its bank runs, kept as set when it is
+/// not to be fitted; a fit asked of a model that has no oscillation is refused by name.
+#[test]
+fn a_target_filter_set_in_the_installation_is_used_and_a_wrong_one_refused() {
+    use brokenray::filter::MotionModel;
+    let text = format!(
+        "{}\n[targets.filter]\nmodel = \"oscillatory\"\nfit_from_data = false\noscillation = {{ period_s = 9.0, correlation_time_s = 12.0, rotation_arcsec = 80.0, translation_mm = 0.3 }}\n",
+        config::DEFAULT_INSTALLATION_TOML
+    );
+    let inst = config::parse("target-filter.toml", &text).unwrap();
+    let set = inst.model.targets[0].filter.expect("the target's filter");
+    assert!(!set.fit_from_data);
+    let bank = FilterBank::shared(inst.model.clone());
+    let t = bank.target_tuning(TargetId(0)).unwrap();
+    assert_eq!(t.tuning.model, MotionModel::Oscillatory);
+    assert_eq!(t.tuning.oscillation.period_s, 9.0);
+    assert_eq!(t.tuning.oscillation.rotation_arcsec, [80.0; 3]);
+    assert!(t.fit.is_none());
+    let wrong = format!(
+        "{}\n[targets.filter]\nmodel = \"static\"\nfit_from_data = true\n",
+        config::DEFAULT_INSTALLATION_TOML
+    );
+    let err = config::parse("wrong.toml", &wrong).unwrap_err().to_string();
+    assert!(
+        err.contains("target `G` filter: `fit_from_data` applies to the oscillatory model"),
+        "{err}"
+    );
+}

@@ -809,8 +809,17 @@ async fn a_site_catches_up_after_the_centre_was_down_and_after_its_own_sigkill()
     // (G moves at group 3000: alarms wait too.)
     let outage = |k: i64| group_time(500) + (k - 500) * 400_000_000;
     post_groups(&client, &site.base, 500..18_500, outage, 1000).await;
-    tokio::time::sleep(Duration::from_secs(2)).await;
-    let u = upstream(&client, &site.base).await;
+    // The backlog is counted again every heartbeat (later while uploads fail): wait for a
+    // count made after the outage's groups.
+    let waited_from = std::time::Instant::now();
+    let u = loop {
+        let u = upstream(&client, &site.base).await;
+        let rows = u["tiers"][1]["backlog"]["rows"].as_u64().unwrap_or(0);
+        if rows > 10_000 || waited_from.elapsed() > Duration::from_secs(60) {
+            break u;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
     let results = &u["tiers"][1];
     assert!(
         results["backlog"]["rows"].as_u64().unwrap() > 10_000,
