@@ -3,10 +3,11 @@
 //! composed series fitted on the truth (least squares over the same data).
 //!
 //! Run: `cargo run --release --example ship_filter -- [--scenario ship] [--seeds 1,2,3]
-//! [--duration-s 300] [--rate-hz 25] [--still-target] [--offset-ms 20]`.
+//! [--duration-s 300] [--rate-hz 25] [--still-target] [--offset-ms 20] [--floor-s 20]
+//! [--model static]`.
 //!
 //! The built-in installation, its measured links given the model the scenario calls for (as
-//! `demo` does: `oscillatory` on a ship), pixel noise only. `--still-target` keeps the target
+//! `demo` does: `oscillatory` on a ship; `--model` another), pixel noise only. `--still-target` keeps the target
 //! body rigid to the base while the relay stations move (their motion must cancel in
 //! `G_from_B`); `--offset-ms D` exposes the cameras at offsets spread over `0..D` ms and stamps
 //! each sample with its own exposure time.
@@ -81,6 +82,7 @@ struct Args {
     still_target: bool,
     offset_ms: f64,
     floor_s: f64,
+    model: Option<MotionModel>,
 }
 
 fn args() -> Args {
@@ -92,6 +94,7 @@ fn args() -> Args {
         still_target: false,
         offset_ms: 0.0,
         floor_s: 20.0,
+        model: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(k) = it.next() {
@@ -104,6 +107,7 @@ fn args() -> Args {
             "--still-target" => a.still_target = true,
             "--offset-ms" => a.offset_ms = v().parse().expect("offset"),
             "--floor-s" => a.floor_s = v().parse().expect("floor length"),
+            "--model" => a.model = Some(MotionModel::parse(&v()).expect("model")),
             other => panic!("unknown flag {other}"),
         }
     }
@@ -113,11 +117,11 @@ fn args() -> Args {
 fn main() {
     let args = args();
     let mut installation = config::load_or_default(None).expect("built-in installation");
-    let motion = match args.scenario {
+    let motion = args.model.unwrap_or(match args.scenario {
         Scenario::Ship => MotionModel::Oscillatory,
         Scenario::Drift | Scenario::Tunnel => MotionModel::ConstantVelocity,
         Scenario::Static | Scenario::Bump => MotionModel::Static,
-    };
+    });
     for spec in &mut Arc::make_mut(&mut installation.model).links {
         if let LinkKind::Measured(m) = &mut spec.kind
             && m.tuning.model != motion
@@ -271,6 +275,26 @@ fn main() {
                 t.consistency.band.1
             );
         }
+        let (mut samples, mut outliers, mut restarts) = (0, 0, 0);
+        for l in &model.links {
+            let st = bank.link_status(l.id);
+            samples += st.n_samples;
+            outliers += st.n_outliers;
+            restarts += st.n_reinitializations;
+        }
+        println!(
+            "seed {seed}: links: {outliers} outliers and {restarts} restarts in {samples} samples; {} filtered results of {} groups; the target filter {} its data",
+            filtered.len(),
+            n_groups,
+            if bank
+                .target_tuning(target)
+                .is_some_and(|t| t.consistency.fits())
+            {
+                "fits"
+            } else {
+                "does not fit"
+            }
+        );
         println!(
             "seed {seed}: NEES {:.2} over {n_nees} filtered results, raw {:.2}; {} raw results of {} groups",
             nees_sum / n_nees.max(1) as f64,

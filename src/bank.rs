@@ -857,8 +857,21 @@ impl FilterBank {
         });
         group.samples.insert(link, (time_ns, z));
         let group = &self.groups[&key];
-        let samples = self.at_group_time(key, &group.samples);
-        let out = self.compose_group(link, key, &samples, &group.emitted);
+        // Most samples leave their group incomplete: compose only when a target of the link
+        // has a sample of every measured link on its paths.
+        let completes = self.targets_of_link[link.0].iter().any(|t| {
+            !group.emitted[t.0]
+                && self.model.targets[t.0].resolution.paths.iter().all(|p| {
+                    p.links()
+                        .all(|l| self.measured[l.0].is_none() || group.samples.contains_key(&l))
+                })
+        });
+        let out = if completes {
+            let samples = self.at_group_time(key, &group.samples);
+            self.compose_group(link, key, &samples, &group.emitted)
+        } else {
+            Vec::new()
+        };
         if let Some(g) = self.groups.get_mut(&key) {
             for r in &out {
                 g.emitted[r.target.0] = true;
