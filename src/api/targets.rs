@@ -696,18 +696,26 @@ pub(super) struct TargetFilterOut {
     pub since: Option<String>,
     /// Raw results the fit used.
     pub fit_samples: Option<usize>,
-    /// The oscillation's period (s).
-    pub oscillation_period_s: f64,
-    /// How long the oscillation keeps its phase (s): `1 / mu`, its damping.
-    pub oscillation_correlation_time_s: f64,
-    /// The oscillation's stationary sigma per axis, rotation (arc-seconds).
-    pub oscillation_rotation_arcsec: [f64; 3],
-    /// The oscillation's stationary sigma per axis, translation (mm).
-    pub oscillation_translation_mm: [f64; 3],
-    /// The mean's random walk, rotation (arc-seconds per square-root second).
-    pub drift_rotation_arcsec_per_sqrt_s: f64,
-    /// The mean's random walk, translation (mm per square-root second).
-    pub drift_translation_mm_per_sqrt_s: f64,
+    /// The oscillation's period (s); `oscillatory` only.
+    pub oscillation_period_s: Option<f64>,
+    /// How long the oscillation keeps its phase (s): `1 / mu`, its damping; `oscillatory`
+    /// only.
+    pub oscillation_correlation_time_s: Option<f64>,
+    /// The oscillation's stationary sigma per axis, rotation (arc-seconds); `oscillatory` only.
+    pub oscillation_rotation_arcsec: Option<[f64; 3]>,
+    /// The oscillation's stationary sigma per axis, translation (mm); `oscillatory` only.
+    pub oscillation_translation_mm: Option<[f64; 3]>,
+    /// The pose's (for `oscillatory`, the mean's) random walk, rotation (arc-seconds per
+    /// square-root second); `static` and `oscillatory`.
+    pub drift_rotation_arcsec_per_sqrt_s: Option<f64>,
+    /// The random walk, translation (mm per square-root second); `static` and `oscillatory`.
+    pub drift_translation_mm_per_sqrt_s: Option<f64>,
+    /// White-noise acceleration, rotation (arc-seconds per second per square-root second);
+    /// `constant_velocity` only.
+    pub acceleration_rotation_arcsec_per_s_sqrt_s: Option<f64>,
+    /// White-noise acceleration, translation (mm per second per square-root second);
+    /// `constant_velocity` only.
+    pub acceleration_translation_mm_per_s_sqrt_s: Option<f64>,
     /// Mean normalised innovation squared of the recent results (6 when the filter fits).
     pub mean_nis: Option<f64>,
     /// How many results that mean is over.
@@ -737,18 +745,27 @@ pub(super) async fn get_filter(
         .target_tuning(ti)
         .ok_or_else(|| ApiError::not_found(format!("unknown target `{name}`")))?;
     let o = &t.tuning.oscillation;
+    let model = t.tuning.model;
+    let oscillatory = model == crate::filter::MotionModel::Oscillatory;
+    let cv = model == crate::filter::MotionModel::ConstantVelocity;
     Ok(Json(TargetFilterOut {
         target: name,
-        model: t.tuning.model,
+        model,
         fitted: t.fit.is_some(),
         since: t.fit.map(|f| format_ns(f.time_ns)),
         fit_samples: t.fit.map(|f| f.samples),
-        oscillation_period_s: o.period_s,
-        oscillation_correlation_time_s: o.correlation_time_s,
-        oscillation_rotation_arcsec: o.rotation_arcsec,
-        oscillation_translation_mm: o.translation_mm,
-        drift_rotation_arcsec_per_sqrt_s: t.tuning.random_walk_rotation_arcsec_per_sqrt_s,
-        drift_translation_mm_per_sqrt_s: t.tuning.random_walk_translation_mm_per_sqrt_s,
+        oscillation_period_s: oscillatory.then_some(o.period_s),
+        oscillation_correlation_time_s: oscillatory.then_some(o.correlation_time_s),
+        oscillation_rotation_arcsec: oscillatory.then_some(o.rotation_arcsec),
+        oscillation_translation_mm: oscillatory.then_some(o.translation_mm),
+        drift_rotation_arcsec_per_sqrt_s: (!cv)
+            .then_some(t.tuning.random_walk_rotation_arcsec_per_sqrt_s),
+        drift_translation_mm_per_sqrt_s: (!cv)
+            .then_some(t.tuning.random_walk_translation_mm_per_sqrt_s),
+        acceleration_rotation_arcsec_per_s_sqrt_s: cv
+            .then_some(t.tuning.acceleration_rotation_arcsec_per_s_sqrt_s),
+        acceleration_translation_mm_per_s_sqrt_s: cv
+            .then_some(t.tuning.acceleration_translation_mm_per_s_sqrt_s),
         mean_nis: t
             .consistency
             .mean_nis

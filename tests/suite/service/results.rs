@@ -440,3 +440,39 @@ async fn a_restart_restores_the_filters_and_answers_the_same_compensation(backen
         .await;
     assert_eq!(samples["samples"][0]["disposition"], "fused");
 }
+
+/// `GET /api/v1/targets/{name}/filter` answers the target filter's model with only the terms
+/// that model has, and its innovations' mean and band; an unknown target is a 404 naming it.
+#[tokio::test]
+async fn the_target_filter_is_reported_with_its_model_and_consistency() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    let mut samples = Vec::new();
+    for k in 0..20 {
+        samples.extend(group(k, &links));
+    }
+    app.post_json("/api/v1/samples", &json!({ "samples": samples }))
+        .await;
+    let (status, f) = app.get("/api/v1/targets/G/filter").await;
+    assert_eq!(status, StatusCode::OK, "{f}");
+    // The built-in links are static: so is the target's filter, with a random walk and no
+    // oscillation or acceleration.
+    assert_eq!(f["model"], "static");
+    assert_eq!(f["fitted"], false);
+    assert!(
+        f["oscillation_period_s"].is_null()
+            && f["acceleration_rotation_arcsec_per_s_sqrt_s"].is_null()
+    );
+    assert_eq!(f["drift_rotation_arcsec_per_sqrt_s"], 2.0);
+    // Twenty groups: the first starts the filter, nineteen are innovations.
+    assert_eq!(f["nis_samples"], 19);
+    let band = f["nis_band"].as_array().unwrap();
+    assert!(band[0].as_f64().unwrap() < 6.0 && band[1].as_f64().unwrap() > 6.0);
+    assert!(f["consistent"].is_boolean());
+    let (status, e) = app.get("/api/v1/targets/nope/filter").await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    assert!(
+        e["error"]["message"].as_str().unwrap().contains("nope"),
+        "{e}"
+    );
+}
