@@ -28,6 +28,34 @@ use std::sync::Arc;
 /// whatever order the links' samples arrived in.
 const LINK_HISTORY: usize = 256;
 
+/// The state of a filter to evaluate `time_ns` from: the current one when it is not newer,
+/// else the newest past state at or before that time.
+fn state_at<'a>(
+    current: &'a LinkFilter,
+    past: &'a VecDeque<LinkFilter>,
+    time_ns: i64,
+) -> Option<&'a LinkFilter> {
+    if current.time_ns().is_some_and(|t| t <= time_ns) {
+        return Some(current);
+    }
+    past.iter()
+        .rev()
+        .find(|f| f.time_ns().is_some_and(|t| t <= time_ns))
+}
+
+/// Keeps a filter's state after an update among its past states, the oldest dropped beyond
+/// [`LINK_HISTORY`]; after a restart the older states, which describe the pose before the
+/// step, are forgotten first.
+fn remember(current: &LinkFilter, past: &mut VecDeque<LinkFilter>, restarted: bool) {
+    if restarted {
+        past.clear();
+    }
+    past.push_back(current.clone());
+    if past.len() > LINK_HISTORY {
+        past.pop_front();
+    }
+}
+
 /// How many recent sample times each link keeps to estimate its observed rate.
 const RATE_WINDOW: usize = 64;
 
@@ -173,8 +201,8 @@ pub struct TargetEstimate {
     pub paths_used: usize,
 }
 
-/// A link's state in the bank.
-#[derive(Debug, Clone, PartialEq)]
+/// A link's state in the bank (the default: nothing seen yet).
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct LinkStatus {
     /// Samples ingested (fused, outliers and out-of-order alike).
     pub n_samples: u64,
@@ -290,7 +318,6 @@ impl TargetTrack {
                 // The window goes on across a restart: a model that keeps restarting does
                 // not fit its data either.
                 self.consistency.push(nis.min(self.filter.gate()));
-                self.history.clear();
                 if let Some(e) = &mut self.estimator {
                     e.clear();
                 }
@@ -307,23 +334,24 @@ impl TargetTrack {
                 self.filter.retune(fit.applied_to(&self.base_tuning));
                 self.fit = Some(fit);
             }
-            self.history.push_back(self.filter.clone());
-            if self.history.len() > LINK_HISTORY {
-                self.history.pop_front();
-            }
+            let restarted = matches!(disposition, Disposition::Reinitialized { .. });
+            remember(&self.filter, &mut self.history, restarted);
         }
         disposition
     }
 
-    /// The state to evaluate `time_ns` from: the newest at or before it.
-    fn state_for(&self, time_ns: i64) -> Option<&LinkFilter> {
-        if self.filter.time_ns().is_some_and(|t| t <= time_ns) {
-            return Some(&self.filter);
+    /// A copy that evaluates from the current state on (see [`FilterBank::current_view`]): no
+    /// past states, and no fitting (the window is the writer's).
+    fn view(&self) -> Self {
+        Self {
+            filter: self.filter.clone(),
+            history: VecDeque::new(),
+            base_tuning: self.base_tuning,
+            fit_from_data: self.fit_from_data,
+            estimator: None,
+            fit: self.fit,
+            consistency: self.consistency.clone(),
         }
-        self.history
-            .iter()
-            .rev()
-            .find(|f| f.time_ns().is_some_and(|t| t <= time_ns))
     }
 }
 
@@ -449,17 +477,7 @@ impl FilterBank {
                 })
                 .collect(),
             frontier_ns: vec![None; model.targets.len()],
-            status: vec![
-                LinkStatus {
-                    n_samples: 0,
-                    n_outliers: 0,
-                    n_reinitializations: 0,
-                    last_time_ns: None,
-                    n_ungrouped: 0,
-                    n_grouped_closed: 0,
-                };
-                n
-            ],
+            status: vec![LinkStatus::default(); n],
             groups: BTreeMap::new(),
             group_tolerance_ns: model
                 .filter
@@ -500,20 +518,14 @@ impl FilterBank {
             group_tolerance_ns: self.group_tolerance_ns,
             targets_of_link: self.targets_of_link.clone(),
             frontier_ns: self.frontier_ns.clone(),
-            tracks: self
-                .tracks
-                .iter()
-                .map(|t| TargetTrack {
-                    filter: t.filter.clone(),
-                    history: VecDeque::new(),
-                    base_tuning: t.base_tuning,
-                    fit_from_data: t.fit_from_data,
-                    // The view evaluates; it does not fit (the window is the writer's).
-                    estimator: None,
-                    fit: t.fit,
-                    consistency: t.consistency.clone(),
-                })
-                .collect(),
+            tracks: self.tracks.iter().map(TargetTrack::view).collect(),
+        }
+    }
+
+    /// Restarts the filters of the targets whose paths use `link` (from their next raw result).
+    fn restart_targets_of(&mut self, link: LinkId) {
+        for &ti in &self.targets_of_link[link.0] {
+            self.tracks[ti.0].reset();
         }
     }
 
@@ -546,9 +558,7 @@ impl FilterBank {
                 list.insert(at, (valid_from_ns, parent_from_child));
                 // The targets' raw results step with the new calibration: their filters start
                 // again from the next one instead of taking the step for a deformation.
-                for &ti in &self.targets_of_link[link.0] {
-                    self.tracks[ti.0].reset();
-                }
+                self.restart_targets_of(link);
                 true
             }
             _ => false,
@@ -574,14 +584,7 @@ impl FilterBank {
             slot.recent_times.clear();
         }
         for s in &mut self.status {
-            *s = LinkStatus {
-                n_samples: 0,
-                n_outliers: 0,
-                n_reinitializations: 0,
-                last_time_ns: None,
-                n_ungrouped: 0,
-                n_grouped_closed: 0,
-            };
+            *s = LinkStatus::default();
         }
         self.frontier_ns.iter_mut().for_each(|f| *f = None);
         self.tracks.iter_mut().for_each(TargetTrack::reset);
@@ -741,15 +744,8 @@ impl FilterBank {
                 | Disposition::Fused { .. }
                 | Disposition::Reinitialized { .. }
         ) {
-            if matches!(disposition, Disposition::Reinitialized { .. }) {
-                // The past states describe the link before the step: evaluating an older time
-                // through them would mix the two.
-                slot.history.clear();
-            }
-            slot.history.push_back(slot.filter.clone());
-            if slot.history.len() > LINK_HISTORY {
-                slot.history.pop_front();
-            }
+            let restarted = matches!(disposition, Disposition::Reinitialized { .. });
+            remember(&slot.filter, &mut slot.history, restarted);
         }
         if slot.recent_times.back().is_none_or(|&t| sample.time_ns > t) {
             slot.recent_times.push_back(sample.time_ns);
@@ -925,15 +921,7 @@ impl FilterBank {
         let Some(slot) = self.measured.get(l.0).and_then(Option::as_ref) else {
             return z;
         };
-        let early = from_ns.min(to_ns);
-        let state = if slot.filter.time_ns().is_some_and(|t| t <= early) {
-            Some(&slot.filter)
-        } else {
-            slot.history
-                .iter()
-                .rev()
-                .find(|f| f.time_ns().is_some_and(|t| t <= early))
-        };
+        let state = state_at(&slot.filter, &slot.history, from_ns.min(to_ns));
         let predicted = |t: i64| state.and_then(|f| f.predict(t)).and_then(Result::ok);
         let (Some(at_from), Some(at_to)) = (predicted(from_ns), predicted(to_ns)) else {
             return z;
@@ -1035,15 +1023,7 @@ impl FilterBank {
         let Some(current) = slot.filter.time_ns() else {
             return Ok(None);
         };
-        let source = if time_ns >= current {
-            Some(&slot.filter)
-        } else {
-            slot.history
-                .iter()
-                .rev()
-                .find(|f| f.time_ns().is_some_and(|t| t <= time_ns))
-        };
-        match source.and_then(|f| f.predict(time_ns)) {
+        match state_at(&slot.filter, &slot.history, time_ns).and_then(|f| f.predict(time_ns)) {
             Some(Ok(p)) => Ok(Some(p)),
             _ => Err(FilterError::BeforeFilterTime {
                 link: self.model.links[link.0].name.clone(),
@@ -1081,9 +1061,9 @@ impl FilterBank {
         slot.history.clear();
         slot.recent_times.clear();
         self.status[link.0].last_time_ns = None;
+        self.restart_targets_of(link);
         for &ti in &self.targets_of_link[link.0] {
             self.frontier_ns[ti.0] = None;
-            self.tracks[ti.0].reset();
         }
         self.groups.clear();
         true
@@ -1167,8 +1147,7 @@ impl FilterBank {
                     n_reinitializations: *re,
                     last_time_ns: *last,
                     // Counted since start: groups are not kept across restarts.
-                    n_ungrouped: 0,
-                    n_grouped_closed: 0,
+                    ..LinkStatus::default()
                 };
             }
         }
@@ -1246,8 +1225,8 @@ impl FilterBank {
         let fused = fuse(&estimates, self.settings.consistency_probability)?;
         // The target's own filter where it has a state for that time; before its first raw
         // result, the composition of the filtered links.
-        let pose = match self.tracks[target.0]
-            .state_for(time_ns)
+        let track = &self.tracks[target.0];
+        let pose = match state_at(&track.filter, &track.history, time_ns)
             .and_then(|f| f.predict(time_ns))
         {
             Some(Ok(p)) => p,

@@ -357,6 +357,18 @@ impl Simulator {
         })
     }
 
+    /// The cameras of the camera-marker links, each once, in installation order, with their
+    /// models.
+    fn cameras(&self) -> Vec<(&str, &crate::vision::CameraModel)> {
+        let mut cameras: Vec<(&str, &crate::vision::CameraModel)> = Vec::new();
+        for link in self.observer.links() {
+            if !cameras.iter().any(|(c, _)| *c == link.camera_frame) {
+                cameras.push((&link.camera_frame, &link.camera));
+            }
+        }
+        cameras
+    }
+
     /// Keeps every target's body still relative to its base while the relay stations move as
     /// the scenario says: the true `target_from_base` is then constant, and any motion of the
     /// stations must cancel in it.
@@ -375,13 +387,8 @@ impl Simulator {
     /// When `camera` exposes after the group's time (ns), by
     /// [`Self::set_exposure_spread_ns`]; 0 for a camera the simulator does not know.
     pub fn exposure_offset_ns(&self, camera: &str) -> i64 {
-        let mut cameras: Vec<&str> = Vec::new();
-        for link in self.observer.links() {
-            if !cameras.contains(&link.camera_frame.as_str()) {
-                cameras.push(&link.camera_frame);
-            }
-        }
-        let Some(k) = cameras.iter().position(|c| *c == camera) else {
+        let cameras = self.cameras();
+        let Some(k) = cameras.iter().position(|(c, _)| *c == camera) else {
             return 0;
         };
         if cameras.len() < 2 {
@@ -563,13 +570,7 @@ impl Simulator {
     /// another thread): per camera of a camera-marker link, in installation order, the discs
     /// of every marker it sees at the group's true poses, and a noise seed of its own.
     pub fn frame_scenes(&self, group: &SimGroup) -> Vec<render::FrameScene> {
-        let mut cameras: Vec<(&str, &crate::vision::CameraModel)> = Vec::new();
-        for link in self.observer.links() {
-            if !cameras.iter().any(|(c, _)| *c == link.camera_frame) {
-                cameras.push((&link.camera_frame, &link.camera));
-            }
-        }
-        cameras
+        self.cameras()
             .into_iter()
             .enumerate()
             .map(|(k, (camera, model))| render::FrameScene {
