@@ -12,13 +12,17 @@
 //! from its raw results ([`crate::filter::MotionEstimator`]) and its normalised innovations
 //! watched ([`crate::filter::InnovationWindow`]), so a model that does not fit the data says so.
 
-use crate::chain::{Consistency, LinkId, compose_path, fuse};
+use crate::chain::{
+    Budget, Consistency, Contributor, ErrorTerms, Factor, LinkId, SourcedPose, compose_path_terms,
+    factor_of_covariance, fuse_terms,
+};
+use crate::deformation::{CalibrationStamp, Measured};
 use crate::filter::{
     BankSettings, Bounds, Disposition, FilterError, FilterTuning, InnovationReport,
     InnovationWindow, LinkFilter, LinkFilterRecord, MotionEstimator, MotionFit, MotionModel,
     NS_PER_S,
 };
-use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, adjoint};
+use crate::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, adjoint, se3_log};
 use crate::model::TargetId;
 use crate::model::{LinkKind, Model};
 use std::collections::{BTreeMap, HashMap, VecDeque};
@@ -114,13 +118,33 @@ pub struct RawResult {
     pub target: TargetId,
     /// The group's time (ns).
     pub time_ns: i64,
-    /// `target_from_base` composed from the raw samples.
+    /// `target_from_base` composed from the raw samples, with its whole covariance (random and
+    /// systematic).
     pub target_from_base: PoseCov,
+    /// The systematic part of that covariance: cameras' intrinsics and calibrations, the same
+    /// error in every result of that geometry (the rest is the samples' noise).
+    pub systematic_cov: Mat6,
+    /// The calibrations it was measured with.
+    pub calibration: CalibrationStamp,
     /// Disagreement of redundant paths, where there are several.
     pub consistency: Option<Consistency>,
 }
 
 impl RawResult {
+    /// The random part of the covariance: the samples' noise, what filtering averages down.
+    pub fn random_cov(&self) -> Mat6 {
+        self.target_from_base.cov - self.systematic_cov
+    }
+
+    /// The result as a deformation compares it with a reference.
+    pub fn measured(&self) -> Measured<'_> {
+        Measured {
+            g_from_b: &self.target_from_base,
+            systematic_cov: &self.systematic_cov,
+            calibration: Some(self.calibration),
+        }
+    }
+
     /// Its status: degraded when its redundant paths disagree beyond chance, ok otherwise (a
     /// raw result is never stale: it is made from samples of one instant).
     pub fn status(&self) -> TargetStatus {
@@ -191,14 +215,32 @@ pub struct TargetEstimate {
     pub time_ns: i64,
     /// Its status.
     pub status: TargetStatus,
-    /// `target_from_base` with covariance; `None` while initialising.
+    /// `target_from_base` with its whole covariance (the filter's, which is random, and the
+    /// systematic part); `None` while initialising.
     pub target_from_base: Option<PoseCov>,
+    /// The systematic part of that covariance (cameras' intrinsics and calibrations: no
+    /// filtering reduces it); zero when every calibration is taken as exact.
+    pub systematic_cov: Mat6,
+    /// The calibrations it was measured with.
+    pub calibration: CalibrationStamp,
     /// Time since the newest sample on the path (s); 0 when evaluated at that sample.
     pub age_s: f64,
     /// Disagreement of redundant paths, where several had data.
     pub consistency: Option<Consistency>,
     /// How many of the target's independent paths had data.
     pub paths_used: usize,
+}
+
+impl TargetEstimate {
+    /// The estimate `g_from_b` (its `target_from_base`) as a deformation compares it with a
+    /// reference.
+    pub fn measured<'a>(&'a self, g_from_b: &'a PoseCov) -> Measured<'a> {
+        Measured {
+            g_from_b,
+            systematic_cov: &self.systematic_cov,
+            calibration: Some(self.calibration),
+        }
+    }
 }
 
 /// A link's state in the bank (the default: nothing seen yet).
@@ -284,6 +326,8 @@ struct TargetTrack {
     /// The newest fit in force, if any.
     fit: Option<MotionFit>,
     consistency: InnovationWindow,
+    /// The error terms of the newest raw result fed: where its error comes from.
+    latest_terms: Option<SourcedPose>,
 }
 
 impl TargetTrack {
@@ -297,6 +341,7 @@ impl TargetTrack {
                 .then(|| MotionEstimator::new(Bounds::default())),
             fit: None,
             consistency: InnovationWindow::new(6, CONSISTENCY_WINDOW, CONSISTENCY_PROBABILITY),
+            latest_terms: None,
         }
     }
 
@@ -305,9 +350,16 @@ impl TargetTrack {
         *self = Self::new(self.base_tuning, self.fit_from_data);
     }
 
-    /// Feeds one raw result.
-    fn update(&mut self, time_ns: i64, z: &PoseCov) -> Disposition {
+    /// Feeds one raw result: its random part (`z`, the samples' noise) is filtered; its
+    /// systematic part does not average down and is added back to the filtered result.
+    fn update(&mut self, time_ns: i64, z: &PoseCov, terms: SourcedPose) -> Disposition {
         let disposition = self.filter.update(time_ns, z);
+        if !matches!(
+            disposition,
+            Disposition::Outlier { .. } | Disposition::OutOfOrder { .. }
+        ) {
+            self.latest_terms = Some(terms);
+        }
         match disposition {
             Disposition::Fused { nis } => self.consistency.push(nis),
             // An outlier is an innovation too, counted at the gate: a glint now and then
@@ -351,6 +403,7 @@ impl TargetTrack {
             estimator: None,
             fit: self.fit,
             consistency: self.consistency.clone(),
+            latest_terms: self.latest_terms.clone(),
         }
     }
 }
@@ -396,6 +449,42 @@ struct MeasuredSlot {
     history: VecDeque<LinkFilter>,
     /// Recent sample times, for the observed rate.
     recent_times: VecDeque<i64>,
+    /// The link's systematic error from its camera's intrinsics (see
+    /// [`Model::intrinsics_factor`]) at the pose it was computed for: the camera's index and
+    /// the factor. Computed again when the link has moved (see [`SENSITIVITY_MOVE_RAD`]).
+    intrinsics: Option<(Pose, usize, Factor)>,
+}
+
+/// How far a link may turn (rad) or move (a fraction of its distance) before the
+/// sensitivity of its pose to its camera's intrinsics is computed again: the sensitivity
+/// changes with the geometry by about as much, far below the uncertainty of the covariance it
+/// maps.
+const SENSITIVITY_MOVE_RAD: f64 = 0.01;
+
+impl MeasuredSlot {
+    fn new(tuning: FilterTuning) -> Self {
+        Self {
+            filter: LinkFilter::new(tuning),
+            history: VecDeque::new(),
+            recent_times: VecDeque::new(),
+            intrinsics: None,
+        }
+    }
+
+    /// Keeps the intrinsics factor current for a sample at `pose`.
+    fn refresh_intrinsics(&mut self, model: &Model, link: LinkId, pose: &Pose) {
+        let moved = |at: &Pose| {
+            let d = se3_log(&(pose * at.inverse()));
+            let distance = pose.translation.vector.norm().max(1.0);
+            d.fixed_rows::<3>(3).norm() > SENSITIVITY_MOVE_RAD
+                || d.fixed_rows::<3>(0).norm() > SENSITIVITY_MOVE_RAD * distance
+        };
+        if self.intrinsics.as_ref().is_none_or(|(at, _, _)| moved(at)) {
+            self.intrinsics = model
+                .intrinsics_factor(link, pose)
+                .map(|(camera, f)| (*pose, camera, f));
+        }
+    }
 }
 
 /// The bank's state as plain records, for persistence.
@@ -427,6 +516,9 @@ pub struct FilterBank {
     group_tolerance_ns: i64,
     /// Per link: the targets whose independent paths use it.
     targets_of_link: Vec<Vec<TargetId>>,
+    /// Per measured link: the stamp of its camera's calibration (intrinsics and their
+    /// covariance; 0 for a link without a configured camera).
+    camera_stamps: Vec<i64>,
     /// Per target: the time of the newest filtered result.
     frontier_ns: Vec<Option<i64>>,
     /// Per target: its own filter.
@@ -458,11 +550,7 @@ impl FilterBank {
                 .links
                 .iter()
                 .map(|l| match &l.kind {
-                    LinkKind::Measured(m) => Some(MeasuredSlot {
-                        filter: LinkFilter::new(m.tuning),
-                        history: VecDeque::new(),
-                        recent_times: VecDeque::new(),
-                    }),
+                    LinkKind::Measured(m) => Some(MeasuredSlot::new(m.tuning)),
                     LinkKind::Calibrated { .. } => None,
                 })
                 .collect(),
@@ -484,6 +572,15 @@ impl FilterBank {
                 .group_tolerance_ns
                 .unwrap_or_else(|| default_group_tolerance_ns(&model)),
             targets_of_link,
+            camera_stamps: model
+                .links
+                .iter()
+                .map(|l| {
+                    model
+                        .camera_and_marker(l.id)
+                        .map_or(0, |(_, camera, _)| camera_stamp(camera))
+                })
+                .collect(),
             tracks: model
                 .target_ids()
                 .map(|(ti, t)| match t.filter {
@@ -509,6 +606,7 @@ impl FilterBank {
                         filter: s.filter.clone(),
                         history: VecDeque::new(),
                         recent_times: s.recent_times.clone(),
+                        intrinsics: s.intrinsics,
                     })
                 })
                 .collect(),
@@ -517,6 +615,7 @@ impl FilterBank {
             groups: BTreeMap::new(),
             group_tolerance_ns: self.group_tolerance_ns,
             targets_of_link: self.targets_of_link.clone(),
+            camera_stamps: self.camera_stamps.clone(),
             frontier_ns: self.frontier_ns.clone(),
             tracks: self.tracks.iter().map(TargetTrack::view).collect(),
         }
@@ -537,6 +636,24 @@ impl FilterBank {
             fit: track.fit,
             consistency: track.consistency.report(),
         })
+    }
+
+    /// Where the uncertainty of a target's newest result comes from, with that result's time:
+    /// of the newest raw result, every contributor as it entered; of the filtered result, the
+    /// systematic contributors as they entered and the filter's own random covariance shared
+    /// among the measured links' noise (see [`Budget::filtered`]). `None` before the target's
+    /// first raw result.
+    pub fn budget(&self, target: TargetId, source: ResultSource) -> Option<(i64, Budget)> {
+        let track = self.tracks.get(target.0)?;
+        let terms = track.latest_terms.as_ref()?;
+        match source {
+            ResultSource::Raw => Some((track.filter.time_ns()?, Budget::of(terms))),
+            ResultSource::Filtered => {
+                let time_ns = track.filter.time_ns()?;
+                let filtered = track.filter.predict(time_ns)?.ok()?;
+                Some((time_ns, Budget::filtered(terms, &filtered.cov)))
+            }
+        }
     }
 
     /// The measurement model the bank filters.
@@ -590,6 +707,30 @@ impl FilterBank {
         self.tracks.iter_mut().for_each(TargetTrack::reset);
         self.groups.clear();
         self.restore(record)
+    }
+
+    /// The calibrations a target's result at `time_ns` is measured with: its measured links'
+    /// cameras and the calibrations of its calibrated links in force then.
+    pub fn calibration_stamp(&self, target: TargetId, time_ns: i64) -> CalibrationStamp {
+        let mut values = Vec::new();
+        for l in self.model.targets[target.0]
+            .resolution
+            .paths
+            .iter()
+            .flat_map(|p| p.links())
+        {
+            match self.calibration_at(l, time_ns) {
+                Some(c) => {
+                    values.push(c.pose.translation.vector.x);
+                    values.push(c.pose.translation.vector.y);
+                    values.push(c.pose.translation.vector.z);
+                    values.extend(c.pose.rotation.coords.iter().copied());
+                    values.extend(c.cov.iter().copied());
+                }
+                None => values.push(f64::from_bits(self.camera_stamps[l.0] as u64)),
+            }
+        }
+        CalibrationStamp::of(values)
     }
 
     /// The calibration of a calibrated link in force at `time_ns`.
@@ -737,6 +878,7 @@ impl FilterBank {
                 self.model.links[link.0].name.clone(),
             ));
         };
+        slot.refresh_intrinsics(&self.model, link, &z.pose);
         let disposition = slot.filter.update(sample.time_ns, &z);
         if matches!(
             disposition,
@@ -766,18 +908,23 @@ impl FilterBank {
                 .last_time_ns
                 .map_or(sample.time_ns, |t| t.max(sample.time_ns)),
         );
-        let (raw_results, needs_stored_group) = match self.add_to_group(link, sample.time_ns, z) {
+        let (raw, needs_stored_group) = match self.add_to_group(link, sample.time_ns, z) {
             Some(r) => (r, false),
             None => (Vec::new(), true),
         };
+        let (raw_results, raw_terms): (Vec<RawResult>, Vec<SourcedPose>) = raw.into_iter().unzip();
         // Each raw result feeds its target's filter; the target is evaluated at its time.
         let mut filtered_results = Vec::new();
-        for raw in &raw_results {
+        for (raw, terms) in raw_results.iter().zip(raw_terms) {
             let ti = raw.target;
             if self.frontier_ns[ti.0].is_some_and(|f| raw.time_ns <= f) {
                 continue;
             }
-            let d = self.tracks[ti.0].update(raw.time_ns, &raw.target_from_base);
+            let random = PoseCov {
+                pose: raw.target_from_base.pose,
+                cov: raw.random_cov(),
+            };
+            let d = self.tracks[ti.0].update(raw.time_ns, &random, terms);
             if d.is_outlier() || matches!(d, Disposition::OutOfOrder { .. }) {
                 continue;
             }
@@ -831,7 +978,12 @@ impl FilterBank {
     /// of its link yet, else starts one at its own time: the group's time is its first
     /// sample's. Each sample is brought to the group's time by its link's filter (see
     /// [`Self::at_group_time`]) when the group is composed.
-    fn add_to_group(&mut self, link: LinkId, time_ns: i64, z: PoseCov) -> Option<Vec<RawResult>> {
+    fn add_to_group(
+        &mut self,
+        link: LinkId,
+        time_ns: i64,
+        z: PoseCov,
+    ) -> Option<Vec<(RawResult, SourcedPose)>> {
         let n_targets = self.model.targets.len();
         let tolerance = self.group_tolerance_ns;
         let oldest_kept = self.groups.keys().next().copied();
@@ -869,7 +1021,7 @@ impl FilterBank {
             Vec::new()
         };
         if let Some(g) = self.groups.get_mut(&key) {
-            for r in &out {
+            for (r, _) in &out {
                 g.emitted[r.target.0] = true;
             }
         }
@@ -954,6 +1106,41 @@ impl FilterBank {
         let none = vec![false; self.model.targets.len()];
         let moved = self.at_group_time(time_ns, samples);
         self.compose_group(link, time_ns, &moved, &none)
+            .into_iter()
+            .map(|(r, _)| r)
+            .collect()
+    }
+
+    /// A link's pose with its error terms: a calibrated link's calibration in force at
+    /// `time_ns` (its covariance systematic), or a measured link's `measured` pose (a sample or
+    /// a filtered estimate; its covariance the link's noise) with its camera's intrinsics
+    /// error. `None` for a measured link without `measured`.
+    fn sourced_link(
+        &self,
+        link: LinkId,
+        time_ns: i64,
+        measured: Option<&PoseCov>,
+    ) -> Option<SourcedPose> {
+        if let Some(c) = self.calibration_at(link, time_ns) {
+            return Some(SourcedPose {
+                pose: c.pose,
+                terms: ErrorTerms::of(Contributor::Calibration(link), factor_of_covariance(&c.cov)),
+            });
+        }
+        let z = measured?;
+        let mut terms = ErrorTerms::of(Contributor::Noise(link), factor_of_covariance(&z.cov));
+        if let Some((_, camera, f)) = self
+            .measured
+            .get(link.0)
+            .and_then(Option::as_ref)
+            .and_then(|s| s.intrinsics.as_ref())
+        {
+            terms.add(Contributor::Intrinsics(*camera), *f);
+        }
+        Some(SourcedPose {
+            pose: z.pose,
+            terms,
+        })
     }
 
     /// Composes, for each target on `link`'s paths not yet `emitted`, the raw result of a
@@ -964,7 +1151,7 @@ impl FilterBank {
         time_ns: i64,
         samples: &HashMap<LinkId, PoseCov>,
         emitted: &[bool],
-    ) -> Vec<RawResult> {
+    ) -> Vec<(RawResult, SourcedPose)> {
         let mut out = Vec::new();
         for &ti in &self.targets_of_link[link.0] {
             if emitted[ti.0] {
@@ -975,15 +1162,15 @@ impl FilterBank {
             let mut complete = true;
             for path in &target.resolution.paths {
                 let mut missing = false;
-                let composed = compose_path(path, |l| match self.calibration_at(l, time_ns) {
-                    Some(c) => c,
-                    None => match samples.get(&l) {
-                        Some(s) => *s,
-                        None => {
+                let composed = compose_path_terms(path, |l| {
+                    self.sourced_link(l, time_ns, samples.get(&l))
+                        .unwrap_or_else(|| {
                             missing = true;
-                            PoseCov::identity()
-                        }
-                    },
+                            SourcedPose {
+                                pose: Pose::identity(),
+                                terms: ErrorTerms::none(),
+                            }
+                        })
                 });
                 if missing {
                     complete = false;
@@ -994,13 +1181,19 @@ impl FilterBank {
             if !complete {
                 continue;
             }
-            if let Ok(f) = fuse(&estimates, self.settings.consistency_probability) {
-                out.push(RawResult {
-                    target: ti,
-                    time_ns,
-                    target_from_base: f.estimate,
-                    consistency: f.consistency,
-                });
+            if let Ok((sourced, f)) = fuse_terms(&estimates, self.settings.consistency_probability)
+            {
+                out.push((
+                    RawResult {
+                        target: ti,
+                        time_ns,
+                        target_from_base: sourced.total(),
+                        systematic_cov: sourced.terms.systematic(),
+                        calibration: self.calibration_stamp(ti, time_ns),
+                        consistency: f.consistency,
+                    },
+                    sourced,
+                ));
             }
         }
         out
@@ -1190,7 +1383,7 @@ impl FilterBank {
             let mut links = Vec::with_capacity(path.steps.len());
             for l in path.links() {
                 match self.link_estimate(l, time_ns)? {
-                    Some(p) => links.push(p),
+                    Some(p) => links.push(self.sourced_link(l, time_ns, Some(&p))),
                     None => {
                         available = false;
                         break;
@@ -1204,9 +1397,12 @@ impl FilterBank {
                 }
             }
             if available {
-                let mut it = links.into_iter();
-                estimates.push(compose_path(path, |_| {
-                    it.next().unwrap_or_else(PoseCov::identity)
+                let mut it = links.into_iter().flatten();
+                estimates.push(compose_path_terms(path, |_| {
+                    it.next().unwrap_or_else(|| SourcedPose {
+                        pose: Pose::identity(),
+                        terms: ErrorTerms::none(),
+                    })
                 }));
             }
         }
@@ -1217,20 +1413,28 @@ impl FilterBank {
                 time_ns,
                 status: TargetStatus::Initializing,
                 target_from_base: None,
+                systematic_cov: Mat6::zeros(),
+                calibration: self.calibration_stamp(target, time_ns),
                 age_s: 0.0,
                 consistency: None,
                 paths_used,
             });
         }
-        let fused = fuse(&estimates, self.settings.consistency_probability)?;
+        let (sourced, fused) = fuse_terms(&estimates, self.settings.consistency_probability)?;
         // The target's own filter where it has a state for that time; before its first raw
         // result, the composition of the filtered links.
         let track = &self.tracks[target.0];
+        // The systematic part: as the links compose now (the same geometry as the raw results
+        // the filter had; no filtering reduces it).
+        let systematic_cov = sourced.terms.systematic();
         let pose = match state_at(&track.filter, &track.history, time_ns)
             .and_then(|f| f.predict(time_ns))
         {
-            Some(Ok(p)) => p,
-            _ => fused.estimate,
+            Some(Ok(p)) => PoseCov {
+                pose: p.pose,
+                cov: p.cov + systematic_cov,
+            },
+            _ => sourced.total(),
         };
         let age_s = newest_ns.map_or(0.0, |n| ((time_ns - n) as f64 / NS_PER_S).max(0.0));
         let inconsistent = fused.consistency.is_some_and(|c| !c.is_consistent());
@@ -1248,9 +1452,22 @@ impl FilterBank {
             time_ns,
             status,
             target_from_base: Some(pose),
+            systematic_cov,
+            calibration: self.calibration_stamp(target, time_ns),
             age_s,
             consistency: fused.consistency,
             paths_used,
         })
     }
+}
+
+/// The stamp of a camera's calibration: its intrinsics and their covariance.
+fn camera_stamp(camera: &crate::model::Camera) -> i64 {
+    let m = &camera.intrinsics;
+    let mut values = vec![m.fx_px, m.fy_px, m.cx_px, m.cy_px];
+    values.extend(m.distortion);
+    if let Some(c) = &camera.intrinsics_covariance {
+        values.extend(c.iter().copied());
+    }
+    CalibrationStamp::of(values).0
 }

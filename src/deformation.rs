@@ -11,11 +11,16 @@
 //!   the nominal alignment (`p_g0 = G0_from_B * p_b`) gets the true coordinates with
 //!   `p_g = G_from_G0 * p_g0`; directions use only the rotation.
 //!
-//! Both carry the uncertainty of the filtered pose; an estimated reference adds its own (the
-//! two are treated as independent), an explicit one is exact.
+//! Both carry the uncertainty of the filtered pose; an estimated reference adds its own, an
+//! explicit one is exact. The random parts (noise, averaged by the filter) are independent and
+//! add. The systematic parts (cameras' intrinsics, calibrated links) are the same error in the
+//! reference and in the result when both were measured with the same calibrations (the same
+//! [`CalibrationStamp`]): to first order it cancels in `G0_from_B * G_from_B^-1` and the
+//! deformation carries the random parts alone. After a calibration changed, both systematic
+//! parts add.
 
 use crate::geometry::{
-    ARCSEC_PER_RAD, GeometryError, Pose, PoseCov, ReportedSigmas, Vec3, mean_pose, so3_log,
+    ARCSEC_PER_RAD, GeometryError, Mat6, Pose, PoseCov, ReportedSigmas, Vec3, mean_pose, so3_log,
 };
 
 /// How a reference was set.
@@ -46,13 +51,38 @@ pub struct ReferenceVersion {
     pub created_ns: i64,
 }
 
+/// The calibrations a result was measured with, as one number: equal stamps mean the same
+/// cameras' intrinsics (and their covariances) and the same calibration of every calibrated
+/// link on the target's paths.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct CalibrationStamp(pub i64);
+
+impl CalibrationStamp {
+    /// The stamp of a sequence of numbers (FNV-1a over their bits: the same on every platform
+    /// and in every version, so stored stamps compare with new ones).
+    pub fn of(values: impl IntoIterator<Item = f64>) -> Self {
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        for v in values {
+            for b in v.to_bits().to_le_bytes() {
+                h ^= u64::from(b);
+                h = h.wrapping_mul(0x0000_0100_0000_01b3);
+            }
+        }
+        Self(h as i64)
+    }
+}
+
 /// A target's zero reading.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Reference {
-    /// `G0_from_B`, with the covariance of its estimate (zero when explicit).
+    /// `G0_from_B`, with the whole covariance of its estimate (zero when explicit).
     pub g0_from_b: PoseCov,
     /// How it was set.
     pub origin: ReferenceOrigin,
+    /// The systematic part of `g0_from_b`'s covariance (zero when explicit).
+    pub systematic_cov: Mat6,
+    /// The calibrations its results were measured with (`None`: explicit, or not known).
+    pub calibration: Option<CalibrationStamp>,
 }
 
 /// The covariance of a window's mean: the filter's own (time-correlated) uncertainty, which
@@ -80,22 +110,32 @@ impl Reference {
         Self {
             g0_from_b: PoseCov::exact(g0_from_b),
             origin: ReferenceOrigin::Explicit,
+            systematic_cov: Mat6::zeros(),
+            calibration: None,
         }
     }
 
-    /// The mean of the filtered poses of a window, with the covariance of the mean (the
-    /// scatter of the poses over their count, never less than the mean of their own
-    /// covariances over the count: filtered poses are correlated in time, so their scatter
-    /// alone would claim too much).
-    pub fn from_window(poses: &[PoseCov], from_ns: i64, to_ns: i64) -> Result<Self, GeometryError> {
+    /// The mean of the filtered poses of a window, with the covariance of the mean: its random
+    /// part the scatter of the poses over their count, never less than the mean of their own
+    /// random covariances (filtered poses are correlated in time, so their scatter alone would
+    /// claim too much); its systematic part their mean systematic covariance, which averaging
+    /// does not reduce. `systematic` gives each pose's systematic part (as many as `poses`, or
+    /// none: zero), `calibration` the calibrations the window was measured with when they were
+    /// the same throughout.
+    pub fn from_window(
+        poses: &[PoseCov],
+        systematic: &[Mat6],
+        calibration: Option<CalibrationStamp>,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> Result<Self, GeometryError> {
         let plain: Vec<Pose> = poses.iter().map(|p| p.pose).collect();
         let mean = mean_pose(&plain)?;
         let n = poses.len() as f64;
-        let mean_own_cov = poses
-            .iter()
-            .fold(crate::geometry::Mat6::zeros(), |acc, p| acc + p.cov)
-            / n;
-        let cov = window_covariance(&mean.mean.cov, &mean_own_cov);
+        let systematic_cov = systematic.iter().fold(Mat6::zeros(), |acc, s| acc + s) / n;
+        let mean_own_random =
+            poses.iter().fold(Mat6::zeros(), |acc, p| acc + p.cov) / n - systematic_cov;
+        let cov = window_covariance(&mean.mean.cov, &mean_own_random) + systematic_cov;
         Ok(Self {
             g0_from_b: PoseCov {
                 pose: mean.mean.pose,
@@ -106,6 +146,8 @@ impl Reference {
                 to_ns,
                 count: mean.count,
             },
+            systematic_cov,
+            calibration,
         })
     }
 }
@@ -113,10 +155,25 @@ impl Reference {
 /// Deformation and correction of a target at one time.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Deformation {
-    /// `G0_from_G` with covariance.
+    /// `G0_from_G` with its whole covariance.
     pub g0_from_g: PoseCov,
-    /// `G_from_G0` with covariance: the correction.
+    /// `G_from_G0` with its whole covariance: the correction.
     pub g_from_g0: PoseCov,
+    /// The systematic part of `g0_from_g`'s covariance: zero when the reference and the result
+    /// share their calibrations (it cancels), both parts otherwise.
+    pub systematic_cov: Mat6,
+}
+
+/// A result to compare with a reference: `G_from_B` with its whole covariance, the systematic
+/// part of it, and the calibrations it was measured with.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measured<'a> {
+    /// `G_from_B` with its whole covariance.
+    pub g_from_b: &'a PoseCov,
+    /// The systematic part of that covariance.
+    pub systematic_cov: &'a Mat6,
+    /// Its calibrations, when known.
+    pub calibration: Option<CalibrationStamp>,
 }
 
 /// A rotation vector in arc-seconds and a translation in mm, with their sigmas.
@@ -152,13 +209,50 @@ fn small_motion(p: &PoseCov) -> SmallMotion {
 }
 
 impl Deformation {
-    /// The deformation of `g_from_b` against a reference.
-    pub fn new(reference: &Reference, g_from_b: &PoseCov) -> Self {
-        let g0_from_g = reference.g0_from_b.compose(&g_from_b.inverse());
+    /// The deformation of a result against a reference (see the module docs for which
+    /// uncertainty it carries).
+    pub fn new(reference: &Reference, measured: Measured<'_>) -> Self {
+        let g = measured.g_from_b;
+        let shared =
+            reference.calibration.is_some() && reference.calibration == measured.calibration;
+        let part = |p: &PoseCov, cov: Mat6| PoseCov { pose: p.pose, cov };
+        let (r, m) = if shared {
+            (
+                part(
+                    &reference.g0_from_b,
+                    reference.g0_from_b.cov - reference.systematic_cov,
+                ),
+                part(g, g.cov - measured.systematic_cov),
+            )
+        } else {
+            (reference.g0_from_b, *g)
+        };
+        let g0_from_g = r.compose(&m.inverse());
+        let systematic_cov = if shared {
+            Mat6::zeros()
+        } else {
+            part(&reference.g0_from_b, reference.systematic_cov)
+                .compose(&part(g, *measured.systematic_cov).inverse())
+                .cov
+        };
         Self {
             g0_from_g,
             g_from_g0: g0_from_g.inverse(),
+            systematic_cov,
         }
+    }
+
+    /// The deformation of a pose known with its whole covariance alone (no systematic part
+    /// told apart, no calibrations known).
+    pub fn of_pose(reference: &Reference, g_from_b: &PoseCov) -> Self {
+        Self::new(
+            reference,
+            Measured {
+                g_from_b,
+                systematic_cov: &Mat6::zeros(),
+                calibration: None,
+            },
+        )
     }
 
     /// The deformation as users read it (`G0_from_G`).

@@ -32,6 +32,8 @@ pub async fn fill_filtered_results(inst: &Installation, n: i64) {
                         ),
                         cov: Mat6::identity() * 1e-6,
                     },
+                    systematic_cov: Mat6::identity() * 1e-7,
+                    calibration: brokenray::deformation::CalibrationStamp(0),
                     status: brokenray::bank::TargetStatus::Ok,
                     age_s: 0.0,
                     chi2: None,

@@ -7,6 +7,7 @@
 
 mod alarms;
 pub(crate) mod auth;
+mod budget;
 pub(crate) mod calibration;
 mod cameras;
 mod dashboard;
@@ -507,6 +508,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(targets::get_history))
         .routes(routes!(targets::get_reference, targets::post_reference))
         .routes(routes!(targets::get_filter))
+        .routes(routes!(budget::get_budget))
         .routes(routes!(targets::list_references))
         .routes(routes!(events::get_events))
         .routes(routes!(alarms::list_alarms))

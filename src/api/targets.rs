@@ -7,8 +7,8 @@ use super::query::Query;
 use crate::bank::{ResultSource, TargetEstimate, TargetStatus};
 use crate::clock::{format_ns, parse_query_time};
 use crate::deformation::ReferenceVersion;
-use crate::deformation::{Deformation, ReferenceOrigin};
-use crate::geometry::PoseCov;
+use crate::deformation::{CalibrationStamp, Deformation, Measured, ReferenceOrigin};
+use crate::geometry::{Mat6, PoseCov};
 use crate::model::TargetId;
 use crate::model::TargetSpec;
 use crate::service::ReferenceRequest;
@@ -108,6 +108,11 @@ pub(super) struct ReferenceOut {
     pub window: Option<WindowOut>,
     /// Its own uncertainty (zero for an explicit one).
     pub sigma: SigmaOut,
+    /// The part of `sigma` from the noise of the averaged results.
+    pub sigma_random: SigmaOut,
+    /// The part of `sigma` from calibrations (it cancels in a deformation measured with the
+    /// same calibrations).
+    pub sigma_systematic: SigmaOut,
 }
 
 /// A reference's window.
@@ -148,6 +153,16 @@ impl From<&ReferenceVersion> for ReferenceOut {
             origin,
             window,
             sigma: (&r.reference.g0_from_b).into(),
+            sigma_random: (&PoseCov {
+                pose: r.reference.g0_from_b.pose,
+                cov: r.reference.g0_from_b.cov - r.reference.systematic_cov,
+            })
+                .into(),
+            sigma_systematic: (&PoseCov {
+                pose: r.reference.g0_from_b.pose,
+                cov: r.reference.systematic_cov,
+            })
+                .into(),
         }
     }
 }
@@ -159,8 +174,14 @@ pub(super) struct DeformationOut {
     pub rotation_arcsec: [f64; 3],
     /// Translation (mm, reference target coordinates).
     pub translation_mm: [f64; 3],
-    /// Their sigmas.
+    /// Their sigmas: the whole uncertainty.
     pub sigma: SigmaOut,
+    /// The part of `sigma` from the noise of the result and of the reference.
+    pub sigma_random: SigmaOut,
+    /// The part of `sigma` from calibrations: zero when the reference was measured with the
+    /// same calibrations as the result (their error cancels), both parts after a calibration
+    /// changed.
+    pub sigma_systematic: SigmaOut,
 }
 
 /// A correction as answered (`G_from_G0`).
@@ -217,8 +238,14 @@ pub(super) struct CompensationOut {
     pub source: CompensationSource,
     /// `G_from_B`.
     pub pose: Option<PoseOut>,
-    /// Its sigmas.
+    /// Its sigmas: the whole uncertainty (the truth lies within it).
     pub sigma: Option<SigmaOut>,
+    /// The part of `sigma` from the samples' noise: what the filter averages down, the
+    /// repeatability.
+    pub sigma_random: Option<SigmaOut>,
+    /// The part of `sigma` from the cameras' intrinsics and the calibrated links: the same in
+    /// every result, so no filtering reduces it.
+    pub sigma_systematic: Option<SigmaOut>,
     /// The current reference.
     pub reference: Option<ReferenceOut>,
     /// `G0_from_G`.
@@ -239,6 +266,10 @@ pub(super) struct Evaluated {
     pub age_s: Option<f64>,
     pub source: CompensationSource,
     pub estimate: Option<PoseCov>,
+    /// The systematic part of `estimate`'s covariance.
+    pub systematic_cov: Mat6,
+    /// The calibrations it was measured with, when known.
+    pub calibration: Option<CalibrationStamp>,
     pub consistency: Option<crate::chain::Consistency>,
 }
 
@@ -251,6 +282,8 @@ impl Evaluated {
             age_s: None,
             source,
             estimate: None,
+            systematic_cov: Mat6::zeros(),
+            calibration: None,
             consistency: None,
         }
     }
@@ -263,6 +296,8 @@ impl Evaluated {
             age_s: Some(r.age_s),
             source,
             estimate: Some(r.estimate),
+            systematic_cov: r.systematic_cov,
+            calibration: r.calibration,
             consistency: None,
         }
     }
@@ -306,6 +341,8 @@ fn evaluated(e: &TargetEstimate, source: CompensationSource) -> Evaluated {
         age_s: Some(e.age_s),
         source,
         estimate: e.target_from_base,
+        systematic_cov: e.systematic_cov,
+        calibration: Some(e.calibration),
         consistency: e.consistency,
     }
 }
@@ -347,11 +384,32 @@ pub(super) fn compensation_out(
         age_s,
         source,
         estimate,
+        systematic_cov,
+        calibration,
         consistency,
     } = e;
     let deformation = match (estimate, reference) {
-        (Some(e), Some(r)) => Some(Deformation::new(&r.reference, &e)),
+        (Some(e), Some(r)) => Some(Deformation::new(
+            &r.reference,
+            Measured {
+                g_from_b: &e,
+                systematic_cov: &systematic_cov,
+                calibration,
+            },
+        )),
         _ => None,
+    };
+    let parts = |cov: &PoseCov, systematic: &Mat6| {
+        (
+            SigmaOut::from(&PoseCov {
+                pose: cov.pose,
+                cov: cov.cov - systematic,
+            }),
+            SigmaOut::from(&PoseCov {
+                pose: cov.pose,
+                cov: *systematic,
+            }),
+        )
     };
     CompensationOut {
         target: target.name.to_owned(),
@@ -362,13 +420,18 @@ pub(super) fn compensation_out(
         source,
         pose: estimate.as_ref().map(|e| (&e.pose).into()),
         sigma: estimate.as_ref().map(Into::into),
+        sigma_random: estimate.as_ref().map(|e| parts(e, &systematic_cov).0),
+        sigma_systematic: estimate.as_ref().map(|e| parts(e, &systematic_cov).1),
         reference: reference.map(Into::into),
         deformation: deformation.map(|d| {
             let m = d.deformation();
+            let (random, systematic) = parts(&d.g0_from_g, &d.systematic_cov);
             DeformationOut {
                 rotation_arcsec: m.rotation_arcsec,
                 translation_mm: m.translation_mm,
                 sigma: m.sigmas.into(),
+                sigma_random: random,
+                sigma_systematic: systematic,
             }
         }),
         correction: deformation.map(|d| {

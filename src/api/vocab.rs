@@ -48,10 +48,12 @@ word_schemas!(
     super::error::ErrorCode,
     super::frames::NotFoundCode,
     super::targets::CompensationSource,
+    ContributorKind,
     HealthStatus,
     LinkKindName,
     RawRequestState,
     ReferenceOriginKind,
+    UncertaintyPart,
 );
 
 crate::words! {
@@ -96,5 +98,6 @@ crate::words! {
     }
 }
 
+pub use super::budget::{ContributorKind, UncertaintyPart};
 pub use super::frames::NotFoundCode;
 pub use super::targets::CompensationSource;

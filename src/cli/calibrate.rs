@@ -227,7 +227,10 @@ pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
          cx = {:?}\n\
          cy = {:?}\n\
          distortion = [{:?}, {:?}, {:?}, {:?}, {:?}]\n\
-         pixel_sigma = {:?}\n",
+         pixel_sigma = {:?}\n\
+         # The intrinsics' covariance (row-major: fx fy cx cy k1 k2 p1 p2 k3): the calibration's\n\
+         # error enters every sigma through it.\n\
+         intrinsics_covariance = [\n{}]\n",
         c.views.len(),
         c.rms_px,
         c.sigma[0],
@@ -247,6 +250,13 @@ pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
         d[3],
         d[4],
         (c.pixel_sigma() * 1e4).round() / 1e4,
+        c.covariance
+            .iter()
+            .map(|row| {
+                let cells: Vec<String> = row.iter().map(|v| format!("{v:e}")).collect();
+                format!("  {},\n", cells.join(", "))
+            })
+            .collect::<String>(),
     )
 }
 

@@ -172,6 +172,8 @@ pub(super) struct RawCamera {
     pub distortion: [f64; 5],
     pub pixel_sigma: f64,
     pub gain_e_per_dn: Option<f64>,
+    /// 81 numbers, row-major, in the order fx fy cx cy k1 k2 p1 p2 k3.
+    pub intrinsics_covariance: Option<Vec<f64>>,
 }
 
 #[derive(Debug, Deserialize)]

@@ -870,6 +870,27 @@ impl Validator {
             if let Some(gain) = c.gain_e_per_dn {
                 ok &= self.positive(at, &format!("{what}: gain_e_per_dn"), gain);
             }
+            let intrinsics_covariance = match &c.intrinsics_covariance {
+                Some(values) => match intrinsics_covariance(values) {
+                    Ok(cov) => Some(cov),
+                    Err(reason) => {
+                        self.problem(at, format!("{what}: intrinsics_covariance {reason}"));
+                        ok = false;
+                        None
+                    }
+                },
+                None => {
+                    let (line, _) = self.lines.locate(at);
+                    self.warnings.push(ConfigProblem {
+                        line: Some(line),
+                        column: None,
+                        message: format!(
+                            "{what}: no intrinsics_covariance, so its calibration is taken as exact and no sigma includes its error (`brokenray calibrate-camera --out` writes it)"
+                        ),
+                    });
+                    None
+                }
+            };
             if ok {
                 out.push(Camera {
                     frame: c.frame.clone(),
@@ -884,6 +905,7 @@ impl Validator {
                     },
                     pixel_sigma_px: c.pixel_sigma,
                     gain_e_per_dn: c.gain_e_per_dn,
+                    intrinsics_covariance,
                 });
             }
         }
@@ -1623,4 +1645,41 @@ struct TuningKeys {
     random_walk: Option<raw::RawRandomWalk>,
     acceleration_noise: Option<raw::RawAcceleration>,
     oscillation: Option<raw::RawOscillation>,
+}
+
+/// A camera's `intrinsics_covariance` (81 numbers, row-major, `fx fy cx cy k1 k2 p1 p2 k3`)
+/// checked: finite, symmetric, positive semi-definite (a calibration's fixed parameters leave
+/// zero rows); otherwise what is wrong with it.
+fn intrinsics_covariance(values: &[f64]) -> Result<crate::chain::IntrinsicsCovariance, String> {
+    if values.len() != 81 {
+        return Err(format!(
+            "must have 81 numbers (9 x 9, row-major, in the order fx fy cx cy k1 k2 p1 p2 k3), not {}",
+            values.len()
+        ));
+    }
+    if let Some((i, v)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(format!("entry {i} is not a finite number ({v})"));
+    }
+    let cov = crate::chain::IntrinsicsCovariance::from_row_slice(values);
+    let scale = cov.amax().max(f64::MIN_POSITIVE);
+    for i in 0..9 {
+        for j in 0..i {
+            if (cov[(i, j)] - cov[(j, i)]).abs() > 1e-9 * scale {
+                return Err(format!(
+                    "is not symmetric (row {i}, column {j}: {} against {})",
+                    cov[(i, j)],
+                    cov[(j, i)]
+                ));
+            }
+        }
+    }
+    let smallest = nalgebra::SymmetricEigen::new((cov + cov.transpose()) * 0.5)
+        .eigenvalues
+        .min();
+    if smallest < -1e-9 * scale {
+        return Err(format!(
+            "is not positive semi-definite (an eigenvalue of {smallest:e})"
+        ));
+    }
+    Ok(cov)
 }

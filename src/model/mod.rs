@@ -24,7 +24,9 @@ pub use observation::{ObservationError, ObservedLink, Observer};
 pub use search::{HINT_ACCEPT_DEG, HINT_REFUSE_DEG, find_without_prior, layout_symmetries};
 
 use crate::alarms::AlarmThresholds;
-use crate::chain::{FrameId, LinkId, Resolution, Topology};
+use crate::chain::{
+    Factor, FrameId, IntrinsicsCovariance, LinkId, Resolution, Topology, intrinsics_root,
+};
 use crate::filter::{BankSettings, FilterTuning};
 use crate::geometry::{Pose, PoseCov, ReportedSigmas};
 use crate::vision::{CameraModel, Polarity};
@@ -66,6 +68,17 @@ pub struct Camera {
     /// Electrons per digital number, when known: the detector then counts the signal's shot
     /// noise in each point's uncertainty (the background's noise is always counted).
     pub gain_e_per_dn: Option<f64>,
+    /// The covariance of the intrinsics' estimate (`fx fy cx cy k1 k2 p1 p2 k3`), as its
+    /// calibration reports it; `None`: the intrinsics are taken as exact.
+    pub intrinsics_covariance: Option<IntrinsicsCovariance>,
+}
+
+impl Camera {
+    /// The square root of the intrinsics' covariance (see [`crate::chain::intrinsics_root`]),
+    /// `None` when the intrinsics are taken as exact.
+    pub fn intrinsics_root(&self) -> Option<IntrinsicsCovariance> {
+        self.intrinsics_covariance.as_ref().map(intrinsics_root)
+    }
 }
 
 /// A cooperative marker: known points in its own frame.
@@ -217,5 +230,42 @@ impl Model {
     /// The marker on this frame.
     pub fn marker(&self, frame: &str) -> Option<&Marker> {
         self.markers.iter().find(|m| m.frame == frame)
+    }
+
+    /// The camera (by its index in `cameras`) and the marker of a measured link
+    /// `<camera>_from_<marker>`, when both are configured.
+    pub fn camera_and_marker(&self, link: LinkId) -> Option<(usize, &Camera, &Marker)> {
+        let ends = self.topology.link(link);
+        let parent = self.topology.frame_name(ends.parent);
+        let child = self.topology.frame_name(ends.child);
+        let index = self.cameras.iter().position(|c| c.frame == parent)?;
+        Some((index, &self.cameras[index], self.marker(child)?))
+    }
+
+    /// The systematic error a measured link's samples take from their camera's intrinsics, at
+    /// a pose of the link: the camera's index and the factor `S L` (`S` PnP's sensitivity to
+    /// the intrinsics at that pose over the marker's points, `L` the square root of the
+    /// intrinsics' covariance; see [`crate::chain`]'s error terms). `None` for a camera taken
+    /// as exact, a link that is not camera-to-marker, or a pose the marker's points do not
+    /// determine.
+    pub fn intrinsics_factor(
+        &self,
+        link: LinkId,
+        camera_from_marker: &Pose,
+    ) -> Option<(usize, Factor)> {
+        let (index, camera, marker) = self.camera_and_marker(link)?;
+        let root = camera.intrinsics_root()?;
+        let points: Vec<crate::geometry::Vec3> = marker
+            .points_mm
+            .iter()
+            .map(|p| crate::geometry::Vec3::from(*p))
+            .collect();
+        let s = crate::vision::intrinsics_sensitivity(
+            &camera.intrinsics,
+            &points,
+            camera_from_marker,
+            None,
+        )?;
+        Some((index, s * root))
     }
 }

@@ -100,8 +100,12 @@ pub struct TargetView {
 impl TargetView {
     /// The deformation of the newest result against the current reference.
     pub fn deformation(&self) -> Option<Deformation> {
-        let estimate = self.latest.as_ref()?.target_from_base?;
-        Some(Deformation::new(&self.reference?.reference, &estimate))
+        let latest = self.latest.as_ref()?;
+        let estimate = latest.target_from_base?;
+        Some(Deformation::new(
+            &self.reference?.reference,
+            latest.measured(&estimate),
+        ))
     }
 }
 
@@ -395,6 +399,10 @@ impl Service {
                     time_ns: r.time_ns,
                     status: r.status,
                     target_from_base: Some(r.estimate),
+                    systematic_cov: r.systematic_cov,
+                    calibration: r
+                        .calibration
+                        .unwrap_or(crate::deformation::CalibrationStamp(0)),
                     age_s: r.age_s,
                     consistency: None,
                     paths_used: 0,

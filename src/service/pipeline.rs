@@ -613,12 +613,12 @@ fn nis_of(d: &Disposition) -> Option<f64> {
 fn deformation_of(
     targets: &[TargetView],
     target: TargetId,
-    estimate: &crate::geometry::PoseCov,
+    measured: crate::deformation::Measured<'_>,
 ) -> Option<(i64, crate::deformation::SmallMotion)> {
     let r = targets[target.0].reference?;
     Some((
         r.version,
-        Deformation::new(&r.reference, estimate).deformation(),
+        Deformation::new(&r.reference, measured).deformation(),
     ))
 }
 
@@ -632,6 +632,8 @@ fn raw_row(
         source: ResultSource::Raw,
         time_ns: raw.time_ns,
         estimate: raw.target_from_base,
+        systematic_cov: raw.systematic_cov,
+        calibration: raw.calibration,
         status: raw.status(),
         age_s: 0.0,
         chi2: raw.consistency.map(|c| c.chi2),
@@ -785,7 +787,7 @@ async fn ingest(
         });
         for raw in &outcome.raw_results {
             report.raw_results += 1;
-            let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
+            let deformation = deformation_of(targets, raw.target, raw.measured());
             if let Some(v) = viz.as_mut()
                 && v.sender.keep(Series::Raw(raw.target), raw.time_ns)
             {
@@ -807,7 +809,7 @@ async fn ingest(
                 continue;
             };
             report.filtered_results += 1;
-            let deformation = deformation_of(targets, est.target, &pose);
+            let deformation = deformation_of(targets, est.target, est.measured(&pose));
             if let Some(v) = viz.as_mut()
                 && v.sender.keep(Series::Filtered(est.target), est.time_ns)
             {
@@ -826,6 +828,8 @@ async fn ingest(
                     source: ResultSource::Filtered,
                     time_ns: est.time_ns,
                     estimate: pose,
+                    systematic_cov: est.systematic_cov,
+                    calibration: est.calibration,
                     status: est.status,
                     age_s: est.age_s,
                     chi2: est.consistency.map(|c| c.chi2),
@@ -895,7 +899,7 @@ async fn ingest(
         };
         for raw in bank.raw_results_of_group(link, group_ns, &group) {
             report.raw_results += 1;
-            let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
+            let deformation = deformation_of(targets, raw.target, raw.measured());
             result_rows.insert(
                 (raw.target, ResultSource::Raw, raw.time_ns),
                 raw_row(&raw, deformation),
@@ -922,8 +926,15 @@ async fn set_reference(
     let reference = match request {
         ReferenceRequest::Explicit(pose) => Reference::explicit(pose),
         ReferenceRequest::Window { from_ns, to_ns } => {
-            let poses = tx.filtered_poses(target, from_ns, to_ns).await?;
-            match Reference::from_window(&poses, from_ns, to_ns) {
+            let rows = tx.filtered_poses(target, from_ns, to_ns).await?;
+            let poses: Vec<_> = rows.iter().map(|r| r.estimate).collect();
+            let systematic: Vec<_> = rows.iter().map(|r| r.systematic_cov).collect();
+            // The window's calibrations, when they were the same throughout.
+            let calibration = rows
+                .first()
+                .and_then(|r| r.calibration)
+                .filter(|c| rows.iter().all(|r| r.calibration == Some(*c)));
+            match Reference::from_window(&poses, &systematic, calibration, from_ns, to_ns) {
                 Ok(r) => r,
                 Err(_) => {
                     return Ok(Err(ServiceError::Invalid {

@@ -5,7 +5,7 @@
 //!
 //! The plate is seen from its front: its +x to the image's right, +y down, +z away.
 
-use super::render::{Disc, RenderSettings, render_discs};
+use super::render::{Disc, RenderSettings, SceneLight, scene_light};
 use crate::geometry::{Pose, Vec3};
 use crate::vision::{CameraModel, GreyImage, Plate, Polarity};
 use nalgebra::{Point3, Translation3, Unit, UnitQuaternion, Vector2};
@@ -123,13 +123,29 @@ pub fn render_plate(
     camera_from_plate: &Pose,
     settings: &RenderSettings,
 ) -> GreyImage {
+    plate_light(camera, plate, camera_from_plate, settings).expose(settings.seed)
+}
+
+/// The light of a view of the plate before the sensor's noise (see [`SceneLight`]), as
+/// [`render_plate`] renders it: expose it again for another frame of the same view.
+pub fn plate_light(
+    camera: &CameraModel,
+    plate: &Plate,
+    camera_from_plate: &Pose,
+    settings: &RenderSettings,
+) -> SceneLight {
     let mut settings = *settings;
     if plate.polarity() == Polarity::Dark && settings.contrast_dn > 0.0 {
         // A light plate: the background where the bright discs were, the discs dark.
         settings.background_dn += settings.contrast_dn;
         settings.contrast_dn = -settings.contrast_dn;
     }
-    render_discs(camera, &plate_discs(plate, camera_from_plate), &settings)
+    scene_light(
+        camera,
+        &plate_discs(plate, camera_from_plate),
+        &[],
+        &settings,
+    )
 }
 
 /// `camera_from_plate` of a plate in front of a camera, centred on its optical axis, about

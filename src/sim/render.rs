@@ -287,6 +287,55 @@ pub fn render_scene(
     shapes: &[Shape],
     settings: &RenderSettings,
 ) -> GreyImage {
+    scene_light(camera, discs, shapes, settings).expose(settings.seed)
+}
+
+/// The light a scene sends to each pixel before the sensor's noise: what a frame of a still
+/// scene has in common with every other frame of it. Exposing it again with another seed
+/// is rendering the scene again, at a fraction of the cost.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SceneLight {
+    width_px: u32,
+    height_px: u32,
+    /// The mean level of each pixel (DN), row-major.
+    mean_dn: Vec<f64>,
+    read_noise_dn: f64,
+    gain_e_per_dn: Option<f64>,
+    depth: BitDepth,
+}
+
+impl SceneLight {
+    /// A frame of the scene: shot and read noise drawn with `seed`, rounded to digital numbers
+    /// and clamped to the bit depth.
+    pub fn expose(&self, seed: u64) -> GreyImage {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let max = f64::from(self.depth.max_value());
+        let pixels = self
+            .mean_dn
+            .iter()
+            .map(|&mean| {
+                let mut var = self.read_noise_dn.powi(2);
+                if let Some(gain) = self.gain_e_per_dn {
+                    var += mean.max(0.0) / gain;
+                }
+                let z: f64 = StandardNormal.sample(&mut rng);
+                (mean + var.sqrt() * z).round().clamp(0.0, max) as u16
+            })
+            .collect();
+        // The size and the values fit by construction.
+        #[allow(clippy::expect_used)]
+        GreyImage::new(self.width_px, self.height_px, self.depth, pixels)
+            .expect("a rendered frame is valid")
+    }
+}
+
+/// The light of `discs` and `shapes` as seen by `camera` (see [`SceneLight`]).
+pub fn scene_light(
+    camera: &CameraModel,
+    discs: &[Disc],
+    shapes: &[Shape],
+    settings: &RenderSettings,
+) -> SceneLight {
     let (w, h) = (camera.width_px as usize, camera.height_px as usize);
     let mut coverage = vec![0.0f64; w * h];
     for disc in discs {
@@ -303,11 +352,9 @@ pub fn render_scene(
         add_shape(shape, &mut coverage, w, h);
     }
     let coverage = blur_where_covered(&coverage, w, h, settings.blur_sigma_px);
-    let mut rng = StdRng::seed_from_u64(settings.seed);
-    let max = f64::from(settings.depth.max_value());
     let corner2 = (camera.cx_px.max(w as f64 - camera.cx_px)).powi(2)
         + (camera.cy_px.max(h as f64 - camera.cy_px)).powi(2);
-    let pixels = coverage
+    let mean_dn = coverage
         .iter()
         .enumerate()
         .map(|(i, c)| {
@@ -315,21 +362,19 @@ pub fn render_scene(
             let r2 = ((u - camera.cx_px).powi(2) + (v - camera.cy_px).powi(2)) / corner2;
             let [gu, gv] = settings.light_gradient_per_px;
             let light = (1.0 + gu * (u - camera.cx_px) + gv * (v - camera.cy_px)).max(0.05);
-            let mean = (settings.background_dn + settings.contrast_dn * c)
+            (settings.background_dn + settings.contrast_dn * c)
                 * (1.0 - settings.vignetting * r2)
-                * light;
-            let mut var = settings.read_noise_dn.powi(2);
-            if let Some(gain) = settings.gain_e_per_dn {
-                var += mean.max(0.0) / gain;
-            }
-            let z: f64 = StandardNormal.sample(&mut rng);
-            (mean + var.sqrt() * z).round().clamp(0.0, max) as u16
+                * light
         })
         .collect();
-    // The size and the values fit by construction.
-    #[allow(clippy::expect_used)]
-    GreyImage::new(camera.width_px, camera.height_px, settings.depth, pixels)
-        .expect("a rendered frame is valid")
+    SceneLight {
+        width_px: camera.width_px,
+        height_px: camera.height_px,
+        mean_dn,
+        read_noise_dn: settings.read_noise_dn,
+        gain_e_per_dn: settings.gain_e_per_dn,
+        depth: settings.depth,
+    }
 }
 
 /// What one camera sees: its discs, ready to render.

@@ -55,7 +55,7 @@ use crate::bank::ResultSource;
 use crate::chain::LinkId;
 use crate::config::Database;
 use crate::deformation::SmallMotion;
-use crate::geometry::{PoseCov, ReportedSigmas};
+use crate::geometry::{Mat6, PoseCov, ReportedSigmas};
 use crate::model::TargetId;
 use codec::{encode_mat6, pose_columns};
 use outbox::{Backlog, KeepUnsent, OutboxBatch, Registry, TableRows, Tier};
@@ -711,8 +711,12 @@ pub struct NewResult {
     pub source: ResultSource,
     /// Its time (ns).
     pub time_ns: i64,
-    /// `target_from_base` with covariance.
+    /// `target_from_base` with its whole covariance.
     pub estimate: PoseCov,
+    /// The systematic part of that covariance.
+    pub systematic_cov: Mat6,
+    /// The calibrations it was measured with.
+    pub calibration: crate::deformation::CalibrationStamp,
     /// Its status.
     pub status: crate::bank::TargetStatus,
     /// Age of the newest sample behind it (s).
@@ -867,6 +871,7 @@ impl WriteTx<'_> {
             let pose = pose_columns(&r.estimate.pose);
             finite("result pose", &pose)?;
             finite("result covariance", r.estimate.cov.as_slice())?;
+            finite("result covariance", r.systematic_cov.as_slice())?;
             finite("result sigma", &s.rotation_arcsec)?;
             finite("result sigma", &s.translation_mm)?;
             finite("result age", &[r.age_s])?;
@@ -893,6 +898,8 @@ impl WriteTx<'_> {
                 age_s: r.age_s,
                 chi2: r.chi2,
                 deformation,
+                cov_systematic: encode_mat6(&r.systematic_cov),
+                calibration_stamp: r.calibration.0,
             };
             // One row a key: a statement may not write the same key twice on every engine.
             match at_key.entry((r.target, r.source, r.time_ns)) {
@@ -1052,16 +1059,14 @@ impl WriteTx<'_> {
         target: TargetId,
         from_ns: i64,
         to_ns: i64,
-    ) -> StoreResult<Vec<PoseCov>> {
+    ) -> StoreResult<Vec<StoredResult>> {
         let id = self.target_ids[target.0];
         let rows: Vec<rows::ResultRow> = query_on!(
             &mut self.tx, Tx, t => &mut *t.conn,
             &sql::RESULTS_IN, [id, 1_i64, from_ns, to_ns, i64::MAX],
             fetch_all
         )?;
-        rows.into_iter()
-            .map(|r| r.into_result().map(|r| r.estimate))
-            .collect()
+        rows.into_iter().map(rows::ResultRow::into_result).collect()
     }
 
     /// Stores a new reference version of a target; returns its version.
@@ -1081,7 +1086,19 @@ impl WriteTx<'_> {
             } => ("window", Some(from_ns), Some(to_ns), Some(count as i64)),
         };
         let id = self.target_ids[target.0];
-        on_backend!(&mut self.tx, Tx, t => t.insert_reference(id, &columns, &origin, now_ns).await)
+        let version = on_backend!(&mut self.tx, Tx, t => t.insert_reference(id, &columns, &origin, now_ns).await)?;
+        finite("reference covariance", reference.systematic_cov.as_slice())?;
+        let systematic = encode_mat6(&reference.systematic_cov);
+        let stamp = reference.calibration.map(|c| c.0);
+        on_backend!(&mut self.tx, Tx, t => sqlx::query(sql::SET_REFERENCE_SYSTEMATIC)
+            .bind(systematic.as_slice())
+            .bind(stamp)
+            .bind(id)
+            .bind(version)
+            .execute(&mut *t.conn)
+            .await
+            .map(|_| ()))?;
+        Ok(version)
     }
 
     /// Stores a new calibration version of a link; returns its version.

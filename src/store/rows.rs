@@ -124,6 +124,9 @@ pub(super) struct ResultRow {
     def_tx_mm: Option<f64>,
     def_ty_mm: Option<f64>,
     def_tz_mm: Option<f64>,
+    /// The systematic part of `cov`; null in rows written before it was kept (zero).
+    cov_systematic: Option<Vec<u8>>,
+    calibration_stamp: Option<i64>,
 }
 
 impl ResultRow {
@@ -158,6 +161,13 @@ impl ResultRow {
             age_s: self.age_s,
             chi2: self.chi2,
             deformation,
+            systematic_cov: match &self.cov_systematic {
+                Some(bytes) => decode_mat6(bytes)?,
+                None => crate::geometry::Mat6::zeros(),
+            },
+            calibration: self
+                .calibration_stamp
+                .map(crate::deformation::CalibrationStamp),
         })
     }
 }
@@ -177,6 +187,22 @@ pub struct StoredResult {
     pub chi2: Option<f64>,
     /// `(reference version, rotation arcsec, translation mm)` of the deformation, if any.
     pub deformation: Option<(i64, [f64; 3], [f64; 3])>,
+    /// The systematic part of the estimate's covariance (zero for rows stored before it was
+    /// kept).
+    pub systematic_cov: crate::geometry::Mat6,
+    /// The calibrations it was measured with (`None` for rows stored before it was kept).
+    pub calibration: Option<crate::deformation::CalibrationStamp>,
+}
+
+impl StoredResult {
+    /// The result as a deformation compares it with a reference.
+    pub fn measured(&self) -> crate::deformation::Measured<'_> {
+        crate::deformation::Measured {
+            g_from_b: &self.estimate,
+            systematic_cov: &self.systematic_cov,
+            calibration: self.calibration,
+        }
+    }
 }
 
 /// A reference row.
@@ -191,6 +217,8 @@ pub(super) struct ReferenceRow {
     window_to_ns: Option<i64>,
     window_count: Option<i64>,
     created_ns: i64,
+    cov_systematic: Option<Vec<u8>>,
+    calibration_stamp: Option<i64>,
 }
 
 impl ReferenceRow {
@@ -219,6 +247,13 @@ impl ReferenceRow {
                     cov: decode_mat6(&self.cov)?,
                 },
                 origin,
+                systematic_cov: match &self.cov_systematic {
+                    Some(bytes) => decode_mat6(bytes)?,
+                    None => crate::geometry::Mat6::zeros(),
+                },
+                calibration: self
+                    .calibration_stamp
+                    .map(crate::deformation::CalibrationStamp),
             },
             created_ns: self.created_ns,
         })
@@ -387,6 +422,8 @@ pub(super) struct ResultColumns {
     pub chi2: Option<f64>,
     /// The reference version and the deformation: rotation (arcsec), translation (mm).
     pub deformation: Option<(i64, [f64; 6])>,
+    pub cov_systematic: Vec<u8>,
+    pub calibration_stamp: i64,
 }
 
 /// A reference or calibration version as its row is written.

@@ -91,7 +91,7 @@ pub const RESULTS: Table = Table {
         "sigma_tx_mm": Real, "sigma_ty_mm": Real, "sigma_tz_mm": Real, "status": Text,
         "age_s": Real, "chi2": Real, "reference_version": Int, "def_rx_arcsec": Real,
         "def_ry_arcsec": Real, "def_rz_arcsec": Real, "def_tx_mm": Real, "def_ty_mm": Real,
-        "def_tz_mm": Real
+        "def_tz_mm": Real, "cov_systematic": Blob, "calibration_stamp": Int
     ),
 };
 
@@ -112,7 +112,7 @@ pub const REFERENCES: Table = Table {
     columns: columns!(
         "target_id": Int, "version": Int; pose;
         "cov": Blob, "origin": Text, "window_from_ns": Int, "window_to_ns": Int,
-        "window_count": Int, "created_ns": Int
+        "window_count": Int, "created_ns": Int, "cov_systematic": Blob, "calibration_stamp": Int
     ),
 };
 

@@ -61,6 +61,12 @@ pub(super) static RESULT_AFTER: LazyLock<String> = LazyLock::new(|| {
     )
 });
 
+/// The systematic part of a reference's covariance and its calibration stamp: `$1` the
+/// covariance, `$2` the stamp, `$3` target id, `$4` version (written after the reference row,
+/// in its transaction).
+pub(super) const SET_REFERENCE_SYSTEMATIC: &str = "update target_references \
+     set cov_systematic = $1, calibration_stamp = $2 where target_id = $3 and version = $4";
+
 /// Every reference version of a target, oldest first.
 pub(super) static REFERENCES_OF: LazyLock<String> = LazyLock::new(|| {
     format!(

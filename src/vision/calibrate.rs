@@ -609,7 +609,7 @@ impl<'a> Problem<'a> {
                 let w = self.weights[v][k];
                 view_cost_px2[v] += r.norm_squared();
                 chi2 += w * r.norm_squared();
-                let intrinsic = intrinsic_jacobian(&camera, &p);
+                let intrinsic = camera.intrinsics_jacobian(&p);
                 let ji = DMatrix::<f64>::from_fn(2, nf, |row, col| intrinsic[(row, free[col])]);
                 let dpr: Matrix2x3<f64> = dp * r_mat;
                 let mut jp = SMatrix::<f64, 2, 6>::zeros();
@@ -900,31 +900,6 @@ fn invert_information(
     Ok(DMatrix::from_fn(nf, nf, |i, j| {
         inverse[(i, j)] / (d[i] * d[j])
     }))
-}
-
-/// `d(u, v) / d(fx fy cx cy k1 k2 p1 p2 k3)` at a point of the camera frame.
-fn intrinsic_jacobian(camera: &CameraModel, p: &Vec3) -> SMatrix<f64, 2, 9> {
-    let (x, y) = (p.x / p.z, p.y / p.z);
-    let (xd, _) = camera.distort(Vector2::new(x, y));
-    let r2 = x * x + y * y;
-    let (r4, r6) = (r2 * r2, r2 * r2 * r2);
-    let (fx, fy) = (camera.fx_px, camera.fy_px);
-    let mut j = SMatrix::<f64, 2, 9>::zeros();
-    j[(0, 0)] = xd.x;
-    j[(1, 1)] = xd.y;
-    j[(0, 2)] = 1.0;
-    j[(1, 3)] = 1.0;
-    j[(0, 4)] = fx * x * r2;
-    j[(1, 4)] = fy * y * r2;
-    j[(0, 5)] = fx * x * r4;
-    j[(1, 5)] = fy * y * r4;
-    j[(0, 6)] = fx * 2.0 * x * y;
-    j[(1, 6)] = fy * (r2 + 2.0 * y * y);
-    j[(0, 7)] = fx * (r2 + 2.0 * x * x);
-    j[(1, 7)] = fy * 2.0 * x * y;
-    j[(0, 8)] = fx * x * r6;
-    j[(1, 8)] = fy * y * r6;
-    j
 }
 
 /// The starting camera: Zhang's closed form (or the focal lengths alone with the principal

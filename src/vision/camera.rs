@@ -13,7 +13,7 @@
 
 use super::VisionError;
 use crate::geometry::Vec3;
-use nalgebra::{Matrix2, Matrix2x3, Vector2};
+use nalgebra::{Matrix2, Matrix2x3, SMatrix, Vector2};
 
 /// Newton iterations allowed when undistorting one point.
 const UNDISTORT_MAX_ITERATIONS: usize = 30;
@@ -97,6 +97,33 @@ impl CameraModel {
         let dn = Matrix2x3::new(inv_z, 0.0, -xy.x * inv_z, 0.0, inv_z, -xy.y * inv_z);
         let scale = Matrix2::new(self.fx_px, 0.0, 0.0, self.fy_px);
         Some((uv, scale * dd * dn))
+    }
+
+    /// `d(u, v) / d(fx fy cx cy k1 k2 p1 p2 k3)` at a point of the camera frame (in front of
+    /// it): how the pixel of a fixed point moves with each intrinsic, in the order of the
+    /// calibration's covariance.
+    pub fn intrinsics_jacobian(&self, p: &Vec3) -> SMatrix<f64, 2, 9> {
+        let (x, y) = (p.x / p.z, p.y / p.z);
+        let (xd, _) = self.distort(Vector2::new(x, y));
+        let r2 = x * x + y * y;
+        let (r4, r6) = (r2 * r2, r2 * r2 * r2);
+        let (fx, fy) = (self.fx_px, self.fy_px);
+        let mut j = SMatrix::<f64, 2, 9>::zeros();
+        j[(0, 0)] = xd.x;
+        j[(1, 1)] = xd.y;
+        j[(0, 2)] = 1.0;
+        j[(1, 3)] = 1.0;
+        j[(0, 4)] = fx * x * r2;
+        j[(1, 4)] = fy * y * r2;
+        j[(0, 5)] = fx * x * r4;
+        j[(1, 5)] = fy * y * r4;
+        j[(0, 6)] = fx * 2.0 * x * y;
+        j[(1, 6)] = fy * (r2 + 2.0 * y * y);
+        j[(0, 7)] = fx * (r2 + 2.0 * x * x);
+        j[(1, 7)] = fy * 2.0 * x * y;
+        j[(0, 8)] = fx * x * r6;
+        j[(1, 8)] = fy * y * r6;
+        j
     }
 
     /// The pixel of normalized coordinates `(X/Z, Y/Z)`, whatever the sign of Z (the central

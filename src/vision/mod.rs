@@ -48,6 +48,6 @@ pub use handeye::{
 pub use image::{BitDepth, GreyImage};
 pub use plate::{Plate, PlateView};
 pub use pnp::{
-    MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, refine, solve_pnp,
-    solve_pnp_weighted,
+    MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, intrinsics_sensitivity, refine,
+    solve_pnp, solve_pnp_weighted,
 };

@@ -391,6 +391,43 @@ pub fn refine(
     })
 }
 
+/// How `camera_from_marker`'s estimate moves with the camera's intrinsics: `d xi / d theta`,
+/// `xi` the left perturbation `[rho (mm); phi (rad)]` of the pose (as its covariance) and
+/// `theta = (fx fy cx cy k1 k2 p1 p2 k3)` (as the calibration's covariance).
+///
+/// The estimate minimises `sum w_i |uv_i - pi(xi, theta; p_i)|^2`; at its minimum the
+/// gradient vanishes, and differentiating that condition with respect to `theta` (the
+/// Gauss-Newton approximation, residuals' second derivatives left out) gives
+/// `d xi / d theta = -(J^T W J)^-1 J^T W J_theta`, with `J = d pi / d xi` and
+/// `J_theta = d pi / d theta` at the solution. The weights are `1 / sigma_i^2` (uniform when
+/// `None`); they scale out but for their ratios. A camera's intrinsics error `d theta` then
+/// moves the pose by `S d theta` in every frame: the error that does not average down.
+/// `None` when a point lies behind the camera or the points do not determine the pose.
+pub fn intrinsics_sensitivity(
+    camera: &CameraModel,
+    marker_points_mm: &[Vec3],
+    camera_from_marker: &Pose,
+    weights: Option<&[f64]>,
+) -> Option<SMatrix<f64, 6, 9>> {
+    let mut information = Mat6::zeros();
+    let mut cross = SMatrix::<f64, 6, 9>::zeros();
+    for (i, m) in marker_points_mm.iter().enumerate() {
+        let w = weights.map_or(1.0, |w| w.get(i).copied().unwrap_or(1.0));
+        let p = camera_from_marker * nalgebra::Point3::from(*m);
+        let (_, dp) = camera.project_with_jacobian(&p.coords)?;
+        // Left perturbation: p' = Exp(xi) p, so dp/dxi = [I, -[p]x].
+        let mut j = SMatrix::<f64, 2, 6>::zeros();
+        j.fixed_view_mut::<2, 3>(0, 0).copy_from(&dp);
+        j.fixed_view_mut::<2, 3>(0, 3)
+            .copy_from(&(-(dp * skew(&p.coords))));
+        let jt_w = j.transpose() * w;
+        information += jt_w * j;
+        cross += jt_w * camera.intrinsics_jacobian(&p.coords);
+    }
+    let chol = information.cholesky()?;
+    Some(-chol.solve(&cross))
+}
+
 fn rms(cost_px2: f64, n: usize) -> f64 {
     (cost_px2 / n as f64).sqrt()
 }

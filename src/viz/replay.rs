@@ -119,7 +119,7 @@ pub(crate) async fn replay(
                         references
                             .iter()
                             .find(|x| x.version == version)
-                            .map(|x| Deformation::new(&x.reference, &r.estimate).deformation())
+                            .map(|x| Deformation::new(&x.reference, r.measured()).deformation())
                     });
                     batch.push(Record::Result {
                         target: t,

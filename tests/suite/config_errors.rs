@@ -305,9 +305,11 @@ fn an_installation_without_targets_is_refused() {
 /// marker's line; discs too small to image 4 px across at the nominal pose are a warning.
 #[test]
 fn marker_targets_are_validated_and_small_discs_warned_of() {
+    // A calibration known exactly: no warning about a missing covariance.
+    let exact = vec!["0.0"; 81].join(", ");
     let marker = |target: &str, normals: &str| {
         format!(
-            "[[cameras]]\nframe = \"C1\"\nwidth = 1280\nheight = 1024\nfx = 4800.0\nfy = 4800.0\ncx = 640.0\ncy = 512.0\ndistortion = [0.0, 0.0, 0.0, 0.0, 0.0]\npixel_sigma = 0.05\n\n\
+            "[[cameras]]\nframe = \"C1\"\nwidth = 1280\nheight = 1024\nfx = 4800.0\nfy = 4800.0\ncx = 640.0\ncy = 512.0\ndistortion = [0.0, 0.0, 0.0, 0.0, 0.0]\npixel_sigma = 0.05\nintrinsics_covariance = [{exact}]\n\n\
              [[markers]]\nframe = \"B\"\npoints_mm = [[0, 0, 0], [100, 0, 0], [0, 100, 0], [130, 100, 0]]\n{target}\n{normals}\n\n\
              [[links]]\nname = \"C1_from_B\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 25.0\nnominal = {{ t_mm = [0, 0, 3000], euler_deg = [180, 0, 0] }}\n\n\
              [[links]]\nname = \"C1_from_G\"\nkind = \"measured\"\nsigma = {{ rotation_arcsec = 20.0, translation_mm = 0.5 }}\nexpected_rate_hz = 25.0\n\n\
@@ -607,4 +609,94 @@ fn credentials_in_a_url_are_not_shown() {
     assert!(shown.contains("centre:7878"), "{shown}");
     let plain = config::redacted_url(&url::Url::parse("http://centre:7878/").unwrap());
     assert_eq!(plain, "http://centre:7878/");
+}
+
+/// A camera's `intrinsics_covariance`: 81 finite numbers of a symmetric positive semi-definite
+/// matrix, or an error naming the camera and what is wrong; a camera without one is taken as
+/// exact and the installation says so as a warning at the camera's line.
+#[test]
+fn a_cameras_intrinsics_covariance_is_checked_and_its_absence_warned_of() {
+    let built_in = brokenray::config::DEFAULT_INSTALLATION_TOML;
+    let start = built_in
+        .find("intrinsics_covariance = [")
+        .expect("the built-in has one");
+    let end = start + built_in[start..].find(']').expect("closed") + 1;
+    let first = &built_in[start..end];
+    let with = |replacement: &str| built_in.replacen(first, replacement, 1);
+
+    let inst = config::parse("site.toml", &with("")).expect("valid, with a warning");
+    assert_eq!(inst.warnings.len(), 1, "{:?}", inst.warnings);
+    assert!(
+        inst.warnings[0].message.contains("camera `C1`")
+            && inst.warnings[0].message.contains("taken as exact"),
+        "{}",
+        inst.warnings[0].message
+    );
+    assert_eq!(
+        inst.warnings[0].line,
+        Some(line_of(built_in, "[[cameras]]"))
+    );
+    assert!(inst.model.cameras[0].intrinsics_covariance.is_none());
+    assert!(inst.model.cameras[1].intrinsics_covariance.is_some());
+
+    let nine: Vec<String> = (0..9).map(|i| format!("{}.0", i + 1)).collect();
+    let diagonal = |i: usize, j: usize| if i == j { "1.0" } else { "0.0" };
+    let matrix = |cell: &dyn Fn(usize, usize) -> String| {
+        let cells: Vec<String> = (0..9)
+            .flat_map(|i| (0..9).map(move |j| (i, j)))
+            .map(|(i, j)| cell(i, j))
+            .collect();
+        format!("intrinsics_covariance = [{}]", cells.join(", "))
+    };
+    for (replacement, expected) in [
+        (
+            format!("intrinsics_covariance = [{}]", nine.join(", ")),
+            "must have 81 numbers",
+        ),
+        (
+            matrix(&|i, j| {
+                if (i, j) == (0, 1) {
+                    "0.5".into()
+                } else {
+                    diagonal(i, j).into()
+                }
+            }),
+            "is not symmetric (row 1, column 0",
+        ),
+        (
+            matrix(&|i, j| {
+                if i == 2 && j == 2 {
+                    "-1.0".into()
+                } else {
+                    diagonal(i, j).into()
+                }
+            }),
+            "is not positive semi-definite",
+        ),
+    ] {
+        let err = error_of(&with(&replacement));
+        assert!(
+            err.contains("camera `C1`: intrinsics_covariance") && err.contains(expected),
+            "{expected}: {err}"
+        );
+    }
+    // The 9 x 9 reads row-major into the camera.
+    let inst = config::parse(
+        "site.toml",
+        &with(&matrix(&|i, j| {
+            if i == j {
+                format!("{}.0", i + 1)
+            } else if i + j == 1 {
+                "0.25".into()
+            } else {
+                "0.0".into()
+            }
+        })),
+    )
+    .expect("valid");
+    let cov = inst.model.cameras[0].intrinsics_covariance.expect("read");
+    assert_eq!(
+        (cov[(0, 0)], cov[(8, 8)], cov[(0, 1)], cov[(1, 0)]),
+        (1.0, 9.0, 0.25, 0.25)
+    );
 }

@@ -65,6 +65,8 @@ fn result(k: i64, time_ns: i64) -> NewResult {
             pose: pose(k),
             cov: Mat6::identity() * 1e-7,
         },
+        systematic_cov: Mat6::identity() * (k as f64 + 1.0) * 1e-9,
+        calibration: brokenray::deformation::CalibrationStamp(k * 31),
         status: brokenray::bank::TargetStatus::Ok,
         age_s: 0.25,
         chi2: (k % 2 == 0).then_some(3.5),
@@ -131,6 +133,8 @@ async fn samples_and_results_read_back_exactly(backend: Backend) {
     for (r, new) in back.iter().zip(&results) {
         assert_eq!(r.time_ns, new.time_ns);
         assert_eq!(r.estimate, new.estimate);
+        assert_eq!(r.systematic_cov, new.systematic_cov);
+        assert_eq!(r.calibration, Some(new.calibration));
         assert_eq!(
             (r.status, r.age_s, r.chi2),
             (new.status, new.age_s, new.chi2)
@@ -249,6 +253,8 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
             to_ns: T0_NS + 60 * S,
             count: 600,
         },
+        systematic_cov: Mat6::identity() * 4e-10,
+        calibration: Some(brokenray::deformation::CalibrationStamp(-77)),
     };
     let transition = Transition {
         kind: AlarmKind::Deformation,

@@ -313,6 +313,8 @@ impl Tx<'_> {
             for i in 0..6 {
                 rows.f64_or_null(r.deformation.map(|(_, d)| d[i]));
             }
+            rows.bytes(Some(&r.cov_systematic));
+            rows.i64(r.calibration_stamp);
         }
         self.copy_in(rows).await
     }

@@ -180,6 +180,8 @@ impl Tx<'_> {
                 for i in 0..6 {
                     b.push_bind(r.deformation.map(|(_, d)| d[i]));
                 }
+                b.push_bind(r.cov_systematic.as_slice());
+                b.push_bind(r.calibration_stamp);
                 b.push_bind(self.seq);
             });
             qb.build().execute(&mut *self.conn).await?;

@@ -32,6 +32,8 @@ fn result(k: i64) -> NewResult {
             pose,
             cov: Mat6::identity() * 1e-6,
         },
+        systematic_cov: Mat6::zeros(),
+        calibration: brokenray::deformation::CalibrationStamp(0),
         status: brokenray::bank::TargetStatus::Ok,
         age_s: 0.0,
         chi2: None,

@@ -235,8 +235,8 @@ fn words_of<W: brokenray::words::Word>() -> Vec<String> {
 fn the_documented_vocabularies_are_exactly_the_enums() {
     use brokenray::api::ErrorCode;
     use brokenray::api::vocab::{
-        CompensationSource, HealthStatus, LinkKindName, NotFoundCode, RawRequestState,
-        ReferenceOriginKind,
+        CompensationSource, ContributorKind, HealthStatus, LinkKindName, NotFoundCode,
+        RawRequestState, ReferenceOriginKind, UncertaintyPart,
     };
     let emit: Vec<String> = <brokenray::feed::Emit as clap::ValueEnum>::value_variants()
         .iter()
@@ -285,6 +285,16 @@ fn the_documented_vocabularies_are_exactly_the_enums() {
             "reference `origin`",
             words_of::<ReferenceOriginKind>(),
             Some("ReferenceOriginKind"),
+        ),
+        (
+            "uncertainty contributor `kind` (`budget`)",
+            words_of::<ContributorKind>(),
+            Some("ContributorKind"),
+        ),
+        (
+            "uncertainty `part` (`budget`)",
+            words_of::<UncertaintyPart>(),
+            Some("UncertaintyPart"),
         ),
         (
             "alarm `kind`",

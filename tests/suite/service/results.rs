@@ -147,13 +147,33 @@ async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
             sigma_t[i]
         );
     }
-    // The filter has averaged: its sigma is well below a single raw composition's.
+    // The filter has averaged the noise: the random part of its sigma is well below a single
+    // raw composition's scatter; the systematic part (the cameras' calibrations) it cannot
+    // average, and the whole sigma holds both.
     let (_, raw) = app.get("/api/v1/targets/G/stats?source=raw").await;
     let raw_rms: Vec<f64> = serde_json::from_value(raw["t_mm"]["rms"].clone()).unwrap();
+    let random_t: Vec<f64> =
+        serde_json::from_value(c["sigma_random"]["translation_mm"].clone()).unwrap();
+    let systematic_t: Vec<f64> =
+        serde_json::from_value(c["sigma_systematic"]["translation_mm"].clone()).unwrap();
     assert!(
-        sigma_t.iter().zip(&raw_rms).all(|(s, r)| s < r),
-        "{sigma_t:?} vs raw scatter {raw_rms:?}"
+        random_t.iter().zip(&raw_rms).all(|(s, r)| s < r),
+        "{random_t:?} vs raw scatter {raw_rms:?}"
     );
+    for i in 0..3 {
+        let whole = (random_t[i].powi(2) + systematic_t[i].powi(2)).sqrt();
+        assert!(
+            (whole - sigma_t[i]).abs() <= 1e-9 * sigma_t[i],
+            "axis {i}: random {} and systematic {} do not make the whole {}",
+            random_t[i],
+            systematic_t[i],
+            sigma_t[i]
+        );
+        assert!(
+            systematic_t[i] > 0.0,
+            "the built-in cameras' calibrations count"
+        );
+    }
 }
 
 async fn the_papers_samples_give_back_table_4_and_5_through_stats(backend: Backend) {

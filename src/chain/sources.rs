@@ -1,0 +1,376 @@
+//! Where a composed pose's error comes from: each contributor's error mapped linearly into the
+//! pose's left perturbation, so the covariance splits into random and systematic parts and
+//! into an error budget that adds up by construction.
+//!
+//! A pose's error `xi` (the left perturbation `[rho (mm); phi (rad)]`) is modelled as
+//! `xi = sum_c F_c u_c`: one term per contributor `c`, `u_c` a standard normal vector of that
+//! contributor alone (independent of every other contributor's) and `F_c` its 6x9 factor (a
+//! contributor with fewer than nine dimensions leaves columns zero). Its covariance is
+//! `sum_c F_c F_c^T`, each term that contributor's share. The contributors:
+//!
+//! * a measured link's **noise** (pixel noise through PnP, a sample's own covariance): new in
+//!   every sample, so it averages down;
+//! * a camera's **intrinsics** (focal lengths, principal point, distortion, from its
+//!   calibration's covariance through PnP's sensitivity): the same error in every frame of
+//!   that camera, so it does not average down, and two links one camera sees share it;
+//! * a calibrated link's **calibration**: the same in every result until it is recalibrated.
+//!
+//! A contributor that reaches a pose along two routes (one camera seeing two markers of a
+//! path, or two fused paths) adds its factors, not its covariances: the correlation is kept.
+//! Composition maps every factor by the adjoint of what follows it, exactly as the covariance
+//! is mapped in [`super::compose_path`]; fusion maps each path's factors by its weight in the
+//! fused estimate.
+
+use super::{ChainError, Direction, Fused, LinkId, Path, fuse};
+use crate::geometry::{Mat6, Pose, PoseCov, adjoint, symmetrize};
+use nalgebra::{SMatrix, SymmetricEigen};
+
+/// A contributor's factor: its error's effect on a pose's left perturbation per unit of its
+/// standard normal vector.
+pub type Factor = SMatrix<f64, 6, 9>;
+
+/// A 9x9 covariance of a camera's intrinsics, in the order `fx fy cx cy k1 k2 p1 p2 k3`.
+pub type IntrinsicsCovariance = SMatrix<f64, 9, 9>;
+
+/// Something whose error reaches a composed pose.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Contributor {
+    /// A measured link's noise: random, new in every sample.
+    Noise(LinkId),
+    /// A camera's intrinsics and distortion (the camera's index in the installation):
+    /// systematic, the same in every frame of the camera.
+    Intrinsics(usize),
+    /// A calibrated link's calibration: systematic.
+    Calibration(LinkId),
+}
+
+impl Contributor {
+    /// True for what averages down over samples (a link's noise).
+    pub fn is_random(self) -> bool {
+        matches!(self, Contributor::Noise(_))
+    }
+}
+
+/// One contributor's term of a pose's error.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Term {
+    /// Whose error.
+    pub contributor: Contributor,
+    /// Its factor (see the module docs).
+    pub factor: Factor,
+}
+
+impl Term {
+    /// Its covariance, `F F^T`.
+    pub fn covariance(&self) -> Mat6 {
+        symmetrize(&(self.factor * self.factor.transpose()))
+    }
+}
+
+/// A pose's error as a sum of independent contributors' terms (see the module docs).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ErrorTerms {
+    terms: Vec<Term>,
+}
+
+impl ErrorTerms {
+    /// No error.
+    pub fn none() -> Self {
+        Self::default()
+    }
+
+    /// One contributor's term.
+    pub fn of(contributor: Contributor, factor: Factor) -> Self {
+        Self {
+            terms: vec![Term {
+                contributor,
+                factor,
+            }],
+        }
+    }
+
+    /// Adds a contributor's factor, to its term if it has one already (a correlated route).
+    pub fn add(&mut self, contributor: Contributor, factor: Factor) {
+        match self.terms.iter_mut().find(|t| t.contributor == contributor) {
+            Some(t) => t.factor += factor,
+            None => self.terms.push(Term {
+                contributor,
+                factor,
+            }),
+        }
+    }
+
+    /// Adds every term of `other` mapped by `m` (`m F` for each factor).
+    pub fn add_mapped(&mut self, other: &ErrorTerms, m: &Mat6) {
+        for t in &other.terms {
+            self.add(t.contributor, m * t.factor);
+        }
+    }
+
+    /// Every factor mapped by `m`.
+    pub fn mapped(&self, m: &Mat6) -> Self {
+        Self {
+            terms: self
+                .terms
+                .iter()
+                .map(|t| Term {
+                    contributor: t.contributor,
+                    factor: m * t.factor,
+                })
+                .collect(),
+        }
+    }
+
+    /// The terms, in the order their contributors were first added.
+    pub fn terms(&self) -> &[Term] {
+        &self.terms
+    }
+
+    /// The terms whose contributors `keep` accepts.
+    pub fn filtered(&self, keep: impl Fn(Contributor) -> bool) -> Self {
+        Self {
+            terms: self
+                .terms
+                .iter()
+                .filter(|t| keep(t.contributor))
+                .copied()
+                .collect(),
+        }
+    }
+
+    /// The covariance of the terms whose contributors `keep` accepts.
+    pub fn covariance_of(&self, keep: impl Fn(Contributor) -> bool) -> Mat6 {
+        let mut out = Mat6::zeros();
+        for t in self.terms.iter().filter(|t| keep(t.contributor)) {
+            out += t.factor * t.factor.transpose();
+        }
+        symmetrize(&out)
+    }
+
+    /// The whole covariance.
+    pub fn total(&self) -> Mat6 {
+        self.covariance_of(|_| true)
+    }
+
+    /// The random part: the measured links' noise.
+    pub fn random(&self) -> Mat6 {
+        self.covariance_of(Contributor::is_random)
+    }
+
+    /// The systematic part: cameras' intrinsics and calibrations.
+    pub fn systematic(&self) -> Mat6 {
+        self.covariance_of(|c| !c.is_random())
+    }
+}
+
+/// A pose with its error terms.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SourcedPose {
+    /// The mean pose.
+    pub pose: Pose,
+    /// Its error, by contributor.
+    pub terms: ErrorTerms,
+}
+
+impl SourcedPose {
+    /// The pose with its whole covariance.
+    pub fn total(&self) -> PoseCov {
+        PoseCov {
+            pose: self.pose,
+            cov: self.terms.total(),
+        }
+    }
+
+    /// The pose with its random covariance alone.
+    pub fn random(&self) -> PoseCov {
+        PoseCov {
+            pose: self.pose,
+            cov: self.terms.random(),
+        }
+    }
+}
+
+/// A factor `F` with `F F^T = cov` for a 6x6 covariance (symmetric, positive semi-definite):
+/// its Cholesky factor, or the symmetric square root where it is singular. The last three
+/// columns are zero.
+pub fn factor_of_covariance(cov: &Mat6) -> Factor {
+    let mut f = Factor::zeros();
+    match symmetrize(cov).cholesky() {
+        Some(c) => f.fixed_view_mut::<6, 6>(0, 0).copy_from(&c.l()),
+        None => {
+            let e = SymmetricEigen::new(symmetrize(cov));
+            let root = e.eigenvectors
+                * Mat6::from_diagonal(&e.eigenvalues.map(|v| v.max(0.0).sqrt()))
+                * e.eigenvectors.transpose();
+            f.fixed_view_mut::<6, 6>(0, 0).copy_from(&root);
+        }
+    }
+    f
+}
+
+/// The symmetric square root `L` (`L L^T = cov`) of an intrinsics covariance, which is singular
+/// where a calibration kept parameters fixed; negative eigenvalues of rounding count as zero.
+pub fn intrinsics_root(cov: &IntrinsicsCovariance) -> IntrinsicsCovariance {
+    let s = (cov + cov.transpose()) * 0.5;
+    let e = SymmetricEigen::new(s);
+    e.eigenvectors
+        * IntrinsicsCovariance::from_diagonal(&e.eigenvalues.map(|v| v.max(0.0).sqrt()))
+        * e.eigenvectors.transpose()
+}
+
+/// Composes a path into `target_from_base` with its error terms: as [`super::compose_path`],
+/// each factor instead of each covariance. Forwards through link `L`: `acc <- L acc`,
+/// `F <- Ad(L) F` and `L`'s own terms added; inverted: `acc <- L^-1 acc`,
+/// `F <- Ad(L^-1) (F - F_L)` (the inverse's error is the link's, negated and moved).
+pub fn compose_path_terms<F>(path: &Path, mut parent_from_child: F) -> SourcedPose
+where
+    F: FnMut(LinkId) -> SourcedPose,
+{
+    let mut pose = Pose::identity();
+    let mut terms = ErrorTerms::none();
+    for step in &path.steps {
+        let link = parent_from_child(step.link);
+        match step.direction {
+            Direction::Forward => {
+                let ad = adjoint(&link.pose);
+                let mut next = terms.mapped(&ad);
+                next.add_mapped(&link.terms, &Mat6::identity());
+                terms = next;
+                pose = link.pose * pose;
+            }
+            Direction::Inverse => {
+                let inv = link.pose.inverse();
+                let ad = adjoint(&inv);
+                let mut next = terms.mapped(&ad);
+                next.add_mapped(&link.terms, &(-ad));
+                terms = next;
+                pose = inv * pose;
+            }
+        }
+    }
+    SourcedPose { pose, terms }
+}
+
+/// Fuses estimates of the same pose reached by link-disjoint paths: the pose and the
+/// consistency as [`fuse`] gives them from each path's whole covariance, the fused error terms
+/// as each path's terms weighted by its share `P I_p` (`P` the fused covariance, `I_p` the
+/// path's information). A contributor on several paths (a camera that sees markers of two)
+/// adds its weighted factors, so the fused covariance keeps the correlation [`fuse`] leaves
+/// out.
+pub fn fuse_terms(
+    estimates: &[SourcedPose],
+    probability: f64,
+) -> Result<(SourcedPose, Fused), ChainError> {
+    let totals: Vec<PoseCov> = estimates.iter().map(SourcedPose::total).collect();
+    let fused = fuse(&totals, probability)?;
+    if let [single] = estimates {
+        return Ok((single.clone(), fused));
+    }
+    let mut terms = ErrorTerms::none();
+    for (index, (e, t)) in estimates.iter().zip(&totals).enumerate() {
+        let info = symmetrize(&t.cov)
+            .cholesky()
+            .ok_or(ChainError::SingularCovariance { index })?
+            .inverse();
+        terms.add_mapped(&e.terms, &(fused.estimate.cov * info));
+    }
+    let sourced = SourcedPose {
+        pose: fused.estimate.pose,
+        terms,
+    };
+    Ok((sourced, fused))
+}
+
+/// One contributor's share of a pose's variance on each axis users read.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BudgetLine {
+    /// Whose error.
+    pub contributor: Contributor,
+    /// Its variance on each axis: rotation about x, y, z (rad^2, as
+    /// [`PoseCov::reported_sigmas`] reads rotation), then the translation components x, y, z
+    /// (mm^2).
+    pub variance: [f64; 6],
+}
+
+/// A pose's variance on each axis split by contributor: the lines add up to the total by
+/// construction (each axis' variance is linear in the covariance, and the covariance is the
+/// sum of the contributors').
+#[derive(Debug, Clone, PartialEq)]
+pub struct Budget {
+    /// One line per contributor, in the order of the terms.
+    pub lines: Vec<BudgetLine>,
+    /// The whole variance on each axis (as the lines' variance).
+    pub total: [f64; 6],
+}
+
+/// The variance of each axis users read of a pose with covariance `cov` (see
+/// [`BudgetLine::variance`]).
+pub fn axis_variances(pose: &Pose, cov: &Mat6) -> [f64; 6] {
+    let t = PoseCov {
+        pose: *pose,
+        cov: *cov,
+    }
+    .translation_covariance();
+    [
+        cov[(3, 3)],
+        cov[(4, 4)],
+        cov[(5, 5)],
+        t[(0, 0)],
+        t[(1, 1)],
+        t[(2, 2)],
+    ]
+}
+
+impl Budget {
+    /// The budget of a pose as its terms give it (a raw result: every contributor as it is).
+    pub fn of(sourced: &SourcedPose) -> Self {
+        let lines: Vec<BudgetLine> = sourced
+            .terms
+            .terms()
+            .iter()
+            .map(|t| BudgetLine {
+                contributor: t.contributor,
+                variance: axis_variances(&sourced.pose, &t.covariance()),
+            })
+            .collect();
+        let total = axis_variances(&sourced.pose, &sourced.terms.total());
+        Self { lines, total }
+    }
+
+    /// The budget of a filtered pose: the systematic lines as the terms give them (filtering
+    /// does not reduce them), and the random part the filter's own covariance
+    /// `filtered_random`, shared on each axis among the measured links' noise in proportion to
+    /// their share of the terms' random variance on that axis (the filter is one linear map of
+    /// every link's noise, so their shares go through it together).
+    pub fn filtered(sourced: &SourcedPose, filtered_random: &Mat6) -> Self {
+        let mut budget = Self::of(sourced);
+        let raw_random = axis_variances(&sourced.pose, &sourced.terms.random());
+        let filtered = axis_variances(&sourced.pose, filtered_random);
+        let scale: [f64; 6] = std::array::from_fn(|a| {
+            if raw_random[a] > 0.0 {
+                filtered[a] / raw_random[a]
+            } else {
+                0.0
+            }
+        });
+        for line in budget
+            .lines
+            .iter_mut()
+            .filter(|l| l.contributor.is_random())
+        {
+            for (v, s) in line.variance.iter_mut().zip(scale) {
+                *v *= s;
+            }
+        }
+        let systematic = axis_variances(&sourced.pose, &sourced.terms.systematic());
+        budget.total = std::array::from_fn(|a| {
+            systematic[a]
+                + if raw_random[a] > 0.0 {
+                    filtered[a]
+                } else {
+                    0.0
+                }
+        });
+        budget
+    }
+}
