@@ -54,3 +54,4 @@ mod marker_search;
 mod pnp;
 mod service;
 mod store_backends;
+mod uncertainty;
