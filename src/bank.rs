@@ -651,7 +651,7 @@ impl FilterBank {
             ResultSource::Filtered => {
                 let time_ns = track.filter.time_ns()?;
                 let filtered = track.filter.predict(time_ns)?.ok()?;
-                Some((time_ns, Budget::filtered(terms, &filtered.cov)))
+                Some((time_ns, Budget::filtered(terms, &filtered)))
             }
         }
     }
@@ -1424,17 +1424,25 @@ impl FilterBank {
         // The target's own filter where it has a state for that time; before its first raw
         // result, the composition of the filtered links.
         let track = &self.tracks[target.0];
-        // The systematic part: as the links compose now (the same geometry as the raw results
-        // the filter had; no filtering reduces it).
-        let systematic_cov = sourced.terms.systematic();
-        let pose = match state_at(&track.filter, &track.history, time_ns)
+        // The systematic part, which no filtering reduces: as the newest raw result the
+        // target's filter had carried it (the budget's), else as the links compose now.
+        let (pose, systematic_cov) = match state_at(&track.filter, &track.history, time_ns)
             .and_then(|f| f.predict(time_ns))
         {
-            Some(Ok(p)) => PoseCov {
-                pose: p.pose,
-                cov: p.cov + systematic_cov,
-            },
-            _ => sourced.total(),
+            Some(Ok(p)) => {
+                let systematic = track
+                    .latest_terms
+                    .as_ref()
+                    .map_or_else(|| sourced.terms.systematic(), |t| t.terms.systematic());
+                (
+                    PoseCov {
+                        pose: p.pose,
+                        cov: p.cov + systematic,
+                    },
+                    systematic,
+                )
+            }
+            _ => (sourced.total(), sourced.terms.systematic()),
         };
         let age_s = newest_ns.map_or(0.0, |n| ((time_ns - n) as f64 / NS_PER_S).max(0.0));
         let inconsistent = fused.consistency.is_some_and(|c| !c.is_consistent());

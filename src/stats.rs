@@ -5,8 +5,25 @@
 //! `sqrt(mean((x - mean)^2))`. Angles are unwrapped relative to the first sample before anything
 //! is computed, so a series crossing +-180 degrees does not average to zero; min, max and mean
 //! are reported in the unwrapped range, the mean wrapped back into (-180, 180].
+//!
+//! **Repeatability against the model.** Given each result's random covariance (the part of its
+//! uncertainty that is noise: see [`crate::chain::ErrorTerms`]), the accumulator also gives the
+//! rms per component the model expects from it, `sqrt(diag(J R J^T))` with `R` the mean random
+//! covariance over the window and `J` the Euler angles' (or the translation's) Jacobian at the
+//! first pose, and the chi-square statistic of the scatter, `tr(R^-1 S)` with
+//! `S = sum (x_i - mean)(x_i - mean)^T` over the results' left perturbations from the first,
+//! against its quantile with `6 (n - 1)` degrees of freedom. Independent results whose noise
+//! the model describes stay under it with the quantile's probability; a scatter beyond it says
+//! that a `pixel_sigma` or a link's sigma is set too small, or that something moves. Filtered
+//! results are correlated in time and carry the motion the filter follows: the statistic
+//! applies to raw results.
 
-use crate::geometry::{Pose, euler_from_rotation};
+use crate::geometry::{Mat3, Mat6, Pose, PoseCov, Twist, euler_from_rotation, se3_log, so3_exp};
+use statrs::distribution::{ChiSquared, ContinuousCDF};
+
+/// Probability with which the scatter of results the model describes stays under the
+/// chi-square quantile the repeatability is judged by.
+pub const REPEATABILITY_PROBABILITY: f64 = 0.999;
 
 /// Statistics of three components.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,6 +47,93 @@ pub struct PoseStats {
     pub euler_deg: ComponentStats,
     /// Translation (mm).
     pub t_mm: ComponentStats,
+    /// The scatter against the model's random part, when every pose came with it (and there
+    /// were at least two).
+    pub repeatability: Option<Repeatability>,
+}
+
+/// The scatter of a window of results against what their random covariances expect (see the
+/// module docs).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Repeatability {
+    /// The rms of each Euler angle the model expects (degrees).
+    pub expected_euler_rms_deg: [f64; 3],
+    /// The rms of each translation component the model expects (mm).
+    pub expected_t_rms_mm: [f64; 3],
+    /// `tr(R^-1 S)`.
+    pub chi2: f64,
+    /// `6 (n - 1)`.
+    pub dof: usize,
+    /// The chi-square quantile at [`REPEATABILITY_PROBABILITY`].
+    pub threshold: f64,
+}
+
+impl Repeatability {
+    /// True when the scatter exceeds what chance allows for results the model describes.
+    pub fn exceeded(&self) -> bool {
+        self.chi2 > self.threshold
+    }
+}
+
+/// Sums of the results' left perturbations from the first and of their random covariances.
+#[derive(Debug, Clone, Copy)]
+struct ScatterSums {
+    first: Pose,
+    n: usize,
+    sum: Twist,
+    sum_outer: Mat6,
+    sum_cov: Mat6,
+}
+
+impl ScatterSums {
+    fn push(&mut self, pose: &Pose, random_cov: &Mat6) {
+        let x = se3_log(&(pose * self.first.inverse()));
+        self.n += 1;
+        self.sum += x;
+        self.sum_outer += x * x.transpose();
+        self.sum_cov += random_cov;
+    }
+
+    fn finish(&self) -> Option<Repeatability> {
+        if self.n < 2 {
+            return None;
+        }
+        let n = self.n as f64;
+        let r = self.sum_cov / n;
+        let scatter = self.sum_outer - self.sum * self.sum.transpose() / n;
+        let info = r.cholesky()?.inverse();
+        let chi2 = (info * scatter).trace();
+        let dof = 6 * (self.n - 1);
+        let threshold = ChiSquared::new(dof as f64)
+            .map(|d| d.inverse_cdf(REPEATABILITY_PROBABILITY))
+            .unwrap_or(f64::INFINITY);
+        // The Euler angles' Jacobian with respect to the rotation's left perturbation, by
+        // central differences at the first pose.
+        let h = 1e-6;
+        let mut j = Mat3::zeros();
+        for k in 0..3 {
+            let mut d = crate::geometry::Vec3::zeros();
+            d[k] = h;
+            let plus = euler_from_rotation(&(so3_exp(&d) * self.first.rotation)).to_degrees();
+            let minus = euler_from_rotation(&(so3_exp(&(-d)) * self.first.rotation)).to_degrees();
+            for i in 0..3 {
+                j[(i, k)] = wrap_deg(plus[i] - minus[i]) / (2.0 * h);
+            }
+        }
+        let rotation = j * r.fixed_view::<3, 3>(3, 3) * j.transpose();
+        let translation = PoseCov {
+            pose: self.first,
+            cov: r,
+        }
+        .translation_covariance();
+        Some(Repeatability {
+            expected_euler_rms_deg: [0, 1, 2].map(|i| rotation[(i, i)].max(0.0).sqrt()),
+            expected_t_rms_mm: [0, 1, 2].map(|i| translation[(i, i)].max(0.0).sqrt()),
+            chi2,
+            dof,
+            threshold,
+        })
+    }
 }
 
 /// Wraps an angle difference (degrees) into (-180, 180].
@@ -97,6 +201,9 @@ pub struct PoseStatsAccumulator {
     angles: Accumulator,
     translations: Accumulator,
     first: Option<[f64; 3]>,
+    /// `None` once a pose came without its random covariance.
+    scatter: Option<ScatterSums>,
+    all_with_covariance: bool,
 }
 
 impl Default for PoseStatsAccumulator {
@@ -105,13 +212,37 @@ impl Default for PoseStatsAccumulator {
             angles: Accumulator::new(),
             translations: Accumulator::new(),
             first: None,
+            scatter: None,
+            all_with_covariance: true,
         }
     }
 }
 
 impl PoseStatsAccumulator {
-    /// Adds one pose.
+    /// Adds one pose with its random covariance, for the repeatability.
+    pub fn push_with_random(&mut self, pose: &Pose, random_cov: &Mat6) {
+        if self.all_with_covariance {
+            self.scatter
+                .get_or_insert(ScatterSums {
+                    first: *pose,
+                    n: 0,
+                    sum: Twist::zeros(),
+                    sum_outer: Mat6::zeros(),
+                    sum_cov: Mat6::zeros(),
+                })
+                .push(pose, random_cov);
+        }
+        self.push_pose(pose);
+    }
+
+    /// Adds one pose without a covariance: the window gets no repeatability.
     pub fn push(&mut self, pose: &Pose) {
+        self.all_with_covariance = false;
+        self.scatter = None;
+        self.push_pose(pose);
+    }
+
+    fn push_pose(&mut self, pose: &Pose) {
         let e = euler_from_rotation(&pose.rotation).to_degrees();
         let reference = *self.first.get_or_insert(e);
         let unwrapped = [0, 1, 2].map(|i| reference[i] + wrap_deg(e[i] - reference[i]));
@@ -133,6 +264,7 @@ impl PoseStatsAccumulator {
             count: self.angles.n,
             euler_deg,
             t_mm: self.translations.finish(),
+            repeatability: self.scatter.as_ref().and_then(ScatterSums::finish),
         })
     }
 }

@@ -597,6 +597,9 @@ pub(super) struct ComponentsOut {
     pub mean: [f64; 3],
     /// Population standard deviation.
     pub rms: [f64; 3],
+    /// The rms the model expects from the results' random part (their noise); null when a
+    /// result in the window was stored without it.
+    pub expected_rms: Option<[f64; 3]>,
 }
 
 /// `GET .../stats`.
@@ -616,6 +619,25 @@ pub(super) struct StatsOut {
     pub euler_deg: Option<ComponentsOut>,
     /// Translation (mm).
     pub t_mm: Option<ComponentsOut>,
+    /// The window's scatter against the results' random part (raw results only: filtered
+    /// results are correlated in time); null for filtered results, fewer than two results, or
+    /// results stored without their random part.
+    pub repeatability: Option<RepeatabilityOut>,
+}
+
+/// The scatter of a window of raw results against their random covariance.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub(super) struct RepeatabilityOut {
+    /// `tr(R^-1 S)`: the scatter matrix `S` against the mean random covariance `R`.
+    pub chi2: f64,
+    /// Its degrees of freedom, `6 (count - 1)`.
+    pub dof: usize,
+    /// The chi-square quantile at 99.9 %: results whose noise the model describes stay under
+    /// it.
+    pub threshold: f64,
+    /// True when the scatter exceeds the threshold: a `pixel_sigma` or a link's sigma set too
+    /// small, or something that moves.
+    pub exceeded: bool,
 }
 
 /// `GET /api/v1/targets/{name}/stats?from=&to=&source=raw|filtered`.
@@ -649,20 +671,31 @@ pub(super) async fn stats_of(
     let (from, to, source) = parse_window(q)?;
     let _permit = app.service.heavy_read().await;
     let (stats, first_last) = store.pose_stats(ti, source, from, to).await?;
-    let comp = |c: crate::stats::ComponentStats| ComponentsOut {
+    let comp = |c: crate::stats::ComponentStats, expected: Option<[f64; 3]>| ComponentsOut {
         min: c.min,
         max: c.max,
         mean: c.mean,
         rms: c.rms,
+        expected_rms: expected,
     };
+    let repeatability = stats.and_then(|s| s.repeatability);
     Ok(StatsOut {
         target: name,
         source,
         count: stats.map_or(0, |s| s.count),
         from: first_last.map(|(first, _)| format_ns(if from == i64::MIN { first } else { from })),
         to: first_last.map(|(_, last)| format_ns(if to == i64::MAX { last } else { to })),
-        euler_deg: stats.map(|s| comp(s.euler_deg)),
-        t_mm: stats.map(|s| comp(s.t_mm)),
+        euler_deg: stats
+            .map(|s| comp(s.euler_deg, repeatability.map(|r| r.expected_euler_rms_deg))),
+        t_mm: stats.map(|s| comp(s.t_mm, repeatability.map(|r| r.expected_t_rms_mm))),
+        repeatability: repeatability
+            .filter(|_| source == ResultSource::Raw)
+            .map(|r| RepeatabilityOut {
+                chi2: r.chi2,
+                dof: r.dof,
+                threshold: r.threshold,
+                exceeded: r.exceeded(),
+            }),
     })
 }
 

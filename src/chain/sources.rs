@@ -341,8 +341,14 @@ impl Budget {
     /// does not reduce them), and the random part the filter's own covariance
     /// `filtered_random`, shared on each axis among the measured links' noise in proportion to
     /// their share of the terms' random variance on that axis (the filter is one linear map of
-    /// every link's noise, so their shares go through it together).
-    pub fn filtered(sourced: &SourcedPose, filtered_random: &Mat6) -> Self {
+    /// every link's noise, so their shares go through it together). The axes are those of the
+    /// filtered pose `filtered` (its covariance the filter's random one).
+    pub fn filtered(sourced: &SourcedPose, filtered: &PoseCov) -> Self {
+        let sourced = &SourcedPose {
+            pose: filtered.pose,
+            terms: sourced.terms.clone(),
+        };
+        let filtered_random = &filtered.cov;
         let mut budget = Self::of(sourced);
         let raw_random = axis_variances(&sourced.pose, &sourced.terms.random());
         let filtered = axis_variances(&sourced.pose, filtered_random);

@@ -125,3 +125,13 @@ pub(crate) fn source_column(source: crate::bank::ResultSource) -> i64 {
         crate::bank::ResultSource::Filtered => 1,
     }
 }
+
+/// A result's random covariance from its stored `cov` and `cov_systematic` (null in rows
+/// written before it was kept: all of `cov`); `None` when a blob does not decode.
+pub(crate) fn random_covariance(cov: &[u8], systematic: Option<&[u8]>) -> Option<Mat6> {
+    let whole = decode_mat6(cov).ok()?;
+    match systematic {
+        Some(s) => Some(whole - decode_mat6(s).ok()?),
+        None => Some(whole),
+    }
+}

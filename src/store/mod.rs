@@ -472,7 +472,18 @@ impl Store {
             Reader::Sqlite(r) => r.pose_stats(id, source, from_ns, to_ns).await,
             Reader::Postgres(r) => {
                 use futures::TryStreamExt as _;
-                type PoseRow = (i64, f64, f64, f64, f64, f64, f64, f64);
+                type PoseRow = (
+                    i64,
+                    f64,
+                    f64,
+                    f64,
+                    f64,
+                    f64,
+                    f64,
+                    f64,
+                    Vec<u8>,
+                    Option<Vec<u8>>,
+                );
                 let mut rows = sqlx::query_as::<_, PoseRow>(sql::RESULT_POSES_IN)
                     .bind(id)
                     .bind(source)
@@ -481,8 +492,14 @@ impl Store {
                     .fetch(&r.pool);
                 let mut acc = crate::stats::PoseStatsAccumulator::default();
                 let mut span: Option<(i64, i64)> = None;
-                while let Some((t, tx, ty, tz, qw, qx, qy, qz)) = rows.try_next().await? {
-                    acc.push(&codec::pose_from_columns([tx, ty, tz, qw, qx, qy, qz]));
+                while let Some((t, tx, ty, tz, qw, qx, qy, qz, cov, systematic)) =
+                    rows.try_next().await?
+                {
+                    let pose = codec::pose_from_columns([tx, ty, tz, qw, qx, qy, qz]);
+                    match codec::random_covariance(&cov, systematic.as_deref()) {
+                        Some(random) => acc.push_with_random(&pose, &random),
+                        None => acc.push(&pose),
+                    }
                     span = Some((span.map_or(t, |(first, _)| first), t));
                 }
                 Ok((acc.finish(), span))

@@ -29,11 +29,11 @@ pub(super) static RESULTS_IN: LazyLock<String> = LazyLock::new(|| {
     )
 });
 
-/// The time and pose of results, as [`RESULTS_IN`] without a limit: what the statistics of a
-/// window fold.
-pub(super) const RESULT_POSES_IN: &str = "select time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz \
-     from results where target_id = $1 and source = $2 and time_ns >= $3 and time_ns <= $4 \
-     order by time_ns";
+/// The time, pose and covariances of results, as [`RESULTS_IN`] without a limit: what the
+/// statistics of a window fold.
+pub(super) const RESULT_POSES_IN: &str = "select time_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, \
+     cov, cov_systematic from results where target_id = $1 and source = $2 and time_ns >= $3 \
+     and time_ns <= $4 order by time_ns";
 
 /// How many results of a target and source lie in a window.
 pub(super) const COUNT_RESULTS: &str = "select count(*) from results where target_id = $1 \

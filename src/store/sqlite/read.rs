@@ -1,7 +1,7 @@
 //! The SQLite read side that differs from PostgreSQL's: the statistics of a window, folded on
 //! a connection of rusqlite's.
 
-use super::super::codec::pose_from_columns;
+use super::super::codec::{pose_from_columns, random_covariance};
 use super::super::{StoreError, StoreResult};
 use super::Reader;
 
@@ -36,7 +36,13 @@ impl Reader {
                 for (i, v) in c.iter_mut().enumerate() {
                     *v = row.get(i + 1)?;
                 }
-                acc.push(&pose_from_columns(c));
+                let cov: Vec<u8> = row.get(8)?;
+                let systematic: Option<Vec<u8>> = row.get(9)?;
+                let pose = pose_from_columns(c);
+                match random_covariance(&cov, systematic.as_deref()) {
+                    Some(random) => acc.push_with_random(&pose, &random),
+                    None => acc.push(&pose),
+                }
                 span = Some((span.map_or(t, |(first, _)| first), t));
             }
             Ok((acc.finish(), span))

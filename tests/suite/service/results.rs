@@ -22,6 +22,7 @@ on_both_backends!(
     a_window_reference_gives_deformation_and_correction,
     a_new_calibration_is_versioned_and_used,
     a_restart_restores_the_filters_and_answers_the_same_compensation,
+    a_reference_of_the_same_calibrations_cancels_their_error,
 );
 
 const MEASURED: [&str; 3] = ["C1_from_B", "C2_from_M", "C3_from_G"];
@@ -100,25 +101,33 @@ async fn noise_free_samples_give_the_true_chain(backend: Backend) {
     assert!(rot_err_deg < 1e-6, "rotation off by {rot_err_deg} degree");
 }
 
-#[tokio::test]
-async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
-    let app = TestApp::start(None).await;
+/// `groups` groups of the true links, each sample drawn with `scale` times its link's default
+/// sigmas (and posted without them, so the service takes the defaults).
+fn noisy_samples(groups: i64, scale: f64, seed: u64) -> Vec<Value> {
     let inst = config::default_installation();
     let links = truth();
-    let mut rng = StdRng::seed_from_u64(5);
+    let mut rng = StdRng::seed_from_u64(seed);
     let mut samples = Vec::new();
-    for k in 0..250 {
+    for k in 0..groups {
         for (name, pose) in &links {
             let LinkKind::Measured(m) = &inst.model.link_by_name(name).unwrap().kind else {
                 panic!()
             };
             let cov = PoseCov::from_reported_sigmas(*pose, &m.default_sigmas).cov;
-            let l = cov.cholesky().unwrap().l();
+            let l = cov.cholesky().unwrap().l() * scale;
             let z = Twist::from_fn(|_, _| StandardNormal.sample(&mut rng));
             let noisy = se3_exp(&(l * z)) * pose;
             samples.push(json!({"link": name, "time": time_text(k), "pose": pose_json(&noisy)}));
         }
     }
+    samples
+}
+
+#[tokio::test]
+async fn noisy_samples_give_the_truth_within_three_reported_sigmas() {
+    let app = TestApp::start(None).await;
+    let links = truth();
+    let samples = noisy_samples(250, 1.0, 5);
     let (status, body) = app
         .post_live("/api/v1/samples", &json!({"samples": samples}))
         .await;
@@ -495,4 +504,194 @@ async fn the_target_filter_is_reported_with_its_model_and_consistency() {
         e["error"]["message"].as_str().unwrap().contains("nope"),
         "{e}"
     );
+}
+
+/// The sigmas of a JSON `{rotation_arcsec, translation_mm}`, rotation first.
+fn sigmas_of(v: &Value) -> Vec<f64> {
+    let mut out: Vec<f64> = serde_json::from_value(v["rotation_arcsec"].clone()).unwrap();
+    out.extend(serde_json::from_value::<Vec<f64>>(v["translation_mm"].clone()).unwrap());
+    out
+}
+
+/// A deformation against a reference measured with the same calibrations carries no
+/// systematic part (the calibrations' error is in both and cancels); after a calibration
+/// changed, both parts add. The reference keeps its calibrations across a restart of the
+/// store (it is read back from it).
+async fn a_reference_of_the_same_calibrations_cancels_their_error(backend: Backend) {
+    let app = TestApp::start_on(backend, None).await;
+    let links = truth();
+    let post = |from: i64, to: i64| {
+        let samples: Vec<Value> = (from..to).flat_map(|k| group(k, &links)).collect();
+        json!({"samples": samples})
+    };
+    app.post_json("/api/v1/samples", &post(0, 10)).await;
+    let (status, r) = app
+        .post_json(
+            "/api/v1/targets/G/reference",
+            &json!({"from": time_text(0), "to": time_text(9)}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED, "{r}");
+    assert!(
+        sigmas_of(&r["sigma_systematic"]).iter().all(|s| *s > 0.0),
+        "{r}"
+    );
+    app.post_json("/api/v1/samples", &post(10, 20)).await;
+    let (_, c) = app.get("/api/v1/targets/G/compensation").await;
+    let d = &c["deformation"];
+    assert!(
+        sigmas_of(&d["sigma_systematic"]).iter().all(|s| *s < 1e-9),
+        "the same calibrations: {d}"
+    );
+    for (whole, random) in sigmas_of(&d["sigma"])
+        .iter()
+        .zip(sigmas_of(&d["sigma_random"]))
+    {
+        assert!((whole - random).abs() <= 1e-9 * whole, "{d}");
+    }
+    // The result itself keeps its systematic part: it is what G_from_B's truth is within.
+    let result_sigma = sigmas_of(&c["sigma"]);
+    assert!(
+        sigmas_of(&d["sigma"])[0] < result_sigma[0],
+        "the deformation {d} is known better than the pose {}",
+        c["sigma"]
+    );
+
+    // A new calibration of a station: the reference was measured with the old one.
+    let (status, body) = app
+        .request(
+            "PUT",
+            "/api/v1/links/C2_from_C1/calibration",
+            Some((
+                "application/json",
+                json!({"pose": {"t_mm": [-67.21, 37.5, -106.8], "euler_deg": [76.6492, 8.9522, 176.3952]},
+                       "sigma": {"rotation_arcsec": 5.0, "translation_mm": 0.05},
+                       "valid_from": time_text(20)})
+                .to_string(),
+            )),
+            None,
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED, "{body}");
+    app.post_json("/api/v1/samples", &post(20, 30)).await;
+    let (_, c) = app.get("/api/v1/targets/G/compensation").await;
+    let d = &c["deformation"];
+    let systematic = sigmas_of(&d["sigma_systematic"]);
+    let random = sigmas_of(&d["sigma_random"]);
+    for (i, whole) in sigmas_of(&d["sigma"]).iter().enumerate() {
+        assert!(systematic[i] > random[i], "axis {i}: {d}");
+        assert!(
+            (whole.powi(2) - systematic[i].powi(2) - random[i].powi(2)).abs()
+                <= 1e-9 * whole * whole,
+            "axis {i}: {d}"
+        );
+    }
+}
+
+/// `GET .../budget`: every contributor of the newest result, its shares adding up to one on
+/// each axis, the largest first; the sigmas its parts make; 404 before any result, 422 for an
+/// unknown source.
+#[tokio::test]
+async fn the_budget_names_every_contributor_largest_first() {
+    let app = TestApp::start(None).await;
+    let (status, body) = app.get("/api/v1/targets/G/budget").await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+    assert_eq!(body["error"]["code"], "not_found");
+    let samples = noisy_samples(50, 1.0, 4);
+    let (status, body) = app
+        .post_live("/api/v1/samples", &json!({"samples": samples}))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, c) = app.get("/api/v1/targets/G/compensation").await;
+    for source in ["raw", "filtered"] {
+        let (status, b) = app
+            .get(&format!("/api/v1/targets/G/budget?source={source}"))
+            .await;
+        assert_eq!(status, StatusCode::OK, "{b}");
+        assert_eq!(b["source"], source);
+        let lines = b["contributions"].as_array().unwrap();
+        let mut kinds: Vec<(String, String)> = lines
+            .iter()
+            .map(|l| {
+                (
+                    l["kind"].as_str().unwrap().to_owned(),
+                    l["name"].as_str().unwrap().to_owned(),
+                )
+            })
+            .collect();
+        kinds.sort();
+        let expected: Vec<(String, String)> = [
+            ("calibration", "C2_from_C1"),
+            ("calibration", "C3_from_M"),
+            ("intrinsics", "C1"),
+            ("intrinsics", "C2"),
+            ("intrinsics", "C3"),
+            ("noise", "C1_from_B"),
+            ("noise", "C2_from_M"),
+            ("noise", "C3_from_G"),
+        ]
+        .iter()
+        .map(|(a, b)| ((*a).to_owned(), (*b).to_owned()))
+        .collect();
+        assert_eq!(kinds, expected);
+        for w in lines.windows(2) {
+            assert!(w[0]["largest_share"].as_f64() >= w[1]["largest_share"].as_f64());
+        }
+        for (axes, i) in [
+            ("rotation", 0),
+            ("rotation", 1),
+            ("rotation", 2),
+            ("translation", 0),
+        ] {
+            let shares: f64 = lines
+                .iter()
+                .map(|l| l["share"][axes][i].as_f64().unwrap())
+                .sum();
+            assert!(
+                (shares - 1.0).abs() < 1e-9,
+                "{source} {axes}[{i}]: {shares}"
+            );
+            // The whole sigma is the root of the summed variances, and the parts make it.
+            let whole = b["sigma"][axes][i].as_f64().unwrap();
+            let summed: f64 = lines
+                .iter()
+                .map(|l| l["sigma"][axes][i].as_f64().unwrap().powi(2))
+                .sum();
+            assert!((summed.sqrt() - whole).abs() <= 1e-9 * whole);
+            let parts = b["sigma_random"][axes][i].as_f64().unwrap().powi(2)
+                + b["sigma_systematic"][axes][i].as_f64().unwrap().powi(2);
+            assert!((parts.sqrt() - whole).abs() <= 1e-9 * whole);
+        }
+        if source == "filtered" {
+            // The filtered budget is the compensation's sigma, split.
+            let key = |axes: &str| {
+                if axes == "rotation" {
+                    "rotation_arcsec"
+                } else {
+                    "translation_mm"
+                }
+            };
+            for axes in ["rotation", "translation"] {
+                for i in 0..3 {
+                    let budget = b["sigma"][axes][i].as_f64().unwrap();
+                    let compensation = c["sigma"][key(axes)][i].as_f64().unwrap();
+                    assert!(
+                        (budget - compensation).abs() <= 1e-6 * compensation,
+                        "{axes}[{i}]: budget {budget}, compensation {compensation}"
+                    );
+                }
+            }
+        }
+    }
+    let (status, body) = app.get("/api/v1/targets/G/budget?source=smoothed").await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("source"),
+        "{body}"
+    );
+    let (status, _) = app.get("/api/v1/targets/Nope/budget").await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
 }
