@@ -328,6 +328,10 @@ struct TargetTrack {
     consistency: InnovationWindow,
     /// The error terms of the newest raw result fed: where its error comes from.
     latest_terms: Option<SourcedPose>,
+    /// The time of the newest raw result fed and the filter's random estimate after it: the
+    /// budget's. Both outlive a restart, so the newest result's budget is answered until the
+    /// next one.
+    latest_filtered: Option<(i64, PoseCov)>,
 }
 
 impl TargetTrack {
@@ -342,12 +346,16 @@ impl TargetTrack {
             fit: None,
             consistency: InnovationWindow::new(6, CONSISTENCY_WINDOW, CONSISTENCY_PROBABILITY),
             latest_terms: None,
+            latest_filtered: None,
         }
     }
 
-    /// Back to the start (a rollback or a reset).
+    /// Back to the start (a rollback or a reset); the newest result's budget stays.
     fn reset(&mut self) {
+        let (terms, filtered) = (self.latest_terms.take(), self.latest_filtered.take());
         *self = Self::new(self.base_tuning, self.fit_from_data);
+        self.latest_terms = terms;
+        self.latest_filtered = filtered;
     }
 
     /// Feeds one raw result: its random part (`z`, the samples' noise) is filtered; its
@@ -359,6 +367,11 @@ impl TargetTrack {
             Disposition::Outlier { .. } | Disposition::OutOfOrder { .. }
         ) {
             self.latest_terms = Some(terms);
+            self.latest_filtered = self
+                .filter
+                .predict(time_ns)
+                .and_then(Result::ok)
+                .map(|p| (time_ns, p));
         }
         match disposition {
             Disposition::Fused { nis } => self.consistency.push(nis),
@@ -404,6 +417,7 @@ impl TargetTrack {
             fit: self.fit,
             consistency: self.consistency.clone(),
             latest_terms: self.latest_terms.clone(),
+            latest_filtered: self.latest_filtered,
         }
     }
 }
@@ -646,14 +660,14 @@ impl FilterBank {
     pub fn budget(&self, target: TargetId, source: ResultSource) -> Option<(i64, Budget)> {
         let track = self.tracks.get(target.0)?;
         let terms = track.latest_terms.as_ref()?;
-        match source {
-            ResultSource::Raw => Some((track.filter.time_ns()?, Budget::of(terms))),
-            ResultSource::Filtered => {
-                let time_ns = track.filter.time_ns()?;
-                let filtered = track.filter.predict(time_ns)?.ok()?;
-                Some((time_ns, Budget::filtered(terms, &filtered)))
-            }
-        }
+        let (time_ns, filtered) = track.latest_filtered?;
+        Some((
+            time_ns,
+            match source {
+                ResultSource::Raw => Budget::of(terms),
+                ResultSource::Filtered => Budget::filtered(terms, &filtered),
+            },
+        ))
     }
 
     /// The measurement model the bank filters.

@@ -40,6 +40,11 @@ const ASSETS: &[Asset] = &[
     asset!("app.js", "js/app.js", "text/javascript; charset=utf-8"),
     asset!("util.js", "js/util.js", "text/javascript; charset=utf-8"),
     asset!("api.js", "js/api.js", "text/javascript; charset=utf-8"),
+    asset!(
+        "budget.js",
+        "js/budget.js",
+        "text/javascript; charset=utf-8"
+    ),
     asset!("cards.js", "js/cards.js", "text/javascript; charset=utf-8"),
     asset!(
         "events.js",

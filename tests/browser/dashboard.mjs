@@ -35,6 +35,21 @@ await run(async (browser) => {
   const refBefore = Number(await page.getAttribute('[data-target="G"] [data-f="ref"]', 'data-version'));
   check(refBefore === 1, `the card shows the reference set before the page opened: version ${refBefore}`);
 
+  // 1b. The uncertainty budget beside the card: every contributor, each axis' shares adding
+  // up to the whole variance.
+  await page.waitForSelector('[data-target="G"] [data-f="budget"] table tbody tr', { timeout: 15000 });
+  const budget = await page.evaluate(() => {
+    const rows = [...document.querySelectorAll('[data-target="G"] [data-f="budget"] tbody tr')];
+    const sums = [0, 0, 0, 0, 0, 0];
+    for (const r of rows) {
+      [...r.querySelectorAll('td.share .bar')].forEach((b, i) => { sums[i] += parseFloat(b.style.width); });
+    }
+    return { n: rows.length, kinds: [...new Set(rows.map((r) => r.dataset.kind))].sort(), sums };
+  });
+  check(budget.n === 8 && budget.kinds.join() === 'calibration,intrinsics,noise'
+    && budget.sums.every((x) => Math.abs(x - 100) <= 5),
+  `the budget lists ${budget.n} contributors (${budget.kinds.join(', ')}), each axis' bars adding to 100 %: ${budget.sums.join(', ')}`);
+
   // 2. The plots draw data: pixels of the series colours on both canvases.
   await page.waitForFunction(() => Number(document.body.dataset.historyLoads || 0) >= 1, null, { timeout: 15000 });
   const seriesPixels = (selector) => page.evaluate((sel) => {

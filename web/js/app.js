@@ -14,6 +14,7 @@ import { renderTopology } from './chain.js';
 import { loadLinks, loadWebhooks } from './links.js';
 import { renderCameraAges, startCameras } from './cameras.js';
 import { startFleet } from './fleet.js';
+import { startBudgets } from './budget.js';
 
 export function selectTarget(name, scroll) {
   state.selected = name;
@@ -98,6 +99,7 @@ export async function start() {
   }
   runEvents();
   startCameras();
+  startBudgets((e) => { if (e.status !== 401) showMessage('budget', 'Budget: ' + e.message); });
   if (!started) {
     started = true;
     linksTimer = setInterval(() => {

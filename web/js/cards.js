@@ -49,8 +49,10 @@ export function buildCard(target) {
     el('span', {}, 'Age ', el('b', { 'data-f': 'age' })),
     el('span', {}, 'Reference ', el('b', { 'data-f': 'ref' })),
     el('span', {}, 'Thresholds ', el('b', { 'data-f': 'thresholds' })));
+  // A site's uploaded copy has no live filters to split: no budget there.
+  const budget = el('figure', { class: 'budget', 'data-f': 'budget', hidden: state.site ? '' : null });
   const root = el('article', { class: 'card', 'data-target': name, 'aria-label': 'Target ' + name },
-    head, table, noRef, foot);
+    head, table, noRef, foot, budget);
   const fields = {};
   for (const f of root.querySelectorAll('[data-f]')) fields[f.dataset.f] = f;
   const a = target.alarms || {};
