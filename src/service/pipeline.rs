@@ -796,6 +796,7 @@ async fn ingest(
                     time_ns: raw.time_ns,
                     source: ResultSource::Raw,
                     target_from_base: raw.target_from_base,
+                    systematic_cov: raw.systematic_cov,
                     deformation: deformation.map(|(_, d)| d),
                 });
             }
@@ -818,6 +819,7 @@ async fn ingest(
                     time_ns: est.time_ns,
                     source: ResultSource::Filtered,
                     target_from_base: pose,
+                    systematic_cov: est.systematic_cov,
                     deformation: deformation.map(|(_, d)| d),
                 });
             }

@@ -11,6 +11,9 @@
 //!   reference poses in its base;
 //! * `plots/<target>/rotation_arcsec/{raw,filtered,plus_3sigma,minus_3sigma}` and
 //!   `plots/<target>/translation_mm/...`: the deformation `G0_from_G` (x, y, z);
+//! * `plots/<target>/sigma_rotation_arcsec/{whole,random,systematic}` and
+//!   `plots/<target>/sigma_translation_mm/...`: the filtered `G_from_B`'s sigma (x, y, z) and its
+//!   two parts, the samples' noise and the calibrations';
 //! * `plots/links/<link>/{nis,gate,outliers}`: each measured link's normalised innovation, its
 //!   gate, and the rejected samples;
 //! * `alarms/<target>`: the alarm level as a state lane; `alarms/log`: the transitions as text.
@@ -460,11 +463,37 @@ impl Logger {
                     target,
                     source,
                     target_from_base,
+                    systematic_cov,
                     deformation,
                     ..
                 } => {
                     let name = &inst.model.targets[target.0].name;
                     let which = source.name();
+                    if *source == crate::bank::ResultSource::Filtered {
+                        let part = |cov: crate::geometry::Mat6| {
+                            crate::geometry::PoseCov {
+                                pose: target_from_base.pose,
+                                cov,
+                            }
+                            .reported_sigmas()
+                        };
+                        for (label, s) in [
+                            ("whole", part(target_from_base.cov)),
+                            ("random", part(target_from_base.cov - systematic_cov)),
+                            ("systematic", part(*systematic_cov)),
+                        ] {
+                            out.scalar(
+                                format!("plots/{name}/sigma_rotation_arcsec/{label}"),
+                                t,
+                                &s.rotation_arcsec,
+                            );
+                            out.scalar(
+                                format!("plots/{name}/sigma_translation_mm/{label}"),
+                                t,
+                                &s.translation_mm,
+                            );
+                        }
+                    }
                     out.transform(
                         format!("{}/{name}_{which}", self.target_base[target.0]),
                         t,

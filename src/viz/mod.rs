@@ -54,8 +54,10 @@ pub enum Record {
         time_ns: i64,
         /// Filtered, or raw.
         source: crate::bank::ResultSource,
-        /// `target_from_base`.
+        /// `target_from_base` with its whole covariance.
         target_from_base: PoseCov,
+        /// The systematic part of that covariance.
+        systematic_cov: crate::geometry::Mat6,
         /// `G0_from_G` against the reference in force, with sigmas.
         deformation: Option<SmallMotion>,
     },

@@ -126,6 +126,7 @@ pub(crate) async fn replay(
                         time_ns: r.time_ns,
                         source,
                         target_from_base: r.estimate,
+                        systematic_cov: r.systematic_cov,
                         deformation,
                     });
                 }

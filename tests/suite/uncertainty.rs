@@ -322,6 +322,27 @@ fn the_budget_adds_up_and_a_contributor_removed_takes_its_share_with_it() {
     let model: Model = (*config::default_installation().model).clone();
     let samples = laboratory_samples(&model, 30);
     let [(_, raw), (_, filtered)] = budgets(&model, &samples);
+    for (what, budget) in [("raw", &raw), ("filtered", &filtered)] {
+        let sigma = |v: &[f64; 6]| {
+            let s: Vec<String> = v
+                .iter()
+                .enumerate()
+                .map(|(a, x)| {
+                    let s = x.sqrt();
+                    if a < 3 {
+                        format!("{:.2}\"", s * brokenray::geometry::ARCSEC_PER_RAD)
+                    } else {
+                        format!("{s:.3} mm")
+                    }
+                })
+                .collect();
+            s.join(" ")
+        };
+        eprintln!("{what} budget: total {}", sigma(&budget.total));
+        for line in &budget.lines {
+            eprintln!("  {:?}: {}", line.contributor, sigma(&line.variance));
+        }
+    }
     for budget in [&raw, &filtered] {
         for a in 0..6 {
             let sum: f64 = budget.lines.iter().map(|l| l.variance[a]).sum();

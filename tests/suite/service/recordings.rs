@@ -230,6 +230,34 @@ async fn a_recorded_run_holds_the_frames_and_the_values_the_api_serves() {
     for ((_, p), (_, v)) in plus.iter().zip(rotation) {
         assert!((0..3).all(|i| p[i] > v[i]));
     }
+    // The filtered G_from_B's sigma and its two parts, as the API answers them.
+    for (quantity, key) in [
+        ("sigma_rotation_arcsec", "rotation_arcsec"),
+        ("sigma_translation_mm", "translation_mm"),
+    ] {
+        for (part, field) in [
+            ("whole", "sigma"),
+            ("random", "sigma_random"),
+            ("systematic", "sigma_systematic"),
+        ] {
+            let series = &rec.scalars[&format!("/plots/G/{quantity}/{part}")];
+            // Every filtered result, those before the reference too.
+            assert!(series.len() >= rotation.len(), "{quantity}/{part}");
+            for (t, v) in series.iter().step_by(25) {
+                let (_, c) = app
+                    .get(&format!("/api/v1/targets/G/compensation?at={t}"))
+                    .await;
+                for i in 0..3 {
+                    let api = c[field][key][i].as_f64().unwrap();
+                    assert!(
+                        (v[i] - api).abs() <= 1e-9 * api.abs().max(1.0),
+                        "t={t} {quantity}/{part}[{i}]: {} vs {api}",
+                        v[i]
+                    );
+                }
+            }
+        }
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
