@@ -7,7 +7,9 @@
 //! commit on), `CLIENTS` (4),
 //! `BATCHES` (300), `BATCH` (1000 samples), `SSE_CLIENTS` (0): that many clients reading
 //! `/api/v1/events` while the batches go in; `BROKENRAY_BIN`: another build of the binary to
-//! measure, for A/B comparisons; `PG_LOG`: print the PostgreSQL cluster's log at the end, with
+//! measure, for A/B comparisons; `EXACT_CAMERAS=1`: the built-in cameras without their
+//! `intrinsics_covariance` (for a build that predates it, or to measure what it costs);
+//! `PG_LOG`: print the PostgreSQL cluster's log at the end, with
 //! `BROKENRAY_PG_SETTINGS="-c log_min_duration_statement=3"` the slow statements).
 
 use std::io::{BufRead, BufReader};
@@ -203,6 +205,12 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         &format!("[rerun]\n{rerun_section}\n"),
     );
     println!("rerun: {rerun_mode}");
+    let text = if std::env::var_os("EXACT_CAMERAS").is_some() {
+        println!("cameras taken as exact (no intrinsics_covariance)");
+        without_intrinsics_covariance(&text)
+    } else {
+        text
+    };
     std::fs::write(&config, text).expect("config");
 
     println!("preparing {batches} batches of {n} samples ...");
@@ -357,4 +365,23 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
             .unwrap_or(0);
         println!("recordings: {:.1} MB", bytes as f64 / 1e6);
     }
+}
+
+/// The installation file without its cameras' `intrinsics_covariance` blocks.
+fn without_intrinsics_covariance(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut skipping = false;
+    for line in text.lines() {
+        if line.starts_with("intrinsics_covariance = [") {
+            skipping = !line.trim_end().ends_with(']');
+            continue;
+        }
+        if skipping {
+            skipping = line.trim() != "]";
+            continue;
+        }
+        out.push_str(line);
+        out.push('\n');
+    }
+    out
 }

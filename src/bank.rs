@@ -13,8 +13,8 @@
 //! watched ([`crate::filter::InnovationWindow`]), so a model that does not fit the data says so.
 
 use crate::chain::{
-    Budget, Consistency, Contributor, ErrorTerms, Factor, LinkId, SourcedPose, compose_path_terms,
-    factor_of_covariance, fuse_terms,
+    Budget, Consistency, Contributor, ErrorTerms, Factor, LinkId, SourcedPose, compose_path,
+    compose_path_terms, factor_of_covariance, fuse, fuse_terms,
 };
 use crate::deformation::{CalibrationStamp, Measured};
 use crate::filter::{
@@ -467,6 +467,22 @@ struct MeasuredSlot {
     /// [`Model::intrinsics_factor`]) at the pose it was computed for: the camera's index and
     /// the factor. Computed again when the link has moved (see [`SENSITIVITY_MOVE_RAD`]).
     intrinsics: Option<(Pose, usize, Factor)>,
+    /// Whether the link's camera has an intrinsics covariance (else it is taken as exact).
+    uses_intrinsics: bool,
+}
+
+/// A calibration of a calibrated link: valid from (ns), the pose, its stamp (see
+/// [`FilterBank::calibration_stamp`]) and its covariance's factor (see [`crate::chain`]).
+type Calibration = (i64, PoseCov, i64, Factor);
+
+/// A calibration valid from `valid_from_ns`, with its stamp and factor.
+fn calibration(valid_from_ns: i64, pose: PoseCov) -> Calibration {
+    (
+        valid_from_ns,
+        pose,
+        pose_stamp(&pose),
+        factor_of_covariance(&pose.cov),
+    )
 }
 
 /// How far a link may turn (rad) or move (a fraction of its distance) before the
@@ -476,12 +492,13 @@ struct MeasuredSlot {
 const SENSITIVITY_MOVE_RAD: f64 = 0.01;
 
 impl MeasuredSlot {
-    fn new(tuning: FilterTuning) -> Self {
+    fn new(tuning: FilterTuning, uses_intrinsics: bool) -> Self {
         Self {
             filter: LinkFilter::new(tuning),
             history: VecDeque::new(),
             recent_times: VecDeque::new(),
             intrinsics: None,
+            uses_intrinsics,
         }
     }
 
@@ -493,6 +510,9 @@ impl MeasuredSlot {
             d.fixed_rows::<3>(3).norm() > SENSITIVITY_MOVE_RAD
                 || d.fixed_rows::<3>(0).norm() > SENSITIVITY_MOVE_RAD * distance
         };
+        if !self.uses_intrinsics {
+            return;
+        }
         if self.intrinsics.as_ref().is_none_or(|(at, _, _)| moved(at)) {
             self.intrinsics = model
                 .intrinsics_factor(link, pose)
@@ -521,9 +541,10 @@ pub struct FilterBank {
     model: Arc<Model>,
     settings: BankSettings,
     measured: Vec<Option<MeasuredSlot>>,
-    /// Per calibrated link: its calibrations, `(valid_from_ns, pose)`, oldest first; the one in
+    /// Per calibrated link: its calibrations, `(valid_from_ns, pose, stamp)`, oldest first
+    /// (the stamp of the pose and its covariance, for [`Self::calibration_stamp`]); the one in
     /// the installation file is valid from the beginning of time.
-    calibrations: Vec<Vec<(i64, PoseCov)>>,
+    calibrations: Vec<Vec<Calibration>>,
     status: Vec<LinkStatus>,
     groups: BTreeMap<i64, Group>,
     /// How far apart the exposures of one group may be (ns).
@@ -564,7 +585,12 @@ impl FilterBank {
                 .links
                 .iter()
                 .map(|l| match &l.kind {
-                    LinkKind::Measured(m) => Some(MeasuredSlot::new(m.tuning)),
+                    LinkKind::Measured(m) => Some(MeasuredSlot::new(
+                        m.tuning,
+                        model
+                            .camera_and_marker(l.id)
+                            .is_some_and(|(_, c, _)| c.intrinsics_covariance.is_some()),
+                    )),
                     LinkKind::Calibrated { .. } => None,
                 })
                 .collect(),
@@ -573,7 +599,7 @@ impl FilterBank {
                 .iter()
                 .map(|l| match &l.kind {
                     LinkKind::Calibrated { parent_from_child } => {
-                        vec![(i64::MIN, *parent_from_child)]
+                        vec![calibration(i64::MIN, *parent_from_child)]
                     }
                     LinkKind::Measured(_) => Vec::new(),
                 })
@@ -621,6 +647,7 @@ impl FilterBank {
                         history: VecDeque::new(),
                         recent_times: s.recent_times.clone(),
                         intrinsics: s.intrinsics,
+                        uses_intrinsics: s.uses_intrinsics,
                     })
                 })
                 .collect(),
@@ -685,8 +712,8 @@ impl FilterBank {
     ) -> bool {
         match self.calibrations.get_mut(link.0) {
             Some(list) if !list.is_empty() => {
-                let at = list.partition_point(|(t, _)| *t <= valid_from_ns);
-                list.insert(at, (valid_from_ns, parent_from_child));
+                let at = list.partition_point(|(t, _, _, _)| *t <= valid_from_ns);
+                list.insert(at, calibration(valid_from_ns, parent_from_child));
                 // The targets' raw results step with the new calibration: their filters start
                 // again from the next one instead of taking the step for a deformation.
                 self.restart_targets_of(link);
@@ -699,7 +726,7 @@ impl FilterBank {
     /// Removes a calibration added with [`Self::add_calibration`] (a write that did not commit).
     pub fn remove_calibration(&mut self, link: LinkId, valid_from_ns: i64) {
         if let Some(list) = self.calibrations.get_mut(link.0)
-            && let Some(i) = list.iter().rposition(|(t, _)| *t == valid_from_ns)
+            && let Some(i) = list.iter().rposition(|(t, _, _, _)| *t == valid_from_ns)
             && list.len() > 1
         {
             list.remove(i);
@@ -726,32 +753,29 @@ impl FilterBank {
     /// The calibrations a target's result at `time_ns` is measured with: its measured links'
     /// cameras and the calibrations of its calibrated links in force then.
     pub fn calibration_stamp(&self, target: TargetId, time_ns: i64) -> CalibrationStamp {
-        let mut values = Vec::new();
-        for l in self.model.targets[target.0]
+        let stamps = self.model.targets[target.0]
             .resolution
             .paths
             .iter()
             .flat_map(|p| p.links())
-        {
-            match self.calibration_at(l, time_ns) {
-                Some(c) => {
-                    values.push(c.pose.translation.vector.x);
-                    values.push(c.pose.translation.vector.y);
-                    values.push(c.pose.translation.vector.z);
-                    values.extend(c.pose.rotation.coords.iter().copied());
-                    values.extend(c.cov.iter().copied());
-                }
-                None => values.push(f64::from_bits(self.camera_stamps[l.0] as u64)),
-            }
-        }
-        CalibrationStamp::of(values)
+            .map(|l| match self.calibration_entry_at(l, time_ns) {
+                Some((_, _, stamp, _)) => *stamp,
+                None => self.camera_stamps[l.0],
+            });
+        CalibrationStamp::of(stamps.map(|s| f64::from_bits(s as u64)))
     }
 
     /// The calibration of a calibrated link in force at `time_ns`.
     pub fn calibration_at(&self, link: LinkId, time_ns: i64) -> Option<PoseCov> {
+        self.calibration_entry_at(link, time_ns)
+            .map(|(_, p, _, _)| *p)
+    }
+
+    /// The calibration of a calibrated link in force at `time_ns`, with its stamp and factor.
+    fn calibration_entry_at(&self, link: LinkId, time_ns: i64) -> Option<&Calibration> {
         let list = self.calibrations.get(link.0)?;
-        let at = list.partition_point(|(t, _)| *t <= time_ns);
-        list.get(at.checked_sub(1)?).map(|(_, p)| *p)
+        let at = list.partition_point(|(t, _, _, _)| *t <= time_ns);
+        list.get(at.checked_sub(1)?)
     }
 
     /// The filter of a measured link.
@@ -1135,10 +1159,10 @@ impl FilterBank {
         time_ns: i64,
         measured: Option<&PoseCov>,
     ) -> Option<SourcedPose> {
-        if let Some(c) = self.calibration_at(link, time_ns) {
+        if let Some((_, c, _, factor)) = self.calibration_entry_at(link, time_ns) {
             return Some(SourcedPose {
                 pose: c.pose,
-                terms: ErrorTerms::of(Contributor::Calibration(link), factor_of_covariance(&c.cov)),
+                terms: ErrorTerms::of(Contributor::Calibration(link), *factor),
             });
         }
         let z = measured?;
@@ -1195,14 +1219,17 @@ impl FilterBank {
             if !complete {
                 continue;
             }
-            if let Ok((sourced, f)) = fuse_terms(&estimates, self.settings.consistency_probability)
-            {
+            if let Ok((sourced, f)) = fuse_terms(estimates, self.settings.consistency_probability) {
+                let (random, systematic) = sourced.terms.parts();
                 out.push((
                     RawResult {
                         target: ti,
                         time_ns,
-                        target_from_base: sourced.total(),
-                        systematic_cov: sourced.terms.systematic(),
+                        target_from_base: PoseCov {
+                            pose: sourced.pose,
+                            cov: random + systematic,
+                        },
+                        systematic_cov: systematic,
                         calibration: self.calibration_stamp(ti, time_ns),
                         consistency: f.consistency,
                     },
@@ -1390,6 +1417,9 @@ impl FilterBank {
             .get(target.0)
             .ok_or_else(|| FilterError::UnknownTarget(target.0.to_string()))?;
         let mut estimates = Vec::new();
+        // Each available path with its links' estimates, for the error terms when they are
+        // needed.
+        let mut available_paths = Vec::new();
         let mut newest_ns: Option<i64> = None;
         let mut stale = false;
         for path in &spec.resolution.paths {
@@ -1397,7 +1427,7 @@ impl FilterBank {
             let mut links = Vec::with_capacity(path.steps.len());
             for l in path.links() {
                 match self.link_estimate(l, time_ns)? {
-                    Some(p) => links.push(self.sourced_link(l, time_ns, Some(&p))),
+                    Some(p) => links.push(p),
                     None => {
                         available = false;
                         break;
@@ -1411,13 +1441,11 @@ impl FilterBank {
                 }
             }
             if available {
-                let mut it = links.into_iter().flatten();
-                estimates.push(compose_path_terms(path, |_| {
-                    it.next().unwrap_or_else(|| SourcedPose {
-                        pose: Pose::identity(),
-                        terms: ErrorTerms::none(),
-                    })
+                let mut it = links.iter();
+                estimates.push(compose_path(path, |_| {
+                    it.next().copied().unwrap_or_else(PoseCov::identity)
                 }));
+                available_paths.push((path, links));
             }
         }
         let paths_used = estimates.len();
@@ -1434,7 +1462,26 @@ impl FilterBank {
                 paths_used,
             });
         }
-        let (sourced, fused) = fuse_terms(&estimates, self.settings.consistency_probability)?;
+        let fused = fuse(&estimates, self.settings.consistency_probability)?;
+        // The filtered links composed with their error terms: the systematic part as the links
+        // compose now.
+        let sourced = || -> Result<SourcedPose, FilterError> {
+            let paths: Vec<SourcedPose> = available_paths
+                .iter()
+                .map(|(path, links)| {
+                    let mut it = path.links().zip(links.iter());
+                    compose_path_terms(path, |_| {
+                        it.next()
+                            .and_then(|(l, p)| self.sourced_link(l, time_ns, Some(p)))
+                            .unwrap_or_else(|| SourcedPose {
+                                pose: Pose::identity(),
+                                terms: ErrorTerms::none(),
+                            })
+                    })
+                })
+                .collect();
+            Ok(fuse_terms(paths, self.settings.consistency_probability)?.0)
+        };
         // The target's own filter where it has a state for that time; before its first raw
         // result, the composition of the filtered links.
         let track = &self.tracks[target.0];
@@ -1444,10 +1491,10 @@ impl FilterBank {
             .and_then(|f| f.predict(time_ns))
         {
             Some(Ok(p)) => {
-                let systematic = track
-                    .latest_terms
-                    .as_ref()
-                    .map_or_else(|| sourced.terms.systematic(), |t| t.terms.systematic());
+                let systematic = match &track.latest_terms {
+                    Some(t) => t.terms.systematic(),
+                    None => sourced()?.terms.systematic(),
+                };
                 (
                     PoseCov {
                         pose: p.pose,
@@ -1456,7 +1503,10 @@ impl FilterBank {
                     systematic,
                 )
             }
-            _ => (sourced.total(), sourced.terms.systematic()),
+            _ => {
+                let s = sourced()?;
+                (s.total(), s.terms.systematic())
+            }
         };
         let age_s = newest_ns.map_or(0.0, |n| ((time_ns - n) as f64 / NS_PER_S).max(0.0));
         let inconsistent = fused.consistency.is_some_and(|c| !c.is_consistent());
@@ -1481,6 +1531,16 @@ impl FilterBank {
             paths_used,
         })
     }
+}
+
+/// The stamp of a calibrated link's calibration: its pose and covariance.
+fn pose_stamp(c: &PoseCov) -> i64 {
+    let t = c.pose.translation.vector;
+    let values = [t.x, t.y, t.z]
+        .into_iter()
+        .chain(c.pose.rotation.coords.iter().copied())
+        .chain(c.cov.iter().copied());
+    CalibrationStamp::of(values).0
 }
 
 /// The stamp of a camera's calibration: its intrinsics and their covariance.

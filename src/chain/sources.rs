@@ -149,7 +149,24 @@ impl ErrorTerms {
 
     /// The whole covariance.
     pub fn total(&self) -> Mat6 {
+        if self.terms.is_empty() {
+            return Mat6::zeros();
+        }
         self.covariance_of(|_| true)
+    }
+
+    /// The random and the systematic parts, in one pass.
+    pub fn parts(&self) -> (Mat6, Mat6) {
+        let (mut random, mut systematic) = (Mat6::zeros(), Mat6::zeros());
+        for t in &self.terms {
+            let c = t.factor * t.factor.transpose();
+            if t.contributor.is_random() {
+                random += c;
+            } else {
+                systematic += c;
+            }
+        }
+        (symmetrize(&random), symmetrize(&systematic))
     }
 
     /// The random part: the measured links' noise.
@@ -219,34 +236,40 @@ pub fn intrinsics_root(cov: &IntrinsicsCovariance) -> IntrinsicsCovariance {
 }
 
 /// Composes a path into `target_from_base` with its error terms: as [`super::compose_path`],
-/// each factor instead of each covariance. Forwards through link `L`: `acc <- L acc`,
-/// `F <- Ad(L) F` and `L`'s own terms added; inverted: `acc <- L^-1 acc`,
-/// `F <- Ad(L^-1) (F - F_L)` (the inverse's error is the link's, negated and moved).
+/// each factor instead of each covariance. With the steps applied first to last,
+/// `T = A_n ... A_1` (`A_k` the link, or its inverse for an inverted step), link `k`'s error
+/// reaches `T` through the adjoint of what is applied after it: `F <- Ad(A_n ... A_(k+1)) F`
+/// forwards, `F <- -Ad(A_n ... A_(k+1) L_k^-1) F` inverted (the inverse's error is the
+/// link's, negated and moved). Each factor is mapped once.
 pub fn compose_path_terms<F>(path: &Path, mut parent_from_child: F) -> SourcedPose
 where
     F: FnMut(LinkId) -> SourcedPose,
 {
-    let mut pose = Pose::identity();
-    let mut terms = ErrorTerms::none();
-    for step in &path.steps {
-        let link = parent_from_child(step.link);
-        match step.direction {
-            Direction::Forward => {
-                let ad = adjoint(&link.pose);
-                let mut next = terms.mapped(&ad);
-                next.add_mapped(&link.terms, &Mat6::identity());
-                terms = next;
-                pose = link.pose * pose;
-            }
-            Direction::Inverse => {
-                let inv = link.pose.inverse();
-                let ad = adjoint(&inv);
-                let mut next = terms.mapped(&ad);
-                next.add_mapped(&link.terms, &(-ad));
-                terms = next;
-                pose = inv * pose;
-            }
-        }
+    let links: Vec<(SourcedPose, Direction)> = path
+        .steps
+        .iter()
+        .map(|step| (parent_from_child(step.link), step.direction))
+        .collect();
+    let applied = |link: &SourcedPose, direction: Direction| match direction {
+        Direction::Forward => link.pose,
+        Direction::Inverse => link.pose.inverse(),
+    };
+    let pose = links
+        .iter()
+        .fold(Pose::identity(), |acc, (l, d)| applied(l, *d) * acc);
+    let mut terms = ErrorTerms {
+        terms: Vec::with_capacity(links.iter().map(|(l, _)| l.terms.terms.len()).sum()),
+    };
+    // What is applied after the step being mapped, walking from the last step back.
+    let mut after = Pose::identity();
+    for (link, direction) in links.iter().rev() {
+        let step = applied(link, *direction);
+        let map = match direction {
+            Direction::Forward => adjoint(&after),
+            Direction::Inverse => -adjoint(&(after * step)),
+        };
+        terms.add_mapped(&link.terms, &map);
+        after *= step;
     }
     SourcedPose { pose, terms }
 }
@@ -258,14 +281,20 @@ where
 /// adds its weighted factors, so the fused covariance keeps the correlation [`fuse`] leaves
 /// out.
 pub fn fuse_terms(
-    estimates: &[SourcedPose],
+    mut estimates: Vec<SourcedPose>,
     probability: f64,
 ) -> Result<(SourcedPose, Fused), ChainError> {
+    if estimates.len() == 1
+        && let Some(single) = estimates.pop()
+    {
+        let fused = Fused {
+            estimate: single.total(),
+            consistency: None,
+        };
+        return Ok((single, fused));
+    }
     let totals: Vec<PoseCov> = estimates.iter().map(SourcedPose::total).collect();
     let fused = fuse(&totals, probability)?;
-    if let [single] = estimates {
-        return Ok((single.clone(), fused));
-    }
     let mut terms = ErrorTerms::none();
     for (index, (e, t)) in estimates.iter().zip(&totals).enumerate() {
         let info = symmetrize(&t.cov)

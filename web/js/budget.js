@@ -62,7 +62,11 @@ export function startBudgets(onError) {
   if (state.site) return;
   const all = () => {
     if (document.hidden) return;
-    for (const name of cards.keys()) loadBudget(name).catch(onError);
+    for (const name of cards.keys()) {
+      // A target without a result has no budget yet.
+      const c = state.comp.get(name);
+      if (c && c.data.time) loadBudget(name).catch(onError);
+    }
   };
   all();
   if (timer === null) timer = setInterval(all, REFRESH_MS);
