@@ -574,16 +574,20 @@ pub(super) struct WindowQuery {
 /// Parses `from`, `to` and `source` of a window query.
 pub(super) fn parse_window(q: &WindowQuery) -> Result<(i64, i64, ResultSource), ApiError> {
     let (from, to) = super::parse_query_range(q.from.as_deref(), q.to.as_deref())?;
-    let source = super::query_choice(
+    Ok((from, to, parse_source(q.source.as_deref())?))
+}
+
+/// A query's `source`: `raw` or `filtered` (the default).
+pub(super) fn parse_source(source: Option<&str>) -> Result<ResultSource, ApiError> {
+    super::query_choice(
         "source",
-        q.source.as_deref(),
+        source,
         ResultSource::Filtered,
         &[
             ("raw", ResultSource::Raw),
             ("filtered", ResultSource::Filtered),
         ],
-    )?;
-    Ok((from, to, source))
+    )
 }
 
 /// Three statistics.

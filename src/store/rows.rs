@@ -161,15 +161,17 @@ impl ResultRow {
             age_s: self.age_s,
             chi2: self.chi2,
             deformation,
-            systematic_cov: match &self.cov_systematic {
-                Some(bytes) => decode_mat6(bytes)?,
-                None => crate::geometry::Mat6::zeros(),
-            },
+            systematic_cov: systematic(self.cov_systematic.as_deref())?,
             calibration: self
                 .calibration_stamp
                 .map(crate::deformation::CalibrationStamp),
         })
     }
+}
+
+/// A stored systematic covariance: null in rows written before it was kept, read as zero.
+fn systematic(bytes: Option<&[u8]>) -> StoreResult<crate::geometry::Mat6> {
+    bytes.map_or(Ok(crate::geometry::Mat6::zeros()), decode_mat6)
 }
 
 /// A stored target result.
@@ -247,10 +249,7 @@ impl ReferenceRow {
                     cov: decode_mat6(&self.cov)?,
                 },
                 origin,
-                systematic_cov: match &self.cov_systematic {
-                    Some(bytes) => decode_mat6(bytes)?,
-                    None => crate::geometry::Mat6::zeros(),
-                },
+                systematic_cov: systematic(self.cov_systematic.as_deref())?,
                 calibration: self
                     .calibration_stamp
                     .map(crate::deformation::CalibrationStamp),

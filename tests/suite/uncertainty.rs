@@ -100,10 +100,9 @@ fn calibrations(model: &Model) -> Vec<Vec<CameraCalibration>> {
     out
 }
 
-/// The markers of `GROUPS` rendered frames per camera of the still installation, found once,
-/// with the true `G_from_B`.
-fn measured_frames(model: &Model) -> (Vec<Found>, Pose) {
-    let mut sim = Simulator::new(
+/// The still laboratory of `model` at 25 Hz, its noise drawn with `seed`.
+fn laboratory(model: &Model, seed: u64) -> Simulator {
+    Simulator::new(
         model,
         SimSettings {
             scenario: Scenario::Static,
@@ -112,10 +111,16 @@ fn measured_frames(model: &Model) -> (Vec<Found>, Pose) {
             duration_s: None,
             pixel_sigma_px: None,
             outlier_rate: 0.0,
-            seed: 3,
+            seed,
         },
     )
-    .expect("a simulator");
+    .expect("a simulator")
+}
+
+/// The markers of `GROUPS` rendered frames per camera of the still installation, found once,
+/// with the true `G_from_B`.
+fn measured_frames(model: &Model) -> (Vec<Found>, Pose) {
+    let mut sim = laboratory(model, 3);
     let settings = RenderSettings {
         samples_per_side: 16,
         ..RenderSettings::default()
@@ -275,19 +280,7 @@ fn over_fifty_calibrations_the_whole_sigma_covers_the_truth_and_the_random_part_
 
 /// Samples of the built-in installation's simulated laboratory, solved from its observations.
 fn laboratory_samples(model: &Model, groups: usize) -> Vec<Sample> {
-    let mut sim = Simulator::new(
-        model,
-        SimSettings {
-            scenario: Scenario::Static,
-            rate_hz: 25.0,
-            start_ns: T0_NS,
-            duration_s: None,
-            pixel_sigma_px: None,
-            outlier_rate: 0.0,
-            seed: 5,
-        },
-    )
-    .expect("a simulator");
+    let mut sim = laboratory(model, 5);
     let mut out = Vec::new();
     for _ in 0..groups {
         let g = sim.next_group();
