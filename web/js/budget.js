@@ -14,6 +14,8 @@ const REFRESH_MS = 5000;
 
 function render(card, b) {
   const figure = card.fields.budget;
+  // The same result: nothing to draw again (and nothing on the page moves).
+  if (figure.dataset.time === b.time) return;
   figure.textContent = '';
   figure.append(el('figcaption', {},
     'Uncertainty budget ',
