@@ -335,8 +335,14 @@ async fn centre_rows(url: &str, table: SyncTable) -> Vec<Vec<String>> {
     let mut conn = sqlx::ConnectOptions::connect(&options).await.unwrap();
     let rows = match sqlx::query(&select(table)).fetch_all(&mut conn).await {
         Ok(rows) => rows,
-        // Before the site's first upload its schema does not exist: no rows.
-        Err(sqlx::Error::Database(e)) if e.code().as_deref() == Some("42P01") => Vec::new(),
+        // Before the site's first upload its schema does not exist (42P01), and while the
+        // centre makes it its migrations are applied one after another (42703, a column the
+        // next one adds): no rows yet.
+        Err(sqlx::Error::Database(e))
+            if matches!(e.code().as_deref(), Some("42P01") | Some("42703")) =>
+        {
+            Vec::new()
+        }
         Err(e) => panic!("{table:?} at the centre: {e}"),
     };
     rows.iter().map(|r| render(table, r)).collect()
