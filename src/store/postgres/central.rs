@@ -885,6 +885,10 @@ impl Central {
                 // to read (and no reader kept).
                 None if !self.schema_ready(&schema).await? => return Ok(None),
                 None => {
+                    // Made, but perhaps by an older centre or still being migrated by this
+                    // one: every migration applied before the first read (a reader between two
+                    // would miss the columns the later one adds).
+                    self.prepare_site(site_id).await?;
                     let options = self
                         .options
                         .clone()
