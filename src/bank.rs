@@ -1204,10 +1204,7 @@ impl FilterBank {
                     self.sourced_link(l, time_ns, samples.get(&l))
                         .unwrap_or_else(|| {
                             missing = true;
-                            SourcedPose {
-                                pose: Pose::identity(),
-                                terms: ErrorTerms::none(),
-                            }
+                            SourcedPose::identity()
                         })
                 });
                 if missing {
@@ -1473,10 +1470,7 @@ impl FilterBank {
                     compose_path_terms(path, |_| {
                         it.next()
                             .and_then(|(l, p)| self.sourced_link(l, time_ns, Some(p)))
-                            .unwrap_or_else(|| SourcedPose {
-                                pose: Pose::identity(),
-                                terms: ErrorTerms::none(),
-                            })
+                            .unwrap_or_else(SourcedPose::identity)
                     })
                 })
                 .collect();

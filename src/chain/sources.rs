@@ -107,35 +107,9 @@ impl ErrorTerms {
         }
     }
 
-    /// Every factor mapped by `m`.
-    pub fn mapped(&self, m: &Mat6) -> Self {
-        Self {
-            terms: self
-                .terms
-                .iter()
-                .map(|t| Term {
-                    contributor: t.contributor,
-                    factor: m * t.factor,
-                })
-                .collect(),
-        }
-    }
-
     /// The terms, in the order their contributors were first added.
     pub fn terms(&self) -> &[Term] {
         &self.terms
-    }
-
-    /// The terms whose contributors `keep` accepts.
-    pub fn filtered(&self, keep: impl Fn(Contributor) -> bool) -> Self {
-        Self {
-            terms: self
-                .terms
-                .iter()
-                .filter(|t| keep(t.contributor))
-                .copied()
-                .collect(),
-        }
     }
 
     /// The covariance of the terms whose contributors `keep` accepts.
@@ -190,6 +164,14 @@ pub struct SourcedPose {
 }
 
 impl SourcedPose {
+    /// The identity, exactly (a placeholder for a link that is missing).
+    pub fn identity() -> Self {
+        Self {
+            pose: Pose::identity(),
+            terms: ErrorTerms::none(),
+        }
+    }
+
     /// The pose with its whole covariance.
     pub fn total(&self) -> PoseCov {
         PoseCov {

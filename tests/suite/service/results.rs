@@ -380,27 +380,36 @@ async fn a_window_reference_gives_deformation_and_correction(backend: Backend) {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
 }
 
+/// A new calibration of `C2_from_C1`: its translation `t_mm` (the built-in rotation, 5
+/// arc-seconds and 0.05 mm), valid from group `from_group`.
+async fn recalibrate_station(
+    app: &TestApp,
+    t_mm: [f64; 3],
+    from_group: i64,
+) -> (StatusCode, Value) {
+    app.request(
+        "PUT",
+        "/api/v1/links/C2_from_C1/calibration",
+        Some((
+            "application/json",
+            json!({"pose": {"t_mm": t_mm, "euler_deg": [76.6492, 8.9522, 176.3952]},
+                   "sigma": {"rotation_arcsec": 5.0, "translation_mm": 0.05},
+                   "valid_from": time_text(from_group)})
+            .to_string(),
+        )),
+        None,
+    )
+    .await
+}
+
 async fn a_new_calibration_is_versioned_and_used(backend: Backend) {
     let app = TestApp::start_on(backend, None).await;
     let links = truth();
     app.post_json("/api/v1/samples", &json!({"samples": group(0, &links)}))
         .await;
     let (_, before) = app.get("/api/v1/targets/G/compensation").await;
-    let (status, _) = app
-        .request(
-            "PUT",
-            "/api/v1/links/C2_from_C1/calibration",
-            Some((
-                "application/json",
-                json!({"pose": {"t_mm": [-67.2, 37.5, -96.8], "euler_deg": [76.6492, 8.9522, 176.3952]},
-                       "sigma": {"rotation_arcsec": 5.0, "translation_mm": 0.05},
-                       "valid_from": time_text(0)})
-                .to_string(),
-            )),
-            None,
-        )
-        .await;
-    assert_eq!(status, StatusCode::CREATED);
+    let (status, body) = recalibrate_station(&app, [-67.2, 37.5, -96.8], 0).await;
+    assert_eq!(status, StatusCode::CREATED, "{body}");
     app.post_json("/api/v1/samples", &json!({"samples": group(1, &links)}))
         .await;
     let (_, after) = app.get("/api/v1/targets/G/compensation").await;
@@ -558,20 +567,7 @@ async fn a_reference_of_the_same_calibrations_cancels_their_error(backend: Backe
     );
 
     // A new calibration of a station: the reference was measured with the old one.
-    let (status, body) = app
-        .request(
-            "PUT",
-            "/api/v1/links/C2_from_C1/calibration",
-            Some((
-                "application/json",
-                json!({"pose": {"t_mm": [-67.21, 37.5, -106.8], "euler_deg": [76.6492, 8.9522, 176.3952]},
-                       "sigma": {"rotation_arcsec": 5.0, "translation_mm": 0.05},
-                       "valid_from": time_text(20)})
-                .to_string(),
-            )),
-            None,
-        )
-        .await;
+    let (status, body) = recalibrate_station(&app, [-67.21, 37.5, -106.8], 20).await;
     assert_eq!(status, StatusCode::CREATED, "{body}");
     app.post_json("/api/v1/samples", &post(20, 30)).await;
     let (_, c) = app.get("/api/v1/targets/G/compensation").await;
