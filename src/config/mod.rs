@@ -13,9 +13,13 @@
 
 mod error;
 mod raw;
+mod source;
 mod validate;
 
 pub use error::{ConfigError, ConfigProblem};
+pub use source::{
+    CameraAddress, CameraSource, FeatureSetting, PixelFormat, TimestampMode, TriggerMode,
+};
 
 use crate::model::Model;
 use error::LineIndex;
@@ -52,6 +56,9 @@ pub struct Installation {
     pub frames: FrameSettings,
     /// This service in a fleet: a site reporting to a centre, or the centre.
     pub fleet: FleetSettings,
+    /// The cameras the service takes frames from itself (`[cameras.source]`), in installation
+    /// order.
+    pub sources: Vec<CameraSource>,
     /// What is valid but probably not meant, each with its line (`check-config` prints them,
     /// `serve` logs them).
     pub warnings: Vec<ConfigProblem>,

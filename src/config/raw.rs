@@ -174,6 +174,29 @@ pub(super) struct RawCamera {
     pub gain_e_per_dn: Option<f64>,
     /// 81 numbers, row-major, in the order fx fy cx cy k1 k2 p1 p2 k3.
     pub intrinsics_covariance: Option<Vec<f64>>,
+    pub source: Option<RawSource>,
+}
+
+/// `[cameras.source]`: where the service takes the camera's frames from itself.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawSource {
+    pub address: String,
+    pub pixel_format: Option<String>,
+    pub trigger: Option<String>,
+    pub trigger_group: Option<String>,
+    pub trigger_line: Option<String>,
+    pub rate_hz: Option<f64>,
+    pub exposure_us: Option<f64>,
+    pub gain_db: Option<f64>,
+    pub timestamp: Option<String>,
+    pub stamp_offset_us: Option<f64>,
+    pub latency_us: Option<f64>,
+    pub tai_offset_s: Option<f64>,
+    pub tolerance_ms: Option<f64>,
+    pub packet_size_bytes: Option<u32>,
+    #[serde(default)]
+    pub features: Vec<String>,
 }
 
 #[derive(Debug, Deserialize)]

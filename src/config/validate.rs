@@ -8,9 +8,10 @@
 use super::error::LineIndex;
 use super::raw::{self, RawFile, RawPose, RawSigma};
 use super::{
-    AuthSettings, CentralSettings, ConfigProblem, FleetSettings, FrameSettings, Installation,
-    NotifyLevel, NotifySettings, RerunMode, RerunSettings, RetentionSettings, Scope,
-    ServerSettings, SiteName, TokenSpec, UpstreamSettings, WebhookSpec,
+    AuthSettings, CameraAddress, CameraSource, CentralSettings, ConfigProblem, FeatureSetting,
+    FleetSettings, FrameSettings, Installation, NotifyLevel, NotifySettings, PixelFormat,
+    RerunMode, RerunSettings, RetentionSettings, Scope, ServerSettings, SiteName, TimestampMode,
+    TokenSpec, TriggerMode, UpstreamSettings, WebhookSpec,
 };
 use crate::alarms::AlarmThresholds;
 use crate::chain::{ChainError, Topology};
@@ -174,6 +175,7 @@ impl Validator {
         let frames = self.frames(&raw);
         let pnp = self.pnp(&raw);
         let fleet = self.fleet(&raw, server.as_ref());
+        let sources = self.sources(&raw);
         let mut frames_seen = std::collections::HashSet::new();
         for c in &raw.cameras {
             if !frames_seen.insert(c.get_ref().frame.clone()) {
@@ -214,6 +216,7 @@ impl Validator {
             retention: retention?,
             frames: frames?,
             fleet: fleet?,
+            sources: sources?,
             warnings: std::mem::take(&mut self.warnings),
         })
     }
@@ -910,6 +913,219 @@ impl Validator {
             }
         }
         out
+    }
+
+    /// Every camera's `[cameras.source]`; `None` when one has a problem.
+    fn sources(&mut self, raw: &RawFile) -> Option<Vec<CameraSource>> {
+        let mut out = Vec::new();
+        let mut ok = true;
+        let mut addresses = std::collections::HashMap::new();
+        for spanned in &raw.cameras {
+            let at = spanned.span().start;
+            let c = spanned.get_ref();
+            let Some(s) = &c.source else { continue };
+            match self.source(at, &c.frame, s) {
+                Some(source) => {
+                    if let Some(other) =
+                        addresses.insert(source.address.to_string(), c.frame.clone())
+                    {
+                        self.problem(
+                            at,
+                            format!(
+                                "camera `{}`: source.address `{}` is camera `{other}`'s already",
+                                c.frame, source.address
+                            ),
+                        );
+                        ok = false;
+                    }
+                    out.push(source);
+                }
+                None => ok = false,
+            }
+        }
+        // The cameras of a trigger group share its rate and its trigger.
+        for (i, a) in out.iter().enumerate() {
+            if a.trigger == TriggerMode::FreeRun {
+                continue;
+            }
+            if let Some(b) = out[..i]
+                .iter()
+                .find(|b| b.trigger != TriggerMode::FreeRun && b.trigger_group == a.trigger_group)
+                && (b.trigger != a.trigger || b.rate_hz != a.rate_hz)
+            {
+                let at = raw
+                    .cameras
+                    .iter()
+                    .find(|c| c.get_ref().frame == a.camera)
+                    .map_or(0, |c| c.span().start);
+                self.problem(
+                    at,
+                    format!(
+                        "camera `{}`: source.trigger_group `{}` has camera `{}` with trigger `{}` at {} Hz; a group's cameras share one trigger and one rate",
+                        a.camera, a.trigger_group, b.camera, b.trigger, b.rate_hz
+                    ),
+                );
+                ok = false;
+            }
+        }
+        ok.then_some(out)
+    }
+
+    /// One camera's `[cameras.source]`.
+    fn source(
+        &mut self,
+        at: usize,
+        camera: &str,
+        s: &super::raw::RawSource,
+    ) -> Option<CameraSource> {
+        let what = format!("camera `{camera}`: source");
+        let mut ok = true;
+        let address = CameraAddress::parse(&s.address)
+            .map_err(|e| self.problem(at, format!("{what}.address {e}")))
+            .ok();
+        let pixel_format = self.word(
+            at,
+            &format!("{what}.pixel_format"),
+            s.pixel_format.as_deref(),
+            PixelFormat::Mono8,
+        );
+        let trigger = self.word(
+            at,
+            &format!("{what}.trigger"),
+            s.trigger.as_deref(),
+            TriggerMode::FreeRun,
+        );
+        let timestamp = self.word(
+            at,
+            &format!("{what}.timestamp"),
+            s.timestamp.as_deref(),
+            TimestampMode::HostFit,
+        );
+        let rate_hz = s.rate_hz.unwrap_or(10.0);
+        ok &= self.within(at, &format!("{what}.rate_hz"), rate_hz, 0.01, 1000.0);
+        if let Some(e) = s.exposure_us {
+            ok &= self.within(at, &format!("{what}.exposure_us"), e, 1.0, 10e6);
+            if e * 1e-6 >= 1.0 / rate_hz {
+                self.problem(
+                    at,
+                    format!(
+                        "{what}.exposure_us {e} does not fit in a frame period at rate_hz {rate_hz}"
+                    ),
+                );
+                ok = false;
+            }
+        }
+        if let Some(g) = s.gain_db {
+            ok &= self.within(at, &format!("{what}.gain_db"), g, -20.0, 60.0);
+        }
+        if let Some(o) = s.stamp_offset_us {
+            ok &= self.within(at, &format!("{what}.stamp_offset_us"), o, -10e6, 10e6);
+        }
+        if let Some(l) = s.latency_us {
+            ok &= self.within(at, &format!("{what}.latency_us"), l, 0.0, 10e6);
+        }
+        let tai_offset_s = s.tai_offset_s.unwrap_or(37.0);
+        ok &= self.within(at, &format!("{what}.tai_offset_s"), tai_offset_s, -1e9, 1e9);
+        let tolerance_ms = s.tolerance_ms.unwrap_or(100.0);
+        ok &= self.within(
+            at,
+            &format!("{what}.tolerance_ms"),
+            tolerance_ms,
+            0.1,
+            60_000.0,
+        );
+        if let Some(p) = s.packet_size_bytes
+            && !(576..=16_384).contains(&p)
+        {
+            self.problem(
+                at,
+                format!("{what}.packet_size_bytes {p} is outside 576 to 16384"),
+            );
+            ok = false;
+        }
+        let mut features = Vec::new();
+        for f in &s.features {
+            match FeatureSetting::parse(f) {
+                Ok(f) => features.push(f),
+                Err(e) => {
+                    self.problem(at, format!("{what}.features {e}"));
+                    ok = false;
+                }
+            }
+        }
+        let group = s
+            .trigger_group
+            .clone()
+            .unwrap_or_else(|| "default".to_owned());
+        if group.is_empty() || group.len() > 64 {
+            self.problem(
+                at,
+                format!("{what}.trigger_group must be 1 to 64 characters"),
+            );
+            ok = false;
+        }
+        if trigger == Some(TriggerMode::Line) && s.trigger_line.is_none() {
+            let (line, _) = self.lines.locate(at);
+            self.warnings.push(ConfigProblem {
+                line: Some(line),
+                column: None,
+                message: format!("{what}: trigger `line` with no trigger_line: Line0 is taken"),
+            });
+        }
+        if timestamp == Some(TimestampMode::Host) {
+            let (line, _) = self.lines.locate(at);
+            self.warnings.push(ConfigProblem {
+                line: Some(line),
+                column: None,
+                message: format!(
+                    "{what}: timestamp `host` takes a frame's arrival minus latency_us as its time: the transfer's jitter (milliseconds) moves every result of a moving structure; `ptp` or `host_fit` do not"
+                ),
+            });
+        }
+        Some(CameraSource {
+            camera: camera.to_owned(),
+            address: address?,
+            pixel_format: pixel_format?,
+            trigger: trigger?,
+            trigger_group: group,
+            trigger_line: s.trigger_line.clone().unwrap_or_else(|| "Line0".to_owned()),
+            rate_hz,
+            exposure_us: s.exposure_us,
+            gain_db: s.gain_db,
+            timestamp: timestamp?,
+            stamp_offset_us: s.stamp_offset_us,
+            latency_us: s.latency_us,
+            tai_offset_s,
+            tolerance_ms,
+            packet_size_bytes: s.packet_size_bytes,
+            features,
+        })
+        .filter(|_| ok)
+    }
+
+    /// A vocabulary's word, `default` when absent; a problem naming the key and the words
+    /// otherwise.
+    fn word<W: crate::words::Word>(
+        &mut self,
+        at: usize,
+        what: &str,
+        text: Option<&str>,
+        default: W,
+    ) -> Option<W> {
+        let Some(text) = text else {
+            return Some(default);
+        };
+        match W::ALL.iter().find(|w| w.word() == text) {
+            Some(w) => Some(*w),
+            None => {
+                let words: Vec<String> = W::words().iter().map(|w| format!("`{w}`")).collect();
+                self.problem(
+                    at,
+                    format!("{what} `{text}` is not one of {}", words.join(", ")),
+                );
+                None
+            }
+        }
     }
 
     fn markers(&mut self, raw: &RawFile) -> Vec<Marker> {
