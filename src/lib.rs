@@ -38,6 +38,7 @@
 #![warn(clippy::unwrap_used, clippy::expect_used)]
 #![warn(unreachable_pub)]
 
+pub mod acquire;
 pub mod alarms;
 pub mod api;
 pub mod archive;

@@ -96,6 +96,8 @@ pub struct Sources<'a> {
     pub archive: Option<&'a FrameArchive>,
     /// A site's uploads, when it pushes to a centre.
     pub upstream: Option<&'a Upstream>,
+    /// The cameras the service takes frames from itself.
+    pub cameras: &'a [std::sync::Arc<crate::acquire::SourceState>],
 }
 
 /// The whole exposition.
@@ -367,6 +369,7 @@ pub fn render(sources: &Sources<'_>) -> String {
         }
     }
     sources.webhooks.metrics(&mut out);
+    camera_sources(&mut out, sources.cameras);
     if let Some(archive) = sources.archive {
         let c = archive.counters();
         for (name, help, counter) in [
@@ -457,6 +460,82 @@ fn upstream_metrics(out: &mut Exposition, upstream: &Upstream) {
         .map(|(tier, p)| (tier.name(), p))
         .collect();
     out.labelled_families("tier", &rows, &families);
+}
+
+/// The camera sources' counters, labelled by camera.
+fn camera_sources(out: &mut Exposition, cameras: &[std::sync::Arc<crate::acquire::SourceState>]) {
+    use crate::acquire::{SourceReport, SourceStatus};
+    if cameras.is_empty() {
+        return;
+    }
+    let families: [Family<SourceReport>; 9] = [
+        (
+            "brokenray_camera_connected",
+            "gauge",
+            "1 while a camera source's frames arrive.",
+            |r| {
+                Some(if r.detail.status == SourceStatus::Streaming {
+                    1.0
+                } else {
+                    0.0
+                })
+            },
+        ),
+        (
+            "brokenray_camera_frames_received_total",
+            "counter",
+            "Complete frames a camera source received.",
+            |r| Some(r.received as f64),
+        ),
+        (
+            "brokenray_camera_frames_ingested_total",
+            "counter",
+            "Frames of a camera source ingested.",
+            |r| Some(r.ingested as f64),
+        ),
+        (
+            "brokenray_camera_frames_dropped_total",
+            "counter",
+            "Frames of a camera source replaced by a newer one before ingest took them.",
+            |r| Some(r.dropped as f64),
+        ),
+        (
+            "brokenray_camera_incomplete_buffers_total",
+            "counter",
+            "Buffers of a camera source that arrived incomplete (lost packets), not used.",
+            |r| Some(r.incomplete as f64),
+        ),
+        (
+            "brokenray_camera_frames_refused_time_total",
+            "counter",
+            "Frames refused for their time (PTP not synchronised, a time far from the host's clock).",
+            |r| Some(r.refused_time as f64),
+        ),
+        (
+            "brokenray_camera_frames_failed_total",
+            "counter",
+            "Frames of a camera source that ingest refused or failed on.",
+            |r| Some(r.failed as f64),
+        ),
+        (
+            "brokenray_camera_reconnects_total",
+            "counter",
+            "Connections to a camera made again after a loss.",
+            |r| Some(r.reconnects as f64),
+        ),
+        (
+            "brokenray_camera_delay_p99_seconds",
+            "gauge",
+            "99th percentile of the newest frames' delay from the middle of the exposure to the result committed.",
+            |r| r.delay_s.map(|d| d.1),
+        ),
+    ];
+    let reports: Vec<SourceReport> = cameras.iter().map(|c| c.report()).collect();
+    let rows: Vec<(&str, SourceReport)> = reports
+        .iter()
+        .map(|r| (r.camera.as_str(), r.clone()))
+        .collect();
+    out.labelled_families("camera", &rows, &families);
 }
 
 #[cfg(test)]

@@ -129,6 +129,9 @@ pub(super) struct CameraOut {
     /// Its newest frame; absent before the first.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub frame: Option<CameraFrameOut>,
+    /// When the service takes its frames itself (`[cameras.source]`): the source's state.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub source: Option<super::sources::SourceOut>,
 }
 
 /// Every camera.
@@ -160,6 +163,11 @@ pub(super) async fn list_cameras(State(app): State<AppState>) -> Json<CamerasOut
                 .filter(|l| l.camera_frame == c.frame)
                 .map(|l| l.marker_frame.clone())
                 .collect(),
+            source: app
+                .sources
+                .iter()
+                .find(|s| s.source.camera == c.frame)
+                .map(|s| s.report().into()),
             frame: app.latest_frames.get(&c.frame).map(|l| CameraFrameOut {
                 time: format_ns(l.time_ns),
                 age_s: (now_ns - l.time_ns) as f64 / 1e9,

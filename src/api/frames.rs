@@ -173,8 +173,10 @@ pub(super) async fn post_frame(
     let camera = q.camera.ok_or_else(|| {
         ApiError::invalid_field("camera", "the query names no camera (`?camera=C1`)")
     })?;
-    let observer = app.service.observer();
-    let size = observer
+    let q_camera = camera.clone();
+    let size = app
+        .service
+        .observer()
         .camera(&camera)
         .map(|c| (c.width_px, c.height_px))
         .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
@@ -191,10 +193,8 @@ pub(super) async fn post_frame(
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     // At most a frame a core in decoding and search; the rest wait a little, then 503.
     let slot = super::take_slot(&app.decode_slots, DECODE_WAIT, "decoding frames").await?;
-    let snapshot = app.service.snapshot();
-    let camera_name = camera.clone();
-    let (out, items, image) = super::vision::blocking(move || {
-        let image = decode(&bytes, format, Some(size)).map_err(|e| {
+    let image = super::vision::blocking(move || {
+        decode(&bytes, format, Some(size)).map_err(|e| {
             ApiError::invalid_field(
                 "body",
                 match e {
@@ -209,7 +209,29 @@ pub(super) async fn post_frame(
                     other => other.to_string(),
                 },
             )
-        })?;
+        })
+    })
+    .await??;
+    take_frame(&app, &q_camera, time_ns, image, slot)
+        .await
+        .map(Json)
+}
+
+/// A decoded frame of `camera` taken the way `POST /frames` takes it: its markers searched
+/// and solved (on the blocking pool, holding `slot`), the found ones ingested, the frame
+/// offered to the archive, Rerun and the newest-frame slot. A camera source's frames come
+/// here too ([`super::sources`]).
+pub(super) async fn take_frame(
+    app: &AppState,
+    camera: &str,
+    time_ns: i64,
+    image: crate::vision::GreyImage,
+    slot: tokio::sync::OwnedSemaphorePermit,
+) -> Result<FrameOut, ApiError> {
+    let observer = app.service.observer();
+    let snapshot = app.service.snapshot();
+    let camera_name = camera.to_owned();
+    let (out, items, image) = super::vision::blocking(move || {
         // The link's filtered pose at the frame's time (the nominal one follows by itself).
         let predictions = |link: &ObservedLink| -> Vec<Pose> {
             match snapshot.bank.link_estimate(link.link, time_ns) {
@@ -217,9 +239,9 @@ pub(super) async fn post_frame(
                 _ => Vec::new(),
             }
         };
-        let seen = observe_frame(&observer, &camera, &image, predictions)
+        let seen = observe_frame(&observer, &camera_name, &image, predictions)
             .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
-        let (out, items) = answer(&camera, time_ns, &seen);
+        let (out, items) = answer(&camera_name, time_ns, &seen);
         drop(slot);
         Ok::<_, ApiError>((out, items, image))
     })
@@ -232,7 +254,7 @@ pub(super) async fn post_frame(
     let out = FrameOut { ingest, ..out };
     let image = std::sync::Arc::new(image);
     if let Some(archive) = &app.archive {
-        archive.offer(&camera_name, time_ns, &image, evidence(&out));
+        archive.offer(camera, time_ns, &image, evidence(&out));
     }
     if let Some(index) = app
         .service
@@ -240,15 +262,14 @@ pub(super) async fn post_frame(
         .model
         .cameras
         .iter()
-        .position(|c| c.frame == camera_name)
+        .position(|c| c.frame == camera)
     {
         app.service.frame_viz().offer(index, time_ns, &image, || {
             out.markers.iter().map(marks).collect()
         });
     }
-    app.latest_frames
-        .offer(&camera_name, time_ns, image, out.clone());
-    Ok(Json(out))
+    app.latest_frames.offer(camera, time_ns, image, out.clone());
+    Ok(out)
 }
 
 /// What Rerun draws over a frame for one marker.

@@ -16,6 +16,7 @@ pub(super) async fn get_metrics(State(app): State<AppState>) -> impl IntoRespons
         webhooks: &app.webhooks,
         archive: app.archive.as_ref(),
         upstream: app.upstream.as_deref(),
+        cameras: &app.sources,
     });
     (
         [(

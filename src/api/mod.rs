@@ -24,6 +24,7 @@ mod metrics;
 mod query;
 pub mod server;
 mod sites;
+mod sources;
 mod targets;
 pub(crate) mod vision;
 pub mod vocab;
@@ -82,6 +83,9 @@ pub struct AppState {
     /// Frames decoded and searched at once: one a core (each takes memory up to its
     /// camera's decode budget).
     pub decode_slots: Arc<tokio::sync::Semaphore>,
+    /// The cameras the service takes frames from itself (`[cameras.source]`); empty unless
+    /// [`App`] started them.
+    pub sources: Arc<[Arc<crate::acquire::SourceState>]>,
 }
 
 /// Waits up to `wait` for one of `slots`, or answers 503 `busy` naming `what`.
@@ -134,6 +138,7 @@ impl AppState {
                 .clone()
                 .zip(service.installation().fleet.upstream.clone())
                 .map(|(site, settings)| Arc::new(crate::fleet::Upstream::new(site, settings))),
+            sources: Arc::new([]),
             service,
             limits,
         })
@@ -637,6 +642,7 @@ pub struct App {
     service: Service,
     pipeline: PipelineHandle,
     state: AppState,
+    acquisition: crate::acquire::Acquisition,
 }
 
 /// Starts the centre's upkeep of its sites' copies ([`crate::fleet::upkeep`]).
@@ -681,11 +687,15 @@ impl App {
         let (service, pipeline) = Service::start(installation).await?;
         let mut state = AppState::new(service.clone())?;
         state.central = central;
+        // Cameras are opened once everything else started: their frames have somewhere to go.
+        let acquisition = crate::acquire::Acquisition::start(service.installation());
+        state.sources = acquisition.sources().into();
         Ok(App {
             listener,
             service,
             pipeline,
             state,
+            acquisition,
         })
     }
 
@@ -726,6 +736,7 @@ impl App {
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let uploader = spawn_uploader(&state);
         let upkeep = spawn_centre_upkeep(&state);
+        let takers = sources::spawn(&state);
         let service = self.service.clone();
         tokio::spawn(async move {
             shutdown.await;
@@ -734,6 +745,13 @@ impl App {
         });
         let metrics = self.service.metrics_handle();
         server::serve(self.listener, router(state), limits, metrics, stop_rx).await;
+        // The cameras stop (their threads joined off the async workers), then the frames
+        // already taken are ingested before the writer stops.
+        let mut acquisition = self.acquisition;
+        let _ = tokio::task::spawn_blocking(move || acquisition.stop()).await;
+        for taker in takers {
+            let _ = taker.await;
+        }
         // The uploader holds a service handle; it ends when shutdown begins.
         if let Some(uploader) = uploader {
             let _ = uploader.await;

@@ -31,6 +31,7 @@ macro_rules! word_schemas {
 }
 
 word_schemas!(
+    crate::acquire::SourceStatus,
     crate::alarms::AlarmKind,
     crate::alarms::Level,
     crate::alarms::ValueUnit,
@@ -38,6 +39,8 @@ word_schemas!(
     crate::bank::ResultSource,
     crate::bank::TargetStatus,
     crate::config::NotifyLevel,
+    crate::config::TimestampMode,
+    crate::config::TriggerMode,
     crate::filter::DispositionKind,
     crate::filter::MotionModel,
     crate::fleet::protocol::Outcome,

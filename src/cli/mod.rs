@@ -5,6 +5,7 @@
 //! `detect.rs` turns frame files into observations and `report.rs` formats what `check-config`
 //! prints.
 
+mod acquire;
 mod calibrate;
 mod commands;
 mod detect;
@@ -43,6 +44,11 @@ pub enum Command {
         /// The installation file (TOML); the built-in laboratory installation without it.
         #[arg(long, value_name = "FILE")]
         config: Option<PathBuf>,
+        /// Also open every camera that has a `[cameras.source]` (by its address) and apply its
+        /// settings, reporting what each camera refuses (a pixel format it lacks, a feature it
+        /// does not take, a size other than the calibration's). Needs the `genicam` build.
+        #[arg(long)]
+        cameras: bool,
     },
     /// Print the built-in installation file, a starting point for your own.
     DefaultConfig,
@@ -277,6 +283,23 @@ pub enum Command {
         #[arg(required = true, value_name = "FILE")]
         files: Vec<PathBuf>,
     },
+    /// Take frames from the installation's cameras (`[cameras.source]`, GigE Vision or USB3
+    /// Vision, opened by address) and post each to a running service with its exposure's time.
+    /// Needs the `genicam` build. Runs until Ctrl-C, a status line per camera every interval.
+    Acquire {
+        /// The installation file (TOML) naming the cameras' sources.
+        #[arg(long, value_name = "FILE")]
+        config: PathBuf,
+        /// The service.
+        #[arg(long, value_name = "URL", default_value = "http://127.0.0.1:7878")]
+        to: String,
+        /// Bearer token with the `ingest` scope.
+        #[arg(long, env = "BROKENRAY_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+        /// Seconds between status lines.
+        #[arg(long, value_name = "S", default_value_t = 10.0)]
+        status_every_s: f64,
+    },
     /// Post the frames camera software writes into `DIR/<camera>/` to a running service, oldest
     /// first, removing each once the service took it; refused ones are moved into
     /// `DIR/<camera>/refused/` with the answer beside them. A frame's time is its file name's
@@ -335,12 +358,27 @@ pub enum Command {
 /// Runs a parsed command line, writing its report to `out`.
 pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
     match cli.command {
-        Command::CheckConfig { config } => {
+        Command::CheckConfig { config, cameras } => {
             let installation = config::load_or_default(config.as_deref())?;
             out.write_all(describe_installation(&installation).as_bytes())?;
             for w in &installation.warnings {
                 let line = w.line.map(|l| format!("{l}:")).unwrap_or_default();
                 writeln!(out, "warning: {}:{line} {}", installation.source, w.message)?;
+            }
+            if cameras {
+                let mut refused = 0;
+                for (camera, result) in crate::acquire::probe(&installation) {
+                    match result {
+                        Ok(what) => writeln!(out, "camera {camera}: {what}")?,
+                        Err(e) => {
+                            refused += 1;
+                            writeln!(out, "camera {camera}: {e}")?;
+                        }
+                    }
+                }
+                if refused > 0 {
+                    anyhow::bail!("{refused} camera(s) cannot be used as configured");
+                }
             }
         }
         Command::DefaultConfig => out.write_all(config::DEFAULT_INSTALLATION_TOML.as_bytes())?,
@@ -680,6 +718,31 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 "{} frame(s): {} observation(s), {} marker(s) not found",
                 summary.frames, summary.observations, summary.not_found
             );
+        }
+        Command::Acquire {
+            config,
+            to,
+            token,
+            status_every_s,
+        } => {
+            let installation = config::load(&config)?;
+            for w in &installation.warnings {
+                let line = w.line.map(|l| format!("{l}:")).unwrap_or_default();
+                eprintln!("warning: {}:{line} {}", installation.source, w.message);
+            }
+            if !crate::acquire::SUPPORTED {
+                anyhow::bail!(
+                    "this build takes no frames from cameras: build with `cargo build --release --features genicam` (needs libaravis-dev and libusb-1.0-0-dev)"
+                );
+            }
+            let client = std::sync::Arc::new(crate::feed::Client::new(&to, token)?);
+            let every = std::time::Duration::from_secs_f64(status_every_s.clamp(0.1, 86_400.0));
+            runtime(true)?.block_on(acquire::acquire(
+                &installation,
+                client,
+                every,
+                crate::api::shutdown_signal(),
+            ))?;
         }
         Command::Watch {
             dir,

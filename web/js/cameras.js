@@ -42,6 +42,7 @@ function buildView(camera) {
         el('span', { class: 'muted small', 'data-f': 'sees', text: camera.markers.length ? 'sees ' + camera.markers.join(', ') : 'sees no marker' }),
         el('span', { class: 'grow' }),
         el('span', { 'data-f': 'age', class: 'muted', text: 'no frame yet' })),
+      el('p', { class: 'source-state small', 'data-f': 'source', hidden: true }),
       open,
       el('ul', { class: 'marker-states', 'data-f': 'markers' }),
       el('p', { class: 'muted small legend', text: `○ detected point and id · + reprojected · line: residual, magnified` })),
@@ -92,7 +93,33 @@ function scaleOf(view) {
   return shown > 0 ? shown / view.width : 1;
 }
 
+// A camera the service takes frames from itself: its connection, counters and last error.
+function renderSource(view, source) {
+  const p = view.root.querySelector('[data-f="source"]');
+  p.hidden = !source;
+  if (!source) return;
+  p.textContent = '';
+  const ok = source.status === 'streaming';
+  const counts = [
+    `${source.frames_received} received`,
+    `${source.frames_dropped} dropped`,
+    `${source.incomplete_buffers} incomplete`,
+    `${source.frames_refused_time} refused for their time`,
+    `${source.reconnects} reconnects`,
+  ];
+  let clock = source.timestamp;
+  if (source.ptp_status) clock += ` (PTP ${source.ptp_status})`;
+  else if (source.clock_fit) clock += ` (${source.clock_fit.drift_ppm.toFixed(1)} ppm)`;
+  p.append(
+    el('span', { class: 'badge ' + (ok ? 'ok' : 'alarm'), 'data-f': 'source-status', text: `${source.address}: ${source.status}` }),
+    el('span', { class: 'muted', text: ` ${clock} · ${counts.join(' · ')}` }));
+  if (source.last_error) {
+    p.append(el('span', { class: 'reason', 'data-f': 'source-error', text: ` last error ${fmtTime(parseTime(source.last_error_at))}: ${source.last_error}` }));
+  }
+}
+
 function render(view, camera) {
+  renderSource(view, camera.source);
   const list = view.root.querySelector('[data-f="markers"]');
   list.textContent = '';
   const frame = camera.frame;
