@@ -37,6 +37,8 @@ mod architecture;
 mod archive;
 mod bombs;
 mod camera_calibration;
+#[cfg(feature = "genicam")]
+mod cameras_wire;
 mod chain_composition;
 mod cli;
 mod common;
