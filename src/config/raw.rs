@@ -174,7 +174,7 @@ pub(super) struct RawCamera {
     pub gain_e_per_dn: Option<f64>,
     /// 81 numbers, row-major, in the order fx fy cx cy k1 k2 p1 p2 k3.
     pub intrinsics_covariance: Option<Vec<f64>>,
-    pub source: Option<RawSource>,
+    pub source: Option<Spanned<RawSource>>,
 }
 
 /// `[cameras.source]`: where the service takes the camera's frames from itself.

@@ -921,10 +921,11 @@ impl Validator {
         let mut ok = true;
         let mut addresses = std::collections::HashMap::new();
         for spanned in &raw.cameras {
-            let at = spanned.span().start;
             let c = spanned.get_ref();
             let Some(s) = &c.source else { continue };
-            match self.source(at, &c.frame, s) {
+            // Problems point at the source's own table.
+            let at = s.span().start;
+            match self.source(at, &c.frame, s.get_ref()) {
                 Some(source) => {
                     if let Some(other) =
                         addresses.insert(source.address.to_string(), c.frame.clone())
@@ -957,7 +958,8 @@ impl Validator {
                     .cameras
                     .iter()
                     .find(|c| c.get_ref().frame == a.camera)
-                    .map_or(0, |c| c.span().start);
+                    .and_then(|c| c.get_ref().source.as_ref())
+                    .map_or(0, |s| s.span().start);
                 self.problem(
                     at,
                     format!(

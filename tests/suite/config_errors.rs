@@ -700,3 +700,164 @@ fn a_cameras_intrinsics_covariance_is_checked_and_its_absence_warned_of() {
         (1.0, 9.0, 0.25, 0.25)
     );
 }
+
+/// The built-in installation with `source` lines added to camera C1's table (and C2's when
+/// given).
+fn with_sources(c1: &str, c2: Option<&str>) -> String {
+    let mut text = config::DEFAULT_INSTALLATION_TOML.replacen(
+        "[[cameras]]\nframe = \"C1\"",
+        &format!("[[cameras]]\nframe = \"C1\"\nsource = {c1}"),
+        1,
+    );
+    if let Some(c2) = c2 {
+        text = text.replacen(
+            "[[cameras]]\nframe = \"C2\"",
+            &format!("[[cameras]]\nframe = \"C2\"\nsource = {c2}"),
+            1,
+        );
+    }
+    text
+}
+
+#[test]
+fn a_camera_source_is_read_with_its_defaults() {
+    let inst = config::parse(
+        "site.toml",
+        &with_sources(
+            r#"{ address = "192.168.10.11", features = ["BalanceWhiteAuto=Off", "Width = 1280"] }"#,
+            Some(r#"{ address = "usb:Basler:acA1300:2201", trigger = "software", timestamp = "ptp", pixel_format = "Mono12", rate_hz = 25, exposure_us = 1500, tai_offset_s = 0 }"#),
+        ),
+    )
+    .unwrap();
+    let [c1, c2] = &inst.sources[..] else {
+        panic!("two sources: {:?}", inst.sources)
+    };
+    assert_eq!(c1.camera, "C1");
+    assert_eq!(
+        c1.address,
+        config::CameraAddress::Gige([192, 168, 10, 11].into())
+    );
+    assert_eq!(c1.pixel_format, config::PixelFormat::Mono8);
+    assert_eq!(c1.trigger, config::TriggerMode::FreeRun);
+    assert_eq!(c1.timestamp, config::TimestampMode::HostFit);
+    assert_eq!(
+        (c1.rate_hz, c1.tolerance_ms, c1.tai_offset_s),
+        (10.0, 100.0, 37.0)
+    );
+    assert_eq!(c1.features.len(), 2);
+    assert_eq!(
+        (c1.features[1].name.as_str(), c1.features[1].value.as_str()),
+        ("Width", "1280")
+    );
+    // Half the exposure from the stamp (its start) to the middle, unless told otherwise.
+    assert_eq!(c1.stamp_offset_ns(2000.0), 1_000_000);
+    assert_eq!(c2.address.to_string(), "usb:Basler:acA1300:2201");
+    assert_eq!(c2.trigger, config::TriggerMode::Software);
+    assert_eq!(c2.timestamp, config::TimestampMode::Ptp);
+    assert_eq!(c2.pixel_format, config::PixelFormat::Mono12);
+    assert_eq!(c2.tai_offset_s, 0.0);
+}
+
+/// Each wrong key of a source is named with the camera and the line; a broadcast address, a
+/// host name (which would need a search) and a word outside a vocabulary are refused.
+#[test]
+fn a_camera_source_s_errors_name_the_camera_the_key_and_the_line() {
+    for (source, expected) in [
+        (
+            r#"{ address = "cam1.local" }"#,
+            "source.address `cam1.local` is neither an IPv4 address",
+        ),
+        (
+            r#"{ address = "255.255.255.255" }"#,
+            "is not one camera's address",
+        ),
+        (
+            r#"{ address = "usb:Basler:acA1300" }"#,
+            "is not `usb:VENDOR:MODEL:SERIAL`",
+        ),
+        (
+            r#"{ address = "10.0.0.2", pixel_format = "RGB8" }"#,
+            "source.pixel_format `RGB8` is not one of `Mono8`, `Mono10`, `Mono12`, `Mono16`",
+        ),
+        (
+            r#"{ address = "10.0.0.2", trigger = "hardware" }"#,
+            "source.trigger `hardware` is not one of `free_run`, `software`, `line`",
+        ),
+        (
+            r#"{ address = "10.0.0.2", timestamp = "ntp" }"#,
+            "source.timestamp `ntp` is not one of `ptp`, `host_fit`, `host`",
+        ),
+        (r#"{ address = "10.0.0.2", rate_hz = 0 }"#, "source.rate_hz"),
+        (
+            r#"{ address = "10.0.0.2", rate_hz = 100, exposure_us = 20000 }"#,
+            "source.exposure_us 20000 does not fit in a frame period at rate_hz 100",
+        ),
+        (
+            r#"{ address = "10.0.0.2", features = ["Width"] }"#,
+            "source.features `Width` is not `Name=value`",
+        ),
+        (
+            r#"{ address = "10.0.0.2", features = ["2Width=3"] }"#,
+            "`2Width` is not a GenICam feature name",
+        ),
+        (
+            r#"{ address = "10.0.0.2", packet_size_bytes = 100 }"#,
+            "source.packet_size_bytes 100 is outside 576 to 16384",
+        ),
+        (
+            r#"{ address = "10.0.0.2", tolerance_ms = 0 }"#,
+            "source.tolerance_ms",
+        ),
+        (r#"{ address = "10.0.0.2", colour = true }"#, "colour"),
+    ] {
+        let text = with_sources(source, None);
+        let error = error_of(&text);
+        assert!(
+            error.contains("camera `C1`: ") || expected == "colour",
+            "{source}: {error}"
+        );
+        assert!(error.contains(expected), "{source}: {error}");
+        assert!(
+            error.contains(&format!(":{}", line_of(&text, "source = "))),
+            "{source}: {error}"
+        );
+    }
+}
+
+#[test]
+fn two_sources_may_not_share_an_address_nor_a_group_its_trigger() {
+    let error = error_of(&with_sources(
+        r#"{ address = "10.0.0.2" }"#,
+        Some(r#"{ address = "10.0.0.2" }"#),
+    ));
+    assert!(
+        error.contains("camera `C2`: source.address `10.0.0.2` is camera `C1`'s already"),
+        "{error}"
+    );
+    let error = error_of(&with_sources(
+        r#"{ address = "10.0.0.2", trigger = "software", rate_hz = 10 }"#,
+        Some(r#"{ address = "10.0.0.3", trigger = "software", rate_hz = 20 }"#),
+    ));
+    assert!(error.contains("camera `C2`: source.trigger_group `default` has camera `C1` with trigger `software` at 10 Hz"), "{error}");
+    // Another group may run at its own rate.
+    config::parse(
+        "site.toml",
+        &with_sources(
+            r#"{ address = "10.0.0.2", trigger = "software", rate_hz = 10 }"#,
+            Some(r#"{ address = "10.0.0.3", trigger = "software", rate_hz = 20, trigger_group = "b" }"#),
+        ),
+    )
+    .unwrap();
+}
+
+#[test]
+fn a_host_timestamp_is_valid_but_warned_about() {
+    let text = with_sources(r#"{ address = "10.0.0.2", timestamp = "host" }"#, None);
+    let inst = config::parse("site.toml", &text).unwrap();
+    let warning = inst
+        .warnings
+        .iter()
+        .find(|w| w.message.contains("timestamp `host`"))
+        .expect("a warning");
+    assert_eq!(warning.line, Some(line_of(&text, "source = ")));
+}

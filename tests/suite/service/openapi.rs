@@ -317,6 +317,26 @@ fn the_documented_vocabularies_are_exactly_the_enums() {
             Some("MotionModel"),
         ),
         (
+            "camera source `status` (`GET /api/v1/cameras`)",
+            words_of::<brokenray::acquire::SourceStatus>(),
+            Some("SourceStatus"),
+        ),
+        (
+            "camera source `trigger` (`[cameras.source]`, `GET /api/v1/cameras`)",
+            words_of::<brokenray::config::TriggerMode>(),
+            Some("TriggerMode"),
+        ),
+        (
+            "camera source `timestamp` (`[cameras.source]`, `GET /api/v1/cameras`)",
+            words_of::<brokenray::config::TimestampMode>(),
+            Some("TimestampMode"),
+        ),
+        (
+            "camera source `pixel_format` (`[cameras.source]`)",
+            words_of::<brokenray::config::PixelFormat>(),
+            None,
+        ),
+        (
             "token `scopes`",
             words_of::<brokenray::config::Scope>(),
             None,
