@@ -19,12 +19,13 @@ Figures:
   detection and ingest), in cores;
 * the delay from the middle of the exposure to the result committed (the service's own median and
   99th percentile over the newest 1000 frames of each camera);
-* the clock: the fake exposes on whole multiples of the period of the host's clock, so a stored
-  sample's time less half the exposure, modulo the period, is the error of its time (the fit's
-  floor, the fake's wake-up and its fill). Reported per minute: median and maximum, and the fitted
-  drift against the fake's.
+* the clock: each fake logs every frame's device stamp and the host's UTC as it made the frame
+  (`--stamps`); a stored sample's time less half the exposure, less the UTC of the frame it came
+  from (the nearest), is the error of its time. Reported over the run and per minute (median and
+  largest magnitude), with the fitted drift against the fake's.
 """
 import argparse
+import bisect
 import json
 import os
 import pathlib
@@ -78,7 +79,8 @@ def main():
         text = text.replace('database = "brokenray.db"', f'database = "{work / "db.sqlite"}"')
         for i, camera in enumerate(["C1", "C2", "C3"]):
             fake = subprocess.Popen([BIN / "brokenray-fakecam", "--address", f"127.0.0.{i + 2}",
-                                     "--frames", work / "frames" / camera] + clocks[camera],
+                                     "--frames", work / "frames" / camera, "--stamps", work / f"{camera}.stamps"]
+                                    + clocks[camera],
                                     stdout=subprocess.PIPE)
             children.append(fake)
             assert fake.stdout.readline().strip() == b"ready"
@@ -127,7 +129,13 @@ def main():
                     + int(frac.ljust(9, "0"))
                 if ns >= start_ns:
                     times.append(ns)
-            errors_ms = [((t - 1_000_000) % period_ns) / 1e6 for t in times]
+            made = sorted(int(line.split()[1]) for line in open(work / f"{camera}.stamps") if line.strip())
+            errors_ms = []
+            for t in times:
+                middle = t - 1_000_000
+                i = bisect.bisect_left(made, middle)
+                nearest = min(made[max(0, i - 1):i + 1], key=lambda m: abs(m - middle))
+                errors_ms.append((middle - nearest) / 1e6)
             print(f"{camera}: received {d['frames_received']}, ingested {d['frames_ingested']}, "
                   f"dropped {d['frames_dropped']}, incomplete {d['incomplete_buffers']}, refused for their time "
                   f"{d['frames_refused_time']}, failed {d['frames_failed']}; samples stored {len(times)} "
@@ -135,13 +143,13 @@ def main():
                   f"{s.get('delay_median_ms', 0):.1f} ms, p99 {s.get('delay_p99_ms', 0):.1f} ms")
             if errors_ms:
                 print(f"    time error (stored less exposure middle): median {statistics.median(errors_ms):.2f} ms, "
-                      f"max {max(errors_ms):.2f} ms; fit {s.get('clock_fit')}")
+                      f"largest {max(errors_ms, key=abs):.2f} ms; fit {s.get('clock_fit')}")
                 per_minute = {}
                 for t, e in zip(times, errors_ms):
                     per_minute.setdefault((t - start_ns) // 60_000_000_000, []).append(e)
                 if len(per_minute) > 1:
-                    print("    per minute (median/max ms): " + ", ".join(
-                        f"{statistics.median(v):.2f}/{max(v):.2f}" for _, v in sorted(per_minute.items())))
+                    print("    per minute (median/largest ms): " + ", ".join(
+                        f"{statistics.median(v):.2f}/{max(v, key=abs):.2f}" for _, v in sorted(per_minute.items())))
         print(f"(C2's device clock runs {args.drift_ppm} ppm fast, C3's as much slow: the host's against "
               f"them {-args.drift_ppm:+.2f} and {args.drift_ppm:+.2f} ppm)")
         for i, m in enumerate(minutes):

@@ -496,7 +496,7 @@ fn camera_sources(out: &mut Exposition, cameras: &[std::sync::Arc<crate::acquire
         (
             "brokenray_camera_frames_dropped_total",
             "counter",
-            "Frames of a camera source replaced by a newer one before ingest took them.",
+            "Frames of a camera source dropped, oldest first, from its full queue before ingest took them.",
             |r| Some(r.dropped as f64),
         ),
         (

@@ -1,8 +1,8 @@
 //! Frames taken from the cameras themselves: GigE Vision and USB3 Vision through libaravis
 //! (the `genicam` feature), one thread a camera, each opening its camera by address (never
 //! finding it by a broadcast), configuring it from `[cameras.source]`, settling each frame's
-//! time ([`timing`]) and handing it on through a slot of one frame where the newest wins
-//! ([`state`]). A camera that goes away is opened again with back-off; what each source is
+//! time ([`timing`]) and handing it on through a short queue that drops its oldest frame when
+//! full ([`state`]). A camera that goes away is opened again with back-off; what each source is
 //! doing is in its [`SourceState`].
 //!
 //! `serve` takes the frames into the same path as `POST /frames` (detection, identification,
@@ -95,7 +95,7 @@ impl Acquisition {
         self.sources.iter().find(|s| s.source.camera == camera)
     }
 
-    /// Stops every thread (each stops its camera's acquisition) and closes the slots.
+    /// Stops every thread (each stops its camera's acquisition) and closes the queues.
     pub fn stop(&mut self) {
         self.stop.store(true, Ordering::Release);
         for t in self.threads.drain(..) {

@@ -1,6 +1,8 @@
 //! What each camera source is doing, shared between its acquisition thread and the readers
-//! (`GET /api/v1/cameras`, `/metrics`, `acquire`'s log), and the slot through which its frames
-//! leave: one frame, the newest winning, drops counted.
+//! (`GET /api/v1/cameras`, `/metrics`, `acquire`'s log), and the queue through which its frames
+//! leave: [`QUEUED_FRAMES`] frames in time order, the oldest dropped (and counted) when a new one
+//! finds it full, so a camera never waits and a hiccup of ingest (a commit, a checkpoint) costs
+//! nothing.
 
 use super::timing::FitReport;
 use crate::config::{CameraSource, TimestampMode, TriggerMode};
@@ -62,7 +64,7 @@ pub struct SourceCounters {
     pub received: AtomicU64,
     /// Frames handed on and taken by ingest.
     pub ingested: AtomicU64,
-    /// Frames replaced in the slot by a newer one before ingest took them.
+    /// Frames dropped from a full queue for a newer one before ingest took them.
     pub dropped: AtomicU64,
     /// Buffers that arrived incomplete (lost packets, timeouts), not used.
     pub incomplete: AtomicU64,
@@ -84,12 +86,15 @@ pub struct SourceState {
     /// Counters.
     pub counters: SourceCounters,
     detail: Mutex<SourceDetail>,
-    slot: Mutex<Option<AcquiredFrame>>,
+    queue: Mutex<std::collections::VecDeque<AcquiredFrame>>,
     ready: tokio::sync::Notify,
     closed: AtomicBool,
     /// The newest frames' delays from the middle of the exposure to the result committed (s).
     delays_s: Mutex<std::collections::VecDeque<f64>>,
 }
+
+/// Frames a source's queue holds: 160 ms at 25 Hz.
+pub const QUEUED_FRAMES: usize = 4;
 
 /// How many frames' delays a source keeps.
 const DELAYS_KEPT: usize = 1000;
@@ -142,7 +147,7 @@ impl SourceState {
                 device: None,
                 exposure_us: None,
             }),
-            slot: Mutex::new(None),
+            queue: Mutex::new(std::collections::VecDeque::with_capacity(QUEUED_FRAMES + 1)),
             ready: tokio::sync::Notify::new(),
             closed: AtomicBool::new(false),
             delays_s: Mutex::new(std::collections::VecDeque::new()),
@@ -183,23 +188,23 @@ impl SourceState {
         self.detail().last_error = Some((message, now_ns));
     }
 
-    /// Hands a frame on; a frame still waiting is replaced and counted as dropped.
+    /// Hands a frame on; a full queue drops its oldest, counted.
     pub fn offer(&self, frame: AcquiredFrame) {
-        let replaced = self
-            .slot
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .replace(frame);
-        if replaced.is_some() {
+        let dropped = {
+            let mut queue = self.queue.lock().unwrap_or_else(|p| p.into_inner());
+            queue.push_back(frame);
+            queue.len() > QUEUED_FRAMES && queue.pop_front().is_some()
+        };
+        if dropped {
             self.counters.dropped.fetch_add(1, Ordering::Relaxed);
         }
         self.ready.notify_one();
     }
 
-    /// The next frame, waiting for one; `None` once the source is closed and empty.
+    /// The oldest frame waiting, waiting for one; `None` once the source is closed and empty.
     pub async fn next(&self) -> Option<AcquiredFrame> {
         loop {
-            if let Some(f) = self.slot.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            if let Some(f) = self.take() {
                 return Some(f);
             }
             if self.closed.load(Ordering::Acquire) {
@@ -209,12 +214,15 @@ impl SourceState {
         }
     }
 
-    /// The next frame, waiting on this thread (for a caller outside the async runtime).
+    /// The oldest frame waiting, if any (for a caller outside the async runtime).
     pub fn take(&self) -> Option<AcquiredFrame> {
-        self.slot.lock().unwrap_or_else(|p| p.into_inner()).take()
+        self.queue
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .pop_front()
     }
 
-    /// Ends [`SourceState::next`] for its readers once the slot is empty.
+    /// Ends [`SourceState::next`] for its readers once the queue is empty.
     pub fn close(&self) {
         self.closed.store(true, Ordering::Release);
         self.update(|d| d.status = SourceStatus::Stopped);
@@ -260,7 +268,7 @@ mod tests {
     use super::*;
 
     #[tokio::test]
-    async fn the_newest_frame_wins_and_drops_are_counted() {
+    async fn a_full_queue_drops_its_oldest_and_counts_it() {
         let installation = crate::config::parse(
             "t",
             &crate::config::DEFAULT_INSTALLATION_TOML.replacen(
@@ -276,11 +284,13 @@ mod tests {
             image: GreyImage::from_u8(2, 1, &[1, 2]).unwrap(),
             arrival_ns: t,
         };
-        state.offer(frame(1));
-        state.offer(frame(2));
-        state.offer(frame(3));
-        assert_eq!(state.next().await.map(|f| f.time_ns), Some(3));
+        for t in 1..=6 {
+            state.offer(frame(t));
+        }
         assert_eq!(state.report().dropped, 2);
+        for t in 3..=6 {
+            assert_eq!(state.next().await.map(|f| f.time_ns), Some(t));
+        }
         state.close();
         assert!(state.next().await.is_none());
     }

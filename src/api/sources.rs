@@ -1,5 +1,5 @@
 //! The cameras `serve` takes frames from itself ([`crate::acquire`]): a task per source takes
-//! its newest frame and hands it to the path of `POST /frames` ([`super::frames::take_frame`]),
+//! its frames in turn and hands each to the path of `POST /frames` ([`super::frames::take_frame`]),
 //! and `GET /api/v1/cameras` shows each source's state.
 
 use super::AppState;
@@ -77,7 +77,7 @@ pub(super) struct SourceOut {
     pub frames_received: u64,
     /// Frames ingested.
     pub frames_ingested: u64,
-    /// Frames a newer one replaced before ingest took them.
+    /// Frames dropped, oldest first, from a full queue (four frames) before ingest took them.
     pub frames_dropped: u64,
     /// Buffers that arrived incomplete (lost packets), not used.
     pub incomplete_buffers: u64,

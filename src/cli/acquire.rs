@@ -1,7 +1,7 @@
 //! `brokenray acquire --to URL`: the installation's camera sources acquired in a process of
 //! their own (a camera computer beside the rig, or a deployment that keeps camera drivers out of
 //! the service's process), each frame posted to `/api/v1/frames` of a running service with the
-//! time its source settled. The newest frame of a camera waits while one is being posted; an
+//! time its source settled. A camera's newest four frames wait while one is being posted; an
 //! older one is dropped and counted. A frame the service refuses (4xx) or cannot take (5xx,
 //! unreachable) is counted with the reason; the camera's thread never waits for the service.
 

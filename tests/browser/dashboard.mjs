@@ -128,6 +128,12 @@ await run(async (browser) => {
   const c3 = await page.textContent('article.camera[data-camera="C3"] li[data-found="false"]');
   check(/G: not found/.test(c3) && /at least 4 needed/.test(c3), `the covered marker of C3 is "not found" with its reason: ${c3.trim()}`);
   check(await page.getAttribute('article.camera[data-camera="C3"]', 'data-state') === 'not-found', 'C3\'s panel is marked as not found');
+  // A camera the service takes frames from itself shows its source's state; C2's lost its camera.
+  const source = (await page.textContent('article.camera[data-camera="C2"] [data-f="source"]')).trim();
+  check(/10\.0\.0\.2: disconnected/.test(source) && /last error .*: no frame for 2\.1 s/.test(source) &&
+    await page.getAttribute('article.camera[data-camera="C2"] [data-f="source-status"]', 'class') === 'badge alarm',
+  `C2's source is shown lost, with its error: ${source}`);
+  check(!(await page.isVisible('article.camera[data-camera="C1"] [data-f="source"]')), 'C1, without a source, shows no source line');
   await page.click('article.camera[data-camera="C1"] button.frame');
   await page.waitForSelector('#camera-dialog[open] #camera-dialog-frame img', { timeout: 5000 });
   const full = await page.evaluate(() => {

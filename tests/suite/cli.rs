@@ -100,6 +100,7 @@ fn help_lists_only_working_subcommands() {
             "calibrate-camera",
             "calibrate-station",
             "detect",
+            "acquire",
             "watch",
             "demo",
             "hash-token",

@@ -15,6 +15,12 @@
 //!   plus 37 s: a camera synchronised by PTP).
 //! * `--loss`: the share of stream packets dropped (incomplete buffers).
 //! * `--width`, `--height`: the size the camera starts with (default: the frames').
+//! * `--stamps FILE`: each frame's device stamp and the host's UTC when the fake made it, one
+//!   `device_ns utc_ns` line a frame: the truth a client's timing is measured against.
+//! * `--ptp STATUS`: the camera gets an IEEE 1588 clock's features (`PtpEnable`, `PtpStatus`,
+//!   `PtpDataSetLatch`); once a client enables it and a frame is made, `PtpStatus` reads
+//!   `STATUS` (`Slave`: synchronised; `Listening`, `Faulty`, ...). The stamps are then TAI
+//!   unless `--clock` says otherwise.
 //!
 //! **Run it only inside a network namespace that has only loopback** (`unshare -rn`): the fake
 //! answers GigE Vision discovery, and its clients must open it by address. It prints `ready`
@@ -31,6 +37,19 @@ use std::time::{SystemTime, UNIX_EPOCH};
 /// The fake's registers (`arvfakecamera.h`).
 const REGISTER_WIDTH: u32 = 0x100;
 const REGISTER_HEIGHT: u32 = 0x104;
+/// The PTP features' registers, where the fake's memory has room.
+const REGISTER_PTP_ENABLE: u32 = 0x9000;
+const REGISTER_PTP_STATUS: u32 = 0x9004;
+/// `PtpStatus`' entries.
+const PTP_STATUSES: [&str; 7] = [
+    "Disabled",
+    "Initializing",
+    "Listening",
+    "Uncalibrated",
+    "Slave",
+    "Master",
+    "Faulty",
+];
 /// GenICam pixel formats.
 const MONO16: u32 = 0x0110_0007;
 
@@ -56,6 +75,28 @@ struct Fill {
     next: AtomicUsize,
     clock: DeviceClock,
     start_ns: i64,
+    /// `--ptp`: the fake camera, and the status its PTP reaches once enabled.
+    ptp: Option<(usize, u32)>,
+    /// `--stamps`: where each frame's stamp and the host's time go.
+    stamps: Option<std::sync::Mutex<std::io::BufWriter<std::fs::File>>>,
+}
+
+/// The PTP features, added to the fake's own GenICam description.
+fn ptp_nodes() -> String {
+    let entries: String = PTP_STATUSES
+        .iter()
+        .enumerate()
+        .map(|(i, s)| format!("<EnumEntry Name=\"{s}\"><Value>{i}</Value></EnumEntry>"))
+        .collect();
+    format!(
+        r#"<Boolean Name="PtpEnable" NameSpace="Standard"><pValue>PtpEnableRegister</pValue><OnValue>1</OnValue><OffValue>0</OffValue></Boolean>
+<IntReg Name="PtpEnableRegister" NameSpace="Custom"><Address>{REGISTER_PTP_ENABLE:#x}</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort><Sign>Unsigned</Sign><Endianess>BigEndian</Endianess></IntReg>
+<Enumeration Name="PtpStatus" NameSpace="Standard">{entries}<pValue>PtpStatusRegister</pValue></Enumeration>
+<IntReg Name="PtpStatusRegister" NameSpace="Custom"><Address>{REGISTER_PTP_STATUS:#x}</Address><Length>4</Length><AccessMode>RO</AccessMode><pPort>Device</pPort><Sign>Unsigned</Sign><Endianess>BigEndian</Endianess></IntReg>
+<Command Name="PtpDataSetLatch" NameSpace="Standard"><pValue>PtpDataSetLatchRegister</pValue><CommandValue>1</CommandValue></Command>
+<IntReg Name="PtpDataSetLatchRegister" NameSpace="Custom"><Address>0x9008</Address><Length>4</Length><AccessMode>WO</AccessMode><pPort>Device</pPort><Sign>Unsigned</Sign><Endianess>BigEndian</Endianess></IntReg>
+"#
+    )
 }
 
 fn utc_now_ns() -> i64 {
@@ -165,6 +206,8 @@ unsafe extern "C" fn fill(
     // checks the payload before calling).
     unsafe {
         let fill = &*(data as *const Fill);
+        // The instant the frame is made, before its pixels are copied.
+        let now = utc_now_ns();
         let width = aravis_sys::arv_buffer_get_image_width(buffer).max(0) as usize;
         let height = aravis_sys::arv_buffer_get_image_height(buffer).max(0) as usize;
         let mut size = 0;
@@ -188,7 +231,16 @@ unsafe extern "C" fn fill(
                 }
             }
         }
-        let now = utc_now_ns();
+        if let Some((camera, status)) = fill.ptp {
+            let camera = camera as *mut aravis_sys::ArvFakeCamera;
+            let mut enabled = 0;
+            if aravis_sys::arv_fake_camera_read_register(camera, REGISTER_PTP_ENABLE, &mut enabled)
+                != 0
+                && enabled != 0
+            {
+                aravis_sys::arv_fake_camera_write_register(camera, REGISTER_PTP_STATUS, status);
+            }
+        }
         let stamp = match fill.clock {
             DeviceClock::Utc => None,
             DeviceClock::Boot { drift } => {
@@ -198,6 +250,19 @@ unsafe extern "C" fn fill(
         };
         if let Some(stamp) = stamp {
             aravis_sys::arv_buffer_set_timestamp(buffer, stamp as u64);
+        }
+        if let Some(log) = &fill.stamps {
+            use std::io::Write;
+            // A UTC stamp is the fake's own, taken as it began the frame: the truth itself.
+            let (device, utc) = match stamp {
+                Some(stamp) => (stamp, now),
+                None => {
+                    let own = aravis_sys::arv_buffer_get_timestamp(buffer) as i64;
+                    (own, own)
+                }
+            };
+            let mut log = log.lock().unwrap_or_else(|p| p.into_inner());
+            let _ = writeln!(log, "{device} {utc}").and_then(|()| log.flush());
         }
     }
 }
@@ -214,7 +279,9 @@ fn run() -> Result<(), String> {
     let mut address = None;
     let mut frames_dir = None;
     let mut serial = "FAKE0".to_owned();
-    let mut clock = "utc".to_owned();
+    let mut clock = None;
+    let mut ptp = None;
+    let mut stamps = None;
     let mut drift_ppm = 0.0;
     let mut loss = 0.0;
     let mut width = None;
@@ -225,7 +292,9 @@ fn run() -> Result<(), String> {
             "--address" => address = Some(value()?),
             "--frames" => frames_dir = Some(PathBuf::from(value()?)),
             "--serial" => serial = value()?,
-            "--clock" => clock = value()?,
+            "--clock" => clock = Some(value()?),
+            "--ptp" => ptp = Some(value()?),
+            "--stamps" => stamps = Some(PathBuf::from(value()?)),
             "--drift-ppm" => drift_ppm = value()?.parse().map_err(|_| "--drift-ppm: a number")?,
             "--loss" => loss = value()?.parse().map_err(|_| "--loss: a number")?,
             "--width" => width = Some(value()?.parse::<u32>().map_err(|_| "--width: a number")?),
@@ -252,6 +321,17 @@ fn run() -> Result<(), String> {
         })
         .collect::<Result<Vec<_>, _>>()?;
     let first = frames.first().ok_or("no .pgm or .png frames in --frames")?;
+    let ptp_status = match &ptp {
+        Some(status) => Some(
+            PTP_STATUSES
+                .iter()
+                .position(|s| s == status)
+                .ok_or_else(|| format!("--ptp `{status}`: one of {}", PTP_STATUSES.join(", ")))?
+                as u32,
+        ),
+        None => None,
+    };
+    let clock = clock.unwrap_or_else(|| if ptp.is_some() { "tai" } else { "utc" }.to_owned());
     let clock = match clock.as_str() {
         "utc" => DeviceClock::Utc,
         "boot" => DeviceClock::Boot {
@@ -264,7 +344,23 @@ fn run() -> Result<(), String> {
         width.unwrap_or(first.width as u32),
         height.unwrap_or(first.height as u32),
     );
-    let gv = aravis::GvFakeCamera::new(Some(&address), Some(&serial));
+    // With PTP, the fake's own description plus the PTP features, from a file of this run.
+    let description = match ptp_status {
+        Some(_) => {
+            let (xml, _) = aravis::FakeCamera::new(&serial).genicam_xml();
+            let xml = xml.as_str().replacen(
+                "</RegisterDescription>",
+                &(ptp_nodes() + "</RegisterDescription>"),
+                1,
+            );
+            let path =
+                std::env::temp_dir().join(format!("brokenray-fakecam-{}.xml", std::process::id()));
+            std::fs::write(&path, xml).map_err(|e| format!("{}: {e}", path.display()))?;
+            Some(path.display().to_string())
+        }
+        None => None,
+    };
+    let gv = aravis::GvFakeCamera::new_full(Some(&address), Some(&serial), description.as_deref());
     let fake = gv.fake_camera().ok_or("the fake camera did not start")?;
     fake.write_register(REGISTER_WIDTH, w);
     fake.write_register(REGISTER_HEIGHT, h);
@@ -276,6 +372,13 @@ fn run() -> Result<(), String> {
         next: AtomicUsize::new(0),
         clock,
         start_ns: utc_now_ns(),
+        ptp: ptp_status.map(|status| (fake.as_ptr() as usize, status)),
+        stamps: match stamps {
+            Some(path) => Some(std::sync::Mutex::new(std::io::BufWriter::new(
+                std::fs::File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?,
+            ))),
+            None => None,
+        },
     }));
     // SAFETY: the fake camera outlives nothing here (the program ends with it), the data is
     // leaked so it lives as long as the callback may run, and `fill` has the callback's type.

@@ -246,3 +246,87 @@ async fn without_an_archive_the_listing_says_so() {
         "{body}"
     );
 }
+
+/// A camera source's state as `GET /api/v1/cameras` and `/metrics` give it: what its thread
+/// recorded (frames taken, the newest winning over a waiting one, a refusal, the last error) is
+/// what a reader sees. No camera is opened: the test app sets the state.
+#[tokio::test]
+async fn a_camera_source_s_state_is_in_cameras_and_metrics() {
+    use brokenray::acquire::{AcquiredFrame, SourceStatus};
+    use brokenray::vision::GreyImage;
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML.replacen(
+        "[[cameras]]\nframe = \"C3\"",
+        "[[cameras]]\nframe = \"C3\"\nsource = { address = \"10.0.0.4\", trigger = \"software\", rate_hz = 5, timestamp = \"ptp\" }",
+        1,
+    );
+    let app = TestApp::start(Some(&text)).await;
+    let (_, body) = app.get("/api/v1/cameras").await;
+    let source = &body["cameras"][2]["source"];
+    assert_eq!(source["address"], "10.0.0.4", "{body}");
+    assert_eq!(source["status"], "connecting");
+    assert_eq!(source["connected"], false);
+    assert_eq!(
+        (source["trigger"].as_str(), source["timestamp"].as_str()),
+        (Some("software"), Some("ptp"))
+    );
+    assert!(
+        body["cameras"][0].get("source").is_none(),
+        "C1 has no source: {body}"
+    );
+
+    let state = &app.sources[0];
+    let frame = |t| AcquiredFrame {
+        time_ns: t,
+        image: GreyImage::from_u8(2, 1, &[0, 1]).expect("a frame"),
+        arrival_ns: t,
+    };
+    state
+        .counters
+        .received
+        .fetch_add(3, std::sync::atomic::Ordering::Relaxed);
+    // Six frames into a queue of four: the two oldest dropped.
+    for t in 1..=6 {
+        state.offer(frame(t));
+    }
+    assert_eq!(state.take().map(|f| f.time_ns), Some(3));
+    state.ingested(0.012);
+    state.update(|d| {
+        d.status = SourceStatus::Streaming;
+        d.ptp_status = Some("Slave".into());
+    });
+    state.failed(
+        "conflict: a sample differs".into(),
+        1_800_000_000_000_000_000,
+    );
+    let (_, body) = app.get("/api/v1/cameras").await;
+    let source = &body["cameras"][2]["source"];
+    assert_eq!(source["status"], "streaming", "{body}");
+    assert_eq!(source["connected"], true);
+    assert_eq!(source["ptp_status"], "Slave");
+    assert_eq!(
+        [
+            &source["frames_received"],
+            &source["frames_ingested"],
+            &source["frames_dropped"],
+            &source["frames_failed"]
+        ],
+        [3, 1, 2, 1]
+    );
+    assert_eq!(source["delay_median_ms"], 12.0);
+    assert_eq!(source["last_error"], "conflict: a sample differs");
+    assert_eq!(
+        source["last_error_at"],
+        format_ns(1_800_000_000_000_000_000)
+    );
+    let (_, metrics) = app.get("/metrics").await;
+    let metrics = metrics.as_str().expect("text").to_owned();
+    for line in [
+        "brokenray_camera_connected{camera=\"C3\"} 1",
+        "brokenray_camera_frames_received_total{camera=\"C3\"} 3",
+        "brokenray_camera_frames_dropped_total{camera=\"C3\"} 2",
+        "brokenray_camera_frames_failed_total{camera=\"C3\"} 1",
+        "brokenray_camera_delay_p99_seconds{camera=\"C3\"} 0.012",
+    ] {
+        assert!(metrics.contains(line), "{line} not in\n{metrics}");
+    }
+}

@@ -270,9 +270,16 @@ pub(crate) fn browser() -> Browser {
     }
 }
 
-/// The built-in installation with the oscillatory model a ship's flexure needs.
+/// The built-in installation with the oscillatory model a ship's flexure needs, camera C2 with
+/// a source (never opened by the test app: its state is set by the test).
 fn ship_installation() -> String {
-    DEFAULT_INSTALLATION_TOML.replace("model = \"static\"", "model = \"oscillatory\"")
+    DEFAULT_INSTALLATION_TOML
+        .replace("model = \"static\"", "model = \"oscillatory\"")
+        .replacen(
+            "[[cameras]]\nframe = \"C2\"",
+            "[[cameras]]\nframe = \"C2\"\nsource = { address = \"10.0.0.2\" }",
+            1,
+        )
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -287,6 +294,12 @@ async fn the_dashboard_works_in_a_real_browser() {
     let app = TestApp::start(Some(&ship_installation())).await;
     follow_real_time(&app);
     let inst = app.service.installation().clone();
+    // Camera C2's source has lost its camera.
+    app.sources[0].error(
+        brokenray::acquire::SourceStatus::Disconnected,
+        "no frame for 2.1 s".into(),
+        now_ns(),
+    );
 
     // 150 s of a ship at 10 Hz, ending now; the reference set over the first 15 s.
     let now_ns = now_ns();

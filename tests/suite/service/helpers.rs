@@ -40,6 +40,9 @@ pub struct TestApp {
     pub router: Router,
     /// The `[server] database` value, kept by restarts.
     pub database: String,
+    /// The camera sources' states, as `GET /api/v1/cameras` shows them; no camera is opened
+    /// (a test sets their state).
+    pub sources: Vec<std::sync::Arc<brokenray::acquire::SourceState>>,
 }
 
 /// The built-in installation with its database in a fresh temporary directory, plus `extra`
@@ -88,7 +91,12 @@ impl TestApp {
             Service::start_with_clock(inst, std::sync::Arc::new(clock.clone()))
                 .await
                 .expect("service starts");
-        let router = router(AppState::new(service.clone()).expect("the frame archive"));
+        let mut state = AppState::new(service.clone()).expect("the frame archive");
+        let sources: Vec<_> = (service.installation().sources.iter())
+            .map(|s| std::sync::Arc::new(brokenray::acquire::SourceState::new(s.clone())))
+            .collect();
+        state.sources = sources.clone().into();
+        let router = router(state);
         let database = match &inst_database {
             config::Database::Sqlite(p) => p.display().to_string(),
             config::Database::Postgres(u) => u.secret().to_owned(),
@@ -100,6 +108,7 @@ impl TestApp {
             service,
             pipeline: Some(pipeline),
             router,
+            sources,
         }
     }
 
