@@ -76,6 +76,16 @@ impl Validator {
         });
     }
 
+    /// Something valid but probably not meant, at `offset`'s line.
+    fn warning(&mut self, offset: usize, message: String) {
+        let (line, _) = self.lines.locate(offset);
+        self.warnings.push(ConfigProblem {
+            line: Some(line),
+            column: None,
+            message,
+        });
+    }
+
     fn finite(&mut self, at: usize, what: &str, values: &[f64]) -> bool {
         match validate_finite(what, values) {
             Ok(()) => true,
@@ -250,15 +260,10 @@ impl Validator {
                 .fold(f64::INFINITY, f64::min);
             if smallest < MIN_TARGET_PX {
                 let at = self.marker_at.get(child).copied().unwrap_or(0);
-                let (line, _) = self.lines.locate(at);
-                self.warnings.push(ConfigProblem {
-                    line: Some(line),
-                    column: None,
-                    message: format!(
+                self.warning(at, format!(
                         "marker `{child}`: its {} mm discs image {smallest:.1} px across in camera `{parent}` at the nominal pose of `{}`, under {MIN_TARGET_PX} px: too small to find reliably",
                         target.diameter_mm, spec.name
-                    ),
-                });
+                    ));
             }
         }
     }
@@ -883,14 +888,9 @@ impl Validator {
                     }
                 },
                 None => {
-                    let (line, _) = self.lines.locate(at);
-                    self.warnings.push(ConfigProblem {
-                        line: Some(line),
-                        column: None,
-                        message: format!(
+                    self.warning(at, format!(
                             "{what}: no intrinsics_covariance, so its calibration is taken as exact and no sigma includes its error (`brokenray calibrate-camera --out` writes it)"
-                        ),
-                    });
+                        ));
                     None
                 }
             };
@@ -1067,22 +1067,15 @@ impl Validator {
             ok = false;
         }
         if trigger == Some(TriggerMode::Line) && s.trigger_line.is_none() {
-            let (line, _) = self.lines.locate(at);
-            self.warnings.push(ConfigProblem {
-                line: Some(line),
-                column: None,
-                message: format!("{what}: trigger `line` with no trigger_line: Line0 is taken"),
-            });
+            self.warning(
+                at,
+                format!("{what}: trigger `line` with no trigger_line: Line0 is taken"),
+            );
         }
         if timestamp == Some(TimestampMode::Host) {
-            let (line, _) = self.lines.locate(at);
-            self.warnings.push(ConfigProblem {
-                line: Some(line),
-                column: None,
-                message: format!(
+            self.warning(at, format!(
                     "{what}: timestamp `host` takes a frame's arrival minus latency_us as its time: the transfer's jitter (milliseconds) moves every result of a moving structure; `ptp` or `host_fit` do not"
-                ),
-            });
+                ));
         }
         Some(CameraSource {
             camera: camera.to_owned(),
@@ -1248,14 +1241,9 @@ impl Validator {
                     .first()
                     .and_then(|map| map.iter().enumerate().find(|(k, m)| k != *m))
                 {
-                    let (line, _) = self.lines.locate(at);
-                    self.warnings.push(ConfigProblem {
-                        line: Some(line),
-                        column: None,
-                        message: format!(
+                    self.warning(at, format!(
                             "{what}: its layout maps onto itself under a turn (point {k} onto point {onto}, within {tolerance_mm} mm): with no prediction it cannot be identified (it is tracked from its nominal pose); move a point off the symmetry"
-                        ),
-                    });
+                        ));
                 }
             }
             if ok {
