@@ -16,6 +16,24 @@ use std::time::{Duration, Instant};
 /// Set in the process that runs inside the namespace.
 const INSIDE: &str = "BROKENRAY_TEST_NETNS";
 
+/// At the top of a test: outside its namespace, runs the test again inside one and returns;
+/// inside, goes on. The test's name is taken from the function it stands in, so it cannot name
+/// another test (an inner run that matched no test would pass).
+macro_rules! in_own_namespace {
+    () => {{
+        fn here() {}
+        let path = std::any::type_name_of_val(&here);
+        let test = path
+            .trim_end_matches("::here")
+            .rsplit("::")
+            .next()
+            .expect("a test's name");
+        if !in_namespace(test) {
+            return;
+        }
+    }};
+}
+
 /// Runs `test` (this module's test of that name) again inside a new network namespace with
 /// only loopback, and says whether the caller is that run (it then does the test's work).
 fn in_namespace(test: &str) -> bool {
@@ -330,9 +348,7 @@ fn sample_times(link: &str) -> Vec<i64> {
 /// leader packet's smallest delay (the fit's floor) and the fake's wake-up, under 10 ms.
 #[test]
 fn three_cameras_stream_bit_exact_frames_stored_at_their_exposure() {
-    if !in_namespace("three_cameras_stream_bit_exact_frames_stored_at_their_exposure") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let stamps = |camera: &str| rig.dir.path().join(format!("{camera}.stamps"));
     let (s1, s2, s3) = (stamps("C1"), stamps("C2"), stamps("C3"));
@@ -439,9 +455,7 @@ fn three_cameras_stream_bit_exact_frames_stored_at_their_exposure() {
 /// streams.
 #[test]
 fn a_camera_that_stops_is_reported_and_taken_back_when_it_returns() {
-    if !in_namespace("a_camera_that_stops_is_reported_and_taken_back_when_it_returns") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let fake = rig.fake("127.0.0.2", "C1", &[]);
     let installation = rig.installation(
@@ -485,9 +499,7 @@ fn a_camera_that_stops_is_reported_and_taken_back_when_it_returns() {
 /// buffers are counted and left out; the complete ones are ingested.
 #[test]
 fn lost_packets_are_counted_and_their_buffers_left_out() {
-    if !in_namespace("lost_packets_are_counted_and_their_buffers_left_out") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let _fake = rig.fake("127.0.0.2", "C1", &["--loss", "0.0005"]);
     let installation = rig.installation(
@@ -511,9 +523,7 @@ fn lost_packets_are_counted_and_their_buffers_left_out() {
 /// the exposure, so both links' samples share their instants.
 #[test]
 fn a_software_trigger_group_gives_its_frames_one_time() {
-    if !in_namespace("a_software_trigger_group_gives_its_frames_one_time") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let _c1 = rig.fake("127.0.0.2", "C1", &[]);
     let _c2 = rig.fake("127.0.0.3", "C2", &[]);
@@ -555,9 +565,7 @@ fn a_software_trigger_group_gives_its_frames_one_time() {
 /// keeps 16-bit frames exactly so, and still finds the marker.
 #[test]
 fn mono16_frames_come_back_bit_exact() {
-    if !in_namespace("mono16_frames_come_back_bit_exact") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let _fake = rig.fake("127.0.0.2", "C1", &[]);
     let installation = rig.installation(
@@ -595,9 +603,7 @@ fn mono16_frames_come_back_bit_exact() {
 /// state.
 #[test]
 fn what_a_camera_refuses_is_named_by_its_key() {
-    if !in_namespace("what_a_camera_refuses_is_named_by_its_key") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let _small = rig.fake("127.0.0.2", "C1", &["--width", "640", "--height", "480"]);
     let _c2 = rig.fake("127.0.0.3", "C2", &[]);
@@ -692,9 +698,7 @@ fn what_a_camera_refuses_is_named_by_its_key() {
 /// found there; stopped by SIGTERM, it ends cleanly with a status line per camera.
 #[test]
 fn acquire_posts_frames_to_a_service() {
-    if !in_namespace("acquire_posts_frames_to_a_service") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let _fake = rig.fake("127.0.0.2", "C1", &[]);
     let plain = rig.installation("plain.toml", &[]);
@@ -751,9 +755,7 @@ fn acquire_posts_frames_to_a_service() {
 /// another timescale) is 37 s from the host's clock: refused and counted, never stored.
 #[test]
 fn ptp_stamps_are_stored_in_utc_and_unlocked_or_wrong_clocks_are_refused() {
-    if !in_namespace("ptp_stamps_are_stored_in_utc_and_unlocked_or_wrong_clocks_are_refused") {
-        return;
-    }
+    in_own_namespace!();
     let rig = Rig::new();
     let stamps = rig.dir.path().join("C1.stamps");
     let _c1 = rig.fake(
