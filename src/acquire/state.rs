@@ -163,10 +163,16 @@ impl SourceState {
         f(&mut self.detail());
     }
 
-    /// Records an error (logged once here, with the camera's name).
+    /// Records an error; it is logged (with the camera's name) when it differs from the last
+    /// one, so a camera refusing every frame for the same reason does not fill the log.
     pub fn error(&self, status: SourceStatus, message: String, now_ns: i64) {
-        tracing::warn!(camera = %self.source.camera, address = %self.source.address, "{message}");
         let mut d = self.detail();
+        if d.last_error
+            .as_ref()
+            .is_none_or(|(last, _)| *last != message)
+        {
+            tracing::warn!(camera = %self.source.camera, address = %self.source.address, "{message}");
+        }
         d.status = status;
         d.last_error = Some((message, now_ns));
     }
@@ -184,8 +190,14 @@ impl SourceState {
     /// Records a frame ingest refused or failed on, keeping the status.
     pub fn failed(&self, message: String, now_ns: i64) {
         self.counters.failed.fetch_add(1, Ordering::Relaxed);
-        tracing::warn!(camera = %self.source.camera, "a frame was not taken: {message}");
-        self.detail().last_error = Some((message, now_ns));
+        let mut d = self.detail();
+        if d.last_error
+            .as_ref()
+            .is_none_or(|(last, _)| *last != message)
+        {
+            tracing::warn!(camera = %self.source.camera, "a frame was not taken: {message}");
+        }
+        d.last_error = Some((message, now_ns));
     }
 
     /// Hands a frame on; a full queue drops its oldest, counted.

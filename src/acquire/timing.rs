@@ -86,9 +86,11 @@ impl ClockFit {
                 if !self.latched
                     && device_ns.div_euclid(1_000_000_000) == last.0.div_euclid(1_000_000_000) =>
             {
-                if offset < last.1 {
-                    *last = (device_ns, offset);
+                if offset >= last.1 {
+                    // Not this second's lowest: the line stays as it is.
+                    return;
                 }
+                *last = (device_ns, offset);
             }
             Some(last) if device_ns <= last.0 => return,
             _ => self.points.push_back((device_ns, offset)),

@@ -91,25 +91,20 @@ async fn post_frames(state: &SourceState, client: &Client) {
     let camera = state.source.camera.clone();
     while let Some(frame) = state.next().await {
         let time_ns = frame.time_ns;
-        let bytes =
-            match tokio::task::spawn_blocking(move || encode(&frame.image, FrameFormat::Pgm)).await
-            {
-                Ok(Ok(bytes)) => bytes,
-                Ok(Err(e)) => {
-                    state.failed(
-                        format!("cannot encode the frame: {e}"),
-                        crate::clock::wall_now_ns(),
-                    );
-                    continue;
-                }
-                Err(e) => {
-                    state.failed(
-                        format!("cannot encode the frame: {e}"),
-                        crate::clock::wall_now_ns(),
-                    );
-                    continue;
-                }
-            };
+        let encoded = tokio::task::spawn_blocking(move || encode(&frame.image, FrameFormat::Pgm))
+            .await
+            .map_err(|e| e.to_string())
+            .and_then(|r| r.map_err(|e| e.to_string()));
+        let bytes = match encoded {
+            Ok(bytes) => bytes,
+            Err(e) => {
+                state.failed(
+                    format!("cannot encode the frame: {e}"),
+                    crate::clock::wall_now_ns(),
+                );
+                continue;
+            }
+        };
         match client
             .post_frame(&camera, time_ns, FrameFormat::Pgm, bytes)
             .await
