@@ -386,12 +386,16 @@ fn centre_alone(base: &str, site_cfg: &Path, raw_hours: f64) {
         let registry = store.registry().await.expect("its registry");
         let mut after = None;
         let mut bodies = Vec::new();
-        while let Some(batch) = store
-            .outbox_batch(Tier::Raw, after, batch_rows)
+        let mut part = None;
+        while let Some((batch, rest)) = store
+            .outbox_batch(Tier::Raw, after, batch_rows, part.as_ref())
             .await
             .expect("a batch")
         {
-            after = Some(batch.upto_seq);
+            if rest.is_none() {
+                after = Some(batch.upto_seq);
+            }
+            part = rest;
             let samples = batch
                 .tables
                 .iter()

@@ -8,7 +8,7 @@ use crate::api::error::ErrorCode;
 use crate::clock::format_ns;
 use crate::config::SiteName;
 use crate::fleet::protocol::{
-    Outcome, SiteStatus, SyncRequest, SyncResponse, TargetStatus, TierBacklog,
+    Outcome, SiteStatus, SyncRequest, SyncResponse, TargetStatus, TierBacklog, UploadLimits,
 };
 use crate::store::outbox::OutboxBatch;
 use crate::store::{SiteUpload, SyncOutcome};
@@ -48,6 +48,15 @@ const BYTES_PER_VALUE: usize = 48;
 /// while it grows; the values read from it take the other half).
 fn max_json_bytes(budget: usize) -> usize {
     budget / 4
+}
+
+/// What the centre reads of one upload at most, told to every site in every answer so that
+/// its batches fit.
+fn upload_limits(budget: usize) -> UploadLimits {
+    UploadLimits {
+        json_bytes: max_json_bytes(budget) as u64,
+        values: (budget / 2 / BYTES_PER_VALUE) as u64,
+    }
 }
 
 /// The zstd window a decoder allows: at most the largest upload, so that a frame cannot make
@@ -123,9 +132,8 @@ fn decompress(headers: &HeaderMap, body: &Bytes, budget: usize) -> Result<Vec<u8
             ));
         }
     };
-    // Every value but the first of an array follows a comma: an upper bound of the values.
-    let values = json.iter().filter(|&&b| b == b',' || b == b'[').count();
-    if values.saturating_mul(BYTES_PER_VALUE) > budget / 2 {
+    let values = crate::fleet::protocol::json_values(&json);
+    if values > upload_limits(budget).values {
         return Err(too_large(format!(
             "the upload holds up to {values} values, more than `[central] max_sync_mb` allows \
              reading at once"
@@ -153,6 +161,10 @@ async fn read_upload(
 /// can keep (and an upkeep that fails for the site).
 const PARTITION_TIMES: [&str; 2] = ["time_ns", "bucket_ns"];
 
+/// The largest magnitude of an uploaded real number: a site stores translations to 1e8 mm and
+/// covariances to their squares; beyond, a statistic of the copy would overflow.
+const MAX_UPLOADED_REAL: f64 = 1e20;
+
 /// How far past the centre's clock an uploaded row's time may lie.
 const UPLOAD_FUTURE_NS: i64 = 86_400_000_000_000;
 
@@ -171,6 +183,9 @@ fn check_tables(
         if let Some(problem) = rows.problem() {
             return Err(ApiError::invalid_field(&format!("{field}[{i}]"), problem));
         }
+        if let Some(problem) = repeated_key(rows) {
+            return Err(ApiError::invalid_field(&format!("{field}[{i}]"), problem));
+        }
         if rows.table.tier() != tier {
             return Err(ApiError::invalid_field(
                 &format!("{field}[{i}].table"),
@@ -178,6 +193,20 @@ fn check_tables(
             ));
         }
         for (j, ((name, _), values)) in rows.table.columns().iter().zip(&rows.columns).enumerate() {
+            if let ColumnValues::Real(reals) = values
+                && let Some((k, v)) = reals.iter().enumerate().find_map(|(k, v)| {
+                    v.filter(|v| !v.is_finite() || v.abs() > MAX_UPLOADED_REAL)
+                        .map(|v| (k, v))
+                })
+            {
+                return Err(ApiError::invalid_field(
+                    &format!("{field}[{i}].columns[{j}].real[{k}]"),
+                    format!(
+                        "{name} {v:e} is beyond anything a site stores (at most \
+                         {MAX_UPLOADED_REAL:e} in magnitude)"
+                    ),
+                ));
+            }
             if !PARTITION_TIMES.contains(name) {
                 continue;
             }
@@ -201,6 +230,38 @@ fn check_tables(
         }
     }
     Ok(())
+}
+
+/// Two rows of one uploaded table at the same key, if there are: the database would refuse
+/// the upload every time it came (one statement cannot write a row twice).
+fn repeated_key(rows: &crate::store::outbox::TableRows) -> Option<String> {
+    use crate::store::outbox::ColumnValues;
+    let columns = rows.table.columns();
+    let key: Vec<&Vec<Option<i64>>> = rows
+        .table
+        .key()
+        .iter()
+        .filter_map(|k| columns.iter().position(|(name, _)| name == k))
+        .filter_map(|at| match &rows.columns[at] {
+            ColumnValues::Int(v) => Some(v),
+            _ => None,
+        })
+        .collect();
+    if key.len() != rows.table.key().len() {
+        return None;
+    }
+    let mut seen = std::collections::HashMap::with_capacity(rows.rows());
+    for row in 0..rows.rows() {
+        let values: Vec<Option<i64>> = key.iter().map(|c| c[row]).collect();
+        if let Some(first) = seen.insert(values, row) {
+            return Some(format!(
+                "rows {first} and {row} of {} have the same key ({})",
+                rows.table.name(),
+                rows.table.key().join(", ")
+            ));
+        }
+    }
+    None
 }
 
 /// `POST /api/v1/sites/{site}/sync`: a site's upload, applied in one transaction exactly once.
@@ -355,10 +416,16 @@ pub(super) async fn post_sync(
         .sync(&site, upload, app.service.now_ns())
         .await
         .map_err(crate::store::StoreError::refusal_of_value)?;
-    let (outcome, acked_seq) = match outcome {
-        SyncOutcome::Applied { acked_seq } => (Outcome::Applied, acked_seq),
-        SyncOutcome::Duplicate { acked_seq } => (Outcome::Duplicate, acked_seq),
-        SyncOutcome::Gap { acked_seq } => (Outcome::Gap, acked_seq),
+    let (outcome, acked_seq, acked_stamp_ns) = match outcome {
+        SyncOutcome::Applied {
+            acked_seq,
+            acked_stamp_ns,
+        } => (Outcome::Applied, acked_seq, acked_stamp_ns),
+        SyncOutcome::Duplicate {
+            acked_seq,
+            acked_stamp_ns,
+        } => (Outcome::Duplicate, acked_seq, acked_stamp_ns),
+        SyncOutcome::Gap { acked_seq } => (Outcome::Gap, acked_seq, None),
         SyncOutcome::UnknownRequest { id } => {
             return Err(ApiError::invalid_field(
                 "requested.request_id",
@@ -372,6 +439,17 @@ pub(super) async fn post_sync(
                 format!(
                     "site `{site}` uploads in outbox generation {generation}, which descends \
                      from no generation the centre has received"
+                ),
+            ));
+        }
+        SyncOutcome::GenerationSuperseded { generation, by } => {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                ErrorCode::GenerationSuperseded,
+                format!(
+                    "site `{site}` uploads in outbox generation {generation}, which generation \
+                     {by} (a copy of its database, restored) supersedes: two databases upload \
+                     as this site; stop the one that was replaced"
                 ),
             ));
         }
@@ -406,8 +484,10 @@ pub(super) async fn post_sync(
     Ok(Json(SyncResponse {
         outcome,
         acked_seq,
-        // Every answer tells the site what the office asks of it.
+        acked_stamp_ns,
+        // Every answer tells the site what the office asks of it, and how much it reads.
         raw_requests: central.pending_raw(&site).await?,
+        limits: Some(upload_limits(budget)),
     }))
 }
 

@@ -158,23 +158,33 @@ pub struct UpstreamSettings {
     pub token: Option<String>,
     /// The budget for raw samples (kbit/s of compressed upload); 0 sends none unless asked.
     pub raw_kbit_s: f64,
-    /// Most rows in one upload (a commit is never split, so one may hold more).
+    /// Most rows in one upload (a commit of more rows goes in parts).
     pub batch_rows: usize,
+    /// Most bytes of JSON in one upload before compression (the centre's own limit, which it
+    /// tells the site, lowers it further).
+    pub batch_bytes: usize,
     /// Seconds between status reports when nothing else is sent.
     pub heartbeat_s: f64,
 }
 
-/// `url` as it may be shown (logs, the API): without a user name or password it may carry.
+/// `url` as it may be shown (logs, the API): without a user name or password it may carry,
+/// nor its query and fragment (where a key may travel: `?key=...`), each said to be there.
 pub fn redacted_url(url: &url::Url) -> String {
     let mut shown = url.clone();
-    if !shown.username().is_empty() || shown.password().is_some() {
-        let _ = shown.set_username("");
-        let _ = shown.set_password(None);
-        let text = shown.to_string();
-        // Say that credentials were there without showing them.
-        return text.replacen("://", "://<credentials>@", 1);
+    let had_query = shown.query().is_some() || shown.fragment().is_some();
+    shown.set_query(None);
+    shown.set_fragment(None);
+    let had_credentials = !shown.username().is_empty() || shown.password().is_some();
+    let _ = shown.set_username("");
+    let _ = shown.set_password(None);
+    let mut text = shown.to_string();
+    if had_credentials {
+        text = text.replacen("://", "://<credentials>@", 1);
     }
-    shown.to_string()
+    if had_query {
+        text.push_str("?<redacted>");
+    }
+    text
 }
 
 impl std::fmt::Debug for UpstreamSettings {
@@ -184,6 +194,7 @@ impl std::fmt::Debug for UpstreamSettings {
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("raw_kbit_s", &self.raw_kbit_s)
             .field("batch_rows", &self.batch_rows)
+            .field("batch_bytes", &self.batch_bytes)
             .field("heartbeat_s", &self.heartbeat_s)
             .finish()
     }

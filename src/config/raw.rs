@@ -47,6 +47,7 @@ pub(super) struct RawUpstream {
     pub token_file: Option<String>,
     pub raw_kbit_s: Option<f64>,
     pub batch_rows: Option<usize>,
+    pub batch_mb: Option<f64>,
     pub heartbeat_s: Option<f64>,
 }
 

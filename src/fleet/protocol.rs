@@ -52,6 +52,13 @@ pub struct WireBatch {
     pub after_seq: Option<i64>,
     /// The last commit it covers.
     pub upto_seq: i64,
+    /// True when it holds a part of its one commit `upto_seq` and more parts follow (absent:
+    /// false); the centre applies its rows and acknowledges nothing new.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub partial: bool,
+    /// When the site made the commit `upto_seq` (its clock, ns).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub upto_stamp_ns: Option<i64>,
     /// The rows, per table.
     pub tables: Vec<TableRows>,
 }
@@ -62,6 +69,8 @@ impl From<OutboxBatch> for WireBatch {
             tier: b.tier,
             after_seq: (b.after_seq != i64::MIN).then_some(b.after_seq),
             upto_seq: b.upto_seq,
+            partial: b.partial,
+            upto_stamp_ns: b.upto_stamp_ns,
             tables: b.tables,
         }
     }
@@ -73,9 +82,27 @@ impl From<WireBatch> for OutboxBatch {
             tier: b.tier,
             after_seq: b.after_seq.unwrap_or(i64::MIN),
             upto_seq: b.upto_seq,
+            partial: b.partial,
+            upto_stamp_ns: b.upto_stamp_ns,
             tables: b.tables,
         }
     }
+}
+
+/// What a centre reads of one upload at most: the upload's JSON once decompressed, and its
+/// values (counted as [`json_values`] counts them). A site keeps its uploads within both.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct UploadLimits {
+    /// Bytes of JSON.
+    pub json_bytes: u64,
+    /// Values.
+    pub values: u64,
+}
+
+/// An upper bound of the values in a JSON text: every value but the first of an array
+/// follows a comma, and every array opens with a bracket.
+pub fn json_values(json: &[u8]) -> u64 {
+    json.iter().filter(|&&b| b == b',' || b == b'[').count() as u64
 }
 
 /// A site's state as it reports it.
@@ -274,8 +301,16 @@ pub struct SyncResponse {
     pub outcome: Outcome,
     /// The tier's last applied commit (absent: nothing yet, or a report of state alone).
     pub acked_seq: Option<i64>,
+    /// When the site made the commit `acked_seq` (its clock, ns, as the upload that brought
+    /// it said; absent: not known). A site whose own commit of that number was made at
+    /// another time is another life of the database, whose commits the centre does not hold.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub acked_stamp_ns: Option<i64>,
     /// Periods of raw rows the office asked of this site and has not all of yet.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     #[schema(value_type = Vec<Object>)]
     pub raw_requests: Vec<RawRequest>,
+    /// The most the centre reads of one upload (absent from centres of earlier versions).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub limits: Option<UploadLimits>,
 }

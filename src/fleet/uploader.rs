@@ -6,20 +6,28 @@
 //! the centre acknowledges is recorded in the site's database (through the writer, like every
 //! write) before the next of its tier is read; until then a restart sends it again, which the
 //! centre answers as a duplicate. Failures of the link or the centre (no answer, 5xx, 408, 429)
-//! are retried with back-off from 1 s to 60 s; a refusal (401, 403, 404, 409, 413, 422) stops
+//! are retried with back-off from 1 s to 60 s; a refusal (401, 403, 404, 409, 422) stops
 //! that tier's stream, says so in `GET /api/v1/upstream`, the health check and the log, and
 //! never skips data: after the operator fixes the cause, a restart resumes where it stopped.
-//! So does an acknowledgement past the site's newest commit (the centre has commits of this
-//! outbox generation that the file does not: it was replaced by an older copy of itself), which
-//! is never recorded.
+//! So does an acknowledgement past the site's newest commit, or of a commit the site made at
+//! another time than the centre was told (either way the centre has commits of this outbox
+//! generation that the file does not: it was replaced by an older copy of itself), which is
+//! never recorded.
+//!
+//! A batch is bounded by rows (`batch_rows`) and by bytes: `batch_mb` of JSON, and what the
+//! centre says it reads of one upload, both in bytes and in values. The rows a batch may take
+//! follow the bytes a row took in the tier's last batch; a batch encoded over the bound is read
+//! again smaller before it is sent, and a 413 is answered by a batch half as large. A commit
+//! larger than a batch goes in parts, which the centre applies without acknowledging the
+//! commit until its last part (a restart sends the commit again from its first part).
 
 use super::protocol::{
     Outcome, RawRequest, RequestedRows, SiteStatus, SyncRequest, SyncResponse, TargetStatus,
-    TierBacklog, ZSTD_LEVEL,
+    TierBacklog, UploadLimits, ZSTD_LEVEL,
 };
 use crate::config::{SiteName, UpstreamSettings};
 use crate::service::Service;
-use crate::store::outbox::Tier;
+use crate::store::outbox::{PartCursor, Tier};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -163,8 +171,105 @@ impl Upstream {
 enum Failure {
     /// Worth retrying: the link or the centre is down or busy.
     Transient(String),
+    /// Larger than the centre reads (413): worth sending again smaller.
+    TooLarge(String),
     /// The centre refused it: retrying the same would fail the same way.
     Refused(String),
+}
+
+/// An upload encoded for the wire.
+struct Encoded {
+    /// The zstd-compressed JSON.
+    body: Vec<u8>,
+    /// The JSON's bytes.
+    json_bytes: u64,
+    /// Its values, counted as the centre counts them.
+    values: u64,
+}
+
+/// Encodes and compresses an upload on a blocking thread (a batch is megabytes: never on the
+/// async workers).
+async fn encode(request: SyncRequest) -> Result<Encoded, String> {
+    tokio::task::spawn_blocking(move || {
+        let json =
+            serde_json::to_vec(&request).map_err(|e| format!("cannot encode the upload: {e}"))?;
+        let body = zstd::bulk::compress(&json, ZSTD_LEVEL)
+            .map_err(|e| format!("cannot compress the upload: {e}"))?;
+        Ok(Encoded {
+            body,
+            json_bytes: json.len() as u64,
+            values: super::protocol::json_values(&json),
+        })
+    })
+    .await
+    .map_err(|e| format!("the upload's encoder failed: {e}"))?
+}
+
+/// Rows a batch of a tier starts with, before its own rows were measured: a filtered result
+/// with its reference is about 1.6 KB of JSON, a sample about 300 bytes.
+fn first_bytes_per_row(tier: Tier) -> f64 {
+    match tier {
+        Tier::Events => 1000.0,
+        Tier::Results => 2000.0,
+        Tier::Raw => 400.0,
+    }
+}
+
+/// What bounds a tier's batches: the JSON bytes and values its rows took in its last batch,
+/// and the bytes it may take (halved after a 413).
+#[derive(Debug, Clone, Copy)]
+struct Sizing {
+    bytes_per_row: f64,
+    values_per_row: f64,
+    /// Bytes of JSON a batch may take (`None`: the settings' and the centre's bounds alone).
+    shrunk_to: Option<u64>,
+}
+
+impl Sizing {
+    fn new(tier: Tier) -> Sizing {
+        Sizing {
+            bytes_per_row: first_bytes_per_row(tier),
+            values_per_row: 40.0,
+            shrunk_to: None,
+        }
+    }
+
+    /// The JSON bytes and values one upload may take: the settings' bytes, nine tenths of what
+    /// the centre reads (room for the report of state beside the rows), a bound after a 413.
+    fn bounds(&self, settings_bytes: usize, limits: Option<UploadLimits>) -> (u64, u64) {
+        let mut bytes = settings_bytes as u64;
+        let mut values = u64::MAX;
+        if let Some(l) = limits {
+            bytes = bytes.min(l.json_bytes / 10 * 9);
+            values = l.values / 10 * 9;
+        }
+        if let Some(shrunk) = self.shrunk_to {
+            bytes = bytes.min(shrunk);
+        }
+        (bytes, values)
+    }
+
+    /// Rows the next batch may take.
+    fn rows(
+        &self,
+        batch_rows: usize,
+        settings_bytes: usize,
+        limits: Option<UploadLimits>,
+    ) -> usize {
+        let (bytes, values) = self.bounds(settings_bytes, limits);
+        let by_bytes = bytes as f64 / self.bytes_per_row;
+        let by_values = values as f64 / self.values_per_row;
+        (by_bytes.min(by_values).floor() as usize).clamp(1, batch_rows.max(1))
+    }
+
+    /// Learns from an encoded batch of `rows` rows (with a tenth to spare).
+    fn learn(&mut self, rows: usize, encoded: &Encoded) {
+        if rows == 0 {
+            return;
+        }
+        self.bytes_per_row = (encoded.json_bytes as f64 / rows as f64 * 1.1).max(50.0);
+        self.values_per_row = (encoded.values as f64 / rows as f64 * 1.1).max(2.0);
+    }
 }
 
 /// The site's current state, from the service's snapshot.
@@ -232,20 +337,8 @@ impl Link {
         })
     }
 
-    /// Posts one upload, compressed; returns the answer and the bytes sent (compressed,
-    /// uncompressed). The JSON is encoded and compressed on a blocking thread (a batch is
-    /// megabytes: never on the async workers).
-    async fn post(&self, request: SyncRequest) -> Result<(SyncResponse, u64, u64), Failure> {
-        let (body, json_len) = tokio::task::spawn_blocking(move || {
-            let json = serde_json::to_vec(&request)
-                .map_err(|e| Failure::Refused(format!("cannot encode the upload: {e}")))?;
-            let body = zstd::bulk::compress(&json, ZSTD_LEVEL)
-                .map_err(|e| Failure::Refused(format!("cannot compress the upload: {e}")))?;
-            Ok::<_, Failure>((body, json.len()))
-        })
-        .await
-        .map_err(|e| Failure::Refused(format!("the upload's encoder failed: {e}")))??;
-        let sizes = (body.len() as u64, json_len as u64);
+    /// Posts one encoded upload; returns the answer.
+    async fn send(&self, body: Vec<u8>) -> Result<SyncResponse, Failure> {
         let mut post = self
             .client
             .post(self.url.clone())
@@ -264,10 +357,9 @@ impl Link {
             .await
             .map_err(|e| Failure::Transient(format!("the answer was cut: {e}")))?;
         if status.is_success() {
-            let answer: SyncResponse = serde_json::from_str(&text).map_err(|e| {
+            return serde_json::from_str(&text).map_err(|e| {
                 Failure::Transient(format!("the centre's answer does not parse: {e}"))
-            })?;
-            return Ok((answer, sizes.0, sizes.1));
+            });
         }
         let message = serde_json::from_str::<serde_json::Value>(&text)
             .ok()
@@ -276,6 +368,8 @@ impl Link {
         let what = format!("the centre answered {status}: {message}");
         if status.is_server_error() || matches!(status.as_u16(), 408 | 429) {
             Err(Failure::Transient(what))
+        } else if status == reqwest::StatusCode::PAYLOAD_TOO_LARGE {
+            Err(Failure::TooLarge(what))
         } else {
             Err(Failure::Refused(what))
         }
@@ -358,16 +452,29 @@ fn count_due(last: Option<(Instant, Duration)>, heartbeat: Duration) -> bool {
     last.is_none_or(|(at, took)| at.elapsed() >= heartbeat.max(took * 100))
 }
 
-/// The next batch of `tier` after `after`, if one waits; an empty tier's backlog is zero
-/// now, and a failure to read is counted and logged.
+/// A tier's place in its stream: the last commit the centre acknowledged, where the next
+/// part of a commit larger than a batch starts, and what bounds its batches.
+struct Stream {
+    after: Option<i64>,
+    part: Option<PartCursor>,
+    sizing: Sizing,
+}
+
+/// The next batch of a tier's stream (a part of a commit where one is under way) and where
+/// the part after it starts, if one waits; an empty tier's backlog is zero now, and a failure
+/// to read is counted and logged.
 async fn read_batch(
     service: &Service,
     upstream: &Upstream,
     tier: Tier,
-    after: Option<i64>,
+    stream: &Stream,
     limit: usize,
-) -> Option<crate::store::outbox::OutboxBatch> {
-    match service.store().outbox_batch(tier, after, limit).await {
+) -> Option<(crate::store::outbox::OutboxBatch, Option<PartCursor>)> {
+    match service
+        .store()
+        .outbox_batch(tier, stream.after, limit, stream.part.as_ref())
+        .await
+    {
         Ok(Some(batch)) => Some(batch),
         // Nothing waits: the tier's backlog is empty now, whatever the last count.
         Ok(None) => {
@@ -385,20 +492,49 @@ async fn read_batch(
     }
 }
 
-/// The next slice of a period the centre asked for: a minute of rows from where it was
+/// The next slice of a period the centre asked for: `slice_ns` of rows from where it was
 /// delivered to; a stretch without any is passed in the same slice (a period of months with
 /// an hour of rows is a few uploads). Its end and its rows.
 async fn requested_slice(
     store: &crate::store::Store,
     r: &RawRequest,
+    slice_ns: i64,
 ) -> crate::store::StoreResult<(i64, Vec<crate::store::outbox::TableRows>)> {
     let to_ns = match store.next_raw_time(r.delivered_to_ns, r.to_ns).await? {
         None => r.to_ns,
         Some(t) => r
             .to_ns
-            .min(t.max(r.delivered_to_ns).saturating_add(REQUEST_SLICE_NS)),
+            .min(t.max(r.delivered_to_ns).saturating_add(slice_ns)),
     };
     Ok((to_ns, store.raw_rows_in(r.delivered_to_ns, to_ns).await?))
+}
+
+/// Stops a tier's stream (or every stream, for a report of state alone) and says why; true
+/// when that is news (a stream that was not stopped for this reason already), so that a site
+/// whose reports keep being refused logs it once, not every heartbeat.
+fn stop(upstream: &Upstream, tier: Option<Tier>, now_ns: i64, why: &str) -> bool {
+    let stopped: Vec<Tier> = match tier {
+        Some(t) => vec![t],
+        None => Tier::ALL.to_vec(),
+    };
+    let mut news = false;
+    for t in stopped {
+        upstream.update(t, |p| {
+            news |= p.stopped.as_deref() != Some(why);
+            p.last_error = Some((now_ns, why.to_owned()));
+            p.errors += 1;
+            p.stopped = Some(why.to_owned());
+        });
+    }
+    news
+}
+
+/// What was sent: the batch's bounds, or a slice of a period asked for.
+#[derive(Debug, Clone)]
+struct Sent {
+    upto_seq: i64,
+    partial: bool,
+    rest: Option<PartCursor>,
 }
 
 /// Runs the uploader until the service begins to stop.
@@ -434,10 +570,18 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
         .await
         .unwrap_or_default();
     let mut last_count = Some((counted_at, counted_at.elapsed()));
-    let mut cursor: [Option<i64>; 3] = [None; 3];
+    let mut streams = [Tier::Events, Tier::Results, Tier::Raw].map(|tier| Stream {
+        after: None,
+        part: None,
+        sizing: Sizing::new(tier),
+    });
     for b in &backlog {
-        cursor[index(b.tier)] = b.acked_seq;
+        streams[index(b.tier)].after = b.acked_seq;
     }
+    // What the centre reads of one upload, once it has said.
+    let mut limits: Option<UploadLimits> = None;
+    // The span of a slice of a period asked for (halved while one is too large).
+    let mut slice_ns = REQUEST_SLICE_NS;
     let mut backoff = Duration::from_secs(1);
     let mut raw_allowed_at = Instant::now();
     // Whether the raw stream goes before the next slice of a period asked for.
@@ -461,9 +605,11 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             if progress[i].1.stopped.is_some() {
                 continue;
             }
-            let limit = settings.batch_rows;
+            let limit = streams[i]
+                .sizing
+                .rows(settings.batch_rows, settings.batch_bytes, limits);
             if tier != Tier::Raw {
-                next = read_batch(&service, &upstream, tier, cursor[i], limit).await;
+                next = read_batch(&service, &upstream, tier, &streams[i], limit).await;
                 if next.is_some() {
                     break;
                 }
@@ -475,13 +621,13 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             if stream_turn && stream_allowed {
                 stream_turn = false;
                 stream_read = true;
-                next = read_batch(&service, &upstream, tier, cursor[i], limit).await;
+                next = read_batch(&service, &upstream, tier, &streams[i], limit).await;
                 if next.is_some() {
                     break;
                 }
             }
             if let Some(r) = upstream.raw_requests().first().copied() {
-                match requested_slice(&store, &r).await {
+                match requested_slice(&store, &r, slice_ns).await {
                     Ok((to_ns, tables)) => {
                         stream_turn = true;
                         requested = Some(RequestedRows {
@@ -505,7 +651,7 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                 }
             }
             if stream_allowed && !stream_read {
-                next = read_batch(&service, &upstream, tier, cursor[i], limit).await;
+                next = read_batch(&service, &upstream, tier, &streams[i], limit).await;
             }
         }
         if next.is_none() && requested.is_none() && !report_due {
@@ -524,15 +670,23 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                 continue;
             }
         };
-        let slice_rows = requested
-            .as_ref()
-            .map(|r| r.tables.iter().map(|t| t.rows() as u64).sum::<u64>());
+        let slice = requested.as_ref().map(|r| {
+            (
+                r.tables.iter().map(|t| t.rows() as u64).sum::<u64>(),
+                r.to_ns - r.from_ns,
+            )
+        });
         // A requested slice's failures are the raw tier's.
         let tier = next
             .as_ref()
-            .map(|b| b.tier)
+            .map(|(b, _)| b.tier)
             .or(requested.as_ref().map(|_| Tier::Raw));
-        let rows = next.as_ref().map_or(0, |b| b.rows() as u64);
+        let rows = next.as_ref().map_or(0, |(b, _)| b.rows() as u64);
+        let sent = next.as_ref().map(|(b, rest)| Sent {
+            upto_seq: b.upto_seq,
+            partial: b.partial,
+            rest: rest.clone(),
+        });
         // Read after the batch: at or past its last commit.
         let head_seq = match store.outbox_head().await {
             Ok(head) => head,
@@ -550,31 +704,79 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
             lineage: identity.lineage.clone(),
             head_seq: Some(head_seq),
             registry,
-            batch: next.map(Into::into),
+            batch: next.map(|(b, _)| b.into()),
             status: Some(site_status(&service, &described)),
             backlog: backlog_now(&upstream),
             requested,
         };
-        match link.post(request).await {
-            Ok((answer, bytes, json_bytes)) => {
+        let encoded = match encode(request).await {
+            Ok(encoded) => encoded,
+            Err(why) => {
+                tracing::error!(error = %why, "an upload cannot be encoded; its stream stops");
+                let _ = stop(&upstream, tier, service.now_ns(), &why);
+                continue;
+            }
+        };
+        // Over what may be sent: read again smaller, before anything is sent.
+        if let Some(t) = tier {
+            let sizing = &mut streams[index(t)].sizing;
+            let (max_bytes, max_values) = sizing.bounds(settings.batch_bytes, limits);
+            let over = encoded.json_bytes > max_bytes || encoded.values > max_values;
+            if let Some((slice_rows, span_ns)) = slice {
+                if over && slice_rows > 1 && span_ns > 1 {
+                    slice_ns = (span_ns / 2).max(1);
+                    continue;
+                }
+            } else if over && rows > 1 {
+                let before = sizing.rows(settings.batch_rows, settings.batch_bytes, limits);
+                sizing.learn(rows as usize, &encoded);
+                if sizing.rows(settings.batch_rows, settings.batch_bytes, limits) >= before {
+                    sizing.bytes_per_row *= 2.0;
+                }
+                continue;
+            }
+            if over {
+                let why = format!(
+                    "one row of the {} tier takes {} bytes of JSON ({} values), more than \
+                     an upload may take ({max_bytes} bytes, {max_values} values: `[upstream] \
+                     batch_mb` and the centre's `[central] max_sync_mb`)",
+                    t.name(),
+                    encoded.json_bytes,
+                    encoded.values
+                );
+                tracing::error!(tier = t.name(), "{why}");
+                let _ = stop(&upstream, tier, service.now_ns(), &why);
+                continue;
+            }
+            if slice.is_none() {
+                sizing.learn(rows as usize, &encoded);
+            }
+        }
+        let (bytes, json_bytes) = (encoded.body.len() as u64, encoded.json_bytes);
+        match link.send(encoded.body).await {
+            Ok(answer) => {
                 let now = service.now_ns();
                 upstream.contact(now);
                 backoff = Duration::from_secs(1);
                 last_report = Some(Instant::now());
+                limits = answer.limits.or(limits);
                 *upstream
                     .raw_requests
                     .lock()
                     .unwrap_or_else(|p| p.into_inner()) = answer.raw_requests.clone();
-                if let Some(slice_rows) = slice_rows {
+                if let Some((slice_rows, span_ns)) = slice {
                     // The centre's list says how far each request now is.
                     upstream.update(Tier::Raw, |p| {
                         p.bytes_sent += bytes;
                         p.json_bytes_sent += json_bytes;
                         p.requested_rows_sent += slice_rows;
                     });
+                    if span_ns >= slice_ns {
+                        slice_ns = (slice_ns * 2).min(REQUEST_SLICE_NS);
+                    }
                     continue;
                 }
-                let Some(tier) = tier else {
+                let (Some(tier), Some(sent)) = (tier, sent) else {
                     // A report of state alone: counted with the events tier's bytes.
                     upstream.update(Tier::Events, |p| {
                         p.bytes_sent += bytes;
@@ -583,6 +785,12 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                     continue;
                 };
                 let i = index(tier);
+                // A bound a 413 set loosens again with every batch taken.
+                let sizing = &mut streams[i].sizing;
+                sizing.shrunk_to = sizing
+                    .shrunk_to
+                    .map(|b| b.saturating_mul(5) / 4)
+                    .filter(|&b| b < settings.batch_bytes as u64);
                 if let Some(acked) = answer.acked_seq
                     && acked > head_seq
                 {
@@ -596,25 +804,60 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                          database, and start it again"
                     );
                     tracing::error!(tier = tier.name(), acked, head_seq, "{why}");
-                    upstream.update(tier, |p| {
-                        p.last_error = Some((now, why.clone()));
-                        p.errors += 1;
-                        p.stopped = Some(why);
-                    });
+                    let _ = stop(&upstream, Some(tier), now, &why);
                     continue;
                 }
                 match answer.outcome {
                     Outcome::Applied | Outcome::Duplicate => {
-                        let Some(acked) = answer.acked_seq else {
-                            continue;
-                        };
-                        if let Err(e) = service.record_upstream_ack(tier, acked).await {
-                            // The centre has it: a restart sends it again as a duplicate.
-                            tracing::warn!(error = %e, "cannot record the centre's acknowledgement");
+                        // An acknowledgement of another commit than the one sent: the centre
+                        // must have had it from this database, made when this database made it.
+                        if let (Some(acked), Some(stamp)) =
+                            (answer.acked_seq, answer.acked_stamp_ns)
+                            && acked != sent.upto_seq
+                        {
+                            match store.commit_stamp(acked).await {
+                                Ok(Some(own)) if own != stamp => {
+                                    let why = format!(
+                                        "the centre acknowledges commit {acked} of this tier as \
+                                         made at {}, but this site made its commit {acked} at {}: \
+                                         its database was replaced by an older copy that did not \
+                                         start an outbox generation of its own, and the centre \
+                                         holds another life's commits under these numbers; stop \
+                                         the service, run `brokenray new-generation` on the \
+                                         database, and start it again",
+                                        crate::clock::format_ns(stamp),
+                                        crate::clock::format_ns(own)
+                                    );
+                                    tracing::error!(tier = tier.name(), acked, "{why}");
+                                    let _ = stop(&upstream, Some(tier), now, &why);
+                                    continue;
+                                }
+                                // Its record is gone (pruned with old rows): nothing to tell.
+                                Ok(_) => {}
+                                Err(e) => {
+                                    tracing::warn!(error = %e, "cannot read a commit's stamp; retrying");
+                                    if pause(&mut stopping, backoff).await {
+                                        break;
+                                    }
+                                    continue;
+                                }
+                            }
                         }
-                        cursor[i] = Some(acked);
+                        let stream = &mut streams[i];
+                        stream.part = if answer.outcome == Outcome::Applied && sent.partial {
+                            sent.rest.clone()
+                        } else {
+                            None
+                        };
+                        if let Some(acked) = answer.acked_seq {
+                            if let Err(e) = service.record_upstream_ack(tier, acked).await {
+                                // The centre has it: a restart sends it again as a duplicate.
+                                tracing::warn!(error = %e, "cannot record the centre's acknowledgement");
+                            }
+                            stream.after = Some(acked);
+                        }
                         upstream.update(tier, |p| {
-                            p.acked_seq = Some(acked);
+                            p.acked_seq = answer.acked_seq.or(p.acked_seq);
                             p.batches_sent += 1;
                             p.rows_sent += rows;
                             p.bytes_sent += bytes;
@@ -635,7 +878,8 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                             resume_after = ?answer.acked_seq,
                             "the centre has less than this site recorded; resuming from its number"
                         );
-                        cursor[i] = answer.acked_seq;
+                        streams[i].after = answer.acked_seq;
+                        streams[i].part = None;
                     }
                 }
             }
@@ -652,21 +896,30 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
                 }
                 backoff = (backoff * 2).min(MAX_BACKOFF);
             }
-            Err(Failure::Refused(why)) => {
-                tracing::error!(error = %why, tier = ?tier.map(Tier::name), "the centre refused an upload; its stream stops until the service restarts");
-                let now = service.now_ns();
+            Err(Failure::TooLarge(why))
+                if tier.is_some() && (rows > 1 || slice.is_some_and(|(n, s)| n > 1 && s > 1)) =>
+            {
+                // Smaller, at once: the centre reads less than it said, or than was guessed.
+                let t = tier.unwrap_or(Tier::Raw);
+                tracing::warn!(error = %why, tier = t.name(), json_bytes, "an upload was too large for the centre; sending it in smaller batches");
+                upstream.update(t, |p| {
+                    p.last_error = Some((service.now_ns(), why.clone()));
+                    p.errors += 1;
+                });
+                if let Some((_, span_ns)) = slice {
+                    slice_ns = (span_ns / 2).max(1);
+                } else {
+                    let sizing = &mut streams[index(t)].sizing;
+                    sizing.shrunk_to = Some((json_bytes / 2).max(1));
+                }
+            }
+            Err(Failure::Refused(why) | Failure::TooLarge(why)) => {
                 // A report of state alone refused: the refusal is about the site (its token,
                 // its outbox), so every stream stops.
-                let stopped: Vec<Tier> = match tier {
-                    Some(t) => vec![t],
-                    None => Tier::ALL.to_vec(),
-                };
-                for t in stopped {
-                    upstream.update(t, |p| {
-                        p.last_error = Some((now, why.clone()));
-                        p.errors += 1;
-                        p.stopped = Some(why.clone());
-                    });
+                if stop(&upstream, tier, service.now_ns(), &why) {
+                    tracing::error!(error = %why, tier = ?tier.map(Tier::name), "the centre refused an upload; its stream stops until the service restarts");
+                } else {
+                    tracing::debug!(error = %why, "the centre refused a report of state again");
                 }
                 last_report = Some(Instant::now());
             }
@@ -677,6 +930,44 @@ pub async fn run(service: Service, upstream: Arc<Upstream>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn encoded(json_bytes: u64, values: u64) -> Encoded {
+        Encoded {
+            body: Vec::new(),
+            json_bytes,
+            values,
+        }
+    }
+
+    #[test]
+    fn a_batch_takes_the_rows_its_bytes_and_values_allow() {
+        let mut sizing = Sizing::new(Tier::Results);
+        // 4 MB at 2000 bytes a row before anything was measured.
+        assert_eq!(sizing.rows(20_000, 4_000_000, None), 2000);
+        // The rows' limit is the smaller.
+        assert_eq!(sizing.rows(500, 4_000_000, None), 500);
+        // A batch of 1000 rows took 1.6 MB and 40 000 values: 1760 bytes and 44 values a row.
+        sizing.learn(1000, &encoded(1_600_000, 40_000));
+        assert_eq!(sizing.rows(20_000, 4_000_000, None), 2272);
+        // A centre that reads 4 MB and 10 000 values: nine tenths of its values bound it.
+        let by_values = UploadLimits {
+            json_bytes: 4_000_000,
+            values: 10_000,
+        };
+        assert_eq!(sizing.rows(20_000, 4_000_000, Some(by_values)), 9000 / 44);
+        // One that reads 250 kB: nine tenths of its bytes.
+        let limits = UploadLimits {
+            json_bytes: 250_000,
+            values: 10_000,
+        };
+        assert_eq!(sizing.rows(20_000, 4_000_000, Some(limits)), 225_000 / 1760);
+        // After a 413 at 100 kB: half of it.
+        sizing.shrunk_to = Some(50_000);
+        assert_eq!(sizing.rows(20_000, 4_000_000, Some(limits)), 28);
+        // Never less than one row.
+        sizing.learn(1, &encoded(10_000_000, 10));
+        assert_eq!(sizing.rows(20_000, 4_000_000, Some(limits)), 1);
+    }
 
     #[test]
     fn the_backlog_is_counted_no_more_often_than_a_hundred_times_a_count() {

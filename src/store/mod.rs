@@ -123,6 +123,10 @@ pub enum StoreError {
     /// A stored value could not be decoded (a corrupted or foreign database).
     #[error("stored data is malformed: {0}")]
     Malformed(String),
+    /// A backup, or a new outbox generation, cannot be made (the file exists or is missing,
+    /// `pg_dump` failed); nothing stored changed.
+    #[error("{0}")]
+    Backup(String),
     /// The database refuses a value it was given (a data exception or a broken constraint):
     /// it will refuse the same again, so retrying is useless.
     #[error("the database refuses a value: {0}")]
@@ -334,15 +338,30 @@ pub async fn new_outbox_generation(path: &std::path::Path) -> StoreResult<outbox
 
 impl Store {
     /// The next batch of `tier` after the commit `after` (`None`: from the start), about
-    /// `limit` rows of whole commits; `None` when nothing waits.
+    /// `limit` rows of whole commits; `None` when nothing waits. A commit of more than `limit`
+    /// rows goes in parts: `part` is where the next starts, and the answer says where the
+    /// one after it does (`None`: the batch ends a commit).
     pub async fn outbox_batch(
         &self,
         tier: Tier,
         after: Option<i64>,
         limit: usize,
-    ) -> StoreResult<Option<OutboxBatch>> {
+        part: Option<&outbox::PartCursor>,
+    ) -> StoreResult<Option<(OutboxBatch, Option<outbox::PartCursor>)>> {
         match &self.reader {
-            Reader::Sqlite(r) => r.outbox_batch(tier, after.unwrap_or(i64::MIN), limit).await,
+            Reader::Sqlite(r) => {
+                r.outbox_batch(tier, after.unwrap_or(i64::MIN), limit, part)
+                    .await
+            }
+            Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
+        }
+    }
+
+    /// When the outbox's commit `seq` was made (the site's clock, ns); `None` when its record
+    /// is gone (pruned with old rows).
+    pub async fn commit_stamp(&self, seq: i64) -> StoreResult<Option<i64>> {
+        match &self.reader {
+            Reader::Sqlite(r) => r.commit_stamp(seq).await,
             Reader::Postgres(_) => Err(StoreError::NotAnOutbox),
         }
     }
@@ -742,6 +761,32 @@ pub struct NewResult {
     pub chi2: Option<f64>,
     /// The reference version and the deformation against it.
     pub deformation: Option<(i64, SmallMotion)>,
+}
+
+impl NewResult {
+    /// What of the result is not a finite number, if anything: such a result cannot be
+    /// stored (a target whose configuration gives numbers out of range).
+    pub fn non_finite(&self) -> Option<&'static str> {
+        let all = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        let s = self.estimate.reported_sigmas();
+        if !all(&pose_columns(&self.estimate.pose)) {
+            Some("pose")
+        } else if !all(self.estimate.cov.as_slice()) || !all(self.systematic_cov.as_slice()) {
+            Some("covariance")
+        } else if !all(&s.rotation_arcsec) || !all(&s.translation_mm) {
+            Some("sigma")
+        } else if !self.age_s.is_finite() {
+            Some("age")
+        } else if self
+            .deformation
+            .as_ref()
+            .is_some_and(|(_, d)| !all(&d.rotation_arcsec) || !all(&d.translation_mm))
+        {
+            Some("deformation")
+        } else {
+            None
+        }
+    }
 }
 
 /// The writer of a backend.

@@ -301,7 +301,7 @@ pub struct Registry {
     pub targets: Vec<Registered>,
 }
 
-/// The rows of one tier written by the commits `(after_seq, upto_seq]`.
+/// The rows of one tier written by the commits `(after_seq, upto_seq]`, or a part of them.
 #[derive(Debug, Clone, PartialEq)]
 pub struct OutboxBatch {
     /// The tier.
@@ -310,8 +310,28 @@ pub struct OutboxBatch {
     pub after_seq: i64,
     /// The last commit the batch covers.
     pub upto_seq: i64,
+    /// True when the batch holds only a part of the rows of its one commit `upto_seq` (a
+    /// commit larger than a batch may be) and more parts follow: the centre applies the rows
+    /// but acknowledges nothing new until the last part.
+    pub partial: bool,
+    /// When the commit `upto_seq` was made (the site's clock, ns; `None` from sites of earlier
+    /// versions): with its number it names the commit, so that the centre's acknowledgement
+    /// of it can be told from one of another life of the database that reused the number.
+    pub upto_stamp_ns: Option<i64>,
     /// The rows, per table (tables without rows left out).
     pub tables: Vec<TableRows>,
+}
+
+/// Where the next part of a commit larger than a batch starts: the commit, the table (its
+/// place in the tier's list) and the key of the last row already sent from that table.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PartCursor {
+    /// The commit.
+    pub seq: i64,
+    /// The table, as an index into [`Tier::tables`].
+    pub table: usize,
+    /// The key ([`SyncTable::key`]) of the last row sent from it (`None`: none yet).
+    pub after_key: Option<Vec<i64>>,
 }
 
 impl OutboxBatch {

@@ -66,11 +66,15 @@ pub enum SyncOutcome {
     Applied {
         /// The tier's last applied commit (`None`: nothing yet).
         acked_seq: Option<i64>,
+        /// When the site made that commit, as its batch said (`None`: not known).
+        acked_stamp_ns: Option<i64>,
     },
     /// Nothing to apply: it ends at or before what was applied.
     Duplicate {
         /// The tier's last applied commit.
         acked_seq: Option<i64>,
+        /// When the site made that commit, as the batch that brought it said.
+        acked_stamp_ns: Option<i64>,
     },
     /// It starts after what was applied: the site resumes from `acked_seq`.
     Gap {
@@ -91,6 +95,14 @@ pub enum SyncOutcome {
     GenerationUnknown {
         /// The generation.
         generation: String,
+    },
+    /// A generation a later one descends from, which has uploaded: the site's database was
+    /// replaced by a copy, and the old one still uploads beside it (nothing was applied).
+    GenerationSuperseded {
+        /// The generation.
+        generation: String,
+        /// A generation that descends from it.
+        by: String,
     },
     /// The site's newest commit is below one it reported before in the same generation: its
     /// database was replaced by an older copy that did not start a generation of its own
@@ -275,7 +287,23 @@ async fn generation(
     .fetch_optional(&mut *conn)
     .await?;
     let known_head = match known {
-        Some((head,)) => head,
+        Some((head,)) => {
+            let child: Option<(String,)> = sqlx::query_as(
+                "select generation from fleet.generations where site = $1 and parent = $2 \
+                 order by first_contact_ns limit 1",
+            )
+            .bind(site.as_str())
+            .bind(generation)
+            .fetch_optional(&mut *conn)
+            .await?;
+            if let Some((by,)) = child {
+                return Ok(Some(SyncOutcome::GenerationSuperseded {
+                    generation: generation.to_owned(),
+                    by,
+                }));
+            }
+            head
+        }
         None => {
             let generations: Vec<(String,)> =
                 sqlx::query_as("select generation from fleet.generations where site = $1")
@@ -313,13 +341,15 @@ async fn generation(
             known_head_seq,
         }));
     }
+    // The newest commit known is what a batch proves the site made, never a number a report
+    // states alone: a false one would refuse the real site's every upload after it.
     sqlx::query(
         "update fleet.generations set head_seq = greatest(head_seq, $3), last_contact_ns = $4 \
          where site = $1 and generation = $2",
     )
     .bind(site.as_str())
     .bind(generation)
-    .bind(upload.head_seq)
+    .bind(upload.batch.map(|b| b.upto_seq))
     .bind(now_ns)
     .execute(&mut *conn)
     .await?;
@@ -419,7 +449,10 @@ async fn apply_requested(
         });
     };
     if done_ns.is_some() || slice.to_ns <= delivered_to_ns {
-        return Ok(SyncOutcome::Duplicate { acked_seq: None });
+        return Ok(SyncOutcome::Duplicate {
+            acked_seq: None,
+            acked_stamp_ns: None,
+        });
     }
     if slice.from_ns > delivered_to_ns {
         return Ok(SyncOutcome::Gap { acked_seq: None });
@@ -447,7 +480,10 @@ async fn apply_requested(
     .bind(now_ns)
     .execute(&mut *conn)
     .await?;
-    Ok(SyncOutcome::Applied { acked_seq: None })
+    Ok(SyncOutcome::Applied {
+        acked_seq: None,
+        acked_stamp_ns: None,
+    })
 }
 
 /// A period of raw rows asked of a site, as the centre records it.
@@ -725,7 +761,10 @@ impl Central {
         }
         let Some(batch) = upload.batch else {
             tx.commit().await?;
-            return Ok(SyncOutcome::Applied { acked_seq: None });
+            return Ok(SyncOutcome::Applied {
+                acked_seq: None,
+                acked_stamp_ns: None,
+            });
         };
         let tier = batch.tier.name();
         let generation = upload.generation;
@@ -741,9 +780,9 @@ impl Central {
         .execute(&mut *tx)
         .await?;
         // Locks the tier's row: uploads of one site and tier apply one after the other.
-        let (stored,): (i64,) = sqlx::query_as(
-            "select acked_seq from fleet.streams where site = $1 and generation = $2 \
-             and tier = $3 for update",
+        let (stored, stored_stamp): (i64, Option<i64>) = sqlx::query_as(
+            "select acked_seq, acked_stamp_ns from fleet.streams where site = $1 \
+             and generation = $2 and tier = $3 for update",
         )
         .bind(site.as_str())
         .bind(generation)
@@ -759,6 +798,7 @@ impl Central {
         let outcome = if stored != NOTHING && batch.upto_seq <= stored {
             SyncOutcome::Duplicate {
                 acked_seq: acked(stored),
+                acked_stamp_ns: stored_stamp,
             }
         } else if batch.after_seq > start {
             SyncOutcome::Gap {
@@ -775,22 +815,32 @@ impl Central {
                 }
                 apply_rows(&mut tx, rows, true).await?;
             }
+            // A part of a commit: its rows are applied (again, the same, if the site starts
+            // the commit over), the acknowledgement waits for the commit's last part.
+            let (acked_seq, acked_stamp_ns) = if batch.partial {
+                (stored, stored_stamp)
+            } else {
+                (batch.upto_seq, batch.upto_stamp_ns)
+            };
             sqlx::query(
-                "update fleet.streams set acked_seq = $3, rows_applied = rows_applied + $4, \
-                 bytes_received = bytes_received + $5, batches_applied = batches_applied + 1, \
-                 updated_ns = $6 where site = $1 and tier = $2 and generation = $7",
+                "update fleet.streams set acked_seq = $3, acked_stamp_ns = $8, \
+                 rows_applied = rows_applied + $4, bytes_received = bytes_received + $5, \
+                 batches_applied = batches_applied + 1, updated_ns = $6 \
+                 where site = $1 and tier = $2 and generation = $7",
             )
             .bind(site.as_str())
             .bind(tier)
-            .bind(batch.upto_seq)
+            .bind(acked_seq)
             .bind(i64::try_from(batch.rows()).unwrap_or(i64::MAX))
             .bind(i64::try_from(upload.wire_bytes).unwrap_or(i64::MAX))
             .bind(now_ns)
             .bind(generation)
+            .bind(acked_stamp_ns)
             .execute(&mut *tx)
             .await?;
             SyncOutcome::Applied {
-                acked_seq: Some(batch.upto_seq),
+                acked_seq: acked(acked_seq),
+                acked_stamp_ns,
             }
         };
         tx.commit().await?;

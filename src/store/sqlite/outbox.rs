@@ -4,8 +4,8 @@
 
 use super::super::StoreResult;
 use super::super::outbox::{
-    Backlog, ColumnValues, HexBytes, LINEAGE_KEPT, OutboxBatch, OutboxIdentity, Registered,
-    Registry, SyncTable, TableRows, Tier,
+    Backlog, ColumnValues, HexBytes, LINEAGE_KEPT, OutboxBatch, OutboxIdentity, PartCursor,
+    Registered, Registry, SyncTable, TableRows, Tier,
 };
 use super::Reader;
 use sqlx::sqlite::SqliteRow;
@@ -91,16 +91,137 @@ async fn rows_between(
     .await?)
 }
 
+/// The key of a row of `table`, as its integers.
+fn key_of(table: SyncTable, row: &SqliteRow) -> StoreResult<Vec<i64>> {
+    table
+        .key()
+        .iter()
+        .map(|k| Ok(row.try_get::<i64, _>(*k)?))
+        .collect()
+}
+
+/// The rows of one commit `seq` of `table` after the key `after_key` (all of them when
+/// `None`), in key order, at most `limit` of them.
+async fn commit_rows(
+    conn: &mut SqliteConnection,
+    table: SyncTable,
+    seq: i64,
+    after_key: Option<&[i64]>,
+    limit: usize,
+) -> StoreResult<Vec<SqliteRow>> {
+    let key = table.key().join(", ");
+    let mut condition = "commit_seq = ?".to_owned();
+    if after_key.is_some() {
+        let marks = vec!["?"; table.key().len()].join(", ");
+        condition.push_str(&format!(" and ({key}) > ({marks})"));
+    }
+    let columns: Vec<&str> = table.columns().iter().map(|(n, _)| *n).collect();
+    let filter = table
+        .filter()
+        .map_or(String::new(), |f| format!("{f} and "));
+    let sql = format!(
+        "select {}, commit_seq from {} where {filter}{condition} order by {key} limit ?",
+        columns.join(", "),
+        table.table()
+    );
+    let mut query = sqlx::query(&sql).bind(seq);
+    for k in after_key.unwrap_or(&[]) {
+        query = query.bind(*k);
+    }
+    Ok(query
+        .bind(i64::try_from(limit).unwrap_or(i64::MAX))
+        .fetch_all(&mut *conn)
+        .await?)
+}
+
+/// When the commit `seq` was made (`None`: its record is gone, pruned with old rows).
+async fn stamp_of(conn: &mut SqliteConnection, seq: i64) -> StoreResult<Option<i64>> {
+    let stamp: Option<(i64,)> = sqlx::query_as("select created_ns from commits where seq = ?")
+        .bind(seq)
+        .fetch_optional(&mut *conn)
+        .await?;
+    Ok(stamp.map(|(s,)| s))
+}
+
+/// One part of the commit `from.seq` of `tier`: at most `limit` rows from `from` on, and
+/// where the next part starts (`None`: this is its last).
+async fn commit_part(
+    conn: &mut SqliteConnection,
+    tier: Tier,
+    from: &PartCursor,
+    limit: usize,
+) -> StoreResult<(Vec<TableRows>, Option<PartCursor>)> {
+    let limit = limit.max(1);
+    let mut tables = Vec::new();
+    let mut taken = 0usize;
+    for (index, &table) in tier.tables().iter().enumerate().skip(from.table) {
+        let after_key = (index == from.table)
+            .then_some(from.after_key.as_deref())
+            .flatten();
+        let room = limit - taken;
+        // One row more than there is room for tells whether the table has more.
+        let rows = commit_rows(conn, table, from.seq, after_key, room + 1).await?;
+        if rows.is_empty() {
+            continue;
+        }
+        if room == 0 {
+            return Ok((
+                tables,
+                Some(PartCursor {
+                    seq: from.seq,
+                    table: index,
+                    after_key: after_key.map(<[i64]>::to_vec),
+                }),
+            ));
+        }
+        let mut out = TableRows::new(table);
+        for row in rows.iter().take(room) {
+            push_row(&mut out, row)?;
+        }
+        taken += out.rows();
+        tables.push(out);
+        if rows.len() > room {
+            let last = key_of(table, &rows[room - 1])?;
+            return Ok((
+                tables,
+                Some(PartCursor {
+                    seq: from.seq,
+                    table: index,
+                    after_key: Some(last),
+                }),
+            ));
+        }
+    }
+    Ok((tables, None))
+}
+
 impl Reader {
-    /// The next batch of `tier` after the commit `after`: whole commits, about `limit` rows
-    /// (more when one commit holds more), `None` when nothing is waiting.
+    /// The next batch of `tier` after the commit `after`: whole commits, about `limit` rows,
+    /// `None` when nothing is waiting. A commit that alone holds more than `limit` rows goes
+    /// in parts of `limit` rows: `part` says where the next one starts, and the batch returned
+    /// with a batch says where the one after it does (`None`: the batch ends a commit).
     pub(in crate::store) async fn outbox_batch(
         &self,
         tier: Tier,
         after: i64,
         limit: usize,
-    ) -> StoreResult<Option<OutboxBatch>> {
+        part: Option<&PartCursor>,
+    ) -> StoreResult<Option<(OutboxBatch, Option<PartCursor>)>> {
+        let limit = limit.max(1);
         let mut tx = self.pool.begin().await?;
+        if let Some(from) = part {
+            let (tables, rest) = commit_part(&mut tx, tier, from, limit).await?;
+            let batch = OutboxBatch {
+                tier,
+                after_seq: after,
+                upto_seq: from.seq,
+                partial: rest.is_some(),
+                upto_stamp_ns: stamp_of(&mut tx, from.seq).await?,
+                tables,
+            };
+            tx.rollback().await?;
+            return Ok(Some((batch, rest)));
+        }
         let (head,): (Option<i64>,) = sqlx::query_as("select max(seq) from commits")
             .fetch_one(&mut *tx)
             .await?;
@@ -111,23 +232,52 @@ impl Reader {
         }
         let mut fetched = Vec::new();
         let mut upto = head;
+        // The first commit with rows, and one that alone holds more than `limit` rows.
+        let mut first_seq = i64::MAX;
+        let mut large = None;
         for &table in tier.tables() {
-            let mut rows = rows_between(&mut tx, table, after, head, limit).await?;
+            let rows = rows_between(&mut tx, table, after, head, limit).await?;
+            if let Some(row) = rows.first() {
+                first_seq = first_seq.min(row.try_get("commit_seq")?);
+            }
             if rows.len() > limit {
                 let last: i64 = rows[limit].try_get("commit_seq")?;
                 let first: i64 = rows[0].try_get("commit_seq")?;
                 if first == last {
-                    // One commit larger than the limit: all of it.
-                    rows = sqlx::query(&select(table, "commit_seq = ?"))
-                        .bind(first)
-                        .fetch_all(&mut *tx)
-                        .await?;
+                    large = Some(large.map_or(first, |l: i64| l.min(first)));
                     upto = upto.min(first);
                 } else {
                     upto = upto.min(last - 1);
                 }
             }
             fetched.push((table, rows));
+        }
+        if let Some(seq) = large
+            && seq <= upto
+        {
+            if first_seq < seq {
+                // Whole commits before the large one go first.
+                upto = seq - 1;
+            } else {
+                // The large commit is the first waiting: its first part.
+                drop(fetched);
+                let from = PartCursor {
+                    seq,
+                    table: 0,
+                    after_key: None,
+                };
+                let (tables, rest) = commit_part(&mut tx, tier, &from, limit).await?;
+                let batch = OutboxBatch {
+                    tier,
+                    after_seq: after,
+                    upto_seq: seq,
+                    partial: rest.is_some(),
+                    upto_stamp_ns: stamp_of(&mut tx, seq).await?,
+                    tables,
+                };
+                tx.rollback().await?;
+                return Ok(Some((batch, rest)));
+            }
         }
         let mut tables = Vec::new();
         for (table, rows) in fetched {
@@ -142,13 +292,25 @@ impl Reader {
                 tables.push(out);
             }
         }
+        let upto_stamp_ns = stamp_of(&mut tx, upto).await?;
         tx.rollback().await?;
-        Ok((!tables.is_empty()).then_some(OutboxBatch {
-            tier,
-            after_seq: after,
-            upto_seq: upto,
-            tables,
-        }))
+        Ok((!tables.is_empty()).then_some((
+            OutboxBatch {
+                tier,
+                after_seq: after,
+                upto_seq: upto,
+                partial: false,
+                upto_stamp_ns,
+                tables,
+            },
+            None,
+        )))
+    }
+
+    /// When the commit `seq` was made (the site's clock, ns); `None` when its record is gone.
+    pub(in crate::store) async fn commit_stamp(&self, seq: i64) -> StoreResult<Option<i64>> {
+        let mut conn = self.pool.acquire().await?;
+        stamp_of(&mut conn, seq).await
     }
 
     /// The raw rows (samples and raw results) measured in `[from_ns, to_ns)`, in one
