@@ -43,6 +43,21 @@ pub(crate) struct IngestResponse {
     pub raw_results: usize,
     /// Filtered results produced.
     pub filtered_results: usize,
+    /// Targets some of whose results were not finite numbers and were not stored (their
+    /// configuration gives numbers out of range), each with what was not finite.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub unusable_results: Vec<UnusableResult>,
+}
+
+/// A target whose results could not be stored.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub(crate) struct UnusableResult {
+    /// The target.
+    pub target: String,
+    /// What was not finite: `pose`, `covariance`, `sigma`, `age` or `deformation`.
+    pub what: String,
+    /// What to do.
+    pub message: String,
 }
 
 impl From<IngestReport> for IngestResponse {
@@ -56,6 +71,19 @@ impl From<IngestReport> for IngestResponse {
             reinitialized: r.reinitialized,
             raw_results: r.raw_results,
             filtered_results: r.filtered_results,
+            unusable_results: r
+                .unusable
+                .into_iter()
+                .map(|(target, what)| UnusableResult {
+                    message: format!(
+                        "a result of target `{target}` has a {what} that is not a finite number \
+                         and was not stored: check its filter tuning, its links' sigmas and its \
+                         cameras' calibrations"
+                    ),
+                    target,
+                    what: what.to_owned(),
+                })
+                .collect(),
         }
     }
 }

@@ -77,7 +77,11 @@ impl CameraAddress {
         if let Some(rest) = text.strip_prefix("usb:") {
             let parts: Vec<&str> = rest.split(':').collect();
             return match parts.as_slice() {
-                [vendor, model, serial] if parts.iter().all(|p| !p.is_empty()) => {
+                [vendor, model, serial]
+                    if parts.iter().all(|p| {
+                        (1..=64).contains(&p.len()) && p.chars().all(|c| c.is_ascii_graphic())
+                    }) =>
+                {
                     Ok(CameraAddress::Usb {
                         vendor: (*vendor).to_owned(),
                         model: (*model).to_owned(),
@@ -85,7 +89,12 @@ impl CameraAddress {
                     })
                 }
                 _ => Err(format!(
-                    "`{text}` is not `usb:VENDOR:MODEL:SERIAL` (three non-empty parts)"
+                    "`{}` is not `usb:VENDOR:MODEL:SERIAL` (three parts of 1 to 64 printable \
+                     characters)",
+                    text.chars()
+                        .take(80)
+                        .map(|c| if c.is_control() { '?' } else { c })
+                        .collect::<String>()
                 )),
             };
         }
@@ -95,6 +104,18 @@ impl CameraAddress {
                     "`{text}` is not one camera's address (a camera is opened at its own address, never found by a broadcast)"
                 ))
             }
+            // The last address of a /24 (or larger) network is its broadcast, the first its
+            // network's own: neither is a camera's on the networks cameras sit on.
+            Ok(ip) if !ip.is_loopback() && matches!(ip.octets()[3], 0 | 255) => Err(format!(
+                "`{text}` ends in .{}: on a camera network (a /24) that is the {} address, no \
+                 camera's; give the camera's own address",
+                ip.octets()[3],
+                if ip.octets()[3] == 0 {
+                    "network"
+                } else {
+                    "broadcast"
+                }
+            )),
             Ok(ip) => Ok(CameraAddress::Gige(ip)),
             Err(_) => Err(format!(
                 "`{text}` is neither an IPv4 address (GigE Vision) nor `usb:VENDOR:MODEL:SERIAL` (USB3 Vision); cameras are opened by address, never found by name"

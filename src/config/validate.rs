@@ -105,6 +105,33 @@ impl Validator {
         }
     }
 
+    /// True when `value` is positive and at most `max`, the plausible limit of what it
+    /// measures (the same the API holds posted sigmas to): a sigma or a filter's noise beyond
+    /// it would make every result of the targets it reaches huge or not finite.
+    fn plausible(&mut self, at: usize, what: &str, value: f64, max: f64) -> bool {
+        if !self.positive(at, what, value) {
+            return false;
+        }
+        if value > max {
+            self.problem(
+                at,
+                format!("{what} is {value:e}, beyond the plausible limit of {max:e}"),
+            );
+            return false;
+        }
+        true
+    }
+
+    /// A rotation's sigma or noise strength (arc-seconds, per second or root second).
+    fn plausible_rotation(&mut self, at: usize, what: &str, value: f64) -> bool {
+        self.plausible(at, what, value, crate::geometry::MAX_ROTATION_SIGMA_ARCSEC)
+    }
+
+    /// A translation's sigma or noise strength (mm, per second or root second).
+    fn plausible_translation(&mut self, at: usize, what: &str, value: f64) -> bool {
+        self.plausible(at, what, value, crate::geometry::MAX_TRANSLATION_SIGMA_MM)
+    }
+
     /// True when `value` lies in `[lo, hi]`; otherwise says so at `at`. Every number that sizes
     /// memory or a duration is bounded this way: a value far outside what makes sense would
     /// overflow the task that uses it, long after the service started.
@@ -157,13 +184,11 @@ impl Validator {
         let rotation_arcsec = raw.rotation_arcsec.per_axis();
         let translation_mm = raw.translation_mm.per_axis();
         let mut ok = true;
-        for (name, values) in [
-            ("rotation_arcsec", rotation_arcsec),
-            ("translation_mm", translation_mm),
-        ] {
-            for v in values {
-                ok &= self.positive(at, &format!("{what}.{name}"), v);
-            }
+        for v in rotation_arcsec {
+            ok &= self.plausible_rotation(at, &format!("{what}.rotation_arcsec"), v);
+        }
+        for v in translation_mm {
+            ok &= self.plausible_translation(at, &format!("{what}.translation_mm"), v);
         }
         ok.then_some(ReportedSigmas {
             rotation_arcsec,
@@ -381,6 +406,11 @@ impl Validator {
                         ok = false;
                         None
                     }
+                    (Some(t), None) if t.trim().is_empty() => {
+                        self.problem(at, "upstream.token is empty".into());
+                        ok = false;
+                        None
+                    }
                     (Some(t), None) => Some(t.trim().to_owned()),
                     (None, Some(f)) => match std::fs::read_to_string(f) {
                         Ok(t) if !t.trim().is_empty() => Some(t.trim().to_owned()),
@@ -409,15 +439,16 @@ impl Validator {
                 let heartbeat_s = u.heartbeat_s.unwrap_or(10.0);
                 ok &= self.duration(at, "upstream.heartbeat_s", heartbeat_s, 0.05, 86_400.0);
                 let batch_rows = u.batch_rows.unwrap_or(20_000);
-                if batch_rows == 0 {
-                    self.problem(at, "upstream.batch_rows must be at least 1".into());
-                    ok = false;
-                }
+                // A batch is read into memory whole: a million rows is gigabytes.
+                ok &= self.within(at, "upstream.batch_rows", batch_rows as f64, 1.0, 1e6);
+                let batch_mb = u.batch_mb.unwrap_or(4.0);
+                ok &= self.within(at, "upstream.batch_mb", batch_mb, 0.01, 1024.0);
                 url.map(|url| UpstreamSettings {
                     url,
                     token,
                     raw_kbit_s,
                     batch_rows,
+                    batch_bytes: (batch_mb * 1e6) as usize,
                     heartbeat_s,
                 })
             }
@@ -1455,12 +1486,12 @@ impl Validator {
                 );
                 ok = false;
             }
-            ok &= self.positive(
+            ok &= self.plausible_rotation(
                 at,
                 &format!("{what}: random_walk.rotation_arcsec_per_sqrt_s"),
                 rw.rotation_arcsec_per_sqrt_s,
             );
-            ok &= self.positive(
+            ok &= self.plausible_translation(
                 at,
                 &format!("{what}: random_walk.translation_mm_per_sqrt_s"),
                 rw.translation_mm_per_sqrt_s,
@@ -1476,12 +1507,12 @@ impl Validator {
                 );
                 ok = false;
             }
-            ok &= self.positive(
+            ok &= self.plausible_rotation(
                 at,
                 &format!("{what}: acceleration_noise.rotation_arcsec_per_s_sqrt_s"),
                 a.rotation_arcsec_per_s_sqrt_s,
             );
-            ok &= self.positive(
+            ok &= self.plausible_translation(
                 at,
                 &format!("{what}: acceleration_noise.translation_mm_per_s_sqrt_s"),
                 a.translation_mm_per_s_sqrt_s,
@@ -1512,10 +1543,15 @@ impl Validator {
                 MAX_DURATION_S,
             );
             for v in o.rotation_arcsec.per_axis() {
-                ok &= self.positive(at, &format!("{what}: oscillation.rotation_arcsec"), v);
+                ok &=
+                    self.plausible_rotation(at, &format!("{what}: oscillation.rotation_arcsec"), v);
             }
             for v in o.translation_mm.per_axis() {
-                ok &= self.positive(at, &format!("{what}: oscillation.translation_mm"), v);
+                ok &= self.plausible_translation(
+                    at,
+                    &format!("{what}: oscillation.translation_mm"),
+                    v,
+                );
             }
             t.oscillation = crate::filter::OscillationTuning {
                 period_s: o.period_s,
@@ -1867,6 +1903,20 @@ fn intrinsics_covariance(values: &[f64]) -> Result<crate::chain::IntrinsicsCovar
         return Err(format!("entry {i} is not a finite number ({v})"));
     }
     let cov = crate::chain::IntrinsicsCovariance::from_row_slice(values);
+    // Plausible variances: a focal length or principal point known to 10 000 px, a
+    // distortion term to 100, is no calibration at all; beyond, the sigmas it feeds are huge
+    // or not finite.
+    const NAMES: [&str; 9] = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"];
+    for (i, name) in NAMES.iter().enumerate() {
+        let max = if i < 4 { 1e8 } else { 1e4 };
+        let v = cov[(i, i)];
+        if v > max {
+            return Err(format!(
+                "has a variance of {v:e} for {name} (entry {}), beyond the plausible {max:e}",
+                i * 10
+            ));
+        }
+    }
     let scale = cov.amax().max(f64::MIN_POSITIVE);
     for i in 0..9 {
         for j in 0..i {
@@ -1882,7 +1932,9 @@ fn intrinsics_covariance(values: &[f64]) -> Result<crate::chain::IntrinsicsCovar
     let smallest = nalgebra::SymmetricEigen::new((cov + cov.transpose()) * 0.5)
         .eigenvalues
         .min();
-    if smallest < -1e-9 * scale {
+    // The file's numbers are rounded, so a tiny negative eigenvalue is rounding: at most a
+    // billionth of the largest entry, and never more than 1e-9 whatever the entries.
+    if smallest < -1e-9 * scale.min(1.0) {
         return Err(format!(
             "is not positive semi-definite (an eigenvalue of {smallest:e})"
         ));

@@ -34,7 +34,7 @@ pub struct IngestItem {
 }
 
 /// What an ingest request did.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct IngestReport {
     /// Samples in the request: all now durably stored.
     pub accepted: usize,
@@ -52,6 +52,10 @@ pub struct IngestReport {
     pub raw_results: usize,
     /// Filtered results produced.
     pub filtered_results: usize,
+    /// Targets some of whose results were not finite numbers, with what was not: those
+    /// results were not stored (the target's configuration gives numbers out of range); the
+    /// samples and every other target's results were.
+    pub unusable: Vec<(String, &'static str)>,
 }
 
 pub(super) struct Pipeline {
@@ -909,7 +913,32 @@ async fn ingest(
         }
     }
     tx.insert_samples(&sample_rows).await?;
-    let rows: Vec<NewResult> = result_rows.into_values().collect();
+    // A result that is not finite is its target's problem, never a storage failure of all.
+    let mut rows: Vec<NewResult> = Vec::with_capacity(result_rows.len());
+    for row in result_rows.into_values() {
+        match row.non_finite() {
+            None => rows.push(row),
+            Some(what) => {
+                let name = &bank.model().targets[row.target.0].name;
+                if !report.unusable.iter().any(|(n, _)| n == name) {
+                    tracing::error!(
+                        target = %name,
+                        what,
+                        "a result of this target is not a finite number and is not stored: \
+                         its filter tuning, sigmas or calibrations give numbers out of range"
+                    );
+                    report.unusable.push((name.clone(), what));
+                }
+                latest.remove(&row.target);
+                match row.source {
+                    ResultSource::Raw => report.raw_results = report.raw_results.saturating_sub(1),
+                    ResultSource::Filtered => {
+                        report.filtered_results = report.filtered_results.saturating_sub(1)
+                    }
+                }
+            }
+        }
+    }
     tx.insert_results(&rows).await?;
     *new_transitions = store_alarms(tx, transitions, now).await?;
     for (t, est) in latest {

@@ -518,6 +518,27 @@ fn fleet_settings_are_checked_and_each_mistake_named() {
         ),
         (
             format!(
+                "{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"http://c\"\ntoken = \" \"\n"
+            ),
+            "[upstream]",
+            "upstream.token is empty",
+        ),
+        (
+            format!(
+                "{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"http://c\"\nbatch_rows = 100000000\n"
+            ),
+            "[upstream]",
+            "upstream.batch_rows must lie in",
+        ),
+        (
+            format!(
+                "{VALID}\n[site]\nname = \"s\"\n[upstream]\nurl = \"http://c\"\nbatch_mb = 1e9\n"
+            ),
+            "[upstream]",
+            "upstream.batch_mb must lie in",
+        ),
+        (
+            format!(
                 "{VALID}\n[[auth.tokens]]\nname = \"x\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\n",
                 "a".repeat(64)
             ),
@@ -609,6 +630,11 @@ fn credentials_in_a_url_are_not_shown() {
     assert!(shown.contains("centre:7878"), "{shown}");
     let plain = config::redacted_url(&url::Url::parse("http://centre:7878/").unwrap());
     assert_eq!(plain, "http://centre:7878/");
+    // A key in the query is not shown either.
+    let keyed = config::redacted_url(
+        &url::Url::parse("http://u:p@centre:7878/fleet?key=s3cret#k").unwrap(),
+    );
+    assert_eq!(keyed, "http://<credentials>@centre:7878/fleet?<redacted>");
 }
 
 /// A camera's `intrinsics_covariance`: 81 finite numbers of a symmetric positive semi-definite
@@ -776,6 +802,18 @@ fn a_camera_source_s_errors_name_the_camera_the_key_and_the_line() {
             "is not `usb:VENDOR:MODEL:SERIAL`",
         ),
         (
+            r#"{ address = "192.168.10.255" }"#,
+            "that is the broadcast address, no camera's",
+        ),
+        (
+            r#"{ address = "usb:Basler:acA1300:22\u000001" }"#,
+            "three parts of 1 to 64 printable characters",
+        ),
+        (
+            r#"{ address = "usb:Basler:acA1300:2201234567890123456789012345678901234567890123456789012345678901234567890" }"#,
+            "three parts of 1 to 64 printable characters",
+        ),
+        (
             r#"{ address = "10.0.0.2", pixel_format = "RGB8" }"#,
             "source.pixel_format `RGB8` is not one of `Mono8`, `Mono10`, `Mono12`, `Mono16`",
         ),
@@ -860,4 +898,89 @@ fn a_host_timestamp_is_valid_but_warned_about() {
         .find(|w| w.message.contains("timestamp `host`"))
         .expect("a warning");
     assert_eq!(warning.line, Some(line_of(&text, "source = ")));
+}
+
+/// Sigmas, noise strengths and a camera's intrinsics covariance have upper bounds (the API's
+/// on posted sigmas): a value far beyond them would make every result of the targets it
+/// reaches huge or not finite, long after `check-config` said the file was fine.
+#[test]
+fn sigmas_noise_and_intrinsics_covariances_are_bounded_above() {
+    for (tuning, key) in [
+        (
+            "model = \"static\"\nrandom_walk = { rotation_arcsec_per_sqrt_s = 1e300, translation_mm_per_sqrt_s = 0.02 }",
+            "random_walk.rotation_arcsec_per_sqrt_s",
+        ),
+        (
+            "model = \"static\"\nrandom_walk = { rotation_arcsec_per_sqrt_s = 2.0, translation_mm_per_sqrt_s = 1e100 }",
+            "random_walk.translation_mm_per_sqrt_s",
+        ),
+        (
+            "model = \"constant_velocity\"\nacceleration_noise = { rotation_arcsec_per_s_sqrt_s = 1e9, translation_mm_per_s_sqrt_s = 1.0 }",
+            "acceleration_noise.rotation_arcsec_per_s_sqrt_s",
+        ),
+        (
+            "model = \"oscillatory\"\noscillation = { period_s = 8.0, correlation_time_s = 30.0, rotation_arcsec = 40.0, translation_mm = 1e20 }",
+            "oscillation.translation_mm",
+        ),
+    ] {
+        let text = VALID.replacen(
+            "kind = \"measured\"",
+            &format!("kind = \"measured\"\n{tuning}"),
+            1,
+        );
+        let e = error_of(&text);
+        assert!(
+            e.contains(key)
+                && e.contains("beyond the plausible limit")
+                && e.starts_with("site.toml:2:"),
+            "{key}: {e}"
+        );
+        let fit = if tuning.contains("oscillatory") {
+            ""
+        } else {
+            "fit_from_data = false\n"
+        };
+        let target = format!("{VALID}\n[targets.filter]\n{fit}{tuning}\n");
+        let e = error_of(&target);
+        assert!(
+            e.contains("target `G` filter")
+                && e.contains(key)
+                && e.contains("beyond the plausible limit"),
+            "target filter {key}: {e}"
+        );
+    }
+    let sigma = VALID.replacen("rotation_arcsec = 20.0", "rotation_arcsec = 1e100", 1);
+    let e = error_of(&sigma);
+    assert!(
+        e.contains("sigma.rotation_arcsec") && e.contains("beyond the plausible limit"),
+        "{e}"
+    );
+
+    // A camera's intrinsics covariance: the built-in one with one entry changed.
+    let builtin = config::DEFAULT_INSTALLATION_TOML;
+    let first = "  1.0437e-1, 1.0100e-1,";
+    assert!(
+        builtin.contains(first),
+        "the built-in camera's covariance starts so"
+    );
+    let huge = builtin.replacen(first, "  1e300, 1.0100e-1,", 1);
+    let e = error_of(&huge);
+    assert!(
+        e.contains("intrinsics_covariance has a variance of 1e300 for fx"),
+        "{e}"
+    );
+    // A negative eigenvalue of -1e-4 beside a variance of 1e6: refused whatever the scale
+    // (a tolerance relative to the largest entry took it for rounding).
+    let indefinite = builtin
+        .replacen(first, "  1e6, 1.0100e-1,", 1)
+        .replace("6.6263e-11", "1e-4");
+    let e = error_of(&indefinite);
+    assert!(
+        e.contains("intrinsics_covariance is not positive semi-definite"),
+        "{e}"
+    );
+    assert!(
+        config::parse("site.toml", builtin).is_ok(),
+        "the built-in one passes"
+    );
 }
