@@ -96,6 +96,9 @@ crate::words! {
         GenerationUnknown = "generation_unknown",
         /// A site's commits went back within one generation (a restored copy).
         CommitsWentBack = "commits_went_back",
+        /// A site uploads in an outbox generation that a later one, restored from a copy of
+        /// its database, supersedes.
+        GenerationSuperseded = "generation_superseded",
         /// The writer is not running.
         WriterStopped = "writer_stopped",
         /// The service is stopping.
@@ -147,13 +150,23 @@ fn is_zero(n: &usize) -> bool {
     *n == 0
 }
 
+/// The most characters of an error's message: enough for every sentence the API makes,
+/// short of a 60 KB name a request may carry and the message would echo.
+pub(crate) const MAX_MESSAGE_CHARS: usize = 1000;
+
 impl ApiError {
-    /// A new error without details.
+    /// A new error without details; a message that echoes a long name from a request is cut
+    /// to a thousand characters.
     pub fn new(status: StatusCode, code: ErrorCode, message: impl Into<String>) -> Self {
+        let mut message = message.into();
+        if let Some((i, _)) = message.char_indices().nth(MAX_MESSAGE_CHARS) {
+            message.truncate(i);
+            message.push_str("...");
+        }
         Self {
             status,
             code,
-            message: message.into(),
+            message,
             details: Vec::new(),
             details_omitted: 0,
         }
@@ -253,11 +266,14 @@ pub(super) fn raw_response(
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        if self.status.is_server_error() {
+        // `busy` is the service full, not failing: its message says what is full and is
+        // shown; a flood of them is no error to log.
+        let internal = self.status.is_server_error() && self.code != ErrorCode::Busy;
+        if internal {
             // Logged once here; the body says nothing of the internals.
             tracing::error!(code = self.code.name(), message = %self.message, "request failed");
         }
-        let message = if self.status.is_server_error() {
+        let message = if internal {
             "the service could not complete the request; nothing of it was stored".to_owned()
         } else {
             self.message

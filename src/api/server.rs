@@ -16,6 +16,14 @@
 //!   is the newcomer closed. A client that keeps refilling idle connections therefore closes
 //!   its own, never another's, and never turns others away. Closed on arrival and closed to
 //!   make room are counted ([`crate::service::ConnectionCounters`]);
+//! * a request keeps its connection busy for at most the request deadline (60 s, its body
+//!   included) and a few seconds of draining, but an event stream for as long as its client
+//!   reads: event streams are capped per address ([`EVENT_STREAMS_PER_ADDRESS`]) and in all (a
+//!   quarter of the connections), and one past a cap is answered 503 `busy`, which leaves its
+//!   connection idle and so closable;
+//! * when every connection an address or the server may hold is busy, a few more
+//!   ([`HEALTH_RESERVE`]) are admitted for one request each that only `GET /healthz` may use,
+//!   so a monitor can still learn that the service is alive and why it is full;
 //! * at shutdown the listener closes, every connection is asked to finish its current request
 //!   (event streams end by themselves: they watch the same signal), and after
 //!   `shutdown_grace_s` whatever is still open is cut off, with a log line saying how many.
@@ -44,6 +52,23 @@ pub struct ServerLimits {
     pub header_timeout: Duration,
     /// Time allowed at shutdown for requests in progress.
     pub shutdown_grace: Duration,
+}
+
+/// Event streams one address may hold open: a dashboard holds one per tab.
+pub const EVENT_STREAMS_PER_ADDRESS: usize = 32;
+
+/// Connections admitted past the limits, one request each, for `GET /healthz` alone.
+pub const HEALTH_RESERVE: usize = 16;
+
+/// The path of the event stream, whose connections stay busy while it is read.
+const EVENTS_PATH: &str = "/api/v1/events";
+
+impl ServerLimits {
+    /// Event streams open at once in all: a quarter of the connections, so that streams never
+    /// fill the server.
+    fn max_event_streams(&self) -> usize {
+        (self.max_connections / 4).max(1)
+    }
 }
 
 /// Open files kept for everything but client connections (the database, its journal, the
@@ -105,6 +130,8 @@ struct Entry {
     idle_since_ns: AtomicU64,
     /// Told when the connection must close to make room.
     evict: Notify,
+    /// Admitted past the limits for one request to `/healthz` ([`HEALTH_RESERVE`]).
+    reserve: bool,
 }
 
 /// The open connections, for admission and eviction.
@@ -115,6 +142,11 @@ struct Table {
     next_id: u64,
     entries: HashMap<u64, Arc<Entry>>,
     per_address: HashMap<IpAddr, usize>,
+    /// Connections of the health reserve open.
+    reserved: usize,
+    /// Event streams open, per address and in all.
+    streams_per_address: HashMap<IpAddr, usize>,
+    streams: usize,
 }
 
 impl Table {
@@ -123,12 +155,44 @@ impl Table {
     }
 
     fn remove(&mut self, id: u64) {
-        if let Some(e) = self.entries.remove(&id)
-            && let Some(n) = self.per_address.get_mut(&e.peer)
-        {
+        let Some(e) = self.entries.remove(&id) else {
+            return;
+        };
+        if e.reserve {
+            self.reserved -= 1;
+        } else if let Some(n) = self.per_address.get_mut(&e.peer) {
             *n -= 1;
             if *n == 0 {
                 self.per_address.remove(&e.peer);
+            }
+        }
+    }
+
+    /// Takes a slot for an event stream of `peer`; why not, past a cap.
+    fn open_stream(&mut self, peer: IpAddr, limits: &ServerLimits) -> Result<(), String> {
+        let of_peer = self.streams_per_address.get(&peer).copied().unwrap_or(0);
+        if of_peer >= EVENT_STREAMS_PER_ADDRESS {
+            return Err(format!(
+                "this address holds {of_peer} event streams, the most one address may; close one"
+            ));
+        }
+        if self.streams >= limits.max_event_streams() {
+            return Err(format!(
+                "{} event streams are open, the most this server keeps; retry later",
+                self.streams
+            ));
+        }
+        *self.streams_per_address.entry(peer).or_insert(0) += 1;
+        self.streams += 1;
+        Ok(())
+    }
+
+    fn close_stream(&mut self, peer: IpAddr) {
+        self.streams = self.streams.saturating_sub(1);
+        if let Some(n) = self.streams_per_address.get_mut(&peer) {
+            *n -= 1;
+            if *n == 0 {
+                self.streams_per_address.remove(&peer);
             }
         }
     }
@@ -139,7 +203,7 @@ impl Table {
         let oldest = self
             .entries
             .iter()
-            .filter(|(_, e)| e.peer == peer)
+            .filter(|(_, e)| e.peer == peer && !e.reserve)
             .filter(|(_, e)| e.busy.load(Ordering::Acquire) == 0)
             .min_by_key(|(_, e)| e.idle_since_ns.load(Ordering::Acquire))
             .map(|(id, _)| *id);
@@ -169,14 +233,15 @@ impl Table {
             .any(|(address, _)| self.evict_oldest_idle(address))
     }
 
-    /// Admits a connection from `peer`, closing an idle one where a limit is reached; `None`
-    /// when it must be refused.
+    /// Admits a connection from `peer`, closing an idle one where a limit is reached, or into
+    /// the health reserve when every one is busy; `None` when it must be refused.
     fn admit(&mut self, peer: IpAddr, limits: &ServerLimits) -> Option<(u64, Arc<Entry>)> {
         let from_peer = self.per_address.get(&peer).copied().unwrap_or(0);
-        if from_peer >= limits.max_connections_per_address && !self.evict_oldest_idle(peer) {
-            return None;
-        }
-        if self.entries.len() >= limits.max_connections && !self.evict_from_greediest() {
+        let full = (from_peer >= limits.max_connections_per_address
+            && !self.evict_oldest_idle(peer))
+            || (self.entries.len() - self.reserved >= limits.max_connections
+                && !self.evict_from_greediest());
+        if full && self.reserved >= HEALTH_RESERVE {
             return None;
         }
         let id = self.next_id;
@@ -186,9 +251,14 @@ impl Table {
             busy: AtomicUsize::new(0),
             idle_since_ns: AtomicU64::new(self.elapsed_ns()),
             evict: Notify::new(),
+            reserve: full,
         });
         self.entries.insert(id, Arc::clone(&entry));
-        *self.per_address.entry(peer).or_insert(0) += 1;
+        if full {
+            self.reserved += 1;
+        } else {
+            *self.per_address.entry(peer).or_insert(0) += 1;
+        }
         Some((id, entry))
     }
 }
@@ -221,11 +291,71 @@ impl Drop for Busy {
     }
 }
 
+/// An event stream's slot, given back when its answer's body is dropped.
+struct StreamSlot {
+    peer: IpAddr,
+    table: Arc<Mutex<Table>>,
+}
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        self.table
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .close_stream(self.peer);
+    }
+}
+
 /// An answer's body that keeps its request counted as in progress until it is sent (an event
-/// stream's connection is never idle).
+/// stream's connection is never idle), and an event stream's slot taken.
 struct Tracked {
     inner: axum::body::Body,
     _busy: Busy,
+    _stream: Option<StreamSlot>,
+}
+
+/// What a request may do on its connection: go on (with an event stream's slot when it opens
+/// one), or be answered 503 at once (a connection of the health reserve asked for more than
+/// `/healthz`, or an event stream past its caps).
+fn admit_request(
+    entry: &Entry,
+    table: &Arc<Mutex<Table>>,
+    limits: &ServerLimits,
+    path: &str,
+) -> Result<Option<StreamSlot>, Box<axum::response::Response>> {
+    use axum::response::IntoResponse as _;
+    let busy = |message: String| {
+        Box::new(
+            crate::api::error::ApiError::new(
+                hyper::StatusCode::SERVICE_UNAVAILABLE,
+                ErrorCode::Busy,
+                message,
+            )
+            .into_response(),
+        )
+    };
+    if entry.reserve {
+        if path == "/healthz" {
+            return Ok(None);
+        }
+        return Err(busy(
+            "every connection this address or the server may hold is busy with a request: \
+             this one is kept for GET /healthz; retry later"
+                .to_owned(),
+        ));
+    }
+    if path != EVENTS_PATH {
+        return Ok(None);
+    }
+    table
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .open_stream(entry.peer, limits)
+        .map_err(busy)?;
+    Ok(Some(StreamSlot {
+        peer: entry.peer,
+        table: Arc::clone(table),
+    }))
 }
 
 impl hyper::body::Body for Tracked {
@@ -264,6 +394,9 @@ pub async fn serve(
         next_id: 0,
         entries: HashMap::new(),
         per_address: HashMap::new(),
+        reserved: 0,
+        streams_per_address: HashMap::new(),
+        streams: 0,
     }));
     let mut connections = tokio::task::JoinSet::new();
     loop {
@@ -303,19 +436,30 @@ pub async fn serve(
                 let (entry, table) = (Arc::clone(&entry), Arc::clone(&table));
                 hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
                     let busy = Busy::new(&entry, &table);
-                    let answer = router.clone().oneshot(req.map(axum::body::Body::new));
+                    let admitted = admit_request(&entry, &table, &limits, req.uri().path());
+                    let router = router.clone();
                     async move {
-                        let response = answer.await?;
-                        Ok::<_, std::convert::Infallible>(
-                            response.map(|inner| Tracked { inner, _busy: busy }),
-                        )
+                        let (response, stream) = match admitted {
+                            Ok(stream) => (
+                                router.oneshot(req.map(axum::body::Body::new)).await?,
+                                stream,
+                            ),
+                            Err(refusal) => (*refusal, None),
+                        };
+                        Ok::<_, std::convert::Infallible>(response.map(|inner| Tracked {
+                            inner,
+                            _busy: busy,
+                            _stream: stream,
+                        }))
                     }
                 })
             };
             let mut builder = hyper::server::conn::http1::Builder::new();
             builder
                 .timer(TokioTimer::new())
-                .header_read_timeout(limits.header_timeout);
+                .header_read_timeout(limits.header_timeout)
+                // A connection of the health reserve serves one request.
+                .keep_alive(!entry.reserve);
             let mut conn = builder.serve_connection(
                 TokioIo::new(HeadErrors::new(stream, Arc::clone(&metrics))),
                 service,

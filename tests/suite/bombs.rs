@@ -260,3 +260,74 @@ async fn a_refusal_before_the_body_is_read_still_reaches_its_client() {
         }
     }
 }
+
+/// One address holds 1100 connections busy with requests, first unread event streams, then
+/// POSTs whose bodies never come: more than it may hold (a quarter of the connections). Its own
+/// health checks still answer 10 of 10: event streams past their cap are answered 503 `busy`
+/// at once (their connections idle, so closable), and when every connection the address may
+/// hold is busy, the health reserve takes the check.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_address_holding_every_connection_busy_still_gets_its_health_checks() {
+    // 1100 connections of the test's own, beside the server's.
+    let _ = rlimit::increase_nofile_limit(u64::MAX);
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("site.db");
+    let config = builtin_installation(dir.path(), &db.display().to_string(), "").to_path_buf();
+    let site = start(&config);
+    let addr: std::net::SocketAddr = site.base.trim_start_matches("http://").parse().unwrap();
+    let client = reqwest::Client::builder()
+        .timeout(Duration::from_secs(10))
+        .pool_max_idle_per_host(0)
+        .build()
+        .unwrap();
+    let events = format!("GET /api/v1/events HTTP/1.1\r\nHost: {addr}\r\n\r\n");
+    let slow_body = format!(
+        "POST /api/v1/samples HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+         Content-Length: 1000000\r\n\r\n{{\"samples\": ["
+    );
+    for (kind, request) in [("event streams", events), ("slow bodies", slow_body)] {
+        let mut held = Vec::new();
+        for _ in 0..1100 {
+            let Ok(mut conn) = tokio::net::TcpStream::connect(addr).await else {
+                continue;
+            };
+            if tokio::io::AsyncWriteExt::write_all(&mut conn, request.as_bytes())
+                .await
+                .is_ok()
+            {
+                held.push(conn);
+            }
+        }
+        assert!(held.len() > 1024, "{kind}: {} connections held", held.len());
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let mut answered = 0;
+        for _ in 0..10 {
+            if let Ok(r) = client.get(format!("{}/healthz", site.base)).send().await
+                && r.status() == 200
+            {
+                answered += 1;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        assert_eq!(answered, 10, "{kind}: every health check answered");
+        // An event stream past the caps is told why.
+        if kind == "event streams" {
+            let r = client
+                .get(format!("{}/api/v1/events", site.base))
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 503);
+            let body: serde_json::Value = r.json().await.unwrap();
+            assert_eq!(body["error"]["code"], "busy", "{body}");
+            assert!(
+                body["error"]["message"]
+                    .as_str()
+                    .unwrap()
+                    .contains("event streams"),
+                "{body}"
+            );
+        }
+        drop(held);
+    }
+}

@@ -570,3 +570,22 @@ async fn a_link_reset_recovers_from_a_sample_stamped_ahead() {
     let (_, links) = app.get("/api/v1/links").await;
     assert!(links.to_string().contains("camera clock was an hour ahead"));
 }
+
+/// A name of 60 KB in a request is not echoed back whole: an error's message is cut to a
+/// thousand characters (and a detail's to three hundred).
+#[tokio::test]
+async fn a_long_name_is_not_echoed_whole() {
+    let app = TestApp::start(None).await;
+    let name = "G".repeat(60_000);
+    let (status, body) = app
+        .get(&format!("/api/v1/targets/{name}/compensation"))
+        .await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+    let message = body["error"]["message"].as_str().unwrap();
+    assert!(
+        message.chars().count() <= 1003,
+        "{} characters",
+        message.len()
+    );
+    assert!(message.ends_with("..."), "said to be cut");
+}
