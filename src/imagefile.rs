@@ -250,6 +250,15 @@ fn decode_jpeg(
     use zune_jpeg::zune_core::options::DecoderOptions;
     let mut probe = zune_jpeg::JpegDecoder::new(ZCursor::new(bytes));
     probe.decode_headers()?;
+    // The decoder fills what a cut file lacks with grey: a file whose last scan has no end
+    // marker after it is refused, as a cut PNG is (no marker can occur inside a scan's data,
+    // where every 0xFF byte is followed by 0x00 or a restart marker).
+    let last = |marker: u8| bytes.windows(2).rposition(|w| w == [0xFF, marker]);
+    if last(0xD9).is_none_or(|eoi| last(0xDA).is_some_and(|sos| eoi < sos)) {
+        return Err(Refusal::Decoder(
+            "the data ends before the image's end marker: the file was cut".to_owned(),
+        ));
+    }
     let (w, h) = probe
         .info()
         .map(|i| (u32::from(i.width), u32::from(i.height)))

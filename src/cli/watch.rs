@@ -132,14 +132,24 @@ pub(super) async fn watch(
                 Outcome::Gone => {}
                 Outcome::Refused(answer) => {
                     summary.refused += 1;
-                    let aside = set_aside(&frame.path, &answer)?;
-                    progress.suspend(|| {
-                        eprintln!(
-                            "refused, moved to {}: {}",
-                            aside.display(),
-                            first_line(&answer)
-                        );
-                    });
+                    match set_aside(&frame.path, &answer) {
+                        Ok(aside) => progress.suspend(|| {
+                            eprintln!(
+                                "refused, moved to {}: {}",
+                                aside.display(),
+                                first_line(&answer)
+                            );
+                        }),
+                        // Removed by someone else meanwhile: nothing is left to move aside.
+                        Err(_) if !frame.path.exists() => progress.suspend(|| {
+                            eprintln!(
+                                "refused, and {} was removed before it could be moved aside: {}",
+                                frame.path.display(),
+                                first_line(&answer)
+                            );
+                        }),
+                        Err(e) => return Err(e),
+                    }
                 }
                 Outcome::NotNow(why) => {
                     summary.retries += 1;

@@ -95,6 +95,19 @@ pub enum VisionError {
         /// Allowed difference (degrees).
         tolerance_deg: f64,
     },
+    /// Hand-eye: a pair's translation does not fit the solution of all of them (a motion
+    /// measured wrong, or pairs of different motions).
+    #[error(
+        "motion {index} does not fit the others: its translation residual is {residual_mm:.3} mm (more than {tolerance_mm} mm); measure it again or leave it out"
+    )]
+    TranslationDoesNotFit {
+        /// The pair's index.
+        index: usize,
+        /// Its translation residual (mm).
+        residual_mm: f64,
+        /// Allowed (mm).
+        tolerance_mm: f64,
+    },
     /// Hand-eye: a pair does not fit the solution of all of them (a motion measured wrong,
     /// or pairs of different motions).
     #[error(

@@ -32,6 +32,9 @@ pub struct HandEyeOptions {
     pub min_axis_spread_deg: f64,
     /// `A_i` and `B_i` must rotate by the same angle within this (degrees).
     pub angle_tolerance_deg: f64,
+    /// Every pair must fit the solution's translation within this (mm), or ten of its
+    /// translation sigmas where that is more.
+    pub translation_tolerance_mm: f64,
     /// Translation noise of a measured motion (mm), for weighting.
     pub sigma_translation_mm: f64,
     /// Rotation noise of a measured motion (arc-seconds), for weighting.
@@ -44,6 +47,7 @@ impl Default for HandEyeOptions {
             min_motion_deg: 0.5,
             min_axis_spread_deg: 5.0,
             angle_tolerance_deg: 0.5,
+            translation_tolerance_mm: 5.0,
             sigma_translation_mm: 0.1,
             sigma_rotation_arcsec: 10.0,
         }
@@ -177,6 +181,23 @@ pub fn solve_hand_eye(
             index,
             residual_deg: r.rotation_arcsec / 3600.0,
             tolerance_deg: options.angle_tolerance_deg,
+        });
+    }
+    // And within the translation's: a motion whose translations disagree by centimetres is
+    // measured wrong however well its rotation fits.
+    let translation_tolerance_mm = options
+        .translation_tolerance_mm
+        .max(10.0 * options.sigma_translation_mm);
+    if let Some((index, r)) = residuals
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.translation_mm.total_cmp(&b.1.translation_mm))
+        && (r.translation_mm.is_nan() || r.translation_mm > translation_tolerance_mm)
+    {
+        return Err(VisionError::TranslationDoesNotFit {
+            index,
+            residual_mm: r.translation_mm,
+            tolerance_mm: translation_tolerance_mm,
         });
     }
     if !covariance.iter().all(|v| v.is_finite()) {

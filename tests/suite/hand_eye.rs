@@ -235,3 +235,39 @@ fn a_pair_that_does_not_fit_the_others_is_refused_naming_it() {
         other => panic!("want the pair refused, got {other:?}"),
     }
 }
+
+/// A motion whose rotation fits but whose translation is 200 mm off (its second pose read
+/// from the wrong marker, say): the solution is refused naming it, as a rotation that does not
+/// fit is, instead of a calibration bent towards it.
+#[test]
+fn a_pair_whose_translation_does_not_fit_is_refused_naming_it() {
+    let mut rng = StdRng::seed_from_u64(74);
+    let x = random_pose(&mut rng, 300.0);
+    let mut pairs: Vec<(Pose, Pose)> = (0..8)
+        .map(|_| {
+            let axis = random_axis(&mut rng);
+            let b = motion(&mut rng, axis);
+            (x * b * x.inverse(), b)
+        })
+        .collect();
+    let (a, b) = pairs[3];
+    let shifted = Pose::from_parts(
+        nalgebra::Translation3::from(a.translation.vector + Vec3::new(200.0, 0.0, 0.0)),
+        a.rotation,
+    );
+    pairs[3] = (shifted, b);
+    match solve_hand_eye(&pairs, &HandEyeOptions::default()) {
+        Err(VisionError::TranslationDoesNotFit {
+            index,
+            residual_mm,
+            tolerance_mm,
+        }) => {
+            assert_eq!(index, 3);
+            assert!(residual_mm > tolerance_mm, "{residual_mm}");
+        }
+        other => panic!("want the pair refused, got {other:?}"),
+    }
+    // The exact pairs alone are taken.
+    pairs[3] = (a, b);
+    assert!(solve_hand_eye(&pairs, &HandEyeOptions::default()).is_ok());
+}

@@ -313,13 +313,13 @@ impl Reader {
 /// line. Returns the archive's size in bytes.
 pub(super) async fn backup(url: &PostgresUrl, out: &std::path::Path) -> StoreResult<u64> {
     if out.exists() {
-        return Err(StoreError::Malformed(format!(
+        return Err(StoreError::Backup(format!(
             "{} already exists; a backup never overwrites a file",
             out.display()
         )));
     }
     let mut public = url::Url::parse(url.secret())
-        .map_err(|e| StoreError::Malformed(format!("the database URL does not parse: {e}")))?;
+        .map_err(|e| StoreError::Backup(format!("the database URL does not parse: {e}")))?;
     let password = public.password().map(str::to_owned);
     let _ = public.set_password(None);
     let mut command = tokio::process::Command::new("pg_dump");
@@ -333,13 +333,13 @@ pub(super) async fn backup(url: &PostgresUrl, out: &std::path::Path) -> StoreRes
         command.env("PGPASSWORD", password);
     }
     let output = command.output().await.map_err(|e| {
-        StoreError::Malformed(format!(
+        StoreError::Backup(format!(
             "cannot run pg_dump ({e}); install PostgreSQL's client programs"
         ))
     })?;
     if !output.status.success() {
         let _ = std::fs::remove_file(out);
-        return Err(StoreError::Malformed(format!(
+        return Err(StoreError::Backup(format!(
             "pg_dump failed: {}",
             String::from_utf8_lossy(&output.stderr).trim()
         )));

@@ -268,13 +268,13 @@ impl Reader {
 /// overwrite `out`. Returns the copy's size in bytes.
 pub(super) async fn backup(database: &Path, out: &Path) -> StoreResult<u64> {
     if out.exists() {
-        return Err(StoreError::Malformed(format!(
+        return Err(StoreError::Backup(format!(
             "{} already exists; a backup never overwrites a file",
             out.display()
         )));
     }
     if !database.exists() {
-        return Err(StoreError::Malformed(format!(
+        return Err(StoreError::Backup(format!(
             "no database at {}",
             database.display()
         )));
@@ -298,7 +298,7 @@ pub(super) async fn backup(database: &Path, out: &Path) -> StoreResult<u64> {
 /// migrating it first.
 pub(super) async fn new_generation(path: &Path) -> StoreResult<super::outbox::OutboxIdentity> {
     if !path.exists() {
-        return Err(StoreError::Malformed(format!(
+        return Err(StoreError::Backup(format!(
             "no database at {}",
             path.display()
         )));

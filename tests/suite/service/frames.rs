@@ -286,6 +286,17 @@ async fn bad_frames_are_refused_by_name_and_nothing_is_stored() {
     )
     .await;
     refused(s, &b, Some("body"), "not a readable");
+    // A JPEG cut short: its decoder would fill the rest with grey; refused as the PNG is.
+    let jpeg = brokenray::imagefile::encode_jpeg(&frames[0].1, 95).expect("jpeg");
+    let (s, b) = post_frame(
+        &app,
+        "C1",
+        &time,
+        "image/jpeg",
+        jpeg[..jpeg.len() * 2 / 3].to_vec(),
+    )
+    .await;
+    refused(s, &b, Some("body"), "the file was cut");
     // C3's frame is 1392 x 1040, not C1's 1280 x 1024.
     let c3 = encode(&frames[2].1, FrameFormat::Png).expect("png");
     let (s, b) = post_frame(&app, "C1", &time, "image/png", c3).await;
