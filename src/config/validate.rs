@@ -441,7 +441,7 @@ impl Validator {
                 let batch_rows = u.batch_rows.unwrap_or(20_000);
                 // A batch is read into memory whole: a million rows is gigabytes.
                 ok &= self.within(at, "upstream.batch_rows", batch_rows as f64, 1.0, 1e6);
-                let batch_mb = u.batch_mb.unwrap_or(4.0);
+                let batch_mb = u.batch_mb.unwrap_or(0.25);
                 ok &= self.within(at, "upstream.batch_mb", batch_mb, 0.01, 1024.0);
                 url.map(|url| UpstreamSettings {
                     url,

@@ -912,12 +912,15 @@ async fn a_site_cut_off_delivers_everything_in_uploads_the_centre_reads() {
     }
     let dir = tempfile::tempdir().unwrap();
     let (centre_config, centre_url) = centre_installation(dir.path());
+    // `BROKENRAY_CENTRE_SYNC_MB` sets the centre's budget for the figures BENCHMARKS.md
+    // reports (128: its default); the suite runs 1.
+    let sync_mb = std::env::var("BROKENRAY_CENTRE_SYNC_MB").unwrap_or_else(|_| "1.0".into());
     let text = std::fs::read_to_string(&centre_config).unwrap();
     std::fs::write(
         &centre_config,
         text.replace(
             "[central]\nenabled = true\n",
-            "[central]\nenabled = true\nmax_sync_mb = 1.0\n",
+            &format!("[central]\nenabled = true\nmax_sync_mb = {sync_mb}\n"),
         ),
     )
     .unwrap();
@@ -962,10 +965,12 @@ async fn a_site_cut_off_delivers_everything_in_uploads_the_centre_reads() {
     )
     .await;
     let raw = &u["tiers"][2];
-    assert!(
-        raw["sent"]["batches"].as_u64().unwrap() > 100,
-        "the large commit went in parts: {u:#}"
-    );
+    if sync_mb == "1.0" {
+        assert!(
+            raw["sent"]["batches"].as_u64().unwrap() > 100,
+            "the large commit went in parts: {u:#}"
+        );
+    }
     assert_exercised(&site_db, &[SyncTable::Calibrations]).await;
     let peak = peak_rss_bytes(site.child.id());
     eprintln!(
