@@ -14,6 +14,13 @@ For each set (a folder with its frames, a `plate.toml` or the plate given below,
 (brokenray's and OpenCV's), the intrinsics, and their differences from the published ones (the
 source's own where it has them, else OpenCV's).
 
+It then checks the reported sigmas as calibration people do (mrcal's check): the views the
+plate was found in are split into two halves at random (six splits, seeded), each half is
+calibrated, and `z = (a - b) / sqrt(sa^2 + sb^2)` is taken for fx, fy, cx, cy; the mean z^2 is
+about 1 for honest sigmas. It is printed for the sigmas brokenray reports (cross-validated)
+and for the formal ones (the reported over the square root of the cross-validation's
+inflation).
+
 With the `blobs` example as a third argument it first compares the detector's discs with
 OpenCV's plate centres in every view: the centres OpenCV found that no disc of ours lies within
 a pixel of, the discs that match none of them (clutter and the text on the plates), the median
@@ -61,6 +68,33 @@ def calibrate(binary, plate, frames):
     if out.returncode != 0:
         return None, left_out, out.stderr.strip().splitlines()[-1:]
     return json.loads(out.stdout), left_out, []
+
+
+def half_splits(binary, plate, frames, splits=6, seed=47):
+    """Mean z^2 of fx, fy, cx, cy between two halves of the frames, over `splits` random
+    splits: for the reported sigmas and for the formal ones."""
+    import random
+    rng = random.Random(seed)
+    reported, formal, worst = [], [], {}
+    for _ in range(splits):
+        order = list(frames)
+        rng.shuffle(order)
+        half = len(order) // 2
+        a, _, _ = calibrate(binary, plate, sorted(order[:half]))
+        b, _, _ = calibrate(binary, plate, sorted(order[half:]))
+        if not a or not b:
+            continue
+        for k in NAMES:
+            va, vb = a["camera"][k], b["camera"][k]
+            sa, sb = a["sigma"][k], b["sigma"][k]
+            ia = (a.get("cross_validation") or {}).get("inflation", 1.0)
+            ib = (b.get("cross_validation") or {}).get("inflation", 1.0)
+            z2 = (va - vb) ** 2 / (sa ** 2 + sb ** 2)
+            reported.append(z2)
+            formal.append((va - vb) ** 2 / (sa ** 2 / ia + sb ** 2 / ib))
+            worst[k] = max(worst.get(k, 0.0), z2)
+    mean = lambda v: sum(v) / len(v) if v else float("nan")
+    return mean(reported), mean(formal), worst, len(reported) // 4
 
 
 def compare_blobs(blobs, root):
@@ -125,6 +159,14 @@ def main(binary, root, blobs=None):
                 print(f"  {k}: {v:10.3f} +- {s:.3f}  {source} {r:10.3f}  difference {v - r:+.3f} px{rel}")
             for w in ours.get("warnings", []):
                 print(f"  warning: {w['message']}")
+            check = ours.get("cross_validation")
+            if check:
+                print(f"  {check['message']}")
+            used = [f for f in frames if any(Path(v).name == f.name for v in ours.get("frames", []))] or frames
+            rep, form, worst, n = half_splits(binary, plate, used)
+            w = max(worst, key=worst.get) if worst else "-"
+            print(f"  half-splits ({n}): mean z^2 {rep:.2f} with the reported sigmas, {form:.2f} with the "
+                  f"formal ones; worst {w} {worst.get(w, float('nan')):.1f}")
 
 
 if __name__ == "__main__":

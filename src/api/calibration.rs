@@ -11,7 +11,7 @@ use super::parse_json_body;
 use crate::api::error::ErrorCode;
 use crate::vision::{
     CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, Intrinsic, Plate,
-    Polarity, calibrate_camera, intrinsics_of,
+    Polarity, calibrate_camera_checked, intrinsics_of,
 };
 use axum::Json;
 use axum::body::Body;
@@ -208,6 +208,48 @@ pub(crate) struct CameraCalibrationOut {
     pub pixel_sigma: f64,
     /// Levenberg-Marquardt iterations.
     pub iterations: usize,
+    /// The covariance checked against calibrations that leave one view out each.
+    pub cross_validation: Option<CrossValidationOut>,
+}
+
+/// The cross-validation of a calibration's covariance.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub(crate) struct CrossValidationOut {
+    /// `honest` (the formal covariance is reported), `inflated` (it is reported scaled by
+    /// `inflation`), or `too_few_views` (unchecked: fewer than four views).
+    #[schema(value_type = String)]
+    pub verdict: crate::vision::CrossValidationVerdict,
+    /// Calibrations made, one view left out of each.
+    pub calibrations: usize,
+    /// For fx, fy, cx, cy: the leave-one-view-out (jackknife) variance over the formal one
+    /// (null when unchecked).
+    pub ratios: [Option<f64>; 4],
+    /// Their mean (null when unchecked).
+    pub ratio: Option<f64>,
+    /// The largest mean ratio that is the check's own noise about 1.
+    pub noise_bound: Option<f64>,
+    /// What the formal covariance was multiplied by.
+    pub inflation: f64,
+    /// The spread is over twice the formal sigmas: the model (plate shape, lens) does not fit.
+    pub model_misfit: bool,
+    /// What it means, in a sentence.
+    pub message: String,
+}
+
+impl From<&crate::vision::CrossValidation> for CrossValidationOut {
+    fn from(c: &crate::vision::CrossValidation) -> Self {
+        let finite = |v: f64| v.is_finite().then_some(v);
+        Self {
+            verdict: c.verdict,
+            calibrations: c.calibrations,
+            ratios: c.ratios.map(finite),
+            ratio: finite(c.ratio),
+            noise_bound: finite(c.noise_bound),
+            inflation: c.inflation,
+            model_misfit: c.model_misfit,
+            message: crate::vision::describe_cross_validation(c),
+        }
+    }
 }
 
 impl From<&CameraCalibration> for CameraCalibrationOut {
@@ -250,6 +292,7 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
             image_size: [c.camera.width_px, c.camera.height_px],
             pixel_sigma: c.pixel_sigma(),
             iterations: c.iterations,
+            cross_validation: c.cross_validation.as_ref().map(CrossValidationOut::from),
         }
     }
 }
@@ -347,7 +390,8 @@ impl CameraCalibrationIn {
             cancel,
             ..CalibrationOptions::default()
         };
-        let calibration = calibrate_camera(&plate, w, h, &views, &options).map_err(refused)?;
+        let calibration =
+            calibrate_camera_checked(&plate, w, h, &views, &options).map_err(refused)?;
         let out = CameraCalibrationOut::from(&calibration);
         Ok((calibration, out))
     }

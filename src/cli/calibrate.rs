@@ -14,7 +14,7 @@ use crate::imagefile::{FrameFormat, decode};
 use crate::model::{LinkKind, Observer, observe_frame};
 use crate::vision::{
     CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, DetectSettings, GreyImage,
-    HandEyeOptions, Intrinsic, Plate, PlateView, PnpOptions, calibrate_camera, detect,
+    HandEyeOptions, Intrinsic, Plate, PlateView, PnpOptions, calibrate_camera_checked, detect,
     intrinsics_of, solve_hand_eye, solve_pnp_discs,
 };
 use anyhow::{Context, bail};
@@ -134,7 +134,7 @@ pub(super) fn calibrate_from_frames(
         fixed,
         ..CalibrationOptions::default()
     };
-    let calibration = calibrate_camera(plate, w, h, &views, &options).map_err(|e| {
+    let calibration = calibrate_camera_checked(plate, w, h, &views, &options).map_err(|e| {
         anyhow::anyhow!(
             "{e} ({} of {} frames had the whole plate)",
             views.len(),
@@ -178,6 +178,9 @@ pub(super) fn report(run: &FramesCalibration) -> String {
                 c.sigma[i]
             );
         }
+    }
+    if let Some(check) = &c.cross_validation {
+        let _ = writeln!(s, "  {}", crate::vision::describe_cross_validation(check));
     }
     for k in &c.correlations {
         let _ = writeln!(

@@ -299,6 +299,9 @@ pub struct CameraCalibration {
     pub fixed: Vec<Intrinsic>,
     /// Levenberg-Marquardt iterations, over all rounds.
     pub iterations: usize,
+    /// The covariance's cross-validation, when it was checked ([`super::calibrate_camera_checked`]):
+    /// `covariance` and `sigma` are then the formal ones scaled by its inflation.
+    pub cross_validation: Option<super::CrossValidation>,
 }
 
 impl CameraCalibration {
@@ -799,6 +802,7 @@ impl<'a> Problem<'a> {
             warnings,
             fixed,
             iterations,
+            cross_validation: None,
         })
     }
 

@@ -16,13 +16,15 @@
 //!   centroid into the image of the disc's centre.
 //! * [`Plate`]: a calibration plate of discs in a grid, found in a frame without a pose.
 //! * [`calibrate_camera`]: intrinsics and distortion from views of a plate, with their
-//!   covariance and warnings.
+//!   covariance and warnings; [`calibrate_camera_checked`] cross-validates that covariance
+//!   against calibrations that leave one view out each and inflates it where it is too small.
 //! * [`solve_hand_eye`]: a rigid station's calibrated link from motions `A_i X = X B_i`.
 //!
 //! Pure and synchronous, like the rest of the core; one error type, [`VisionError`].
 
 mod calibrate;
 mod camera;
+mod crossval;
 mod detect;
 mod eccentricity;
 mod error;
@@ -39,6 +41,10 @@ pub use calibrate::{
     RECOMMENDED_VIEWS, ViewFit, WarningKind, calibrate_camera, intrinsics_of,
 };
 pub use camera::CameraModel;
+pub use crossval::{
+    CrossValidation, CrossValidationVerdict, MIN_CROSS_VALIDATION_VIEWS, calibrate_camera_checked,
+    cross_validate, describe_cross_validation,
+};
 pub use detect::{Blob, DetectSettings, Polarity, SearchArea, TILE_PX, detect, detect_in};
 pub use eccentricity::{disc_image_offset, solve_pnp_discs};
 pub use error::VisionError;

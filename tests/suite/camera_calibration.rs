@@ -419,3 +419,107 @@ fn a_plate_partly_out_of_the_frame_is_refused_not_mislabelled() {
         "{err}"
     );
 }
+
+/// z² of fx, fy, cx, cy: each error against the truth over its reported sigma, squared.
+fn core_z2(c: &CameraCalibration, truth: &CameraModel) -> [f64; 4] {
+    let e = errors(c, truth);
+    std::array::from_fn(|k| (e[k] / c.sigma[k]).powi(2))
+}
+
+/// The views with an error shared by every point of a view: each view's own stretch of the
+/// image about the principal point, `(1 + ex, 1 + ey)` with `ex`, `ey` drawn per view (1e-3,
+/// 0.3 px at 300 px from the centre, one sigma), as a plate that is bent or printed to a
+/// different scale in each view, or light that shifts a view's centres alike, would make.
+fn with_shared_error(
+    camera: &CameraModel,
+    views: &[CalibrationView],
+    seed: u64,
+) -> Vec<CalibrationView> {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let c = nalgebra::Vector2::new(camera.cx_px, camera.cy_px);
+    let per_view = Normal::new(0.0, 1e-3).expect("a valid sigma");
+    views
+        .iter()
+        .map(|v| {
+            let (ex, ey) = (per_view.sample(&mut rng), per_view.sample(&mut rng));
+            let mut v = v.clone();
+            for p in &mut v.points_px {
+                let d = *p - c;
+                *p += nalgebra::Vector2::new(d.x * ex, d.y * ey);
+            }
+            v
+        })
+        .collect()
+}
+
+/// The covariance checked by cross-validation. On views whose point errors are independent the
+/// formal covariance is honest and the check leaves it (inflation 1 in most seeds; the z² of
+/// fx, fy, cx, cy against the truth stays about 1). On views whose points share an error within
+/// each view the formal covariance is too small (the test first shows that), and the check
+/// inflates it until the z² is about 1 again: mean z² within [0.25, 2] over 16 seeds, the bar
+/// of a half-split check. Fewer than four views are not checked, and said so.
+#[test]
+fn cross_validation_inflates_a_covariance_too_small_and_leaves_an_honest_one() {
+    use brokenray::vision::{CrossValidationVerdict, calibrate_camera_checked};
+    let truth = small_camera();
+    let plate = plate();
+    let options = CalibrationOptions::default();
+    let seeds = 16u64;
+    let (mut honest_z2, mut formal_z2, mut checked_z2) = (0.0, 0.0, 0.0);
+    let mut honest_inflated = 0;
+    for seed in 0..seeds {
+        let poses = plate_poses(&truth, &plate, 15, 300 + seed);
+        let views = projected_views(&truth, &plate, &poses, 0.05, 400 + seed);
+        let (w, h) = (truth.width_px, truth.height_px);
+        let c = calibrate_camera_checked(&plate, w, h, &views, &options).expect("calibrated");
+        let check = c.cross_validation.clone().expect("checked");
+        assert_eq!(check.calibrations, 15);
+        if check.verdict == CrossValidationVerdict::Inflated {
+            honest_inflated += 1;
+        } else {
+            assert_eq!(check.inflation, 1.0);
+        }
+        honest_z2 += core_z2(&c, &truth).iter().sum::<f64>();
+
+        let shared = with_shared_error(&truth, &views, 500 + seed);
+        let formal = calibrate_camera(&plate, w, h, &shared, &options).expect("calibrated");
+        formal_z2 += core_z2(&formal, &truth).iter().sum::<f64>();
+        let checked =
+            calibrate_camera_checked(&plate, w, h, &shared, &options).expect("calibrated");
+        checked_z2 += core_z2(&checked, &truth).iter().sum::<f64>();
+    }
+    let n = (4 * seeds) as f64;
+    let (honest_z2, formal_z2, checked_z2) = (honest_z2 / n, formal_z2 / n, checked_z2 / n);
+    eprintln!(
+        "mean z²: honest views {honest_z2:.2} (inflated in {honest_inflated} of {seeds}); \
+         shared errors: formal {formal_z2:.2}, cross-validated {checked_z2:.2}"
+    );
+    assert!(
+        honest_inflated <= 3,
+        "an honest covariance inflated in {honest_inflated} of {seeds} seeds"
+    );
+    assert!(
+        (0.25..=2.0).contains(&honest_z2),
+        "honest views: {honest_z2:.2}"
+    );
+    assert!(
+        formal_z2 > 3.0,
+        "the shared errors make the formal covariance too small ({formal_z2:.2}): else the test proves nothing"
+    );
+    assert!(
+        (0.25..=2.0).contains(&checked_z2),
+        "cross-validated: {checked_z2:.2}"
+    );
+
+    // Three views: no calibration can leave one out; not checked, and said so.
+    let poses = plate_poses(&truth, &plate, 3, 377);
+    let views = projected_views(&truth, &plate, &poses, 0.05, 378);
+    let c = calibrate_camera_checked(&plate, truth.width_px, truth.height_px, &views, &options)
+        .expect("calibrated");
+    let check = c.cross_validation.expect("checked");
+    assert_eq!(check.verdict, CrossValidationVerdict::TooFewViews);
+    assert_eq!(check.inflation, 1.0);
+    assert!(brokenray::vision::describe_cross_validation(&check).contains("not cross-validated"));
+}
