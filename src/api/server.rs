@@ -22,8 +22,10 @@
 //!   quarter of the connections), and one past a cap is answered 503 `busy`, which leaves its
 //!   connection idle and so closable;
 //! * when every connection an address or the server may hold is busy, a few more
-//!   ([`HEALTH_RESERVE`]) are admitted for one request each that only `GET /healthz` may use,
-//!   so a monitor can still learn that the service is alive and why it is full;
+//!   ([`HEALTH_RESERVE`]) are admitted for one request each that only `GET /healthz` may use
+//!   (when they are all taken, the one that has waited longest without sending a request is
+//!   closed to make room), so a monitor can still learn that the service is alive and why it is
+//!   full;
 //! * at shutdown the listener closes, every connection is asked to finish its current request
 //!   (event streams end by themselves: they watch the same signal), and after
 //!   `shutdown_grace_s` whatever is still open is cut off, with a log line saying how many.
@@ -200,10 +202,21 @@ impl Table {
     /// Closes the idle connection of `peer` that has waited longest for a request head; false
     /// when every one of its connections is busy.
     fn evict_oldest_idle(&mut self, peer: IpAddr) -> bool {
+        self.evict_oldest_where(|e| e.peer == peer && !e.reserve)
+    }
+
+    /// Closes the connection of the health reserve that has waited longest for its request
+    /// head (one held open to fill the reserve); false when each is serving its request.
+    fn evict_oldest_idle_reserve(&mut self) -> bool {
+        self.evict_oldest_where(|e| e.reserve)
+    }
+
+    /// Closes the idle connection among those `which` takes that has waited longest.
+    fn evict_oldest_where(&mut self, which: impl Fn(&Entry) -> bool) -> bool {
         let oldest = self
             .entries
             .iter()
-            .filter(|(_, e)| e.peer == peer && !e.reserve)
+            .filter(|(_, e)| which(e))
             .filter(|(_, e)| e.busy.load(Ordering::Acquire) == 0)
             .min_by_key(|(_, e)| e.idle_since_ns.load(Ordering::Acquire))
             .map(|(id, _)| *id);
@@ -241,7 +254,7 @@ impl Table {
             && !self.evict_oldest_idle(peer))
             || (self.entries.len() - self.reserved >= limits.max_connections
                 && !self.evict_from_greediest());
-        if full && self.reserved >= HEALTH_RESERVE {
+        if full && self.reserved >= HEALTH_RESERVE && !self.evict_oldest_idle_reserve() {
             return None;
         }
         let id = self.next_id;

@@ -262,10 +262,11 @@ async fn a_refusal_before_the_body_is_read_still_reaches_its_client() {
 }
 
 /// One address holds 1100 connections busy with requests, first unread event streams, then
-/// POSTs whose bodies never come: more than it may hold (a quarter of the connections). Its own
-/// health checks still answer 10 of 10: event streams past their cap are answered 503 `busy`
-/// at once (their connections idle, so closable), and when every connection the address may
-/// hold is busy, the health reserve takes the check.
+/// POSTs whose bodies never come: more than it may hold (a quarter of the connections), and 20
+/// more that send nothing, to fill the health reserve. Its own health checks still answer 10 of
+/// 10: event streams past their cap are answered 503 `busy` at once (their connections idle,
+/// so closable), and when every connection the address may hold is busy, the health reserve
+/// takes the check, closing a reserve connection that has sent nothing to make room.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_address_holding_every_connection_busy_still_gets_its_health_checks() {
     // 1100 connections of the test's own, beside the server's.
@@ -300,6 +301,14 @@ async fn an_address_holding_every_connection_busy_still_gets_its_health_checks()
         }
         assert!(held.len() > 1024, "{kind}: {} connections held", held.len());
         tokio::time::sleep(Duration::from_millis(500)).await;
+        // And the health reserve filled with connections that never send a request: the
+        // checks close them to get in.
+        for _ in 0..20 {
+            if let Ok(conn) = tokio::net::TcpStream::connect(addr).await {
+                held.push(conn);
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
         let mut answered = 0;
         for _ in 0..10 {
             if let Ok(r) = client.get(format!("{}/healthz", site.base)).send().await
