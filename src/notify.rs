@@ -16,7 +16,6 @@
 use crate::config::{NotifyLevel, WebhookSpec};
 use crate::service::Service;
 use crate::store::StoredAlarm;
-use crate::telemetry::Exposition;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -198,60 +197,6 @@ impl Webhooks {
                     );
                 }
             }
-        }
-    }
-
-    /// The webhooks' families of `/metrics`.
-    pub fn metrics(&self, out: &mut Exposition) {
-        if self.hooks.is_empty() {
-            return;
-        }
-        let labels = |i: usize, h: &Hook| {
-            vec![
-                ("webhook", i.to_string()),
-                ("host", h.spec.host().to_owned()),
-            ]
-        };
-        out.family(
-            "brokenray_webhook_deliveries_total",
-            "counter",
-            "Alarm notifications by outcome: delivered, failed (given up or refused), dropped (queue full).",
-        );
-        for (i, h) in self.hooks.iter().enumerate() {
-            let c = &h.counters;
-            for (outcome, n) in [
-                ("delivered", &c.delivered),
-                ("failed", &c.failed),
-                ("dropped", &c.dropped),
-            ] {
-                let mut l = labels(i, h);
-                l.push(("outcome", outcome.to_owned()));
-                out.sample("brokenray_webhook_deliveries_total", &l, n.load(Relaxed));
-            }
-        }
-        out.family(
-            "brokenray_webhook_attempts_failed_total",
-            "counter",
-            "Attempts that failed (each retried or given up).",
-        );
-        for (i, h) in self.hooks.iter().enumerate() {
-            out.sample(
-                "brokenray_webhook_attempts_failed_total",
-                &labels(i, h),
-                h.counters.attempts_failed.load(Relaxed),
-            );
-        }
-        out.family(
-            "brokenray_webhook_queued",
-            "gauge",
-            "Alarm notifications waiting or being retried.",
-        );
-        for (i, h) in self.hooks.iter().enumerate() {
-            out.sample(
-                "brokenray_webhook_queued",
-                &labels(i, h),
-                h.counters.queued.load(Relaxed),
-            );
         }
     }
 

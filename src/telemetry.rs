@@ -368,7 +368,7 @@ pub fn render(sources: &Sources<'_>) -> String {
             );
         }
     }
-    sources.webhooks.metrics(&mut out);
+    webhooks(&mut out, &sources.webhooks.status());
     camera_sources(&mut out, sources.cameras);
     if let Some(archive) = sources.archive {
         let c = archive.counters();
@@ -536,6 +536,53 @@ fn camera_sources(out: &mut Exposition, cameras: &[std::sync::Arc<crate::acquire
         .map(|r| (r.camera.as_str(), r.clone()))
         .collect();
     out.labelled_families("camera", &rows, &families);
+}
+
+/// The webhooks' families, from the status the notifier exposes (`notify` knows nothing of the
+/// exposition format).
+fn webhooks(out: &mut Exposition, hooks: &[crate::notify::WebhookStatus]) {
+    if hooks.is_empty() {
+        return;
+    }
+    let labels = |h: &crate::notify::WebhookStatus| {
+        vec![("webhook", h.index.to_string()), ("host", h.host.clone())]
+    };
+    out.family(
+        "brokenray_webhook_deliveries_total",
+        "counter",
+        "Alarm notifications by outcome: delivered, failed (given up or refused), dropped (queue full).",
+    );
+    for h in hooks {
+        for (outcome, n) in [
+            ("delivered", h.delivered),
+            ("failed", h.failed),
+            ("dropped", h.dropped),
+        ] {
+            let mut l = labels(h);
+            l.push(("outcome", outcome.to_owned()));
+            out.sample("brokenray_webhook_deliveries_total", &l, n);
+        }
+    }
+    out.family(
+        "brokenray_webhook_attempts_failed_total",
+        "counter",
+        "Attempts that failed (each retried or given up).",
+    );
+    for h in hooks {
+        out.sample(
+            "brokenray_webhook_attempts_failed_total",
+            &labels(h),
+            h.attempts_failed,
+        );
+    }
+    out.family(
+        "brokenray_webhook_queued",
+        "gauge",
+        "Alarm notifications waiting or being retried.",
+    );
+    for h in hooks {
+        out.sample("brokenray_webhook_queued", &labels(h), h.queued);
+    }
 }
 
 #[cfg(test)]

@@ -180,3 +180,61 @@ fn the_reference_scan_finds_plain_and_grouped_paths() {
     let found: Vec<String> = referenced(code, &modules).into_iter().collect();
     assert_eq!(found, ["config", "geometry", "store"]);
 }
+
+/// No two top-level modules of `src/` import each other (the core's layering, above, already
+/// forbids it there; this holds for the adapters too): a pair that does is one module in two
+/// files, or a dependency to turn around.
+#[test]
+fn no_two_modules_import_each_other() {
+    let modules = modules();
+    let imports: std::collections::BTreeMap<String, BTreeSet<String>> = modules
+        .iter()
+        .map(|m| {
+            let mut refs = BTreeSet::new();
+            for (_, code) in code_of(m) {
+                refs.extend(referenced(&code, &modules));
+            }
+            refs.remove(m);
+            (m.clone(), refs)
+        })
+        .collect();
+    let mutual: Vec<String> = imports
+        .iter()
+        .flat_map(|(a, refs)| {
+            refs.iter()
+                .filter(|b| a < *b && imports[*b].contains(a))
+                .map(|b| format!("{a} <-> {b}"))
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    assert!(
+        mutual.is_empty(),
+        "modules that import each other: {mutual:?}"
+    );
+}
+
+/// `scripts/module-graph` passes on the tree and fails (exit 1, naming the pair) on a tree
+/// where two modules import each other.
+#[test]
+fn the_module_graph_script_fails_on_a_cycle() {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/module-graph");
+    let run = |src: &Path| {
+        std::process::Command::new("python3")
+            .arg(&script)
+            .arg(src)
+            .output()
+            .expect("python3 runs the script")
+    };
+    let out = run(&src());
+    assert!(out.status.success(), "{out:?}");
+    let dir = tempfile::tempdir().unwrap();
+    let made = dir.path().join("src");
+    std::fs::create_dir(&made).unwrap();
+    std::fs::write(made.join("a.rs"), "use crate::b::B;\npub struct A;\n").unwrap();
+    std::fs::write(made.join("b.rs"), "use crate::a::A;\npub struct B;\n").unwrap();
+    std::fs::write(made.join("c.rs"), "use crate::a::A;\n").unwrap();
+    let out = run(&made);
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("mutual imports: a <-> b"), "{text}");
+}
