@@ -15,6 +15,20 @@ use std::time::Duration;
 /// The most a burst of bombs may add to the server's peak memory (MB).
 const MAX_GROWTH_MB: f64 = 300.0;
 
+/// Of ten `/healthz` requests, 100 ms apart, those answered 200.
+async fn health_checks_answered(client: &reqwest::Client, base: &str) -> usize {
+    let mut answered = 0;
+    for _ in 0..10 {
+        if let Ok(r) = client.get(format!("{base}/healthz")).send().await
+            && r.status() == 200
+        {
+            answered += 1;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    answered
+}
+
 fn start(config: &std::path::Path) -> Server {
     process::start(
         config,
@@ -187,15 +201,7 @@ async fn idle_connections_refilled_as_they_close_never_shut_out_a_newcomer() {
         .pool_max_idle_per_host(0)
         .build()
         .unwrap();
-    let mut answered = 0;
-    for _ in 0..10 {
-        if let Ok(r) = client.get(format!("{}/healthz", site.base)).send().await
-            && r.status() == 200
-        {
-            answered += 1;
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    let answered = health_checks_answered(&client, &site.base).await;
     stop_tx.send(true).unwrap();
     for a in attackers {
         a.abort();
@@ -309,15 +315,7 @@ async fn an_address_holding_every_connection_busy_still_gets_its_health_checks()
             }
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
-        let mut answered = 0;
-        for _ in 0..10 {
-            if let Ok(r) = client.get(format!("{}/healthz", site.base)).send().await
-                && r.status() == 200
-            {
-                answered += 1;
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
+        let answered = health_checks_answered(&client, &site.base).await;
         assert_eq!(answered, 10, "{kind}: every health check answered");
         // An event stream past the caps is told why.
         if kind == "event streams" {

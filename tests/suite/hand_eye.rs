@@ -39,6 +39,18 @@ fn noisy(rng: &mut StdRng, pose: &Pose, sigma_mm: f64, sigma_arcsec: f64) -> Pos
     se3_exp(&xi) * pose
 }
 
+/// `n` exact motion pairs `(X B X^-1, B)` of a random `X` about random axes.
+fn exact_pairs(rng: &mut StdRng, n: usize) -> Vec<(Pose, Pose)> {
+    let x = random_pose(rng, 300.0);
+    (0..n)
+        .map(|_| {
+            let axis = random_axis(rng);
+            let b = motion(rng, axis);
+            (x * b * x.inverse(), b)
+        })
+        .collect()
+}
+
 fn random_axis(rng: &mut StdRng) -> Vec3 {
     Vec3::new(
         rng.random_range(-1.0..1.0),
@@ -202,14 +214,7 @@ fn too_few_small_or_inconsistent_motions_are_refused() {
 #[test]
 fn a_pair_that_does_not_fit_the_others_is_refused_naming_it() {
     let mut rng = StdRng::seed_from_u64(73);
-    let x = random_pose(&mut rng, 300.0);
-    let mut pairs: Vec<(Pose, Pose)> = (0..8)
-        .map(|_| {
-            let axis = random_axis(&mut rng);
-            let b = motion(&mut rng, axis);
-            (x * b * x.inverse(), b)
-        })
-        .collect();
+    let mut pairs = exact_pairs(&mut rng, 8);
     // Pair 5's B: the same angle about an axis turned 51 degrees away.
     let (a, b) = pairs[5];
     let (axis, angle) = b.rotation.axis_angle().expect("a rotation");
@@ -242,14 +247,7 @@ fn a_pair_that_does_not_fit_the_others_is_refused_naming_it() {
 #[test]
 fn a_pair_whose_translation_does_not_fit_is_refused_naming_it() {
     let mut rng = StdRng::seed_from_u64(74);
-    let x = random_pose(&mut rng, 300.0);
-    let mut pairs: Vec<(Pose, Pose)> = (0..8)
-        .map(|_| {
-            let axis = random_axis(&mut rng);
-            let b = motion(&mut rng, axis);
-            (x * b * x.inverse(), b)
-        })
-        .collect();
+    let mut pairs = exact_pairs(&mut rng, 8);
     let (a, b) = pairs[3];
     let shifted = Pose::from_parts(
         nalgebra::Translation3::from(a.translation.vector + Vec3::new(200.0, 0.0, 0.0)),
