@@ -768,12 +768,13 @@ impl NewResult {
     /// stored (a target whose configuration gives numbers out of range).
     pub fn non_finite(&self) -> Option<&'static str> {
         let all = |v: &[f64]| v.iter().all(|x| x.is_finite());
-        let s = self.estimate.reported_sigmas();
         if !all(&pose_columns(&self.estimate.pose)) {
             Some("pose")
         } else if !all(self.estimate.cov.as_slice()) || !all(self.systematic_cov.as_slice()) {
             Some("covariance")
-        } else if !all(&s.rotation_arcsec) || !all(&s.translation_mm) {
+        } else if (0..6).any(|i| self.estimate.cov[(i, i)] < 0.0) {
+            // The sigmas are the diagonal's roots: finite exactly when it is finite and not
+            // negative (checked here without deriving them twice on the ingest path).
             Some("sigma")
         } else if !self.age_s.is_finite() {
             Some("age")
