@@ -55,6 +55,7 @@ pub mod geometry;
 pub mod imagefile;
 pub mod model;
 pub mod notify;
+pub mod outputs;
 pub mod service;
 pub mod sim;
 pub mod stats;

@@ -92,6 +92,8 @@ pub struct Sources<'a> {
     pub service: &'a Service,
     /// Its alarm notifications.
     pub webhooks: &'a Webhooks,
+    /// The plant's buses it publishes on.
+    pub outputs: &'a [crate::outputs::OutputStatus],
     /// The frame archive, when one is configured.
     pub archive: Option<&'a FrameArchive>,
     /// A site's uploads, when it pushes to a centre.
@@ -369,6 +371,7 @@ pub fn render(sources: &Sources<'_>) -> String {
         }
     }
     webhooks(&mut out, &sources.webhooks.status());
+    outputs(&mut out, sources.outputs);
     camera_sources(&mut out, sources.cameras);
     if let Some(archive) = sources.archive {
         let c = archive.counters();
@@ -582,6 +585,56 @@ fn webhooks(out: &mut Exposition, hooks: &[crate::notify::WebhookStatus]) {
     );
     for h in hooks {
         out.sample("brokenray_webhook_queued", &labels(h), h.queued);
+    }
+}
+
+/// The plant outputs' families (MQTT, Modbus, NMEA), from the status they expose.
+fn outputs(out: &mut Exposition, outputs: &[crate::outputs::OutputStatus]) {
+    use crate::words::Word as _;
+    if outputs.is_empty() {
+        return;
+    }
+    let labels = |o: &crate::outputs::OutputStatus| {
+        vec![
+            ("output", o.kind.word().to_owned()),
+            ("address", o.address.clone()),
+        ]
+    };
+    out.family(
+        "brokenray_output_connected",
+        "gauge",
+        "1 when the output is connected (MQTT), listening (Modbus) or its last send succeeded (NMEA).",
+    );
+    for o in outputs {
+        out.sample(
+            "brokenray_output_connected",
+            &labels(o),
+            u64::from(o.connected),
+        );
+    }
+    out.family(
+        "brokenray_output_sent_total",
+        "counter",
+        "Messages published (MQTT), reads answered (Modbus), sentences sent (NMEA).",
+    );
+    for o in outputs {
+        out.sample("brokenray_output_sent_total", &labels(o), o.sent);
+    }
+    out.family(
+        "brokenray_output_dropped_total",
+        "counter",
+        "Alarm transitions dropped because the output's queue was full.",
+    );
+    for o in outputs {
+        out.sample("brokenray_output_dropped_total", &labels(o), o.dropped);
+    }
+    out.family(
+        "brokenray_output_queued",
+        "gauge",
+        "Messages waiting to be delivered.",
+    );
+    for o in outputs {
+        out.sample("brokenray_output_queued", &labels(o), o.queued);
     }
 }
 

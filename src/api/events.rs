@@ -35,7 +35,7 @@ pub(super) async fn get_events(
             }) => {
                 let spec = app.service.installation().model.targets[target.0].clone();
                 let body = super::targets::live_compensation(
-                    &app,
+                    &app.service,
                     &spec,
                     target,
                     &estimate,
@@ -47,13 +47,18 @@ pub(super) async fn get_events(
                     .unwrap_or_else(|_| Event::default().event("error").data("unencodable result"));
                 Some((Ok(event), (rx, app, stop)))
             }
-            Ok(LiveEvent::Alarm(alarm)) => {
+            Ok(LiveEvent::Alarm(alarm) | LiveEvent::Acknowledged(alarm)) => {
+                let kind = if alarm.ack.is_some() {
+                    "acknowledgement"
+                } else {
+                    "alarm"
+                };
                 let name = app.service.installation().model.targets[alarm.target.0]
                     .name
                     .clone();
                 let body = super::alarms::AlarmOut::new(name, &alarm);
                 let event = Event::default()
-                    .event("alarm")
+                    .event(kind)
                     .json_data(body)
                     .unwrap_or_else(|_| Event::default().event("error").data("unencodable alarm"));
                 Some((Ok(event), (rx, app, stop)))

@@ -14,6 +14,7 @@ pub(super) async fn get_metrics(State(app): State<AppState>) -> impl IntoRespons
     let text = render(&Sources {
         service: &app.service,
         webhooks: &app.webhooks,
+        outputs: &app.outputs.status(),
         archive: app.archive.as_ref(),
         upstream: app.upstream.as_deref(),
         cameras: &app.sources,

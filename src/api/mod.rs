@@ -21,6 +21,7 @@ mod ingest;
 mod jsonpath;
 mod links;
 mod metrics;
+mod outputs;
 mod query;
 pub mod server;
 mod sites;
@@ -28,6 +29,7 @@ mod sources;
 mod targets;
 pub(crate) mod vision;
 pub mod vocab;
+pub use targets::output_encoders;
 mod webhooks;
 
 pub use auth::sha256_hex;
@@ -86,6 +88,8 @@ pub struct AppState {
     /// The cameras the service takes frames from itself (`[cameras.source]`); empty unless
     /// [`App`] started them.
     pub sources: Arc<[Arc<crate::acquire::SourceState>]>,
+    /// The plant's buses (`[outputs]`); none unless [`App`] started them.
+    pub outputs: Arc<crate::outputs::Outputs>,
 }
 
 /// Waits up to `wait` for one of `slots`, or answers 503 `busy` naming `what`.
@@ -139,6 +143,7 @@ impl AppState {
                 .zip(service.installation().fleet.upstream.clone())
                 .map(|(site, settings)| Arc::new(crate::fleet::Upstream::new(site, settings))),
             sources: Arc::new([]),
+            outputs: Arc::default(),
             service,
             limits,
         })
@@ -222,6 +227,13 @@ pub struct HealthOut {
     /// dashboard reads it to show the fleet.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub centre: bool,
+    /// The outputs on the plant's buses that are not connected or dropped alarm transitions,
+    /// and why. The service measures on: the answer stays 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub output_problem: Option<String>,
+    /// Each output on the plant's buses (`[outputs]`); absent when none is configured.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub outputs: Vec<outputs::OutputOut>,
     /// Each target's status and age now, by name. A stale target does not make the service
     /// unhealthy (the answer stays 200): alert on `targets.*.status == "stale"` or on
     /// `brokenray_target_age_seconds` instead.
@@ -260,6 +272,7 @@ async fn healthz(
     } else {
         Some("the writer is not running".to_owned())
     };
+    let output_status = app.outputs.status();
     let snapshot = app.service.snapshot();
     let now_ns = app.service.now_ns();
     let inst = app.service.installation();
@@ -346,6 +359,8 @@ async fn healthz(
                 .unwrap_or_else(|p| p.into_inner())
                 .clone(),
             centre: app.central.is_some(),
+            output_problem: outputs::problem(&output_status),
+            outputs: output_status.into_iter().map(Into::into).collect(),
             targets,
         }),
     )
@@ -519,6 +534,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(alarms::list_alarms))
         .routes(routes!(alarms::post_ack))
         .routes(routes!(webhooks::list_webhooks))
+        .routes(routes!(outputs::list_outputs))
         .routes(routes!(links::list_links))
         .routes(routes!(links::list_samples))
         .routes(routes!(links::put_calibration))
@@ -634,6 +650,9 @@ pub enum StartError {
     /// The frame archive could not be opened.
     #[error(transparent)]
     Archive(#[from] crate::archive::ArchiveError),
+    /// An output of the plant's buses could not start.
+    #[error(transparent)]
+    Output(#[from] crate::outputs::OutputError),
 }
 
 /// A bound, started service, ready to run until a shutdown signal.
@@ -690,6 +709,14 @@ impl App {
         // Cameras are opened once everything else started: their frames have somewhere to go.
         let acquisition = crate::acquire::Acquisition::start(service.installation());
         state.sources = acquisition.sources().into();
+        state.outputs = Arc::new(
+            crate::outputs::Outputs::start(
+                &service,
+                Arc::clone(&state.sources),
+                targets::output_encoders(&service),
+            )
+            .await?,
+        );
         Ok(App {
             listener,
             service,
@@ -732,6 +759,7 @@ impl App {
         };
         let state = self.state;
         let webhooks = state.webhooks.clone();
+        let outputs = Arc::clone(&state.outputs);
         let store = self.service.store().clone();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let uploader = spawn_uploader(&state);
@@ -752,6 +780,8 @@ impl App {
         for taker in takers {
             let _ = taker.await;
         }
+        // The outputs end when shutdown begins (an MQTT output says `offline` first).
+        outputs.finish(limits.shutdown_grace).await;
         // The uploader holds a service handle; it ends when shutdown begins.
         if let Some(uploader) = uploader {
             let _ = uploader.await;

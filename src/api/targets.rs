@@ -359,15 +359,10 @@ pub(super) struct Described<'a> {
 
 impl<'a> Described<'a> {
     /// A target of this service's installation.
-    fn of(app: &'a AppState, spec: &'a TargetSpec) -> Self {
+    fn of(service: &'a crate::service::Service, spec: &'a TargetSpec) -> Self {
         Described {
             name: &spec.name,
-            base: app
-                .service
-                .installation()
-                .model
-                .topology
-                .frame_name(spec.base),
+            base: service.installation().model.topology.frame_name(spec.base),
             thresholds: spec.alarms,
         }
     }
@@ -462,12 +457,12 @@ pub(super) fn compensation_out(
 
 /// A live result judged now on the server's clock (status `stale` when a link of the target
 /// stopped, the age from the result's time to now).
-fn live(app: &AppState, ti: TargetId, estimate: &TargetEstimate) -> Evaluated {
-    let now = app.service.snapshot().judge(
+fn live(service: &crate::service::Service, ti: TargetId, estimate: &TargetEstimate) -> Evaluated {
+    let now = service.snapshot().judge(
         ti,
         Some(estimate),
-        app.service.now_ns(),
-        app.service.installation().server.clock_tolerance_s,
+        service.now_ns(),
+        service.installation().server.clock_tolerance_s,
     );
     Evaluated {
         status: now.status,
@@ -476,19 +471,33 @@ fn live(app: &AppState, ti: TargetId, estimate: &TargetEstimate) -> Evaluated {
     }
 }
 
-/// The compensation JSON of a live result of target `ti` (for the event stream).
+/// The compensation JSON of a live result of target `ti` (for the event stream and the
+/// plant's outputs).
 pub(super) fn live_compensation(
-    app: &AppState,
+    service: &crate::service::Service,
     spec: &TargetSpec,
     ti: TargetId,
     estimate: &TargetEstimate,
     reference: Option<&ReferenceVersion>,
 ) -> CompensationOut {
     compensation_out(
-        &Described::of(app, spec),
-        live(app, ti, estimate),
+        &Described::of(service, spec),
+        live(service, ti, estimate),
         reference,
     )
+}
+
+/// The encoders the plant's outputs publish with: the event stream's compensation and the
+/// alarms' JSON, so that a bus and the API cannot differ.
+pub fn output_encoders(service: &crate::service::Service) -> crate::outputs::Encoders {
+    let service = service.clone();
+    crate::outputs::Encoders {
+        compensation: std::sync::Arc::new(move |ti, estimate, reference| {
+            let spec = &service.installation().model.targets[ti.0];
+            serde_json::to_vec(&live_compensation(&service, spec, ti, estimate, reference))
+        }),
+        alarm: super::alarms::encode_alarm,
+    }
 }
 
 /// Query of `compensation`.
@@ -515,14 +524,14 @@ pub(super) async fn get_compensation(
     Query(q): Query<AtQuery>,
 ) -> Result<Json<CompensationOut>, ApiError> {
     let (ti, spec) = target_index(&app, &name)?;
-    let target = Described::of(&app, &spec);
+    let target = Described::of(&app.service, &spec);
     let snapshot = app.service.snapshot();
     let view = &snapshot.targets[ti.0];
     let reference = view.reference.as_ref();
     let Some(at) = q.at else {
         return Ok(Json(match &view.latest {
             Some(l) => {
-                let mut out = compensation_out(&target, live(&app, ti, l), reference);
+                let mut out = compensation_out(&target, live(&app.service, ti, l), reference);
                 // Live: the alarm state with its hysteresis, dwell, rate and stale tracks.
                 out.alarm = view.alarms.level();
                 out

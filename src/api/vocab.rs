@@ -43,6 +43,7 @@ word_schemas!(
     crate::config::TriggerMode,
     crate::filter::DispositionKind,
     crate::filter::MotionModel,
+    crate::outputs::OutputKind,
     crate::fleet::protocol::Outcome,
     crate::service::LinkState,
     crate::store::outbox::Tier,

@@ -52,6 +52,13 @@ pub enum Command {
     },
     /// Print the built-in installation file, a starting point for your own.
     DefaultConfig,
+    /// Print the Modbus/TCP register map of an installation (`[[outputs.modbus]]`): each
+    /// field's address, type, name, unit and meaning, one line each, tab-separated.
+    ModbusMap {
+        /// The installation file (TOML); the built-in laboratory installation without it.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
     /// Run the service: HTTP API on the configured address, SQLite history, filtering.
     Serve {
         /// The installation file (TOML); the built-in laboratory installation without it.
@@ -382,6 +389,14 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             }
         }
         Command::DefaultConfig => out.write_all(config::DEFAULT_INSTALLATION_TOML.as_bytes())?,
+        Command::ModbusMap { config } => {
+            let installation = config::load_or_default(config.as_deref())?;
+            let names: Vec<String> = (installation.model.targets)
+                .iter()
+                .map(|t| t.name.clone())
+                .collect();
+            out.write_all(crate::outputs::modbus::describe(&names).as_bytes())?;
+        }
         Command::Serve { config } => {
             let installation = config::load_or_default(config.as_deref())?;
             let runtime = runtime(true)?;

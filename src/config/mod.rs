@@ -12,11 +12,15 @@
 //! pose, a target unreachable from its base, and so on.
 
 mod error;
+mod outputs;
 mod raw;
 mod source;
 mod validate;
 
 pub use error::{ConfigError, ConfigProblem};
+pub use outputs::{
+    MAX_MQTT_RATE_HZ, MAX_NMEA_RATE_HZ, ModbusSpec, MqttSpec, NmeaSpec, OutputSettings,
+};
 pub use source::{
     CameraAddress, CameraSource, FeatureSetting, PixelFormat, TimestampMode, TriggerMode,
 };
@@ -50,6 +54,8 @@ pub struct Installation {
     pub auth: AuthSettings,
     /// Where alarm transitions are sent.
     pub notify: NotifySettings,
+    /// The plant's buses compensations and alarms are published on.
+    pub outputs: OutputSettings,
     /// How long raw samples and results are kept (rollups are kept for good).
     pub retention: RetentionSettings,
     /// The archive of camera frames.

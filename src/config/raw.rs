@@ -24,6 +24,8 @@ pub(super) struct RawFile {
     pub auth: RawAuth,
     #[serde(default)]
     pub notify: RawNotify,
+    #[serde(default)]
+    pub outputs: RawOutputs,
     pub filter: Option<Spanned<RawFilter>>,
     pub retention: Option<Spanned<RawRetention>>,
     pub pnp: Option<Spanned<RawPnp>>,
@@ -335,4 +337,43 @@ pub(super) struct RawWebhook {
     pub min_level: Option<String>,
     pub timeout_s: Option<f64>,
     pub max_attempts: Option<u32>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawOutputs {
+    #[serde(default)]
+    pub mqtt: Vec<Spanned<RawMqtt>>,
+    #[serde(default)]
+    pub modbus: Vec<Spanned<RawModbus>>,
+    #[serde(default)]
+    pub nmea: Vec<Spanned<RawNmea>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawMqtt {
+    pub url: String,
+    pub client_id: Option<String>,
+    pub topic_prefix: Option<String>,
+    pub qos: Option<u8>,
+    pub rate_hz: Option<f64>,
+    pub username: Option<String>,
+    pub password: Option<String>,
+    pub ca_file: Option<String>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawModbus {
+    pub listen: String,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawNmea {
+    pub to: String,
+    pub talker: Option<String>,
+    pub rate_hz: Option<f64>,
+    pub allow_broadcast: Option<bool>,
 }

@@ -67,7 +67,7 @@ pub(super) struct Validator {
 }
 
 impl Validator {
-    fn problem(&mut self, offset: usize, message: String) {
+    pub(super) fn problem(&mut self, offset: usize, message: String) {
         let (line, _) = self.lines.locate(offset);
         self.problems.push(ConfigProblem {
             line: Some(line),
@@ -77,7 +77,7 @@ impl Validator {
     }
 
     /// Something valid but probably not meant, at `offset`'s line.
-    fn warning(&mut self, offset: usize, message: String) {
+    pub(super) fn warning(&mut self, offset: usize, message: String) {
         let (line, _) = self.lines.locate(offset);
         self.warnings.push(ConfigProblem {
             line: Some(line),
@@ -135,7 +135,7 @@ impl Validator {
     /// True when `value` lies in `[lo, hi]`; otherwise says so at `at`. Every number that sizes
     /// memory or a duration is bounded this way: a value far outside what makes sense would
     /// overflow the task that uses it, long after the service started.
-    fn within(&mut self, at: usize, what: &str, value: f64, lo: f64, hi: f64) -> bool {
+    pub(super) fn within(&mut self, at: usize, what: &str, value: f64, lo: f64, hi: f64) -> bool {
         if value.is_finite() && (lo..=hi).contains(&value) {
             true
         } else {
@@ -205,6 +205,7 @@ impl Validator {
         let targets = self.targets(&raw, &topology);
         let auth = self.auth(&raw);
         let notify = self.notify(&raw);
+        let outputs = self.outputs(&raw);
         let filter = self.bank_settings(&raw);
         let retention = self.retention(&raw, server.as_ref());
         let frames = self.frames(&raw);
@@ -248,6 +249,7 @@ impl Validator {
             model: Arc::new(model),
             auth,
             notify,
+            outputs,
             retention: retention?,
             frames: frames?,
             fleet: fleet?,

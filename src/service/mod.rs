@@ -127,6 +127,8 @@ pub enum LiveEvent {
     },
     /// An alarm transition, as stored (with its id).
     Alarm(crate::store::StoredAlarm),
+    /// An alarm transition acknowledged, with its acknowledgement.
+    Acknowledged(crate::store::StoredAlarm),
 }
 
 /// How many stored alarm transitions may wait for the notifier (see
@@ -771,11 +773,19 @@ impl Service {
             Job::AcknowledgeAlarm,
         )
         .await?;
-        self.inner
+        let alarm = self
+            .inner
             .store
             .alarm(id)
             .await?
-            .ok_or_else(|| ServiceError::NotFound(format!("no alarm {id}")))
+            .ok_or_else(|| ServiceError::NotFound(format!("no alarm {id}")))?;
+        // Live subscribers (the event stream, the plant's outputs) hear of it; none may be
+        // listening.
+        let _ = self
+            .inner
+            .events
+            .send(LiveEvent::Acknowledged(alarm.clone()));
+        Ok(alarm)
     }
 
     /// Stores a new calibration of a calibrated link, valid from `valid_from_ns`; returns its

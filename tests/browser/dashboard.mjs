@@ -90,6 +90,10 @@ await run(async (browser) => {
     `the relay chain is drawn as stations: ${stations.join(' | ')}; rays ${rays.join(' ')}`);
   const linkRows = await page.$$eval('#links tbody tr', (r) => r.map((e) => e.dataset.link));
   check(linkRows.length === 5, `the link table lists the five links: ${linkRows.join(', ')}`);
+  const outputRows = await page.$$eval('#outputs tbody tr', (r) => r.map((e) => [e.dataset.output, e.querySelector('[data-f="output-state"]').textContent]));
+  check(outputRows.length === 1 && outputRows[0][0].startsWith('modbus 127.0.0.1:') && outputRows[0][1].startsWith('listening'),
+    `the outputs table lists the Modbus output, listening: ${JSON.stringify(outputRows)}`);
+  check(await page.$eval('#outputs-section', (e) => !e.hidden), 'the outputs section shows when outputs are configured');
 
   // Cameras: the newest frame of each with its detections drawn over it; a covered marker says
   // why it was not found; a click opens the frame full size.

@@ -74,6 +74,32 @@ fn a_bad_file_fails_with_its_line_on_stderr() {
 }
 
 #[test]
+fn the_modbus_map_gives_every_field_of_every_target_its_address() {
+    let out = brokenray(&["modbus-map"]);
+    assert!(out.status.success());
+    let text = String::from_utf8(out.stdout).unwrap();
+    let rows: Vec<Vec<&str>> = text
+        .lines()
+        .filter(|l| l.starts_with(|c: char| c.is_ascii_digit()))
+        .map(|l| l.split('\t').collect())
+        .collect();
+    let names = brokenray::config::parse("x.toml", brokenray::config::DEFAULT_INSTALLATION_TOML)
+        .unwrap()
+        .model
+        .targets
+        .len();
+    let fields = brokenray::outputs::modbus::FIELDS.len();
+    assert_eq!(rows.len(), 3 + names * fields, "{text}");
+    assert!(rows.iter().all(|r| r.len() == 5), "{text}");
+    assert!(text.contains("0\tu16\tservice.map_version"), "{text}");
+    assert!(text.contains("100\tu16\tG.status"), "{text}");
+    assert!(
+        text.contains("112\tf32\tG.deformation_rx\tarcsec"),
+        "{text}"
+    );
+}
+
+#[test]
 fn help_lists_only_working_subcommands() {
     let text = String::from_utf8(brokenray(&["--help"]).stdout).unwrap();
     let commands: Vec<&str> = text
@@ -88,6 +114,7 @@ fn help_lists_only_working_subcommands() {
         [
             "check-config",
             "default-config",
+            "modbus-map",
             "serve",
             "backup",
             "new-generation",

@@ -984,3 +984,88 @@ fn sigmas_noise_and_intrinsics_covariances_are_bounded_above() {
         "the built-in one passes"
     );
 }
+
+#[test]
+fn outputs_that_cannot_reach_one_receiver_are_refused_naming_their_key() {
+    for (outputs, key, says) in [
+        (
+            "[[outputs.mqtt]]\nurl = \"mqtt://255.255.255.255:1883\"",
+            "outputs.mqtt[0].url",
+            "cannot be a broker",
+        ),
+        (
+            "[[outputs.mqtt]]\nurl = \"mqtt://0.0.0.0\"",
+            "outputs.mqtt[0].url",
+            "cannot be a broker",
+        ),
+        (
+            "[[outputs.mqtt]]\nurl = \"mqtt://239.1.2.3\"",
+            "outputs.mqtt[0].url",
+            "cannot be a broker",
+        ),
+        (
+            "[[outputs.mqtt]]\nurl = \"http://broker.example:1883\"",
+            "outputs.mqtt[0].url",
+            "mqtt:// or mqtts://",
+        ),
+        (
+            "[[outputs.mqtt]]\nurl = \"mqtt://user:secret@broker.example\"",
+            "outputs.mqtt[0].url",
+            "carries credentials",
+        ),
+        (
+            "[[outputs.mqtt]]\nurl = \"mqtt://broker.example\"\nqos = 2",
+            "outputs.mqtt[0].qos",
+            "0 or 1",
+        ),
+        (
+            "[[outputs.mqtt]]\nurl = \"mqtt://broker.example\"\ntopic_prefix = \"ship/#\"",
+            "outputs.mqtt[0].topic_prefix",
+            "without `+`, `#`",
+        ),
+        (
+            "[[outputs.mqtt]]\nurl = \"mqtt://broker.example\"\nrate_hz = 0",
+            "outputs.mqtt[0].rate_hz",
+            "must lie in",
+        ),
+        (
+            "[[outputs.nmea]]\nto = \"192.168.1.255:10110\"",
+            "outputs.nmea[0].to",
+            "broadcast or multicast",
+        ),
+        (
+            "[[outputs.nmea]]\nto = \"239.192.0.1:60001\"",
+            "outputs.nmea[0].to",
+            "allow_broadcast = true",
+        ),
+        (
+            "[[outputs.nmea]]\nto = \"127.0.0.1:10110\"\ntalker = \"yx\"",
+            "outputs.nmea[0].talker",
+            "two capital letters",
+        ),
+        (
+            "[[outputs.modbus]]\nlisten = \"localhost\"",
+            "outputs.modbus[0].listen",
+            "address and port",
+        ),
+        (
+            "[[outputs.modbus]]\nlisten = \"127.0.0.1:5020\"\n\n[[outputs.modbus]]\nlisten = \"127.0.0.1:5020\"",
+            "outputs.modbus[1].listen",
+            "named twice",
+        ),
+    ] {
+        let text = format!("{VALID}\n{outputs}\n");
+        let e = error_of(&text);
+        assert!(e.contains(key) && e.contains(says), "{outputs}: {e}");
+    }
+    // What is meant passes: a multicast group allowed, a broker by name with TLS and
+    // credentials.
+    let text = format!(
+        "{VALID}\n[[outputs.nmea]]\nto = \"239.192.0.1:60001\"\nallow_broadcast = true\n\n\
+         [[outputs.mqtt]]\nurl = \"mqtts://broker.example\"\nusername = \"ship\"\npassword = \"p\"\n"
+    );
+    let inst = config::parse("site.toml", &text).expect("valid");
+    assert_eq!(inst.outputs.mqtt[0].port, 8883);
+    assert!(inst.outputs.mqtt[0].tls);
+    assert!(!format!("{:?}", inst.outputs.mqtt[0]).contains("\"p\""));
+}

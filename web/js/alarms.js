@@ -86,6 +86,15 @@ export function redrawMarks() {
   for (const p of Object.values(state.plots)) if (p) p.redraw(false, false);
 }
 
+// An acknowledgement given elsewhere (another dashboard, the API): the transition's row says
+// who and when.
+export function acceptAcknowledgement(a) {
+  const i = state.alarms.findIndex((x) => x.id === a.id);
+  if (i < 0) return;
+  state.alarms[i] = a;
+  renderAlarms();
+}
+
 export function acceptAlarm(a) {
   // A transition can change the target's status (a stale link) without a new result.
   loadCompensation(a.target).catch(() => {});

@@ -11,7 +11,7 @@ import { runEvents } from './events.js';
 import { loadHistory, renderPlots, scheduleRefresh, windowMs } from './history.js';
 import { loadReferences, renderReferencePanel } from './reference.js';
 import { renderTopology } from './chain.js';
-import { loadLinks, loadWebhooks } from './links.js';
+import { loadLinks, loadOutputs, loadWebhooks } from './links.js';
 import { renderCameraAges, startCameras } from './cameras.js';
 import { startFleet } from './fleet.js';
 import { startBudgets } from './budget.js';
@@ -78,7 +78,7 @@ export async function start() {
   try {
     await loadTargets();
     await Promise.all(state.targets.map((t) => loadCompensation(t.name)));
-    if (!state.site) await loadLinks();
+    if (!state.site) await Promise.all([loadLinks(), loadOutputs()]);
   } catch (e) {
     if (e.status !== 401) showMessage('start', (state.site ? `Site ${state.site}: ` : 'Cannot reach the service: ') + e.message);
     return;
@@ -106,6 +106,7 @@ export async function start() {
       if (document.hidden) return;
       loadLinks().catch((e) => { if (e.status !== 401) showMessage('links', 'Links: ' + e.message); });
       loadWebhooks().catch((e) => { if (e.status !== 401) showMessage('webhooks', 'Webhooks: ' + e.message); });
+      loadOutputs().catch((e) => { if (e.status !== 401) showMessage('outputs', 'Outputs: ' + e.message); });
     }, 2000);
     void linksTimer;
   }

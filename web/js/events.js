@@ -4,7 +4,7 @@
 import { $, clearMessage, showMessage, state } from './util.js';
 import { askToken, describe, headers } from './api.js';
 import { acceptCompensation, loadCompensation } from './cards.js';
-import { acceptAlarm } from './alarms.js';
+import { acceptAcknowledgement, acceptAlarm } from './alarms.js';
 
 let eventsAbort = null;
 let eventsGeneration = 0;
@@ -88,4 +88,5 @@ function dispatch(event, text) {
   }
   if (event === 'result') acceptCompensation(body);
   else if (event === 'alarm') acceptAlarm(body);
+  else if (event === 'acknowledgement') acceptAcknowledgement(body);
 }

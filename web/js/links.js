@@ -1,4 +1,5 @@
-// The links table: status, rates, outliers, filter reset; failing webhooks.
+// The links table: status, rates, outliers, filter reset; failing webhooks; the outputs on the
+// plant's buses.
 
 import { $, clearMessage, el, fmtAge, fmtTime, parseTime, showMessage, state } from './util.js';
 import { api } from './api.js';
@@ -87,4 +88,34 @@ export async function loadLinks() {
   renderLinks();
   renderTopology();
   clearMessage('links');
+}
+
+// The outputs on the plant's buses (MQTT, Modbus, NMEA): each one's state and counters; the
+// section shows only when the installation has outputs. One that is not connected, or that
+// dropped alarm transitions, is said on the page as well.
+export async function loadOutputs() {
+  const outputs = await api('/api/v1/outputs');
+  $('outputs-section').hidden = outputs.length === 0;
+  const body = $('outputs').tBodies[0];
+  body.textContent = '';
+  for (const o of outputs) {
+    const label = o.kind === 'modbus' ? (o.connected ? `listening, ${o.clients} client${o.clients === 1 ? '' : 's'}` : 'not listening')
+      : (o.connected ? 'connected' : 'not connected');
+    body.append(el('tr', { 'data-output': o.kind + ' ' + o.address },
+      el('th', { scope: 'row', text: o.kind }),
+      el('td', { text: o.address }),
+      el('td', {}, el('span', { class: 'badge ' + (o.connected ? 'ok' : 'alarm'), 'data-f': 'output-state', text: label })),
+      el('td', { class: 'num', text: String(o.sent) }),
+      el('td', { class: 'num', text: String(o.queued) }),
+      el('td', { class: 'num', text: String(o.dropped) }),
+      el('td', { text: o.last_sent ? fmtTime(parseTime(o.last_sent)) : '—' }),
+      el('td', { text: o.last_error ? `${fmtTime(parseTime(o.last_error_at))}: ${o.last_error}` : '—' })));
+  }
+  const troubled = outputs.filter((o) => !o.connected || o.dropped > 0);
+  if (troubled.length) {
+    showMessage('outputs', 'Outputs in trouble: ' +
+      troubled.map((o) => `${o.kind} ${o.address} (${o.connected ? o.dropped + ' alarm transitions dropped' : o.last_error || 'not connected'})`).join('; '));
+  } else {
+    clearMessage('outputs');
+  }
 }

@@ -93,6 +93,8 @@ pub enum Needs {
     Postgres,
     /// Node.js, playwright-core under `tests/browser` and Chromium (the dashboard's tests).
     Browser,
+    /// The Mosquitto MQTT broker (the MQTT output's tests start one on loopback).
+    Mosquitto,
 }
 
 /// The PostgreSQL 15 binaries the tests start clusters from.
@@ -100,6 +102,11 @@ pub fn pg_bin() -> PathBuf {
     std::env::var_os("BROKENRAY_PG_BIN")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from("/usr/lib/postgresql/15/bin"))
+}
+
+/// The Mosquitto broker's executable (Debian puts it in /usr/sbin).
+pub fn mosquitto_bin() -> PathBuf {
+    on_path("mosquitto").unwrap_or_else(|| PathBuf::from("/usr/sbin/mosquitto"))
 }
 
 /// An executable on the `PATH`.
@@ -132,6 +139,8 @@ impl Needs {
                 }
                 None
             }
+            Needs::Mosquitto => (!mosquitto_bin().is_file())
+                .then(|| "the Mosquitto broker (Debian: apt-get install mosquitto)".to_owned()),
             Needs::Browser => {
                 let mut missing = Vec::new();
                 if on_path("node").is_none() {

@@ -271,7 +271,8 @@ pub(crate) fn browser() -> Browser {
 }
 
 /// The built-in installation with the oscillatory model a ship's flexure needs, camera C2 with
-/// a source (never opened by the test app: its state is set by the test).
+/// a source (never opened by the test app: its state is set by the test), and a Modbus output
+/// on a free loopback port.
 fn ship_installation() -> String {
     DEFAULT_INSTALLATION_TOML
         .replace("model = \"static\"", "model = \"oscillatory\"")
@@ -280,6 +281,7 @@ fn ship_installation() -> String {
             "[[cameras]]\nframe = \"C2\"\nsource = { address = \"10.0.0.2\" }",
             1,
         )
+        + "\n[[outputs.modbus]]\nlisten = \"127.0.0.1:0\"\n"
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

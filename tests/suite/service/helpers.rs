@@ -96,6 +96,16 @@ impl TestApp {
             .map(|s| std::sync::Arc::new(brokenray::acquire::SourceState::new(s.clone())))
             .collect();
         state.sources = sources.clone().into();
+        // The plant's outputs start as `serve` starts them.
+        state.outputs = std::sync::Arc::new(
+            brokenray::outputs::Outputs::start(
+                &service,
+                std::sync::Arc::clone(&state.sources),
+                brokenray::api::output_encoders(&service),
+            )
+            .await
+            .expect("the outputs start"),
+        );
         let router = router(state);
         let database = match &inst_database {
             config::Database::Sqlite(p) => p.display().to_string(),

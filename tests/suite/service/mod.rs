@@ -14,6 +14,7 @@ mod ingest_errors;
 mod liveness;
 mod observations;
 mod openapi;
+mod outputs;
 mod recordings;
 mod results;
 mod webhooks;
