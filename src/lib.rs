@@ -29,10 +29,11 @@
 //!
 //! [`clock`] is the one home of the server's clock and of time text; the core never reads it
 //! (times are passed in). The adapters do the IO around the core: [`config`] (the installation
-//! file: the model plus deployment settings), [`store`] (SQLite), [`service`] (the single
-//! writer), [`api`] (HTTP), [`imagefile`] (frame files), [`archive`] (the frame archive), [`fleet`] (a site's uploads to a centre), [`viz`] (Rerun), [`feed`] (the
-//! simulator's HTTP client) and [`cli`]
-//! (the binary in `main.rs` only calls it). ARCHITECTURE.md has the map; conventions are in the
+//! file: the model plus deployment settings), [`store`] (SQLite and PostgreSQL), [`service`] (the single
+//! writer), [`api`] (HTTP), [`notify`] (webhooks), [`outputs`] (MQTT, Modbus/TCP, NMEA 0183),
+//! [`telemetry`] (`/metrics`), [`acquire`] (cameras), [`imagefile`] (frame files), [`archive`]
+//! (the frame archive), [`fleet`] (a site's uploads to a centre), [`viz`] (Rerun), [`feed`]
+//! (the simulator's HTTP client) and [`cli`] (the binary in `main.rs` only calls it). ARCHITECTURE.md has the map; conventions are in the
 //! module docs of [`geometry`], the mathematics in `docs/method.md`.
 
 #![warn(clippy::unwrap_used, clippy::expect_used)]

@@ -362,6 +362,11 @@ fn the_documented_vocabularies_are_exactly_the_enums() {
             Some("NotifyLevel"),
         ),
         (
+            "output `kind` (`GET /api/v1/outputs`, `/healthz`)",
+            words_of::<brokenray::outputs::OutputKind>(),
+            Some("OutputKind"),
+        ),
+        (
             "`[rerun] mode`",
             words_of::<brokenray::config::RerunMode>(),
             None,
