@@ -9,6 +9,9 @@
 //! `/api/v1/events` while the batches go in; `BROKENRAY_BIN`: another build of the binary to
 //! measure, for A/B comparisons; `EXACT_CAMERAS=1`: the built-in cameras without their
 //! `intrinsics_covariance` (for a build that predates it, or to measure what it costs);
+//! `OUTPUTS=1`: the plant's three outputs on (an MQTT broker this run starts, `mosquitto`, with a
+//! subscriber reading everything; a Modbus server polled for a target's block ten times a
+//! second; NMEA sentences to a UDP socket of this run), for A/B runs against `OUTPUTS=0`;
 //! `PG_LOG`: print the PostgreSQL cluster's log at the end, with
 //! `BROKENRAY_PG_SETTINGS="-c log_min_duration_statement=3"` the slow statements).
 
@@ -211,6 +214,26 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
     } else {
         text
     };
+    // OUTPUTS=1: MQTT to a broker of this run, Modbus on a free port, NMEA to a socket here.
+    let outputs = std::env::var("OUTPUTS").is_ok_and(|v| v == "1");
+    let mut plant = None;
+    let text = if outputs {
+        let p = Plant::start(dir);
+        let text = format!(
+            "{text}\n[[outputs.mqtt]]\nurl = \"mqtt://127.0.0.1:{}\"\nrate_hz = 25\n\n\
+             [[outputs.modbus]]\nlisten = \"127.0.0.1:{}\"\n\n\
+             [[outputs.nmea]]\nto = \"{}\"\nrate_hz = 10\n",
+            p.mqtt_port,
+            p.modbus_port,
+            p.nmea.local_addr().expect("udp")
+        );
+        plant = Some(p);
+        println!("outputs: MQTT, Modbus (polled at 10 Hz), NMEA");
+        text
+    } else {
+        println!("outputs: none");
+        text
+    };
     std::fs::write(&config, text).expect("config");
 
     println!("preparing {batches} batches of {n} samples ...");
@@ -268,6 +291,21 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
             .await
             .expect("reference");
         assert!(r.status().is_success(), "reference refused: {}", r.status());
+        // The plant's clients: a Modbus poller reading the first target's block at 10 Hz.
+        let poller = plant.as_ref().map(|p| {
+            let addr: std::net::SocketAddr = ([127, 0, 0, 1], p.modbus_port).into();
+            tokio::spawn(async move {
+                use tokio_modbus::prelude::*;
+                let mut ctx = tcp::connect(addr).await.expect("modbus connects");
+                let mut tick = tokio::time::interval(Duration::from_millis(100));
+                // Until aborted when the batches are in.
+                loop {
+                    tick.tick().await;
+                    let read = ctx.read_holding_registers(100, 60).await;
+                    assert!(read.is_ok_and(|r| r.is_ok()), "a Modbus read failed");
+                }
+            })
+        });
         // Ingest: clients take batches from a shared counter until none are left.
         let next = Arc::new(AtomicUsize::new(0));
         let start = Instant::now();
@@ -298,6 +336,9 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         let total = batches * n;
         let rate = total as f64 / elapsed;
         let rss = peak_rss_mb(pid);
+        if let Some(poller) = poller {
+            poller.abort();
+        }
         println!("ingest over HTTP: {total} samples in {elapsed:.2} s = {rate:.0} samples/s ({clients} clients, batches of {n}, durable before each answer)");
         println!("server peak RSS during ingest: {rss:.1} MB");
         if sse_clients > 0 {
@@ -355,6 +396,13 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         .args(["-TERM", &pid.to_string()])
         .status();
     let _ = child.wait();
+    if let Some(p) = plant {
+        println!(
+            "outputs: {} NMEA datagrams and {} MQTT lines received",
+            p.nmea_datagrams(),
+            p.mqtt_lines()
+        );
+    }
     if rerun_mode == "save" {
         let bytes: u64 = std::fs::read_dir(&recordings)
             .map(|d| {
@@ -384,4 +432,92 @@ fn without_intrinsics_covariance(text: &str) -> String {
         out.push('\n');
     }
     out
+}
+
+/// The plant's side of `OUTPUTS=1`: a Mosquitto broker with a subscriber, a free port for the
+/// Modbus server, a UDP socket counting NMEA datagrams.
+struct Plant {
+    mqtt_port: u16,
+    modbus_port: u16,
+    nmea: std::net::UdpSocket,
+    broker: std::process::Child,
+    subscriber: std::process::Child,
+    mqtt_out: std::path::PathBuf,
+}
+
+impl Plant {
+    fn start(dir: &std::path::Path) -> Plant {
+        let free = || {
+            std::net::TcpListener::bind("127.0.0.1:0")
+                .and_then(|l| l.local_addr())
+                .expect("a free port")
+                .port()
+        };
+        let (mqtt_port, modbus_port) = (free(), free());
+        let conf = dir.join("mosquitto.conf");
+        std::fs::write(
+            &conf,
+            format!("listener {mqtt_port} 127.0.0.1\nallow_anonymous true\npersistence false\n"),
+        )
+        .expect("broker config");
+        let bin = ["/usr/sbin/mosquitto", "mosquitto"]
+            .into_iter()
+            .find(|b| std::path::Path::new(b).is_file())
+            .unwrap_or("mosquitto");
+        let broker = Command::new(bin)
+            .arg("-c")
+            .arg(&conf)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("mosquitto starts (Debian: apt-get install mosquitto)");
+        for _ in 0..500 {
+            if std::net::TcpStream::connect(("127.0.0.1", mqtt_port)).is_ok() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let mqtt_out = dir.join("mqtt.txt");
+        let subscriber = Command::new("mosquitto_sub")
+            .args([
+                "-h",
+                "127.0.0.1",
+                "-p",
+                &mqtt_port.to_string(),
+                "-t",
+                "brokenray/#",
+            ])
+            .stdout(std::fs::File::create(&mqtt_out).expect("subscriber output"))
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("mosquitto_sub starts (Debian: apt-get install mosquitto-clients)");
+        let nmea = std::net::UdpSocket::bind("127.0.0.1:0").expect("udp");
+        nmea.set_nonblocking(true).expect("nonblocking");
+        Plant {
+            mqtt_port,
+            modbus_port,
+            nmea,
+            broker,
+            subscriber,
+            mqtt_out,
+        }
+    }
+
+    fn nmea_datagrams(&self) -> usize {
+        let mut buf = [0u8; 256];
+        std::iter::from_fn(|| self.nmea.recv(&mut buf).ok()).count()
+    }
+
+    fn mqtt_lines(&self) -> usize {
+        std::fs::read_to_string(&self.mqtt_out).map_or(0, |t| t.lines().count())
+    }
+}
+
+impl Drop for Plant {
+    fn drop(&mut self) {
+        let _ = self.subscriber.kill();
+        let _ = self.subscriber.wait();
+        let _ = self.broker.kill();
+        let _ = self.broker.wait();
+    }
 }
