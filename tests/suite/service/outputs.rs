@@ -339,6 +339,52 @@ async fn mqtt_carries_the_apis_compensation_and_every_alarm_in_order_and_survive
     );
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mqtt_holds_its_rate_per_target_and_publishes_the_newest() {
+    if skip_without(Needs::Mosquitto, "mqtt_holds_its_rate_per_target") {
+        return;
+    }
+    let broker = Broker::start();
+    let (heard, _listener) = subscriber(broker.port, "listener").await;
+    let app = TestApp::start(Some(&installation(&format!(
+        "[[outputs.mqtt]]\nurl = \"mqtt://127.0.0.1:{}\"\nrate_hz = 4\n",
+        broker.port
+    ))))
+    .await;
+    let topic = "brokenray/targets/G/compensation";
+    // 40 batches a few milliseconds apart, each of 0.2 s of measurement time (two results of
+    // the event stream's 10 a second): about 80 results in a second or so of wall time.
+    let start = std::time::Instant::now();
+    for b in 0..40 {
+        let samples: Vec<Value> = (0..5)
+            .map(|k| turned_sample(T0_NS + (b * 5 + k) * 40_000_000, 10.0))
+            .collect();
+        let (status, body) = app
+            .post_live("/api/v1/samples", &json!({ "samples": samples }))
+            .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let posting_s = start.elapsed().as_secs_f64();
+    let (_, api) = app.get("/api/v1/targets/G/compensation").await;
+    assert!(
+        within(Duration::from_secs(20), || heard
+            .on(topic)
+            .last()
+            .is_some_and(|c| c["time"] == api["time"]))
+        .await,
+        "the newest compensation is published once the rate allows"
+    );
+    let published = heard.on(topic).len();
+    // At most one at once, then 4 a second over the posting, and the newest after it.
+    let allowed = 2 + (4.0 * posting_s).ceil() as usize;
+    assert!(
+        published <= allowed,
+        "{published} compensations published in {posting_s:.2} s at 4 a second (at most {allowed})"
+    );
+    assert!(published >= 2, "{published}");
+}
+
 /// A float of the map: two registers, high word first.
 fn f32_at(registers: &[u16], at: usize) -> f32 {
     f32::from_bits((u32::from(registers[at]) << 16) | u32::from(registers[at + 1]))
@@ -453,6 +499,8 @@ fn parse_sentence(datagram: &[u8]) -> Vec<String> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nmea_sentences_carry_the_apis_deformation_and_the_alarms_in_order() {
     let receiver = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let started = std::time::Instant::now();
+    let mut rotation_sentences = 0usize;
     let to = receiver.local_addr().unwrap();
     let app = TestApp::start(Some(&installation(&format!(
         "[[outputs.nmea]]\nto = \"{to}\"\ntalker = \"YX\"\nrate_hz = 10\n"
@@ -487,6 +535,9 @@ async fn nmea_sentences_carry_the_apis_deformation_and_the_alarms_in_order() {
         match fields[0].as_str() {
             "YXXDR" => {
                 assert_eq!(fields.len(), 13, "{fields:?}");
+                if fields[1] == "A" {
+                    rotation_sentences += 1;
+                }
                 // Empty values (not available) until the result and its reference are there.
                 if fields[2].is_empty() {
                     continue;
@@ -503,6 +554,12 @@ async fn nmea_sentences_carry_the_apis_deformation_and_the_alarms_in_order() {
             other => panic!("unexpected sentence {other}"),
         }
     }
+    // The rate held: 10 rotation sentences a second at most (and one at the start).
+    let elapsed_s = started.elapsed().as_secs_f64();
+    assert!(
+        rotation_sentences as f64 <= 2.0 + 10.0 * elapsed_s,
+        "{rotation_sentences} rotation sentences in {elapsed_s:.2} s at 10 a second"
+    );
     let rotation = rotation.expect("an XDR of the rotation");
     let translation = translation.expect("an XDR of the translation");
     for i in 0..3 {
@@ -570,4 +627,157 @@ async fn a_modbus_port_in_use_is_refused_naming_its_key() {
     );
     drop(service);
     pipeline.finished().await.unwrap();
+}
+
+/// Runs `openssl` with `args` in `dir`.
+fn openssl(dir: &std::path::Path, args: &[&str]) {
+    let out = std::process::Command::new("openssl")
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("openssl runs");
+    assert!(
+        out.status.success(),
+        "openssl {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mqtts_with_credentials_reaches_a_broker_that_asks_for_them_and_a_wrong_password_is_said() {
+    if skip_without(Needs::Mosquitto, "mqtts_with_credentials") {
+        return;
+    }
+    // A certificate authority of this test, and the broker's certificate for 127.0.0.1.
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let ec = [
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:prime256v1",
+        "-nodes",
+    ];
+    openssl(
+        d,
+        &[
+            &["req", "-x509"],
+            &ec[..],
+            &[
+                "-keyout",
+                "ca.key",
+                "-out",
+                "ca.crt",
+                "-days",
+                "2",
+                "-subj",
+                "/CN=test authority",
+            ],
+        ]
+        .concat(),
+    );
+    openssl(
+        d,
+        &[
+            &["req"],
+            &ec[..],
+            &[
+                "-keyout",
+                "server.key",
+                "-out",
+                "server.csr",
+                "-subj",
+                "/CN=127.0.0.1",
+            ],
+        ]
+        .concat(),
+    );
+    std::fs::write(
+        d.join("ext.cnf"),
+        "subjectAltName=IP:127.0.0.1\nbasicConstraints=CA:FALSE\nextendedKeyUsage=serverAuth\n",
+    )
+    .unwrap();
+    openssl(
+        d,
+        &[
+            "x509",
+            "-req",
+            "-in",
+            "server.csr",
+            "-CA",
+            "ca.crt",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            "server.crt",
+            "-days",
+            "2",
+            "-extfile",
+            "ext.cnf",
+        ],
+    );
+    let made = std::process::Command::new("mosquitto_passwd")
+        .args(["-b", "-c"])
+        .arg(d.join("passwords"))
+        .args(["ship", "s3cret"])
+        .output()
+        .expect("mosquitto_passwd runs");
+    assert!(made.status.success());
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let conf = d.join("mosquitto.conf");
+    std::fs::write(
+        &conf,
+        format!(
+            "user root\nper_listener_settings false\nallow_anonymous false\npassword_file {pw}\n\
+             listener {port} 127.0.0.1\ncafile {ca}\ncertfile {crt}\nkeyfile {key}\n",
+            pw = d.join("passwords").display(),
+            ca = d.join("ca.crt").display(),
+            crt = d.join("server.crt").display(),
+            key = d.join("server.key").display(),
+        ),
+    )
+    .unwrap();
+    let mut broker = std::process::Command::new(mosquitto_bin())
+        .arg("-c")
+        .arg(&conf)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("mosquitto starts");
+    let ca = d.join("ca.crt").display().to_string();
+    let app = TestApp::start(Some(&installation(&format!(
+        "[[outputs.mqtt]]\nurl = \"mqtts://127.0.0.1:{port}\"\nca_file = \"{ca}\"\nusername = \"ship\"\npassword = \"s3cret\"\n\n\
+         [[outputs.mqtt]]\nurl = \"mqtts://127.0.0.1:{port}\"\nclient_id = \"wrong\"\nca_file = \"{ca}\"\nusername = \"ship\"\npassword = \"wrong\"\n"
+    ))))
+    .await;
+    let mut outputs = Value::Null;
+    for _ in 0..2000 {
+        outputs = app.get("/api/v1/outputs").await.1;
+        if outputs[0]["connected"] == true && !outputs[1]["last_error"].is_null() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let _ = broker.kill();
+    let _ = broker.wait();
+    assert_eq!(outputs[0]["connected"], true, "{outputs}");
+    assert!(
+        outputs[0]["sent"].as_u64().unwrap() >= 1,
+        "the online status: {outputs}"
+    );
+    assert_eq!(outputs[1]["connected"], false, "{outputs}");
+    let error = outputs[1]["last_error"].as_str().unwrap();
+    assert!(
+        !error.contains("wrong"),
+        "the password is never said: {error}"
+    );
+    assert!(
+        error.to_lowercase().contains("refused") || error.to_lowercase().contains("not authorized"),
+        "{error}"
+    );
 }
