@@ -59,22 +59,40 @@ struct Counters {
     /// The newest attempt failed.
     failing: std::sync::atomic::AtomicBool,
     last_delivered_ns: AtomicI64,
-    last_error: Mutex<Option<(i64, String)>>,
+    last_error: LastError,
 }
 
 impl Counters {
     fn error(&self, now_ns: i64, message: String) {
-        match self.last_error.lock() {
-            Ok(mut g) => *g = Some((now_ns, message)),
-            Err(p) => *p.into_inner() = Some((now_ns, message)),
-        }
+        self.last_error.set(now_ns, message);
     }
 
     fn last_error(&self) -> Option<(i64, String)> {
-        match self.last_error.lock() {
-            Ok(g) => g.clone(),
-            Err(p) => p.into_inner().clone(),
-        }
+        self.last_error.get()
+    }
+}
+
+/// The last error of something that delivers (a webhook, an output) and when it happened (ns,
+/// server clock), shared by its task and the readers of its status.
+#[derive(Debug, Default)]
+pub struct LastError(Mutex<Option<(i64, String)>>);
+
+impl LastError {
+    /// Records `message` at `now_ns`.
+    pub fn set(&self, now_ns: i64, message: String) {
+        // A panic elsewhere cannot leave the value half written: take it from a poisoned lock.
+        *self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some((now_ns, message));
+    }
+
+    /// The last error and when, if any.
+    pub fn get(&self) -> Option<(i64, String)> {
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
     }
 }
 

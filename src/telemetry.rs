@@ -590,51 +590,53 @@ fn webhooks(out: &mut Exposition, hooks: &[crate::notify::WebhookStatus]) {
 
 /// The plant outputs' families (MQTT, Modbus, NMEA), from the status they expose.
 fn outputs(out: &mut Exposition, outputs: &[crate::outputs::OutputStatus]) {
+    use crate::outputs::OutputStatus;
     use crate::words::Word as _;
     if outputs.is_empty() {
         return;
     }
-    let labels = |o: &crate::outputs::OutputStatus| {
-        vec![
-            ("output", o.kind.word().to_owned()),
-            ("address", o.address.clone()),
-        ]
-    };
-    out.family(
-        "brokenray_output_connected",
-        "gauge",
-        "1 when the output is connected (MQTT), listening (Modbus) or its last send succeeded (NMEA).",
+    /// A family: its name, type, help, and its value of an output.
+    type Family = (
+        &'static str,
+        &'static str,
+        &'static str,
+        fn(&OutputStatus) -> u64,
     );
-    for o in outputs {
-        out.sample(
+    let families: [Family; 4] = [
+        (
             "brokenray_output_connected",
-            &labels(o),
-            u64::from(o.connected),
-        );
-    }
-    out.family(
-        "brokenray_output_sent_total",
-        "counter",
-        "Messages published (MQTT), reads answered (Modbus), sentences sent (NMEA).",
-    );
-    for o in outputs {
-        out.sample("brokenray_output_sent_total", &labels(o), o.sent);
-    }
-    out.family(
-        "brokenray_output_dropped_total",
-        "counter",
-        "Alarm transitions dropped because the output's queue was full.",
-    );
-    for o in outputs {
-        out.sample("brokenray_output_dropped_total", &labels(o), o.dropped);
-    }
-    out.family(
-        "brokenray_output_queued",
-        "gauge",
-        "Messages waiting to be delivered.",
-    );
-    for o in outputs {
-        out.sample("brokenray_output_queued", &labels(o), o.queued);
+            "gauge",
+            "1 when the output is connected (MQTT), listening (Modbus) or its last send succeeded (NMEA).",
+            |o| u64::from(o.connected),
+        ),
+        (
+            "brokenray_output_sent_total",
+            "counter",
+            "Messages published (MQTT), reads answered (Modbus), sentences sent (NMEA).",
+            |o| o.sent,
+        ),
+        (
+            "brokenray_output_dropped_total",
+            "counter",
+            "Alarm transitions dropped because the output's queue was full.",
+            |o| o.dropped,
+        ),
+        (
+            "brokenray_output_queued",
+            "gauge",
+            "Messages waiting to be delivered.",
+            |o| o.queued,
+        ),
+    ];
+    for (name, kind, help, value) in families {
+        out.family(name, kind, help);
+        for o in outputs {
+            let labels = [
+                ("output", o.kind.word().to_owned()),
+                ("address", o.address.clone()),
+            ];
+            out.sample(name, &labels, value(o));
+        }
     }
 }
 

@@ -92,7 +92,7 @@ pub struct Counters {
     queued: AtomicU64,
     clients: AtomicU64,
     last_sent_ns: AtomicI64,
-    last_error: Mutex<Option<(i64, String)>>,
+    last_error: crate::notify::LastError,
 }
 
 impl Counters {
@@ -106,17 +106,7 @@ impl Counters {
     }
 
     fn error(&self, now_ns: i64, message: String) {
-        match self.last_error.lock() {
-            Ok(mut g) => *g = Some((now_ns, message)),
-            Err(p) => *p.into_inner() = Some((now_ns, message)),
-        }
-    }
-
-    fn last_error(&self) -> Option<(i64, String)> {
-        match self.last_error.lock() {
-            Ok(g) => g.clone(),
-            Err(p) => p.into_inner().clone(),
-        }
+        self.last_error.set(now_ns, message);
     }
 }
 
@@ -348,7 +338,7 @@ impl Outputs {
                     queued: c.queued.load(Relaxed),
                     clients: (r.kind == OutputKind::Modbus).then(|| c.clients.load(Relaxed)),
                     last_sent_ns: (last_sent_ns != 0).then_some(last_sent_ns),
-                    last_error: c.last_error(),
+                    last_error: c.last_error.get(),
                 }
             })
             .collect()
@@ -507,8 +497,5 @@ impl<T> Ordered<T> {
 /// Locks `m`, taking the value of a poisoned lock (a panic elsewhere leaves it consistent:
 /// every writer of these finishes its change before anything can panic).
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    match m.lock() {
-        Ok(g) => g,
-        Err(p) => p.into_inner(),
-    }
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }

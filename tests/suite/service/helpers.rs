@@ -283,6 +283,32 @@ pub fn turned_sample(time_ns: i64, arcsec: f64) -> Value {
 }
 
 /// A one-link installation: `G_from_B` measured directly, target G from base B.
+/// One measured link `G_from_B` (25 Hz), target G with alarm thresholds of 60 and 120
+/// arc-seconds and no dwell (each level is taken at once), and `extra` appended: what the
+/// alarm's receivers (webhooks, the plant's outputs) are tested on.
+pub fn alarmed_installation(extra: &str) -> String {
+    format!(
+        r#"
+[[links]]
+name = "G_from_B"
+kind = "measured"
+sigma = {{ rotation_arcsec = 5.0, translation_mm = 0.05 }}
+expected_rate_hz = 25.0
+random_walk = {{ rotation_arcsec_per_sqrt_s = 20.0, translation_mm_per_sqrt_s = 0.1 }}
+
+[[targets]]
+name = "G"
+base = "B"
+[targets.alarms]
+warn_rotation_arcsec = 60.0
+alarm_rotation_arcsec = 120.0
+hysteresis = 0.1
+dwell_s = 0.0
+{extra}
+"#
+    )
+}
+
 pub const ONE_LINK: &str = r#"
 [[links]]
 name = "G_from_B"

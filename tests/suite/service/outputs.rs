@@ -3,36 +3,12 @@
 //! equals the API's answer for the same result; alarm transitions arrive in order; a broker
 //! that goes away and returns gets the newest state.
 
-use super::helpers::{T0_NS, TestApp, turned_sample};
+use super::helpers::{T0_NS, TestApp, alarmed_installation, turned_sample};
 use crate::common::{Needs, mosquitto_bin, skip_without};
 use axum::http::StatusCode;
 use serde_json::{Value, json};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-
-/// One link, one target with alarm thresholds, and `outputs` appended.
-fn installation(outputs: &str) -> String {
-    format!(
-        r#"
-[[links]]
-name = "G_from_B"
-kind = "measured"
-sigma = {{ rotation_arcsec = 5.0, translation_mm = 0.05 }}
-expected_rate_hz = 25.0
-random_walk = {{ rotation_arcsec_per_sqrt_s = 20.0, translation_mm_per_sqrt_s = 0.1 }}
-
-[[targets]]
-name = "G"
-base = "B"
-[targets.alarms]
-warn_rotation_arcsec = 60.0
-alarm_rotation_arcsec = 120.0
-hysteresis = 0.1
-dwell_s = 0.0
-{outputs}
-"#
-    )
-}
 
 /// Waits (at most `limit`) until `done` holds; false when it never did.
 async fn within(limit: Duration, mut done: impl FnMut() -> bool) -> bool {
@@ -57,6 +33,23 @@ fn four_transitions(from_k: i64) -> Vec<Value> {
             )
         })
         .collect()
+}
+
+/// Sets G's reference and posts [`four_transitions`]: the four stored transitions, as the API
+/// lists them.
+async fn four_alarms(app: &TestApp) -> Vec<Value> {
+    app.set_straight_reference().await;
+    let (status, body) = app
+        .post_live(
+            "/api/v1/samples",
+            &json!({ "samples": four_transitions(0) }),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, list) = app.get("/api/v1/alarms?target=G").await;
+    let alarms = list["alarms"].as_array().unwrap().clone();
+    assert_eq!(alarms.len(), 4, "{list}");
+    alarms
 }
 
 /// A throwaway Mosquitto broker on a loopback port, stopped when dropped.
@@ -173,7 +166,7 @@ async fn mqtt_carries_the_apis_compensation_and_every_alarm_in_order_and_survive
     }
     let mut broker = Broker::start();
     let (heard, listener) = subscriber(broker.port, "listener").await;
-    let app = TestApp::start(Some(&installation(&format!(
+    let app = TestApp::start(Some(&alarmed_installation(&format!(
         "[[outputs.mqtt]]\nurl = \"mqtt://127.0.0.1:{}\"\nclient_id = \"ship\"\nrate_hz = 50\n",
         broker.port
     ))))
@@ -187,17 +180,7 @@ async fn mqtt_carries_the_apis_compensation_and_every_alarm_in_order_and_survive
         .await,
         "no online status"
     );
-    app.set_straight_reference().await;
-    let (status, body) = app
-        .post_live(
-            "/api/v1/samples",
-            &json!({ "samples": four_transitions(0) }),
-        )
-        .await;
-    assert_eq!(status, StatusCode::OK, "{body}");
-    let (_, list) = app.get("/api/v1/alarms?target=G").await;
-    let alarms = list["alarms"].as_array().unwrap().clone();
-    assert_eq!(alarms.len(), 4, "{list}");
+    let alarms = four_alarms(&app).await;
 
     // Every transition, in order, each as the API shows it.
     let topic = "brokenray/targets/G/alarm";
@@ -346,7 +329,7 @@ async fn mqtt_holds_its_rate_per_target_and_publishes_the_newest() {
     }
     let broker = Broker::start();
     let (heard, _listener) = subscriber(broker.port, "listener").await;
-    let app = TestApp::start(Some(&installation(&format!(
+    let app = TestApp::start(Some(&alarmed_installation(&format!(
         "[[outputs.mqtt]]\nurl = \"mqtt://127.0.0.1:{}\"\nrate_hz = 4\n",
         broker.port
     ))))
@@ -393,7 +376,7 @@ fn f32_at(registers: &[u16], at: usize) -> f32 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn modbus_registers_equal_the_apis_compensation_and_refuse_writes() {
     use tokio_modbus::prelude::*;
-    let app = TestApp::start(Some(&installation(
+    let app = TestApp::start(Some(&alarmed_installation(
         "[[outputs.modbus]]\nlisten = \"127.0.0.1:0\"\n",
     )))
     .await;
@@ -502,21 +485,11 @@ async fn nmea_sentences_carry_the_apis_deformation_and_the_alarms_in_order() {
     let started = std::time::Instant::now();
     let mut rotation_sentences = 0usize;
     let to = receiver.local_addr().unwrap();
-    let app = TestApp::start(Some(&installation(&format!(
+    let app = TestApp::start(Some(&alarmed_installation(&format!(
         "[[outputs.nmea]]\nto = \"{to}\"\ntalker = \"YX\"\nrate_hz = 10\n"
     ))))
     .await;
-    app.set_straight_reference().await;
-    let (status, body) = app
-        .post_live(
-            "/api/v1/samples",
-            &json!({ "samples": four_transitions(0) }),
-        )
-        .await;
-    assert_eq!(status, StatusCode::OK, "{body}");
-    let (_, list) = app.get("/api/v1/alarms?target=G").await;
-    let alarms = list["alarms"].as_array().unwrap().clone();
-    assert_eq!(alarms.len(), 4);
+    let alarms = four_alarms(&app).await;
     let (_, api) = app.get("/api/v1/targets/G/compensation").await;
 
     let mut alr = Vec::new();
@@ -608,7 +581,7 @@ async fn a_modbus_port_in_use_is_refused_naming_its_key() {
     let dir = tempfile::tempdir().unwrap();
     let inst = super::helpers::installation(
         &dir,
-        Some(&installation(&format!(
+        Some(&alarmed_installation(&format!(
             "[[outputs.modbus]]\nlisten = \"127.0.0.1:{port}\"\n"
         ))),
     );
@@ -750,7 +723,7 @@ async fn mqtts_with_credentials_reaches_a_broker_that_asks_for_them_and_a_wrong_
         .spawn()
         .expect("mosquitto starts");
     let ca = d.join("ca.crt").display().to_string();
-    let app = TestApp::start(Some(&installation(&format!(
+    let app = TestApp::start(Some(&alarmed_installation(&format!(
         "[[outputs.mqtt]]\nurl = \"mqtts://127.0.0.1:{port}\"\nca_file = \"{ca}\"\nusername = \"ship\"\npassword = \"s3cret\"\n\n\
          [[outputs.mqtt]]\nurl = \"mqtts://127.0.0.1:{port}\"\nclient_id = \"wrong\"\nca_file = \"{ca}\"\nusername = \"ship\"\npassword = \"wrong\"\n"
     ))))

@@ -2,7 +2,7 @@
 //! `GET /api/v1/alarms` shows it, the signature checks out with the secret, `min_level` filters,
 //! a failing receiver is retried, a refusing one is given up, and all of it is counted.
 
-use super::helpers::{T0_NS, TestApp, turned_sample};
+use super::helpers::{T0_NS, TestApp, alarmed_installation, turned_sample};
 use axum::http::{HeaderMap, StatusCode};
 use hmac::Mac as _;
 use serde_json::{Value, json};
@@ -76,24 +76,8 @@ async fn receiver() -> (String, Received) {
 }
 
 fn installation(base: &str) -> String {
-    format!(
+    alarmed_installation(&format!(
         r#"
-[[links]]
-name = "G_from_B"
-kind = "measured"
-sigma = {{ rotation_arcsec = 5.0, translation_mm = 0.05 }}
-expected_rate_hz = 25.0
-random_walk = {{ rotation_arcsec_per_sqrt_s = 20.0, translation_mm_per_sqrt_s = 0.1 }}
-
-[[targets]]
-name = "G"
-base = "B"
-[targets.alarms]
-warn_rotation_arcsec = 60.0
-alarm_rotation_arcsec = 120.0
-hysteresis = 0.1
-dwell_s = 0.0
-
 [[notify.webhooks]]
 url = "{base}/all"
 secret = "all-secret"
@@ -111,7 +95,7 @@ secret = "s"
 url = "{base}/refuse"
 secret = "s"
 "#
-    )
+    ))
 }
 
 fn hmac_hex(secret: &str, body: &[u8]) -> String {
