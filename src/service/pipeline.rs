@@ -406,8 +406,9 @@ impl Pipeline {
         }
     }
 
-    /// Applies a group of jobs in one transaction and answers them after the commit.
-    async fn commit_group(&mut self, jobs: Vec<Job>) -> bool {
+    /// Applies a group of jobs in one transaction and, after the commit, publishes the snapshot
+    /// readers see (`publish`), then answers them.
+    async fn commit_group(&mut self, jobs: Vec<Job>, publish: &impl Fn(Snapshot)) {
         let now = self.clock.now_ns();
         // Liveness checks alone write only when a stale alarm changes: judged first on a copy,
         // and without a transaction when nothing changes (the usual case, every second).
@@ -421,7 +422,7 @@ impl Pipeline {
                     }
                     job.answer();
                 }
-                return false;
+                return;
             }
         }
         let started = std::time::Instant::now();
@@ -483,6 +484,9 @@ impl Pipeline {
                         m.filter_restarts.fetch_add(r.reinitialized as u64, Relaxed);
                     }
                 }
+                // Readers see the commit before its requests are answered: a client that
+                // reads right after its write gets what it wrote.
+                publish(self.snapshot());
                 for job in jobs {
                     job.answer();
                 }
@@ -505,7 +509,6 @@ impl Pipeline {
                     let _ = self.events.send(super::LiveEvent::Alarm(a));
                 }
                 self.publish_viz(viz_records);
-                true
             }
             Err(e) => {
                 tracing::error!(error = %e, "a commit failed; its requests are refused and the filters roll back");
@@ -524,7 +527,6 @@ impl Pipeline {
                 for job in jobs {
                     job.fail(&message);
                 }
-                false
             }
         }
     }
@@ -545,9 +547,7 @@ pub(super) async fn run(
                 Err(_) => break,
             }
         }
-        if p.commit_group(jobs).await {
-            publish(p.snapshot());
-        }
+        p.commit_group(jobs, &publish).await;
     }
     let last = p.write.health().problem();
     if let Err(e) = p.write.close().await {

@@ -691,3 +691,26 @@ async fn the_budget_names_every_contributor_largest_first() {
     let (status, _) = app.get("/api/v1/targets/Nope/budget").await;
     assert_eq!(status, StatusCode::NOT_FOUND);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_read_right_after_an_acknowledged_write_sees_it() {
+    // Readers are given the commit before its request is answered: each compensation read just
+    // after a write is the result of that write, never the one before.
+    let app = TestApp::start(Some(&super::helpers::alarmed_installation(""))).await;
+    for k in 0..60 {
+        let time = T0_NS + k * 40_000_000;
+        let (status, body) = app
+            .post_live(
+                "/api/v1/samples",
+                &json!({"samples": [super::helpers::turned_sample(time, 1.0)]}),
+            )
+            .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        let (_, compensation) = app.get("/api/v1/targets/G/compensation").await;
+        assert_eq!(
+            brokenray::clock::parse_json_time(&compensation["time"]).ok(),
+            Some(time),
+            "sample {k}: {compensation}"
+        );
+    }
+}
