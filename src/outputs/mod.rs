@@ -208,10 +208,11 @@ impl TargetFigures {
 /// What the dispatcher hands every output.
 #[derive(Debug, Clone)]
 enum Update {
-    /// A target's new compensation, encoded.
+    /// A target's new result with the reference in force: encoded by an output only when it
+    /// sends it (an MQTT output at most `rate_hz` a second, however many results arrive).
     Compensation {
         target: TargetId,
-        json: bytes::Bytes,
+        result: Arc<(TargetEstimate, Option<ReferenceVersion>)>,
     },
     /// An alarm transition or its acknowledgement.
     Alarm {
@@ -301,8 +302,13 @@ impl Outputs {
         }
         for (index, spec) in settings.mqtt.iter().enumerate() {
             let counters = Arc::new(Counters::default());
-            let (inbox, task) = mqtt::spawn(service, spec.clone(), Arc::clone(&counters))
-                .map_err(|message| OutputError::Tls { index, message })?;
+            let (inbox, task) = mqtt::spawn(
+                service,
+                spec.clone(),
+                Arc::clone(&encoders.compensation),
+                Arc::clone(&counters),
+            )
+            .map_err(|message| OutputError::Tls { index, message })?;
             inboxes.push(inbox);
             tasks.push(task);
             running.push(Running {
@@ -399,10 +405,7 @@ async fn dispatch(
                     if let Some(h) = heartbeats.targets.get(target.0) {
                         h.fetch_add(1, Relaxed);
                     }
-                    match (encoders.compensation)(target, &estimate, reference.as_ref()) {
-                        Ok(json) => send(Update::Compensation { target, json: json.into() }),
-                        Err(e) => tracing::error!(error = %e, "a compensation cannot be encoded for the outputs"),
-                    }
+                    send(Update::Compensation { target, result: Arc::new((estimate, reference)) });
                 }
                 Ok(LiveEvent::Alarm(alarm) | LiveEvent::Acknowledged(alarm)) => {
                     let name = names.get(alarm.target.0).map_or("", String::as_str);

@@ -3,7 +3,9 @@
 //!
 //! * `{prefix}/targets/{target}/compensation`: each new result's compensation, the JSON of
 //!   `GET /api/v1/targets/{name}/compensation`, retained (a subscriber that connects later gets
-//!   the newest at once), at most `rate_hz` a second per target (the newest wins);
+//!   the newest at once), at most `rate_hz` a second per target (the newest wins, encoded,
+//!   its status and age judged, when it is sent: results that a newer one replaces before
+//!   their turn cost nothing);
 //! * `{prefix}/targets/{target}/alarm`: each alarm transition and each acknowledgement, the
 //!   JSON of `GET /api/v1/alarms`, in order, retained;
 //! * `{prefix}/links/{link}/state` and `{prefix}/cameras/{camera}/state`: a link's or camera's
@@ -18,7 +20,10 @@
 //! waits on ingest and ingest never waits on it.
 
 use super::{Counters, Inbox, Ordered, Update, lock};
+use crate::bank::TargetEstimate;
 use crate::config::MqttSpec;
+use crate::deformation::ReferenceVersion;
+use crate::model::TargetId;
 use crate::service::Service;
 use bytes::Bytes;
 use rumqttc::{AsyncClient, Event, LastWill, MqttOptions, Packet, QoS, Transport};
@@ -37,10 +42,17 @@ const MAX_BACKOFF: Duration = Duration::from_secs(4);
 /// `ca_file`.
 const SYSTEM_CA_BUNDLE: &str = "/etc/ssl/certs/ca-certificates.crt";
 
+/// What a retained topic publishes.
+enum Payload {
+    /// Ready to send.
+    Encoded(Bytes),
+    /// A target's result with its reference, encoded when it is sent.
+    Result(TargetId, Arc<(TargetEstimate, Option<ReferenceVersion>)>),
+}
+
 /// The newest message of a retained topic.
-#[derive(Debug)]
 struct Latest {
-    payload: Bytes,
+    payload: Payload,
     /// Not yet published (or to publish again on a new connection).
     dirty: bool,
     /// When it was last published, for the rate per target.
@@ -50,7 +62,6 @@ struct Latest {
 }
 
 /// What waits to be published.
-#[derive(Debug)]
 struct Pending {
     /// Topic (below the prefix) to its newest message.
     latest: BTreeMap<String, Latest>,
@@ -67,6 +78,8 @@ struct MqttInbox {
     interval: Duration,
     /// Target names, by index.
     targets: Vec<String>,
+    /// The compensation's JSON, as the API answers it.
+    encode: Arc<super::CompensationEncoder>,
 }
 
 impl MqttInbox {
@@ -75,10 +88,10 @@ impl MqttInbox {
         self.counters.queued.store(n as u64, Relaxed);
     }
 
-    fn set_latest(&self, topic: String, payload: Bytes, interval: Duration) {
+    fn set_latest(&self, topic: String, payload: Payload, interval: Duration) {
         let mut p = lock(&self.pending);
         let entry = p.latest.entry(topic).or_insert(Latest {
-            payload: Bytes::new(),
+            payload: Payload::Encoded(Bytes::new()),
             dirty: false,
             last_sent: None,
             interval,
@@ -94,18 +107,22 @@ impl MqttInbox {
 impl Inbox for MqttInbox {
     fn put(&self, update: &Update) {
         match update {
-            Update::Compensation { target, json } => {
+            Update::Compensation { target, result } => {
                 let Some(name) = self.targets.get(target.0) else {
                     return;
                 };
                 self.set_latest(
                     format!("targets/{name}/compensation"),
-                    json.clone(),
+                    Payload::Result(*target, Arc::clone(result)),
                     self.interval,
                 );
             }
             Update::State { topic, json } => {
-                self.set_latest(topic.clone(), json.clone(), Duration::ZERO);
+                self.set_latest(
+                    topic.clone(),
+                    Payload::Encoded(json.clone()),
+                    Duration::ZERO,
+                );
             }
             Update::Alarm { alarm, json } => {
                 let Some(name) = self.targets.get(alarm.target.0) else {
@@ -162,6 +179,7 @@ fn status_payload(state: &str, now_ns: i64) -> Bytes {
 pub(super) fn spawn(
     service: &Service,
     spec: MqttSpec,
+    encode: Arc<super::CompensationEncoder>,
     counters: Arc<Counters>,
 ) -> Result<(Arc<dyn Inbox>, tokio::task::JoinHandle<()>), String> {
     let mut options = MqttOptions::new(spec.client_id.clone(), spec.host.clone(), spec.port);
@@ -196,6 +214,7 @@ pub(super) fn spawn(
             .iter()
             .map(|t| t.name.clone())
             .collect(),
+        encode,
     });
     let task = service.spawn_watched(
         "mqtt output",
@@ -330,8 +349,21 @@ fn publish_due(
         if !l.dirty || l.last_sent.is_some_and(|t| now < t + l.interval) {
             continue;
         }
+        let payload = match &l.payload {
+            Payload::Encoded(bytes) => bytes.to_vec(),
+            Payload::Result(target, result) => {
+                match (inbox.encode)(*target, &result.0, result.1.as_ref()) {
+                    Ok(json) => json,
+                    Err(e) => {
+                        tracing::error!(error = %e, "a compensation cannot be encoded for MQTT");
+                        l.dirty = false;
+                        continue;
+                    }
+                }
+            }
+        };
         if client
-            .try_publish(format!("{prefix}/{topic}"), qos, true, l.payload.to_vec())
+            .try_publish(format!("{prefix}/{topic}"), qos, true, payload)
             .is_err()
         {
             break;
