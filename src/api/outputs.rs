@@ -19,7 +19,8 @@ pub struct OutputOut {
     pub connected: bool,
     /// Messages published (MQTT), register reads answered (Modbus), sentences sent (NMEA).
     pub sent: u64,
-    /// Alarm transitions dropped because the output's queue was full.
+    /// Alarm transitions dropped because the output's queue was full, plus live events missed
+    /// when the outputs fell behind them.
     pub dropped: u64,
     /// Messages waiting to be delivered.
     pub queued: u64,
@@ -68,7 +69,7 @@ pub(super) fn problem(outputs: &[OutputStatus]) -> Option<String> {
             }
             if o.dropped > 0 {
                 what.push_str(&format!(
-                    "{} dropped {} alarm transitions",
+                    "{} dropped {} alarm transitions or live events",
                     if o.connected { "" } else { " and" },
                     o.dropped
                 ));

@@ -121,8 +121,8 @@ pub struct OutputStatus {
     pub connected: bool,
     /// Messages published, register reads answered, or sentences sent.
     pub sent: u64,
-    /// Alarm transitions dropped because the output could not keep up or was away for longer
-    /// than its queue holds.
+    /// Alarm transitions dropped because the output was away for longer than its queue holds,
+    /// plus live events missed when the outputs fell behind them.
     pub dropped: u64,
     /// Messages waiting to be delivered.
     pub queued: u64,
@@ -365,6 +365,9 @@ impl Outputs {
 /// An output's inbox: what the dispatcher hands it, never waiting.
 trait Inbox: Send + Sync {
     fn put(&self, update: &Update);
+
+    /// The counters of its output.
+    fn counters(&self) -> &Counters;
 }
 
 /// The one subscriber: turns live events into updates for every inbox, and once a second
@@ -415,7 +418,15 @@ async fn dispatch(
                     }
                 }
                 Err(RecvError::Lagged(n)) => {
-                    tracing::error!(missed = n, "the outputs fell behind the live events; the newest state follows with the next result");
+                    // Results are replaced by the next one; an alarm transition among them is
+                    // lost to the outputs (the store and the webhooks have it): said and counted.
+                    tracing::error!(missed = n, "the outputs fell behind the live events; alarm transitions among them were not sent");
+                    let now_ns = service.now_ns();
+                    for inbox in &inboxes {
+                        let c = inbox.counters();
+                        c.dropped.fetch_add(n, Relaxed);
+                        c.error(now_ns, format!("fell {n} live events behind; alarm transitions among them were not sent"));
+                    }
                 }
                 Err(RecvError::Closed) => return,
             },

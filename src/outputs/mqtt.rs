@@ -105,6 +105,10 @@ impl MqttInbox {
 }
 
 impl Inbox for MqttInbox {
+    fn counters(&self) -> &Counters {
+        &self.counters
+    }
+
     fn put(&self, update: &Update) {
         match update {
             Update::Compensation { target, result } => {

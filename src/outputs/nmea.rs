@@ -169,6 +169,10 @@ struct NmeaInbox {
 }
 
 impl Inbox for NmeaInbox {
+    fn counters(&self) -> &Counters {
+        &self.counters
+    }
+
     fn put(&self, update: &Update) {
         if let Update::Alarm { alarm, .. } = update {
             let mut q = lock(&self.alarms);
