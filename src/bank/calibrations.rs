@@ -3,18 +3,29 @@
 
 use super::*;
 
-/// A calibration of a calibrated link: valid from (ns), the pose, its stamp (see
-/// [`FilterBank::calibration_stamp`]) and its covariance's factor (see [`crate::chain`]).
-pub(super) type Calibration = (i64, PoseCov, i64, Factor);
+/// A calibration of a calibrated link, in force from its time until a later one.
+#[derive(Debug, Clone)]
+pub(super) struct Calibration {
+    /// From when (ns; `i64::MIN` for the installation file's).
+    pub(super) valid_from_ns: i64,
+    /// The link's pose with its covariance.
+    pub(super) parent_from_child: PoseCov,
+    /// The stamp of the pose and its covariance (see [`FilterBank::calibration_stamp`]).
+    pub(super) stamp: i64,
+    /// The covariance's factor, the link's error term (see [`crate::chain`]).
+    pub(super) factor: Factor,
+}
 
-/// A calibration valid from `valid_from_ns`, with its stamp and factor.
-pub(super) fn calibration(valid_from_ns: i64, pose: PoseCov) -> Calibration {
-    (
-        valid_from_ns,
-        pose,
-        pose_stamp(&pose),
-        factor_of_covariance(&pose.cov),
-    )
+impl Calibration {
+    /// A calibration valid from `valid_from_ns`, with its stamp and factor.
+    pub(super) fn new(valid_from_ns: i64, parent_from_child: PoseCov) -> Self {
+        Calibration {
+            valid_from_ns,
+            parent_from_child,
+            stamp: pose_stamp(&parent_from_child),
+            factor: factor_of_covariance(&parent_from_child.cov),
+        }
+    }
 }
 
 impl FilterBank {
@@ -28,8 +39,8 @@ impl FilterBank {
     ) -> bool {
         match self.calibrations.get_mut(link.0) {
             Some(list) if !list.is_empty() => {
-                let at = list.partition_point(|(t, _, _, _)| *t <= valid_from_ns);
-                list.insert(at, calibration(valid_from_ns, parent_from_child));
+                let at = list.partition_point(|c| c.valid_from_ns <= valid_from_ns);
+                list.insert(at, Calibration::new(valid_from_ns, parent_from_child));
                 // The targets' raw results step with the new calibration: their filters start
                 // again from the next one instead of taking the step for a deformation.
                 self.restart_targets_of(link);
@@ -42,7 +53,7 @@ impl FilterBank {
     /// Removes a calibration added with [`Self::add_calibration`] (a write that did not commit).
     pub fn remove_calibration(&mut self, link: LinkId, valid_from_ns: i64) {
         if let Some(list) = self.calibrations.get_mut(link.0)
-            && let Some(i) = list.iter().rposition(|(t, _, _, _)| *t == valid_from_ns)
+            && let Some(i) = list.iter().rposition(|c| c.valid_from_ns == valid_from_ns)
             && list.len() > 1
         {
             list.remove(i);
@@ -58,7 +69,7 @@ impl FilterBank {
             .iter()
             .flat_map(|p| p.links())
             .map(|l| match self.calibration_entry_at(l, time_ns) {
-                Some((_, _, stamp, _)) => *stamp,
+                Some(c) => c.stamp,
                 None => self.camera_stamps[l.0],
             });
         CalibrationStamp::of(stamps.map(|s| f64::from_bits(s as u64)))
@@ -67,13 +78,13 @@ impl FilterBank {
     /// The calibration of a calibrated link in force at `time_ns`.
     pub fn calibration_at(&self, link: LinkId, time_ns: i64) -> Option<PoseCov> {
         self.calibration_entry_at(link, time_ns)
-            .map(|(_, p, _, _)| *p)
+            .map(|c| c.parent_from_child)
     }
 
     /// The calibration of a calibrated link in force at `time_ns`, with its stamp and factor.
     pub(super) fn calibration_entry_at(&self, link: LinkId, time_ns: i64) -> Option<&Calibration> {
         let list = self.calibrations.get(link.0)?;
-        let at = list.partition_point(|(t, _, _, _)| *t <= time_ns);
+        let at = list.partition_point(|c| c.valid_from_ns <= time_ns);
         list.get(at.checked_sub(1)?)
     }
 }

@@ -167,10 +167,10 @@ impl FilterBank {
         time_ns: i64,
         measured: Option<&PoseCov>,
     ) -> Option<SourcedPose> {
-        if let Some((_, c, _, factor)) = self.calibration_entry_at(link, time_ns) {
+        if let Some(c) = self.calibration_entry_at(link, time_ns) {
             return Some(SourcedPose {
-                pose: c.pose,
-                terms: ErrorTerms::of(Contributor::Calibration(link), *factor),
+                pose: c.parent_from_child.pose,
+                terms: ErrorTerms::of(Contributor::Calibration(link), c.factor),
             });
         }
         let z = measured?;

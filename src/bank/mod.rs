@@ -40,7 +40,7 @@ mod record;
 mod slot;
 mod track;
 
-use calibrations::{Calibration, calibration, camera_stamp};
+use calibrations::{Calibration, camera_stamp};
 use groups::Group;
 pub use record::BankRecord;
 use slot::{MeasuredSlot, RATE_WINDOW, remember, state_at};
@@ -283,9 +283,8 @@ pub struct FilterBank {
     model: Arc<Model>,
     settings: BankSettings,
     measured: Vec<Option<MeasuredSlot>>,
-    /// Per calibrated link: its calibrations, `(valid_from_ns, pose, stamp)`, oldest first
-    /// (the stamp of the pose and its covariance, for [`Self::calibration_stamp`]); the one in
-    /// the installation file is valid from the beginning of time.
+    /// Per calibrated link: its calibrations, oldest first; the one in the installation file is
+    /// valid from the beginning of time.
     calibrations: Vec<Vec<Calibration>>,
     status: Vec<LinkStatus>,
     groups: BTreeMap<i64, Group>,
@@ -341,7 +340,7 @@ impl FilterBank {
                 .iter()
                 .map(|l| match &l.kind {
                     LinkKind::Calibrated { parent_from_child } => {
-                        vec![calibration(i64::MIN, *parent_from_child)]
+                        vec![Calibration::new(i64::MIN, *parent_from_child)]
                     }
                     LinkKind::Measured(_) => Vec::new(),
                 })
