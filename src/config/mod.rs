@@ -20,6 +20,7 @@ mod validate;
 pub use error::{ConfigError, ConfigProblem};
 pub use outputs::{
     MAX_MQTT_RATE_HZ, MAX_NMEA_RATE_HZ, ModbusSpec, MqttSpec, NmeaSpec, OutputSettings,
+    reaches_many,
 };
 pub use source::{
     CameraAddress, CameraSource, FeatureSetting, PixelFormat, TimestampMode, TriggerMode,

@@ -99,7 +99,7 @@ pub const MAX_NMEA_RATE_HZ: f64 = 10.0;
 /// True when `ip` reaches more than one receiver (a broadcast or multicast address), as far as
 /// the address alone tells: the limited broadcast, a multicast group, and IPv4 addresses ending
 /// in `.255` (the broadcast address of every network of /24 or wider).
-fn one_to_many(ip: IpAddr) -> bool {
+pub fn reaches_many(ip: IpAddr) -> bool {
     match ip {
         IpAddr::V4(v4) => v4.is_broadcast() || v4.is_multicast() || v4.octets()[3] == 255,
         IpAddr::V6(v6) => v6.is_multicast(),
@@ -220,7 +220,7 @@ impl Validator {
                         url::Host::Domain(d) => d.parse::<IpAddr>().ok(),
                     };
                     if let Some(ip) = ip
-                        && (ip.is_unspecified() || one_to_many(ip))
+                        && (ip.is_unspecified() || reaches_many(ip))
                     {
                         self.problem(
                             at,
@@ -340,7 +340,7 @@ impl Validator {
                         format!("{what}.to `{to}` is not a receiver's address and port"),
                     );
                     ok = false;
-                } else if one_to_many(to.ip()) && !n.allow_broadcast.unwrap_or(false) {
+                } else if reaches_many(to.ip()) && !n.allow_broadcast.unwrap_or(false) {
                     self.problem(
                         at,
                         format!(

@@ -198,10 +198,9 @@ pub(super) fn spawn(
         (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
     };
     let socket = std::net::UdpSocket::bind(local)?;
-    // Only reached when the installation allowed a broadcast address.
-    if let std::net::IpAddr::V4(v4) = spec.to.ip()
-        && (v4.is_broadcast() || v4.octets()[3] == 255)
-    {
+    // Only reached when the installation allowed a broadcast address (`allow_broadcast`): the
+    // same rule the configuration checks it with.
+    if spec.to.is_ipv4() && crate::config::reaches_many(spec.to.ip()) {
         socket.set_broadcast(true)?;
     }
     socket.set_nonblocking(true)?;
