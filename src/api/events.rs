@@ -47,25 +47,28 @@ pub(super) async fn get_events(
                     .unwrap_or_else(|_| Event::default().event("error").data("unencodable result"));
                 Some((Ok(event), (rx, app, stop)))
             }
-            Ok(LiveEvent::Alarm(alarm) | LiveEvent::Acknowledged(alarm)) => {
-                let kind = if alarm.ack.is_some() {
-                    "acknowledgement"
-                } else {
-                    "alarm"
-                };
-                let name = app.service.installation().model.targets[alarm.target.0]
-                    .name
-                    .clone();
-                let body = super::alarms::AlarmOut::new(name, &alarm);
-                let event = Event::default()
-                    .event(kind)
-                    .json_data(body)
-                    .unwrap_or_else(|_| Event::default().event("error").data("unencodable alarm"));
-                Some((Ok(event), (rx, app, stop)))
+            Ok(LiveEvent::Alarm(alarm)) => {
+                Some((Ok(alarm_event(&app, "alarm", &alarm)), (rx, app, stop)))
             }
+            Ok(LiveEvent::Acknowledged(alarm)) => Some((
+                Ok(alarm_event(&app, "acknowledgement", &alarm)),
+                (rx, app, stop),
+            )),
             // Too slow: drop the client rather than hold anything back.
             Err(RecvError::Lagged(_)) | Err(RecvError::Closed) => None,
         }
     });
     Sse::new(stream).keep_alive(KeepAlive::default())
+}
+
+/// An alarm transition (or its acknowledgement) as the event `kind`, the alarm as
+/// `GET /api/v1/alarms` shows it.
+fn alarm_event(app: &AppState, kind: &'static str, alarm: &crate::store::StoredAlarm) -> Event {
+    let name = app.service.installation().model.targets[alarm.target.0]
+        .name
+        .clone();
+    Event::default()
+        .event(kind)
+        .json_data(super::alarms::AlarmOut::new(name, alarm))
+        .unwrap_or_else(|_| Event::default().event("error").data("unencodable alarm"))
 }
