@@ -214,7 +214,7 @@ enum Update {
         target: TargetId,
         result: Arc<(TargetEstimate, Option<ReferenceVersion>)>,
     },
-    /// An alarm transition or its acknowledgement.
+    /// An alarm transition or its acknowledgement, with its JSON (empty without an MQTT output).
     Alarm {
         alarm: Arc<StoredAlarm>,
         json: bytes::Bytes,
@@ -319,7 +319,14 @@ impl Outputs {
         }
         tasks.push(service.spawn_watched(
             "outputs",
-            dispatch(service.clone(), sources, encoders, inboxes, heartbeats),
+            dispatch(
+                service.clone(),
+                sources,
+                encoders,
+                inboxes,
+                heartbeats,
+                !settings.mqtt.is_empty(),
+            ),
         ));
         Ok(Outputs {
             running,
@@ -371,13 +378,15 @@ trait Inbox: Send + Sync {
 }
 
 /// The one subscriber: turns live events into updates for every inbox, and once a second
-/// passes on the links' and cameras' states that changed and counts the heartbeat.
+/// counts the heartbeat and, when an MQTT output takes them (`json`), passes on the links' and
+/// cameras' states that changed. Alarms are encoded as JSON only for MQTT too.
 async fn dispatch(
     service: Service,
     sources: Arc<[Arc<SourceState>]>,
     encoders: Encoders,
     inboxes: Vec<Arc<dyn Inbox>>,
     heartbeats: Arc<Heartbeats>,
+    json: bool,
 ) {
     use tokio::sync::broadcast::error::RecvError;
     let mut events = service.subscribe();
@@ -399,8 +408,10 @@ async fn dispatch(
             _ = stop.wait_for(|s| *s) => return,
             _ = tick.tick() => {
                 heartbeats.service.fetch_add(1, Relaxed);
-                for (topic, json) in changed_states(&service, &sources, &mut states) {
-                    send(Update::State { topic, json });
+                if json {
+                    for (topic, json) in changed_states(&service, &sources, &mut states) {
+                        send(Update::State { topic, json });
+                    }
                 }
             }
             received = events.recv() => match received {
@@ -412,7 +423,8 @@ async fn dispatch(
                 }
                 Ok(LiveEvent::Alarm(alarm) | LiveEvent::Acknowledged(alarm)) => {
                     let name = names.get(alarm.target.0).map_or("", String::as_str);
-                    match (encoders.alarm)(name, &alarm) {
+                    let encoded = if json { (encoders.alarm)(name, &alarm) } else { Ok(Vec::new()) };
+                    match encoded {
                         Ok(json) => send(Update::Alarm { alarm: Arc::new(alarm), json: json.into() }),
                         Err(e) => tracing::error!(error = %e, "an alarm cannot be encoded for the outputs"),
                     }
