@@ -125,6 +125,14 @@ type Message = (String, Vec<u8>);
 struct Heard(Arc<Mutex<Vec<Message>>>);
 
 impl Heard {
+    /// Waits (at most `limit`) until the newest message on `topic` is the result of `time`.
+    async fn newest_is(&self, topic: &str, time: &Value, limit: Duration) -> bool {
+        within(limit, || {
+            self.on(topic).last().is_some_and(|c| &c["time"] == time)
+        })
+        .await
+    }
+
     fn on(&self, topic: &str) -> Vec<Value> {
         (self.0.lock().unwrap().iter())
             .filter(|(t, _)| t == topic)
@@ -194,11 +202,9 @@ async fn mqtt_carries_the_apis_compensation_and_every_alarm_in_order_and_survive
     let (_, api) = app.get("/api/v1/targets/G/compensation").await;
     let compensation = "brokenray/targets/G/compensation";
     assert!(
-        within(Duration::from_secs(20), || heard
-            .on(compensation)
-            .last()
-            .is_some_and(|c| c["time"] == api["time"]))
-        .await,
+        heard
+            .newest_is(compensation, &api["time"], Duration::from_secs(20))
+            .await,
         "the newest compensation never arrived"
     );
     let mut newest = heard.on(compensation).last().cloned().unwrap();
@@ -290,11 +296,9 @@ async fn mqtt_carries_the_apis_compensation_and_every_alarm_in_order_and_survive
     let returned = std::time::Instant::now();
     let (heard, _listener) = subscriber(broker.port, "listener-again").await;
     assert!(
-        within(Duration::from_secs(30), || heard
-            .on(compensation)
-            .last()
-            .is_some_and(|c| c["time"] == api["time"]))
-        .await,
+        heard
+            .newest_is(compensation, &api["time"], Duration::from_secs(30))
+            .await,
         "the newest compensation never arrived after the broker returned"
     );
     println!(
@@ -351,11 +355,9 @@ async fn mqtt_holds_its_rate_per_target_and_publishes_the_newest() {
     let posting_s = start.elapsed().as_secs_f64();
     let (_, api) = app.get("/api/v1/targets/G/compensation").await;
     assert!(
-        within(Duration::from_secs(20), || heard
-            .on(topic)
-            .last()
-            .is_some_and(|c| c["time"] == api["time"]))
-        .await,
+        heard
+            .newest_is(topic, &api["time"], Duration::from_secs(20))
+            .await,
         "the newest compensation is published once the rate allows"
     );
     let published = heard.on(topic).len();
