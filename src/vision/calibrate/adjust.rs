@@ -1,0 +1,430 @@
+//! The bundle adjustment of a camera calibration: the views prepared as a problem, its
+//! Levenberg-Marquardt over the free intrinsics and every view's pose, and the report of the
+//! fit (covariance, correlations, per-view fits, warnings).
+
+use super::{
+    CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
+    ImageCorner, Intrinsic, RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, ViewFit, from_params, refuse,
+};
+use crate::geometry::{Pose, Vec3, se3_exp, skew};
+use crate::vision::{CameraModel, Plate, VisionError, disc_image_offset};
+use nalgebra::{DMatrix, DVector, Matrix2x3, SMatrix, Translation3, Vector2, Vector6};
+
+/// The views prepared for adjustment.
+pub(super) struct Problem<'a> {
+    pub(super) views: &'a [CalibrationView],
+    /// Per view: its points in the plate frame, relative to their centroid.
+    pub(super) centred_mm: Vec<Vec<Vec3>>,
+    /// Per view: the centroid of its plate points (mm).
+    pub(super) centroids_mm: Vec<Vec3>,
+    /// Per view: each point's weight (1 / variance).
+    pub(super) weights: Vec<Vec<f64>>,
+    /// Each plate point's disc diameter (mm).
+    pub(super) diameters_mm: Vec<f64>,
+    pub(super) plate_points_mm: Vec<Vec3>,
+}
+
+/// The fit at one estimate.
+pub(super) struct Evaluation {
+    /// Sum of squared residuals over their variances (what is minimised).
+    pub(super) chi2: f64,
+    /// Sum of squared residuals (px^2), per view.
+    pub(super) view_cost_px2: Vec<f64>,
+    /// `J^T W J` over the free intrinsics and the poses.
+    pub(super) information: DMatrix<f64>,
+    /// `J^T W r`.
+    pub(super) gradient: DVector<f64>,
+}
+
+pub(super) struct Adjusted {
+    pub(super) fit: Evaluation,
+    pub(super) iterations: usize,
+}
+
+impl<'a> Problem<'a> {
+    pub(super) fn new(plate: &Plate, views: &'a [CalibrationView]) -> Self {
+        let plate_points_mm = plate.points_mm();
+        let mut centred_mm = Vec::with_capacity(views.len());
+        let mut centroids_mm = Vec::with_capacity(views.len());
+        let mut weights = Vec::with_capacity(views.len());
+        for view in views {
+            let points: Vec<Vec3> = view.ids.iter().map(|&i| plate_points_mm[i]).collect();
+            let c = points.iter().fold(Vec3::zeros(), |a, p| a + p) / points.len() as f64;
+            centred_mm.push(points.iter().map(|p| p - c).collect());
+            centroids_mm.push(c);
+            weights.push(match &view.sigmas_px {
+                Some(s) => s.iter().map(|s| 1.0 / (s * s)).collect(),
+                None => vec![1.0; view.ids.len()],
+            });
+        }
+        Self {
+            views,
+            centred_mm,
+            centroids_mm,
+            weights,
+            diameters_mm: (0..plate.len())
+                .map(|i| plate.disc_diameter_mm(i))
+                .collect(),
+            plate_points_mm,
+        }
+    }
+
+    /// Adds `var_px2` to every point's variance (per axis).
+    pub(super) fn add_variance(&mut self, var_px2: f64) {
+        for w in self.weights.iter_mut().flatten() {
+            *w = 1.0 / (1.0 / *w + var_px2);
+        }
+    }
+
+    pub(super) fn plate_xy(&self, v: usize) -> Vec<Vector2<f64>> {
+        self.views[v]
+            .ids
+            .iter()
+            .map(|&i| self.plate_points_mm[i].xy())
+            .collect()
+    }
+
+    /// Each disc's eccentricity at the estimate (px).
+    pub(super) fn offsets(&self, camera: &CameraModel, poses: &[Pose]) -> Vec<Vec<Vector2<f64>>> {
+        poses
+            .iter()
+            .enumerate()
+            .map(|(v, pose)| {
+                let normal = pose.rotation * Vec3::z();
+                self.centred_mm[v]
+                    .iter()
+                    .zip(&self.views[v].ids)
+                    .map(|(x, &id)| {
+                        let centre = (pose * nalgebra::Point3::from(*x)).coords;
+                        disc_image_offset(camera, &centre, &normal, self.diameters_mm[id])
+                            .unwrap_or_else(Vector2::zeros)
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// The fit over the free intrinsics and the poses (`camera_from_centred`, right
+    /// perturbation); `None` when a point is behind the camera.
+    fn evaluate(
+        &self,
+        params: &[f64; 9],
+        poses: &[Pose],
+        offsets: &[Vec<Vector2<f64>>],
+        free: &[usize],
+        size: (u32, u32),
+    ) -> Option<Evaluation> {
+        let camera = from_params(params, size.0, size.1);
+        let nf = free.len();
+        let n = nf + 6 * poses.len();
+        let mut jtj = DMatrix::<f64>::zeros(n, n);
+        let mut jtr = DVector::<f64>::zeros(n);
+        let mut chi2 = 0.0;
+        let mut view_cost_px2 = vec![0.0; poses.len()];
+        for (v, pose) in poses.iter().enumerate() {
+            let r_mat = pose.rotation.to_rotation_matrix().into_inner();
+            let mut jii = DMatrix::<f64>::zeros(nf, nf);
+            let mut jip = DMatrix::<f64>::zeros(nf, 6);
+            let mut jpp = SMatrix::<f64, 6, 6>::zeros();
+            let mut gi = DVector::<f64>::zeros(nf);
+            let mut gp = Vector6::<f64>::zeros();
+            for (k, x) in self.centred_mm[v].iter().enumerate() {
+                let p = r_mat * x + pose.translation.vector;
+                let (uv, dp) = camera.project_with_jacobian(&p)?;
+                let r = uv + offsets[v][k] - self.views[v].points_px[k];
+                let w = self.weights[v][k];
+                view_cost_px2[v] += r.norm_squared();
+                chi2 += w * r.norm_squared();
+                let intrinsic = camera.intrinsics_jacobian(&p);
+                let ji = DMatrix::<f64>::from_fn(2, nf, |row, col| intrinsic[(row, free[col])]);
+                let dpr: Matrix2x3<f64> = dp * r_mat;
+                let mut jp = SMatrix::<f64, 2, 6>::zeros();
+                jp.fixed_view_mut::<2, 3>(0, 0).copy_from(&dpr);
+                jp.fixed_view_mut::<2, 3>(0, 3)
+                    .copy_from(&(-(dpr * skew(x))));
+                let rv = DVector::from_column_slice(r.as_slice());
+                jii += ji.transpose() * &ji * w;
+                jip += ji.transpose() * DMatrix::from_column_slice(2, 6, jp.as_slice()) * w;
+                jpp += jp.transpose() * jp * w;
+                gi += ji.transpose() * &rv * w;
+                gp += jp.transpose() * r * w;
+            }
+            let o = nf + 6 * v;
+            let mut top = jtj.view_mut((0, 0), (nf, nf));
+            top += &jii;
+            jtj.view_mut((0, o), (nf, 6)).copy_from(&jip);
+            jtj.view_mut((o, 0), (6, nf)).copy_from(&jip.transpose());
+            jtj.view_mut((o, o), (6, 6))
+                .copy_from(&DMatrix::from_column_slice(6, 6, jpp.as_slice()));
+            let mut head = jtr.rows_mut(0, nf);
+            head += &gi;
+            jtr.rows_mut(o, 6)
+                .copy_from(&DVector::from_column_slice(gp.as_slice()));
+        }
+        Some(Evaluation {
+            chi2,
+            view_cost_px2,
+            information: jtj,
+            gradient: jtr,
+        })
+    }
+
+    /// Levenberg-Marquardt with the eccentricities fixed.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn adjust(
+        &self,
+        params: &mut [f64; 9],
+        poses: &mut [Pose],
+        offsets: &[Vec<Vector2<f64>>],
+        free: &[usize],
+        width_px: u32,
+        height_px: u32,
+        max_iterations: usize,
+        cancel: Option<&std::sync::atomic::AtomicBool>,
+    ) -> Result<Adjusted, VisionError> {
+        let size = (width_px, height_px);
+        let behind = || {
+            refuse(
+                "the estimate puts plate points behind the camera: the views or their labels are inconsistent",
+            )
+        };
+        let mut fit = self
+            .evaluate(params, poses, offsets, free, size)
+            .ok_or_else(behind)?;
+        let nf = free.len();
+        let mut lambda = 1e-4;
+        let mut iterations = 0;
+        while iterations < max_iterations {
+            if cancel.is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed)) {
+                return Err(refuse("stopped: the request was withdrawn"));
+            }
+            iterations += 1;
+            let mut a = fit.information.clone();
+            for i in 0..a.nrows() {
+                a[(i, i)] += lambda * fit.information[(i, i)].max(1e-12);
+            }
+            let Some(chol) = a.cholesky() else {
+                lambda *= 10.0;
+                if lambda > 1e10 {
+                    break;
+                }
+                continue;
+            };
+            let delta = chol.solve(&(-&fit.gradient));
+            let predicted = -delta.dot(&fit.gradient);
+            if !predicted.is_finite() || predicted <= 1e-12 * fit.chi2.max(1e-300) {
+                break;
+            }
+            let mut next_params = *params;
+            for (k, &i) in free.iter().enumerate() {
+                next_params[i] += delta[k];
+            }
+            let next_poses: Vec<Pose> = poses
+                .iter()
+                .enumerate()
+                .map(|(v, pose)| {
+                    let d = delta.rows(nf + 6 * v, 6);
+                    pose * se3_exp(&Vector6::from_column_slice(d.as_slice()))
+                })
+                .collect();
+            match self
+                .evaluate(&next_params, &next_poses, offsets, free, size)
+                .filter(|e| e.chi2.is_finite() && e.chi2 <= fit.chi2)
+            {
+                Some(better) => {
+                    *params = next_params;
+                    poses.copy_from_slice(&next_poses);
+                    fit = better;
+                    lambda = (lambda * 0.1).max(1e-12);
+                }
+                None => {
+                    lambda *= 10.0;
+                    if lambda > 1e10 {
+                        break;
+                    }
+                }
+            }
+        }
+        if !params.iter().all(|p| p.is_finite()) {
+            return Err(refuse("the adjustment diverged"));
+        }
+        Ok(Adjusted { fit, iterations })
+    }
+
+    pub(super) fn report(
+        &self,
+        camera: CameraModel,
+        poses: &[Pose],
+        fit: Evaluation,
+        free: &[usize],
+        options: &CalibrationOptions,
+        iterations: usize,
+    ) -> Result<CameraCalibration, VisionError> {
+        let n_points: usize = self.views.iter().map(|v| v.ids.len()).sum();
+        let dof = (2 * n_points).saturating_sub(free.len() + 6 * poses.len());
+        if dof == 0 {
+            return Err(refuse("as many unknowns as measurements: add views"));
+        }
+        let rms_px = (fit.view_cost_px2.iter().sum::<f64>() / n_points as f64).sqrt();
+        if rms_px > options.max_rms_px {
+            return Err(refuse(format!(
+                "the fit's RMS is {rms_px:.3} px, over the limit of {} px: points are mislabelled, the plate's description (spacing, rows, cols, asymmetric) is wrong, or the lens is not of the distortion model",
+                options.max_rms_px
+            )));
+        }
+        let variance_factor = fit.chi2 / dof as f64;
+        let nf = free.len();
+        let inverse = invert_information(&fit.information, nf, free)?;
+        let mut covariance = [[0.0; 9]; 9];
+        let mut sigma = [0.0; 9];
+        for (a, &i) in free.iter().enumerate() {
+            for (b, &j) in free.iter().enumerate() {
+                covariance[i][j] = inverse[(a, b)] * variance_factor;
+            }
+            sigma[i] = covariance[i][i].max(0.0).sqrt();
+        }
+        let mut correlations = Vec::new();
+        for (a, &i) in free.iter().enumerate() {
+            for &j in &free[a + 1..] {
+                let r = covariance[i][j] / (sigma[i] * sigma[j]);
+                if r.abs() > 0.9 {
+                    correlations.push(Correlation {
+                        a: Intrinsic::ALL[i],
+                        b: Intrinsic::ALL[j],
+                        r,
+                    });
+                }
+            }
+        }
+        // Each view's RMS from the costs the fit ended on: the same residuals as `rms_px`.
+        let views: Vec<ViewFit> = poses
+            .iter()
+            .enumerate()
+            .map(|(v, pose)| {
+                let normal = pose.rotation * Vec3::z();
+                ViewFit {
+                    camera_from_plate: pose * Translation3::from(-self.centroids_mm[v]),
+                    rms_px: (fit.view_cost_px2[v] / self.centred_mm[v].len() as f64).sqrt(),
+                    points: self.centred_mm[v].len(),
+                    tilt_deg: normal.z.abs().clamp(0.0, 1.0).acos().to_degrees(),
+                }
+            })
+            .collect();
+        let warnings = self.warnings(&camera, &views);
+        let mut fixed = options.fixed.clone();
+        fixed.sort();
+        fixed.dedup();
+        Ok(CameraCalibration {
+            camera,
+            sigma,
+            covariance,
+            rms_px,
+            variance_factor,
+            views,
+            correlations,
+            warnings,
+            fixed,
+            iterations,
+            cross_validation: None,
+        })
+    }
+
+    fn warnings(&self, camera: &CameraModel, views: &[ViewFit]) -> Vec<CalibrationWarning> {
+        let mut warnings = Vec::new();
+        if views.len() < RECOMMENDED_VIEWS {
+            warnings.push(CalibrationWarning::FewViews {
+                views: views.len(),
+                recommended: RECOMMENDED_VIEWS,
+            });
+        }
+        let max_tilt_deg = views.iter().map(|v| v.tilt_deg).fold(0.0, f64::max);
+        if max_tilt_deg < RECOMMENDED_TILT_DEG {
+            warnings.push(CalibrationWarning::LittleTilt {
+                max_tilt_deg,
+                recommended_deg: RECOMMENDED_TILT_DEG,
+            });
+        }
+        let (w, h) = (f64::from(camera.width_px), f64::from(camera.height_px));
+        let mut reached = [false; 4];
+        for p in self.views.iter().flat_map(|v| &v.points_px) {
+            let left = p.x < w / 3.0;
+            let right = p.x > 2.0 * w / 3.0;
+            let top = p.y < h / 3.0;
+            let bottom = p.y > 2.0 * h / 3.0;
+            reached[0] |= left && top;
+            reached[1] |= right && top;
+            reached[2] |= left && bottom;
+            reached[3] |= right && bottom;
+        }
+        let corners: Vec<ImageCorner> = [
+            ImageCorner::TopLeft,
+            ImageCorner::TopRight,
+            ImageCorner::BottomLeft,
+            ImageCorner::BottomRight,
+        ]
+        .into_iter()
+        .zip(reached)
+        .filter(|(_, r)| !r)
+        .map(|(c, _)| c)
+        .collect();
+        if !corners.is_empty() {
+            warnings.push(CalibrationWarning::CornersNotReached { corners });
+        }
+        let mut rms: Vec<f64> = views.iter().map(|v| v.rms_px).collect();
+        rms.sort_by(f64::total_cmp);
+        let median_rms_px = rms[rms.len() / 2];
+        for (view, fit) in views.iter().enumerate() {
+            if fit.rms_px > 3.0 * median_rms_px && fit.rms_px > 0.02 {
+                warnings.push(CalibrationWarning::ViewFitsWorse {
+                    view,
+                    rms_px: fit.rms_px,
+                    median_rms_px,
+                });
+            }
+        }
+        warnings
+    }
+}
+
+/// The free intrinsics' block of the inverse information, or a refusal naming the parameter
+/// the views do not determine.
+fn invert_information(
+    information: &DMatrix<f64>,
+    nf: usize,
+    free: &[usize],
+) -> Result<DMatrix<f64>, VisionError> {
+    // Scale to unit diagonal so that the test of determination does not depend on units.
+    let d: Vec<f64> = (0..information.nrows())
+        .map(|i| information[(i, i)].max(1e-300).sqrt())
+        .collect();
+    let scaled = DMatrix::from_fn(information.nrows(), information.ncols(), |i, j| {
+        information[(i, j)] / (d[i] * d[j])
+    });
+    let eigen = scaled.clone().symmetric_eigen();
+    let (weakest, smallest) = eigen
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(k, v)| (k, *v))
+        .unwrap_or((0, 0.0));
+    if smallest < 1e-12 {
+        let vector = eigen.eigenvectors.column(weakest);
+        let (param, _) = (0..nf)
+            .map(|k| (k, vector[k].abs()))
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap_or((0, 0.0));
+        let name = free
+            .get(param)
+            .map_or("a view's pose", |&i| Intrinsic::ALL[i].name());
+        return Err(refuse(format!(
+            "the views do not determine {name}: tilt the plate more and about different axes, or fix it"
+        )));
+    }
+    let Some(inverse) = scaled.cholesky().map(|c| c.inverse()) else {
+        return Err(refuse("the views do not determine the intrinsics"));
+    };
+    Ok(DMatrix::from_fn(nf, nf, |i, j| {
+        inverse[(i, j)] / (d[i] * d[j])
+    }))
+}
