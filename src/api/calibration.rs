@@ -142,6 +142,15 @@ pub(crate) struct CameraCalibrationIn {
     /// Known values of fixed parameters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub initial: Option<Intrinsics>,
+    /// The plate's shape: `auto` (the default) fits a sag along each axis and keeps it when it
+    /// is significant, `warped` keeps it always, `flat` takes the plate as flat.
+    #[serde(default = "auto_shape")]
+    #[schema(value_type = String)]
+    pub plate_shape: crate::vision::PlateShape,
+}
+
+fn auto_shape() -> crate::vision::PlateShape {
+    crate::vision::PlateShape::Auto
 }
 
 /// One view's fit.
@@ -210,6 +219,47 @@ pub(crate) struct CameraCalibrationOut {
     pub iterations: usize,
     /// The covariance checked against calibrations that leave one view out each.
     pub cross_validation: Option<CrossValidationOut>,
+    /// The shape the plate was fitted with: `flat` or `warped`.
+    #[schema(value_type = String)]
+    pub plate_shape: crate::vision::PlateShape,
+    /// The plate's sag (fitted when warped; when `auto` chose flat, the sag tested and found
+    /// not significant; null when it was not fitted).
+    pub plate_warp: Option<PlateWarpOut>,
+    /// The plate's shape in a sentence.
+    pub plate_message: String,
+}
+
+/// A plate's fitted sag along each of its axes.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub(crate) struct PlateWarpOut {
+    /// The height of the plate's middle above its two edges along x, along the plate's z (mm).
+    pub sag_x_mm: f64,
+    /// The same along y (mm).
+    pub sag_y_mm: f64,
+    /// The standard deviation of `sag_x_mm` (mm; cross-validated with the intrinsics).
+    pub sigma_x_mm: f64,
+    /// The standard deviation of `sag_y_mm` (mm).
+    pub sigma_y_mm: f64,
+    /// The correlation of the two.
+    pub correlation: f64,
+    /// The Wald statistic of the two sags against zero (chi-square of 2 degrees of freedom).
+    pub chi2: f64,
+    /// Whether it is over the 99 % quantile, 9.21.
+    pub significant: bool,
+}
+
+impl From<&crate::vision::PlateWarp> for PlateWarpOut {
+    fn from(w: &crate::vision::PlateWarp) -> Self {
+        Self {
+            sag_x_mm: w.sag_mm[0],
+            sag_y_mm: w.sag_mm[1],
+            sigma_x_mm: w.sigma_mm[0],
+            sigma_y_mm: w.sigma_mm[1],
+            correlation: w.correlation,
+            chi2: w.chi2,
+            significant: w.significant,
+        }
+    }
 }
 
 /// The cross-validation of a calibration's covariance.
@@ -293,6 +343,12 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
             pixel_sigma: c.pixel_sigma(),
             iterations: c.iterations,
             cross_validation: c.cross_validation.as_ref().map(CrossValidationOut::from),
+            plate_shape: c.plate_shape,
+            plate_warp: c.plate_warp.as_ref().map(PlateWarpOut::from),
+            plate_message: crate::vision::describe_plate_shape(
+                c.plate_shape,
+                c.plate_warp.as_ref(),
+            ),
         }
     }
 }
@@ -388,6 +444,7 @@ impl CameraCalibrationIn {
             fixed,
             initial,
             cancel,
+            plate_shape: self.plate_shape,
             ..CalibrationOptions::default()
         };
         let calibration =

@@ -97,6 +97,7 @@ pub(super) fn calibrate_from_frames(
     plate: &Plate,
     frames: &[PathBuf],
     fix: &[String],
+    plate_shape: crate::vision::PlateShape,
     progress: &indicatif::ProgressBar,
     log: &mut impl Write,
 ) -> anyhow::Result<FramesCalibration> {
@@ -132,6 +133,7 @@ pub(super) fn calibrate_from_frames(
     progress.set_message("solving");
     let options = CalibrationOptions {
         fixed,
+        plate_shape,
         ..CalibrationOptions::default()
     };
     let calibration = calibrate_camera_checked(plate, w, h, &views, &options).map_err(|e| {
@@ -182,6 +184,11 @@ pub(super) fn report(run: &FramesCalibration) -> String {
     if let Some(check) = &c.cross_validation {
         let _ = writeln!(s, "  {}", crate::vision::describe_cross_validation(check));
     }
+    let _ = writeln!(
+        s,
+        "  {}",
+        crate::vision::describe_plate_shape(c.plate_shape, c.plate_warp.as_ref())
+    );
     for k in &c.correlations {
         let _ = writeln!(
             s,

@@ -237,6 +237,10 @@ pub enum Command {
         /// `k3,p1,p2`.
         #[arg(long, value_name = "PARAMS", value_delimiter = ',')]
         fix: Vec<String>,
+        /// The plate's shape: `auto` fits a sag along each axis and keeps it when it is
+        /// significant, `warped` keeps it always, `flat` takes the plate as flat.
+        #[arg(long, value_name = "SHAPE", default_value = "auto", value_parser = parse_plate_shape)]
+        plate_shape: crate::vision::PlateShape,
         /// Print the result as `POST /api/v1/calibration/camera` answers it.
         #[arg(long)]
         json: bool,
@@ -592,6 +596,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         Command::CalibrateCamera {
             plate,
             fix,
+            plate_shape,
             json,
             out: out_file,
             camera,
@@ -599,7 +604,14 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         } => {
             let plate = calibrate::read_plate(&plate)?;
             let run = with_frames_bar(|bar| {
-                calibrate::calibrate_from_frames(&plate, &frames, &fix, bar, &mut std::io::stderr())
+                calibrate::calibrate_from_frames(
+                    &plate,
+                    &frames,
+                    &fix,
+                    plate_shape,
+                    bar,
+                    &mut std::io::stderr(),
+                )
             });
             let run = run?;
             if json {
@@ -936,6 +948,16 @@ fn progress_bar(groups: Option<u64>) -> indicatif::ProgressBar {
 /// seeded by the operating system), on any platform.
 fn random_token() -> anyhow::Result<String> {
     Ok(hex::encode(rand::random::<[u8; 32]>()))
+}
+
+/// A `--plate-shape` word.
+fn parse_plate_shape(word: &str) -> Result<crate::vision::PlateShape, String> {
+    crate::vision::PlateShape::parse(word).ok_or_else(|| {
+        format!(
+            "{word:?} is not a plate shape: one of {}",
+            crate::vision::PlateShape::WORDS.join(", ")
+        )
+    })
 }
 
 #[cfg(test)]

@@ -85,6 +85,11 @@ pub fn cross_validate(
     if views.len() < MIN_CROSS_VALIDATION_VIEWS {
         return too_few(0);
     }
+    // Each subset is fitted with the plate's shape the whole set chose.
+    let options = &CalibrationOptions {
+        plate_shape: full.plate_shape,
+        ..options.clone()
+    };
     let mut estimates: Vec<[f64; 9]> = Vec::with_capacity(views.len());
     for left_out in 0..views.len() {
         let subset: Vec<CalibrationView> = views
@@ -136,7 +141,9 @@ pub fn cross_validate(
 }
 
 /// Calibrates a camera and cross-validates its covariance: the covariance and sigmas reported
-/// are the formal ones scaled by the check's inflation, and the check travels with them.
+/// are the formal ones scaled by the check's inflation (the plate's sag's too: its
+/// significance is judged again against the inflated sigmas), and the check travels with
+/// them.
 pub fn calibrate_camera_checked(
     plate: &Plate,
     width_px: u32,
@@ -154,6 +161,7 @@ pub fn calibrate_camera_checked(
     for s in &mut calibration.sigma {
         *s *= check.inflation.sqrt();
     }
+    calibration.plate_warp = calibration.plate_warp.map(|w| w.inflated(check.inflation));
     calibration.cross_validation = Some(check);
     Ok(calibration)
 }

@@ -16,7 +16,8 @@
 //!   centroid into the image of the disc's centre.
 //! * [`Plate`]: a calibration plate of discs in a grid, found in a frame without a pose.
 //! * [`calibrate_camera`]: intrinsics and distortion from views of a plate, with their
-//!   covariance and warnings; [`calibrate_camera_checked`] cross-validates that covariance
+//!   covariance and warnings, the plate flat or fitted with a sag along each axis
+//!   ([`PlateShape`]); [`calibrate_camera_checked`] cross-validates that covariance
 //!   against calibrations that leave one view out each and inflates it where it is too small.
 //! * [`solve_hand_eye`]: a rigid station's calibrated link from motions `A_i X = X B_i`.
 //!
@@ -37,8 +38,9 @@ mod sqpnp;
 
 pub use calibrate::{
     CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
-    ImageCorner, Intrinsic, MAX_VIEWS, MIN_VIEW_POINTS, MIN_VIEWS, RECOMMENDED_TILT_DEG,
-    RECOMMENDED_VIEWS, ViewFit, WarningKind, calibrate_camera, intrinsics_of,
+    ImageCorner, Intrinsic, MAX_VIEWS, MIN_VIEW_POINTS, MIN_VIEWS, PlateShape, PlateWarp,
+    RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, SAG_SIGNIFICANCE_CHI2, ViewFit, WarningKind,
+    calibrate_camera, describe_plate_shape, intrinsics_of,
 };
 pub use camera::CameraModel;
 pub use crossval::{

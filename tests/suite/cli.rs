@@ -909,6 +909,23 @@ fn rendered_plate_views_calibrate_a_camera_into_a_block_the_installation_takes()
         "{text}"
     );
     assert!(text.contains("  fx ") && text.contains(" +- "), "{text}");
+    assert!(text.contains("  plate fitted "), "{text}");
+    // A plate shape that is not one of the words is refused, naming them.
+    let mut args = vec![
+        "calibrate-camera",
+        "--plate",
+        plate.to_str().unwrap(),
+        "--plate-shape",
+        "bent",
+    ];
+    args.extend(frames[..12].iter().map(String::as_str));
+    let out = brokenray(&args);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("\"bent\" is not a plate shape: one of auto, flat, warped"),
+        "{stderr}"
+    );
 }
 
 #[test]

@@ -2,9 +2,11 @@
 //! Levenberg-Marquardt over the free intrinsics and every view's pose, and the report of the
 //! fit (covariance, correlations, per-view fits, warnings).
 
+use super::warp::{PlateShape, PlateWarp, SagBasis};
 use super::{
     CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
-    ImageCorner, Intrinsic, RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, ViewFit, from_params, refuse,
+    GLOBALS, Globals, ImageCorner, Intrinsic, RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, SAG_X,
+    SAG_Y, ViewFit, from_params, refuse,
 };
 use crate::geometry::{Pose, Vec3, se3_exp, skew};
 use crate::vision::{CameraModel, Plate, VisionError, disc_image_offset};
@@ -22,6 +24,8 @@ pub(super) struct Problem<'a> {
     /// Each plate point's disc diameter (mm).
     pub(super) diameters_mm: Vec<f64>,
     pub(super) plate_points_mm: Vec<Vec3>,
+    /// Per view: each point's height per mm of the two sags (zeros for a flat plate).
+    pub(super) sag_basis: Vec<Vec<[f64; 2]>>,
 }
 
 /// The fit at one estimate.
@@ -42,8 +46,14 @@ pub(super) struct Adjusted {
 }
 
 impl<'a> Problem<'a> {
-    pub(super) fn new(plate: &Plate, views: &'a [CalibrationView]) -> Self {
+    /// The views of `plate`; with `shape` [`PlateShape::Flat`] the sag stays out of the
+    /// points' positions (its basis zero).
+    pub(super) fn new(plate: &Plate, views: &'a [CalibrationView], shape: PlateShape) -> Self {
         let plate_points_mm = plate.points_mm();
+        let basis = match shape {
+            PlateShape::Flat => None,
+            PlateShape::Auto | PlateShape::Warped => SagBasis::of(&plate_points_mm),
+        };
         let mut centred_mm = Vec::with_capacity(views.len());
         let mut centroids_mm = Vec::with_capacity(views.len());
         let mut weights = Vec::with_capacity(views.len());
@@ -57,6 +67,15 @@ impl<'a> Problem<'a> {
                 None => vec![1.0; view.ids.len()],
             });
         }
+        let sag_basis = views
+            .iter()
+            .map(|view| {
+                view.ids
+                    .iter()
+                    .map(|&i| basis.map_or([0.0; 2], |b| b.at(&plate_points_mm[i])))
+                    .collect()
+            })
+            .collect();
         Self {
             views,
             centred_mm,
@@ -66,7 +85,16 @@ impl<'a> Problem<'a> {
                 .map(|i| plate.disc_diameter_mm(i))
                 .collect(),
             plate_points_mm,
+            sag_basis,
         }
+    }
+
+    /// Point `k` of view `v` relative to the view's centroid, on the plate sagging by `sag_mm`.
+    fn point(&self, v: usize, k: usize, sag_mm: [f64; 2]) -> Vec3 {
+        let b = self.sag_basis[v][k];
+        let mut x = self.centred_mm[v][k];
+        x.z += sag_mm[0] * b[0] + sag_mm[1] * b[1];
+        x
     }
 
     /// Adds `var_px2` to every point's variance (per axis).
@@ -85,17 +113,27 @@ impl<'a> Problem<'a> {
     }
 
     /// Each disc's eccentricity at the estimate (px).
-    pub(super) fn offsets(&self, camera: &CameraModel, poses: &[Pose]) -> Vec<Vec<Vector2<f64>>> {
+    ///
+    /// Each disc lies in the plate's plane: the sag's slope (a few thousandths of a radian)
+    /// tilts it by less than the eccentricity notices.
+    pub(super) fn offsets(
+        &self,
+        camera: &CameraModel,
+        sag_mm: [f64; 2],
+        poses: &[Pose],
+    ) -> Vec<Vec<Vector2<f64>>> {
         poses
             .iter()
             .enumerate()
             .map(|(v, pose)| {
                 let normal = pose.rotation * Vec3::z();
-                self.centred_mm[v]
+                self.views[v]
+                    .ids
                     .iter()
-                    .zip(&self.views[v].ids)
-                    .map(|(x, &id)| {
-                        let centre = (pose * nalgebra::Point3::from(*x)).coords;
+                    .enumerate()
+                    .map(|(k, &id)| {
+                        let x = self.point(v, k, sag_mm);
+                        let centre = (pose * nalgebra::Point3::from(x)).coords;
                         disc_image_offset(camera, &centre, &normal, self.diameters_mm[id])
                             .unwrap_or_else(Vector2::zeros)
                     })
@@ -108,13 +146,14 @@ impl<'a> Problem<'a> {
     /// perturbation); `None` when a point is behind the camera.
     fn evaluate(
         &self,
-        params: &[f64; 9],
+        params: &Globals,
         poses: &[Pose],
         offsets: &[Vec<Vector2<f64>>],
         free: &[usize],
         size: (u32, u32),
     ) -> Option<Evaluation> {
         let camera = from_params(params, size.0, size.1);
+        let sag_mm = [params[SAG_X], params[SAG_Y]];
         let nf = free.len();
         let n = nf + 6 * poses.len();
         let mut jtj = DMatrix::<f64>::zeros(n, n);
@@ -128,20 +167,27 @@ impl<'a> Problem<'a> {
             let mut jpp = SMatrix::<f64, 6, 6>::zeros();
             let mut gi = DVector::<f64>::zeros(nf);
             let mut gp = Vector6::<f64>::zeros();
-            for (k, x) in self.centred_mm[v].iter().enumerate() {
+            for (k, offset) in offsets[v].iter().enumerate() {
+                let x = self.point(v, k, sag_mm);
                 let p = r_mat * x + pose.translation.vector;
                 let (uv, dp) = camera.project_with_jacobian(&p)?;
-                let r = uv + offsets[v][k] - self.views[v].points_px[k];
+                let r = uv + offset - self.views[v].points_px[k];
                 let w = self.weights[v][k];
                 view_cost_px2[v] += r.norm_squared();
                 chi2 += w * r.norm_squared();
                 let intrinsic = camera.intrinsics_jacobian(&p);
-                let ji = DMatrix::<f64>::from_fn(2, nf, |row, col| intrinsic[(row, free[col])]);
                 let dpr: Matrix2x3<f64> = dp * r_mat;
+                // A sag moves the point along the plate's z axis by its basis.
+                let b = self.sag_basis[v][k];
+                let ji = DMatrix::<f64>::from_fn(2, nf, |row, col| match free[col] {
+                    SAG_X => dpr[(row, 2)] * b[0],
+                    SAG_Y => dpr[(row, 2)] * b[1],
+                    i => intrinsic[(row, i)],
+                });
                 let mut jp = SMatrix::<f64, 2, 6>::zeros();
                 jp.fixed_view_mut::<2, 3>(0, 0).copy_from(&dpr);
                 jp.fixed_view_mut::<2, 3>(0, 3)
-                    .copy_from(&(-(dpr * skew(x))));
+                    .copy_from(&(-(dpr * skew(&x))));
                 let rv = DVector::from_column_slice(r.as_slice());
                 jii += ji.transpose() * &ji * w;
                 jip += ji.transpose() * DMatrix::from_column_slice(2, 6, jp.as_slice()) * w;
@@ -173,7 +219,7 @@ impl<'a> Problem<'a> {
     #[allow(clippy::too_many_arguments)]
     pub(super) fn adjust(
         &self,
-        params: &mut [f64; 9],
+        params: &mut Globals,
         poses: &mut [Pose],
         offsets: &[Vec<Vector2<f64>>],
         free: &[usize],
@@ -251,14 +297,16 @@ impl<'a> Problem<'a> {
         Ok(Adjusted { fit, iterations })
     }
 
+    /// The calibration at the solution, refused over the RMS limit or where the views do not
+    /// determine a parameter; its `iterations` are the caller's to set.
     pub(super) fn report(
         &self,
-        camera: CameraModel,
+        params: &Globals,
+        size: (u32, u32),
         poses: &[Pose],
         fit: Evaluation,
         free: &[usize],
         options: &CalibrationOptions,
-        iterations: usize,
     ) -> Result<CameraCalibration, VisionError> {
         let n_points: usize = self.views.iter().map(|v| v.ids.len()).sum();
         let dof = (2 * n_points).saturating_sub(free.len() + 6 * poses.len());
@@ -275,17 +323,33 @@ impl<'a> Problem<'a> {
         let variance_factor = fit.chi2 / dof as f64;
         let nf = free.len();
         let inverse = invert_information(&fit.information, nf, free)?;
-        let mut covariance = [[0.0; 9]; 9];
-        let mut sigma = [0.0; 9];
+        let mut globals = [[0.0; GLOBALS]; GLOBALS];
         for (a, &i) in free.iter().enumerate() {
             for (b, &j) in free.iter().enumerate() {
-                covariance[i][j] = inverse[(a, b)] * variance_factor;
+                globals[i][j] = inverse[(a, b)] * variance_factor;
             }
+        }
+        let mut covariance = [[0.0; 9]; 9];
+        let mut sigma = [0.0; 9];
+        for i in 0..9 {
+            covariance[i].copy_from_slice(&globals[i][..9]);
             sigma[i] = covariance[i][i].max(0.0).sqrt();
         }
+        let warped = free.contains(&SAG_X);
+        let plate_warp = warped.then(|| {
+            PlateWarp::new(
+                [params[SAG_X], params[SAG_Y]],
+                [
+                    [globals[SAG_X][SAG_X], globals[SAG_X][SAG_Y]],
+                    [globals[SAG_Y][SAG_X], globals[SAG_Y][SAG_Y]],
+                ],
+            )
+        });
+        let camera = from_params(params, size.0, size.1);
+        let intrinsics: Vec<usize> = free.iter().copied().filter(|&i| i < 9).collect();
         let mut correlations = Vec::new();
-        for (a, &i) in free.iter().enumerate() {
-            for &j in &free[a + 1..] {
+        for (a, &i) in intrinsics.iter().enumerate() {
+            for &j in &intrinsics[a + 1..] {
                 let r = covariance[i][j] / (sigma[i] * sigma[j]);
                 if r.abs() > 0.9 {
                     correlations.push(Correlation {
@@ -324,8 +388,14 @@ impl<'a> Problem<'a> {
             correlations,
             warnings,
             fixed,
-            iterations,
+            iterations: 0,
             cross_validation: None,
+            plate_shape: if warped {
+                PlateShape::Warped
+            } else {
+                PlateShape::Flat
+            },
+            plate_warp,
         })
     }
 
@@ -414,9 +484,11 @@ fn invert_information(
             .map(|k| (k, vector[k].abs()))
             .max_by(|a, b| a.1.total_cmp(&b.1))
             .unwrap_or((0, 0.0));
-        let name = free
-            .get(param)
-            .map_or("a view's pose", |&i| Intrinsic::ALL[i].name());
+        let name = free.get(param).map_or("a view's pose", |&i| match i {
+            SAG_X => "the plate's sag along x",
+            SAG_Y => "the plate's sag along y",
+            i => Intrinsic::ALL[i].name(),
+        });
         return Err(refuse(format!(
             "the views do not determine {name}: tilt the plate more and about different axes, or fix it"
         )));

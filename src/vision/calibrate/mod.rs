@@ -23,6 +23,9 @@
 
 mod adjust;
 mod start;
+mod warp;
+
+pub use warp::{PlateShape, PlateWarp, SAG_SIGNIFICANCE_CHI2, describe_plate_shape};
 
 use super::{CameraModel, Plate, VisionError};
 use crate::geometry::Pose;
@@ -78,7 +81,18 @@ pub fn intrinsics_of(camera: &CameraModel) -> [f64; 9] {
     ]
 }
 
-pub(super) fn from_params(p: &[f64; 9], width_px: u32, height_px: u32) -> CameraModel {
+/// The intrinsics (the first nine of the adjustment's global parameters) and the plate's two
+/// sags (mm, [`SAG_X`] and [`SAG_Y`]).
+pub(super) type Globals = [f64; GLOBALS];
+/// How many global parameters the adjustment has.
+pub(super) const GLOBALS: usize = 11;
+/// The position of the plate's sag along x among the global parameters.
+pub(super) const SAG_X: usize = 9;
+/// The position of the plate's sag along y.
+pub(super) const SAG_Y: usize = 10;
+
+/// The camera of the first nine of `p` (intrinsics in [`Intrinsic::ALL`]'s order).
+pub(super) fn from_params(p: &[f64], width_px: u32, height_px: u32) -> CameraModel {
     CameraModel {
         fx_px: p[0],
         fy_px: p[1],
@@ -112,6 +126,8 @@ pub struct CalibrationOptions {
     pub initial: Option<CameraModel>,
     /// Correct each disc's perspective eccentricity.
     pub eccentricity: bool,
+    /// The plate's shape: flat, warped, or warped when the views support it (the default).
+    pub plate_shape: PlateShape,
     /// A fit with a larger RMS is refused (px).
     pub max_rms_px: f64,
     /// Levenberg-Marquardt iterations at most, per round.
@@ -126,6 +142,7 @@ impl Default for CalibrationOptions {
             fixed: Vec::new(),
             initial: None,
             eccentricity: true,
+            plate_shape: PlateShape::Auto,
             max_rms_px: 1.0,
             max_iterations: 100,
             cancel: None,
@@ -307,6 +324,11 @@ pub struct CameraCalibration {
     /// The covariance's cross-validation, when it was checked ([`super::calibrate_camera_checked`]):
     /// `covariance` and `sigma` are then the formal ones scaled by its inflation.
     pub cross_validation: Option<super::CrossValidation>,
+    /// The shape the plate was fitted with: [`PlateShape::Flat`] or [`PlateShape::Warped`].
+    pub plate_shape: PlateShape,
+    /// The plate's sag: fitted when warped; with [`PlateShape::Auto`] choosing flat, the sag
+    /// that was tested and found not significant (none when the views did not determine it).
+    pub plate_warp: Option<PlateWarp>,
 }
 
 impl CameraCalibration {
@@ -339,14 +361,46 @@ pub fn calibrate_camera(
         return Err(refuse("the image size must not be zero"));
     }
     check_views(plate, views)?;
-    let problem = Problem::new(plate, views);
-    let free: Vec<usize> = Intrinsic::ALL
+    let size = (width_px, height_px);
+    match options.plate_shape {
+        PlateShape::Flat | PlateShape::Warped => {
+            fit_shape(plate, size, views, options, options.plate_shape)
+        }
+        PlateShape::Auto => {
+            match fit_shape(plate, size, views, options, PlateShape::Warped) {
+                Ok(warped) if warped.plate_warp.is_some_and(|w| w.significant) => Ok(warped),
+                // Not significant, or not determined by these views: flat, with the sag
+                // that was tested when there is one.
+                tried => {
+                    let mut flat = fit_shape(plate, size, views, options, PlateShape::Flat)?;
+                    flat.plate_warp = tried.ok().and_then(|c| c.plate_warp);
+                    Ok(flat)
+                }
+            }
+        }
+    }
+}
+
+/// The calibration with the plate fitted as `shape` (flat or warped).
+fn fit_shape(
+    plate: &Plate,
+    (width_px, height_px): (u32, u32),
+    views: &[CalibrationView],
+    options: &CalibrationOptions,
+    shape: PlateShape,
+) -> Result<CameraCalibration, VisionError> {
+    let problem = Problem::new(plate, views, shape);
+    let mut free: Vec<usize> = Intrinsic::ALL
         .iter()
         .filter(|p| !options.fixed.contains(p))
         .map(|p| p.index())
         .collect();
+    if shape == PlateShape::Warped {
+        free.extend([SAG_X, SAG_Y]);
+    }
     let start = initial_camera(&problem, width_px, height_px, options)?;
-    let mut params = intrinsics_of(&start);
+    let mut params: Globals = [0.0; GLOBALS];
+    params[..9].copy_from_slice(&intrinsics_of(&start));
     let mut poses = initial_poses(&problem, &start)?;
     let mut offsets: Vec<Vec<Vector2<f64>>> = views
         .iter()
@@ -359,7 +413,7 @@ pub fn calibrate_camera(
     let mut round = 0;
     // One adjustment from the current estimate, with the given eccentricity offsets.
     let adjust = |problem: &Problem,
-                  params: &mut [f64; 9],
+                  params: &mut Globals,
                   poses: &mut [Pose],
                   offsets: &[Vec<Vector2<f64>>]| {
         problem.adjust(
@@ -381,7 +435,7 @@ pub fn calibrate_camera(
             break result.fit;
         }
         let camera = from_params(&params, width_px, height_px);
-        let next = problem.offsets(&camera, &poses);
+        let next = problem.offsets(&camera, [params[SAG_X], params[SAG_Y]], &poses);
         let change = next
             .iter()
             .flatten()
@@ -415,8 +469,10 @@ pub fn calibrate_camera(
         iterations += result.iterations;
         fit = result.fit;
     }
-    let camera = from_params(&params, width_px, height_px);
-    problem.report(camera, &poses, fit, &free, options, iterations)
+    let mut calibration =
+        problem.report(&params, (width_px, height_px), &poses, fit, &free, options)?;
+    calibration.iterations = iterations;
+    Ok(calibration)
 }
 
 fn check_views(plate: &Plate, views: &[CalibrationView]) -> Result<(), VisionError> {

@@ -67,6 +67,28 @@ async fn a_camera_is_calibrated_from_plate_points_and_nothing_is_stored() {
     );
     assert!(get(&body["rms_px"]) < 0.05, "{body}");
     assert!(body["warnings"].is_array());
+    // The rendered plate is flat: `auto` tests its sag and keeps it flat.
+    assert_eq!(body["plate_shape"], "flat", "{body}");
+    assert_eq!(body["plate_warp"]["significant"], false, "{body}");
+    assert!(get(&body["plate_warp"]["sigma_x_mm"]) > 0.0, "{body}");
+    assert!(
+        body["plate_message"]
+            .as_str()
+            .expect("text")
+            .starts_with("plate fitted flat"),
+        "{body}"
+    );
+    let mut warped = request(12, &["k3"]);
+    warped["plate_shape"] = json!("warped");
+    let (status, body) = app.post_json("/api/v1/calibration/camera", &warped).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["plate_shape"], "warped", "{body}");
+    // The sag of a flat plate is zero within its sigma.
+    let (sag, sigma) = (
+        get(&body["plate_warp"]["sag_x_mm"]),
+        get(&body["plate_warp"]["sigma_x_mm"]),
+    );
+    assert!(sag.abs() < 4.0 * sigma, "{body}");
     // Nothing stored: no link has samples.
     app.assert_nothing_stored().await;
 }
@@ -118,6 +140,16 @@ async fn invalid_requests_name_the_field_and_impossible_ones_say_why() {
         .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
     assert_eq!(body["error"]["details"][0]["field"], "fix");
+
+    let mut bent = request(4, &[]);
+    bent["plate_shape"] = json!("bent");
+    let (status, body) = app.post_json("/api/v1/calibration/camera", &bent).await;
+    assert!(status.is_client_error(), "{body}");
+    let message = body["error"]["message"].as_str().expect("text");
+    assert!(
+        message.contains("bent") && message.contains("warped"),
+        "{body}"
+    );
 
     let mut unknown = request(4, &[]);
     unknown["views"][0]["colour"] = json!("red");
