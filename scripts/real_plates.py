@@ -21,6 +21,14 @@ about 1 for honest sigmas. It is printed for the sigmas brokenray reports (cross
 and for the formal ones (the reported over the square root of the cross-validation's
 inflation).
 
+The same half-splits are made for OpenCV (`calibrateCameraExtended` on OpenCV's own centres
+from `opencv_baseline.json`, its standard deviations) and for mrcal (`mrcal-calibrate-cameras`
+on the same centres, OPENCV5 lens, the plate's warp fitted; its sigmas from the solve's
+`(J^T J)^-1` scaled by the residual's variance) where they are installed (Debian's
+`python3-opencv`, `mrcal` and `python3-mrcal`: run the script with `/usr/bin/python3` then);
+mrcal takes regular grids only. Every set is also calibrated by brokenray with the plate kept
+flat (`--plate-shape flat`) beside the default (`auto`), to show what the plate's shape moves.
+
 With the `blobs` example as a third argument it first compares the detector's discs with
 OpenCV's plate centres in every view: the centres OpenCV found that no disc of ours lies within
 a pixel of, the discs that match none of them (clutter and the text on the plates), the median
@@ -61,8 +69,9 @@ def sets(root):
         yield name, folder, frames, json.loads(baseline.read_text())
 
 
-def calibrate(binary, plate, frames):
-    out = subprocess.run([binary, "calibrate-camera", "--plate", str(plate), "--json", *map(str, frames)],
+def calibrate(binary, plate, frames, shape="auto"):
+    out = subprocess.run([binary, "calibrate-camera", "--plate", str(plate), "--plate-shape", shape,
+                          "--json", *map(str, frames)],
                          capture_output=True, text=True)
     left_out = [line for line in out.stderr.splitlines() if ": left out: " in line]
     if out.returncode != 0:
@@ -70,31 +79,123 @@ def calibrate(binary, plate, frames):
     return json.loads(out.stdout), left_out, []
 
 
-def half_splits(binary, plate, frames, splits=6, seed=47):
+def half_splits(calibrate_half, frames, splits=6, seed=47):
     """Mean z^2 of fx, fy, cx, cy between two halves of the frames, over `splits` random
-    splits: for the reported sigmas and for the formal ones."""
+    splits (the same splits for every calibrator: the same seed and frames). `calibrate_half`
+    maps frames to `(values, {kind: sigmas})` or None; the mean z^2 is returned per kind of
+    sigma, with the worst parameter of the first kind and the number of splits used."""
     import random
     rng = random.Random(seed)
-    reported, formal, worst = [], [], {}
+    z2, worst, used = {}, {}, 0
     for _ in range(splits):
         order = list(frames)
         rng.shuffle(order)
         half = len(order) // 2
-        a, _, _ = calibrate(binary, plate, sorted(order[:half]))
-        b, _, _ = calibrate(binary, plate, sorted(order[half:]))
+        a = calibrate_half(sorted(order[:half]))
+        b = calibrate_half(sorted(order[half:]))
         if not a or not b:
             continue
-        for k in NAMES:
-            va, vb = a["camera"][k], b["camera"][k]
-            sa, sb = a["sigma"][k], b["sigma"][k]
-            ia = (a.get("cross_validation") or {}).get("inflation", 1.0)
-            ib = (b.get("cross_validation") or {}).get("inflation", 1.0)
-            z2 = (va - vb) ** 2 / (sa ** 2 + sb ** 2)
-            reported.append(z2)
-            formal.append((va - vb) ** 2 / (sa ** 2 / ia + sb ** 2 / ib))
-            worst[k] = max(worst.get(k, 0.0), z2)
-    mean = lambda v: sum(v) / len(v) if v else float("nan")
-    return mean(reported), mean(formal), worst, len(reported) // 4
+        used += 1
+        (va, sa), (vb, sb) = a, b
+        for kind in sa:
+            for k in NAMES:
+                z = (va[k] - vb[k]) ** 2 / (sa[kind][k] ** 2 + sb[kind][k] ** 2)
+                z2.setdefault(kind, []).append(z)
+                if kind == next(iter(sa)):
+                    worst[k] = max(worst.get(k, 0.0), z)
+    mean = {kind: sum(v) / len(v) for kind, v in z2.items()}
+    return mean, worst, used
+
+
+def ours_fn(binary, plate, shape):
+    """brokenray's calibration of some frames: the reported and the formal sigmas."""
+    def run(frames):
+        r, _, _ = calibrate(binary, plate, frames, shape)
+        if not r:
+            return None
+        inflation = (r.get("cross_validation") or {}).get("inflation", 1.0)
+        values = {k: r["camera"][k] for k in NAMES}
+        reported = {k: r["sigma"][k] for k in NAMES}
+        formal = {k: r["sigma"][k] / math.sqrt(inflation) for k in NAMES}
+        return values, {"reported": reported, "formal": formal}
+    return run
+
+
+def object_points(baseline):
+    """The plate's points in OpenCV's order (row by row), in mm."""
+    cols, rows = baseline["pattern_cols_rows"]
+    s = baseline["spacing_mm"]
+    asym = "ASYMMETRIC" in baseline["flags"]
+    return [((2 * j + i % 2) * s if asym else j * s, i * s, 0.0) for i in range(rows) for j in range(cols)]
+
+
+def opencv(root, baseline):
+    """OpenCV's calibration of some frames from its own centres, with its standard deviations."""
+    import cv2
+    import numpy as np
+    obj = np.array(object_points(baseline), np.float32)
+
+    def run(frames):
+        keys = [str(f.relative_to(root)) for f in frames]
+        keys = [k for k in keys if k in baseline["centres_px"]]
+        if len(keys) < 3:
+            return None
+        img = [np.array(baseline["centres_px"][k], np.float32).reshape(-1, 1, 2) for k in keys]
+        _, K, _, _, _, std, _, _ = cv2.calibrateCameraExtended(
+            [obj] * len(img), img, tuple(baseline["image_size"]), None, None)
+        values = dict(zip(NAMES, (K[0, 0], K[1, 1], K[0, 2], K[1, 2])))
+        return values, {"opencv": dict(zip(NAMES, std.ravel()[:4]))}
+    return run
+
+
+def mrcal_solve(root, baseline, tmp):
+    """mrcal's calibration of some frames from OpenCV's centres (regular grids only): its
+    intrinsics, its sigmas and its fitted warp (mm)."""
+    import glob
+    import os
+    import numpy as np
+    import mrcal
+    cols, rows = baseline["pattern_cols_rows"]
+
+    def run(frames):
+        keys = [str(f.relative_to(root)) for f in frames]
+        keys = [k for k in keys if k in baseline["centres_px"]]
+        if len(keys) < 3:
+            return None
+        work = tempfile.mkdtemp(dir=tmp)
+        corners = os.path.join(work, "corners.vnl")
+        with open(corners, "w") as f:
+            f.write("# filename x y level\n")
+            for k in keys:
+                for x, y in baseline["centres_px"][k]:
+                    f.write(f"{root / k} {x} {y} 0\n")
+        out = subprocess.run(
+            ["mrcal-calibrate-cameras", "--corners-cache", corners, "--lensmodel", "LENSMODEL_OPENCV5",
+             "--focal", str(baseline["full"]["fx"]), "--object-spacing", str(baseline["spacing_mm"] / 1000),
+             "--object-width-n", str(cols), "--object-height-n", str(rows),
+             "--imagersize", *map(str, baseline["image_size"]), "--outdir", work,
+             # One glob for the one camera: the corners file holds only these frames.
+             str((root / keys[0]).parent / "*")],
+            capture_output=True, text=True)
+        models = glob.glob(os.path.join(work, "*.cameramodel"))
+        if out.returncode != 0 or not models:
+            return None
+        model = mrcal.cameramodel(models[0])
+        inputs = model.optimization_inputs()
+        b, x, J, _ = mrcal.optimizer_callback(**inputs)
+        J = J.toarray()
+        nmeas = mrcal.num_measurements_boards(**inputs)
+        dof = max(nmeas - J.shape[1], 1)
+        var = float(np.sum(x[:nmeas] ** 2)) / dof
+        cov_packed = np.linalg.inv(J.T @ J) * var
+        scale = np.ones(J.shape[1])
+        mrcal.unpack_state(scale, **inputs)  # in place: the packed state's units
+        sig = np.sqrt(np.diag(cov_packed)[:4]) * np.abs(scale[:4])
+        intr = model.intrinsics()[1]
+        values = dict(zip(NAMES, intr[:4]))
+        warp_mm = np.array(inputs["calobject_warp"]) * 1000 if inputs.get("calobject_warp") is not None else None
+        return values, {"mrcal": dict(zip(NAMES, sig))}, warp_mm, float(np.sqrt(np.mean(x[:nmeas] ** 2)) * math.sqrt(2))
+    return run
 
 
 def compare_blobs(blobs, root):
@@ -124,7 +225,7 @@ def compare_blobs(blobs, root):
 
 
 def main(binary, root, blobs=None):
-    root = Path(root)
+    root = Path(root).resolve()
     if blobs:
         compare_blobs(blobs, root)
     with tempfile.TemporaryDirectory() as tmp:
@@ -162,11 +263,36 @@ def main(binary, root, blobs=None):
             check = ours.get("cross_validation")
             if check:
                 print(f"  {check['message']}")
-            used = [f for f in frames if any(Path(v).name == f.name for v in ours.get("frames", []))] or frames
-            rep, form, worst, n = half_splits(binary, plate, used)
-            w = max(worst, key=worst.get) if worst else "-"
-            print(f"  half-splits ({n}): mean z^2 {rep:.2f} with the reported sigmas, {form:.2f} with the "
-                  f"formal ones; worst {w} {worst.get(w, float('nan')):.1f}")
+            print(f"  {ours['plate_message']}")
+            flat, _, _ = calibrate(binary, plate, frames, "flat")
+            if flat:
+                print("  with the plate kept flat: " + ", ".join(
+                    f"{k} {flat['camera'][k]:.3f} +- {flat['sigma'][k]:.3f}" for k in NAMES))
+            peers = []
+            try:
+                peers.append(("OpenCV", opencv(root, baseline)))
+            except ImportError:
+                print("  OpenCV: not installed (python3-opencv), left out")
+            if "ASYMMETRIC" not in baseline["flags"]:
+                try:
+                    solve = mrcal_solve(root, baseline, tmp)
+                    whole = solve(frames)
+                    if whole:
+                        values, sig, warp, rms = whole
+                        print("  mrcal (OpenCV's centres, OPENCV5, warp fitted): " + ", ".join(
+                            f"{k} {values[k]:.3f} +- {sig['mrcal'][k]:.3f}" for k in NAMES)
+                            + f"; warp {warp[0]:+.3f}, {warp[1]:+.3f} mm; RMS {rms:.4f} px")
+                    peers.append(("mrcal", lambda f, solve=solve: (lambda r: r and r[:2])(solve(f))))
+                except ImportError:
+                    print("  mrcal: not installed (mrcal, python3-mrcal), left out")
+            print("  half-splits, mean z^2 of fx, fy, cx, cy (honest about 1; target 0.25 to 2):")
+            rows = [("brokenray", ours_run) for ours_run in [ours_fn(binary, plate, "auto")]]
+            rows += [("brokenray, plate flat", ours_fn(binary, plate, "flat"))] + peers
+            for label, run in rows:
+                mean, worst, n = half_splits(run, frames)
+                w = max(worst, key=worst.get) if worst else "-"
+                kinds = ", ".join(f"{v:.2f} ({k})" for k, v in mean.items())
+                print(f"    {label:<22} {kinds}; worst {w} {worst.get(w, float('nan')):.1f}; {n} splits")
 
 
 if __name__ == "__main__":

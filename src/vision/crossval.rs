@@ -19,7 +19,9 @@
 //! fit (a plate that is not flat, a lens of another model), and the report says so.
 
 use super::calibrate::intrinsics_of;
-use super::{CalibrationOptions, CalibrationView, CameraCalibration, Plate, calibrate_camera};
+use super::{
+    CalibrationOptions, CalibrationView, CameraCalibration, Plate, PlateShape, calibrate_camera,
+};
 
 /// Fewest views the check runs with: three calibrations of three views each, the fewest that
 /// calibrate; the noise bound grows as the views get fewer, so few views inflate only a large
@@ -143,7 +145,9 @@ pub fn cross_validate(
 /// Calibrates a camera and cross-validates its covariance: the covariance and sigmas reported
 /// are the formal ones scaled by the check's inflation (the plate's sag's too: its
 /// significance is judged again against the inflated sigmas), and the check travels with
-/// them.
+/// them. With [`PlateShape::Auto`], a sag that was significant against the formal covariance
+/// but is not against the cross-validated one is not supported by the data: the plate is then
+/// fitted flat (and that calibration checked), with the sag tested reported.
 pub fn calibrate_camera_checked(
     plate: &Plate,
     width_px: u32,
@@ -151,19 +155,36 @@ pub fn calibrate_camera_checked(
     views: &[CalibrationView],
     options: &CalibrationOptions,
 ) -> Result<CameraCalibration, super::VisionError> {
-    let mut calibration = calibrate_camera(plate, width_px, height_px, views, options)?;
-    let check = cross_validate(plate, width_px, height_px, views, options, &calibration);
-    for row in &mut calibration.covariance {
-        for v in row.iter_mut() {
-            *v *= check.inflation;
+    let checked = |options: &CalibrationOptions| {
+        let mut calibration = calibrate_camera(plate, width_px, height_px, views, options)?;
+        let check = cross_validate(plate, width_px, height_px, views, options, &calibration);
+        for row in &mut calibration.covariance {
+            for v in row.iter_mut() {
+                *v *= check.inflation;
+            }
+        }
+        for s in &mut calibration.sigma {
+            *s *= check.inflation.sqrt();
+        }
+        calibration.plate_warp = calibration.plate_warp.map(|w| w.inflated(check.inflation));
+        calibration.cross_validation = Some(check);
+        Ok::<_, super::VisionError>(calibration)
+    };
+    let first = checked(options)?;
+    let unsupported = options.plate_shape == PlateShape::Auto
+        && first.plate_shape == PlateShape::Warped
+        && first.plate_warp.is_some_and(|w| !w.significant);
+    if unsupported {
+        let flat = CalibrationOptions {
+            plate_shape: PlateShape::Flat,
+            ..options.clone()
+        };
+        if let Ok(mut calibration) = checked(&flat) {
+            calibration.plate_warp = first.plate_warp;
+            return Ok(calibration);
         }
     }
-    for s in &mut calibration.sigma {
-        *s *= check.inflation.sqrt();
-    }
-    calibration.plate_warp = calibration.plate_warp.map(|w| w.inflated(check.inflation));
-    calibration.cross_validation = Some(check);
-    Ok(calibration)
+    Ok(first)
 }
 
 /// The check in a sentence, for reports.

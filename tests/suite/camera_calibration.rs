@@ -633,6 +633,18 @@ fn a_sagging_plate_is_fitted_warped_and_a_flat_one_is_left_flat() {
             assert!(!tested.significant);
         }
     }
+    // Checked by cross-validation, the sagging plate stays warped and the flat one flat.
+    let poses = plate_poses(&truth, &plate, 15, 700);
+    let checked = |views: &[CalibrationView]| {
+        brokenray::vision::calibrate_camera_checked(&plate, w, h, views, &shaped(PlateShape::Auto))
+            .expect("calibrated")
+    };
+    let c = checked(&warped_views(&truth, &plate, &poses, sag, 0.05, 800));
+    assert_eq!(c.plate_shape, PlateShape::Warped);
+    assert!(c.plate_warp.is_some_and(|w| w.significant));
+    let c = checked(&projected_views(&truth, &plate, &poses, 0.05, 900));
+    assert_eq!(c.plate_shape, PlateShape::Flat);
+    assert!(c.plate_warp.is_some_and(|w| !w.significant));
     let n = seeds as f64;
     let (warped_z2, sag_z2, flat_z2) = (
         warped_z2 / (4.0 * n),
