@@ -148,6 +148,84 @@ pub fn plate_light(
     )
 }
 
+/// The card a plate's discs are printed on, on a surface of another shade.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlateCard {
+    /// The card's margin beyond the outermost discs' rims (mm).
+    pub margin_mm: f64,
+    /// The surround's reflectance relative to the card's (a dark table: a few tenths).
+    pub surround: f64,
+}
+
+/// The light of a view of the plate printed on a card lying on a surround (see
+/// [`PlateCard`]): [`plate_light`] with every pixel off the card shaded by the surround's
+/// reflectance, each pixel by the share of it the card covers (4 x 4 samples where the card's
+/// edge crosses it).
+pub fn plate_light_on_card(
+    camera: &CameraModel,
+    plate: &Plate,
+    camera_from_plate: &Pose,
+    settings: &RenderSettings,
+    card: PlateCard,
+) -> SceneLight {
+    let mut light = plate_light(camera, plate, camera_from_plate, settings);
+    let (lo, hi) = plate.points_mm().iter().fold(
+        (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.inf(p), hi.sup(p)),
+    );
+    let reach = plate.origin_diameter_mm().unwrap_or(plate.diameter_mm()) / 2.0 + card.margin_mm;
+    let plate_from_camera = camera_from_plate.inverse();
+    let normal = camera_from_plate.rotation * Vec3::z();
+    let origin = camera_from_plate.translation.vector;
+    // Whether the ray through a point of the image meets the card.
+    let on_card = |u: f64, v: f64| -> bool {
+        let Ok(xy) = camera.undistort(Vector2::new(u, v)) else {
+            return false;
+        };
+        let ray = Vec3::new(xy.x, xy.y, 1.0);
+        let denom = normal.dot(&ray);
+        if denom.abs() < 1e-12 {
+            return false;
+        }
+        let t = normal.dot(&origin) / denom;
+        let p = plate_from_camera * Point3::from(ray * t);
+        t > 0.0
+            && (lo.x - reach..=hi.x + reach).contains(&p.x)
+            && (lo.y - reach..=hi.y + reach).contains(&p.y)
+    };
+    let (w, h) = (camera.width_px as usize, camera.height_px as usize);
+    // The card at each pixel's corners; a pixel whose corners differ is sampled 4 x 4.
+    let corners: Vec<bool> = (0..=h)
+        .flat_map(|j| (0..=w).map(move |i| (i, j)))
+        .map(|(i, j)| on_card(i as f64 - 0.5, j as f64 - 0.5))
+        .collect();
+    light.shade(|u, v| {
+        let c = [
+            corners[v * (w + 1) + u],
+            corners[v * (w + 1) + u + 1],
+            corners[(v + 1) * (w + 1) + u],
+            corners[(v + 1) * (w + 1) + u + 1],
+        ];
+        let share = if c.iter().all(|&x| x) {
+            1.0
+        } else if c.iter().all(|&x| !x) {
+            0.0
+        } else {
+            let mut hits = 0;
+            for j in 0..4 {
+                for i in 0..4 {
+                    let su = u as f64 - 0.375 + 0.25 * i as f64;
+                    let sv = v as f64 - 0.375 + 0.25 * j as f64;
+                    hits += usize::from(on_card(su, sv));
+                }
+            }
+            hits as f64 / 16.0
+        };
+        share + (1.0 - share) * card.surround
+    });
+    light
+}
+
 /// `camera_from_plate` of a plate in front of a camera, centred on its optical axis, about
 /// `fill` of the image wide, tilted by `tilt_deg` about the plate's x axis.
 pub fn plate_facing(camera: &CameraModel, plate: &Plate, fill: f64, tilt_deg: f64) -> Pose {

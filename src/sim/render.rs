@@ -305,6 +305,15 @@ pub struct SceneLight {
 }
 
 impl SceneLight {
+    /// Multiplies the light of each pixel by `factor(u, v)` (its centre's coordinates, px): a
+    /// surface of another reflectance, a shadow.
+    pub fn shade(&mut self, factor: impl Fn(usize, usize) -> f64) {
+        let w = self.width_px as usize;
+        for (i, mean) in self.mean_dn.iter_mut().enumerate() {
+            *mean *= factor(i % w, i / w);
+        }
+    }
+
     /// A frame of the scene: shot and read noise drawn with `seed`, rounded to digital numbers
     /// and clamped to the bit depth.
     pub fn expose(&self, seed: u64) -> GreyImage {

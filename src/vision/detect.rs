@@ -7,7 +7,10 @@
 //!    pixels' differences); tiles without (plain background, the inside of a large disc) take
 //!    their neighbours' thresholds. So the threshold follows the light across the frame and
 //!    splits every disc's edge at half its contrast, for discs from 4 to 300 px across in one
-//!    frame and light that changes several times over across a plate.
+//!    frame and light that changes several times over across a plate. The contrast must show
+//!    within one tile, against the noise of the flattest tile around (the frame's noise, or
+//!    more where the signal is brighter and its shot noise larger): a bright plate's own
+//!    noise, or light that changes smoothly across three tiles, is not taken for a disc's edge.
 //! 2. **Connected components** (8-connected) of the foreground, from runs of each row joined by
 //!    union-find.
 //! 3. **Gates**: the shape (the component's pixels are those of the ellipse of its second
@@ -19,7 +22,8 @@
 //! 4. **Centre**: the background-corrected grey-weighted centroid over a circular window a few
 //!    pixels wider than the blob, the background taken from a ring just outside the window (its
 //!    median, or a plane where the light changes significantly across it; the pixels of
-//!    neighbouring discs left out of both), iterated with the window re-centred so that the
+//!    neighbouring discs left out of both, and foreground that is not this disc's (the dark
+//!    surround of a light plate, a shadow) with the pixels its blurred edge reaches), iterated with the window re-centred so that the
 //!    window's placement leaves no bias. Pixels of the disc's inner part weigh fully whatever
 //!    their value (a reflection there moves nothing). The
 //!    weights are clipped three noise sigmas below the disc's level and three background sigmas
@@ -71,7 +75,8 @@ pub struct DetectSettings {
     pub polarity: Polarity,
     /// Smallest blob area (px).
     pub min_area_px: f64,
-    /// Largest blob area (px).
+    /// Largest blob area (px): the default takes discs to 500 px across, a plate close to a
+    /// short lens.
     pub max_area_px: f64,
     /// Smallest ratio of the minor to the major axis (a disc tilted by 70 degrees images at
     /// about 0.34).
@@ -95,7 +100,7 @@ impl Default for DetectSettings {
         Self {
             polarity: Polarity::Bright,
             min_area_px: 12.0,
-            max_area_px: 75_000.0,
+            max_area_px: 200_000.0,
             min_axis_ratio: 0.3,
             min_fill: 0.8,
             min_contrast_dn: 20.0,
@@ -282,7 +287,15 @@ pub fn detect_in(image: &GreyImage, settings: &DetectSettings, area: &SearchArea
                 })
                 .map(|(_, o)| o)
                 .collect();
-            refine(image, c, settings, scale, noise, &others, &mut scratch)
+            refine(
+                image,
+                c,
+                settings,
+                (scale, noise),
+                &others,
+                &foreground,
+                &mut scratch,
+            )
         })
         .collect()
 }
@@ -331,9 +344,13 @@ impl ThresholdMap {
             .collect();
         let mut lo = vec![u16::MAX; tiles_x * tiles_y];
         let mut hi = vec![0u16; tiles_x * tiles_y];
+        // Per tile, the sum and count of neighbouring pixels' absolute differences along every
+        // fourth row: the tile's own noise where it is flat.
+        let mut steps = vec![(0u32, 0u32); tiles_x * tiles_y];
         for v in 0..h {
             let row = &pixels[v * w..(v + 1) * w];
             let base = (v / t) * tiles_x;
+            let sampled = v % 4 == 0;
             for (tx, chunk) in row.chunks(t).enumerate() {
                 if !wanted[base + tx] {
                     continue;
@@ -343,9 +360,30 @@ impl ThresholdMap {
                     .fold((u16::MAX, 0u16), |(a, b), &p| (a.min(p), b.max(p)));
                 lo[base + tx] = lo[base + tx].min(a);
                 hi[base + tx] = hi[base + tx].max(b);
+                if sampled {
+                    let sum: u32 = chunk
+                        .windows(2)
+                        .map(|p| u32::from(p[0].abs_diff(p[1])))
+                        .sum();
+                    let e = &mut steps[base + tx];
+                    e.0 += sum;
+                    e.1 += chunk.len().saturating_sub(1) as u32;
+                }
             }
         }
-        let gate = (s.min_contrast_dn * scale).max(2.0 * s.threshold_sigmas * noise);
+        // A tile's noise: the mean absolute difference of neighbours is 2 / sqrt(pi) = 1.128
+        // sigmas of noise, plus what an edge in the tile adds.
+        let tile_noise: Vec<f64> = steps
+            .iter()
+            .map(|&(sum, n)| {
+                if n == 0 {
+                    f64::INFINITY
+                } else {
+                    f64::from(sum) / f64::from(n) / 1.128
+                }
+            })
+            .collect();
+        let base_gate = s.min_contrast_dn * scale;
         let mut twice: Vec<Option<u32>> = vec![None; tiles_x * tiles_y];
         for ty in 0..tiles_y {
             for tx in 0..tiles_x {
@@ -353,13 +391,29 @@ impl ThresholdMap {
                     continue;
                 }
                 let (mut a, mut b) = (u16::MAX, 0u16);
+                let mut local = f64::INFINITY;
+                let mut step = 0u16;
                 for ny in ty.saturating_sub(1)..=(ty + 1).min(tiles_y - 1) {
                     for nx in tx.saturating_sub(1)..=(tx + 1).min(tiles_x - 1) {
-                        a = a.min(lo[ny * tiles_x + nx]);
-                        b = b.max(hi[ny * tiles_x + nx]);
+                        let k = ny * tiles_x + nx;
+                        a = a.min(lo[k]);
+                        b = b.max(hi[k]);
+                        local = local.min(tile_noise[k]);
+                        step = step.max(hi[k].saturating_sub(lo[k]));
                     }
                 }
-                if f64::from(b) - f64::from(a) >= gate {
+                // The noise here: the frame's, or where the signal is brighter and its shot
+                // noise larger, the flattest neighbouring tile's. A disc's edge inflates its
+                // own tile's figure, never a flat neighbour's.
+                let sigma = if local.is_finite() {
+                    noise.max(local)
+                } else {
+                    noise
+                };
+                let gate = base_gate.max(2.0 * s.threshold_sigmas * sigma);
+                // The contrast must show within one tile: across three, light that changes
+                // smoothly (a lamp to one side, vignetting) adds to the noise's spread.
+                if f64::from(step) >= gate {
                     twice[ty * tiles_x + tx] = Some(u32::from(a) + u32::from(b));
                 }
             }
@@ -774,8 +828,11 @@ struct Scratch {
     values: Vec<f64>,
     /// Window pixels: position, weight, whether its noise reaches the centre.
     window: Vec<(f64, f64, f64, bool)>,
-    /// Whether each pixel of the square around a disc belongs to a neighbour.
+    /// Whether each pixel of the square around a disc belongs to a neighbour or to foreign
+    /// foreground.
     theirs: Vec<bool>,
+    /// The foreign foreground widened along rows, on the way to `theirs`.
+    spread: Vec<bool>,
 }
 
 /// The background under a disc: a level, and a slope when the light visibly changes across
@@ -869,14 +926,15 @@ fn fit_plane(
     })
 }
 
-/// Gates a component and measures its centre; `None` when it is not a disc.
+/// Gates a component and measures its centre; `None` when it is not a disc. `scale` is the
+/// frame's full scale over an 8-bit one's, `noise_dn` its pixel noise.
 fn refine(
     image: &GreyImage,
     c: &Component,
     s: &DetectSettings,
-    scale: f64,
-    noise_dn: f64,
+    (scale, noise_dn): (f64, f64),
     others: &[&Shape],
+    foreground: &impl Fn(usize, usize) -> bool,
     scratch: &mut Scratch,
 ) -> Option<Blob> {
     let (w, h) = (image.width_px() as usize, image.height_px() as usize);
@@ -911,14 +969,53 @@ fn refine(
         mean[0].round() as isize - reach_i - 2,
         mean[1].round() as isize - reach_i - 2,
     );
+    // Foreground beyond this disc's own outline is something else's: the dark surround of a
+    // light plate, a shadow, a disc that was refused. It is left out of the window and the
+    // ring with the pixels its blurred edge reaches, as a neighbour's pixels are, or it would
+    // pull the centre towards it and tilt the background.
+    let mine = Shape::of(c);
+    let foreign = |u: isize, v: isize| {
+        u >= 0
+            && v >= 0
+            && (u as usize) < w
+            && (v as usize) < h
+            && foreground(u as usize, v as usize)
+            && !mine.holds(u as f64, v as f64)
+    };
+    // Marked once over a square that holds the window and ring wherever the iterations move
+    // them (at most a pixel): a neighbour's outline, and foreign foreground widened by
+    // [`SHAPE_MARGIN_PX`] (a separable maximum, rows then columns).
+    let n = (side * side) as usize;
+    let margin = SHAPE_MARGIN_PX as isize;
     scratch.theirs.clear();
-    if !others.is_empty() {
-        for v in mv..mv + side {
-            for u in mu..mu + side {
-                let (x, y) = (u as f64, v as f64);
-                scratch.theirs.push(others.iter().any(|o| o.holds(x, y)));
-            }
+    scratch
+        .theirs
+        .extend((0..n as isize).map(|i| foreign(mu + i % side, mv + i / side)));
+    let any_foreign = scratch.theirs.iter().any(|&f| f);
+    if any_foreign {
+        scratch.spread.clear();
+        scratch.spread.extend((0..n as isize).map(|i| {
+            let (x, y) = (i % side, i / side);
+            ((x - margin).max(0)..=(x + margin).min(side - 1))
+                .any(|k| scratch.theirs[(y * side + k) as usize])
+        }));
+        for i in 0..n as isize {
+            let (x, y) = (i % side, i / side);
+            scratch.theirs[i as usize] = ((y - margin).max(0)..=(y + margin).min(side - 1))
+                .any(|k| scratch.spread[(k * side + x) as usize]);
         }
+    }
+    if !others.is_empty() {
+        for (i, mark) in scratch.theirs.iter_mut().enumerate() {
+            let (px, py) = (
+                (mu + i as isize % side) as f64,
+                (mv + i as isize / side) as f64,
+            );
+            *mark = *mark || others.iter().any(|o| o.holds(px, py));
+        }
+    } else if !any_foreign {
+        // Nothing is anyone else's: no marks to look up.
+        scratch.theirs.clear();
     }
     let marks = std::mem::take(&mut scratch.theirs);
     let theirs = |x: f64, y: f64| {
@@ -928,7 +1025,7 @@ fn refine(
         let (du, dv) = (x as isize - mu, y as isize - mv);
         if du < 0 || dv < 0 || du >= side || dv >= side {
             // Beyond the square (a centre that wandered): asked directly.
-            return others.iter().any(|o| o.holds(x, y));
+            return others.iter().any(|o| o.holds(x, y)) || foreign(x as isize, y as isize);
         }
         marks[(dv * side + du) as usize]
     };
