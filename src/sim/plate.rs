@@ -5,7 +5,7 @@
 //!
 //! The plate is seen from its front: its +x to the image's right, +y down, +z away.
 
-use super::render::{Disc, RenderSettings, SceneLight, scene_light};
+use super::render::{Disc, RenderSettings, SceneLight, on_plane, scene_light};
 use crate::geometry::{Pose, Vec3};
 use crate::vision::{CameraModel, GreyImage, Plate, Polarity};
 use nalgebra::{Point3, Translation3, Unit, UnitQuaternion, Vector2};
@@ -179,19 +179,11 @@ pub fn plate_light_on_card(
     let origin = camera_from_plate.translation.vector;
     // Whether the ray through a point of the image meets the card.
     let on_card = |u: f64, v: f64| -> bool {
-        let Ok(xy) = camera.undistort(Vector2::new(u, v)) else {
-            return false;
-        };
-        let ray = Vec3::new(xy.x, xy.y, 1.0);
-        let denom = normal.dot(&ray);
-        if denom.abs() < 1e-12 {
-            return false;
-        }
-        let t = normal.dot(&origin) / denom;
-        let p = plate_from_camera * Point3::from(ray * t);
-        t > 0.0
-            && (lo.x - reach..=hi.x + reach).contains(&p.x)
-            && (lo.y - reach..=hi.y + reach).contains(&p.y)
+        on_plane(camera, u, v, &normal, &origin).is_some_and(|p| {
+            let p = plate_from_camera * Point3::from(p);
+            (lo.x - reach..=hi.x + reach).contains(&p.x)
+                && (lo.y - reach..=hi.y + reach).contains(&p.y)
+        })
     };
     let (w, h) = (camera.width_px as usize, camera.height_px as usize);
     // The card at each pixel's corners; a pixel whose corners differ is sampled 4 x 4.

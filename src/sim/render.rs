@@ -477,18 +477,9 @@ fn add_coverage(
     if u0 > u1 || v0 > v1 {
         return; // wholly outside the frame
     }
-    let n_c = normal.dot(&disc.centre_mm);
     let inside = |u: f64, v: f64| -> bool {
-        let Ok(xy) = camera.undistort(Vector2::new(u, v)) else {
-            return false;
-        };
-        let ray = Vec3::new(xy.x, xy.y, 1.0);
-        let denom = normal.dot(&ray);
-        if denom.abs() < 1e-12 {
-            return false;
-        }
-        let t = n_c / denom;
-        t > 0.0 && (ray * t - disc.centre_mm).norm() <= radius
+        on_plane(camera, u, v, &normal, &disc.centre_mm)
+            .is_some_and(|p| (p - disc.centre_mm).norm() <= radius)
     };
     // A coarse 5 x 5 look at every pixel finds where the edge runs; those pixels and their
     // neighbours (where an arc could bulge in between the coarse samples) are integrated on the
@@ -531,6 +522,26 @@ fn add_coverage(
             coverage[v * w + u] += value;
         }
     }
+}
+
+/// Where the ray through image point `(u, v)` (px) meets the plane through `point` with
+/// `normal` (camera frame, mm); `None` behind the camera, along the plane, or where the
+/// distortion cannot be undone.
+pub(super) fn on_plane(
+    camera: &CameraModel,
+    u: f64,
+    v: f64,
+    normal: &Vec3,
+    point: &Vec3,
+) -> Option<Vec3> {
+    let xy = camera.undistort(Vector2::new(u, v)).ok()?;
+    let ray = Vec3::new(xy.x, xy.y, 1.0);
+    let denom = normal.dot(&ray);
+    if denom.abs() < 1e-12 {
+        return None;
+    }
+    let t = normal.dot(point) / denom;
+    (t > 0.0).then(|| ray * t)
 }
 
 /// One shape's coverage on a 4 x 4 grid per pixel, the total held at 1.

@@ -225,31 +225,7 @@ pub fn projected_views(
     sigma_px: f64,
     seed: u64,
 ) -> Vec<CalibrationView> {
-    use rand::SeedableRng;
-    use rand_distr::{Distribution, Normal};
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let noise = Normal::new(0.0, sigma_px).expect("a valid sigma");
-    poses
-        .iter()
-        .map(|pose| {
-            let points_px = plate_discs(plate, pose)
-                .iter()
-                .map(|d| {
-                    let centre = camera.project(&d.centre_mm).expect("in front");
-                    let offset = disc_image_offset(camera, &d.centre_mm, &d.normal, d.diameter_mm)
-                        .expect("in front");
-                    centre
-                        + offset
-                        + nalgebra::Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng))
-                })
-                .collect();
-            CalibrationView {
-                points_px,
-                ids: (0..plate.len()).collect(),
-                sigmas_px: Some(vec![sigma_px; plate.len()]),
-            }
-        })
-        .collect()
+    warped_views(camera, plate, poses, [0.0; 2], sigma_px, seed)
 }
 
 fn refusal(
@@ -525,7 +501,8 @@ fn cross_validation_inflates_a_covariance_too_small_and_leaves_an_honest_one() {
 }
 
 /// Views of a plate that sags by `sag_mm` along its x and y axes (mm, the middle above the
-/// edges, mrcal's `calobject_warp`), projected as [`projected_views`] does.
+/// edges, mrcal's `calobject_warp`), projected without rendering: each disc's centroid (the
+/// image of its centre plus its eccentricity) with Gaussian noise of `sigma_px` per axis.
 fn warped_views(
     camera: &CameraModel,
     plate: &Plate,
