@@ -169,11 +169,9 @@ pub fn plate_light_on_card(
     card: PlateCard,
 ) -> SceneLight {
     let mut light = plate_light(camera, plate, camera_from_plate, settings);
-    let (lo, hi) = plate.points_mm().iter().fold(
-        (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY)),
-        |(lo, hi), p| (lo.inf(p), hi.sup(p)),
-    );
-    let reach = plate.origin_diameter_mm().unwrap_or(plate.diameter_mm()) / 2.0 + card.margin_mm;
+    // The card: the plate's extent (its discs' rims) and the margin around it.
+    let (centre, size_mm) = extent(plate);
+    let half = size_mm / 2.0 + Vector2::repeat(card.margin_mm);
     let plate_from_camera = camera_from_plate.inverse();
     let normal = camera_from_plate.rotation * Vec3::z();
     let origin = camera_from_plate.translation.vector;
@@ -181,8 +179,7 @@ pub fn plate_light_on_card(
     let on_card = |u: f64, v: f64| -> bool {
         on_plane(camera, u, v, &normal, &origin).is_some_and(|p| {
             let p = plate_from_camera * Point3::from(p);
-            (lo.x - reach..=hi.x + reach).contains(&p.x)
-                && (lo.y - reach..=hi.y + reach).contains(&p.y)
+            (p.x - centre.x).abs() <= half.x && (p.y - centre.y).abs() <= half.y
         })
     };
     let (w, h) = (camera.width_px as usize, camera.height_px as usize);
