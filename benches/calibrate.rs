@@ -16,10 +16,8 @@ use std::hint::black_box;
 
 /// A 1280 x 1024 camera with a common lens and marked barrel distortion.
 fn camera() -> CameraModel {
-    CameraModel {
-        distortion: [-0.19, 0.11, 0.0006, -0.0004, -0.02],
-        ..CameraModel::pinhole(1650.0, 1648.0, 645.3, 508.9, 1280, 1024)
-    }
+    CameraModel::pinhole(1650.0, 1648.0, 645.3, 508.9, 1280, 1024)
+        .with_distortion(&[-0.19, 0.11, 0.0006, -0.0004, -0.02])
 }
 
 /// The plate's disc centroids in each view with 0.01 px of noise.

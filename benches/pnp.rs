@@ -25,10 +25,8 @@ struct Case {
 
 /// The laboratory camera C1 at 3 m from a marker of `n` points, 0.1 px of noise.
 fn case(n: usize, planar: bool) -> Case {
-    let camera = CameraModel {
-        distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
-        ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
-    };
+    let camera = CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
+        .with_distortion(&[-0.092, 0.151, 0.0004, -0.0003, 0.0]);
     let mut s = 7 + n as u64;
     let marker: Vec<Vec3> = (0..n)
         .map(|_| {

@@ -22,10 +22,8 @@ fn rows(p: &Pose) -> Vec<Vec<f64>> {
 fn main() {
     let mut rng = StdRng::seed_from_u64(2026);
     let noise = Normal::new(0.0, 0.1).expect("sigma");
-    let camera = CameraModel {
-        distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
-        ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
-    };
+    let camera = CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
+        .with_distortion(&[-0.092, 0.151, 0.0004, -0.0003, 0.0]);
     for (label, planar, n) in [
         ("depth-8", false, 8),
         ("planar-8", true, 8),

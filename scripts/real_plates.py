@@ -27,7 +27,9 @@ on the same centres, OPENCV5 lens, the plate's warp fitted; its sigmas from the 
 `(J^T J)^-1` scaled by the residual's variance) where they are installed (Debian's
 `python3-opencv`, `mrcal` and `python3-mrcal`: run the script with `/usr/bin/python3` then);
 mrcal takes regular grids only. Every set is also calibrated by brokenray with the plate kept
-flat (`--plate-shape flat`) beside the default (`auto`), to show what the plate's shape moves.
+flat (`--plate-shape flat`) beside the default (`auto`), to show what the plate's shape moves,
+and with the wider lens models (`--model rational` and `rational_prism`, k3 and k6 fixed), each
+with its judgement of the residuals' structure.
 
 With the `blobs` example as a third argument it first compares the detector's discs with
 OpenCV's plate centres in every view: the centres OpenCV found that no disc of ours lies within
@@ -69,9 +71,10 @@ def sets(root):
         yield name, folder, frames, json.loads(baseline.read_text())
 
 
-def calibrate(binary, plate, frames, shape="auto"):
+def calibrate(binary, plate, frames, shape="auto", model="brown", fix=()):
+    fixed = ["--fix", ",".join(fix)] if fix else []
     out = subprocess.run([binary, "calibrate-camera", "--plate", str(plate), "--plate-shape", shape,
-                          "--json", *map(str, frames)],
+                          "--model", model, *fixed, "--json", *map(str, frames)],
                          capture_output=True, text=True)
     left_out = [line for line in out.stderr.splitlines() if ": left out: " in line]
     if out.returncode != 0:
@@ -264,6 +267,20 @@ def main(binary, root, blobs=None):
             if check:
                 print(f"  {check['message']}")
             print(f"  {ours['plate_message']}")
+            if ours.get("residual_message"):
+                print(f"  {ours['residual_message']}")
+            # The wider lens models (their radial factor's third terms fixed: with them free a
+            # second-degree ratio is not determined).
+            for model in ("rational", "rational_prism"):
+                wide, _, refusal = calibrate(binary, plate, frames, "auto", model, ("k3", "k6"))
+                if not wide:
+                    print(f"  {model} (k3, k6 fixed): refused: {' '.join(refusal)}")
+                    continue
+                print(f"  {model} (k3, k6 fixed): " + ", ".join(
+                    f"{k} {wide['camera'][k]:.3f} +- {wide['sigma'][k]:.3f}" for k in NAMES)
+                    + f"; RMS {wide['rms_px']:.4f} px; {wide['plate_shape']} plate")
+                if wide.get("residual_message"):
+                    print(f"    {wide['residual_message']}")
             flat, _, _ = calibrate(binary, plate, frames, "flat")
             if flat:
                 print("  with the plate kept flat: " + ", ".join(

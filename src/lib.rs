@@ -31,7 +31,7 @@
 //! (times are passed in). The adapters do the IO around the core: [`config`] (the installation
 //! file: the model plus deployment settings), [`store`] (SQLite and PostgreSQL), [`service`] (the single
 //! writer), [`api`] (HTTP), [`notify`] (webhooks), [`outputs`] (MQTT, Modbus/TCP, NMEA 0183),
-//! [`telemetry`] (`/metrics`), [`acquire`] (cameras), [`imagefile`] (frame files), [`archive`]
+//! [`telemetry`] (`/metrics`), [`report`] (HTML reports with SVG pictures), [`acquire`] (cameras), [`imagefile`] (frame files), [`archive`]
 //! (the frame archive), [`fleet`] (a site's uploads to a centre), [`viz`] (Rerun), [`feed`]
 //! (the simulator's HTTP client) and [`cli`] (the binary in `main.rs` only calls it). ARCHITECTURE.md has the map; conventions are in the
 //! module docs of [`geometry`], the mathematics in `docs/method.md`.
@@ -57,6 +57,7 @@ pub mod imagefile;
 pub mod model;
 pub mod notify;
 pub mod outputs;
+pub mod report;
 pub mod service;
 pub mod sim;
 pub mod stats;

@@ -10,8 +10,8 @@ use super::ingest::read_body;
 use super::parse_json_body;
 use crate::api::error::ErrorCode;
 use crate::vision::{
-    CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, Intrinsic, Plate,
-    Polarity, calibrate_camera_checked, intrinsics_of,
+    CalibrationOptions, CalibrationView, CameraCalibration, CameraModel, Intrinsic, LensModel,
+    Plate, Polarity, calibrate_camera_checked, intrinsics_of,
 };
 use axum::Json;
 use axum::body::Body;
@@ -97,7 +97,7 @@ pub(crate) struct PlateViewIn {
 }
 
 /// Intrinsics in JSON: a camera's, their sigmas, or the known values of fixed ones.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Intrinsics {
     /// Focal length along x (px).
@@ -108,19 +108,21 @@ pub(crate) struct Intrinsics {
     pub cx: f64,
     /// Principal point y (px).
     pub cy: f64,
-    /// `[k1, k2, p1, p2, k3]` (zeros when left out).
+    /// OpenCV's coefficients `[k1, k2, p1, p2, k3]`, with `k4, k5, k6` for the rational
+    /// model and `s1, s2, s3, s4` for the thin prism (zeros when left out).
     #[serde(default)]
-    pub distortion: [f64; 5],
+    pub distortion: Vec<f64>,
 }
 
-impl From<[f64; 9]> for Intrinsics {
-    fn from(p: [f64; 9]) -> Self {
+impl Intrinsics {
+    /// The first `4 + model's terms` of `p` (in [`Intrinsic::ALL`]'s order).
+    fn of_model(p: &[f64; crate::vision::INTRINSICS], model: LensModel) -> Self {
         Self {
             fx: p[0],
             fy: p[1],
             cx: p[2],
             cy: p[3],
-            distortion: [p[4], p[5], p[6], p[7], p[8]],
+            distortion: p[4..model.intrinsics()].to_vec(),
         }
     }
 }
@@ -147,6 +149,11 @@ pub(crate) struct CameraCalibrationIn {
     #[serde(default = "auto_shape")]
     #[schema(value_type = String)]
     pub plate_shape: crate::vision::PlateShape,
+    /// The lens model: `brown` (the default: `k1 k2 p1 p2 k3`), `rational` (with `k4 k5 k6`)
+    /// or `rational_prism` (with `s1 s2 s3 s4` too).
+    #[serde(default)]
+    #[schema(value_type = String)]
+    pub model: LensModel,
 }
 
 fn auto_shape() -> crate::vision::PlateShape {
@@ -193,9 +200,13 @@ pub(crate) struct CameraCalibrationOut {
     pub camera: Intrinsics,
     /// Their standard deviations (0 for fixed ones).
     pub sigma: Intrinsics,
-    /// Their covariance, 81 numbers row-major in the order of `parameters`.
+    /// The lens model fitted.
+    #[schema(value_type = String)]
+    pub model: LensModel,
+    /// Their covariance, `n x n` numbers row-major in the order of `parameters`.
     pub covariance: Vec<f64>,
-    /// `["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]`.
+    /// `fx fy cx cy` and the model's distortion terms: `k1 k2 p1 p2 k3`, then `k4 k5 k6`,
+    /// then `s1 s2 s3 s4`.
     pub parameters: Vec<Intrinsic>,
     /// Those kept fixed.
     pub fixed: Vec<Intrinsic>,
@@ -227,6 +238,75 @@ pub(crate) struct CameraCalibrationOut {
     pub plate_warp: Option<PlateWarpOut>,
     /// The plate's shape in a sentence.
     pub plate_message: String,
+    /// The residuals binned over the image and judged for structure the lens model does not
+    /// explain (null when no bin had enough points).
+    pub residual_structure: Option<ResidualStructureOut>,
+    /// That judgement in a sentence.
+    pub residual_message: Option<String>,
+}
+
+/// The residuals binned over the image.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub(crate) struct ResidualStructureOut {
+    /// Columns of the grid.
+    pub bins_x: usize,
+    /// Rows of the grid.
+    pub bins_y: usize,
+    /// The sum of the judged bins' `z2`.
+    pub chi2: f64,
+    /// Its degrees of freedom (two per bin judged).
+    pub dof: usize,
+    /// The chi-square quantile at 99.9 % for `dof`.
+    pub threshold: f64,
+    /// `chi2` over `threshold`: structure the lens model does not explain.
+    pub significant: bool,
+    /// The bins with enough points to judge, row by row.
+    pub bins: Vec<ResidualBinOut>,
+}
+
+/// One bin of the residuals' grid.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub(crate) struct ResidualBinOut {
+    /// Its column.
+    pub column: usize,
+    /// Its row.
+    pub row: usize,
+    /// Its centre `[u, v]` (px).
+    pub centre_px: [f64; 2],
+    /// Points in it.
+    pub points: usize,
+    /// The mean residual `[du, dv]`, detected minus predicted (px).
+    pub mean_px: [f64; 2],
+    /// The standard deviation of that mean, per axis (px).
+    pub sigma_px: f64,
+    /// `|mean|² / sigma²` (chi-square, two degrees of freedom, when the model fits).
+    pub z2: f64,
+}
+
+impl From<&crate::vision::ResidualStructure> for ResidualStructureOut {
+    fn from(s: &crate::vision::ResidualStructure) -> Self {
+        Self {
+            bins_x: s.bins_x,
+            bins_y: s.bins_y,
+            chi2: s.chi2,
+            dof: s.dof,
+            threshold: s.threshold,
+            significant: s.significant,
+            bins: s
+                .bins
+                .iter()
+                .map(|b| ResidualBinOut {
+                    column: b.cell.0,
+                    row: b.cell.1,
+                    centre_px: [b.centre_px.x, b.centre_px.y],
+                    points: b.points,
+                    mean_px: [b.mean_px.x, b.mean_px.y],
+                    sigma_px: b.sigma_px,
+                    z2: b.z2,
+                })
+                .collect(),
+        }
+    }
 }
 
 /// A plate's fitted sag along each of its axes.
@@ -304,11 +384,16 @@ impl From<&crate::vision::CrossValidation> for CrossValidationOut {
 
 impl From<&CameraCalibration> for CameraCalibrationOut {
     fn from(c: &CameraCalibration) -> Self {
+        let n = c.model.intrinsics();
         Self {
-            camera: intrinsics_of(&c.camera).into(),
-            sigma: c.sigma.into(),
-            covariance: c.covariance.iter().flatten().copied().collect(),
-            parameters: Intrinsic::ALL.to_vec(),
+            camera: Intrinsics::of_model(&intrinsics_of(&c.camera), c.model),
+            sigma: Intrinsics::of_model(&c.sigma, c.model),
+            model: c.model,
+            covariance: c.covariance[..n]
+                .iter()
+                .flat_map(|row| row[..n].iter().copied())
+                .collect(),
+            parameters: Intrinsic::of_model(c.model).to_vec(),
             fixed: c.fixed.clone(),
             rms_px: c.rms_px,
             variance_factor: c.variance_factor,
@@ -349,6 +434,14 @@ impl From<&CameraCalibration> for CameraCalibrationOut {
                 c.plate_shape,
                 c.plate_warp.as_ref(),
             ),
+            residual_structure: c
+                .residual_structure
+                .as_ref()
+                .map(ResidualStructureOut::from),
+            residual_message: c
+                .residual_structure
+                .as_ref()
+                .map(|r| crate::vision::describe_residual_structure(r, c.model)),
         }
     }
 }
@@ -362,7 +455,7 @@ pub(crate) fn parse_fix(fix: &[String]) -> Result<Vec<Intrinsic>, FieldProblem> 
             None => {
                 return Err((
                     "fix".to_owned(),
-                    format!("`{name}` is not one of fx, fy, cx, cy, k1, k2, p1, p2, k3"),
+                    format!("`{name}` is not one of {}", Intrinsic::WORDS.join(", ")),
                 ));
             }
         }
@@ -425,9 +518,24 @@ impl CameraCalibrationIn {
                 sigmas_px: v.sigma_px.clone(),
             });
         }
-        let initial = self.initial.map(|c| CameraModel {
-            distortion: c.distortion,
-            ..CameraModel::pinhole(c.fx, c.fy, c.cx, c.cy, w, h)
+        if let Some(c) = &self.initial
+            && c.distortion.len() > self.model.distortion_terms()
+        {
+            problems.push((
+                None,
+                (
+                    "initial".to_owned(),
+                    format!(
+                        "distortion has {} numbers; the {} model has {}",
+                        c.distortion.len(),
+                        self.model.name(),
+                        self.model.distortion_terms()
+                    ),
+                ),
+            ));
+        }
+        let initial = self.initial.as_ref().map(|c| {
+            CameraModel::pinhole(c.fx, c.fy, c.cx, c.cy, w, h).with_distortion(&c.distortion)
         });
         if let Some(c) = &initial
             && !intrinsics_of(c).iter().all(|v| v.is_finite())
@@ -445,6 +553,7 @@ impl CameraCalibrationIn {
             initial,
             cancel,
             plate_shape: self.plate_shape,
+            model: self.model,
             ..CalibrationOptions::default()
         };
         let calibration =

@@ -99,13 +99,17 @@ pub(super) fn pose_stamp(c: &PoseCov) -> i64 {
     CalibrationStamp::of(values).0
 }
 
-/// The stamp of a camera's calibration: its intrinsics and their covariance.
+/// The stamp of a camera's calibration: its intrinsics and their covariance, over the terms of
+/// its lens model (a Brown-Conrady camera's stamp is that of its nine intrinsics, as it always
+/// was).
 pub(super) fn camera_stamp(camera: &crate::model::Camera) -> i64 {
     let m = &camera.intrinsics;
     let mut values = vec![m.fx_px, m.fy_px, m.cx_px, m.cy_px];
-    values.extend(m.distortion);
+    values.extend_from_slice(m.distortion_coefficients());
     if let Some(c) = &camera.intrinsics_covariance {
-        values.extend(c.iter().copied());
+        // Column-major, as the 9 x 9 matrix's iteration was.
+        let n = 4 + m.distortion_coefficients().len();
+        values.extend(c.view((0, 0), (n, n)).iter().copied());
     }
     CalibrationStamp::of(values).0
 }

@@ -4,8 +4,8 @@
 //!
 //! A pose's error `xi` (the left perturbation `[rho (mm); phi (rad)]`) is modelled as
 //! `xi = sum_c F_c u_c`: one term per contributor `c`, `u_c` a standard normal vector of that
-//! contributor alone (independent of every other contributor's) and `F_c` its 6x9 factor (a
-//! contributor with fewer than nine dimensions leaves columns zero). Its covariance is
+//! contributor alone (independent of every other contributor's) and `F_c` its 6 x
+//! [`FACTOR_COLUMNS`] factor (a contributor with fewer dimensions leaves columns zero). Its covariance is
 //! `sum_c F_c F_c^T`, each term that contributor's share. The contributors:
 //!
 //! * a measured link's **noise** (pixel noise through PnP, a sample's own covariance): new in
@@ -25,12 +25,17 @@ use super::{ChainError, Direction, Fused, LinkId, Path, fuse};
 use crate::geometry::{Mat6, Pose, PoseCov, adjoint, symmetrize};
 use nalgebra::{SMatrix, SymmetricEigen};
 
+/// The columns of a factor: as many as a camera's intrinsics in the widest lens model (`fx fy
+/// cx cy`, `k1 k2 p1 p2 k3`, `k4 k5 k6`, `s1 s2 s3 s4`), the contributor with most dimensions.
+pub const FACTOR_COLUMNS: usize = 16;
+
 /// A contributor's factor: its error's effect on a pose's left perturbation per unit of its
 /// standard normal vector.
-pub type Factor = SMatrix<f64, 6, 9>;
+pub type Factor = SMatrix<f64, 6, FACTOR_COLUMNS>;
 
-/// A 9x9 covariance of a camera's intrinsics, in the order `fx fy cx cy k1 k2 p1 p2 k3`.
-pub type IntrinsicsCovariance = SMatrix<f64, 9, 9>;
+/// The covariance of a camera's intrinsics, in the order `fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6
+/// s1 s2 s3 s4` (rows and columns beyond the camera's lens model zero).
+pub type IntrinsicsCovariance = SMatrix<f64, FACTOR_COLUMNS, FACTOR_COLUMNS>;
 
 /// Something whose error reaches a composed pose.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -190,8 +195,8 @@ impl SourcedPose {
 }
 
 /// A factor `F` with `F F^T = cov` for a 6x6 covariance (symmetric, positive semi-definite):
-/// its Cholesky factor, or the symmetric square root where it is singular. The last three
-/// columns are zero.
+/// its Cholesky factor, or the symmetric square root where it is singular. The columns after
+/// the sixth are zero.
 pub fn factor_of_covariance(cov: &Mat6) -> Factor {
     let mut f = Factor::zeros();
     match symmetrize(cov).cholesky() {

@@ -97,7 +97,7 @@ pub(super) fn calibrate_from_frames(
     plate: &Plate,
     frames: &[PathBuf],
     fix: &[String],
-    plate_shape: crate::vision::PlateShape,
+    (plate_shape, model): (crate::vision::PlateShape, crate::vision::LensModel),
     progress: &indicatif::ProgressBar,
     log: &mut impl Write,
 ) -> anyhow::Result<FramesCalibration> {
@@ -134,6 +134,7 @@ pub(super) fn calibrate_from_frames(
     let options = CalibrationOptions {
         fixed,
         plate_shape,
+        model,
         ..CalibrationOptions::default()
     };
     let calibration = calibrate_camera_checked(plate, w, h, &views, &options).map_err(|e| {
@@ -167,7 +168,8 @@ pub(super) fn report(run: &FramesCalibration) -> String {
         c.variance_factor
     );
     let values = intrinsics_of(&c.camera);
-    for &p in Intrinsic::ALL {
+    let _ = writeln!(s, "  lens model {}", c.model);
+    for &p in Intrinsic::of_model(c.model) {
         let i = p.index();
         if c.fixed.contains(&p) {
             let _ = writeln!(s, "  {:<3} {:>14.6}   (fixed)", p.name(), values[i]);
@@ -189,6 +191,13 @@ pub(super) fn report(run: &FramesCalibration) -> String {
         "  {}",
         crate::vision::describe_plate_shape(c.plate_shape, c.plate_warp.as_ref())
     );
+    if let Some(r) = &c.residual_structure {
+        let _ = writeln!(
+            s,
+            "  {}",
+            crate::vision::describe_residual_structure(r, c.model)
+        );
+    }
     for k in &c.correlations {
         let _ = writeln!(
             s,
@@ -218,16 +227,65 @@ pub(super) fn report(run: &FramesCalibration) -> String {
     s
 }
 
+/// Writes the calibration's report into `dir` (made if missing) as `calibration.html`, which
+/// must not exist; returns its path.
+pub(super) fn write_report(
+    dir: &Path,
+    camera: Option<&str>,
+    plate: &Plate,
+    run: &FramesCalibration,
+) -> anyhow::Result<PathBuf> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot make {}", dir.display()))?;
+    let path = dir.join("calibration.html");
+    let names: Vec<String> = run.used.iter().map(|p| p.display().to_string()).collect();
+    let mut notes: Vec<String> = run
+        .left_out
+        .iter()
+        .map(|(p, why)| format!("{} left out: {why}", p.display()))
+        .collect();
+    notes.extend(run.file_warning());
+    let title = camera.map_or_else(
+        || format!("{} frames", run.used.len() + run.left_out.len()),
+        str::to_owned,
+    );
+    let page = crate::report::calibration::calibration_report(
+        &crate::report::calibration::CalibrationReport {
+            title: &title,
+            calibration: &run.calibration,
+            plate,
+            view_names: &names,
+            notes: &notes,
+            made: &crate::clock::format_ns(crate::clock::wall_now_ns()),
+        },
+    );
+    let mut file = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&path)
+        .with_context(|| format!("cannot write {} (it must not exist)", path.display()))?;
+    file.write_all(page.as_bytes())
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(path)
+}
+
 /// A `[[cameras]]` block for the installation file.
 pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
     let m = &c.camera;
-    let d = m.distortion;
+    let n = c.model.intrinsics();
+    let distortion: Vec<String> = m.distortion[..c.model.distortion_terms()]
+        .iter()
+        .map(|v| format!("{v:?}"))
+        .collect();
+    let names: Vec<&str> = Intrinsic::of_model(c.model)
+        .iter()
+        .map(|p| p.name())
+        .collect();
     let mut fixed: Vec<&str> = c.fixed.iter().map(|p| p.name()).collect();
     if fixed.is_empty() {
         fixed.push("none");
     }
     format!(
-        "# Calibrated from {} views: RMS {:.4} px; sigmas fx {:.3}, fy {:.3}, cx {:.3}, cy {:.3} px; fixed: {}.\n\
+        "# Calibrated from {} views ({} lens model): RMS {:.4} px; sigmas fx {:.3}, fy {:.3}, cx {:.3}, cy {:.3} px; fixed: {}.\n\
          [[cameras]]\n\
          frame = \"{frame}\"\n\
          width = {}\n\
@@ -236,12 +294,13 @@ pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
          fy = {:?}\n\
          cx = {:?}\n\
          cy = {:?}\n\
-         distortion = [{:?}, {:?}, {:?}, {:?}, {:?}]\n\
+         distortion = [{}]\n\
          pixel_sigma = {:?}\n\
-         # The intrinsics' covariance (row-major: fx fy cx cy k1 k2 p1 p2 k3): the calibration's\n\
+         # The intrinsics' covariance (row-major: {}): the calibration's\n\
          # error enters every sigma through it.\n\
          intrinsics_covariance = [\n{}]\n",
         c.views.len(),
+        c.model,
         c.rms_px,
         c.sigma[0],
         c.sigma[1],
@@ -254,16 +313,13 @@ pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
         m.fy_px,
         m.cx_px,
         m.cy_px,
-        d[0],
-        d[1],
-        d[2],
-        d[3],
-        d[4],
+        distortion.join(", "),
         (c.pixel_sigma() * 1e4).round() / 1e4,
-        c.covariance
+        names.join(" "),
+        c.covariance[..n]
             .iter()
             .map(|row| {
-                let cells: Vec<String> = row.iter().map(|v| format!("{v:e}")).collect();
+                let cells: Vec<String> = row[..n].iter().map(|v| format!("{v:e}")).collect();
                 format!("  {},\n", cells.join(", "))
             })
             .collect::<String>(),
@@ -570,7 +626,7 @@ pub(super) fn render_plate_views(
         }));
         progress.inc(1);
     }
-    let d = model.distortion;
+    let d = model.distortion_coefficients();
     let body = serde_json::json!({
         "camera": {
             "frame": camera,

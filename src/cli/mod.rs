@@ -239,8 +239,12 @@ pub enum Command {
         fix: Vec<String>,
         /// The plate's shape: `auto` fits a sag along each axis and keeps it when it is
         /// significant, `warped` keeps it always, `flat` takes the plate as flat.
-        #[arg(long, value_name = "SHAPE", default_value = "auto", value_parser = parse_plate_shape)]
+        #[arg(long, value_name = "SHAPE", default_value = "auto", value_parser = parse_word::<crate::vision::PlateShape>)]
         plate_shape: crate::vision::PlateShape,
+        /// The lens model: `brown` (`k1 k2 p1 p2 k3`), `rational` (with `k4 k5 k6`) or
+        /// `rational_prism` (with the thin prism `s1 s2 s3 s4` too), as OpenCV defines them.
+        #[arg(long, value_name = "MODEL", default_value = "brown", value_parser = parse_word::<crate::vision::LensModel>)]
+        model: crate::vision::LensModel,
         /// Print the result as `POST /api/v1/calibration/camera` answers it.
         #[arg(long)]
         json: bool,
@@ -250,6 +254,10 @@ pub enum Command {
         /// The camera's frame name in the installation, for `--out`'s block.
         #[arg(long, value_name = "NAME")]
         camera: Option<String>,
+        /// Write the calibration's report (`calibration.html`, one page with its pictures)
+        /// into this folder, made if missing (the page must not exist).
+        #[arg(long, value_name = "DIR")]
+        report: Option<PathBuf>,
         /// The frames (PNG, JPEG, TIFF, PGM), one view of the plate each.
         #[arg(required = true, value_name = "FRAME")]
         frames: Vec<PathBuf>,
@@ -597,9 +605,11 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             plate,
             fix,
             plate_shape,
+            model,
             json,
             out: out_file,
             camera,
+            report,
             frames,
         } => {
             let plate = calibrate::read_plate(&plate)?;
@@ -608,7 +618,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                     &plate,
                     &frames,
                     &fix,
-                    plate_shape,
+                    (plate_shape, model),
                     bar,
                     &mut std::io::stderr(),
                 )
@@ -627,6 +637,12 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 writeln!(out, "{}", serde_json::to_string_pretty(&body)?)?;
             } else {
                 out.write_all(calibrate::report(&run).as_bytes())?;
+            }
+            if let Some(dir) = report {
+                let path = calibrate::write_report(&dir, camera.as_deref(), &plate, &run)?;
+                if !json {
+                    writeln!(out, "report written to {}", path.display())?;
+                }
             }
             if let (Some(path), Some(name)) = (out_file, camera) {
                 let block = calibrate::cameras_block(&name, &run.calibration);
@@ -950,14 +966,19 @@ fn random_token() -> anyhow::Result<String> {
     Ok(hex::encode(rand::random::<[u8; 32]>()))
 }
 
-/// A `--plate-shape` word.
-fn parse_plate_shape(word: &str) -> Result<crate::vision::PlateShape, String> {
-    crate::vision::PlateShape::parse(word).ok_or_else(|| {
-        format!(
-            "{word:?} is not a plate shape: one of {}",
-            crate::vision::PlateShape::WORDS.join(", ")
-        )
-    })
+/// A word of a vocabulary (`--plate-shape`, `--model`).
+fn parse_word<T: crate::words::Word>(word: &str) -> Result<T, String> {
+    T::ALL
+        .iter()
+        .copied()
+        .find(|w| w.word() == word)
+        .ok_or_else(|| {
+            format!(
+                "{word:?} is not a {}: one of {}",
+                T::WHAT,
+                T::words().join(", ")
+            )
+        })
 }
 
 #[cfg(test)]

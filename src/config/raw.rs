@@ -171,11 +171,12 @@ pub(super) struct RawCamera {
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
+    /// OpenCV's coefficients: 4, 5, 8 or 12 of `k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4`.
     #[serde(default)]
-    pub distortion: [f64; 5],
+    pub distortion: Vec<f64>,
     pub pixel_sigma: f64,
     pub gain_e_per_dn: Option<f64>,
-    /// 81 numbers, row-major, in the order fx fy cx cy k1 k2 p1 p2 k3.
+    /// `n x n` numbers, row-major, in the order `fx fy cx cy` and the lens model's terms.
     pub intrinsics_covariance: Option<Vec<f64>>,
     pub source: Option<Spanned<RawSource>>,
 }

@@ -267,10 +267,8 @@ mod tests {
 
     #[test]
     fn views_are_inside_the_frame_tilted_and_seen_from_the_front() {
-        let camera = CameraModel {
-            distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
-            ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
-        };
+        let camera = CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
+            .with_distortion(&[-0.092, 0.151, 0.0004, -0.0003, 0.0]);
         let plate = Plate::new(7, 9, 15.0, 7.5, true, Polarity::Dark).expect("valid");
         let poses = plate_poses(&camera, &plate, 15, 3);
         assert_eq!(poses.len(), 15);

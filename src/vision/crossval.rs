@@ -18,6 +18,7 @@
 //! numbers: a spread beyond twice the predicted uncertainty (`r > 4`) means the model does not
 //! fit (a plate that is not flat, a lens of another model), and the report says so.
 
+use super::INTRINSICS;
 use super::calibrate::intrinsics_of;
 use super::{
     CalibrationOptions, CalibrationView, CameraCalibration, Plate, PlateShape, calibrate_camera,
@@ -92,7 +93,7 @@ pub fn cross_validate(
         plate_shape: full.plate_shape,
         ..options.clone()
     };
-    let mut estimates: Vec<[f64; 9]> = Vec::with_capacity(views.len());
+    let mut estimates: Vec<[f64; INTRINSICS]> = Vec::with_capacity(views.len());
     for left_out in 0..views.len() {
         let subset: Vec<CalibrationView> = views
             .iter()

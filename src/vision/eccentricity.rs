@@ -181,10 +181,8 @@ mod tests {
     /// force's (whose own error, from the circle's staircase edge, is about 1e-4 of the offset).
     #[test]
     fn the_offset_under_distortion_agrees_with_a_brute_force_centroid() {
-        let camera = CameraModel {
-            distortion: [-0.35, 0.2, 0.001, -0.0008, -0.05],
-            ..CameraModel::pinhole(1400.0, 1400.0, 640.0, 512.0, 1280, 1024)
-        };
+        let camera = CameraModel::pinhole(1400.0, 1400.0, 640.0, 512.0, 1280, 1024)
+            .with_distortion(&[-0.35, 0.2, 0.001, -0.0008, -0.05]);
         for (centre, normal) in [
             (Vec3::new(900.0, 700.0, 2000.0), Vec3::new(0.5, 0.2, -0.8)),
             (Vec3::new(-800.0, 300.0, 1500.0), Vec3::new(-0.3, 0.6, -0.7)),

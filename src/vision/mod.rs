@@ -38,11 +38,13 @@ mod sqpnp;
 
 pub use calibrate::{
     CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
-    ImageCorner, Intrinsic, MAX_VIEWS, MIN_VIEW_POINTS, MIN_VIEWS, PlateShape, PlateWarp,
-    RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, SAG_SIGNIFICANCE_CHI2, ViewFit, WarningKind,
-    calibrate_camera, describe_plate_shape, intrinsics_of,
+    ImageCorner, Intrinsic, MAX_VIEWS, MIN_BIN_POINTS, MIN_VIEW_POINTS, MIN_VIEWS, PlateShape,
+    PlateWarp, PointResidual, RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, ResidualBin,
+    ResidualStructure, SAG_SIGNIFICANCE_CHI2, STRUCTURE_BINS_X, STRUCTURE_PROBABILITY, ViewFit,
+    WarningKind, calibrate_camera, describe_plate_shape, describe_residual_structure,
+    intrinsics_of, residual_structure,
 };
-pub use camera::CameraModel;
+pub use camera::{CameraModel, DISTORTION_TERMS, INTRINSICS, LensModel};
 pub use crossval::{
     CrossValidation, CrossValidationVerdict, MIN_CROSS_VALIDATION_VIEWS, calibrate_camera_checked,
     cross_validate, describe_cross_validation,

@@ -19,7 +19,7 @@
 //! four-point subsets (a fixed pseudo-random sequence: the same input gives the same answer),
 //! and the points off the consensus are reported.
 
-use super::camera::CameraModel;
+use super::camera::{CameraModel, INTRINSICS};
 use super::{VisionError, ippe, sqpnp};
 use crate::geometry::{Mat3, Mat6, Pose, Rotation, Twist, Vec3, adjoint, se3_exp, skew};
 use nalgebra::{Matrix2x3, SMatrix, Translation3, Vector2};
@@ -393,7 +393,8 @@ pub fn refine(
 
 /// How `camera_from_marker`'s estimate moves with the camera's intrinsics: `d xi / d theta`,
 /// `xi` the left perturbation `[rho (mm); phi (rad)]` of the pose (as its covariance) and
-/// `theta = (fx fy cx cy k1 k2 p1 p2 k3)` (as the calibration's covariance).
+/// `theta = (fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4)` (as the calibration's
+/// covariance).
 ///
 /// The estimate minimises `sum w_i |uv_i - pi(xi, theta; p_i)|^2`; at its minimum the
 /// gradient vanishes, and differentiating that condition with respect to `theta` (the
@@ -408,9 +409,9 @@ pub fn intrinsics_sensitivity(
     marker_points_mm: &[Vec3],
     camera_from_marker: &Pose,
     weights: Option<&[f64]>,
-) -> Option<SMatrix<f64, 6, 9>> {
+) -> Option<SMatrix<f64, 6, INTRINSICS>> {
     let mut information = Mat6::zeros();
-    let mut cross = SMatrix::<f64, 6, 9>::zeros();
+    let mut cross = SMatrix::<f64, 6, INTRINSICS>::zeros();
     for (i, m) in marker_points_mm.iter().enumerate() {
         let w = weights.map_or(1.0, |w| w.get(i).copied().unwrap_or(1.0));
         let p = camera_from_marker * nalgebra::Point3::from(*m);

@@ -900,16 +900,91 @@ fn rendered_plate_views_calibrate_a_camera_into_a_block_the_installation_takes()
         "{}",
         String::from_utf8_lossy(&check.stderr)
     );
-    // The text report names the parameters with their sigmas.
-    let mut args = vec!["calibrate-camera", "--plate", plate.to_str().unwrap()];
+    // The text report names the parameters with their sigmas; `--report` writes the page.
+    let report = dir.path().join("report");
+    let mut args = vec![
+        "calibrate-camera",
+        "--plate",
+        plate.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ];
     args.extend(frames[..12].iter().map(String::as_str));
     let text = String::from_utf8(brokenray(&args).stdout).unwrap();
+    assert!(text.contains("report written to "), "{text}");
+    let page = std::fs::read_to_string(report.join("calibration.html")).unwrap();
+    for part in [
+        "<h2>Intrinsics</h2>",
+        "aria-label=\"residual vectors of every view over the image\"",
+        "aria-label=\"coverage of the image by plate points\"",
+        "aria-label=\"binned mean residual over the image\"",
+        "aria-label=\"uncertainty of projection over the image (px)\"",
+        "<h2>Cross-validation</h2>",
+        "<h2>The plate's shape</h2>",
+        "view_11.png",
+    ] {
+        assert!(page.contains(part), "{part} missing from the report");
+    }
+    // One arrow per point in the residual picture: 12 views of 63 points.
+    let residuals = page
+        .split("aria-label=\"residual vectors")
+        .nth(1)
+        .and_then(|rest| rest.split("</svg>").next())
+        .unwrap();
+    assert_eq!(residuals.matches("<line ").count(), 12 * 63);
+    // The page is never overwritten.
+    let again = brokenray(&args);
+    assert!(!again.status.success());
+    let stderr = String::from_utf8_lossy(&again.stderr);
+    assert!(stderr.contains("must not exist"), "{stderr}");
     assert!(
         text.contains("camera calibration: 12 views (0 frames left out)"),
         "{text}"
     );
     assert!(text.contains("  fx ") && text.contains(" +- "), "{text}");
     assert!(text.contains("  plate fitted "), "{text}");
+    assert!(text.contains("  lens model brown\n"), "{text}");
+    assert!(text.contains("  the residuals have "), "{text}");
+    assert!(!text.contains("  k4 "), "{text}");
+    // The rational model on this narrow lens (4800 px): where the distortion is small its
+    // numerator and denominator cancel, and the weak prior holds the terms the views do not
+    // determine (k1 and k4 move together, their sigmas the prior's width).
+    let mut args = vec![
+        "calibrate-camera",
+        "--plate",
+        plate.to_str().unwrap(),
+        "--model",
+        "rational",
+        "--fix",
+        "k3,k6",
+    ];
+    args.extend(frames[..12].iter().map(String::as_str));
+    let out = brokenray(&args);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("  lens model rational\n"), "{text}");
+    assert!(text.contains("  k5 ") && text.contains("  k6 "), "{text}");
+    assert!(!text.contains("  s1 "), "{text}");
+    assert!(text.contains("  correlation k1 - k4: +"), "{text}");
+    let mut args = vec![
+        "calibrate-camera",
+        "--plate",
+        plate.to_str().unwrap(),
+        "--model",
+        "fisheye",
+    ];
+    args.extend(frames[..12].iter().map(String::as_str));
+    let out = brokenray(&args);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("\"fisheye\" is not a lens model: one of brown, rational, rational_prism"),
+        "{stderr}"
+    );
     // A plate shape that is not one of the words is refused, naming them.
     let mut args = vec![
         "calibrate-camera",

@@ -1069,3 +1069,62 @@ fn outputs_that_cannot_reach_one_receiver_are_refused_naming_their_key() {
     assert!(inst.outputs.mqtt[0].tls);
     assert!(!format!("{:?}", inst.outputs.mqtt[0]).contains("\"p\""));
 }
+
+/// A camera of a wider lens model: OpenCV's 8 or 12 distortion coefficients, with a covariance
+/// of 12 x 12 or 16 x 16 to match; a length OpenCV does not define, or a covariance of another
+/// model's size, is refused naming what it takes.
+#[test]
+fn a_camera_of_the_rational_or_prism_model_takes_a_covariance_of_its_size() {
+    let built_in = brokenray::config::DEFAULT_INSTALLATION_TOML;
+    let brown = "distortion = [-0.092, 0.151, 0.0004, -0.0003, 0.0]";
+    let start = built_in
+        .find("intrinsics_covariance = [")
+        .expect("the built-in has one");
+    let end = start + built_in[start..].find(']').expect("closed") + 1;
+    let first = &built_in[start..end];
+    let with = |distortion: &str, n: usize| {
+        let cells: Vec<String> = (0..n * n)
+            .map(|k| {
+                let (i, j) = (k / n, k % n);
+                if i == j {
+                    format!("{:e}", 1e-6 * (i + 1) as f64)
+                } else {
+                    "0.0".into()
+                }
+            })
+            .collect();
+        built_in.replacen(brown, distortion, 1).replacen(
+            first,
+            &format!("intrinsics_covariance = [{}]", cells.join(", ")),
+            1,
+        )
+    };
+    let rational = "distortion = [-0.092, 0.151, 0.0004, -0.0003, 0.0, 0.02, 0.0, 0.0]";
+    let inst = config::parse("site.toml", &with(rational, 12)).expect("valid");
+    let c1 = &inst.model.cameras[0];
+    assert_eq!(
+        c1.intrinsics.lens_model(),
+        brokenray::vision::LensModel::Rational
+    );
+    assert_eq!(c1.intrinsics.distortion[5], 0.02);
+    let cov = c1.intrinsics_covariance.expect("read");
+    assert_eq!((cov[(11, 11)], cov[(12, 12)]), (12e-6, 0.0));
+
+    let prism =
+        "distortion = [-0.092, 0.151, 0.0004, -0.0003, 0.0, 0.02, 0.0, 0.0, 0.001, 0.0, 0.0, 0.0]";
+    let inst = config::parse("site.toml", &with(prism, 16)).expect("valid");
+    let cov = inst.model.cameras[0].intrinsics_covariance.expect("read");
+    assert_eq!(cov[(15, 15)], 16e-6);
+
+    let err = error_of(&with(rational, 9));
+    assert!(
+        err.contains("camera `C1`: intrinsics_covariance must have 144 numbers")
+            && err.contains("k4 k5 k6"),
+        "{err}"
+    );
+    let err = error_of(&with("distortion = [0.1, 0.0, 0.0, 0.0, 0.0, 0.0]", 9));
+    assert!(
+        err.contains("camera `C1`: distortion has 6 numbers") && err.contains("4, 5, 8 or 12"),
+        "{err}"
+    );
+}

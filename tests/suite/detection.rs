@@ -305,10 +305,8 @@ fn a_search_area_finds_its_discs_as_the_whole_frame_does_and_refuses_cut_ones() 
 /// subtracting the computed offset the error is within the detector's own bias.
 #[test]
 fn the_eccentricity_correction_removes_the_bias_of_a_tilted_disc() {
-    let camera = CameraModel {
-        distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
-        ..CameraModel::pinhole(FOCAL_PX, FOCAL_PX, 200.0, 200.0, 400, 400)
-    };
+    let camera = CameraModel::pinhole(FOCAL_PX, FOCAL_PX, 200.0, 200.0, 400, 400)
+        .with_distortion(&[-0.092, 0.151, 0.0004, -0.0003, 0.0]);
     let tilt = 30f64.to_radians();
     let mut worst_corrected = 0.0f64;
     let mut smallest_offset = f64::INFINITY;
@@ -362,12 +360,10 @@ fn the_eccentricity_correction_removes_the_bias_of_a_tilted_disc() {
 /// large fraction of a pixel.
 #[test]
 fn the_eccentricity_of_a_large_disc_holds_through_a_wide_lens_distortion() {
-    let camera = CameraModel {
-        distortion: [-0.3, 0.12, 0.0005, -0.0004, -0.02],
-        ..CameraModel::pinhole(900.0, 900.0, 641.0, 509.0, 1280, 1024)
-    };
+    let camera = CameraModel::pinhole(900.0, 900.0, 641.0, 509.0, 1280, 1024)
+        .with_distortion(&[-0.3, 0.12, 0.0005, -0.0004, -0.02]);
     let pinhole = CameraModel {
-        distortion: [0.0; 5],
+        distortion: [0.0; brokenray::vision::DISTORTION_TERMS],
         ..camera
     };
     let render = RenderSettings {
@@ -1019,10 +1015,8 @@ fn large_discs_under_falling_light_on_a_card_are_all_found() {
     use brokenray::sim::plate::{PlateCard, plate_discs, plate_light_on_card};
     use brokenray::vision::Plate;
     use rand::{Rng, SeedableRng};
-    let camera = CameraModel {
-        distortion: [-0.21, 0.09, 0.0, 0.0, -0.015],
-        ..CameraModel::pinhole(1500.0, 1500.0, 1031.0, 760.0, 2048, 1536)
-    };
+    let camera = CameraModel::pinhole(1500.0, 1500.0, 1031.0, 760.0, 2048, 1536)
+        .with_distortion(&[-0.21, 0.09, 0.0, 0.0, -0.015]);
     let plate = Plate::new(4, 3, 30.0, 28.0, true, Polarity::Dark).expect("a valid plate");
     let views: u64 = std::env::var("BROKENRAY_LARGE_DISC_VIEWS")
         .ok()

@@ -12,17 +12,13 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
 fn lab_camera() -> CameraModel {
-    CameraModel {
-        distortion: [-0.092, 0.151, 0.0004, -0.0003, 0.0],
-        ..CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
-    }
+    CameraModel::pinhole(4800.0, 4800.0, 652.0, 508.0, 1280, 1024)
+        .with_distortion(&[-0.092, 0.151, 0.0004, -0.0003, 0.0])
 }
 
 fn wide_camera() -> CameraModel {
-    CameraModel {
-        distortion: [-0.28, 0.09, 0.001, -0.0007, -0.01],
-        ..CameraModel::pinhole(820.0, 815.0, 640.0, 360.0, 1280, 720)
-    }
+    CameraModel::pinhole(820.0, 815.0, 640.0, 360.0, 1280, 720)
+        .with_distortion(&[-0.28, 0.09, 0.001, -0.0007, -0.01])
 }
 
 /// `n` points of a marker of half-size `half_mm`: on a plane, or spread in depth too.
@@ -288,7 +284,7 @@ fn points_behind_the_camera_are_refused() {
         })
         .collect();
     let camera = CameraModel {
-        distortion: [0.0; 5],
+        distortion: [0.0; brokenray::vision::DISTORTION_TERMS],
         ..camera
     };
     let err = solve_pnp(&camera, &points, &pixels, &PnpOptions::default()).expect_err("behind");
@@ -483,7 +479,7 @@ fn the_intrinsics_sensitivity_predicts_the_pose_a_perturbed_camera_solves_to() {
                 fy_px: theta[1],
                 cx_px: theta[2],
                 cy_px: theta[3],
-                distortion: [theta[4], theta[5], theta[6], theta[7], theta[8]],
+                distortion: std::array::from_fn(|k| theta[4 + k]),
                 ..case.camera
             };
             let moved = solve_pnp(&perturbed, &points, &pixels, &options)

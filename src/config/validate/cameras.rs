@@ -2,6 +2,7 @@
 //! the cameras the service takes frames from itself.
 
 use super::*;
+use crate::vision::{Intrinsic, LensModel};
 
 impl Validator {
     pub(super) fn cameras(&mut self, raw: &RawFile) -> Vec<Camera> {
@@ -19,12 +20,27 @@ impl Validator {
             ok &= self.positive(at, &format!("{what}: fy"), c.fy);
             ok &= self.finite(at, &format!("{what}: principal point"), &[c.cx, c.cy]);
             ok &= self.finite(at, &format!("{what}: distortion"), &c.distortion);
+            // OpenCV's lengths: four (no k3) counts as Brown-Conrady's five.
+            let model = match c.distortion.len() {
+                0 | 4 => Some(LensModel::Brown),
+                n => LensModel::with_terms(n),
+            };
+            let Some(model) = model else {
+                self.problem(
+                    at,
+                    format!(
+                        "{what}: distortion has {} numbers; it takes OpenCV's 4, 5, 8 or 12 (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]])",
+                        c.distortion.len()
+                    ),
+                );
+                continue;
+            };
             ok &= self.positive(at, &format!("{what}: pixel_sigma"), c.pixel_sigma);
             if let Some(gain) = c.gain_e_per_dn {
                 ok &= self.positive(at, &format!("{what}: gain_e_per_dn"), gain);
             }
             let intrinsics_covariance = match &c.intrinsics_covariance {
-                Some(values) => match intrinsics_covariance(values) {
+                Some(values) => match intrinsics_covariance(values, model) {
                     Ok(cov) => Some(cov),
                     Err(reason) => {
                         self.problem(at, format!("{what}: intrinsics_covariance {reason}"));
@@ -42,15 +58,8 @@ impl Validator {
             if ok {
                 out.push(Camera {
                     frame: c.frame.clone(),
-                    intrinsics: CameraModel {
-                        fx_px: c.fx,
-                        fy_px: c.fy,
-                        cx_px: c.cx,
-                        cy_px: c.cy,
-                        distortion: c.distortion,
-                        width_px: c.width,
-                        height_px: c.height,
-                    },
+                    intrinsics: CameraModel::pinhole(c.fx, c.fy, c.cx, c.cy, c.width, c.height)
+                        .with_distortion(&c.distortion),
                     pixel_sigma_px: c.pixel_sigma,
                     gain_e_per_dn: c.gain_e_per_dn,
                     intrinsics_covariance,
@@ -244,36 +253,48 @@ impl Validator {
     }
 }
 
-/// A camera's `intrinsics_covariance` (81 numbers, row-major, `fx fy cx cy k1 k2 p1 p2 k3`)
-/// checked: finite, symmetric, positive semi-definite (a calibration's fixed parameters leave
-/// zero rows); otherwise what is wrong with it.
-fn intrinsics_covariance(values: &[f64]) -> Result<crate::chain::IntrinsicsCovariance, String> {
-    if values.len() != 81 {
+/// A camera's `intrinsics_covariance` (`n x n` numbers, row-major, `fx fy cx cy` and the
+/// distortion terms of the camera's lens `model`) checked: finite, symmetric, positive
+/// semi-definite (a calibration's fixed parameters leave zero rows); otherwise what is wrong
+/// with it. The terms beyond the model have zero rows and columns.
+fn intrinsics_covariance(
+    values: &[f64],
+    model: LensModel,
+) -> Result<crate::chain::IntrinsicsCovariance, String> {
+    let names = Intrinsic::of_model(model);
+    let n = names.len();
+    if values.len() != n * n {
+        let words: Vec<&str> = names.iter().map(|p| p.name()).collect();
         return Err(format!(
-            "must have 81 numbers (9 x 9, row-major, in the order fx fy cx cy k1 k2 p1 p2 k3), not {}",
+            "must have {} numbers ({n} x {n}, row-major, in the order {}: the {} lens model of the camera's {} distortion coefficients), not {}",
+            n * n,
+            words.join(" "),
+            model.name(),
+            model.distortion_terms(),
             values.len()
         ));
     }
     if let Some((i, v)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
         return Err(format!("entry {i} is not a finite number ({v})"));
     }
-    let cov = crate::chain::IntrinsicsCovariance::from_row_slice(values);
+    let mut cov = crate::chain::IntrinsicsCovariance::zeros();
+    cov.view_mut((0, 0), (n, n))
+        .copy_from(&nalgebra::DMatrix::from_row_slice(n, n, values));
     // Plausible variances: a focal length or principal point known to 10 000 px, a
     // distortion term to 100, is no calibration at all; beyond, the sigmas it feeds are huge
     // or not finite.
-    const NAMES: [&str; 9] = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"];
-    for (i, name) in NAMES.iter().enumerate() {
+    for (i, name) in names.iter().enumerate() {
         let max = if i < 4 { 1e8 } else { 1e4 };
         let v = cov[(i, i)];
         if v > max {
             return Err(format!(
                 "has a variance of {v:e} for {name} (entry {}), beyond the plausible {max:e}",
-                i * 10
+                i * (n + 1)
             ));
         }
     }
     let scale = cov.amax().max(f64::MIN_POSITIVE);
-    for i in 0..9 {
+    for i in 0..n {
         for j in 0..i {
             if (cov[(i, j)] - cov[(j, i)]).abs() > 1e-9 * scale {
                 return Err(format!(

@@ -2,6 +2,7 @@
 //! Levenberg-Marquardt over the free intrinsics and every view's pose, and the report of the
 //! fit (covariance, correlations, per-view fits, warnings).
 
+use super::structure::{PointResidual, residual_structure};
 use super::warp::{PlateShape, PlateWarp, SagBasis};
 use super::{
     CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
@@ -9,8 +10,26 @@ use super::{
     SAG_Y, ViewFit, from_params, refuse,
 };
 use crate::geometry::{Pose, Vec3, se3_exp, skew};
-use crate::vision::{CameraModel, Plate, VisionError, disc_image_offset};
+use crate::vision::{CameraModel, INTRINSICS, Plate, VisionError, disc_image_offset};
 use nalgebra::{DMatrix, DVector, Matrix2x3, SMatrix, Translation3, Vector2, Vector6};
+
+/// The standard deviation of the weak prior on a global parameter, if it has one: the rational
+/// model's `k4 k5 k6` about zero with 10, the thin prism's `s1..s4` with 0.1. Where distortion
+/// is small, a numerator and a denominator that cancel leave the rational terms free to wander
+/// along a valley the data do not see (to tens or hundreds, and to a pole in the field); the
+/// prior bounds that valley at sizes lenses do not reach (a wide lens's rational terms stay
+/// within a few units, a prism within a few thousandths) and moves nothing the data determine.
+/// The covariance is the posterior's: along the valley it says the prior's width. The prior is
+/// weighed against the data by their variance factor (see [`Problem::adjust`]).
+pub(super) fn prior_sigma(i: usize) -> Option<f64> {
+    use Intrinsic::{K4, K5, K6, S1, S2, S3, S4};
+    let term = Intrinsic::ALL.get(i)?;
+    match term {
+        K4 | K5 | K6 => Some(10.0),
+        S1 | S2 | S3 | S4 => Some(0.1),
+        _ => None,
+    }
+}
 
 /// The views prepared for adjustment.
 pub(super) struct Problem<'a> {
@@ -144,6 +163,7 @@ impl<'a> Problem<'a> {
 
     /// The fit over the free intrinsics and the poses (`camera_from_centred`, right
     /// perturbation); `None` when a point is behind the camera.
+    #[allow(clippy::too_many_arguments)]
     fn evaluate(
         &self,
         params: &Globals,
@@ -151,6 +171,7 @@ impl<'a> Problem<'a> {
         offsets: &[Vec<Vector2<f64>>],
         free: &[usize],
         size: (u32, u32),
+        prior_scale: f64,
     ) -> Option<Evaluation> {
         let camera = from_params(params, size.0, size.1);
         let sag_mm = [params[SAG_X], params[SAG_Y]];
@@ -207,12 +228,71 @@ impl<'a> Problem<'a> {
             jtr.rows_mut(o, 6)
                 .copy_from(&DVector::from_column_slice(gp.as_slice()));
         }
+        // The wider models' weak prior: each of their terms about zero with its sigma.
+        for (col, &i) in free.iter().enumerate() {
+            if let Some(sigma) = prior_sigma(i) {
+                let w = prior_scale / (sigma * sigma);
+                chi2 += w * params[i] * params[i];
+                jtj[(col, col)] += w;
+                jtr[col] += w * params[i];
+            }
+        }
         Some(Evaluation {
             chi2,
             view_cost_px2,
             information: jtj,
             gradient: jtr,
         })
+    }
+
+    /// Each view's points' residuals at the estimate (detected minus predicted), with their
+    /// variance as the fit weighs them scaled by `variance_factor`; `None` when a point is
+    /// behind the camera.
+    pub(super) fn residuals(
+        &self,
+        params: &Globals,
+        poses: &[Pose],
+        offsets: &[Vec<Vector2<f64>>],
+        size: (u32, u32),
+        variance_factor: f64,
+    ) -> Option<Vec<Vec<PointResidual>>> {
+        let camera = from_params(params, size.0, size.1);
+        let sag_mm = [params[SAG_X], params[SAG_Y]];
+        poses
+            .iter()
+            .enumerate()
+            .map(|(v, pose)| {
+                offsets[v]
+                    .iter()
+                    .enumerate()
+                    .map(|(k, offset)| {
+                        let p = pose * nalgebra::Point3::from(self.point(v, k, sag_mm));
+                        let predicted = camera.project(&p.coords)? + offset;
+                        let at_px = self.views[v].points_px[k];
+                        Some(PointResidual {
+                            at_px,
+                            residual_px: at_px - predicted,
+                            variance_px2: variance_factor / self.weights[v][k],
+                        })
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// The largest `r^2 = (X^2 + Y^2) / Z^2` of a plate point in the camera frame.
+    fn largest_r2(&self, params: &Globals, poses: &[Pose]) -> f64 {
+        let sag_mm = [params[SAG_X], params[SAG_Y]];
+        poses
+            .iter()
+            .enumerate()
+            .flat_map(|(v, pose)| {
+                (0..self.centred_mm[v].len()).map(move |k| {
+                    let p = pose * nalgebra::Point3::from(self.point(v, k, sag_mm));
+                    (p.x * p.x + p.y * p.y) / (p.z * p.z).max(1e-300)
+                })
+            })
+            .fold(0.0, f64::max)
     }
 
     /// Levenberg-Marquardt with the eccentricities fixed.
@@ -234,9 +314,31 @@ impl<'a> Problem<'a> {
                 "the estimate puts plate points behind the camera: the views or their labels are inconsistent",
             )
         };
-        let mut fit = self
-            .evaluate(params, poses, offsets, free, size)
+        // The prior is weighed as the data are: by their variance factor at the start, so that
+        // it keeps its width whatever the points' sigmas say of their noise.
+        let points: usize = self.centred_mm.iter().map(Vec::len).sum();
+        let dof = (2 * points)
+            .saturating_sub(free.len() + 6 * poses.len())
+            .max(1);
+        let unscaled = self
+            .evaluate(params, poses, offsets, free, size, 1.0)
             .ok_or_else(behind)?;
+        let prior_scale = (unscaled.chi2 / dof as f64).max(1.0);
+        let mut fit = self
+            .evaluate(params, poses, offsets, free, size, prior_scale)
+            .ok_or_else(behind)?;
+        // The field the views cover (the largest normalized radius of a point, with a margin):
+        // a step whose distortion folds or has a pole inside it is refused like a worse one.
+        // A start that is not monotonic so far (it cannot be left by a monotonic step) is held
+        // to the field it is monotonic in.
+        let largest = self.largest_r2(params, poses);
+        let here = from_params(params, width_px, height_px);
+        let r2_max = [1.25 * largest, largest]
+            .into_iter()
+            .find(|&r2| here.radially_monotonic_to(r2))
+            .unwrap_or(0.0);
+        let monotonic =
+            |p: &Globals| from_params(p, width_px, height_px).radially_monotonic_to(r2_max);
         let nf = free.len();
         let mut lambda = 1e-4;
         let mut iterations = 0;
@@ -274,8 +376,8 @@ impl<'a> Problem<'a> {
                 })
                 .collect();
             match self
-                .evaluate(&next_params, &next_poses, offsets, free, size)
-                .filter(|e| e.chi2.is_finite() && e.chi2 <= fit.chi2)
+                .evaluate(&next_params, &next_poses, offsets, free, size, prior_scale)
+                .filter(|e| e.chi2.is_finite() && e.chi2 <= fit.chi2 && monotonic(&next_params))
             {
                 Some(better) => {
                     *params = next_params;
@@ -299,11 +401,13 @@ impl<'a> Problem<'a> {
 
     /// The calibration at the solution, refused over the RMS limit or where the views do not
     /// determine a parameter; its `iterations` are the caller's to set.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn report(
         &self,
         params: &Globals,
         size: (u32, u32),
         poses: &[Pose],
+        offsets: &[Vec<Vector2<f64>>],
         fit: Evaluation,
         free: &[usize],
         options: &CalibrationOptions,
@@ -329,10 +433,10 @@ impl<'a> Problem<'a> {
                 globals[i][j] = inverse[(a, b)] * variance_factor;
             }
         }
-        let mut covariance = [[0.0; 9]; 9];
-        let mut sigma = [0.0; 9];
-        for i in 0..9 {
-            covariance[i].copy_from_slice(&globals[i][..9]);
+        let mut covariance = [[0.0_f64; INTRINSICS]; INTRINSICS];
+        let mut sigma = [0.0_f64; INTRINSICS];
+        for i in 0..INTRINSICS {
+            covariance[i].copy_from_slice(&globals[i][..INTRINSICS]);
             sigma[i] = covariance[i][i].max(0.0).sqrt();
         }
         let warped = free.contains(&SAG_X);
@@ -346,7 +450,7 @@ impl<'a> Problem<'a> {
             )
         });
         let camera = from_params(params, size.0, size.1);
-        let intrinsics: Vec<usize> = free.iter().copied().filter(|&i| i < 9).collect();
+        let intrinsics: Vec<usize> = free.iter().copied().filter(|&i| i < INTRINSICS).collect();
         let mut correlations = Vec::new();
         for (a, &i) in intrinsics.iter().enumerate() {
             for &j in &intrinsics[a + 1..] {
@@ -375,11 +479,17 @@ impl<'a> Problem<'a> {
             })
             .collect();
         let warnings = self.warnings(&camera, &views);
+        let residuals = self
+            .residuals(params, poses, offsets, size, variance_factor)
+            .unwrap_or_default();
+        let all: Vec<PointResidual> = residuals.iter().flatten().copied().collect();
+        let residual_structure = residual_structure(size.0, size.1, &all);
         let mut fixed = options.fixed.clone();
         fixed.sort();
         fixed.dedup();
         Ok(CameraCalibration {
             camera,
+            model: options.model,
             sigma,
             covariance,
             rms_px,
@@ -396,6 +506,8 @@ impl<'a> Problem<'a> {
                 PlateShape::Flat
             },
             plate_warp,
+            residual_structure,
+            residuals,
         })
     }
 
@@ -489,9 +601,21 @@ fn invert_information(
             SAG_Y => "the plate's sag along y",
             i => Intrinsic::ALL[i].name(),
         });
-        return Err(refuse(format!(
-            "the views do not determine {name}: tilt the plate more and about different axes, or fix it"
-        )));
+        let rational = free.contains(&Intrinsic::K4.index());
+        let distortion = free
+            .get(param)
+            .is_some_and(|&i| (Intrinsic::K1.index()..SAG_X).contains(&i));
+        return Err(refuse(if rational && distortion {
+            format!(
+                "the views do not determine {name}: the rational model's numerator and \
+                 denominator trade against each other unless the lens distorts strongly out to \
+                 the image's corners; fix k3 and k6, or choose a model with fewer terms"
+            )
+        } else {
+            format!(
+                "the views do not determine {name}: tilt the plate more and about different axes, or fix it"
+            )
+        }));
     }
     let Some(inverse) = scaled.cholesky().map(|c| c.inverse()) else {
         return Err(refuse("the views do not determine the intrinsics"));

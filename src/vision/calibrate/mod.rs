@@ -7,8 +7,8 @@
 //!    principal point is put at the image centre and the focal lengths solved alone, as
 //!    OpenCV does. Each view's pose follows from its homography, refined by PnP's
 //!    Levenberg-Marquardt.
-//! 2. **Bundle adjustment**: Levenberg-Marquardt over the free intrinsics (`fx fy cx cy k1 k2 p1
-//!    p2 k3`, any of them fixed) and every view's pose on the pixel error, each point weighted
+//! 2. **Bundle adjustment**: Levenberg-Marquardt over the free intrinsics (`fx fy cx cy` and the
+//!    distortion terms of the [`LensModel`] chosen, any of them fixed) and every view's pose on the pixel error, each point weighted
 //!    by its detector's variance when known. A detected disc centre is the centre of the disc's
 //!    image, not the image of its centre: each round predicts the perspective eccentricity of
 //!    every disc ([`super::disc_image_offset`]) at the current estimate and the next round fits
@@ -16,18 +16,26 @@
 //! 3. **Uncertainty**: the covariance of the free intrinsics is the block of `(J^T W J)^-1` at the
 //!    solution, scaled by the residual variance factor `chi2 / (2 n - p)` (one when the detector's
 //!    sigmas are right; the fit's own scatter otherwise). Correlations above 0.9 are listed.
-//! 4. **Checks**: refused with the reason when fewer than three views, a view with too few
+//! 4. **Residual structure**: the residuals binned over the image, each bin's mean against its
+//!    noise, say whether the lens model leaves an error it does not explain (see
+//!    [`ResidualStructure`]).
+//! 5. **Checks**: refused with the reason when fewer than three views, a view with too few
 //!    points or unknown ids, views that do not determine the intrinsics, or a fit over the RMS
 //!    limit (mislabelled points, a wrong plate description); warnings a user can act on (few
 //!    views, little tilt, image corners never reached, a view fitting far worse than the rest).
 
 mod adjust;
 mod start;
+mod structure;
 mod warp;
 
+pub use structure::{
+    MIN_BIN_POINTS, PointResidual, ResidualBin, ResidualStructure, STRUCTURE_BINS_X,
+    STRUCTURE_PROBABILITY, describe_residual_structure, residual_structure,
+};
 pub use warp::{PlateShape, PlateWarp, SAG_SIGNIFICANCE_CHI2, describe_plate_shape};
 
-use super::{CameraModel, Plate, VisionError};
+use super::{CameraModel, INTRINSICS, LensModel, Plate, VisionError};
 use crate::geometry::Pose;
 use adjust::Problem;
 use nalgebra::Vector2;
@@ -55,6 +63,20 @@ crate::words! {
         P2 = "p2",
         /// Third radial term.
         K3 = "k3",
+        /// First radial term of the rational model's denominator.
+        K4 = "k4",
+        /// Second term of the denominator.
+        K5 = "k5",
+        /// Third term of the denominator.
+        K6 = "k6",
+        /// Thin prism along x, with `r^2`.
+        S1 = "s1",
+        /// Thin prism along x, with `r^4`.
+        S2 = "s2",
+        /// Thin prism along y, with `r^2`.
+        S3 = "s3",
+        /// Thin prism along y, with `r^4`.
+        S4 = "s4",
     }
 }
 
@@ -65,43 +87,36 @@ impl Intrinsic {
     }
 }
 
-/// The intrinsics of a camera as a vector in [`Intrinsic::ALL`]'s order.
-pub fn intrinsics_of(camera: &CameraModel) -> [f64; 9] {
-    let [k1, k2, p1, p2, k3] = camera.distortion;
-    [
-        camera.fx_px,
-        camera.fy_px,
-        camera.cx_px,
-        camera.cy_px,
-        k1,
-        k2,
-        p1,
-        p2,
-        k3,
-    ]
+impl Intrinsic {
+    /// The intrinsics of a lens model, in order (`fx fy cx cy` and its distortion terms).
+    pub fn of_model(model: LensModel) -> &'static [Intrinsic] {
+        &Intrinsic::ALL[..model.intrinsics()]
+    }
 }
 
-/// The intrinsics (the first nine of the adjustment's global parameters) and the plate's two
-/// sags (mm, [`SAG_X`] and [`SAG_Y`]).
+/// The intrinsics of a camera as a vector in [`Intrinsic::ALL`]'s order (every term, zero
+/// beyond the camera's model).
+pub fn intrinsics_of(camera: &CameraModel) -> [f64; INTRINSICS] {
+    let mut out = [0.0; INTRINSICS];
+    out[..4].copy_from_slice(&[camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px]);
+    out[4..].copy_from_slice(&camera.distortion);
+    out
+}
+
+/// The intrinsics (the first [`INTRINSICS`] of the adjustment's global parameters) and the
+/// plate's two sags (mm, [`SAG_X`] and [`SAG_Y`]).
 pub(super) type Globals = [f64; GLOBALS];
 /// How many global parameters the adjustment has.
-pub(super) const GLOBALS: usize = 11;
+pub(super) const GLOBALS: usize = INTRINSICS + 2;
 /// The position of the plate's sag along x among the global parameters.
-pub(super) const SAG_X: usize = 9;
+pub(super) const SAG_X: usize = INTRINSICS;
 /// The position of the plate's sag along y.
-pub(super) const SAG_Y: usize = 10;
+pub(super) const SAG_Y: usize = INTRINSICS + 1;
 
-/// The camera of the first nine of `p` (intrinsics in [`Intrinsic::ALL`]'s order).
+/// The camera of the first [`INTRINSICS`] of `p` (in [`Intrinsic::ALL`]'s order).
 pub(super) fn from_params(p: &[f64], width_px: u32, height_px: u32) -> CameraModel {
-    CameraModel {
-        fx_px: p[0],
-        fy_px: p[1],
-        cx_px: p[2],
-        cy_px: p[3],
-        distortion: [p[4], p[5], p[6], p[7], p[8]],
-        width_px,
-        height_px,
-    }
+    CameraModel::pinhole(p[0], p[1], p[2], p[3], width_px, height_px)
+        .with_distortion(&p[4..INTRINSICS])
 }
 
 /// The plate's points seen in one frame.
@@ -118,6 +133,8 @@ pub struct CalibrationView {
 /// What to solve and when to refuse.
 #[derive(Debug, Clone)]
 pub struct CalibrationOptions {
+    /// The lens model fitted: its terms are free (unless fixed), the others zero.
+    pub model: LensModel,
     /// Parameters kept at their value: distortion terms at zero, the principal point at the
     /// image centre, focal lengths at `initial`'s (which must then be given), unless `initial`
     /// gives them.
@@ -139,6 +156,7 @@ pub struct CalibrationOptions {
 impl Default for CalibrationOptions {
     fn default() -> Self {
         Self {
+            model: LensModel::Brown,
             fixed: Vec::new(),
             initial: None,
             eccentricity: true,
@@ -303,10 +321,13 @@ impl std::fmt::Display for CalibrationWarning {
 pub struct CameraCalibration {
     /// The calibrated camera.
     pub camera: CameraModel,
-    /// Standard deviation of each intrinsic (0 for fixed ones), in [`Intrinsic::ALL`]'s order.
-    pub sigma: [f64; 9],
-    /// Their covariance (rows and columns of fixed ones zero).
-    pub covariance: [[f64; 9]; 9],
+    /// The lens model fitted.
+    pub model: LensModel,
+    /// Standard deviation of each intrinsic (0 for fixed ones and those beyond the model), in
+    /// [`Intrinsic::ALL`]'s order.
+    pub sigma: [f64; INTRINSICS],
+    /// Their covariance (rows and columns of fixed ones and those beyond the model zero).
+    pub covariance: [[f64; INTRINSICS]; INTRINSICS],
     /// Reprojection RMS over every point (px).
     pub rms_px: f64,
     /// `chi2 / (2 n - p)`: the factor the covariance was scaled by.
@@ -329,6 +350,11 @@ pub struct CameraCalibration {
     /// The plate's sag: fitted when warped; with [`PlateShape::Auto`] choosing flat, the sag
     /// that was tested and found not significant (none when the views did not determine it).
     pub plate_warp: Option<PlateWarp>,
+    /// The residuals binned over the image and judged for structure the lens model does not
+    /// explain (none when no bin has enough points).
+    pub residual_structure: Option<ResidualStructure>,
+    /// Each view's points' residuals at the solution, in input order.
+    pub residuals: Vec<Vec<PointResidual>>,
 }
 
 impl CameraCalibration {
@@ -339,6 +365,10 @@ impl CameraCalibration {
         (self.rms_px / std::f64::consts::SQRT_2).max(0.001)
     }
 }
+
+/// A wider lens model's fit whose RMS is over this many times the Brown-Conrady fit it started
+/// from is refused.
+const WIDER_MODEL_RMS_RATIO: f64 = 1.05;
 
 /// Eccentricity rounds at most (the correction changes by a small fraction each round).
 const ECCENTRICITY_ROUNDS: usize = 4;
@@ -390,7 +420,7 @@ fn fit_shape(
     shape: PlateShape,
 ) -> Result<CameraCalibration, VisionError> {
     let problem = Problem::new(plate, views, shape);
-    let mut free: Vec<usize> = Intrinsic::ALL
+    let mut free: Vec<usize> = Intrinsic::of_model(options.model)
         .iter()
         .filter(|p| !options.fixed.contains(p))
         .map(|p| p.index())
@@ -398,9 +428,36 @@ fn fit_shape(
     if shape == PlateShape::Warped {
         free.extend([SAG_X, SAG_Y]);
     }
-    let start = initial_camera(&problem, width_px, height_px, options)?;
+    // A wider lens model starts from Brown-Conrady's fit (its own terms at zero): a point of
+    // its space whose cost the adjustment can only lower, where a start with every term at
+    // zero can lead its many correlated terms into a poor minimum.
+    let mut brown_rms_px = None;
+    let start = match options.model {
+        LensModel::Brown => initial_camera(&problem, width_px, height_px, options)?,
+        _ => {
+            let brown = CalibrationOptions {
+                model: LensModel::Brown,
+                ..options.clone()
+            };
+            match fit_shape(plate, (width_px, height_px), views, &brown, shape) {
+                Ok(c) => {
+                    brown_rms_px = Some(c.rms_px);
+                    // The wider terms start at zero, or at `initial`'s value when fixed.
+                    let mut camera = c.camera;
+                    let known = options.initial.as_ref().map(intrinsics_of);
+                    for p in &Intrinsic::of_model(options.model)[LensModel::Brown.intrinsics()..] {
+                        if let (true, Some(known)) = (options.fixed.contains(p), known) {
+                            camera.distortion[p.index() - 4] = known[p.index()];
+                        }
+                    }
+                    camera
+                }
+                Err(_) => initial_camera(&problem, width_px, height_px, options)?,
+            }
+        }
+    };
     let mut params: Globals = [0.0; GLOBALS];
-    params[..9].copy_from_slice(&intrinsics_of(&start));
+    params[..INTRINSICS].copy_from_slice(&intrinsics_of(&start));
     let mut poses = initial_poses(&problem, &start)?;
     let mut offsets: Vec<Vec<Vector2<f64>>> = views
         .iter()
@@ -469,8 +526,29 @@ fn fit_shape(
         iterations += result.iterations;
         fit = result.fit;
     }
-    let mut calibration =
-        problem.report(&params, (width_px, height_px), &poses, fit, &free, options)?;
+    // A wider model that ends worse than the Brown-Conrady fit it started from has wandered
+    // where the views do not hold it (its terms trading with the principal point, the discs'
+    // eccentricity chasing the estimate): its terms are not determined.
+    let rms_px = (fit.view_cost_px2.iter().sum::<f64>() / n_points as f64).sqrt();
+    if let Some(brown) = brown_rms_px
+        && rms_px > WIDER_MODEL_RMS_RATIO * brown
+    {
+        return Err(refuse(format!(
+            "the {} lens model fits these views worse than Brown-Conrady's ({rms_px:.3} px RMS \
+             against {brown:.3} px): the views do not determine its terms; add views that reach \
+             the image's corners, fix some of its terms, or choose a model with fewer",
+            options.model
+        )));
+    }
+    let mut calibration = problem.report(
+        &params,
+        (width_px, height_px),
+        &poses,
+        &offsets,
+        fit,
+        &free,
+        options,
+    )?;
     calibration.iterations = iterations;
     Ok(calibration)
 }

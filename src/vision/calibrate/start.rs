@@ -5,7 +5,7 @@
 use super::adjust::Problem;
 use super::{CalibrationOptions, Intrinsic, from_params, intrinsics_of, refuse};
 use crate::geometry::{Mat3, Pose, Rotation, Vec3};
-use crate::vision::{CameraModel, VisionError, ippe::homography, pnp, sqpnp};
+use crate::vision::{CameraModel, INTRINSICS, VisionError, ippe::homography, pnp, sqpnp};
 use nalgebra::{SMatrix, Translation3, Vector2};
 
 /// The starting camera: Zhang's closed form (or the focal lengths alone with the principal
@@ -60,18 +60,11 @@ pub(super) fn initial_camera(
             refuse("the views do not determine the focal length: they are nearly parallel; tilt the plate by 20 to 45 degrees about different axes")
         })?;
     let k = n.try_inverse().unwrap_or_else(Mat3::identity) * k_normalized;
-    let mut params = [
-        k[(0, 0)],
-        k[(1, 1)],
-        k[(0, 2)],
-        k[(1, 2)],
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-    ];
-    for p in &options.fixed {
+    // The distortion starts at zero; the terms beyond the model stay there.
+    let mut params = [0.0; INTRINSICS];
+    params[..4].copy_from_slice(&[k[(0, 0)], k[(1, 1)], k[(0, 2)], k[(1, 2)]]);
+    let in_model = Intrinsic::of_model(options.model);
+    for p in options.fixed.iter().filter(|p| in_model.contains(p)) {
         let i = p.index();
         params[i] = match (options.initial, p) {
             (Some(c), _) => intrinsics_of(&c)[i],

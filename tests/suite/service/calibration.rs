@@ -71,6 +71,65 @@ async fn a_camera_is_calibrated_from_plate_points_and_nothing_is_stored() {
     assert_eq!(body["plate_shape"], "flat", "{body}");
     assert_eq!(body["plate_warp"]["significant"], false, "{body}");
     assert!(get(&body["plate_warp"]["sigma_x_mm"]) > 0.0, "{body}");
+    // The lens model: Brown-Conrady's by default.
+    assert_eq!(body["model"], "brown", "{body}");
+    assert_eq!(
+        body["camera"]["distortion"]
+            .as_array()
+            .expect("terms")
+            .len(),
+        5
+    );
+    assert_eq!(body["parameters"].as_array().expect("names").len(), 9);
+    // The residuals binned and judged: the bins' z² add up to chi2, the sigma of a bin's mean
+    // is positive, and the message says the judgement.
+    let structure = &body["residual_structure"];
+    assert_eq!(
+        (structure["bins_x"].as_u64(), structure["bins_y"].as_u64()),
+        (Some(8), Some(6))
+    );
+    let bins = structure["bins"].as_array().expect("bins");
+    assert!(!bins.is_empty() && structure["dof"].as_u64() == Some(2 * bins.len() as u64));
+    let sum: f64 = bins.iter().map(|b| get(&b["z2"])).sum();
+    assert!(
+        (sum - get(&structure["chi2"])).abs() < 1e-9 * sum.max(1.0),
+        "{structure}"
+    );
+    for b in bins {
+        let (m, s) = (&b["mean_px"], get(&b["sigma_px"]));
+        let z2 = (get(&m[0]).powi(2) + get(&m[1]).powi(2)) / (s * s);
+        assert!(
+            s > 0.0 && (z2 - get(&b["z2"])).abs() < 1e-9 * z2.max(1.0),
+            "{b}"
+        );
+        assert!(b["points"].as_u64().expect("points") >= 5);
+    }
+    let significant = structure["significant"].as_bool().expect("a judgement");
+    assert_eq!(
+        significant,
+        get(&structure["chi2"]) > get(&structure["threshold"])
+    );
+    let message = body["residual_message"].as_str().expect("text");
+    assert!(message.contains("brown lens model"), "{message}");
+    // The rational model answers its eight terms and a 12 x 12 covariance.
+    let mut rational = request(12, &["k3"]);
+    rational["model"] = json!("rational");
+    rational["fix"] = json!(["k3", "k6"]);
+    let (status, body) = app.post_json("/api/v1/calibration/camera", &rational).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["model"], "rational", "{body}");
+    assert_eq!(
+        body["camera"]["distortion"]
+            .as_array()
+            .expect("terms")
+            .len(),
+        8
+    );
+    assert_eq!(
+        body["covariance"].as_array().expect("covariance").len(),
+        144
+    );
+    assert_eq!(body["parameters"][11], "k6");
     assert!(
         body["plate_message"]
             .as_str()
@@ -136,10 +195,32 @@ async fn invalid_requests_name_the_field_and_impossible_ones_say_why() {
     );
 
     let (status, body) = app
-        .post_json("/api/v1/calibration/camera", &request(4, &["k4"]))
+        .post_json("/api/v1/calibration/camera", &request(4, &["k7"]))
         .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
     assert_eq!(body["error"]["details"][0]["field"], "fix");
+
+    let mut fisheye = request(4, &[]);
+    fisheye["model"] = json!("fisheye");
+    let (status, body) = app.post_json("/api/v1/calibration/camera", &fisheye).await;
+    assert!(status.is_client_error(), "{body}");
+    let message = body["error"]["message"].as_str().expect("text");
+    assert!(
+        message.contains("fisheye") && message.contains("rational_prism"),
+        "{body}"
+    );
+    let mut long = request(4, &[]);
+    long["initial"] = json!({"fx": 1650.0, "fy": 1650.0, "cx": 640.0, "cy": 512.0,
+        "distortion": [0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 0.0, 0.0]});
+    let (status, body) = app.post_json("/api/v1/calibration/camera", &long).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["error"]["details"][0]["field"], "initial", "{body}");
+    assert!(
+        body["error"]["details"][0]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("the brown model has 5")),
+        "{body}"
+    );
 
     let mut bent = request(4, &[]);
     bent["plate_shape"] = json!("bent");

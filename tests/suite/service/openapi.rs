@@ -392,6 +392,11 @@ fn the_documented_vocabularies_are_exactly_the_enums() {
             Some("Intrinsic"),
         ),
         (
+            "camera calibration lens `model` (`--model`)",
+            words_of::<brokenray::vision::LensModel>(),
+            None,
+        ),
+        (
             "camera calibration warning `kind`",
             words_of::<brokenray::vision::WarningKind>(),
             Some("WarningKind"),
