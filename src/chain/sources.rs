@@ -4,9 +4,9 @@
 //!
 //! A pose's error `xi` (the left perturbation `[rho (mm); phi (rad)]`) is modelled as
 //! `xi = sum_c F_c u_c`: one term per contributor `c`, `u_c` a standard normal vector of that
-//! contributor alone (independent of every other contributor's) and `F_c` its 6 x
-//! [`FACTOR_COLUMNS`] factor (a contributor with fewer dimensions leaves columns zero). Its covariance is
-//! `sum_c F_c F_c^T`, each term that contributor's share. The contributors:
+//! contributor alone (independent of every other contributor's) and `F_c` its factor, 6 x 6
+//! for a six-dimensional contributor and 6 x [`FACTOR_COLUMNS`] for a camera's intrinsics.
+//! Its covariance is `sum_c F_c F_c^T`, each term that contributor's share. The contributors:
 //!
 //! * a measured link's **noise** (pixel noise through PnP, a sample's own covariance): new in
 //!   every sample, so it averages down;
@@ -25,13 +25,63 @@ use super::{ChainError, Direction, Fused, LinkId, Path, fuse};
 use crate::geometry::{Mat6, Pose, PoseCov, adjoint, symmetrize};
 use nalgebra::{SMatrix, SymmetricEigen};
 
-/// The columns of a factor: as many as a camera's intrinsics in the widest lens model (`fx fy
-/// cx cy`, `k1 k2 p1 p2 k3`, `k4 k5 k6`, `s1 s2 s3 s4`), the contributor with most dimensions.
+/// The columns of the widest factor: as many as a camera's intrinsics in the widest lens model
+/// (`fx fy cx cy`, `k1 k2 p1 p2 k3`, `k4 k5 k6`, `s1 s2 s3 s4`).
 pub const FACTOR_COLUMNS: usize = 16;
 
 /// A contributor's factor: its error's effect on a pose's left perturbation per unit of its
-/// standard normal vector.
-pub type Factor = SMatrix<f64, 6, FACTOR_COLUMNS>;
+/// standard normal vector. Each contributor keeps one width: six columns for what is
+/// six-dimensional (a sample's noise, a link's calibration), [`FACTOR_COLUMNS`] for a camera's
+/// intrinsics, so the common terms cost a 6 x 6 product.
+// Both sizes are values copied through the hot loops of composition; boxing the wide one would
+// allocate at every mapping of a camera's term.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Factor {
+    /// Six columns: a contributor of six dimensions.
+    Six(Mat6),
+    /// A column per intrinsic of the widest lens model.
+    Intrinsics(SMatrix<f64, 6, FACTOR_COLUMNS>),
+}
+
+impl Factor {
+    /// `F F^T`, not yet symmetrized.
+    fn outer(&self) -> Mat6 {
+        match self {
+            Factor::Six(f) => f * f.transpose(),
+            Factor::Intrinsics(f) => f * f.transpose(),
+        }
+    }
+
+    /// `m F`.
+    pub fn mapped(&self, m: &Mat6) -> Factor {
+        match self {
+            Factor::Six(f) => Factor::Six(m * f),
+            Factor::Intrinsics(f) => Factor::Intrinsics(m * f),
+        }
+    }
+
+    /// The factor with every column, zero beyond its own.
+    pub fn widened(&self) -> SMatrix<f64, 6, FACTOR_COLUMNS> {
+        match self {
+            Factor::Six(f) => {
+                let mut wide = SMatrix::<f64, 6, FACTOR_COLUMNS>::zeros();
+                wide.fixed_view_mut::<6, 6>(0, 0).copy_from(f);
+                wide
+            }
+            Factor::Intrinsics(f) => *f,
+        }
+    }
+
+    /// Adds `other`, of the same contributor (so the same width; a mixed sum is widened).
+    fn add(&mut self, other: &Factor) {
+        match (self as &mut Factor, other) {
+            (Factor::Six(a), Factor::Six(b)) => *a += b,
+            (Factor::Intrinsics(a), Factor::Intrinsics(b)) => *a += b,
+            (this, other) => *this = Factor::Intrinsics(this.widened() + other.widened()),
+        }
+    }
+}
 
 /// The covariance of a camera's intrinsics, in the order `fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6
 /// s1 s2 s3 s4` (rows and columns beyond the camera's lens model zero).
@@ -68,7 +118,7 @@ pub struct Term {
 impl Term {
     /// Its covariance, `F F^T`.
     pub fn covariance(&self) -> Mat6 {
-        symmetrize(&(self.factor * self.factor.transpose()))
+        symmetrize(&self.factor.outer())
     }
 }
 
@@ -97,7 +147,7 @@ impl ErrorTerms {
     /// Adds a contributor's factor, to its term if it has one already (a correlated route).
     pub fn add(&mut self, contributor: Contributor, factor: Factor) {
         match self.terms.iter_mut().find(|t| t.contributor == contributor) {
-            Some(t) => t.factor += factor,
+            Some(t) => t.factor.add(&factor),
             None => self.terms.push(Term {
                 contributor,
                 factor,
@@ -108,7 +158,7 @@ impl ErrorTerms {
     /// Adds every term of `other` mapped by `m` (`m F` for each factor).
     pub fn add_mapped(&mut self, other: &ErrorTerms, m: &Mat6) {
         for t in &other.terms {
-            self.add(t.contributor, m * t.factor);
+            self.add(t.contributor, t.factor.mapped(m));
         }
     }
 
@@ -121,7 +171,7 @@ impl ErrorTerms {
     pub fn covariance_of(&self, keep: impl Fn(Contributor) -> bool) -> Mat6 {
         let mut out = Mat6::zeros();
         for t in self.terms.iter().filter(|t| keep(t.contributor)) {
-            out += t.factor * t.factor.transpose();
+            out += t.factor.outer();
         }
         symmetrize(&out)
     }
@@ -138,7 +188,7 @@ impl ErrorTerms {
     pub fn parts(&self) -> (Mat6, Mat6) {
         let (mut random, mut systematic) = (Mat6::zeros(), Mat6::zeros());
         for t in &self.terms {
-            let c = t.factor * t.factor.transpose();
+            let c = t.factor.outer();
             if t.contributor.is_random() {
                 random += c;
             } else {
@@ -195,21 +245,19 @@ impl SourcedPose {
 }
 
 /// A factor `F` with `F F^T = cov` for a 6x6 covariance (symmetric, positive semi-definite):
-/// its Cholesky factor, or the symmetric square root where it is singular. The columns after
-/// the sixth are zero.
+/// its Cholesky factor, or the symmetric square root where it is singular.
 pub fn factor_of_covariance(cov: &Mat6) -> Factor {
-    let mut f = Factor::zeros();
     match symmetrize(cov).cholesky() {
-        Some(c) => f.fixed_view_mut::<6, 6>(0, 0).copy_from(&c.l()),
+        Some(c) => Factor::Six(c.l()),
         None => {
             let e = SymmetricEigen::new(symmetrize(cov));
-            let root = e.eigenvectors
-                * Mat6::from_diagonal(&e.eigenvalues.map(|v| v.max(0.0).sqrt()))
-                * e.eigenvectors.transpose();
-            f.fixed_view_mut::<6, 6>(0, 0).copy_from(&root);
+            Factor::Six(
+                e.eigenvectors
+                    * Mat6::from_diagonal(&e.eigenvalues.map(|v| v.max(0.0).sqrt()))
+                    * e.eigenvectors.transpose(),
+            )
         }
     }
-    f
 }
 
 /// The symmetric square root `L` (`L L^T = cov`) of an intrinsics covariance, which is singular

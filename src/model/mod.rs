@@ -266,6 +266,6 @@ impl Model {
             camera_from_marker,
             None,
         )?;
-        Some((index, s * root))
+        Some((index, Factor::Intrinsics(s * root)))
     }
 }
