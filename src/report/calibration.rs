@@ -19,7 +19,7 @@
 use super::{Svg, escape, page, ramp, series};
 use crate::geometry::Vec3;
 use crate::vision::{
-    CameraCalibration, CrossValidationVerdict, INTRINSICS, Intrinsic, Plate, PlateShape,
+    CameraCalibration, CrossValidationVerdict, INTRINSICS, Intrinsic, Plate, PlateShape, SagBasis,
     describe_cross_validation, describe_plate_shape, describe_residual_structure,
 };
 use nalgebra::{SMatrix, Vector2};
@@ -446,25 +446,16 @@ fn plate_shape(body: &mut String, r: &CalibrationReport<'_>) {
         }
     );
     let points = r.plate.points_mm();
-    let span = |a: usize| {
-        let lo = points.iter().map(|p| p[a]).fold(f64::INFINITY, f64::min);
-        let hi = points
-            .iter()
-            .map(|p| p[a])
-            .fold(f64::NEG_INFINITY, f64::max);
-        (lo, hi)
-    };
-    let ((x0, x1), (y0, y1)) = (span(0), span(1));
-    if !(x1 > x0 && y1 > y0) {
+    let Some(basis) = SagBasis::of(&points) else {
         return;
-    }
+    };
+    let ([x0, y0], [x1, y1]) = basis.bounds();
     let margin = r.plate.spacing_mm();
     let (w, h) = (x1 - x0 + 2.0 * margin, y1 - y0 + 2.0 * margin);
     let mut svg = Svg::new(w, h, 480.0);
     let dz = |x: f64, y: f64| {
-        let xn = (2.0 * x - x0 - x1) / (x1 - x0);
-        let yn = (2.0 * y - y0 - y1) / (y1 - y0);
-        warp.sag_mm[0] * (1.0 - xn * xn) + warp.sag_mm[1] * (1.0 - yn * yn)
+        let [bx, by] = basis.at(&Vec3::new(x, y, 0.0));
+        warp.sag_mm[0] * bx + warp.sag_mm[1] * by
     };
     let largest = (warp.sag_mm[0].abs() + warp.sag_mm[1].abs()).max(1e-9);
     let cells = 24;

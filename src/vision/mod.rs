@@ -40,8 +40,8 @@ pub use calibrate::{
     CalibrationOptions, CalibrationView, CalibrationWarning, CameraCalibration, Correlation,
     ImageCorner, Intrinsic, MAX_VIEWS, MIN_BIN_POINTS, MIN_VIEW_POINTS, MIN_VIEWS, PlateShape,
     PlateWarp, PointResidual, RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, ResidualBin,
-    ResidualStructure, SAG_SIGNIFICANCE_CHI2, STRUCTURE_BINS_X, STRUCTURE_PROBABILITY, ViewFit,
-    WarningKind, calibrate_camera, describe_plate_shape, describe_residual_structure,
+    ResidualStructure, SAG_SIGNIFICANCE_CHI2, STRUCTURE_BINS_X, STRUCTURE_PROBABILITY, SagBasis,
+    ViewFit, WarningKind, calibrate_camera, describe_plate_shape, describe_residual_structure,
     intrinsics_of, residual_structure,
 };
 pub use camera::{CameraModel, DISTORTION_TERMS, INTRINSICS, LensModel};

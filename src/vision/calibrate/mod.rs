@@ -33,7 +33,7 @@ pub use structure::{
     MIN_BIN_POINTS, PointResidual, ResidualBin, ResidualStructure, STRUCTURE_BINS_X,
     STRUCTURE_PROBABILITY, describe_residual_structure, residual_structure,
 };
-pub use warp::{PlateShape, PlateWarp, SAG_SIGNIFICANCE_CHI2, describe_plate_shape};
+pub use warp::{PlateShape, PlateWarp, SAG_SIGNIFICANCE_CHI2, SagBasis, describe_plate_shape};
 
 use super::{CameraModel, INTRINSICS, LensModel, Plate, VisionError};
 use crate::geometry::Pose;

@@ -123,7 +123,7 @@ pub fn describe_plate_shape(shape: PlateShape, warp: Option<&PlateWarp>) -> Stri
 
 /// Where each plate point lies on the sag's two shapes.
 #[derive(Debug, Clone, Copy)]
-pub(super) struct SagBasis {
+pub struct SagBasis {
     centre: [f64; 2],
     half_span: [f64; 2],
 }
@@ -131,7 +131,7 @@ pub(super) struct SagBasis {
 impl SagBasis {
     /// The basis over the span of `points` (plate frame, mm); `None` when they span no width
     /// or no height.
-    pub(super) fn of(points: &[Vec3]) -> Option<Self> {
+    pub fn of(points: &[Vec3]) -> Option<Self> {
         let mut low = [f64::INFINITY; 2];
         let mut high = [f64::NEG_INFINITY; 2];
         for p in points {
@@ -148,9 +148,16 @@ impl SagBasis {
     }
 
     /// `(1 - xn^2, 1 - yn^2)` at a plate point: the height of that point per mm of each sag.
-    pub(super) fn at(&self, p: &Vec3) -> [f64; 2] {
+    pub fn at(&self, p: &Vec3) -> [f64; 2] {
         let n = |a: usize| (p[a] - self.centre[a]) / self.half_span[a];
         [1.0 - n(0).powi(2), 1.0 - n(1).powi(2)]
+    }
+
+    /// The span's lowest and highest corner `([x, y], [x, y])` (mm).
+    pub fn bounds(&self) -> ([f64; 2], [f64; 2]) {
+        let [cx, cy] = self.centre;
+        let [hx, hy] = self.half_span;
+        ([cx - hx, cy - hy], [cx + hx, cy + hy])
     }
 }
 
