@@ -13,6 +13,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// Held while a test's namespace of fake cameras runs.
+static ONE_RIG: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// Set in the process that runs inside the namespace.
 const INSIDE: &str = "BROKENRAY_TEST_NETNS";
 
@@ -66,6 +69,12 @@ fn in_namespace(test: &str) -> bool {
     if fakecam().is_none() {
         return false;
     }
+    // One namespace of fake cameras at a time: two of them streaming on the two cores starve
+    // each other's receiving threads (seconds without a frame, buffers lost), which is the
+    // machine, not the code under test.
+    let _one_at_a_time = ONE_RIG
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let status = Command::new("unshare")
         .args(["-rn", "--"])
         .arg(std::env::current_exe().expect("the test binary"))
