@@ -234,10 +234,7 @@ fn residual_vectors(r: &CalibrationReport<'_>) -> String {
 
 /// The residuals' grid: columns and rows as [`crate::vision::STRUCTURE_BINS_X`] makes them.
 fn grid(c: &CameraCalibration) -> (usize, usize, f64, f64) {
-    let (w, h) = (f64::from(c.camera.width_px), f64::from(c.camera.height_px));
-    let cols = crate::vision::STRUCTURE_BINS_X;
-    let rows = ((cols as f64 * h / w).round() as usize).max(1);
-    (cols, rows, w / cols as f64, h / rows as f64)
+    crate::vision::structure_grid(c.camera.width_px, c.camera.height_px)
 }
 
 fn coverage(c: &CameraCalibration) -> String {

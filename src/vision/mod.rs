@@ -42,7 +42,7 @@ pub use calibrate::{
     PlateWarp, PointResidual, RECOMMENDED_TILT_DEG, RECOMMENDED_VIEWS, ResidualBin,
     ResidualStructure, SAG_SIGNIFICANCE_CHI2, STRUCTURE_BINS_X, STRUCTURE_PROBABILITY, SagBasis,
     ViewFit, WarningKind, calibrate_camera, describe_plate_shape, describe_residual_structure,
-    intrinsics_of, residual_structure,
+    intrinsics_of, residual_structure, structure_grid,
 };
 pub use camera::{CameraModel, DISTORTION_TERMS, INTRINSICS, LensModel};
 pub use crossval::{

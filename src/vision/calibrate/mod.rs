@@ -8,8 +8,8 @@
 //!    OpenCV does. Each view's pose follows from its homography, refined by PnP's
 //!    Levenberg-Marquardt.
 //! 2. **Bundle adjustment**: Levenberg-Marquardt over the free intrinsics (`fx fy cx cy` and the
-//!    distortion terms of the [`LensModel`] chosen, any of them fixed) and every view's pose on the pixel error, each point weighted
-//!    by its detector's variance when known. A detected disc centre is the centre of the disc's
+//!    distortion terms of the [`LensModel`] chosen, any of them fixed) and every view's pose on
+//!    the pixel error, each point weighted by its detector's variance when known. A detected disc centre is the centre of the disc's
 //!    image, not the image of its centre: each round predicts the perspective eccentricity of
 //!    every disc ([`super::disc_image_offset`]) at the current estimate and the next round fits
 //!    the detections with it, until it no longer moves the result.
@@ -31,7 +31,7 @@ mod warp;
 
 pub use structure::{
     MIN_BIN_POINTS, PointResidual, ResidualBin, ResidualStructure, STRUCTURE_BINS_X,
-    STRUCTURE_PROBABILITY, describe_residual_structure, residual_structure,
+    STRUCTURE_PROBABILITY, describe_residual_structure, residual_structure, structure_grid,
 };
 pub use warp::{PlateShape, PlateWarp, SAG_SIGNIFICANCE_CHI2, SagBasis, describe_plate_shape};
 
@@ -85,9 +85,7 @@ impl Intrinsic {
     pub fn index(self) -> usize {
         self as usize
     }
-}
 
-impl Intrinsic {
     /// The intrinsics of a lens model, in order (`fx fy cx cy` and its distortion terms).
     pub fn of_model(model: LensModel) -> &'static [Intrinsic] {
         &Intrinsic::ALL[..model.intrinsics()]

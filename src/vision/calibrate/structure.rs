@@ -75,6 +75,15 @@ pub struct PointResidual {
     pub variance_px2: f64,
 }
 
+/// The grid over a `width_px` x `height_px` image: `(columns, rows, cell width, cell height)`
+/// (px), [`STRUCTURE_BINS_X`] columns and as many rows as keep the cells square.
+pub fn structure_grid(width_px: u32, height_px: u32) -> (usize, usize, f64, f64) {
+    let (w, h) = (f64::from(width_px), f64::from(height_px));
+    let bins_x = STRUCTURE_BINS_X;
+    let bins_y = ((bins_x as f64 * h / w).round() as usize).max(1);
+    (bins_x, bins_y, w / bins_x as f64, h / bins_y as f64)
+}
+
 /// The residuals of a `width_px` x `height_px` image binned and judged; `None` when no bin
 /// has enough points.
 pub fn residual_structure(
@@ -82,10 +91,7 @@ pub fn residual_structure(
     height_px: u32,
     residuals: &[PointResidual],
 ) -> Option<ResidualStructure> {
-    let (w, h) = (f64::from(width_px), f64::from(height_px));
-    let bins_x = STRUCTURE_BINS_X;
-    let bins_y = ((bins_x as f64 * h / w).round() as usize).max(1);
-    let (cell_w, cell_h) = (w / bins_x as f64, h / bins_y as f64);
+    let (bins_x, bins_y, cell_w, cell_h) = structure_grid(width_px, height_px);
     // Per cell: points, sum of residuals, sum of variances.
     let mut sums = vec![(0usize, Vector2::<f64>::zeros(), 0.0f64); bins_x * bins_y];
     for r in residuals {
