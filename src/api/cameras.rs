@@ -9,7 +9,7 @@
 //! one slot per configured camera, each holding one frame, its answer and at most one PNG.
 
 use super::AppState;
-use super::error::{ApiError, ErrorBody};
+use super::error::{ApiError, ErrorBody, ErrorCode};
 use super::frames::{FrameOut, NotFoundCode};
 use crate::archive::{ArchiveReason, FrameArchive};
 use crate::clock::format_ns;
@@ -132,6 +132,10 @@ pub(super) struct CameraOut {
     /// When the service takes its frames itself (`[cameras.source]`): the source's state.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub source: Option<super::sources::SourceOut>,
+    /// When the installation names the camera's calibration report (`calibration_report`):
+    /// where to fetch it, `/api/v1/cameras/{name}/calibration-report`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration_report: Option<String>,
 }
 
 /// Every camera.
@@ -168,6 +172,8 @@ pub(super) async fn list_cameras(State(app): State<AppState>) -> Json<CamerasOut
                 .iter()
                 .find(|s| s.source.camera == c.frame)
                 .map(|s| s.report().into()),
+            calibration_report: report_file(&app, &c.frame)
+                .map(|_| format!("/api/v1/cameras/{}/calibration-report", c.frame)),
             frame: app.latest_frames.get(&c.frame).map(|l| CameraFrameOut {
                 time: format_ns(l.time_ns),
                 age_s: (now_ns - l.time_ns) as f64 / 1e9,
@@ -189,6 +195,83 @@ pub(super) async fn list_cameras(State(app): State<AppState>) -> Json<CamerasOut
         })
         .collect();
     Json(CamerasOut { cameras })
+}
+
+/// The calibration report the installation names for `camera`.
+fn report_file(app: &AppState, camera: &str) -> Option<std::path::PathBuf> {
+    app.service
+        .installation()
+        .calibration_reports
+        .iter()
+        .find(|r| r.camera == camera)
+        .map(|r| r.path.clone())
+}
+
+/// The largest calibration report served (a report of 100 views is under 2 MB).
+const MAX_REPORT_BYTES: u64 = 64 << 20;
+
+/// `GET /api/v1/cameras/{name}/calibration-report`.
+#[utoipa::path(get, path = "/cameras/{name}/calibration-report", tag = "cameras",
+    params(("name" = String, Path, description = "The camera's frame")),
+    responses(
+        (status = 200, description = "The HTML page `calibrate-camera --report` wrote for the camera's calibration, as the installation names it (`calibration_report`); served with a policy that lets it run no script and load nothing", content_type = "text/html"),
+        (status = 404, description = "Unknown camera, or no report named for it", body = ErrorBody),
+        (status = 503, description = "The page the installation names cannot be read", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub(super) async fn get_calibration_report(
+    State(app): State<AppState>,
+    Path(name): Path<String>,
+) -> Result<Response, ApiError> {
+    if app.service.installation().model.camera(&name).is_none() {
+        return Err(ApiError::not_found(format!("no camera `{name}`")));
+    }
+    let path = report_file(&app, &name).ok_or_else(|| {
+        ApiError::not_found(format!(
+            "the installation names no calibration report for camera `{name}` (`calibration_report` in its `[[cameras]]`)"
+        ))
+    })?;
+    // The server's paths are not told (`check-config` names the file).
+    let unreadable = |reason: String| {
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            ErrorCode::FileUnavailable,
+            format!(
+                "camera `{name}`'s calibration report, the file its `calibration_report` names, cannot be read: {reason}"
+            ),
+        )
+    };
+    let size = tokio::fs::metadata(&path)
+        .await
+        .map_err(|e| unreadable(e.to_string()))?
+        .len();
+    if size > MAX_REPORT_BYTES {
+        return Err(unreadable(format!(
+            "it is {size} bytes, over the {MAX_REPORT_BYTES} served"
+        )));
+    }
+    let page = tokio::fs::read(&path)
+        .await
+        .map_err(|e| unreadable(e.to_string()))?;
+    Ok((
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("text/html; charset=utf-8"),
+            ),
+            (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
+            (
+                header::CONTENT_SECURITY_POLICY,
+                HeaderValue::from_static(crate::report::CONTENT_SECURITY_POLICY),
+            ),
+            (
+                header::X_CONTENT_TYPE_OPTIONS,
+                HeaderValue::from_static("nosniff"),
+            ),
+        ],
+        Body::from(page),
+    )
+        .into_response())
 }
 
 /// The newest frame of a known camera, or a 404 naming what is missing.

@@ -94,10 +94,22 @@ const ASSETS: &[Asset] = &[
 ];
 
 /// Scripts, styles, images and connections from this origin only; no framing. uPlot sets
-/// element styles from script (CSSOM), which `style-src 'self'` allows.
-const CONTENT_SECURITY_POLICY: &str = "default-src 'self'; script-src 'self'; style-src 'self'; \
-     img-src 'self' data: blob:; connect-src 'self'; object-src 'none'; base-uri 'none'; \
-     form-action 'self'; frame-ancestors 'none'";
+/// element styles from script (CSSOM), which `style-src 'self'` allows. A camera's calibration
+/// report, fetched with the page's token and opened from a blob, takes this page's policy: its
+/// one style sheet is admitted by its hash.
+fn content_security_policy() -> &'static HeaderValue {
+    static POLICY: OnceLock<HeaderValue> = OnceLock::new();
+    POLICY.get_or_init(|| {
+        let policy = format!(
+            "default-src 'self'; script-src 'self'; style-src 'self' {}; \
+             img-src 'self' data: blob:; connect-src 'self'; object-src 'none'; base-uri 'none'; \
+             form-action 'self'; frame-ancestors 'none'",
+            crate::report::style_hash_source()
+        );
+        // Base64 digits, quotes and ASCII words are always a valid header value.
+        HeaderValue::from_str(&policy).unwrap_or(HeaderValue::from_static("default-src 'self'"))
+    })
+}
 
 /// The strong ETag of each asset (a hash of its bytes), computed once.
 fn etags() -> &'static [HeaderValue] {
@@ -129,7 +141,7 @@ fn serve(index: usize, headers: &HeaderMap) -> Response {
         (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
         (
             header::CONTENT_SECURITY_POLICY,
-            HeaderValue::from_static(CONTENT_SECURITY_POLICY),
+            content_security_policy().clone(),
         ),
         (
             header::X_CONTENT_TYPE_OPTIONS,

@@ -103,6 +103,8 @@ crate::words! {
         WriterStopped = "writer_stopped",
         /// The service is stopping.
         ShuttingDown = "shutting_down",
+        /// A file the installation names (a camera's calibration report) cannot be read.
+        FileUnavailable = "file_unavailable",
         /// The viewer could not be reached or written to.
         VisualisationFailed = "visualisation_failed",
         /// Something that should not fail did; the message says what.
@@ -267,13 +269,14 @@ pub(super) fn raw_response(
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         // `busy` is the service full, not failing: its message says what is full and is
-        // shown; a flood of them is no error to log.
-        let internal = self.status.is_server_error() && self.code != ErrorCode::Busy;
-        if internal {
+        // shown; a flood of them is no error to log. `file_unavailable` is logged and shown:
+        // its message names the camera and the system's reason, not the server's path.
+        let failed = self.status.is_server_error() && self.code != ErrorCode::Busy;
+        if failed {
             // Logged once here; the body says nothing of the internals.
             tracing::error!(code = self.code.name(), message = %self.message, "request failed");
         }
-        let message = if internal {
+        let message = if failed && self.code != ErrorCode::FileUnavailable {
             "the service could not complete the request; nothing of it was stored".to_owned()
         } else {
             self.message

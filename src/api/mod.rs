@@ -518,6 +518,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(cameras::list_cameras))
         .routes(routes!(cameras::get_frame))
         .routes(routes!(cameras::get_detections))
+        .routes(routes!(cameras::get_calibration_report))
         .routes(routes!(cameras::list_archived))
         .routes(routes!(cameras::get_archived))
         .routes(routes!(vision::post_hand_eye))

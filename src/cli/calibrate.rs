@@ -268,8 +268,9 @@ pub(super) fn write_report(
     Ok(path)
 }
 
-/// A `[[cameras]]` block for the installation file.
-pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
+/// A `[[cameras]]` block for the installation file; `report`, the calibration's HTML page,
+/// is named in it for the dashboard to link.
+pub(super) fn cameras_block(frame: &str, c: &CameraCalibration, report: Option<&Path>) -> String {
     let m = &c.camera;
     let n = c.model.intrinsics();
     let distortion: Vec<String> = m.distortion[..c.model.distortion_terms()]
@@ -284,7 +285,7 @@ pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
     if fixed.is_empty() {
         fixed.push("none");
     }
-    format!(
+    let block = format!(
         "# Calibrated from {} views ({} lens model): RMS {:.4} px; sigmas fx {:.3}, fy {:.3}, cx {:.3}, cy {:.3} px; fixed: {}.\n\
          [[cameras]]\n\
          frame = \"{frame}\"\n\
@@ -323,7 +324,14 @@ pub(super) fn cameras_block(frame: &str, c: &CameraCalibration) -> String {
                 format!("  {},\n", cells.join(", "))
             })
             .collect::<String>(),
-    )
+    );
+    match report {
+        Some(page) => format!(
+            "{block}# The calibration's report, linked from the dashboard.\ncalibration_report = {:?}\n",
+            page.display().to_string()
+        ),
+        None => block,
+    }
 }
 
 /// What one sensor of a station measures at each position.

@@ -638,14 +638,18 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             } else {
                 out.write_all(calibrate::report(&run).as_bytes())?;
             }
+            let mut report_page = None;
             if let Some(dir) = report {
                 let path = calibrate::write_report(&dir, camera.as_deref(), &plate, &run)?;
                 if !json {
                     writeln!(out, "report written to {}", path.display())?;
                 }
+                // The block names it wherever the service runs from.
+                report_page = Some(std::fs::canonicalize(&path).unwrap_or(path));
             }
             if let (Some(path), Some(name)) = (out_file, camera) {
-                let block = calibrate::cameras_block(&name, &run.calibration);
+                let block =
+                    calibrate::cameras_block(&name, &run.calibration, report_page.as_deref());
                 std::io::Write::write_all(&mut create_new(&path)?, block.as_bytes())?;
                 if !json {
                     writeln!(out, "\nwritten to {}:\n{block}", path.display())?;

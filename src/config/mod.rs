@@ -66,9 +66,21 @@ pub struct Installation {
     /// The cameras the service takes frames from itself (`[cameras.source]`), in installation
     /// order.
     pub sources: Vec<CameraSource>,
+    /// The calibration report of each camera that names one (`calibration_report`), in
+    /// installation order: the dashboard links it.
+    pub calibration_reports: Vec<CalibrationReportFile>,
     /// What is valid but probably not meant, each with its line (`check-config` prints them,
     /// `serve` logs them).
     pub warnings: Vec<ConfigProblem>,
+}
+
+/// A camera's calibration report: the HTML page `calibrate-camera --report` wrote.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibrationReportFile {
+    /// The camera's frame.
+    pub camera: String,
+    /// The page, as the installation names it (relative to the service's working directory).
+    pub path: PathBuf,
 }
 
 /// The archive of camera frames (`[frames]`): one frame per camera every `archive_every_s` of

@@ -178,6 +178,8 @@ pub(super) struct RawCamera {
     pub gain_e_per_dn: Option<f64>,
     /// `n x n` numbers, row-major, in the order `fx fy cx cy` and the lens model's terms.
     pub intrinsics_covariance: Option<Vec<f64>>,
+    /// The HTML page `calibrate-camera --report` wrote for this calibration.
+    pub calibration_report: Option<String>,
     pub source: Option<Spanned<RawSource>>,
 }
 

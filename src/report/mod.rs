@@ -34,6 +34,24 @@ pub(crate) fn page(title: &str, body: &str) -> String {
     )
 }
 
+/// The Content-Security-Policy source that admits the reports' style sheet (`'sha256-...'`):
+/// a page that shows a report it fetched (the dashboard, which opens it from a blob) lists it
+/// so that the report keeps its style under the page's own policy.
+pub fn style_hash_source() -> String {
+    use base64::Engine as _;
+    use sha2::Digest as _;
+    let digest = sha2::Sha256::digest(STYLE.as_bytes());
+    format!(
+        "'sha256-{}'",
+        base64::engine::general_purpose::STANDARD.encode(digest)
+    )
+}
+
+/// The policy a report is served with: its own style, its SVG, nothing else (no script, no
+/// connection, no form, no framing).
+pub const CONTENT_SECURITY_POLICY: &str = "default-src 'none'; style-src 'unsafe-inline'; \
+     img-src data:; base-uri 'none'; form-action 'none'; frame-ancestors 'none'";
+
 const STYLE: &str = "\
 body{font-family:system-ui,sans-serif;margin:2em auto;max-width:60em;color:#222;line-height:1.4}\
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ccc}\

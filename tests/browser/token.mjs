@@ -1,5 +1,7 @@
 // The dashboard on a service with tokens: it asks for one, sends it with every call and with
-// the event stream, and says so when the token lacks the admin scope.
+// the event stream, and says so when the token lacks the admin scope. Camera C1's calibration
+// report (named by the installation) opens from its link in a new tab, fetched with the token,
+// with its style kept under the dashboard's content policy.
 //
 //   node token.mjs BASE_URL READ_TOKEN
 //
@@ -14,7 +16,8 @@ if (!base || !token) {
 }
 
 await run(async (browser) => {
-  const page = await browser.newPage({ viewport: { width: 1280, height: 900 } });
+  const context = await browser.newContext({ viewport: { width: 1280, height: 900 } });
+  const page = await context.newPage();
   const problems = watch(page);
   const authorised = [];
   page.on('request', (r) => {
@@ -35,6 +38,28 @@ await run(async (browser) => {
   }
   const stored = await page.evaluate(() => sessionStorage.getItem('brokenray.token'));
   check(stored === token, 'the token is kept for the tab (sessionStorage)');
+
+  // The calibration report: linked for C1 only, opened in a new tab with the token.
+  await page.waitForSelector('article.camera[data-camera="C1"] [data-f="report"]', { timeout: 10000 });
+  check(await page.locator('article.camera[data-camera="C2"] [data-f="report"]').count() === 0,
+    'camera C2, whose installation names no report, has no report link');
+  const [tab] = await Promise.all([
+    context.waitForEvent('page', { timeout: 10000 }),
+    page.click('article.camera[data-camera="C1"] [data-f="report"]'),
+  ]);
+  const tabProblems = watch(tab);
+  await tab.waitForSelector('h1', { timeout: 10000 });
+  const heading = await tab.textContent('h1');
+  check(heading.includes('Camera calibration: C1'), `the report opens in a new tab: "${heading}"`);
+  check(authorised.includes('/api/v1/cameras/C1/calibration-report'), 'the report was asked with the token');
+  const styled = await tab.evaluate(() => ({
+    collapse: getComputedStyle(document.querySelector('table')).borderCollapse,
+    pictures: document.querySelectorAll('svg').length,
+  }));
+  check(styled.collapse === 'collapse' && styled.pictures >= 3,
+    `the report keeps its style under the dashboard's policy (tables ${styled.collapse}) and its ${styled.pictures} pictures`);
+  check(tabProblems.length === 0, `the report's tab reports no problem: ${tabProblems.join(' | ')}`);
+  await tab.close();
 
   await page.click('#reference-submit');
   await page.waitForFunction(() => document.getElementById('reference-result').textContent.startsWith('Refused'), null, { timeout: 10000 });

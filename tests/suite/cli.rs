@@ -846,6 +846,7 @@ fn rendered_plate_views_calibrate_a_camera_into_a_block_the_installation_takes()
         .collect();
     frames.push(blank_file.to_str().unwrap().to_owned());
     let block = dir.path().join("c1.toml");
+    let block_report = dir.path().join("c1-report");
     let mut args = vec![
         "calibrate-camera",
         "--plate",
@@ -857,6 +858,8 @@ fn rendered_plate_views_calibrate_a_camera_into_a_block_the_installation_takes()
         "C1",
         "--out",
         block.to_str().unwrap(),
+        "--report",
+        block_report.to_str().unwrap(),
     ];
     args.extend(frames.iter().map(String::as_str));
     let out = brokenray(&args);
@@ -883,6 +886,15 @@ fn rendered_plate_views_calibrate_a_camera_into_a_block_the_installation_takes()
         block_text.contains("[[cameras]]\nframe = \"C1\"\nwidth = 1280\nheight = 1024\n"),
         "{block_text}"
     );
+    // It names the report, wherever the service runs from.
+    let page = std::fs::canonicalize(block_report.join("calibration.html")).unwrap();
+    assert!(
+        block_text.contains(&format!(
+            "\ncalibration_report = {:?}\n",
+            page.display().to_string()
+        )),
+        "{block_text}"
+    );
     let default = String::from_utf8(brokenray(&["default-config"]).stdout).unwrap();
     let start = default.find("[[cameras]]\nframe = \"C1\"").unwrap();
     let end = start + default[start..].find("\n\n").unwrap();
@@ -900,6 +912,12 @@ fn rendered_plate_views_calibrate_a_camera_into_a_block_the_installation_takes()
         "{}",
         String::from_utf8_lossy(&check.stderr)
     );
+    let said = format!(
+        "{}{}",
+        String::from_utf8_lossy(&check.stdout),
+        String::from_utf8_lossy(&check.stderr)
+    );
+    assert!(!said.contains("calibration_report"), "{said}");
     // The text report names the parameters with their sigmas; `--report` writes the page.
     let report = dir.path().join("report");
     let mut args = vec![

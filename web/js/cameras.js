@@ -5,7 +5,9 @@
 // the frame's age.
 //
 // Frames are fetched with the page's token (as a blob, since an <img> cannot send one) only
-// when the newest frame's time changed.
+// when the newest frame's time changed. A camera whose installation names its calibration
+// report links it: the page is fetched with the token too and opened from a blob in a new tab
+// (the tab is opened on the click itself, so no popup blocker holds it).
 
 import { $, clearMessage, el, fmtAge, fmtTime, parseTime, showMessage } from './util.js';
 import { api } from './api.js';
@@ -41,6 +43,7 @@ function buildView(camera) {
         el('h3', { text: camera.name }),
         el('span', { class: 'muted small', 'data-f': 'sees', text: camera.markers.length ? 'sees ' + camera.markers.join(', ') : 'sees no marker' }),
         el('span', { class: 'grow' }),
+        camera.calibration_report ? reportLink(camera) : null,
         el('span', { 'data-f': 'age', class: 'muted', text: 'no frame yet' })),
       el('p', { class: 'source-state small', 'data-f': 'source', hidden: true }),
       open,
@@ -55,6 +58,35 @@ function buildView(camera) {
   };
   open.addEventListener('click', () => openFull(view));
   return view;
+}
+
+function reportLink(camera) {
+  const a = el('a', { href: camera.calibration_report, 'data-f': 'report', class: 'small', target: '_blank', text: 'calibration report',
+    title: `Camera ${camera.name}'s calibration report, as the installation names it` });
+  a.addEventListener('click', (event) => {
+    event.preventDefault();
+    openReport(camera, window.open('', '_blank'));
+  });
+  return a;
+}
+
+async function openReport(camera, tab) {
+  try {
+    const response = await api(camera.calibration_report, { raw: true });
+    const html = await response.text();
+    const url = URL.createObjectURL(new Blob([html], { type: 'text/html' }));
+    if (!tab) {
+      URL.revokeObjectURL(url);
+      showMessage('cameras', `Camera ${camera.name}'s calibration report: the browser opened no new tab (allow this page to open one)`);
+      return;
+    }
+    tab.location.href = url;
+    setTimeout(() => URL.revokeObjectURL(url), 60000);
+    clearMessage('cameras');
+  } catch (e) {
+    if (tab) tab.close();
+    if (e.status !== 401) showMessage('cameras', `Camera ${camera.name}'s calibration report: ${e.message}`);
+  }
 }
 
 // The overlay of one frame, in image pixels (the viewBox is the image; pixel (u, v) covers

@@ -69,6 +69,40 @@ impl Validator {
         out
     }
 
+    /// Every camera's `calibration_report`. A page that is not there is a warning, not a
+    /// problem: the installation may be checked on another machine, or the page written after
+    /// it; the dashboard's link then says the page cannot be read.
+    pub(super) fn calibration_reports(&mut self, raw: &RawFile) -> Vec<CalibrationReportFile> {
+        let mut out = Vec::new();
+        for spanned in &raw.cameras {
+            let at = spanned.span().start;
+            let c = spanned.get_ref();
+            let Some(path) = &c.calibration_report else {
+                continue;
+            };
+            let what = format!("camera `{}`: calibration_report", c.frame);
+            if path.trim().is_empty() {
+                self.problem(at, format!("{what} is empty; name the HTML page `brokenray calibrate-camera --report DIR` wrote (DIR/calibration.html)"));
+                continue;
+            }
+            let path = PathBuf::from(path);
+            if !path.is_file() {
+                self.warning(
+                    at,
+                    format!(
+                        "{what} `{}` is not a file here, so the dashboard's link to it will say it cannot be read",
+                        path.display()
+                    ),
+                );
+            }
+            out.push(CalibrationReportFile {
+                camera: c.frame.clone(),
+                path,
+            });
+        }
+        out
+    }
+
     /// Every camera's `[cameras.source]`; `None` when one has a problem.
     pub(super) fn sources(&mut self, raw: &RawFile) -> Option<Vec<CameraSource>> {
         let mut out = Vec::new();

@@ -12,10 +12,10 @@
 use super::error::LineIndex;
 use super::raw::{self, RawFile, RawPose, RawSigma};
 use super::{
-    AuthSettings, CameraAddress, CameraSource, CentralSettings, ConfigProblem, FeatureSetting,
-    FleetSettings, FrameSettings, Installation, NotifyLevel, NotifySettings, PixelFormat,
-    RerunMode, RerunSettings, RetentionSettings, Scope, ServerSettings, SiteName, TimestampMode,
-    TokenSpec, TriggerMode, UpstreamSettings, WebhookSpec,
+    AuthSettings, CalibrationReportFile, CameraAddress, CameraSource, CentralSettings,
+    ConfigProblem, FeatureSetting, FleetSettings, FrameSettings, Installation, NotifyLevel,
+    NotifySettings, PixelFormat, RerunMode, RerunSettings, RetentionSettings, Scope,
+    ServerSettings, SiteName, TimestampMode, TokenSpec, TriggerMode, UpstreamSettings, WebhookSpec,
 };
 use crate::alarms::AlarmThresholds;
 use crate::chain::{ChainError, Topology};
@@ -224,6 +224,7 @@ impl Validator {
         let pnp = self.pnp(&raw);
         let fleet = self.fleet(&raw, server.as_ref());
         let sources = self.sources(&raw);
+        let calibration_reports = self.calibration_reports(&raw);
         let mut frames_seen = std::collections::HashSet::new();
         for c in &raw.cameras {
             if !frames_seen.insert(c.get_ref().frame.clone()) {
@@ -266,6 +267,7 @@ impl Validator {
             frames: frames?,
             fleet: fleet?,
             sources: sources?,
+            calibration_reports,
             warnings: std::mem::take(&mut self.warnings),
         })
     }

@@ -330,3 +330,138 @@ async fn a_camera_source_s_state_is_in_cameras_and_metrics() {
         assert!(metrics.contains(line), "{line} not in\n{metrics}");
     }
 }
+
+/// A calibration report as `calibrate-camera --report` writes it, of eight projected views of
+/// the laboratory's camera, at `path`.
+pub(crate) fn write_calibration_report(path: &std::path::Path) {
+    use crate::camera_calibration::{lab_camera, plate, projected_views};
+    use brokenray::report::calibration::{CalibrationReport, calibration_report};
+    let camera = lab_camera();
+    let plate = plate();
+    let poses = brokenray::sim::plate::plate_poses(&camera, &plate, 8, 2);
+    let views = projected_views(&camera, &plate, &poses, 0.02, 2);
+    let calibration = brokenray::vision::calibrate_camera(
+        &plate,
+        camera.width_px,
+        camera.height_px,
+        &views,
+        &brokenray::vision::CalibrationOptions::default(),
+    )
+    .expect("calibrated");
+    let names: Vec<String> = (0..views.len()).map(|k| format!("view{k}.png")).collect();
+    let page = calibration_report(&CalibrationReport {
+        title: "C1",
+        calibration: &calibration,
+        plate: &plate,
+        view_names: &names,
+        notes: &[],
+        made: "2026-11-27T12:00:00Z",
+    });
+    std::fs::write(path, page).expect("report written");
+}
+
+/// A camera's calibration report as the installation names it: linked from `GET /cameras`,
+/// served as it was written under a policy that runs nothing; a page that is not there is a
+/// warning when the installation is read and a 503 naming the camera (not the server's path)
+/// when asked for; a camera with none, or no camera, is a 404 saying which.
+#[tokio::test]
+async fn a_camera_s_calibration_report_is_linked_and_served_and_a_missing_one_says_so() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let report = dir.path().join("c1.html");
+    write_calibration_report(&report);
+    let gone = dir.path().join("c2-gone.html");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replacen(
+            "[[cameras]]\nframe = \"C1\"",
+            &format!(
+                "[[cameras]]\nframe = \"C1\"\ncalibration_report = {:?}",
+                report.display().to_string()
+            ),
+            1,
+        )
+        .replacen(
+            "[[cameras]]\nframe = \"C2\"",
+            &format!(
+                "[[cameras]]\nframe = \"C2\"\ncalibration_report = {:?}",
+                gone.display().to_string()
+            ),
+            1,
+        );
+    let app = TestApp::start(Some(&text)).await;
+    let warnings: Vec<String> = app
+        .service
+        .installation()
+        .warnings
+        .iter()
+        .map(|w| w.message.clone())
+        .collect();
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("camera `C2`: calibration_report") && w.contains("c2-gone.html")),
+        "{warnings:?}"
+    );
+    assert!(
+        !warnings
+            .iter()
+            .any(|w| w.contains("camera `C1`: calibration_report")),
+        "{warnings:?}"
+    );
+
+    let (status, body) = app.get("/api/v1/cameras").await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let links: Vec<Option<&str>> = body["cameras"]
+        .as_array()
+        .expect("cameras")
+        .iter()
+        .map(|c| c["calibration_report"].as_str())
+        .collect();
+    assert_eq!(
+        links,
+        [
+            Some("/api/v1/cameras/C1/calibration-report"),
+            Some("/api/v1/cameras/C2/calibration-report"),
+            None
+        ]
+    );
+
+    let (status, headers, page) = app
+        .request_raw("GET", "/api/v1/cameras/C1/calibration-report", &[], "")
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(headers["content-type"], "text/html; charset=utf-8");
+    let policy = headers["content-security-policy"].to_str().expect("ascii");
+    assert!(
+        policy.contains("default-src 'none'") && !policy.contains("script-src"),
+        "{policy}"
+    );
+    assert_eq!(headers["x-content-type-options"], "nosniff");
+    assert_eq!(page, std::fs::read(&report).expect("the report"));
+
+    let (status, body) = app.get("/api/v1/cameras/C2/calibration-report").await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert_eq!(body["error"]["code"], "file_unavailable");
+    let message = body["error"]["message"].as_str().expect("message");
+    assert!(message.contains("camera `C2`"), "{message}");
+    assert!(
+        !message.contains(&dir.path().display().to_string()),
+        "the server's path is not told: {message}"
+    );
+
+    let (status, body) = app.get("/api/v1/cameras/C3/calibration-report").await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("no calibration report for camera `C3`")),
+        "{body}"
+    );
+    let (status, body) = app.get("/api/v1/cameras/C9/calibration-report").await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("no camera `C9`")),
+        "{body}"
+    );
+}

@@ -470,7 +470,19 @@ async fn with_tokens_the_dashboard_asks_for_one_and_sends_it() {
         return;
     }
     let tools = browser();
-    let app = TestApp::start(Some(&with_tokens())).await;
+    // Camera C1's calibration report is named by the installation.
+    let reports = tempfile::tempdir().expect("temp dir");
+    let report = reports.path().join("c1.html");
+    super::cameras::write_calibration_report(&report);
+    let text = with_tokens().replacen(
+        "[[cameras]]\nframe = \"C1\"",
+        &format!(
+            "[[cameras]]\nframe = \"C1\"\ncalibration_report = {:?}",
+            report.display().to_string()
+        ),
+        1,
+    );
+    let app = TestApp::start(Some(&text)).await;
     follow_real_time(&app);
     let inst = app.service.installation().clone();
     let mut sim = Simulator::new(
