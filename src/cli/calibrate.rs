@@ -113,8 +113,19 @@ pub(super) fn calibrate_from_frames(
         size = Some((image.width_px(), image.height_px()));
         match find_plate(plate, &image) {
             Ok(found) => {
+                if found.ids.len() < plate.len() {
+                    progress.suspend(|| {
+                        writeln!(
+                            log,
+                            "{}: the plate's origin disc is out of view (cut by the frame's edge or covered): the plate placed by its other corners, {} of its {} points used",
+                            path.display(),
+                            found.ids.len(),
+                            plate.len()
+                        )
+                    })?;
+                }
                 views.push(CalibrationView {
-                    ids: (0..plate.len()).collect(),
+                    ids: found.ids,
                     points_px: found.points_px,
                     sigmas_px: Some(found.sigmas_px),
                 });
@@ -568,7 +579,7 @@ fn plate_pose(
     image: &GreyImage,
 ) -> Result<(Pose, f64, f64), String> {
     let found = find_plate(plate, image)?;
-    let points = plate.points_mm();
+    let points: Vec<_> = found.ids.iter().map(|&i| plate.point_mm(i)).collect();
     let normals = vec![crate::geometry::Vec3::z(); points.len()];
     let options = PnpOptions {
         pixel_sigma_px: 0.0,

@@ -46,9 +46,13 @@ pub struct Plate {
 /// Where a plate's points were found in one frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlateView {
-    /// Each plate point's detected centre (px), in point order.
+    /// The plate points found, ascending: every id when the whole plate was found; all but
+    /// 0 when the plate's larger origin disc is out of view (cut by the frame's edge,
+    /// covered) and the other corners placed it.
+    pub ids: Vec<usize>,
+    /// Each found point's detected centre (px), in the order of `ids`.
     pub points_px: Vec<Vector2<f64>>,
-    /// Each point's standard deviation from the detector (px).
+    /// Each found point's standard deviation from the detector (px).
     pub sigmas_px: Vec<f64>,
     /// The plate looks the same after a turn, so the labelling follows a convention.
     pub symmetric: bool,
@@ -255,15 +259,20 @@ impl Plate {
         Self::lattice_maps()
             .iter()
             .filter(|(u, keeps)| *keeps && *u != Matrix2::identity())
-            .any(|(u, _)| self.offset_onto(u, own.keys().copied(), &own).is_some())
+            .any(|(u, _)| {
+                self.offset_onto(u, own.keys().copied(), &own, None)
+                    .is_some()
+            })
     }
 
-    /// The offset `t` with `u * p + t` a plate point for every `p`, when there is one.
+    /// The offset `t` with `u * p + t` a plate point for every `p`, and every plate point but
+    /// `without` (a point id) so reached, when there is one.
     fn offset_onto(
         &self,
         u: &Matrix2<i64>,
         points: impl Iterator<Item = [i64; 2]> + Clone,
         own: &HashMap<[i64; 2], usize>,
+        without: Option<usize>,
     ) -> Option<[i64; 2]> {
         let turned = |p: [i64; 2]| {
             [
@@ -276,22 +285,31 @@ impl Plate {
                 [m[0].min(p[0]), m[1].min(p[1])]
             })
         };
-        let mine = min_of(&mut own.keys().copied());
+        let kept = || {
+            own.iter()
+                .filter(|&(_, &id)| Some(id) != without)
+                .map(|(p, _)| *p)
+        };
+        let mine = min_of(&mut kept());
         let theirs = min_of(&mut points.clone().map(turned));
         let t = [mine[0] - theirs[0], mine[1] - theirs[1]];
         let mut count = 0;
         for p in points {
             let q = turned(p);
-            own.get(&[q[0] + t[0], q[1] + t[1]])?;
+            let id = own.get(&[q[0] + t[0], q[1] + t[1]])?;
+            if Some(*id) == without {
+                return None;
+            }
             count += 1;
         }
-        (count == own.len()).then_some(t)
+        (count == own.len() - usize::from(without.is_some())).then_some(t)
     }
 
     /// Finds the plate among the discs detected in a frame.
     pub fn find(&self, blobs: &[Blob]) -> Result<PlateView, VisionError> {
         let n = self.len();
-        if blobs.len() < n {
+        // One fewer when a larger origin disc may be out of view.
+        if blobs.len() + usize::from(self.origin_area_ratio() > 1.0) < n {
             return Err(not_found(format!(
                 "{} disc(s) detected, the plate has {n}: part of it is outside the frame, covered or out of focus",
                 blobs.len()
@@ -324,21 +342,23 @@ impl Plate {
                 ));
                 continue;
             }
-            if grid.len() < n {
+            // A plate with a larger origin disc is found without it (cut by the frame's edge,
+            // covered): the other corners, small, say which corner it was.
+            let origin_missing = grid.len() + 1 == n && self.origin_area_ratio() > 1.0;
+            if grid.len() < n && !origin_missing {
                 continue;
             }
             let areas: Vec<f64> = candidates.iter().map(|&k| blobs[k].area_px).collect();
-            match self.label(&grid, &positions, &areas, &own) {
-                Ok(labels) => {
-                    let mut points_px = vec![Vector2::zeros(); n];
-                    let mut sigmas_px = vec![0.0; n];
-                    for (k, id) in labels {
-                        points_px[id] = positions[k];
-                        sigmas_px[id] = blobs[candidates[k]].sigma_px();
-                    }
+            match self.label(&grid, &positions, &areas, &own, origin_missing) {
+                Ok(mut labels) => {
+                    labels.sort_by_key(|&(_, id)| id);
                     return Ok(PlateView {
-                        points_px,
-                        sigmas_px,
+                        ids: labels.iter().map(|&(_, id)| id).collect(),
+                        points_px: labels.iter().map(|&(k, _)| positions[k]).collect(),
+                        sigmas_px: labels
+                            .iter()
+                            .map(|&(k, _)| blobs[candidates[k]].sigma_px())
+                            .collect(),
                         symmetric: self.symmetric,
                     });
                 }
@@ -358,15 +378,22 @@ impl Plate {
             .map_or(1.0, |d| (d / self.diameter_mm).powi(2))
     }
 
-    /// Plate point ids for the grid's discs (`grid`: lattice coordinates to disc index).
+    /// Plate point ids for the grid's discs (`grid`: lattice coordinates to disc index);
+    /// `origin_missing`: the grid is the plate but its origin disc.
     fn label(
         &self,
         grid: &HashMap<[i64; 2], usize>,
         positions: &[Vector2<f64>],
         areas: &[f64],
         own: &HashMap<[i64; 2], usize>,
+        origin_missing: bool,
     ) -> Result<Vec<(usize, usize)>, String> {
         let mut best: Option<(f64, Vec<(usize, usize)>)> = None;
+        // Without the origin disc, the labellings that leave point 0 out: one, unless the
+        // plate's corners cannot tell.
+        let mut without_origin = 0;
+        let n = self.len();
+        let corners = [0, self.cols - 1, n - self.cols, n - 1];
         // With a larger origin disc, the labelling puts point 0 on it: on the disc that stands
         // out most from its neighbours, by more than halfway (in proportion) to the ratio
         // expected.
@@ -377,7 +404,9 @@ impl Plate {
             a[a.len() / 2]
         };
         for (u, _) in Self::lattice_maps() {
-            let Some(t) = self.offset_onto(&u, grid.keys().copied(), own) else {
+            let Some(t) =
+                self.offset_onto(&u, grid.keys().copied(), own, origin_missing.then_some(0))
+            else {
                 continue;
             };
             let labels: Vec<(usize, usize)> = grid
@@ -411,7 +440,16 @@ impl Plate {
             // point 0 on the largest disc.
             let x_dir = jac.column(0).normalize();
             let y_dir = jac.column(1).normalize();
-            let score = if origin_ratio > 1.0 {
+            let score = if origin_missing {
+                // The corners in view are not the origin's size.
+                if labels.iter().any(|&(k, id)| {
+                    corners.contains(&id) && areas[k] >= median_area * origin_ratio.sqrt()
+                }) {
+                    continue;
+                }
+                without_origin += 1;
+                0.0
+            } else if origin_ratio > 1.0 {
                 let Some(&(k0, _)) = labels.iter().find(|&&(_, id)| id == 0) else {
                     continue;
                 };
@@ -427,7 +465,13 @@ impl Plate {
             }
         }
         match best {
+            Some(_) if without_origin > 1 => Err(format!(
+                "the plate's origin disc is not in view, and its other corners do not tell which corner it was ({without_origin} labellings fit)"
+            )),
             Some((_, labels)) => Ok(labels),
+            None if origin_missing => Err(
+                "the discs found form the plate's grid but for one corner, and no labelling puts the origin disc there with the other corners the size of the rest".to_owned(),
+            ),
             None if origin_ratio > 1.0 => Err(format!(
                 "the discs found form the plate's grid, but none of its corners holds a disc larger than the others by the origin disc's {} mm: check origin_diameter_mm, or the origin disc is hidden",
                 self.origin_diameter_mm.unwrap_or_default()
@@ -613,12 +657,85 @@ mod tests {
         Mat3::new(4.6, -1.2, 300.0, 0.9, 4.8, 200.0, 0.0004, -0.0003, 1.0)
     }
 
+    /// Every point of `view` where `h` puts its plate point.
     fn check_labels(plate: &Plate, h: &Mat3, view: &PlateView) {
-        for (i, p) in plate.points_mm().iter().enumerate() {
+        assert_eq!(view.ids.len(), view.points_px.len());
+        assert_eq!(view.ids.len(), view.sigmas_px.len());
+        for (&i, found) in view.ids.iter().zip(&view.points_px) {
+            let p = plate.point_mm(i);
             let q = h * Vector3::new(p.x, p.y, 1.0);
             let expected = Vector2::new(q.x / q.z, q.y / q.z);
-            assert!((view.points_px[i] - expected).norm() < 1e-9, "point {i}");
+            assert!((found - expected).norm() < 1e-9, "point {i}");
         }
+    }
+
+    /// The plate's points through `h` with the origin's disc four times the others' area.
+    fn seen_with_origin(plate: &Plate, h: &Mat3) -> (Vec<Blob>, Vector2<f64>) {
+        let mut blobs = seen(plate, h);
+        let q = h * Vector3::new(0.0, 0.0, 1.0);
+        let origin = Vector2::new(q.x / q.z, q.y / q.z);
+        for b in &mut blobs {
+            if (Vector2::new(b.centre_px[0], b.centre_px[1]) - origin).norm() < 1e-9 {
+                b.area_px = 320.0;
+            }
+        }
+        (blobs, origin)
+    }
+
+    fn near(b: &Blob, p: Vector2<f64>) -> bool {
+        (Vector2::new(b.centre_px[0], b.centre_px[1]) - p).norm() < 1e-9
+    }
+
+    #[test]
+    fn a_plate_whose_origin_disc_is_out_of_view_is_placed_by_its_other_corners() {
+        let plate = Plate::new(6, 6, 20.0, 10.0, false, Polarity::Dark)
+            .and_then(|p| p.with_origin_diameter(20.0))
+            .expect("valid");
+        let n = plate.len();
+        for turn_deg in [0.0f64, 90.0, 180.0, 270.0, 35.0] {
+            let t = turn_deg.to_radians();
+            let turn = Mat3::new(t.cos(), -t.sin(), 0.0, t.sin(), t.cos(), 0.0, 0.0, 0.0, 1.0);
+            let h = tilted() * turn;
+            let (mut blobs, origin) = seen_with_origin(&plate, &h);
+            blobs.retain(|b| !near(b, origin));
+            let view = plate.find(&blobs).expect("found without its origin disc");
+            assert_eq!(view.ids, (1..n).collect::<Vec<_>>(), "turned {turn_deg}");
+            check_labels(&plate, &h, &view);
+            // Whole, it is found whole.
+            let (whole, _) = seen_with_origin(&plate, &h);
+            let view = plate.find(&whole).expect("found");
+            assert_eq!(view.ids, (0..n).collect::<Vec<_>>());
+            check_labels(&plate, &h, &view);
+        }
+        // Another corner missing too: the corners cannot place the origin.
+        let h = tilted();
+        let (blobs, origin) = seen_with_origin(&plate, &h);
+        let corner = {
+            let p = plate.point_mm(n - 1);
+            let q = h * Vector3::new(p.x, p.y, 1.0);
+            Vector2::new(q.x / q.z, q.y / q.z)
+        };
+        let two_gone: Vec<Blob> = blobs
+            .iter()
+            .filter(|b| !near(b, origin) && !near(b, corner))
+            .cloned()
+            .collect();
+        assert!(plate.find(&two_gone).is_err());
+        // The origin's corner empty but another corner of the origin's size: not this plate's
+        // picture, refused rather than guessed.
+        let mut odd: Vec<Blob> = blobs.iter().filter(|b| !near(b, origin)).cloned().collect();
+        for b in &mut odd {
+            if near(b, corner) {
+                b.area_px = 320.0;
+            }
+        }
+        let err = plate.find(&odd).expect_err("refused");
+        assert!(err.to_string().contains("origin disc"), "{err}");
+        // A plate without a larger origin disc is found whole or not at all.
+        let even = Plate::new(6, 6, 20.0, 10.0, false, Polarity::Dark).expect("valid");
+        let mut blobs = seen(&even, &h);
+        blobs.retain(|b| !near(b, origin));
+        assert!(even.find(&blobs).is_err());
     }
 
     #[test]
