@@ -20,7 +20,7 @@
 //! newest commit a generation reports never goes back, and no batch goes past it.
 
 use super::super::outbox::{
-    ColumnValues, Kind, OutboxBatch, RawRequest, Registry, RequestedRows, TableRows, Tier,
+    ColumnValues, Kind, OutboxBatch, Registry, RequestedRows, TableRows, Tier,
 };
 use super::super::{StoreError, StoreResult};
 use super::{CONNECT_TIMEOUT, MIGRATOR, options_of};
@@ -28,6 +28,15 @@ use crate::config::{PostgresUrl, SiteName};
 use sqlx::postgres::{PgConnectOptions, PgConnection, PgPool, PgPoolOptions};
 use sqlx::{ConnectOptions, Connection};
 use std::collections::{HashMap, HashSet};
+
+mod requests;
+mod rule;
+
+pub use requests::RawRequestRecord;
+use requests::apply_requested;
+use rule::{
+    Acked, BatchRuling, BatchSpan, GenerationHeld, GenerationRuling, rule_batch, rule_generation,
+};
 
 /// The centre's own migrations (`migrations-central/`), applied in the schema `fleet`.
 pub(crate) static FLEET_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migrations-central");
@@ -286,8 +295,9 @@ async fn generation(
     .bind(generation)
     .fetch_optional(&mut *conn)
     .await?;
-    let known_head = match known {
-        Some((head,)) => {
+    let generations: Vec<String>;
+    let held = match known {
+        Some((head_seq,)) => {
             let child: Option<(String,)> = sqlx::query_as(
                 "select generation from fleet.generations where site = $1 and parent = $2 \
                  order by first_contact_ns limit 1",
@@ -296,29 +306,26 @@ async fn generation(
             .bind(generation)
             .fetch_optional(&mut *conn)
             .await?;
-            if let Some((by,)) = child {
-                return Ok(Some(SyncOutcome::GenerationSuperseded {
-                    generation: generation.to_owned(),
-                    by,
-                }));
+            GenerationHeld::Known {
+                head_seq,
+                child: child.map(|(g,)| g),
             }
-            head
         }
         None => {
-            let generations: Vec<(String,)> =
-                sqlx::query_as("select generation from fleet.generations where site = $1")
+            generations =
+                sqlx::query_scalar("select generation from fleet.generations where site = $1")
                     .bind(site.as_str())
                     .fetch_all(&mut *conn)
                     .await?;
-            let parent = upload
-                .lineage
-                .iter()
-                .find(|g| generations.iter().any(|(k,)| k == *g));
-            if parent.is_none() && !generations.is_empty() {
-                return Ok(Some(SyncOutcome::GenerationUnknown {
-                    generation: generation.to_owned(),
-                }));
+            GenerationHeld::New {
+                known: &generations,
             }
+        }
+    };
+    match rule_generation(generation, upload.lineage, upload.head_seq, held) {
+        GenerationRuling::Refused(outcome) => return Ok(Some(outcome)),
+        GenerationRuling::GoOn => {}
+        GenerationRuling::Register { parent } => {
             sqlx::query(
                 "insert into fleet.generations (site, generation, parent, head_seq, \
                  first_contact_ns, last_contact_ns) values ($1, $2, $3, null, $4, $4)",
@@ -329,17 +336,7 @@ async fn generation(
             .bind(now_ns)
             .execute(&mut *conn)
             .await?;
-            None
         }
-    };
-    if let (Some(head_seq), Some(known_head_seq)) = (upload.head_seq, known_head)
-        && head_seq < known_head_seq
-    {
-        return Ok(Some(SyncOutcome::CommitsWentBack {
-            generation: generation.to_owned(),
-            head_seq,
-            known_head_seq,
-        }));
     }
     // The newest commit known is what a batch proves the site made, never a number a report
     // states alone: a false one would refuse the real site's every upload after it.
@@ -425,210 +422,7 @@ async fn apply_registry(conn: &mut PgConnection, registry: &Registry) -> StoreRe
     Ok(())
 }
 
-/// Applies a slice of a period the centre asked for, in the upload's transaction: only when it
-/// continues what was delivered (a replay or a slice of a finished request changes nothing; one
-/// that starts later is a gap, and the site resumes from the request's `delivered_to_ns`).
-async fn apply_requested(
-    conn: &mut PgConnection,
-    site: &SiteName,
-    slice: &RequestedRows,
-    registry: &Registry,
-    now_ns: i64,
-) -> StoreResult<SyncOutcome> {
-    let row: Option<(i64, i64, Option<i64>)> = sqlx::query_as(
-        "select to_ns, delivered_to_ns, done_ns from fleet.raw_requests \
-         where request_id = $1 and site = $2 for update",
-    )
-    .bind(slice.request_id)
-    .bind(site.as_str())
-    .fetch_optional(&mut *conn)
-    .await?;
-    let Some((to_ns, delivered_to_ns, done_ns)) = row else {
-        return Ok(SyncOutcome::UnknownRequest {
-            id: slice.request_id,
-        });
-    };
-    if done_ns.is_some() || slice.to_ns <= delivered_to_ns {
-        return Ok(SyncOutcome::Duplicate {
-            acked_seq: None,
-            acked_stamp_ns: None,
-        });
-    }
-    if slice.from_ns > delivered_to_ns {
-        return Ok(SyncOutcome::Gap { acked_seq: None });
-    }
-    apply_registry(&mut *conn, registry).await?;
-    let mut rows_applied = 0i64;
-    for rows in &slice.tables {
-        if rows.table.tier() != Tier::Raw {
-            return Err(StoreError::Malformed(format!(
-                "{} rows in a slice of raw rows",
-                rows.table.name()
-            )));
-        }
-        apply_rows(&mut *conn, rows, slice.replace).await?;
-        rows_applied += i64::try_from(rows.rows()).unwrap_or(i64::MAX);
-    }
-    let delivered = slice.to_ns.min(to_ns);
-    sqlx::query(
-        "update fleet.raw_requests set delivered_to_ns = $2, rows_applied = rows_applied + $3, \
-         done_ns = case when $2 >= to_ns then $4 end where request_id = $1",
-    )
-    .bind(slice.request_id)
-    .bind(delivered)
-    .bind(rows_applied)
-    .bind(now_ns)
-    .execute(&mut *conn)
-    .await?;
-    Ok(SyncOutcome::Applied {
-        acked_seq: None,
-        acked_stamp_ns: None,
-    })
-}
-
-/// A period of raw rows asked of a site, as the centre records it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct RawRequestRecord {
-    /// The request's id.
-    pub id: i64,
-    /// The period's start (ns, measurement time).
-    pub from_ns: i64,
-    /// Its end, excluded.
-    pub to_ns: i64,
-    /// How far the site delivered it.
-    pub delivered_to_ns: i64,
-    /// Rows applied.
-    pub rows_applied: i64,
-    /// Who asked (the token's name, or a name given).
-    pub requested_by: Option<String>,
-    /// When it was asked (centre's clock).
-    pub created_ns: i64,
-    /// When the last of it arrived, or it was cancelled.
-    pub done_ns: Option<i64>,
-    /// Who cancelled it and when, if it was.
-    pub cancelled: Option<(Option<String>, i64)>,
-}
-
-type RawRequestRow = (
-    i64,
-    i64,
-    i64,
-    i64,
-    i64,
-    Option<String>,
-    i64,
-    Option<i64>,
-    Option<String>,
-    Option<i64>,
-);
-
-fn raw_request_of(r: RawRequestRow) -> RawRequestRecord {
-    RawRequestRecord {
-        id: r.0,
-        from_ns: r.1,
-        to_ns: r.2,
-        delivered_to_ns: r.3,
-        rows_applied: r.4,
-        requested_by: r.5,
-        created_ns: r.6,
-        done_ns: r.7,
-        cancelled: r.9.map(|at| (r.8, at)),
-    }
-}
-
-const RAW_REQUEST_COLUMNS: &str = "request_id, from_ns, to_ns, delivered_to_ns, rows_applied, \
-                                   requested_by, created_ns, done_ns, cancelled_by, cancelled_ns";
-
 impl Central {
-    /// Asks `site` for its raw rows measured in `[from_ns, to_ns)`; `None` when the centre has
-    /// not heard from the site.
-    pub async fn request_raw(
-        &self,
-        site: &SiteName,
-        from_ns: i64,
-        to_ns: i64,
-        requested_by: Option<&str>,
-        now_ns: i64,
-    ) -> StoreResult<Option<RawRequestRecord>> {
-        let row: Option<RawRequestRow> = sqlx::query_as(&format!(
-            "insert into fleet.raw_requests (site, from_ns, to_ns, delivered_to_ns, requested_by, \
-             created_ns) select site, $2, $3, $2, $4, $5 from fleet.sites where site = $1 \
-             returning {RAW_REQUEST_COLUMNS}"
-        ))
-        .bind(site.as_str())
-        .bind(from_ns)
-        .bind(to_ns)
-        .bind(requested_by)
-        .bind(now_ns)
-        .fetch_optional(&self.pool)
-        .await?;
-        Ok(row.map(raw_request_of))
-    }
-
-    /// Cancels a raw request of `site` that is still pending: no site delivers it any more.
-    /// `None` when there is no such request; the request as it stands otherwise (one already
-    /// done or cancelled is left as it is).
-    pub async fn cancel_raw(
-        &self,
-        site: &SiteName,
-        id: i64,
-        by: Option<&str>,
-        now_ns: i64,
-    ) -> StoreResult<Option<RawRequestRecord>> {
-        sqlx::query(
-            "update fleet.raw_requests set done_ns = $4, cancelled_ns = $4, cancelled_by = $3 \
-             where site = $1 and request_id = $2 and done_ns is null",
-        )
-        .bind(site.as_str())
-        .bind(id)
-        .bind(by)
-        .bind(now_ns)
-        .execute(&self.pool)
-        .await?;
-        let row: Option<RawRequestRow> = sqlx::query_as(&format!(
-            "select {RAW_REQUEST_COLUMNS} from fleet.raw_requests where site = $1 \
-             and request_id = $2"
-        ))
-        .bind(site.as_str())
-        .bind(id)
-        .fetch_optional(&self.pool)
-        .await?;
-        Ok(row.map(raw_request_of))
-    }
-
-    /// Every raw request of `site`, the newest first.
-    pub async fn raw_requests(&self, site: &SiteName) -> StoreResult<Vec<RawRequestRecord>> {
-        let rows: Vec<RawRequestRow> = sqlx::query_as(&format!(
-            "select {RAW_REQUEST_COLUMNS} from fleet.raw_requests where site = $1 \
-             order by request_id desc"
-        ))
-        .bind(site.as_str())
-        .fetch_all(&self.pool)
-        .await?;
-        Ok(rows.into_iter().map(raw_request_of).collect())
-    }
-
-    /// The raw requests of `site` not yet delivered, the oldest first: what its uploads are
-    /// answered with.
-    pub async fn pending_raw(&self, site: &SiteName) -> StoreResult<Vec<RawRequest>> {
-        let rows: Vec<(i64, i64, i64, i64)> = sqlx::query_as(
-            "select request_id, from_ns, to_ns, delivered_to_ns from fleet.raw_requests \
-             where site = $1 and done_ns is null order by request_id",
-        )
-        .bind(site.as_str())
-        .fetch_all(&self.pool)
-        .await?;
-        Ok(rows
-            .into_iter()
-            .map(|(id, from_ns, to_ns, delivered_to_ns)| RawRequest {
-                id,
-                from_ns,
-                to_ns,
-                delivered_to_ns,
-            })
-            .collect())
-    }
-
     /// Opens the centre's record of its fleet on the database at `url` (its schema made or
     /// migrated).
     pub async fn open(url: &PostgresUrl) -> StoreResult<Central> {
@@ -789,58 +583,60 @@ impl Central {
         .bind(tier)
         .fetch_one(&mut *tx)
         .await?;
-        // A generation's first batch of the tier continues its nearest ancestor's stream.
-        let start = if stored == NOTHING {
-            inherited_ack(&mut tx, site, generation, tier).await?
-        } else {
-            stored
+        let stored = Acked {
+            seq: acked(stored),
+            stamp_ns: stored_stamp,
         };
-        let outcome = if stored != NOTHING && batch.upto_seq <= stored {
-            SyncOutcome::Duplicate {
-                acked_seq: acked(stored),
-                acked_stamp_ns: stored_stamp,
-            }
-        } else if batch.after_seq > start {
-            SyncOutcome::Gap {
-                acked_seq: acked(stored),
-            }
-        } else {
-            apply_registry(&mut tx, upload.registry).await?;
-            for rows in &batch.tables {
-                if rows.table.tier() != batch.tier {
-                    return Err(StoreError::Malformed(format!(
-                        "{} rows in a batch of the {tier} tier",
-                        rows.table.name()
-                    )));
+        // A generation's first batch of the tier continues its nearest ancestor's stream.
+        let inherited = match stored.seq {
+            None => acked(inherited_ack(&mut tx, site, generation, tier).await?),
+            Some(_) => None,
+        };
+        let span = BatchSpan {
+            after_seq: (batch.after_seq != NOTHING).then_some(batch.after_seq),
+            upto_seq: batch.upto_seq,
+            upto_stamp_ns: batch.upto_stamp_ns,
+            partial: batch.partial,
+        };
+        let outcome = match rule_batch(stored, inherited, span) {
+            BatchRuling::Duplicate => SyncOutcome::Duplicate {
+                acked_seq: stored.seq,
+                acked_stamp_ns: stored.stamp_ns,
+            },
+            BatchRuling::Gap => SyncOutcome::Gap {
+                acked_seq: stored.seq,
+            },
+            BatchRuling::Apply(now_acked) => {
+                apply_registry(&mut tx, upload.registry).await?;
+                for rows in &batch.tables {
+                    if rows.table.tier() != batch.tier {
+                        return Err(StoreError::Malformed(format!(
+                            "{} rows in a batch of the {tier} tier",
+                            rows.table.name()
+                        )));
+                    }
+                    apply_rows(&mut tx, rows, true).await?;
                 }
-                apply_rows(&mut tx, rows, true).await?;
-            }
-            // A part of a commit: its rows are applied (again, the same, if the site starts
-            // the commit over), the acknowledgement waits for the commit's last part.
-            let (acked_seq, acked_stamp_ns) = if batch.partial {
-                (stored, stored_stamp)
-            } else {
-                (batch.upto_seq, batch.upto_stamp_ns)
-            };
-            sqlx::query(
-                "update fleet.streams set acked_seq = $3, acked_stamp_ns = $8, \
-                 rows_applied = rows_applied + $4, bytes_received = bytes_received + $5, \
-                 batches_applied = batches_applied + 1, updated_ns = $6 \
-                 where site = $1 and tier = $2 and generation = $7",
-            )
-            .bind(site.as_str())
-            .bind(tier)
-            .bind(acked_seq)
-            .bind(i64::try_from(batch.rows()).unwrap_or(i64::MAX))
-            .bind(i64::try_from(upload.wire_bytes).unwrap_or(i64::MAX))
-            .bind(now_ns)
-            .bind(generation)
-            .bind(acked_stamp_ns)
-            .execute(&mut *tx)
-            .await?;
-            SyncOutcome::Applied {
-                acked_seq: acked(acked_seq),
-                acked_stamp_ns,
+                sqlx::query(
+                    "update fleet.streams set acked_seq = $3, acked_stamp_ns = $8, \
+                     rows_applied = rows_applied + $4, bytes_received = bytes_received + $5, \
+                     batches_applied = batches_applied + 1, updated_ns = $6 \
+                     where site = $1 and tier = $2 and generation = $7",
+                )
+                .bind(site.as_str())
+                .bind(tier)
+                .bind(now_acked.seq.unwrap_or(NOTHING))
+                .bind(i64::try_from(batch.rows()).unwrap_or(i64::MAX))
+                .bind(i64::try_from(upload.wire_bytes).unwrap_or(i64::MAX))
+                .bind(now_ns)
+                .bind(generation)
+                .bind(now_acked.stamp_ns)
+                .execute(&mut *tx)
+                .await?;
+                SyncOutcome::Applied {
+                    acked_seq: now_acked.seq,
+                    acked_stamp_ns: now_acked.stamp_ns,
+                }
             }
         };
         tx.commit().await?;
