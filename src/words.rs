@@ -103,9 +103,59 @@ macro_rules! words {
     };
 }
 
+/// A word of vocabulary `T` read from another program (a site of another version): a word this
+/// version does not know is kept as it came, so one new word does not refuse a whole message.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Lenient<T> {
+    /// A word of the vocabulary.
+    Known(T),
+    /// Another word.
+    Unknown(String),
+}
+
+impl<T: Word> Lenient<T> {
+    /// The value, when the word is the vocabulary's.
+    pub fn known(&self) -> Option<T> {
+        match self {
+            Lenient::Known(v) => Some(*v),
+            Lenient::Unknown(_) => None,
+        }
+    }
+
+    /// The word as it came.
+    pub fn as_str(&self) -> &str {
+        match self {
+            Lenient::Known(v) => v.word(),
+            Lenient::Unknown(w) => w,
+        }
+    }
+}
+
+impl<T: Word> From<T> for Lenient<T> {
+    fn from(v: T) -> Self {
+        Lenient::Known(v)
+    }
+}
+
+impl<T: Word> serde::Serialize for Lenient<T> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.as_str())
+    }
+}
+
+impl<'de, T: Word> serde::Deserialize<'de> for Lenient<T> {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = <std::borrow::Cow<'de, str> as serde::Deserialize>::deserialize(d)?;
+        Ok(T::ALL.iter().find(|v| v.word() == text).map_or_else(
+            || Lenient::Unknown(text.into_owned()),
+            |v| Lenient::Known(*v),
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
-    use super::Word;
+    use super::{Lenient, Word};
 
     crate::words! {
         /// A test vocabulary.
@@ -132,5 +182,19 @@ mod tests {
             .to_string();
         assert!(err.contains("three") && err.contains("two_words"), "{err}");
         assert_eq!(<Sample as Word>::WHAT, "sample");
+    }
+
+    #[test]
+    fn a_lenient_word_keeps_one_it_does_not_know() {
+        let known: Lenient<Sample> = serde_json::from_str("\"two_words\"").unwrap();
+        assert_eq!(known, Lenient::Known(Sample::TwoWords));
+        assert_eq!(known.known(), Some(Sample::TwoWords));
+        let other: Lenient<Sample> = serde_json::from_str("\"three\"").unwrap();
+        assert_eq!(other.known(), None);
+        assert_eq!(other.as_str(), "three");
+        // Written back as it came.
+        assert_eq!(serde_json::to_string(&other).unwrap(), "\"three\"");
+        assert_eq!(serde_json::to_string(&known).unwrap(), "\"two_words\"");
+        assert!(serde_json::from_str::<Lenient<Sample>>("3").is_err());
     }
 }

@@ -29,10 +29,6 @@ pub(super) fn site_of(text: &str) -> Result<SiteName, ApiError> {
     })
 }
 
-/// The largest report of state a site may send (its targets, their descriptions, its
-/// problems), as JSON.
-const MAX_REPORT_BYTES: usize = 256 * 1024;
-
 /// Uploads read at once (decompressed, parsed and applied): each may take up to
 /// `[central] max_sync_mb` of memory, so a burst of them cannot take the host's.
 pub(super) const SYNC_SLOTS: usize = 2;
@@ -156,114 +152,6 @@ async fn read_upload(
     .map_err(|e| ApiError::internal(format!("the upload's reader failed: {e}")))?
 }
 
-/// The columns of uploaded rows that place them in time partitions: a value outside
-/// [`crate::clock::EARLIEST_NS`] to a day past the centre's clock would make partitions no one
-/// can keep (and an upkeep that fails for the site).
-const PARTITION_TIMES: [&str; 2] = ["time_ns", "bucket_ns"];
-
-/// The largest magnitude of an uploaded real number: a site stores translations to 1e8 mm and
-/// covariances to their squares; beyond, a statistic of the copy would overflow.
-const MAX_UPLOADED_REAL: f64 = 1e20;
-
-/// How far past the centre's clock an uploaded row's time may lie.
-const UPLOAD_FUTURE_NS: i64 = 86_400_000_000_000;
-
-/// Refuses tables of an upload that cannot be written (naming `field[i]`), that are not of
-/// `tier`, or whose rows lie outside the times the centre keeps (before
-/// [`crate::clock::EARLIEST_NS`], or over a day past `now_ns`).
-fn check_tables(
-    field: &str,
-    tables: &[crate::store::outbox::TableRows],
-    tier: crate::store::outbox::Tier,
-    now_ns: i64,
-) -> Result<(), ApiError> {
-    use crate::store::outbox::ColumnValues;
-    let latest = now_ns.saturating_add(UPLOAD_FUTURE_NS);
-    for (i, rows) in tables.iter().enumerate() {
-        if let Some(problem) = rows.problem() {
-            return Err(ApiError::invalid_field(&format!("{field}[{i}]"), problem));
-        }
-        if let Some(problem) = repeated_key(rows) {
-            return Err(ApiError::invalid_field(&format!("{field}[{i}]"), problem));
-        }
-        if rows.table.tier() != tier {
-            return Err(ApiError::invalid_field(
-                &format!("{field}[{i}].table"),
-                format!("not a table of the {} tier", tier.name()),
-            ));
-        }
-        for (j, ((name, _), values)) in rows.table.columns().iter().zip(&rows.columns).enumerate() {
-            if let ColumnValues::Real(reals) = values
-                && let Some((k, v)) = reals.iter().enumerate().find_map(|(k, v)| {
-                    v.filter(|v| !v.is_finite() || v.abs() > MAX_UPLOADED_REAL)
-                        .map(|v| (k, v))
-                })
-            {
-                return Err(ApiError::invalid_field(
-                    &format!("{field}[{i}].columns[{j}].real[{k}]"),
-                    format!(
-                        "{name} {v:e} is beyond anything a site stores (at most \
-                         {MAX_UPLOADED_REAL:e} in magnitude)"
-                    ),
-                ));
-            }
-            if !PARTITION_TIMES.contains(name) {
-                continue;
-            }
-            let ColumnValues::Int(times) = values else {
-                continue;
-            };
-            if let Some((k, t)) = times.iter().enumerate().find_map(|(k, t)| {
-                t.filter(|t| !(crate::clock::EARLIEST_NS..=latest).contains(t))
-                    .map(|t| (k, t))
-            }) {
-                return Err(ApiError::invalid_field(
-                    &format!("{field}[{i}].columns[{j}].int[{k}]"),
-                    format!(
-                        "{name} {} lies outside the times the centre keeps ({} to a day past its \
-                         clock)",
-                        crate::clock::format_ns(t),
-                        crate::clock::format_ns(crate::clock::EARLIEST_NS)
-                    ),
-                ));
-            }
-        }
-    }
-    Ok(())
-}
-
-/// Two rows of one uploaded table at the same key, if there are: the database would refuse
-/// the upload every time it came (one statement cannot write a row twice).
-fn repeated_key(rows: &crate::store::outbox::TableRows) -> Option<String> {
-    use crate::store::outbox::ColumnValues;
-    let columns = rows.table.columns();
-    let key: Vec<&Vec<Option<i64>>> = rows
-        .table
-        .key()
-        .iter()
-        .filter_map(|k| columns.iter().position(|(name, _)| name == k))
-        .filter_map(|at| match &rows.columns[at] {
-            ColumnValues::Int(v) => Some(v),
-            _ => None,
-        })
-        .collect();
-    if key.len() != rows.table.key().len() {
-        return None;
-    }
-    let mut seen = std::collections::HashMap::with_capacity(rows.rows());
-    for row in 0..rows.rows() {
-        let values: Vec<Option<i64>> = key.iter().map(|c| c[row]).collect();
-        if let Some(first) = seen.insert(values, row) {
-            return Some(format!(
-                "rows {first} and {row} of {} have the same key ({})",
-                rows.table.name(),
-                rows.table.key().join(", ")
-            ));
-        }
-    }
-    None
-}
-
 /// `POST /api/v1/sites/{site}/sync`: a site's upload, applied in one transaction exactly once.
 #[utoipa::path(post, path = "/sites/{site}/sync", tag = "fleet",
     params(("site" = String, Path, description = "The site, as its token names it")),
@@ -302,99 +190,10 @@ pub(super) async fn post_sync(
     // Held until the upload is applied: what it was read into lives until then.
     let _slot = super::take_slot(&app.sync_slots, SYNC_WAIT, "uploads").await?;
     let request = read_upload(headers, body.clone(), budget).await?;
-    let batch: Option<OutboxBatch> = request.batch.map(Into::into);
-    if let Some(b) = &batch {
-        check_tables("batch.tables", &b.tables, b.tier, app.service.now_ns())?;
-        if b.upto_seq <= b.after_seq {
-            return Err(ApiError::invalid_field(
-                "batch.upto_seq",
-                "must be after `after_seq`",
-            ));
-        }
-        match request.head_seq {
-            None => {
-                return Err(ApiError::invalid_field(
-                    "head_seq",
-                    "an upload with a batch says the site's newest commit",
-                ));
-            }
-            Some(head) if b.upto_seq > head => {
-                return Err(ApiError::invalid_field(
-                    "batch.upto_seq",
-                    format!("{} is past the site's newest commit, {head}", b.upto_seq),
-                ));
-            }
-            Some(_) => {}
-        }
-    }
-    for (field, name) in std::iter::once(("generation", request.generation.as_deref())).chain(
-        request
-            .lineage
-            .iter()
-            .map(|g| ("lineage", Some(g.as_str()))),
-    ) {
-        if let Some(name) = name
-            && (name.is_empty()
-                || name.len() > 64
-                || !name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-'))
-        {
-            return Err(ApiError::invalid_field(
-                field,
-                "a generation is 1 to 64 letters, digits or `-`",
-            ));
-        }
-    }
-    if request.lineage.len() > crate::store::outbox::LINEAGE_KEPT {
-        return Err(ApiError::invalid_field(
-            "lineage",
-            format!("at most {} generations", crate::store::outbox::LINEAGE_KEPT),
-        ));
-    }
-    if let Some(r) = &request.requested {
-        if batch.is_some() {
-            return Err(ApiError::invalid_field(
-                "requested",
-                "an upload carries a batch or requested rows, not both",
-            ));
-        }
-        check_tables(
-            "requested.tables",
-            &r.tables,
-            crate::store::outbox::Tier::Raw,
-            app.service.now_ns(),
-        )?;
-        if r.to_ns <= r.from_ns {
-            return Err(ApiError::invalid_field(
-                "requested.to_ns",
-                "must be after `from_ns`",
-            ));
-        }
-    }
     let status = request
-        .status
-        .as_ref()
-        .map(serde_json::to_string)
-        .transpose()
-        .map_err(|e| ApiError::internal(e.to_string()))?;
-    // A site's report is shown to every reader of the fleet: bounded, so that one site cannot
-    // make `GET /api/v1/sites` large for all.
-    if let Some(text) = &status
-        && text.len() > MAX_REPORT_BYTES
-    {
-        return Err(ApiError::invalid_field(
-            "status",
-            format!(
-                "the report of state is {} bytes, at most {MAX_REPORT_BYTES} are kept",
-                text.len()
-            ),
-        ));
-    }
-    if request.backlog.len() > crate::store::outbox::Tier::ALL.len() {
-        return Err(ApiError::invalid_field(
-            "backlog",
-            "one entry a tier at most",
-        ));
-    }
+        .check(app.service.now_ns())
+        .map_err(|p| ApiError::invalid_field(&p.field, p.message))?;
+    let batch: Option<OutboxBatch> = request.batch.map(Into::into);
     let backlog =
         serde_json::to_string(&request.backlog).map_err(|e| ApiError::internal(e.to_string()))?;
     let upload = SiteUpload {
@@ -568,7 +367,7 @@ pub(super) async fn list_sites(State(app): State<AppState>) -> Result<Json<Sites
                 .unwrap_or_default();
             let alarm = targets
                 .iter()
-                .filter_map(|t| crate::alarms::Level::parse(&t.alarm))
+                .filter_map(|t| t.alarm.known())
                 .max()
                 .unwrap_or(crate::alarms::Level::None);
             SiteOut {

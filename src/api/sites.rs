@@ -58,7 +58,7 @@ impl SiteView {
             .targets
             .iter()
             .find(|t| t.name == name)
-            .and_then(|t| TargetStatus::parse(&t.status))
+            .and_then(|t| t.status.known())
     }
 }
 

@@ -7,8 +7,9 @@
 //! compressed with zstd; retention at the site never prunes what the centre has not
 //! acknowledged. The centre (`[central] enabled`, on PostgreSQL) applies each upload in one
 //! transaction exactly once ([`crate::store::Central`]) and serves the fleet
-//! (`GET /api/v1/sites`). The wire format is in [`protocol`].
+//! (`GET /api/v1/sites`). The wire format is in [`protocol`], what a centre checks of an upload in [`checks`].
 
+pub mod checks;
 pub mod protocol;
 pub mod upkeep;
 pub mod uploader;

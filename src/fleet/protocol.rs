@@ -258,10 +258,13 @@ pub fn describe_targets(model: &crate::model::Model) -> Vec<TargetDescription> {
 pub struct TargetStatus {
     /// The target.
     pub name: String,
-    /// `ok`, `stale`, `degraded`, `initializing` or `predicted`.
-    pub status: String,
-    /// Its alarm level: `none`, `warn` or `alarm`.
-    pub alarm: String,
+    /// `ok`, `stale`, `degraded`, `initializing` or `predicted` (a word of a site of another
+    /// version kept as it came).
+    #[schema(value_type = String)]
+    pub status: crate::words::Lenient<crate::bank::TargetStatus>,
+    /// Its alarm level: `none`, `warn` or `alarm` (likewise).
+    #[schema(value_type = String)]
+    pub alarm: crate::words::Lenient<crate::alarms::Level>,
     /// The time of its newest result (RFC 3339).
     pub time: Option<String>,
 }

@@ -295,8 +295,8 @@ fn site_status(service: &Service, described: &[super::protocol::TargetDescriptio
                 let view = &snapshot.targets[i];
                 TargetStatus {
                     name: t.name.clone(),
-                    status: now.status.name().to_owned(),
-                    alarm: view.alarms.level().name().to_owned(),
+                    status: now.status.into(),
+                    alarm: view.alarms.level().into(),
                     time: view
                         .latest
                         .as_ref()
