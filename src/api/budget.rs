@@ -184,7 +184,7 @@ pub(super) async fn get_budget(
     Query(q): Query<BudgetQuery>,
 ) -> Result<Json<BudgetOut>, ApiError> {
     let (ti, _) = target_index(&app, &name)?;
-    let source = super::targets::parse_source(q.source.as_deref())?;
+    let source = super::history::parse_source(q.source.as_deref())?;
     let snapshot = app.service.snapshot();
     let (time_ns, budget) = snapshot.bank.budget(ti, source).ok_or_else(|| {
         ApiError::not_found(format!(

@@ -17,6 +17,7 @@ mod error;
 mod events;
 mod fleet;
 mod frames;
+mod history;
 mod ingest;
 mod jsonpath;
 mod links;
@@ -525,8 +526,8 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(calibration::post_camera_calibration))
         .routes(routes!(targets::list_targets))
         .routes(routes!(targets::get_compensation))
-        .routes(routes!(targets::get_stats))
-        .routes(routes!(targets::get_history))
+        .routes(routes!(history::get_stats))
+        .routes(routes!(history::get_history))
         .routes(routes!(targets::get_reference, targets::post_reference))
         .routes(routes!(targets::get_filter))
         .routes(routes!(budget::get_budget))

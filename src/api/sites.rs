@@ -13,11 +13,11 @@ use super::AppState;
 use super::alarms::{AlarmsOut, AlarmsQuery, alarms_of};
 use super::error::{ApiError, ErrorBody};
 use super::fleet::{centre, site_of};
+use super::history::{HistoryQuery, StatsOut, WindowQuery, history_of, stats_of};
 use super::query::Query;
 use super::targets::{
-    AtQuery, CompensationOut, CompensationSource, Described, Evaluated, HistoryQuery, ReferenceOut,
-    ReferencesOut, StatsOut, TargetOut, WindowQuery, compensation_out, from_history, history_of,
-    references_of, stats_of,
+    AtQuery, CompensationOut, CompensationSource, Described, Evaluated, ReferenceOut,
+    ReferencesOut, TargetOut, compensation_out, from_history, references_of,
 };
 use crate::bank::{ResultSource, TargetStatus};
 use crate::clock::parse_query_time;
@@ -196,7 +196,7 @@ pub(super) async fn get_site_stats(
            ("name" = String, Path, description = "Target frame"), HistoryQuery),
     responses(
         (status = 200, description = "Min, mean and max per time bucket of the site's uploaded results (JSON), or one row per bucket (`format=csv`)", content(
-            (super::targets::HistoryOut = "application/json"),
+            (super::history::HistoryOut = "application/json"),
             (String = "text/csv"),
         )),
         (status = 404, description = "Unknown site or target", body = ErrorBody),
