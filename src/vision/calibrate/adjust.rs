@@ -181,12 +181,16 @@ impl<'a> Problem<'a> {
         let mut jtr = DVector::<f64>::zeros(n);
         let mut chi2 = 0.0;
         let mut view_cost_px2 = vec![0.0; poses.len()];
+        // Per point, on the stack: the Jacobian over the free globals (two rows, `nf` of the
+        // columns used) and over the pose, their products accumulated by hand. A heap
+        // matrix a point cost more than the arithmetic.
+        let mut ji = [[0.0_f64; GLOBALS]; 2];
         for (v, pose) in poses.iter().enumerate() {
             let r_mat = pose.rotation.to_rotation_matrix().into_inner();
             let mut jii = DMatrix::<f64>::zeros(nf, nf);
-            let mut jip = DMatrix::<f64>::zeros(nf, 6);
+            let mut jip = [[0.0_f64; 6]; GLOBALS];
             let mut jpp = SMatrix::<f64, 6, 6>::zeros();
-            let mut gi = DVector::<f64>::zeros(nf);
+            let mut gi = [0.0_f64; GLOBALS];
             let mut gp = Vector6::<f64>::zeros();
             for (k, offset) in offsets[v].iter().enumerate() {
                 let x = self.point(v, k, sag_mm);
@@ -200,31 +204,50 @@ impl<'a> Problem<'a> {
                 let dpr: Matrix2x3<f64> = dp * r_mat;
                 // A sag moves the point along the plate's z axis by its basis.
                 let b = self.sag_basis[v][k];
-                let ji = DMatrix::<f64>::from_fn(2, nf, |row, col| match free[col] {
-                    SAG_X => dpr[(row, 2)] * b[0],
-                    SAG_Y => dpr[(row, 2)] * b[1],
-                    i => intrinsic[(row, i)],
-                });
+                for (col, &i) in free.iter().enumerate() {
+                    for (row, out) in ji.iter_mut().enumerate() {
+                        out[col] = match i {
+                            SAG_X => dpr[(row, 2)] * b[0],
+                            SAG_Y => dpr[(row, 2)] * b[1],
+                            i => intrinsic[(row, i)],
+                        };
+                    }
+                }
                 let mut jp = SMatrix::<f64, 2, 6>::zeros();
                 jp.fixed_view_mut::<2, 3>(0, 0).copy_from(&dpr);
                 jp.fixed_view_mut::<2, 3>(0, 3)
                     .copy_from(&(-(dpr * skew(&x))));
-                let rv = DVector::from_column_slice(r.as_slice());
-                jii += ji.transpose() * &ji * w;
-                jip += ji.transpose() * DMatrix::from_column_slice(2, 6, jp.as_slice()) * w;
+                for a in 0..nf {
+                    let (wa0, wa1) = (w * ji[0][a], w * ji[1][a]);
+                    for bcol in a..nf {
+                        jii[(a, bcol)] += wa0 * ji[0][bcol] + wa1 * ji[1][bcol];
+                    }
+                    for (c, out) in jip[a].iter_mut().enumerate() {
+                        *out += wa0 * jp[(0, c)] + wa1 * jp[(1, c)];
+                    }
+                    gi[a] += wa0 * r.x + wa1 * r.y;
+                }
                 jpp += jp.transpose() * jp * w;
-                gi += ji.transpose() * &rv * w;
                 gp += jp.transpose() * r * w;
+            }
+            // The upper triangle was summed.
+            for a in 0..nf {
+                for bcol in 0..a {
+                    jii[(a, bcol)] = jii[(bcol, a)];
+                }
             }
             let o = nf + 6 * v;
             let mut top = jtj.view_mut((0, 0), (nf, nf));
             top += &jii;
-            jtj.view_mut((0, o), (nf, 6)).copy_from(&jip);
-            jtj.view_mut((o, 0), (6, nf)).copy_from(&jip.transpose());
+            for a in 0..nf {
+                for c in 0..6 {
+                    jtj[(a, o + c)] = jip[a][c];
+                    jtj[(o + c, a)] = jip[a][c];
+                }
+                jtr[a] += gi[a];
+            }
             jtj.view_mut((o, o), (6, 6))
                 .copy_from(&DMatrix::from_column_slice(6, 6, jpp.as_slice()));
-            let mut head = jtr.rows_mut(0, nf);
-            head += &gi;
             jtr.rows_mut(o, 6)
                 .copy_from(&DVector::from_column_slice(gp.as_slice()));
         }
