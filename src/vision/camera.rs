@@ -73,6 +73,17 @@ impl LensModel {
     }
 }
 
+/// The radial distortion's factor at one radius, with what its users need of it.
+#[derive(Debug, Clone, Copy)]
+struct RadialFactor {
+    /// The factor the normalized point is scaled by.
+    radial: f64,
+    /// The rational model's denominator (1 for Brown-Conrady).
+    denominator: f64,
+    /// `d(radial) / d(r^2)`.
+    d_radial_d_r2: f64,
+}
+
 /// A calibrated camera: intrinsics, distortion and image size.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CameraModel {
@@ -147,36 +158,43 @@ impl CameraModel {
     /// inside the field sends two rays to one pixel, or a ray to infinity; a fit that wanders
     /// there along a direction the data do not determine is not a lens.
     pub fn radially_monotonic_to(&self, r2_max: f64) -> bool {
-        let [k1, k2, _, _, k3, k4, k5, k6, ..] = self.distortion;
         const STEPS: usize = 64;
         (0..=STEPS).all(|i| {
             let r2 = r2_max * i as f64 / STEPS as f64;
-            let numerator = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-            let denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6));
-            if denominator <= 0.0 {
-                return false;
-            }
-            let radial = numerator / denominator;
-            let g = (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-                - radial * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)))
-                / denominator;
+            let f = self.radial_factor(r2);
             // d(r radial)/dr = radial + 2 r^2 d(radial)/d(r^2)
-            radial + 2.0 * r2 * g > 0.0
+            f.denominator > 0.0 && f.radial + 2.0 * r2 * f.d_radial_d_r2 > 0.0
         })
+    }
+
+    /// The radial factor at `r2`, the square of the normalized radius: the rational
+    /// `(1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)` (Brown-Conrady's
+    /// polynomial when `k4 k5 k6` are zero), its denominator and its derivative in `r^2`.
+    fn radial_factor(&self, r2: f64) -> RadialFactor {
+        let [k1, k2, _, _, k3, k4, k5, k6, ..] = self.distortion;
+        let numerator = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6));
+        let radial = numerator / denominator;
+        // The quotient rule.
+        let d_numerator = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
+        let d_denominator = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2);
+        RadialFactor {
+            radial,
+            denominator,
+            d_radial_d_r2: (d_numerator - radial * d_denominator) / denominator,
+        }
     }
 
     /// Distorts normalized coordinates, with the 2x2 Jacobian `d(xd, yd) / d(x, y)`.
     pub fn distort(&self, xy: Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>) {
-        let [k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4] = self.distortion;
+        let [_, _, p1, p2, _, _, _, _, s1, s2, s3, s4] = self.distortion;
         let (x, y) = (xy.x, xy.y);
         let r2 = x * x + y * y;
-        let numerator = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        let denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6));
-        let radial = numerator / denominator;
-        // d(radial)/d(r2), by the quotient rule.
-        let d_numerator = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
-        let d_denominator = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2);
-        let g = (d_numerator - radial * d_denominator) / denominator;
+        let RadialFactor {
+            radial,
+            d_radial_d_r2: g,
+            ..
+        } = self.radial_factor(r2);
         // d(prism)/d(r2) of each axis.
         let (px, py) = (s1 + 2.0 * s2 * r2, s3 + 2.0 * s4 * r2);
         let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + r2 * (s1 + s2 * r2);
@@ -217,13 +235,13 @@ impl CameraModel {
     pub fn intrinsics_jacobian(&self, p: &Vec3) -> SMatrix<f64, 2, INTRINSICS> {
         let (x, y) = (p.x / p.z, p.y / p.z);
         let (xd, _) = self.distort(Vector2::new(x, y));
-        let [_, _, _, _, _, k4, k5, k6, ..] = self.distortion;
         let r2 = x * x + y * y;
         let (r4, r6) = (r2 * r2, r2 * r2 * r2);
-        let denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6));
-        let numerator =
-            1.0 + r2 * (self.distortion[0] + r2 * (self.distortion[1] + r2 * self.distortion[4]));
-        let radial = numerator / denominator;
+        let RadialFactor {
+            radial,
+            denominator,
+            ..
+        } = self.radial_factor(r2);
         let (fx, fy) = (self.fx_px, self.fy_px);
         let mut j = SMatrix::<f64, 2, INTRINSICS>::zeros();
         j[(0, 0)] = xd.x;
