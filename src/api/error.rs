@@ -315,6 +315,16 @@ impl From<ServiceError> for ApiError {
                 ErrorCode::ValueRefused,
                 format!("the database refuses a value of the request: {m}"),
             ),
+            // The same upload is refused every time: the site must stop that stream, not retry.
+            ServiceError::Storage(e @ crate::store::StoreError::UploadRefused(_)) => ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                ErrorCode::InvalidRequest,
+                e.to_string(),
+            ),
+            // Neither a corrupted row nor a defect goes away with a retry.
+            ServiceError::Storage(
+                e @ (crate::store::StoreError::Malformed(_) | crate::store::StoreError::Defect(_)),
+            ) => ApiError::internal(e.to_string()),
             ServiceError::Storage(e) => ApiError::new(
                 StatusCode::SERVICE_UNAVAILABLE,
                 ErrorCode::StorageUnavailable,

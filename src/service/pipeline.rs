@@ -453,9 +453,8 @@ impl Pipeline {
                 apply(job, &mut step).await?;
             }
             let record = bank.record();
-            let json = serde_json::to_string(&record).map_err(|e| {
-                StoreError::Malformed(format!("cannot encode the filter state: {e}"))
-            })?;
+            let json = serde_json::to_string(&record)
+                .map_err(|e| StoreError::Defect(format!("cannot encode the filter state: {e}")))?;
             tx.save_filter_state(digest, &json, now).await?;
             tx.commit().await?;
             Ok(record)
@@ -749,7 +748,7 @@ async fn ingest(
             Ok(o) => o,
             // Checked above; a failure here would be a defect, not bad input.
             Err(e) => {
-                return Err(StoreError::Malformed(format!(
+                return Err(StoreError::Defect(format!(
                     "the filter refused a checked sample: {e}"
                 )));
             }

@@ -126,6 +126,13 @@ pub enum StoreError {
     /// A stored value could not be decoded (a corrupted or foreign database).
     #[error("stored data is malformed: {0}")]
     Malformed(String),
+    /// A site's upload holds rows the centre cannot write (of another tier than its batch's,
+    /// or not the table's columns): the same upload is refused every time.
+    #[error("the upload cannot be applied: {0}")]
+    UploadRefused(String),
+    /// What a check upstream should have prevented did happen (a defect; nothing is written).
+    #[error("a defect: {0}")]
+    Defect(String),
     /// A backup, or a new outbox generation, cannot be made (the file exists or is missing,
     /// `pg_dump` failed); nothing stored changed.
     #[error("{0}")]

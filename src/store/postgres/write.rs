@@ -212,7 +212,7 @@ impl CopyRows {
     fn finish(mut self) -> StoreResult<Vec<u8>> {
         self.end_row();
         if self.misshapen {
-            return Err(StoreError::Malformed(format!(
+            return Err(StoreError::Defect(format!(
                 "a row for `{}` without its {} fields",
                 self.table.name,
                 self.table.width()

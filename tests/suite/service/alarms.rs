@@ -211,3 +211,61 @@ async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note(backend: Backend
         .clone();
     assert_eq!(shown, a);
 }
+
+/// A damaged alarm row (a level no version writes) refuses the acknowledgement of that alarm
+/// alone, as a failure of the service (500, its detail logged, not told) rather than as a
+/// storage outage to retry; another alarm is acknowledged in the same breath.
+#[tokio::test]
+async fn a_damaged_alarm_row_refuses_its_own_acknowledgement_alone() {
+    let config = ONE_LINK.replace("dwell_s = 1.0", "dwell_s = 0.0");
+    let app = TestApp::start(Some(&config)).await;
+    app.set_straight_reference().await;
+    // Raised and cleared twice.
+    let samples: Vec<_> = (0..100)
+        .map(|k| {
+            turned_sample(
+                T0_NS + k * 40_000_000,
+                if (k / 25) % 2 == 0 { 200.0 } else { 0.0 },
+            )
+        })
+        .collect();
+    let (status, body) = app
+        .post_live("/api/v1/samples", &json!({ "samples": samples }))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, list) = app.get("/api/v1/alarms?target=G").await;
+    let raised: Vec<i64> = list["alarms"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|a| a["to"] != "none")
+        .map(|a| a["id"].as_i64().unwrap())
+        .collect();
+    assert!(raised.len() >= 2, "{list}");
+    let conn = rusqlite::Connection::open(&app.database).unwrap();
+    conn.busy_timeout(std::time::Duration::from_secs(5))
+        .unwrap();
+    let changed = conn
+        .execute(
+            "update alarms set to_level = 'purple' where alarm_id = ?1",
+            [raised[0]],
+        )
+        .unwrap();
+    assert_eq!(changed, 1);
+    drop(conn);
+    let ack = json!({"by": "watch officer"});
+    let (status, body) = app
+        .post_json(&format!("/api/v1/alarms/{}/ack", raised[0]), &ack)
+        .await;
+    assert_eq!(status, StatusCode::INTERNAL_SERVER_ERROR, "{body}");
+    assert_eq!(body["error"]["code"], "internal");
+    assert!(
+        !body.to_string().contains("purple"),
+        "the detail is logged, not told: {body}"
+    );
+    let (status, body) = app
+        .post_json(&format!("/api/v1/alarms/{}/ack", raised[1]), &ack)
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["acknowledged_by"], "watch officer");
+}

@@ -213,7 +213,7 @@ fn array_type(kind: Kind) -> &'static str {
 /// Writes a table's rows, each replacing the row at its key (`replace`), or only where none is.
 async fn apply_rows(conn: &mut PgConnection, rows: &TableRows, replace: bool) -> StoreResult<()> {
     if let Some(problem) = rows.problem() {
-        return Err(StoreError::Malformed(problem));
+        return Err(StoreError::UploadRefused(problem));
     }
     let table = rows.table;
     let spec = table.columns();
@@ -610,7 +610,7 @@ impl Central {
                 apply_registry(&mut tx, upload.registry).await?;
                 for rows in &batch.tables {
                     if rows.table.tier() != batch.tier {
-                        return Err(StoreError::Malformed(format!(
+                        return Err(StoreError::UploadRefused(format!(
                             "{} rows in a batch of the {tier} tier",
                             rows.table.name()
                         )));

@@ -51,7 +51,7 @@ pub(super) async fn apply_requested(
     let mut rows_applied = 0i64;
     for rows in &slice.tables {
         if rows.table.tier() != Tier::Raw {
-            return Err(StoreError::Malformed(format!(
+            return Err(StoreError::UploadRefused(format!(
                 "{} rows in a slice of raw rows",
                 rows.table.name()
             )));
