@@ -1,6 +1,6 @@
 //! Alarms through the service: a deformation ramp stores exactly its transitions.
 
-use super::helpers::{Backend, T0_NS, TestApp, turned_sample};
+use super::helpers::{Backend, T0_NS, TestApp, alarms_after_turns, turned_sample};
 use axum::http::StatusCode;
 use serde_json::json;
 
@@ -128,15 +128,7 @@ async fn an_alarm_is_acknowledged_once_with_who_when_and_a_note(backend: Backend
     app.set_straight_reference().await;
     let mut events = app.service.subscribe();
     // 200 arcsec about x for 2 s, then back to 0: up to `alarm` and back to `none`.
-    let samples: Vec<_> = (0..100)
-        .map(|k| turned_sample(T0_NS + k * 40_000_000, if k < 50 { 200.0 } else { 0.0 }))
-        .collect();
-    let (status, body) = app
-        .post_live("/api/v1/samples", &json!({ "samples": samples }))
-        .await;
-    assert_eq!(status, StatusCode::OK, "{body}");
-    let (_, list) = app.get("/api/v1/alarms?target=G").await;
-    let alarms = list["alarms"].as_array().unwrap().clone();
+    let alarms = alarms_after_turns(&app, &[200.0, 200.0, 0.0, 0.0]).await;
     let raised = alarms.iter().find(|a| a["to"] == "alarm").expect("raised");
     let cleared = alarms.iter().find(|a| a["to"] == "none").expect("cleared");
     assert!(raised["acknowledged_by"].is_null() && raised["acknowledged_at"].is_null());
@@ -221,27 +213,13 @@ async fn a_damaged_alarm_row_refuses_its_own_acknowledgement_alone() {
     let app = TestApp::start(Some(&config)).await;
     app.set_straight_reference().await;
     // Raised and cleared twice.
-    let samples: Vec<_> = (0..100)
-        .map(|k| {
-            turned_sample(
-                T0_NS + k * 40_000_000,
-                if (k / 25) % 2 == 0 { 200.0 } else { 0.0 },
-            )
-        })
-        .collect();
-    let (status, body) = app
-        .post_live("/api/v1/samples", &json!({ "samples": samples }))
-        .await;
-    assert_eq!(status, StatusCode::OK, "{body}");
-    let (_, list) = app.get("/api/v1/alarms?target=G").await;
-    let raised: Vec<i64> = list["alarms"]
-        .as_array()
-        .unwrap()
+    let raised: Vec<i64> = alarms_after_turns(&app, &[200.0, 0.0, 200.0, 0.0])
+        .await
         .iter()
         .filter(|a| a["to"] != "none")
         .map(|a| a["id"].as_i64().unwrap())
         .collect();
-    assert!(raised.len() >= 2, "{list}");
+    assert!(raised.len() >= 2, "{raised:?}");
     let conn = rusqlite::Connection::open(&app.database).unwrap();
     conn.busy_timeout(std::time::Duration::from_secs(5))
         .unwrap();

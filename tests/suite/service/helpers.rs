@@ -282,6 +282,23 @@ pub fn turned_sample(time_ns: i64, arcsec: f64) -> Value {
                        "pose": {"t_mm": [0, 0, 3000], "q_wxyz": [half.cos(), half.sin(), 0, 0]}})
 }
 
+/// Posts live samples of `G_from_B` at 25 Hz, turned about x by each of `turns_arcsec` for a
+/// second each, and gives target G's alarms as `GET /alarms` lists them.
+pub async fn alarms_after_turns(app: &TestApp, turns_arcsec: &[f64]) -> Vec<Value> {
+    let samples: Vec<Value> = (0..25 * turns_arcsec.len())
+        .map(|k| turned_sample(T0_NS + k as i64 * 40_000_000, turns_arcsec[k / 25]))
+        .collect();
+    let (status, body) = app
+        .post_live(
+            "/api/v1/samples",
+            &serde_json::json!({ "samples": samples }),
+        )
+        .await;
+    assert_eq!(status, axum::http::StatusCode::OK, "{body}");
+    let (_, list) = app.get("/api/v1/alarms?target=G").await;
+    list["alarms"].as_array().cloned().unwrap_or_default()
+}
+
 /// A one-link installation: `G_from_B` measured directly, target G from base B.
 /// One measured link `G_from_B` (25 Hz), target G with alarm thresholds of 60 and 120
 /// arc-seconds and no dwell (each level is taken at once), and `extra` appended: what the

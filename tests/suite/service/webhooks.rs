@@ -2,7 +2,7 @@
 //! `GET /api/v1/alarms` shows it, the signature checks out with the secret, `min_level` filters,
 //! a failing receiver is retried, a refusing one is given up, and all of it is counted.
 
-use super::helpers::{T0_NS, TestApp, alarmed_installation, turned_sample};
+use super::helpers::{T0_NS, TestApp, alarmed_installation, alarms_after_turns, turned_sample};
 use axum::http::{HeaderMap, StatusCode};
 use hmac::Mac as _;
 use serde_json::{Value, json};
@@ -121,20 +121,7 @@ async fn alarm_transitions_reach_webhooks_signed_filtered_and_retried() {
     let app = TestApp::start(Some(&installation(&base))).await;
     app.set_straight_reference().await;
     // 80 arcsec (warn), back to 0, 200 arcsec (alarm), back to 0: four transitions.
-    let samples: Vec<Value> = (0..100)
-        .map(|k| {
-            turned_sample(
-                T0_NS + k as i64 * 40_000_000,
-                [80.0, 0.0, 200.0, 0.0][k / 25],
-            )
-        })
-        .collect();
-    let (status, body) = app
-        .post_live("/api/v1/samples", &json!({ "samples": samples }))
-        .await;
-    assert_eq!(status, StatusCode::OK, "{body}");
-    let (_, list) = app.get("/api/v1/alarms?target=G").await;
-    let alarms = list["alarms"].as_array().unwrap().clone();
+    let alarms = alarms_after_turns(&app, &[80.0, 0.0, 200.0, 0.0]).await;
     let levels: Vec<(&str, &str)> = alarms
         .iter()
         .map(|a| (a["from"].as_str().unwrap(), a["to"].as_str().unwrap()))
