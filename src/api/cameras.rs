@@ -207,7 +207,8 @@ fn report_file(app: &AppState, camera: &str) -> Option<std::path::PathBuf> {
         .map(|r| r.path.clone())
 }
 
-/// The largest calibration report served (a report of 100 views is under 2 MB).
+/// The largest calibration report served: far above a real one (its largest picture draws a
+/// line a point), so a file named by mistake is not read whole.
 const MAX_REPORT_BYTES: u64 = 64 << 20;
 
 /// `GET /api/v1/cameras/{name}/calibration-report`.
