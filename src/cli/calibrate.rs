@@ -590,7 +590,7 @@ fn plate_pose(
         camera,
         &points,
         &normals,
-        plate.diameter_mm(),
+        |k| plate.disc_diameter_mm(found.ids[k]),
         &found.points_px,
         &found.sigmas_px,
         &options,

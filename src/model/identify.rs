@@ -312,7 +312,7 @@ pub(super) fn solve_matched(
                 &link.camera,
                 &object,
                 &normals,
-                target.diameter_mm,
+                |_| target.diameter_mm,
                 &detected,
                 &sigmas,
                 &link.options,

@@ -82,13 +82,14 @@ fn plane_axes(normal: &Vec3) -> Option<(Vec3, Vec3)> {
 
 /// PnP on disc targets: solved on the detected centroids, each corrected by its disc's
 /// perspective eccentricity at that first pose, and solved again. `normals_mm` are the discs'
-/// normals in the marker frame, one per point. Answers the pose and the corrected points (the
-/// images of the disc centres).
+/// normals in the marker frame, one per point; `diameter_mm(k)` is point `k`'s disc's diameter
+/// (a plate's origin disc may be larger than the rest). Answers the pose and the corrected
+/// points (the images of the disc centres).
 pub fn solve_pnp_discs(
     camera: &CameraModel,
     points_mm: &[Vec3],
     normals: &[Vec3],
-    diameter_mm: f64,
+    diameter_mm: impl Fn(usize) -> f64,
     centroids_px: &[Vector2<f64>],
     sigmas_px: &[f64],
     options: &PnpOptions,
@@ -99,10 +100,11 @@ pub fn solve_pnp_discs(
         .iter()
         .zip(normals)
         .zip(centroids_px)
-        .map(|((p, n), c)| {
+        .enumerate()
+        .map(|(k, ((p, n), c))| {
             let centre = (pose * nalgebra::Point3::from(*p)).coords;
             let normal = pose.rotation * n;
-            disc_image_offset(camera, &centre, &normal, diameter_mm).map_or(*c, |o| c - o)
+            disc_image_offset(camera, &centre, &normal, diameter_mm(k)).map_or(*c, |o| c - o)
         })
         .collect();
     let solution = solve_pnp_weighted(camera, points_mm, &corrected, sigmas_px, options)?;
@@ -195,6 +197,75 @@ mod tests {
                 "{offset:?} against {truth:?}"
             );
         }
+    }
+
+    /// A disc larger than the rest (a plate's origin disc) is corrected by its own diameter:
+    /// from exact centroids, the corrected points are the images of the centres, which they
+    /// are not when the common diameter is taken for it.
+    #[test]
+    fn each_disc_is_corrected_by_its_own_diameter() {
+        let camera = CameraModel::pinhole(800.0, 800.0, 320.0, 240.0, 640, 480);
+        let points: Vec<Vec3> = (0..16)
+            .map(|i| Vec3::new(30.0 * (i % 4) as f64, 30.0 * (i / 4) as f64, 0.0))
+            .collect();
+        let normals = vec![Vec3::z(); points.len()];
+        let diameter = |k: usize| if k == 0 { 30.0 } else { 15.0 };
+        let camera_from_plate = crate::geometry::Pose::from_parts(
+            nalgebra::Translation3::new(-60.0, -40.0, 400.0),
+            nalgebra::UnitQuaternion::from_euler_angles(0.5, -0.4, 0.2),
+        );
+        let images: Vec<Vector2<f64>> = points
+            .iter()
+            .map(|p| {
+                camera
+                    .project(&(camera_from_plate * nalgebra::Point3::from(*p)).coords)
+                    .expect("in front")
+            })
+            .collect();
+        let centroids: Vec<Vector2<f64>> = points
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                let centre = (camera_from_plate * nalgebra::Point3::from(*p)).coords;
+                images[k]
+                    + disc_image_offset(
+                        &camera,
+                        &centre,
+                        &(camera_from_plate.rotation * Vec3::z()),
+                        diameter(k),
+                    )
+                    .expect("in front")
+            })
+            .collect();
+        let sigmas = vec![0.01; points.len()];
+        let options = crate::vision::PnpOptions::default();
+        let (_, own) = solve_pnp_discs(
+            &camera, &points, &normals, diameter, &centroids, &sigmas, &options,
+        )
+        .expect("solved");
+        let (_, common) = solve_pnp_discs(
+            &camera,
+            &points,
+            &normals,
+            |_| 15.0,
+            &centroids,
+            &sigmas,
+            &options,
+        )
+        .expect("solved");
+        let worst = |corrected: &[Vector2<f64>]| {
+            corrected
+                .iter()
+                .zip(&images)
+                .map(|(c, i)| (c - i).norm())
+                .fold(0.0, f64::max)
+        };
+        assert!(worst(&own) < 1e-3, "own diameters: {}", worst(&own));
+        assert!(
+            (common[0] - images[0]).norm() > 10.0 * worst(&own),
+            "the common diameter leaves the origin's eccentricity: {}",
+            (common[0] - images[0]).norm()
+        );
     }
 
     proptest! {
