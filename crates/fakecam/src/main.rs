@@ -26,7 +26,9 @@
 //! answers GigE Vision discovery, and its clients must open it by address. It prints `ready`
 //! once it serves, and runs until killed.
 //!
-//! The one `unsafe` block gives the fake its fill callback (the safe binding does not wrap it).
+//! Two `unsafe` blocks, the project's only ones, give the fake its fill callback (the safe
+//! binding does not wrap it): the callback's body, which libaravis calls with a raw buffer,
+//! and the call that hands the callback to the fake.
 
 use aravis::glib::object::ObjectType;
 use std::ffi::c_void;
