@@ -238,8 +238,15 @@ async fn probe<T, E: std::fmt::Display>(
     }
 }
 
-/// How a reference came about, as stored: `(origin, window from, window to, window count)`.
-type WindowOrigin = (&'static str, Option<i64>, Option<i64>, Option<i64>);
+/// How a reference came about, as its row stores it.
+struct WindowOrigin {
+    /// `explicit` or `window`.
+    origin: &'static str,
+    /// The window's start, end (ns) and results averaged, for a reference from a window.
+    from_ns: Option<i64>,
+    to_ns: Option<i64>,
+    count: Option<i64>,
+}
 
 /// The read side of a backend.
 #[derive(Debug, Clone)]

@@ -32,11 +32,41 @@ impl PoseColumns {
     }
 }
 
-/// A stored rollup row: key (target id, source, width, bucket start), counts, statistics.
-pub(super) type RollupRow = (i64, i64, i64, i64, i64, i64, Vec<u8>);
+/// The key of a rollup row (ordered as the table's primary key).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub(super) struct RollupKey {
+    pub target_id: i64,
+    /// The result source's column value.
+    pub source: i64,
+    pub width_s: i64,
+    pub bucket_ns: i64,
+}
 
-/// The key of a rollup row.
-pub(super) type RollupKey = (i64, i64, i64, i64);
+/// A stored rollup row: its key, its counts and its statistics (encoded).
+#[derive(Debug, Clone, sqlx::FromRow)]
+pub(super) struct RollupRow {
+    pub target_id: i64,
+    pub source: i64,
+    pub width_s: i64,
+    pub bucket_ns: i64,
+    /// Results in the bucket.
+    pub n: i64,
+    /// Of them, with a deformation (a reference was set).
+    pub n_def: i64,
+    pub stats: Vec<u8>,
+}
+
+impl RollupRow {
+    /// Its key.
+    pub(super) fn key(&self) -> RollupKey {
+        RollupKey {
+            target_id: self.target_id,
+            source: self.source,
+            width_s: self.width_s,
+            bucket_ns: self.bucket_ns,
+        }
+    }
+}
 
 /// A sample row.
 #[derive(sqlx::FromRow)]

@@ -303,12 +303,12 @@ impl WriteTx<'_> {
             .into_iter()
             .map(|((target, source, width_s, start), b)| {
                 (
-                    (
-                        self.target_ids[target.0],
-                        codec::source_column(source),
+                    rows::RollupKey {
+                        target_id: self.target_ids[target.0],
+                        source: codec::source_column(source),
                         width_s,
-                        start,
-                    ),
+                        bucket_ns: start,
+                    },
                     b,
                 )
             })
@@ -317,24 +317,27 @@ impl WriteTx<'_> {
         let keys: Vec<rows::RollupKey> = fresh.iter().map(|(k, _)| *k).collect();
         let stored = on_backend!(&mut self.tx, Tx, t => t.rollup_rows(&keys).await)?;
         let mut existing: HashMap<rows::RollupKey, Bucket> = HashMap::with_capacity(stored.len());
-        for (t, s, w, b, n, n_def, stats) in stored {
-            existing.insert((t, s, w, b), decode_bucket(b, n, n_def, &stats)?);
+        for row in stored {
+            existing.insert(
+                row.key(),
+                decode_bucket(row.bucket_ns, row.n, row.n_def, &row.stats)?,
+            );
         }
         let merged: Vec<rows::RollupRow> = fresh
             .iter_mut()
-            .map(|((t, s, w, start), bucket)| {
-                if let Some(old) = existing.get(&(*t, *s, *w, *start)) {
+            .map(|(key, bucket)| {
+                if let Some(old) = existing.get(key) {
                     bucket.merge(old);
                 }
-                (
-                    *t,
-                    *s,
-                    *w,
-                    *start,
-                    bucket.n,
-                    bucket.n_def,
-                    encode_stats(bucket),
-                )
+                rows::RollupRow {
+                    target_id: key.target_id,
+                    source: key.source,
+                    width_s: key.width_s,
+                    bucket_ns: key.bucket_ns,
+                    n: bucket.n,
+                    n_def: bucket.n_def,
+                    stats: encode_stats(bucket),
+                }
             })
             .collect();
         on_backend!(&mut self.tx, Tx, t => t.upsert_rollups(&merged).await)
@@ -453,13 +456,23 @@ impl WriteTx<'_> {
         now_ns: i64,
     ) -> StoreResult<i64> {
         let columns = version_columns("reference", &reference.g0_from_b)?;
-        let origin: WindowOrigin = match reference.origin {
-            crate::deformation::ReferenceOrigin::Explicit => ("explicit", None, None, None),
+        let origin = match reference.origin {
+            crate::deformation::ReferenceOrigin::Explicit => WindowOrigin {
+                origin: "explicit",
+                from_ns: None,
+                to_ns: None,
+                count: None,
+            },
             crate::deformation::ReferenceOrigin::Window {
                 from_ns,
                 to_ns,
                 count,
-            } => ("window", Some(from_ns), Some(to_ns), Some(count as i64)),
+            } => WindowOrigin {
+                origin: "window",
+                from_ns: Some(from_ns),
+                to_ns: Some(to_ns),
+                count: Some(count as i64),
+            },
         };
         let id = self.target_ids[target.0];
         let version = on_backend!(&mut self.tx, Tx, t => t.insert_reference(id, &columns, &origin, now_ns).await)?;

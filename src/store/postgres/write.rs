@@ -345,18 +345,18 @@ impl Tx<'_> {
         for chunk in keys.chunks(ROWS_PER_STATEMENT) {
             // The span of the keys' bucket starts, stated on its own, lets the planner skip
             // the partitions outside it (a join on the keys alone reads them all).
-            let first = chunk.iter().map(|k| k.3).min().unwrap_or(0);
-            let last = chunk.iter().map(|k| k.3).max().unwrap_or(0);
+            let first = chunk.iter().map(|k| k.bucket_ns).min().unwrap_or(0);
+            let last = chunk.iter().map(|k| k.bucket_ns).max().unwrap_or(0);
             let rows: Vec<RollupRow> = sqlx::query_as(
                 "select r.target_id, r.source, r.width_s, r.bucket_ns, r.n, r.n_def, r.stats \
                  from unnest($1::int8[], $2::int8[], $3::int8[], $4::int8[]) as k (t, s, w, b) \
                  join rollups r on r.target_id = k.t and r.source = k.s and r.width_s = k.w \
                  and r.bucket_ns = k.b where r.bucket_ns >= $5 and r.bucket_ns <= $6",
             )
-            .bind(chunk.iter().map(|k| k.0).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|k| k.1).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|k| k.2).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|k| k.3).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|k| k.target_id).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|k| k.source).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|k| k.width_s).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|k| k.bucket_ns).collect::<Vec<_>>())
             .bind(first)
             .bind(last)
             .fetch_all(&mut *self.conn)
@@ -376,13 +376,13 @@ impl Tx<'_> {
                  on conflict (target_id, source, width_s, bucket_ns) do update set \
                  n = excluded.n, n_def = excluded.n_def, stats = excluded.stats",
             )
-            .bind(chunk.iter().map(|r| r.0).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|r| r.1).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|r| r.2).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|r| r.3).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|r| r.4).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|r| r.5).collect::<Vec<_>>())
-            .bind(chunk.iter().map(|r| r.6.as_slice()).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.target_id).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.source).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.width_s).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.bucket_ns).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.n).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.n_def).collect::<Vec<_>>())
+            .bind(chunk.iter().map(|r| r.stats.as_slice()).collect::<Vec<_>>())
             .execute(&mut *self.conn)
             .await?;
         }
@@ -476,10 +476,10 @@ impl Tx<'_> {
         .bind(p[5])
         .bind(p[6])
         .bind(columns.cov.as_slice())
-        .bind(origin.0)
-        .bind(origin.1)
-        .bind(origin.2)
-        .bind(origin.3)
+        .bind(origin.origin)
+        .bind(origin.from_ns)
+        .bind(origin.to_ns)
+        .bind(origin.count)
         .bind(now_ns)
         .fetch_one(&mut *self.conn)
         .await?;

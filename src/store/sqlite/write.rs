@@ -202,15 +202,15 @@ impl Tx<'_> {
                  where (target_id, source, width_s, bucket_ns) in (values ",
             );
             let mut sep = qb.separated(", ");
-            for (t, s, w, b) in chunk {
+            for k in chunk {
                 sep.push("(")
-                    .push_bind_unseparated(*t)
+                    .push_bind_unseparated(k.target_id)
                     .push_unseparated(", ")
-                    .push_bind_unseparated(*s)
+                    .push_bind_unseparated(k.source)
                     .push_unseparated(", ")
-                    .push_bind_unseparated(*w)
+                    .push_bind_unseparated(k.width_s)
                     .push_unseparated(", ")
-                    .push_bind_unseparated(*b)
+                    .push_bind_unseparated(k.bucket_ns)
                     .push_unseparated(")");
             }
             qb.push(")");
@@ -229,14 +229,14 @@ impl Tx<'_> {
             let mut qb: QueryBuilder<Sqlite> = QueryBuilder::new(
                 "insert or replace into rollups (target_id, source, width_s, bucket_ns, n, n_def, stats, commit_seq) ",
             );
-            qb.push_values(chunk, |mut b, (t, s, w, start, n, n_def, stats)| {
-                b.push_bind(*t)
-                    .push_bind(*s)
-                    .push_bind(*w)
-                    .push_bind(*start)
-                    .push_bind(*n)
-                    .push_bind(*n_def)
-                    .push_bind(stats.as_slice())
+            qb.push_values(chunk, |mut b, r| {
+                b.push_bind(r.target_id)
+                    .push_bind(r.source)
+                    .push_bind(r.width_s)
+                    .push_bind(r.bucket_ns)
+                    .push_bind(r.n)
+                    .push_bind(r.n_def)
+                    .push_bind(r.stats.as_slice())
                     .push_bind(self.seq);
             });
             qb.build().execute(&mut *self.conn).await?;
@@ -524,10 +524,10 @@ impl Tx<'_> {
         .bind(p[5])
         .bind(p[6])
         .bind(columns.cov.as_slice())
-        .bind(origin.0)
-        .bind(origin.1)
-        .bind(origin.2)
-        .bind(origin.3)
+        .bind(origin.origin)
+        .bind(origin.from_ns)
+        .bind(origin.to_ns)
+        .bind(origin.count)
         .bind(now_ns)
         .bind(self.seq)
         .execute(&mut *self.conn)
