@@ -50,7 +50,7 @@ fn main() -> anyhow::Result<()> {
                 let frame = render_plate(&truth, &plate, pose, &settings);
                 let view = plate.find(&detect(&frame, &detect_settings))?;
                 Ok(CalibrationView {
-                    ids: (0..plate.len()).collect(),
+                    ids: view.ids,
                     points_px: view.points_px,
                     sigmas_px: Some(view.sigmas_px),
                 })

@@ -58,7 +58,7 @@ pub fn rendered_views(
                 .find(&detect(&frame, &detect_settings))
                 .expect("the whole plate is in every view");
             CalibrationView {
-                ids: (0..plate.len()).collect(),
+                ids: found.ids,
                 points_px: found.points_px,
                 sigmas_px: Some(found.sigmas_px),
             }

@@ -1138,8 +1138,8 @@ fn large_discs_under_falling_light_on_a_card_are_all_found() {
         let blobs = detect(&frame, &detect_settings);
         match plate.find(&blobs) {
             Ok(found) => {
-                for ((p, t), s) in found.points_px.iter().zip(&images).zip(&found.sigmas_px) {
-                    let e = p - t;
+                for ((p, &id), s) in found.points_px.iter().zip(&found.ids).zip(&found.sigmas_px) {
+                    let e = p - images[id];
                     z2_sum += e.norm_squared() / (s * s);
                     worst_px = worst_px.max(e.norm());
                     n += 1;

@@ -85,7 +85,7 @@ fn calibrations(model: &Model) -> Vec<Vec<CameraCalibration>> {
                         .find(&detect(&light.expose(seed), &detect_settings))
                         .expect("the whole plate in every view");
                     CalibrationView {
-                        ids: (0..plate.len()).collect(),
+                        ids: found.ids,
                         points_px: found.points_px,
                         sigmas_px: Some(found.sigmas_px),
                     }
