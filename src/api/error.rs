@@ -112,6 +112,21 @@ crate::words! {
     }
 }
 
+impl ErrorCode {
+    /// Whether a server error of this code is the service failing, to be logged: `busy` is
+    /// the service full, and a flood of them is no error.
+    fn is_failure(self) -> bool {
+        self != ErrorCode::Busy
+    }
+
+    /// Whether a server error's message of this code is written for the client (what is
+    /// full, which camera's file cannot be read, never a server's path); other server errors
+    /// say nothing of the internals.
+    fn message_is_for_clients(self) -> bool {
+        matches!(self, ErrorCode::Busy | ErrorCode::FileUnavailable)
+    }
+}
+
 /// An error answer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ApiError {
@@ -268,15 +283,12 @@ pub(super) fn raw_response(
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        // `busy` is the service full, not failing: its message says what is full and is
-        // shown; a flood of them is no error to log. `file_unavailable` is logged and shown:
-        // its message names the camera and the system's reason, not the server's path.
-        let failed = self.status.is_server_error() && self.code != ErrorCode::Busy;
+        let failed = self.status.is_server_error() && self.code.is_failure();
         if failed {
             // Logged once here; the body says nothing of the internals.
             tracing::error!(code = self.code.name(), message = %self.message, "request failed");
         }
-        let message = if failed && self.code != ErrorCode::FileUnavailable {
+        let message = if failed && !self.code.message_is_for_clients() {
             "the service could not complete the request; nothing of it was stored".to_owned()
         } else {
             self.message
