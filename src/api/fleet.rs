@@ -190,7 +190,7 @@ pub(super) async fn post_sync(
     // Held until the upload is applied: what it was read into lives until then.
     let _slot = super::take_slot(&app.sync_slots, SYNC_WAIT, "uploads").await?;
     let request = read_upload(headers, body.clone(), budget).await?;
-    let status = request
+    let status_json = request
         .check(app.service.now_ns())
         .map_err(|p| ApiError::invalid_field(&p.field, p.message))?;
     let batch: Option<OutboxBatch> = request.batch.map(Into::into);
@@ -205,7 +205,7 @@ pub(super) async fn post_sync(
         registry: &request.registry,
         batch: batch.as_ref(),
         requested: request.requested.as_ref(),
-        status_json: status.as_deref(),
+        status_json: status_json.as_deref(),
         backlog_json: Some(&backlog),
         wire_bytes: body.len() as u64,
     };
