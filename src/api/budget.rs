@@ -8,35 +8,11 @@ use super::error::{ApiError, ErrorBody};
 use super::query::Query;
 use super::targets::target_index;
 use crate::bank::ResultSource;
-use crate::chain::{Budget, Contributor};
+use crate::chain::{Budget, ContributorKind, UncertaintyPart, budget_sigmas};
 use crate::clock::format_ns;
-use crate::geometry::ARCSEC_PER_RAD;
 use axum::Json;
 use axum::extract::{Path, State};
 use serde::{Deserialize, Serialize};
-
-crate::words! {
-    /// What kind of contributor to a result's uncertainty.
-    pub enum ContributorKind("uncertainty contributor") {
-        /// A measured link's noise (pixel noise through PnP): random, averaged by the filter.
-        Noise = "noise",
-        /// A camera's intrinsics and distortion, from its calibration's covariance:
-        /// systematic, the same in every frame of the camera.
-        Intrinsics = "intrinsics",
-        /// A calibrated link's calibration: systematic.
-        Calibration = "calibration",
-    }
-}
-
-crate::words! {
-    /// Which part of a result's uncertainty a contributor is.
-    pub enum UncertaintyPart("uncertainty part") {
-        /// Averages down over samples.
-        Random = "random",
-        /// The same in every result: no filtering reduces it.
-        Systematic = "systematic",
-    }
-}
 
 /// Query of `budget`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -102,69 +78,35 @@ pub(super) struct BudgetOut {
     pub contributions: Vec<ContributionOut>,
 }
 
-/// The budget's variances (rad^2, mm^2) as sigmas in arc-seconds and mm.
-fn sigmas(variance: [f64; 6]) -> [f64; 6] {
-    std::array::from_fn(|a| {
-        let s = variance[a].max(0.0).sqrt();
-        if a < 3 { s * ARCSEC_PER_RAD } else { s }
-    })
-}
-
-/// The answer for a budget (`name_of` names each contributor).
+/// The answer for a budget of `model`'s target.
 fn budget_out(
     target: String,
     source: ResultSource,
     time_ns: i64,
     budget: &Budget,
-    name_of: impl Fn(Contributor) -> (ContributorKind, String),
+    model: &crate::model::Model,
 ) -> BudgetOut {
-    let part_total = |random: bool| {
-        let mut v = [0.0; 6];
-        for line in budget
-            .lines
-            .iter()
-            .filter(|l| l.contributor.is_random() == random)
-        {
-            for (a, x) in v.iter_mut().zip(line.variance) {
-                *a += x;
-            }
-        }
-        v
-    };
-    let mut contributions: Vec<ContributionOut> = budget
-        .lines
-        .iter()
-        .map(|line| {
-            let share: [f64; 6] = std::array::from_fn(|a| {
-                if budget.total[a] > 0.0 {
-                    line.variance[a] / budget.total[a]
-                } else {
-                    0.0
-                }
-            });
-            let (kind, name) = name_of(line.contributor);
-            ContributionOut {
-                kind,
-                name,
-                part: if line.contributor.is_random() {
-                    UncertaintyPart::Random
-                } else {
-                    UncertaintyPart::Systematic
-                },
-                sigma: AxesOut::of(sigmas(line.variance)),
-                largest_share: share.iter().copied().fold(0.0, f64::max),
-                share: AxesOut::of(share),
-            }
+    let contributions = budget
+        .lines_by_share()
+        .into_iter()
+        .map(|(line, share)| ContributionOut {
+            kind: line.contributor.kind(),
+            name: model.contributor_name(line.contributor).to_owned(),
+            part: line.contributor.part(),
+            sigma: AxesOut::of(budget_sigmas(line.variance)),
+            largest_share: share.iter().copied().fold(0.0, f64::max),
+            share: AxesOut::of(share),
         })
         .collect();
-    contributions.sort_by(|a, b| b.largest_share.total_cmp(&a.largest_share));
     BudgetOut {
         target,
         source,
         time: format_ns(time_ns),
-        sigma: AxesOut::of(sigmas(budget.total)),
-        sigma_random: AxesOut::of(sigmas(part_total(true))),
-        sigma_systematic: AxesOut::of(sigmas(part_total(false))),
+        sigma: AxesOut::of(budget_sigmas(budget.total)),
+        sigma_random: AxesOut::of(budget_sigmas(budget.part_variance(UncertaintyPart::Random))),
+        sigma_systematic: AxesOut::of(budget_sigmas(
+            budget.part_variance(UncertaintyPart::Systematic),
+        )),
         contributions,
     }
 }
@@ -191,19 +133,11 @@ pub(super) async fn get_budget(
             "target `{name}` has no result yet: its budget comes with its first measurement group"
         ))
     })?;
-    let model = snapshot.bank.model();
-    let link_name = |l: crate::chain::LinkId| model.links[l.0].name.clone();
     Ok(Json(budget_out(
         name,
         source,
         time_ns,
         &budget,
-        |c| match c {
-            Contributor::Noise(l) => (ContributorKind::Noise, link_name(l)),
-            Contributor::Intrinsics(i) => {
-                (ContributorKind::Intrinsics, model.cameras[i].frame.clone())
-            }
-            Contributor::Calibration(l) => (ContributorKind::Calibration, link_name(l)),
-        },
+        snapshot.bank.model(),
     )))
 }

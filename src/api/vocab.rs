@@ -102,6 +102,6 @@ crate::words! {
     }
 }
 
-pub use super::budget::{ContributorKind, UncertaintyPart};
 pub use super::frames::NotFoundCode;
 pub use super::targets::CompensationSource;
+pub use crate::chain::{ContributorKind, UncertaintyPart};

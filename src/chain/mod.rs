@@ -17,8 +17,8 @@ pub use compose::compose_path;
 pub use error::ChainError;
 pub use fuse::{Consistency, DEFAULT_CONSISTENCY_PROBABILITY, Fused, chi_square_quantile, fuse};
 pub use sources::{
-    Budget, BudgetLine, Contributor, ErrorTerms, FACTOR_COLUMNS, Factor, IntrinsicsCovariance,
-    SourcedPose, Term, axis_variances, compose_path_terms, factor_of_covariance, fuse_terms,
-    intrinsics_root,
+    Budget, BudgetLine, Contributor, ContributorKind, ErrorTerms, FACTOR_COLUMNS, Factor,
+    IntrinsicsCovariance, SourcedPose, Term, UncertaintyPart, axis_variances, budget_sigmas,
+    compose_path_terms, factor_of_covariance, fuse_terms, intrinsics_root,
 };
 pub use topology::{Direction, FrameId, LinkEnds, LinkId, Path, Resolution, Step, Topology};

@@ -104,6 +104,47 @@ impl Contributor {
     pub fn is_random(self) -> bool {
         matches!(self, Contributor::Noise(_))
     }
+
+    /// What kind of contributor it is.
+    pub fn kind(self) -> ContributorKind {
+        match self {
+            Contributor::Noise(_) => ContributorKind::Noise,
+            Contributor::Intrinsics(_) => ContributorKind::Intrinsics,
+            Contributor::Calibration(_) => ContributorKind::Calibration,
+        }
+    }
+
+    /// Which part of the uncertainty it is.
+    pub fn part(self) -> UncertaintyPart {
+        if self.is_random() {
+            UncertaintyPart::Random
+        } else {
+            UncertaintyPart::Systematic
+        }
+    }
+}
+
+crate::words! {
+    /// What kind of contributor to a result's uncertainty.
+    pub enum ContributorKind("uncertainty contributor") {
+        /// A measured link's noise (pixel noise through PnP): random, averaged by the filter.
+        Noise = "noise",
+        /// A camera's intrinsics and distortion, from its calibration's covariance:
+        /// systematic, the same in every frame of the camera.
+        Intrinsics = "intrinsics",
+        /// A calibrated link's calibration: systematic.
+        Calibration = "calibration",
+    }
+}
+
+crate::words! {
+    /// Which part of a result's uncertainty a contributor is.
+    pub enum UncertaintyPart("uncertainty part") {
+        /// Averages down over samples.
+        Random = "random",
+        /// The same in every result: no filtering reduces it.
+        Systematic = "systematic",
+    }
 }
 
 /// One contributor's term of a pose's error.
@@ -385,7 +426,51 @@ pub fn axis_variances(pose: &Pose, cov: &Mat6) -> [f64; 6] {
     ]
 }
 
+/// A budget's variances (rad^2 for rotation, mm^2) as sigmas in arc-seconds and mm.
+pub fn budget_sigmas(variance: [f64; 6]) -> [f64; 6] {
+    std::array::from_fn(|a| {
+        let s = variance[a].max(0.0).sqrt();
+        if a < 3 {
+            s * crate::geometry::ARCSEC_PER_RAD
+        } else {
+            s
+        }
+    })
+}
+
 impl Budget {
+    /// The variance on each axis of the lines of one part (random or systematic).
+    pub fn part_variance(&self, part: UncertaintyPart) -> [f64; 6] {
+        let mut v = [0.0; 6];
+        for line in self.lines.iter().filter(|l| l.contributor.part() == part) {
+            for (a, x) in v.iter_mut().zip(line.variance) {
+                *a += x;
+            }
+        }
+        v
+    }
+
+    /// A line's share of each axis' variance (0 to 1; the shares of an axis add up to 1, and
+    /// an axis without variance gives every line a share of 0).
+    pub fn share(&self, line: &BudgetLine) -> [f64; 6] {
+        std::array::from_fn(|a| {
+            if self.total[a] > 0.0 {
+                line.variance[a] / self.total[a]
+            } else {
+                0.0
+            }
+        })
+    }
+
+    /// The lines with their shares, the largest share (over the six axes) first.
+    pub fn lines_by_share(&self) -> Vec<(BudgetLine, [f64; 6])> {
+        let mut lines: Vec<(BudgetLine, [f64; 6])> =
+            self.lines.iter().map(|l| (*l, self.share(l))).collect();
+        let largest = |s: &[f64; 6]| s.iter().copied().fold(0.0, f64::max);
+        lines.sort_by(|a, b| largest(&b.1).total_cmp(&largest(&a.1)));
+        lines
+    }
+
     /// The budget of a pose as its terms give it (a raw result: every contributor as it is).
     pub fn of(sourced: &SourcedPose) -> Self {
         let lines: Vec<BudgetLine> = sourced

@@ -186,6 +186,16 @@ pub struct TargetFilter {
 }
 
 impl Model {
+    /// The name users know a contributor to a result's uncertainty by: its link's (noise,
+    /// calibration) or its camera's (intrinsics).
+    pub fn contributor_name(&self, contributor: crate::chain::Contributor) -> &str {
+        use crate::chain::Contributor;
+        match contributor {
+            Contributor::Noise(l) | Contributor::Calibration(l) => &self.links[l.0].name,
+            Contributor::Intrinsics(i) => &self.cameras[i].frame,
+        }
+    }
+
     /// The settings of a link.
     pub fn link(&self, id: LinkId) -> &LinkSpec {
         &self.links[id.0]

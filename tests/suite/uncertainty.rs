@@ -346,6 +346,31 @@ fn the_budget_adds_up_and_a_contributor_removed_takes_its_share_with_it() {
             );
         }
     }
+    // Each axis' shares add up to one, its two parts to the total; the largest share first.
+    for budget in [&raw, &filtered] {
+        let random = budget.part_variance(brokenray::chain::UncertaintyPart::Random);
+        let systematic = budget.part_variance(brokenray::chain::UncertaintyPart::Systematic);
+        let lines = budget.lines_by_share();
+        for a in 0..6 {
+            let shares: f64 = lines.iter().map(|(_, s)| s[a]).sum();
+            assert!(
+                (shares - 1.0).abs() < 1e-9,
+                "axis {a}: shares add to {shares}"
+            );
+            let parts = random[a] + systematic[a];
+            assert!(
+                (parts - budget.total[a]).abs() <= 1e-9 * budget.total[a],
+                "axis {a}: the parts add to {parts:e}, the total is {:e}",
+                budget.total[a]
+            );
+        }
+        let largest = |s: &[f64; 6]| s.iter().copied().fold(0.0, f64::max);
+        assert!(
+            lines
+                .windows(2)
+                .all(|w| largest(&w[0].1) >= largest(&w[1].1))
+        );
+    }
     // Every kind of contributor is there: three links' noise, three cameras, two calibrations.
     let count =
         |f: fn(&Contributor) -> bool| raw.lines.iter().filter(|l| f(&l.contributor)).count();
