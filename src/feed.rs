@@ -157,6 +157,34 @@ impl Client {
         Ok(response.json().await?)
     }
 
+    /// GETs `path` with `query` and returns the answer's text, waiting for it up to `timeout`;
+    /// an error names the status and the service's answer.
+    pub async fn get_text(
+        &self,
+        path: &str,
+        query: &[(&str, String)],
+        timeout: Duration,
+    ) -> anyhow::Result<String> {
+        let mut request = self
+            .http
+            .get(format!("{}{path}", self.base))
+            .query(query)
+            .timeout(timeout);
+        if let Some(t) = &self.token {
+            request = request.bearer_auth(t);
+        }
+        let response = request
+            .send()
+            .await
+            .with_context(|| format!("cannot reach {}{path}", self.base))?;
+        let status = response.status();
+        let text = response.text().await?;
+        if !status.is_success() {
+            bail!("{path} answered {status}: {text}");
+        }
+        Ok(text)
+    }
+
     /// POSTs a camera frame file to `/api/v1/frames`: the status and the answer.
     pub async fn post_frame(
         &self,

@@ -24,6 +24,7 @@ mod links;
 mod metrics;
 mod outputs;
 mod query;
+mod report;
 pub mod server;
 mod sites;
 mod sources;
@@ -531,6 +532,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(targets::get_reference, targets::post_reference))
         .routes(routes!(targets::get_filter))
         .routes(routes!(budget::get_budget))
+        .routes(routes!(report::get_report))
         .routes(routes!(targets::list_references))
         .routes(routes!(events::get_events))
         .routes(routes!(alarms::list_alarms))

@@ -1,7 +1,8 @@
 //! The commands that run on an async runtime: the service, the demo, the simulator's feed and
 //! replays into a Rerun recording.
 
-use super::{progress_bar, runtime};
+use super::progress::progress_bar;
+use super::runtime;
 use crate::clock::wall_now_ns as now_ns;
 use crate::config::Installation;
 use anyhow::Context as _;
@@ -239,4 +240,28 @@ pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
     app.run_until(crate::api::shutdown_signal()).await?;
     tracing::info!("stopped: every acknowledged write is on disk");
     Ok(())
+}
+
+/// The time of a simulated run's first group when `--start` is not given: now for a run sent
+/// in real time; otherwise (`--fast`, or a file) the run's duration before now, so that its
+/// last group is not in the future, which a service refuses.
+pub(super) fn default_start_ns(now_ns: i64, duration_s: f64, real_time: bool) -> i64 {
+    if real_time {
+        now_ns
+    } else {
+        now_ns.saturating_sub((duration_s * 1e9).round() as i64)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::default_start_ns;
+
+    #[test]
+    fn a_run_faster_than_real_time_ends_now_unless_told_otherwise() {
+        let now = 1_800_000_000_000_000_000;
+        assert_eq!(default_start_ns(now, 300.0, true), now);
+        assert_eq!(default_start_ns(now, 300.0, false), now - 300_000_000_000);
+        assert_eq!(default_start_ns(now, 0.04, false), now - 40_000_000);
+    }
 }

@@ -10,12 +10,15 @@ mod calibrate;
 mod commands;
 mod detect;
 mod health;
+mod period;
+mod progress;
 mod report;
 mod watch;
 
 use commands::{demo, replay, serve, simulate};
 pub use detect::{DetectSummary, detect_files};
 pub use health::healthcheck;
+use progress::{progress_bar, with_frames_bar};
 pub use report::describe_installation;
 
 use crate::clock::wall_now_ns as now_ns;
@@ -366,6 +369,31 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = crate::feed::Emit::Observations)]
         emit: crate::feed::Emit,
     },
+    /// Write a period's report fetched from a running service: a self-contained HTML page
+    /// (pictures in SVG, no script; print it to PDF from a browser) of the installation, its
+    /// calibrations and, per target, its deformation, statistics, trend, alarms, gaps and
+    /// uncertainty budget.
+    Report {
+        /// Start (RFC 3339 or integer ns); 30 days before the end without it.
+        #[arg(long, value_name = "TIME")]
+        from: Option<String>,
+        /// End; now without it.
+        #[arg(long, value_name = "TIME")]
+        to: Option<String>,
+        /// A silence between raw results longer than this many seconds is listed as a gap
+        /// (the service's default, 60, without it).
+        #[arg(long, value_name = "S")]
+        min_gap_s: Option<f64>,
+        /// The page to write (it must not exist).
+        #[arg(long, value_name = "FILE")]
+        out: PathBuf,
+        /// The service.
+        #[arg(long, value_name = "URL", default_value = "http://127.0.0.1:7878")]
+        service: String,
+        /// Bearer token with the `read` scope.
+        #[arg(long, env = "BROKENRAY_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+    },
     /// Print a new random bearer token and the SHA-256 to put in `[[auth.tokens]]`.
     HashToken {
         /// Hash this token instead of making a new one.
@@ -504,7 +532,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 Some(t) => crate::clock::parse_query_time(t)
                     .map_err(|e| anyhow::anyhow!("--start: {e}"))?,
                 None => {
-                    let start_ns = default_start_ns(now_ns(), duration_s, real_time);
+                    let start_ns = commands::default_start_ns(now_ns(), duration_s, real_time);
                     if !real_time {
                         eprintln!(
                             "the run starts at {} ({duration} before now) so that it ends now: a service refuses measurements from its future (give --start to choose)",
@@ -821,6 +849,22 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 summary.posted, summary.refused, summary.retries
             );
         }
+        Command::Report {
+            from,
+            to,
+            min_gap_s,
+            out: out_file,
+            service,
+            token,
+        } => {
+            let query = period::PeriodQuery {
+                from,
+                to,
+                min_gap_s,
+            };
+            let bytes = period::write_report(&service, token, &query, &out_file)?;
+            writeln!(out, "wrote {} ({bytes} bytes)", out_file.display())?;
+        }
         Command::Demo {
             config,
             scenario,
@@ -915,53 +959,12 @@ fn runtime(multi_thread: bool) -> anyhow::Result<tokio::runtime::Runtime> {
         .context("cannot start the async runtime")
 }
 
-/// The time of a simulated run's first group when `--start` is not given: now for a run sent
-/// in real time; otherwise (`--fast`, or a file) the run's duration before now, so that its
-/// last group is not in the future, which a service refuses.
-fn default_start_ns(now_ns: i64, duration_s: f64, real_time: bool) -> i64 {
-    if real_time {
-        now_ns
-    } else {
-        now_ns.saturating_sub((duration_s * 1e9).round() as i64)
-    }
-}
-
 fn create_new(path: &std::path::Path) -> anyhow::Result<std::fs::File> {
     std::fs::OpenOptions::new()
         .write(true)
         .create_new(true)
         .open(path)
         .with_context(|| format!("cannot create {} (it must not exist)", path.display()))
-}
-
-/// Runs `work` with a bar over frame files on stderr, cleared when it ends.
-fn with_frames_bar<T>(work: impl FnOnce(&indicatif::ProgressBar) -> T) -> T {
-    let bar = indicatif::ProgressBar::new(0).with_style(
-        indicatif::ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:40}] {pos}/{len} frames {msg}",
-        )
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    );
-    let result = work(&bar);
-    bar.finish_and_clear();
-    result
-}
-
-fn progress_bar(groups: Option<u64>) -> indicatif::ProgressBar {
-    match groups {
-        Some(n) => indicatif::ProgressBar::new(n).with_style(
-            indicatif::ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:40}] {pos}/{len} groups ({per_sec}, eta {eta})",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        ),
-        None => indicatif::ProgressBar::new_spinner().with_style(
-            indicatif::ProgressStyle::with_template(
-                "{spinner} {elapsed_precise} {pos} groups sent ({per_sec})",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
-        ),
-    }
 }
 
 /// 256 random bits as hex, from the thread's generator (a cryptographically secure generator
@@ -983,17 +986,4 @@ fn parse_word<T: crate::words::Word>(word: &str) -> Result<T, String> {
                 T::words().join(", ")
             )
         })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::default_start_ns;
-
-    #[test]
-    fn a_run_faster_than_real_time_ends_now_unless_told_otherwise() {
-        let now = 1_800_000_000_000_000_000;
-        assert_eq!(default_start_ns(now, 300.0, true), now);
-        assert_eq!(default_start_ns(now, 300.0, false), now - 300_000_000_000);
-        assert_eq!(default_start_ns(now, 0.04, false), now - 40_000_000);
-    }
 }

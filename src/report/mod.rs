@@ -1,11 +1,13 @@
 //! Reports people file and read: self-contained HTML pages whose pictures are SVG drawn here,
 //! so a page needs no script, no network and no other file to be read or printed.
 //!
-//! [`calibration`] is a camera calibration's report. The helpers below are what every report
+//! [`calibration`] is a camera calibration's report, [`period`] a period's report of the
+//! installation's targets. The helpers below are what every report
 //! shares: text escaped for HTML, a page's frame and style, and an SVG canvas in the units of
 //! what it draws.
 
 pub mod calibration;
+pub mod period;
 
 use std::fmt::Write as _;
 
@@ -149,6 +151,20 @@ impl Svg {
                 1.2 * u
             );
         }
+    }
+
+    /// A path (`d` in the region's units) filled with `fill`, stroked by `stroke` one picture
+    /// pixel wide when given.
+    pub(crate) fn path(&mut self, d: &str, fill: &str, stroke: Option<&str>) {
+        let _ = write!(self.body, "<path d=\"{d}\" fill=\"{fill}\"");
+        if let Some(s) = stroke {
+            let _ = write!(
+                self.body,
+                " stroke=\"{s}\" stroke-width=\"{:.3}\"",
+                self.unit()
+            );
+        }
+        self.body.push_str("/>");
     }
 
     /// Text of `size_px` picture pixels at `(x, y)`.

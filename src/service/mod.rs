@@ -18,9 +18,11 @@ use crate::deformation::ReferenceVersion;
 use crate::model::TargetId;
 use job::Job;
 mod pipeline;
+mod report;
 mod tasks;
 
 pub use metrics::{ConnectionCounters, Metrics, REJECTION_STATUSES};
+pub use report::{LISTED_GAPS, REPORT_BUCKETS, ReportWindow};
 pub use tasks::TaskWatch;
 
 pub use pipeline::{IngestItem, IngestReport};

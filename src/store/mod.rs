@@ -171,6 +171,15 @@ impl From<sqlx::migrate::MigrateError> for StoreError {
     }
 }
 
+/// How many samples of a link a window holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SampleCount {
+    /// Samples stored.
+    pub stored: u64,
+    /// Of them, those the filter rejected as outliers.
+    pub outliers: u64,
+}
+
 /// What the health check knows of the writer: whether its last commit failed, and why.
 #[derive(Debug, Default)]
 pub struct WriterHealth {
@@ -569,6 +578,46 @@ impl Store {
             fetch_one
         )?;
         Ok(u64::try_from(n).unwrap_or(0))
+    }
+
+    /// The silences longer than `min_gap_ns` between consecutive results of a target in
+    /// `[from_ns, to_ns]`: the times of the result before and after each, oldest first, at
+    /// most `limit`.
+    pub async fn result_gaps(
+        &self,
+        target: TargetId,
+        source: ResultSource,
+        window: (i64, i64),
+        min_gap_ns: i64,
+        limit: i64,
+    ) -> StoreResult<Vec<(i64, i64)>> {
+        let (id, source) = (self.target_ids[target.0], codec::source_column(source));
+        let (from_ns, to_ns) = window;
+        Ok(query_on!(
+            &self.reader, Reader, r => &r.pool,
+            sql::RESULT_GAPS, [id, source, from_ns, to_ns, min_gap_ns, limit],
+            fetch_all
+        )?)
+    }
+
+    /// How many samples of a link are stored in `[from_ns, to_ns]`, and how many of them
+    /// were rejected as outliers.
+    pub async fn count_samples_and_outliers(
+        &self,
+        link: LinkId,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<SampleCount> {
+        let id = self.link_ids[link.0];
+        let (stored, outliers): (i64, i64) = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            sql::COUNT_SAMPLES_AND_OUTLIERS, [id, from_ns, to_ns],
+            fetch_one
+        )?;
+        Ok(SampleCount {
+            stored: u64::try_from(stored).unwrap_or(0),
+            outliers: u64::try_from(outliers).unwrap_or(0),
+        })
     }
 
     /// The stored results of a target nearest to `at_ns`: the newest at or before it and the

@@ -43,6 +43,20 @@ pub(super) const COUNT_RESULTS: &str = "select count(*) from results where targe
 pub(super) const COUNT_SAMPLES: &str =
     "select count(*) from samples where link_id = $1 and time_ns >= $2 and time_ns <= $3";
 
+/// The silences between consecutive results of a target and source in a window: the times
+/// of the result before and the result after each silence longer than `$5` ns, oldest first,
+/// at most `$6`.
+pub(super) const RESULT_GAPS: &str = "select prev_ns, time_ns from (select time_ns, \
+     lag(time_ns) over (order by time_ns) as prev_ns from results where target_id = $1 \
+     and source = $2 and time_ns >= $3 and time_ns <= $4) as runs \
+     where time_ns - prev_ns > $5 order by time_ns limit $6";
+
+/// How many samples of a link lie in a window, and how many of them were rejected as
+/// outliers.
+pub(super) const COUNT_SAMPLES_AND_OUTLIERS: &str = "select count(*), \
+     coalesce(sum(case when outlier then 1 else 0 end), 0) from samples where link_id = $1 \
+     and time_ns >= $2 and time_ns <= $3";
+
 /// The newest result of a target and source at or before `$3`.
 pub(super) static RESULT_AT_OR_BEFORE: LazyLock<String> = LazyLock::new(|| {
     format!(

@@ -130,6 +130,7 @@ fn help_lists_only_working_subcommands() {
             "acquire",
             "watch",
             "demo",
+            "report",
             "hash-token",
             "help"
         ]
@@ -790,6 +791,104 @@ fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
         );
         assert!(aside.join(format!("{stamp}.png")).exists());
     }
+}
+
+/// `report`: a running service's report of the last minute written to a new file (the
+/// built-in installation's targets, their pictures, the simulated run's results); a file that
+/// exists is not overwritten, and the service's refusal of a query is told.
+#[test]
+fn report_writes_a_running_service_s_period_into_a_new_file() {
+    use crate::common::process;
+    let dir = tempfile::tempdir().unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{port}");
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace(
+            "listen = \"127.0.0.1:7878\"",
+            &format!("listen = \"127.0.0.1:{port}\""),
+        )
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!("database = \"{}\"", dir.path().join("report.db").display()),
+        );
+    let config = dir.path().join("report.toml");
+    std::fs::write(&config, &text).unwrap();
+    let server = process::start(
+        &config,
+        "warn,brokenray=info",
+        false,
+        std::time::Duration::from_secs(60),
+    );
+    let run = brokenray(&[
+        "simulate",
+        "--duration",
+        "10s",
+        "--rate",
+        "5",
+        "--scenario",
+        "static",
+        "--fast",
+        "--to",
+        &url,
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let from = brokenray::clock::format_ns(brokenray::clock::wall_now_ns() - 60_000_000_000);
+    let out = dir.path().join("minute.html");
+    let args = [
+        "report",
+        "--service",
+        &url,
+        "--from",
+        &from,
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let written = brokenray(&args);
+    let stdout = String::from_utf8_lossy(&written.stdout);
+    assert!(
+        written.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&written.stderr)
+    );
+    assert!(
+        stdout.starts_with(&format!("wrote {}", out.display())),
+        "{stdout}"
+    );
+    let page = std::fs::read_to_string(&out).unwrap();
+    assert!(page.starts_with("<!DOCTYPE html>"), "{page}");
+    assert!(page.contains("<h2>Target G</h2>"), "{page}");
+    assert!(page.contains("The period holds 50 raw results"), "{page}");
+    assert_eq!(page.matches("<svg").count(), 6, "six pictures of G");
+
+    // Written once: a second report to the same file is refused and the first kept.
+    let again = brokenray(&args);
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("exists"));
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), page);
+    // The service's refusal is told with what it names.
+    let other = dir.path().join("other.html");
+    let refused = brokenray(&[
+        "report",
+        "--service",
+        &url,
+        "--min-gap-s",
+        "0",
+        "--out",
+        other.to_str().unwrap(),
+    ]);
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("422") && err.contains("min_gap_s"), "{err}");
+    assert!(!other.exists(), "nothing written");
+    drop(server);
 }
 
 const PLATE_TOML: &str = "rows = 7\ncols = 9\nspacing_mm = 15.0\ndiameter_mm = 7.5\nasymmetric = true\npolarity = \"dark\"\n";

@@ -16,5 +16,6 @@ mod observations;
 mod openapi;
 mod outputs;
 mod recordings;
+mod reports;
 mod results;
 mod webhooks;

@@ -1,0 +1,262 @@
+//! A period's report gathered from the store and the filters: what [`crate::report::period`]
+//! draws. Each figure is read the way the API reads it for the same period (the statistics
+//! of `GET .../stats`, the buckets of `GET .../history`, the budget of `GET .../budget`), so
+//! the page and the API agree.
+
+use super::Service;
+use crate::bank::ResultSource;
+use crate::chain::LinkId;
+use crate::model::{LinkKind, TargetId};
+use crate::report::period::{
+    BudgetSnapshot, CalibrationLine, CameraLine, Gap, Gaps, LinkInGap, PeriodReport, SourceWindow,
+    TargetReport,
+};
+use crate::store::{StoreError, StoreResult};
+
+/// The buckets of each picture: enough for a page's width.
+pub const REPORT_BUCKETS: usize = 600;
+
+/// The gaps listed per target, the longest first (all are counted).
+pub const LISTED_GAPS: usize = 50;
+
+/// The gaps read per target: past it the count and total are "at least".
+const MOST_GAPS: i64 = 100_000;
+
+/// The alarm transitions read per target.
+const MOST_ALARMS: i64 = 10_000;
+
+/// What a report covers: `[from_ns, to_ns]`, and the silence that counts as a gap.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReportWindow {
+    /// Start (ns).
+    pub from_ns: i64,
+    /// End (ns).
+    pub to_ns: i64,
+    /// A silence between raw results longer than this is a gap (ns).
+    pub min_gap_ns: i64,
+}
+
+impl Service {
+    /// The report of `window`: read under one heavy-read permit, as a long history is.
+    pub async fn period_report(&self, window: ReportWindow) -> Result<PeriodReport, StoreError> {
+        let _permit = self.heavy_read().await;
+        let inst = self.installation();
+        let model = &inst.model;
+        let store = self.store();
+        let cameras = model
+            .cameras
+            .iter()
+            .map(|c| CameraLine {
+                frame: c.frame.clone(),
+                intrinsics: c.intrinsics,
+                pixel_sigma_px: c.pixel_sigma_px,
+                intrinsics_sigma_px: c
+                    .intrinsics_covariance
+                    .map(|cov| std::array::from_fn(|i| cov[(i, i)].max(0.0).sqrt())),
+                has_report: inst.calibration_reports.iter().any(|r| r.camera == c.frame),
+            })
+            .collect();
+        let mut calibrations = Vec::new();
+        for link in &model.links {
+            let LinkKind::Calibrated { parent_from_child } = &link.kind else {
+                continue;
+            };
+            let stored = store.calibrations(link.id).await?;
+            // The version in force when the period starts, and every one made during it.
+            let in_force_at_start = stored
+                .iter()
+                .rposition(|c| c.valid_from_ns <= window.from_ns);
+            let shown: Vec<CalibrationLine> = stored
+                .iter()
+                .enumerate()
+                .filter(|(i, c)| {
+                    Some(*i) == in_force_at_start
+                        || (c.valid_from_ns > window.from_ns && c.valid_from_ns <= window.to_ns)
+                })
+                .map(|(_, c)| CalibrationLine {
+                    link: link.name.clone(),
+                    version: Some(c.version),
+                    valid_from_ns: Some(c.valid_from_ns),
+                    sigma: sigmas(&c.parent_from_child),
+                })
+                .collect();
+            if in_force_at_start.is_none() {
+                calibrations.push(CalibrationLine {
+                    link: link.name.clone(),
+                    version: None,
+                    valid_from_ns: None,
+                    sigma: sigmas(parent_from_child),
+                });
+            }
+            calibrations.extend(shown);
+        }
+        let mut targets = Vec::new();
+        for (i, spec) in model.targets.iter().enumerate() {
+            targets.push(self.target_report(TargetId(i), &spec.name, window).await?);
+        }
+        Ok(PeriodReport {
+            installation: inst.source.clone(),
+            generated_ns: self.now_ns(),
+            from_ns: window.from_ns,
+            to_ns: window.to_ns,
+            min_gap_ns: window.min_gap_ns,
+            cameras,
+            calibrations,
+            targets,
+        })
+    }
+
+    async fn target_report(
+        &self,
+        ti: TargetId,
+        name: &str,
+        window: ReportWindow,
+    ) -> Result<TargetReport, StoreError> {
+        let store = self.store();
+        let (from, to) = (window.from_ns, window.to_ns);
+        let (raw_stats, raw_span) = store.pose_stats(ti, ResultSource::Raw, from, to).await?;
+        let raw = SourceWindow {
+            stats: raw_stats,
+            history: store
+                .history(ti, ResultSource::Raw, from, to, REPORT_BUCKETS)
+                .await?,
+        };
+        let filtered = SourceWindow {
+            stats: store
+                .pose_stats(ti, ResultSource::Filtered, from, to)
+                .await?
+                .0,
+            history: store
+                .history(ti, ResultSource::Filtered, from, to, REPORT_BUCKETS)
+                .await?,
+        };
+        let reference = store
+            .references(ti)
+            .await?
+            .into_iter()
+            .filter(|r| r.created_ns <= to)
+            .max_by_key(|r| r.version)
+            .map(|r| (r.version, r.created_ns));
+        let alarms = store.alarms(Some(ti), from, to, MOST_ALARMS, false).await?;
+        let gaps = self.gaps(ti, window, raw_span).await?;
+        let snapshot = self.snapshot();
+        let model = snapshot.bank.model();
+        let budget = snapshot
+            .bank
+            .budget(ti, ResultSource::Filtered)
+            .map(|(time_ns, budget)| BudgetSnapshot {
+                time_ns,
+                names: budget
+                    .lines
+                    .iter()
+                    .map(|l| {
+                        (
+                            l.contributor,
+                            model.contributor_name(l.contributor).to_owned(),
+                        )
+                    })
+                    .collect(),
+                budget,
+            });
+        Ok(TargetReport {
+            name: name.to_owned(),
+            raw,
+            filtered,
+            reference,
+            alarms,
+            gaps,
+            budget,
+        })
+    }
+
+    /// The silences of a target's raw results in the window (its first result `raw_span`'s
+    /// start, its last the end), with what its measured links stored in the longest.
+    async fn gaps(
+        &self,
+        ti: TargetId,
+        window: ReportWindow,
+        raw_span: Option<(i64, i64)>,
+    ) -> StoreResult<Gaps> {
+        let store = self.store();
+        // The period's end, or now when it lies ahead: the future is not a gap.
+        let end = window.to_ns.min(self.now_ns()).max(window.from_ns);
+        let mut truncated = false;
+        let mut spans: Vec<(i64, i64)> = match raw_span {
+            None => vec![(window.from_ns, end)],
+            Some((first, last)) => {
+                let inner = store
+                    .result_gaps(
+                        ti,
+                        ResultSource::Raw,
+                        (window.from_ns, window.to_ns),
+                        window.min_gap_ns,
+                        MOST_GAPS,
+                    )
+                    .await?;
+                truncated = i64::try_from(inner.len()).unwrap_or(i64::MAX) >= MOST_GAPS;
+                let mut spans = Vec::with_capacity(inner.len() + 2);
+                spans.push((window.from_ns, first));
+                spans.extend(inner);
+                spans.push((last, end));
+                spans
+            }
+        };
+        spans.retain(|(a, b)| b - a > window.min_gap_ns);
+        let count = spans.len();
+        let total_ns = spans.iter().map(|(a, b)| b - a).sum();
+        spans.sort_by_key(|(a, b)| std::cmp::Reverse(b - a));
+        spans.truncate(LISTED_GAPS);
+        let model = &self.installation().model;
+        let measured: Vec<LinkId> = {
+            let mut links: Vec<LinkId> = model.targets[ti.0]
+                .resolution
+                .paths
+                .iter()
+                .flat_map(|p| p.links())
+                .filter(|l| matches!(model.link(*l).kind, LinkKind::Measured(_)))
+                .collect();
+            links.sort_by_key(|l| l.0);
+            links.dedup();
+            links
+        };
+        let mut listed = Vec::with_capacity(spans.len());
+        for (from_ns, to_ns) in spans {
+            let mut links = Vec::with_capacity(measured.len());
+            for &link in &measured {
+                // Strictly inside: the results at the ends are not the gap's.
+                let count = store
+                    .count_samples_and_outliers(link, from_ns + 1, to_ns - 1)
+                    .await?;
+                links.push(LinkInGap {
+                    link: model.link(link).name.clone(),
+                    samples: count.stored,
+                    outliers: count.outliers,
+                });
+            }
+            listed.push(Gap {
+                from_ns,
+                to_ns,
+                links,
+            });
+        }
+        Ok(Gaps {
+            listed,
+            count,
+            total_ns,
+            truncated,
+        })
+    }
+}
+
+/// The sigmas of a calibration: rotation (arc-seconds) and translation (mm).
+fn sigmas(c: &crate::geometry::PoseCov) -> [f64; 6] {
+    let s = c.reported_sigmas();
+    [
+        s.rotation_arcsec[0],
+        s.rotation_arcsec[1],
+        s.rotation_arcsec[2],
+        s.translation_mm[0],
+        s.translation_mm[1],
+        s.translation_mm[2],
+    ]
+}

@@ -1,0 +1,159 @@
+//! A period's report (`GET /api/v1/report`): every statistic it prints is the API's for the
+//! same period, and it tells the gap, the alarm with its acknowledgement and the budget that
+//! the store and the filters hold.
+
+use super::helpers::{Backend, T0_NS, TestApp, alarmed_installation, turned_sample};
+use axum::http::StatusCode;
+use brokenray::clock::format_ns;
+use brokenray::report::period::{Quantity, cell_id, figure};
+use serde_json::{Value, json};
+
+on_both_backends!(a_period_s_report_prints_the_api_s_figures_and_tells_its_gap_and_alarm,);
+
+/// The text of the table cell with `id`.
+fn cell<'a>(page: &'a str, id: &str) -> &'a str {
+    let start = page
+        .find(&format!("id=\"{id}\">"))
+        .unwrap_or_else(|| panic!("no cell `{id}`"))
+        + id.len()
+        + 6;
+    &page[start..start + page[start..].find('<').expect("the cell ends")]
+}
+
+/// Posts 25 Hz samples of `G_from_B` from `start_ns`, a few arc-seconds of noise about x, the
+/// last `turned` of them turned by 90 arc-seconds.
+async fn post_run(app: &TestApp, start_ns: i64, count: i64, turned: i64) {
+    let samples: Vec<Value> = (0..count)
+        .map(|k| {
+            let noise = 3.0 * ((k * 7919 % 101) as f64 / 50.0 - 1.0);
+            let turn = if k >= count - turned { 90.0 } else { 0.0 };
+            turned_sample(start_ns + k * 40_000_000, turn + noise)
+        })
+        .collect();
+    let (status, body) = app
+        .post_live("/api/v1/samples", &json!({ "samples": samples }))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+}
+
+async fn a_period_s_report_prints_the_api_s_figures_and_tells_its_gap_and_alarm(backend: Backend) {
+    let app = TestApp::start_on(backend, Some(&alarmed_installation(""))).await;
+    app.set_straight_reference().await;
+    // 4 s of samples, 120 s of silence, 4 s more whose last second turns past the warning.
+    post_run(&app, T0_NS, 100, 0).await;
+    let resumed_ns = T0_NS + 124_000_000_000;
+    post_run(&app, resumed_ns, 100, 25).await;
+    let (_, list) = app.get("/api/v1/alarms?target=G").await;
+    let raised = list["alarms"]
+        .as_array()
+        .and_then(|a| a.iter().find(|a| a["to"] == "warn").cloned())
+        .expect("the turn raises a warning");
+    let id = raised["id"].as_i64().unwrap();
+    let ack = json!({"by": "watch officer", "note": "crane load, checked"});
+    let (status, body) = app
+        .post_json(&format!("/api/v1/alarms/{id}/ack"), &ack)
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+
+    let (from, to) = (format_ns(T0_NS), format_ns(T0_NS + 130_000_000_000));
+    let window = format!("from={from}&to={to}");
+    let (status, headers, bytes) = app
+        .request_raw(
+            "GET",
+            &format!("/api/v1/report?{window}&min_gap_s=30"),
+            &[],
+            axum::body::Body::empty(),
+        )
+        .await;
+    let page = String::from_utf8(bytes.to_vec()).expect("UTF-8");
+    assert_eq!(status, StatusCode::OK, "{page}");
+    assert_eq!(headers["content-type"], "text/html; charset=utf-8");
+    assert_eq!(
+        headers["content-security-policy"],
+        brokenray::report::CONTENT_SECURITY_POLICY
+    );
+    assert!(!page.contains("<script"), "a report runs no script");
+
+    // Every statistic is the API's for the same period, printed as the report prints it.
+    for source in ["raw", "filtered"] {
+        let (status, stats) = app
+            .get(&format!("/api/v1/targets/G/stats?{window}&source={source}"))
+            .await;
+        assert_eq!(status, StatusCode::OK, "{stats}");
+        let count = stats["count"].as_u64().expect("a count");
+        assert!(count > 150, "most of the 200 groups give a result: {count}");
+        assert!(
+            page.contains(&format!(" {count} {source} results")),
+            "the {source} count"
+        );
+        for (quantity, unit) in [
+            ("euler_deg", Quantity::EulerDeg),
+            ("t_mm", Quantity::TranslationMm),
+        ] {
+            for statistic in ["min", "max", "mean", "rms", "expected_rms"] {
+                let values = &stats[quantity][statistic];
+                if values.is_null() {
+                    continue;
+                }
+                for axis in 0..3 {
+                    let api = values[axis].as_f64().expect("a number");
+                    let id = cell_id("G", source, quantity, statistic, axis);
+                    assert_eq!(cell(&page, &id), figure(api, unit), "{id}");
+                }
+            }
+        }
+    }
+    assert!(
+        page.contains("G-raw-euler_deg-expected_rms-x"),
+        "raw results carry their random part: the expected rms is printed"
+    );
+
+    // The silence: from the last sample before it to the first after, nothing measured.
+    let last_before = format_ns(T0_NS + 99 * 40_000_000);
+    let gap_row = format!(
+        "<tr><td class=\"l\">{last_before}</td><td class=\"l\">{}</td><td>120.0</td>",
+        format_ns(resumed_ns)
+    );
+    assert!(page.contains(&gap_row), "the gap's row: {gap_row}");
+    assert!(page.contains("1 gap, 120 s in all"), "the count");
+    assert!(page.contains("no link of its chain stored a sample"));
+
+    // The alarm and who acknowledged it.
+    assert!(page.contains("none &rarr; warn"), "the warning");
+    assert!(page.contains("by watch officer at"));
+    assert!(page.contains("crane load, checked"));
+
+    // The budget's whole sigma is the API's.
+    let (_, budget) = app.get("/api/v1/targets/G/budget").await;
+    let sigma_rx = budget["sigma"]["rotation"][0].as_f64().unwrap();
+    assert!(
+        page.contains(&format!(
+            "<td class=\"l\">whole sigma</td><td class=\"l\"></td><td>{}</td>",
+            figure(sigma_rx, Quantity::RotationArcsec)
+        )),
+        "the whole sigma"
+    );
+    assert!(page.contains("noise G_from_B"), "the contributor");
+
+    // Six pictures of the target's deformation (against the reference), each with a band.
+    assert_eq!(page.matches("<svg").count(), 6);
+    assert!(page.contains("aria-label=\"G: rotation x (arcsec)\""));
+
+    // A period that is not one is refused, naming the field.
+    for (query, field) in [
+        (format!("{window}&min_gap_s=0"), "min_gap_s"),
+        (format!("from={to}&to={from}"), "to"),
+        (format!("from={to}&to={to}"), "to"),
+        (
+            "from=2020-01-01T00:00:00Z&to=2022-01-01T00:00:00Z".to_owned(),
+            "from",
+        ),
+    ] {
+        let (status, body) = app.get(&format!("/api/v1/report?{query}")).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{query}: {body}");
+        assert_eq!(
+            body["error"]["details"][0]["field"], field,
+            "{query}: {body}"
+        );
+    }
+}
