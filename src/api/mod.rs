@@ -205,6 +205,11 @@ pub struct HealthOut {
     /// was lost; the service works on: the answer stays 200.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub storage_problem: Option<String>,
+    /// Why the last scheduled report (`[reports]`) could not be filed (a folder that cannot
+    /// be written, a store that does not answer); tried again every ten minutes. The service
+    /// works on: the answer stays 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reports_problem: Option<String>,
     /// On a fleet's centre, the sites whose last upkeep (retention, partitions) failed, and
     /// why; the other sites' went on. The answer stays 200.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -352,6 +357,7 @@ async fn healthz(
             problem,
             upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
             storage_problem: app.service.storage_problem(),
+            reports_problem: app.service.report_problem(),
             tasks_problem,
             grouping_problem,
             filter_problem,

@@ -59,6 +59,8 @@ pub struct Installation {
     pub outputs: OutputSettings,
     /// How long raw samples and results are kept (rollups are kept for good).
     pub retention: RetentionSettings,
+    /// The reports filed by themselves (`[reports]`); `None`: only those asked for.
+    pub reports: Option<ReportSettings>,
     /// The archive of camera frames.
     pub frames: FrameSettings,
     /// This service in a fleet: a site reporting to a centre, or the centre.
@@ -94,6 +96,18 @@ pub struct FrameSettings {
     pub archive_every_s: f64,
     /// The archive's size cap (MB, 10^6 bytes).
     pub archive_max_mb: f64,
+}
+
+/// The period's report the service files by itself: one a period, the periods counted from
+/// 1970-01-01T00:00:00Z (UTC) so that they do not move with restarts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReportSettings {
+    /// The period (ns).
+    pub every_ns: i64,
+    /// The folder the reports are written into (made when missing).
+    pub folder: PathBuf,
+    /// A silence between raw results longer than this is a gap (ns).
+    pub min_gap_ns: i64,
 }
 
 /// How long raw samples and results are kept, counted back from the newest result.

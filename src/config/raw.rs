@@ -28,6 +28,7 @@ pub(super) struct RawFile {
     pub outputs: RawOutputs,
     pub filter: Option<Spanned<RawFilter>>,
     pub retention: Option<Spanned<RawRetention>>,
+    pub reports: Option<Spanned<RawReports>>,
     pub pnp: Option<Spanned<RawPnp>>,
     pub frames: Option<Spanned<RawFrames>>,
     pub site: Option<Spanned<RawSite>>,
@@ -84,6 +85,14 @@ pub(super) struct RawRetention {
     pub samples_days: Option<f64>,
     pub results_days: Option<f64>,
     pub disk_budget_mb: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawReports {
+    pub every_days: f64,
+    pub folder: String,
+    pub min_gap_s: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

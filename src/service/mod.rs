@@ -22,7 +22,9 @@ mod report;
 mod tasks;
 
 pub use metrics::{ConnectionCounters, Metrics, REJECTION_STATUSES};
-pub use report::{LISTED_GAPS, REPORT_BUCKETS, ReportWindow};
+pub use report::{
+    LISTED_GAPS, REPORT_BUCKETS, ReportWindow, last_complete_period, report_file_name,
+};
 pub use tasks::TaskWatch;
 
 pub use pipeline::{IngestItem, IngestReport};
@@ -278,6 +280,8 @@ struct Inner {
     heavy_reads: Arc<tokio::sync::Semaphore>,
     /// The last removal the disk budget forced (see [`Service::storage_problem`]).
     storage_problem: std::sync::Mutex<Option<String>>,
+    /// Why the last scheduled report could not be filed (see [`Service::report_problem`]).
+    report_problem: std::sync::Mutex<Option<String>>,
     /// The background tasks, watched.
     tasks: TaskWatch,
 }
@@ -455,6 +459,7 @@ impl Service {
             clock: Arc::clone(&clock),
             alarm_feed: std::sync::Mutex::new(alarm_rx),
             storage_problem: std::sync::Mutex::new(None),
+            report_problem: std::sync::Mutex::new(None),
             tasks: TaskWatch::default(),
             heavy_reads: Arc::new(tokio::sync::Semaphore::new(
                 installation.server.max_heavy_reads,
@@ -500,6 +505,25 @@ impl Service {
                 }
             }
         });
+        // The scheduled report is looked for every ten minutes (and at once): the last period
+        // that has ended is filed when its file is not there.
+        if let Some(settings) = service.installation().reports.clone() {
+            let weak = Arc::downgrade(&service.inner);
+            service.spawn_watched("reports", async move {
+                let mut every = tokio::time::interval(std::time::Duration::from_secs(600));
+                loop {
+                    every.tick().await;
+                    let Some(inner) = weak.upgrade() else { return };
+                    match (Service { inner }).file_due_report(&settings).await {
+                        Ok(None) => {}
+                        Ok(Some(path)) => {
+                            tracing::info!(path = %path.display(), "filed the period's report")
+                        }
+                        Err(e) => tracing::error!(error = %e, "the period's report was not filed"),
+                    }
+                }
+            });
+        }
         // Staleness is judged every second on the server's clock, whether data comes or not.
         let weak = Arc::downgrade(&service.inner);
         service.spawn_watched("liveness", async move {

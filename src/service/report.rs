@@ -6,12 +6,14 @@
 use super::Service;
 use crate::bank::ResultSource;
 use crate::chain::LinkId;
+use crate::config::ReportSettings;
 use crate::model::{LinkKind, TargetId};
 use crate::report::period::{
     BudgetSnapshot, CalibrationLine, CameraLine, Gap, Gaps, LinkInGap, PeriodReport, SourceWindow,
     TargetReport,
 };
 use crate::store::{StoreError, StoreResult};
+use std::path::PathBuf;
 
 /// The buckets of each picture: enough for a page's width.
 pub const REPORT_BUCKETS: usize = 600;
@@ -36,7 +38,75 @@ pub struct ReportWindow {
     pub min_gap_ns: i64,
 }
 
+/// The last period of `every_ns` that has ended by `now_ns`: `(from, to)`, the periods counted
+/// from 1970-01-01T00:00:00Z so that a restart does not move them.
+pub fn last_complete_period(now_ns: i64, every_ns: i64) -> (i64, i64) {
+    let to = now_ns.div_euclid(every_ns) * every_ns;
+    (to.saturating_sub(every_ns), to)
+}
+
+/// The file of a period's report: `brokenray-report-FROM--TO.html`, the times in RFC 3339 with
+/// `-` for `:` (which some file systems refuse).
+pub fn report_file_name(from_ns: i64, to_ns: i64) -> String {
+    let stamp = |ns: i64| crate::clock::format_ns(ns).replace(':', "-");
+    format!("brokenray-report-{}--{}.html", stamp(from_ns), stamp(to_ns))
+}
+
 impl Service {
+    /// Files the report of the last period of `settings` that has ended, in its folder, when
+    /// it is not there yet: the file written, or `None` when it was there. The page is written
+    /// beside its name and renamed into place once on disk, so a crash leaves no half report
+    /// under a report's name. A failure is kept as [`Service::report_problem`] until a later
+    /// report is filed.
+    pub async fn file_due_report(
+        &self,
+        settings: &ReportSettings,
+    ) -> Result<Option<PathBuf>, String> {
+        let result = self.try_file_due_report(settings).await;
+        let problem = result.as_ref().err().cloned();
+        *self
+            .inner
+            .report_problem
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()) = problem;
+        result
+    }
+
+    async fn try_file_due_report(
+        &self,
+        settings: &ReportSettings,
+    ) -> Result<Option<PathBuf>, String> {
+        let (from_ns, to_ns) = last_complete_period(self.now_ns(), settings.every_ns);
+        let path = settings.folder.join(report_file_name(from_ns, to_ns));
+        if tokio::fs::try_exists(&path).await.unwrap_or(false) {
+            return Ok(None);
+        }
+        let report = self
+            .period_report(ReportWindow {
+                from_ns,
+                to_ns,
+                min_gap_ns: settings.min_gap_ns,
+            })
+            .await
+            .map_err(|e| format!("the report of {} could not be read: {e}", path.display()))?;
+        let page = crate::report::period::render(&report);
+        let target = path.clone();
+        tokio::task::spawn_blocking(move || write_new(&target, page.as_bytes()))
+            .await
+            .map_err(|e| format!("the report's writer stopped: {e}"))?
+            .map_err(|e| format!("{} could not be written: {e}", path.display()))?;
+        Ok(Some(path))
+    }
+
+    /// Why the last scheduled report could not be filed, until one is.
+    pub fn report_problem(&self) -> Option<String> {
+        self.inner
+            .report_problem
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
     /// The report of `window`: read under one heavy-read permit, as a long history is.
     pub async fn period_report(&self, window: ReportWindow) -> Result<PeriodReport, StoreError> {
         let _permit = self.heavy_read().await;
@@ -259,4 +329,41 @@ fn sigmas(c: &crate::geometry::PoseCov) -> [f64; 6] {
         s.translation_mm[1],
         s.translation_mm[2],
     ]
+}
+
+/// Writes `bytes` to `path` through a temporary file beside it, synced before it is renamed
+/// into place (the folder made when missing, and synced after the rename).
+fn write_new(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write as _;
+    let folder = path.parent().unwrap_or(std::path::Path::new("."));
+    std::fs::create_dir_all(folder)?;
+    let mut part = path.as_os_str().to_owned();
+    part.push(".part");
+    let part = PathBuf::from(part);
+    let mut file = std::fs::File::create(&part)?;
+    file.write_all(bytes)?;
+    file.sync_all()?;
+    std::fs::rename(&part, path)?;
+    std::fs::File::open(folder)?.sync_all()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn periods_are_counted_from_the_epoch_and_named_by_their_ends() {
+        let day = 86_400 * 1_000_000_000_i64;
+        // 2026-11-27T15:00:00Z: the last whole day is the 26th.
+        let now = 1_795_777_200_000_000_000;
+        let (from, to) = last_complete_period(now, day);
+        assert_eq!((to - from, to % day), (day, 0));
+        assert!(to <= now && now - to < day);
+        assert_eq!(
+            report_file_name(from, to),
+            "brokenray-report-2026-11-26T00-00-00Z--2026-11-27T00-00-00Z.html"
+        );
+        // At a period's very end it is complete.
+        assert_eq!(last_complete_period(to, day), (from, to));
+    }
 }

@@ -491,6 +491,26 @@ fn fleet_settings_are_checked_and_each_mistake_named() {
             "retention.disk_budget_mb applies to an SQLite file",
         ),
         (
+            format!("{VALID}\n[reports]\nevery_days = 0.01\nfolder = \"r\"\n"),
+            "[reports]",
+            "reports.every_days must lie in [1/24, 366] days",
+        ),
+        (
+            format!("{VALID}\n[reports]\nevery_days = 7\nfolder = \" \"\nmin_gap_s = 0\n"),
+            "[reports]",
+            "reports.folder must name a folder",
+        ),
+        (
+            format!("{VALID}\n[reports]\nevery_days = 7\nfolder = \"r\"\nmin_gap_s = 0\n"),
+            "[reports]",
+            "reports.min_gap_s must lie in",
+        ),
+        (
+            format!("{VALID}\n[reports]\nfolder = \"r\"\n"),
+            "[reports]",
+            "missing field `every_days`",
+        ),
+        (
             format!("{VALID}\n[retention]\ndisk_budget_mb = 0\n"),
             "[retention]",
             "retention.disk_budget_mb must be a positive number",

@@ -14,8 +14,9 @@ use super::raw::{self, RawFile, RawPose, RawSigma};
 use super::{
     AuthSettings, CalibrationReportFile, CameraAddress, CameraSource, CentralSettings,
     ConfigProblem, FeatureSetting, FleetSettings, FrameSettings, Installation, NotifyLevel,
-    NotifySettings, PixelFormat, RerunMode, RerunSettings, RetentionSettings, Scope,
-    ServerSettings, SiteName, TimestampMode, TokenSpec, TriggerMode, UpstreamSettings, WebhookSpec,
+    NotifySettings, PixelFormat, ReportSettings, RerunMode, RerunSettings, RetentionSettings,
+    Scope, ServerSettings, SiteName, TimestampMode, TokenSpec, TriggerMode, UpstreamSettings,
+    WebhookSpec,
 };
 use crate::alarms::AlarmThresholds;
 use crate::chain::{ChainError, Topology};
@@ -220,6 +221,7 @@ impl Validator {
         let outputs = self.outputs(&raw);
         let filter = self.bank_settings(&raw);
         let retention = self.retention(&raw, server.as_ref());
+        let reports = self.reports(&raw);
         let frames = self.frames(&raw);
         let pnp = self.pnp(&raw);
         let fleet = self.fleet(&raw, server.as_ref());
@@ -264,6 +266,7 @@ impl Validator {
             notify,
             outputs,
             retention: retention?,
+            reports: reports?,
             frames: frames?,
             fleet: fleet?,
             sources: sources?,

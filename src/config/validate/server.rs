@@ -21,6 +21,38 @@ impl Validator {
         })
     }
 
+    /// `[reports]`: `Some(None)` without the section.
+    pub(super) fn reports(&mut self, raw: &RawFile) -> Option<Option<ReportSettings>> {
+        let Some(section) = &raw.reports else {
+            return Some(None);
+        };
+        let (at, r) = (section.span().start, section.get_ref());
+        let mut ok = true;
+        if !(r.every_days.is_finite() && (1.0 / 24.0..=366.0).contains(&r.every_days)) {
+            self.problem(
+                at,
+                format!(
+                    "reports.every_days must lie in [1/24, 366] days (an hour to a year), not {}",
+                    r.every_days
+                ),
+            );
+            ok = false;
+        }
+        if r.folder.trim().is_empty() {
+            self.problem(at, "reports.folder must name a folder".into());
+            ok = false;
+        }
+        let min_gap_s = r.min_gap_s.unwrap_or(60.0);
+        ok &= self.duration(at, "reports.min_gap_s", min_gap_s, 1e-3, 86_400.0);
+        ok.then(|| {
+            Some(ReportSettings {
+                every_ns: (r.every_days * 86_400e9).round() as i64,
+                folder: std::path::PathBuf::from(&r.folder),
+                min_gap_ns: (min_gap_s * 1e9).round() as i64,
+            })
+        })
+    }
+
     pub(super) fn retention(
         &mut self,
         raw: &RawFile,

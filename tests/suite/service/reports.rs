@@ -157,3 +157,78 @@ async fn a_period_s_report_prints_the_api_s_figures_and_tells_its_gap_and_alarm(
         );
     }
 }
+
+/// `[reports]`: the last day that has ended is filed once, under its ends' name, with the
+/// day's results; a folder that cannot be written is told in `/healthz` (which stays 200) until
+/// a report is filed.
+#[tokio::test]
+async fn the_scheduled_report_files_each_period_once_and_tells_a_failure() {
+    let folder = tempfile::tempdir().unwrap();
+    let reports = folder.path().join("filed");
+    let config = alarmed_installation(&format!(
+        "[reports]\nevery_days = 1\nfolder = \"{}\"\nmin_gap_s = 30\n",
+        reports.display()
+    ));
+    let app = TestApp::start(Some(&config)).await;
+    post_run(&app, T0_NS, 100, 0).await;
+    // The next morning: the 21st has ended.
+    app.clock.set_ns(T0_NS + 86_400_000_000_000);
+    let settings = app
+        .service
+        .installation()
+        .reports
+        .clone()
+        .expect("[reports]");
+    assert_eq!(settings.every_ns, 86_400_000_000_000);
+    let filed = app
+        .service
+        .file_due_report(&settings)
+        .await
+        .expect("filed")
+        .expect("a new report");
+    assert_eq!(
+        filed,
+        reports.join("brokenray-report-2026-11-21T00-00-00Z--2026-11-22T00-00-00Z.html")
+    );
+    let page = std::fs::read_to_string(&filed).unwrap();
+    assert!(page.contains("The period holds 100 raw results"), "{page}");
+    assert!(
+        page.contains("2 gaps"),
+        "the silences before the first result and after the last"
+    );
+    // Once: the next look finds it there and leaves it.
+    assert_eq!(app.service.file_due_report(&settings).await, Ok(None));
+    assert_eq!(std::fs::read_to_string(&filed).unwrap(), page);
+    assert!(
+        std::fs::read_dir(&reports).unwrap().all(|e| !e
+            .unwrap()
+            .file_name()
+            .to_string_lossy()
+            .ends_with(".part")),
+        "no part file left"
+    );
+
+    // A folder that cannot be made: the failure is told, the service stays healthy.
+    let blocker = folder.path().join("blocker");
+    std::fs::write(&blocker, b"a file").unwrap();
+    let broken = brokenray::config::ReportSettings {
+        folder: blocker.join("reports"),
+        ..settings.clone()
+    };
+    let error = app.service.file_due_report(&broken).await.unwrap_err();
+    assert!(error.contains("could not be written"), "{error}");
+    let (status, health) = app.get("/healthz").await;
+    assert_eq!(status, StatusCode::OK, "{health}");
+    assert_eq!(health["reports_problem"], error.as_str(), "{health}");
+    // The next report filed clears it.
+    app.clock.set_ns(T0_NS + 2 * 86_400_000_000_000);
+    assert!(
+        app.service
+            .file_due_report(&settings)
+            .await
+            .unwrap()
+            .is_some()
+    );
+    let (_, health) = app.get("/healthz").await;
+    assert!(health["reports_problem"].is_null(), "{health}");
+}
