@@ -59,7 +59,7 @@ body{font-family:system-ui,sans-serif;margin:2em auto;max-width:60em;color:#222;
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ccc}\
 table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:0.2em 0.6em;\
 text-align:right}th{background:#f3f3f3}td.l,th.l{text-align:left}\
-figure{margin:1em 0;break-inside:avoid}figcaption{font-size:0.9em;color:#444}\
+figure{margin:1em 0;break-inside:avoid}figcaption,p.caption{font-size:0.9em;color:#444}\
 svg{max-width:100%;height:auto;border:1px solid #ddd;background:#fff}\
 p.verdict{padding:0.4em 0.6em;background:#f6f6f6;border-left:4px solid #888}\
 p.bad{border-left-color:#c0392b}p.good{border-left-color:#27ae60}\

@@ -346,16 +346,16 @@ fn plots(b: &mut String, report: &PeriodReport, t: &TargetReport) {
     }
     let _ = writeln!(
         b,
-        "<figure><figcaption>{} over the period: the filtered result (line) with its \
+        "<p class=\"caption\">{} over the period: the filtered result (line) with its \
          1-sigma band (blue), over the spread of the raw results (grey, min to max per \
-         bucket of {}).</figcaption>",
+         bucket of {}).</p>",
         if deformation { "Deformation" } else { "Pose" },
         duration_text(t.filtered.history.bucket_ns.max(t.raw.history.bucket_ns))
     );
+    // A figure a panel: each stays whole on a printed page.
     for p in panels(deformation) {
-        b.push_str(&panel(report, t, &p));
+        let _ = writeln!(b, "<figure>{}</figure>", panel(report, t, &p));
     }
-    b.push_str("</figure>\n");
 }
 
 /// A duration as people read it: `40 ms`, `12.5 s`, `4.3 min`, `2.0 h`, `3.5 d`.

@@ -1,7 +1,8 @@
 // The dashboard on a service with tokens: it asks for one, sends it with every call and with
 // the event stream, and says so when the token lacks the admin scope. Camera C1's calibration
 // report (named by the installation) opens from its link in a new tab, fetched with the token,
-// with its style kept under the dashboard's content policy.
+// with its style kept under the dashboard's content policy; the shown range's report opens the
+// same way, its pictures drawn and laid out for print.
 //
 //   node token.mjs BASE_URL READ_TOKEN
 //
@@ -60,6 +61,45 @@ await run(async (browser) => {
     `the report keeps its style under the dashboard's policy (tables ${styled.collapse}) and its ${styled.pictures} pictures`);
   check(tabProblems.length === 0, `the report's tab reports no problem: ${tabProblems.join(' | ')}`);
   await tab.close();
+
+  // The period's report of the shown range: fetched with the token, opened in a new tab, its
+  // pictures drawn, and laid out for print (each picture whole on an A4 page).
+  const [reportTab] = await Promise.all([
+    context.waitForEvent('page', { timeout: 10000 }),
+    page.click('#report-range'),
+  ]);
+  const reportProblems = watch(reportTab);
+  await reportTab.waitForSelector('h1', { timeout: 20000 });
+  const reportHeading = await reportTab.textContent('h1');
+  check(reportHeading.startsWith('Deformation report'), `the range's report opens in a new tab: "${reportHeading}"`);
+  check(authorised.includes('/api/v1/report'), 'the report was asked with the token');
+  const drawn = await reportTab.evaluate(() => ({
+    target: Boolean([...document.querySelectorAll('h2')].find((h) => h.textContent === 'Target G')),
+    pictures: [...document.querySelectorAll('svg')].map((svg) => {
+      const box = svg.getBoundingClientRect();
+      return { width: box.width, height: box.height, paths: svg.querySelectorAll('path').length };
+    }),
+  }));
+  check(drawn.target, 'the report has target G');
+  check(drawn.pictures.length === 6 && drawn.pictures.every((p) => p.width > 300 && p.height > 50 && p.paths > 0),
+    `six pictures of G, each drawn with its band and line: ${JSON.stringify(drawn.pictures)}`);
+  await reportTab.emulateMedia({ media: 'print' });
+  const printed = await reportTab.evaluate(() => ({
+    margin: getComputedStyle(document.body).marginTop,
+    figures: [...document.querySelectorAll('figure')].map((f) => ({
+      whole: getComputedStyle(f).breakInside === 'avoid',
+      height: f.getBoundingClientRect().height,
+    })),
+  }));
+  check(printed.margin === '0px', `printed, the page has no margin of its own: ${printed.margin}`);
+  // A4 at 96 px an inch, less the browser's default margins: about 1040 px.
+  check(printed.figures.length === 6 && printed.figures.every((f) => f.whole && f.height < 1000),
+    `printed, each picture is kept whole and fits a page: ${JSON.stringify(printed.figures)}`);
+  const pdf = await reportTab.pdf({ format: 'A4' });
+  const pages = (pdf.toString('latin1').match(/\/Type\s*\/Page[^s]/g) || []).length;
+  check(pdf.subarray(0, 5).toString() === '%PDF-' && pages >= 2, `it prints to a PDF of ${pages} A4 pages`);
+  check(reportProblems.length === 0, `the report's tab reports no problem: ${reportProblems.join(' | ')}`);
+  await reportTab.close();
 
   await page.click('#reference-submit');
   await page.waitForFunction(() => document.getElementById('reference-result').textContent.startsWith('Refused'), null, { timeout: 10000 });

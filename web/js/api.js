@@ -45,6 +45,27 @@ export async function api(path, options) {
   return response.json();
 }
 
+// An HTML page of the API (a report), fetched with the token and shown in `tab` (opened by the
+// caller on the click itself, so that no popup blocker holds it) from a blob; the blob takes
+// this page's content policy, which admits the reports' style sheet by its hash. Throws as
+// `api` does; says so when the browser opened no tab.
+export async function openInTab(path, tab) {
+  let response;
+  try {
+    response = await api(path, { raw: true });
+  } catch (e) {
+    if (tab) tab.close();
+    throw e;
+  }
+  const url = URL.createObjectURL(new Blob([await response.text()], { type: 'text/html' }));
+  if (!tab) {
+    URL.revokeObjectURL(url);
+    throw new ApiError(0, 'the browser opened no new tab (allow this page to open one)');
+  }
+  tab.location.href = url;
+  setTimeout(() => URL.revokeObjectURL(url), 60000);
+}
+
 // token
 
 let tokenAsked = false;

@@ -10,7 +10,7 @@
 // (the tab is opened on the click itself, so no popup blocker holds it).
 
 import { $, clearMessage, el, fmtAge, fmtTime, parseTime, showMessage } from './util.js';
-import { api } from './api.js';
+import { api, openInTab } from './api.js';
 
 const SVG = 'http://www.w3.org/2000/svg';
 // A residual of 0.05 px is drawn this many screen pixels long.
@@ -72,19 +72,9 @@ function reportLink(camera) {
 
 async function openReport(camera, tab) {
   try {
-    const response = await api(camera.calibration_report, { raw: true });
-    const html = await response.text();
-    const url = URL.createObjectURL(new Blob([html], { type: 'text/html' }));
-    if (!tab) {
-      URL.revokeObjectURL(url);
-      showMessage('cameras', `Camera ${camera.name}'s calibration report: the browser opened no new tab (allow this page to open one)`);
-      return;
-    }
-    tab.location.href = url;
-    setTimeout(() => URL.revokeObjectURL(url), 60000);
+    await openInTab(camera.calibration_report, tab);
     clearMessage('cameras');
   } catch (e) {
-    if (tab) tab.close();
     if (e.status !== 401) showMessage('cameras', `Camera ${camera.name}'s calibration report: ${e.message}`);
   }
 }

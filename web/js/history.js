@@ -2,7 +2,7 @@
 // thresholds, alarm and reference marks, zoom, selection and CSV download.
 
 import { $, apiBase, AXES, clearMessage, el, fmtSpan, fmtTime, fromInput, iso, pad, parseTime, showMessage, state, toInput } from './util.js';
-import { api } from './api.js';
+import { api, openInTab } from './api.js';
 import { loadAlarms } from './alarms.js';
 
 // `from=..&to=..` of a window (ms).
@@ -471,5 +471,16 @@ async function downloadCsv(source) {
     if (e.status !== 401) showMessage('csv', 'CSV download: ' + e.message);
   }
 }
+// The period's report of the shown range (every target), opened in a new tab.
+async function openRangeReport(tab) {
+  const win = state.history ? state.history.window : windowMs();
+  try {
+    await openInTab('/api/v1/report?' + windowQuery(win), tab);
+    clearMessage('report');
+  } catch (e) {
+    if (e.status !== 401) showMessage('report', 'Report: ' + e.message);
+  }
+}
+$('report-range').addEventListener('click', () => openRangeReport(window.open('', '_blank')));
 $('csv-filtered').addEventListener('click', () => downloadCsv('filtered'));
 $('csv-raw').addEventListener('click', () => downloadCsv('raw'));
