@@ -16,7 +16,7 @@ use crate::archive::ArchiveReason;
 use crate::clock::format_ns;
 use crate::geometry::{Pose, PoseCov};
 use crate::imagefile::{FrameFileError, FrameFormat, decode};
-use crate::model::{FrameObservation, NotFound, ObservedLink, observe_frame};
+use crate::model::{FrameObservation, NotFound, ObservedLink, observe_frame_paced};
 use crate::service::IngestItem;
 use axum::Json;
 use axum::body::Body;
@@ -54,6 +54,9 @@ crate::words! {
         Ambiguous = "ambiguous",
         /// A disc was found as a point of two markers.
         SharedPoints = "shared_points",
+        /// Not found near its predictions; lost, it is searched for in the whole frame again
+        /// once its interval has passed.
+        SearchPaced = "search_paced",
     }
 }
 
@@ -68,6 +71,7 @@ impl From<&NotFound> for NotFoundCode {
             NotFound::NotIdentified { .. } => NotFoundCode::NotIdentified,
             NotFound::Ambiguous { .. } => NotFoundCode::Ambiguous,
             NotFound::SharedPoints { .. } => NotFoundCode::SharedPoints,
+            NotFound::SearchPaced { .. } => NotFoundCode::SearchPaced,
         }
     }
 }
@@ -231,7 +235,19 @@ pub(super) async fn take_frame(
     let observer = app.service.observer();
     let snapshot = app.service.snapshot();
     let camera_name = camera.to_owned();
-    let (out, items, image) = super::vision::blocking(move || {
+    // Which lost markers may be searched for in the whole frame, decided before the search
+    // and recorded after it (two frames searched at once may both search: at most a core
+    // each, as ever).
+    let allowed: Vec<(crate::chain::LinkId, Result<(), f64>)> = {
+        let pacer = app.search_pacer.lock().unwrap_or_else(|p| p.into_inner());
+        observer
+            .links()
+            .filter(|l| l.camera_frame == camera)
+            .map(|l| (l.link, pacer.whole_frame(l.link, time_ns)))
+            .collect()
+    };
+    let pace = allowed.clone();
+    let (out, items, image, found) = super::vision::blocking(move || {
         // The link's filtered pose at the frame's time (the nominal one follows by itself).
         let predictions = |link: &ObservedLink| -> Vec<Pose> {
             match snapshot.bank.link_estimate(link.link, time_ns) {
@@ -239,13 +255,32 @@ pub(super) async fn take_frame(
                 _ => Vec::new(),
             }
         };
-        let seen = observe_frame(&observer, &camera_name, &image, predictions)
+        let whole_frame = |link: &ObservedLink| {
+            pace.iter()
+                .find(|(l, _)| *l == link.link)
+                .map_or(Ok(()), |(_, allowed)| *allowed)
+        };
+        let seen = observe_frame_paced(&observer, &camera_name, &image, predictions, whole_frame)
             .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
+        let found: Vec<(crate::chain::LinkId, bool)> = seen
+            .markers
+            .iter()
+            .map(|m| (m.link.link, m.result.is_ok()))
+            .collect();
         let (out, items) = answer(&camera_name, time_ns, &seen);
         drop(slot);
-        Ok::<_, ApiError>((out, items, image))
+        Ok::<_, ApiError>((out, items, image, found))
     })
     .await??;
+    {
+        let mut pacer = app.search_pacer.lock().unwrap_or_else(|p| p.into_inner());
+        for (link, found) in found {
+            let searched = allowed
+                .iter()
+                .any(|(l, allowed)| *l == link && allowed.is_ok());
+            pacer.record(link, time_ns, found, searched);
+        }
+    }
     let ingest = if items.is_empty() {
         IngestResponse::default()
     } else {

@@ -92,6 +92,8 @@ pub struct AppState {
     pub sources: Arc<[Arc<crate::acquire::SourceState>]>,
     /// The plant's buses (`[outputs]`); none unless [`App`] started them.
     pub outputs: Arc<crate::outputs::Outputs>,
+    /// The pace of whole-frame searches for lost markers (`[pnp] lost_search_interval_s`).
+    pub search_pacer: Arc<std::sync::Mutex<crate::model::SearchPacer>>,
 }
 
 /// Waits up to `wait` for one of `slots`, or answers 503 `busy` naming `what`.
@@ -128,7 +130,13 @@ impl AppState {
                 .iter()
                 .map(|c| c.frame.as_str()),
         ));
+        let model = &service.installation().model;
+        let search_pacer = Arc::new(std::sync::Mutex::new(crate::model::SearchPacer::new(
+            model.links.len(),
+            (model.pnp.lost_search_interval_s * 1e9).round() as i64,
+        )));
         Ok(Self {
+            search_pacer,
             webhooks: crate::notify::Webhooks::start(&service, alarms::encode_alarm),
             latest_frames,
             archive,

@@ -77,6 +77,7 @@ pub(super) struct RawPnp {
     pub max_reprojection_rms_px: Option<f64>,
     pub robust: Option<bool>,
     pub inlier_threshold_px: Option<f64>,
+    pub lost_search_interval_s: Option<f64>,
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -6,7 +6,8 @@
 //! point that images where its pose puts it; one that leaves visible points out is kept only
 //! when its pose is near the prediction (the rest are covered), else searched for afresh.
 //! A marker no prediction finds is searched for in the whole frame from its layout alone
-//! ([`find_without_prior`]). A disc found as a point of two markers refuses both.
+//! ([`find_without_prior`]), at the pace the caller allows ([`super::SearchPacer`]). A disc
+//! found as a point of two markers refuses both.
 //!
 //! Decoding the file and choosing the predictions (the filtered pose of the link at the frame's
 //! time, the pose in the previous frame) belong to the callers; the nominal pose comes last.
@@ -44,12 +45,27 @@ pub struct FrameObservation<'a> {
 
 /// Detects and identifies the markers `camera` sees in `image`. `predictions(link)` gives the
 /// poses `camera_from_marker` to predict a marker's points from, most trusted first, and the
-/// link's nominal pose is tried after them; the next is tried only when one finds nothing.
+/// link's nominal pose is tried after them; the next is tried only when one finds nothing. A
+/// marker no prediction finds is searched for in the whole frame.
 pub fn observe_frame<'a>(
     observer: &'a Observer,
     camera: &str,
     image: &GreyImage,
     predictions: impl Fn(&ObservedLink) -> Vec<Pose>,
+) -> Result<FrameObservation<'a>, ObservationError> {
+    observe_frame_paced(observer, camera, image, predictions, |_| Ok(()))
+}
+
+/// [`observe_frame`], where `whole_frame(link)` says whether a marker no prediction finds may
+/// be searched for in the whole frame, or how long (s) until it may ([`super::SearchPacer`]);
+/// one that may not is [`NotFound::SearchPaced`]. When no marker may, the whole frame is not
+/// searched at all.
+pub fn observe_frame_paced<'a>(
+    observer: &'a Observer,
+    camera: &str,
+    image: &GreyImage,
+    predictions: impl Fn(&ObservedLink) -> Vec<Pose>,
+    whole_frame: impl Fn(&ObservedLink) -> Result<(), f64>,
 ) -> Result<FrameObservation<'a>, ObservationError> {
     let links: Vec<&ObservedLink> = observer
         .links()
@@ -182,10 +198,20 @@ pub fn observe_frame<'a>(
                         })
                     };
                 }
-                if result.is_err() {
-                    lost.push(i);
+                match (result, whole_frame(links[i])) {
+                    (Err(near), Err(next_in_s)) => {
+                        results[i] = Err(NotFound::SearchPaced {
+                            near: Box::new(near),
+                            next_in_s,
+                        });
+                    }
+                    (result, _) => {
+                        if result.is_err() {
+                            lost.push(i);
+                        }
+                        results[i] = result;
+                    }
                 }
-                results[i] = result;
             }
             // Last, the markers no prediction found, searched for in the whole frame from their
             // layouts alone.

@@ -75,6 +75,14 @@ pub enum NotFound {
         /// The other marker's frame.
         other: String,
     },
+    /// Not found near its predictions, and lost: the whole frame was searched for it lately
+    /// and is searched again only once its interval has passed ([`super::SearchPacer`]).
+    SearchPaced {
+        /// Why it was not found near its predictions.
+        near: Box<NotFound>,
+        /// Frame time until the next whole-frame search (s).
+        next_in_s: f64,
+    },
 }
 
 impl std::fmt::Display for NotFound {
@@ -115,6 +123,11 @@ impl std::fmt::Display for NotFound {
             NotFound::SharedPoints { other } => write!(
                 f,
                 "a disc it was found on was also found as a point of marker {other}"
+            ),
+            NotFound::SearchPaced { near, next_in_s } => write!(
+                f,
+                "{near}; lost: the whole frame is searched for it again in {next_in_s:.2} s \
+                 (once every `[pnp] lost_search_interval_s` while it stays lost)"
             ),
         }
     }

@@ -14,13 +14,15 @@
 mod frame;
 mod identify;
 mod observation;
+mod pacing;
 mod search;
 
-pub use frame::{FrameObservation, MarkerInFrame, observe_frame};
+pub use frame::{FrameObservation, MarkerInFrame, observe_frame, observe_frame_paced};
 pub use identify::{
     Completed, Found, NotFound, Reach, complete, identify, identify_within, search_squares,
 };
 pub use observation::{ObservationError, ObservedLink, Observer};
+pub use pacing::SearchPacer;
 pub use search::{HINT_ACCEPT_DEG, HINT_REFUSE_DEG, find_without_prior, layout_symmetries};
 
 use crate::alarms::AlarmThresholds;
@@ -115,6 +117,9 @@ pub struct PnpSettings {
     pub robust: bool,
     /// RANSAC: a point within this reprojection error supports a pose (px).
     pub inlier_threshold_px: f64,
+    /// A marker that stays lost is searched for in the whole frame at most once in this much
+    /// frame time (s; 0: in every frame): see [`SearchPacer`].
+    pub lost_search_interval_s: f64,
 }
 
 /// A link of the installation.

@@ -12,12 +12,21 @@ impl Validator {
         };
         let max_reprojection_rms_px = r.max_reprojection_rms_px.unwrap_or(1.0);
         let inlier_threshold_px = r.inlier_threshold_px.unwrap_or(2.0);
+        let lost_search_interval_s = r.lost_search_interval_s.unwrap_or(1.0);
         let ok = self.positive(at, "pnp.max_reprojection_rms_px", max_reprojection_rms_px)
-            & self.positive(at, "pnp.inlier_threshold_px", inlier_threshold_px);
+            & self.positive(at, "pnp.inlier_threshold_px", inlier_threshold_px)
+            & self.duration(
+                at,
+                "pnp.lost_search_interval_s",
+                lost_search_interval_s,
+                0.0,
+                3600.0,
+            );
         ok.then_some(PnpSettings {
             max_reprojection_rms_px,
             robust: r.robust.unwrap_or(false),
             inlier_threshold_px,
+            lost_search_interval_s,
         })
     }
 

@@ -312,3 +312,77 @@ async fn bad_frames_are_refused_by_name_and_nothing_is_stored() {
     assert_eq!(s, StatusCode::OK, "{b}");
     assert_eq!(stored_samples(&app, "C1_from_B").await, 1);
 }
+
+/// A marker that stays lost is searched for in the whole frame once a second of frame time
+/// (`[pnp] lost_search_interval_s`, 1 by default), near its prediction in every frame, and the
+/// camera's answer says when the next whole search comes; once found it is searched for at once
+/// when lost again.
+#[tokio::test]
+async fn a_lost_marker_is_searched_for_in_the_whole_frame_once_a_second() {
+    let app = TestApp::start(None).await;
+    let (_, frames) = rendered(BitDepth::Eight);
+    let seen = encode(&frames[0].1, FrameFormat::Png).expect("png");
+    let empty = GreyImage::from_u8(
+        frames[0].1.width_px(),
+        frames[0].1.height_px(),
+        &vec![40; (frames[0].1.width_px() * frames[0].1.height_px()) as usize],
+    )
+    .expect("frame");
+    let empty = encode(&empty, FrameFormat::Png).expect("png");
+    // Frame k at k * 40 ms: (whether it shows the marker, whether the whole frame is searched).
+    // A frame that searches the whole frame detects over it once more than one that does not
+    // (the predictions' full gates already reach far in this camera).
+    let mut fractions: Vec<(bool, f64)> = Vec::new();
+    let mut last_whole = 0;
+    for (k, shows, whole) in [
+        (0, false, true),
+        (1, false, false),
+        (2, false, false),
+        (24, false, false),
+        (25, false, true),
+        (26, false, false),
+        (27, true, false),
+        (28, false, true),
+        (29, false, false),
+    ] {
+        let body = if shows { seen.clone() } else { empty.clone() };
+        let time = format_ns(T0_NS + k * 40_000_000);
+        let (status, out) = post_frame(&app, "C1", &time, "image/png", body).await;
+        assert_eq!(status, StatusCode::OK, "{k}: {out}");
+        let searched = out["searched_fraction"].as_f64().expect("fraction");
+        let m = &out["markers"][0];
+        assert_eq!(m["found"], shows, "{k}: {m}");
+        if whole {
+            fractions.push((true, searched));
+            last_whole = k;
+            assert_eq!(m["reason_code"], "too_few_points", "{k}: {m}");
+        } else if !shows {
+            fractions.push((false, searched));
+            assert_eq!(m["reason_code"], "search_paced", "{k}: {m}");
+            let since = k - last_whole;
+            let next = format!("again in {:.2} s", 1.0 - since as f64 * 0.04);
+            let reason = m["reason"].as_str().expect("reason");
+            assert!(reason.contains(&next), "{k}: {reason}");
+            assert!(
+                reason.contains("at least 4"),
+                "the reason near the prediction: {reason}"
+            );
+        }
+    }
+    let paced: Vec<f64> = fractions.iter().filter(|f| !f.0).map(|f| f.1).collect();
+    for (whole, fraction) in &fractions {
+        let once_more = fraction - paced[0];
+        if *whole {
+            assert!((once_more - 1.0).abs() < 1e-9, "{fractions:?}");
+        } else {
+            assert!(once_more.abs() < 1e-9, "{fractions:?}");
+        }
+    }
+    // The camera's state shows the last frame's reason.
+    let (_, cameras) = app.get("/api/v1/cameras").await;
+    let c1 = &cameras["cameras"][0];
+    assert_eq!(
+        c1["frame"]["markers"][0]["reason_code"], "search_paced",
+        "{c1}"
+    );
+}
