@@ -184,21 +184,29 @@ impl Service {
     ) -> Result<TargetReport, StoreError> {
         let store = self.store();
         let (from, to) = (window.from_ns, window.to_ns);
-        let (raw_stats, raw_span) = store.pose_stats(ti, ResultSource::Raw, from, to).await?;
+        // The long reads at once, each on a connection of its own (on PostgreSQL the server
+        // folds one while this process decodes another).
+        let ((raw_stats, raw_span), (filtered_stats, _), raw_history, filtered_history, inner_gaps) =
+            tokio::try_join!(
+                store.pose_stats(ti, ResultSource::Raw, from, to),
+                store.pose_stats(ti, ResultSource::Filtered, from, to),
+                store.history(ti, ResultSource::Raw, from, to, REPORT_BUCKETS),
+                store.history(ti, ResultSource::Filtered, from, to, REPORT_BUCKETS),
+                store.result_gaps(
+                    ti,
+                    ResultSource::Raw,
+                    (from, to),
+                    window.min_gap_ns,
+                    MOST_GAPS
+                ),
+            )?;
         let raw = SourceWindow {
             stats: raw_stats,
-            history: store
-                .history(ti, ResultSource::Raw, from, to, REPORT_BUCKETS)
-                .await?,
+            history: raw_history,
         };
         let filtered = SourceWindow {
-            stats: store
-                .pose_stats(ti, ResultSource::Filtered, from, to)
-                .await?
-                .0,
-            history: store
-                .history(ti, ResultSource::Filtered, from, to, REPORT_BUCKETS)
-                .await?,
+            stats: filtered_stats,
+            history: filtered_history,
         };
         let reference = store
             .references(ti)
@@ -208,7 +216,7 @@ impl Service {
             .max_by_key(|r| r.version)
             .map(|r| (r.version, r.created_ns));
         let alarms = store.alarms(Some(ti), from, to, MOST_ALARMS, false).await?;
-        let gaps = self.gaps(ti, window, raw_span).await?;
+        let gaps = self.gaps(ti, window, raw_span, inner_gaps).await?;
         let snapshot = self.snapshot();
         let model = snapshot.bank.model();
         let budget = snapshot
@@ -239,13 +247,16 @@ impl Service {
         })
     }
 
-    /// The silences of a target's raw results in the window (its first result `raw_span`'s
-    /// start, its last the end), with what its measured links stored in the longest.
+    /// The silences of a target's raw results in the window: `inner` between results (as
+    /// [`crate::store::Store::result_gaps`] gives them), and from the window's start to its
+    /// first result and from its last to the end (`raw_span`), with what its measured links
+    /// stored in the longest.
     async fn gaps(
         &self,
         ti: TargetId,
         window: ReportWindow,
         raw_span: Option<(i64, i64)>,
+        inner: Vec<(i64, i64)>,
     ) -> StoreResult<Gaps> {
         let store = self.store();
         // The period's end, or now when it lies ahead: the future is not a gap.
@@ -254,15 +265,6 @@ impl Service {
         let mut spans: Vec<(i64, i64)> = match raw_span {
             None => vec![(window.from_ns, end)],
             Some((first, last)) => {
-                let inner = store
-                    .result_gaps(
-                        ti,
-                        ResultSource::Raw,
-                        (window.from_ns, window.to_ns),
-                        window.min_gap_ns,
-                        MOST_GAPS,
-                    )
-                    .await?;
                 truncated = i64::try_from(inner.len()).unwrap_or(i64::MAX) >= MOST_GAPS;
                 let mut spans = Vec::with_capacity(inner.len() + 2);
                 spans.push((window.from_ns, first));
