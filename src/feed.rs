@@ -142,14 +142,9 @@ impl Client {
 
     /// GETs JSON from `path`; an error names the status.
     pub async fn get_json(&self, path: &str) -> anyhow::Result<Value> {
-        let mut request = self.http.get(format!("{}{path}", self.base));
-        if let Some(t) = &self.token {
-            request = request.bearer_auth(t);
-        }
-        let response = request
-            .send()
-            .await
-            .with_context(|| format!("cannot reach {}{path}", self.base))?;
+        let response = self
+            .send_get(path, self.http.get(format!("{}{path}", self.base)))
+            .await?;
         let status = response.status();
         if !status.is_success() {
             bail!("{path} answered {status}");
@@ -165,24 +160,33 @@ impl Client {
         query: &[(&str, String)],
         timeout: Duration,
     ) -> anyhow::Result<String> {
-        let mut request = self
+        let request = self
             .http
             .get(format!("{}{path}", self.base))
             .query(query)
             .timeout(timeout);
-        if let Some(t) = &self.token {
-            request = request.bearer_auth(t);
-        }
-        let response = request
-            .send()
-            .await
-            .with_context(|| format!("cannot reach {}{path}", self.base))?;
+        let response = self.send_get(path, request).await?;
         let status = response.status();
         let text = response.text().await?;
         if !status.is_success() {
             bail!("{path} answered {status}: {text}");
         }
         Ok(text)
+    }
+
+    /// Sends a GET of `path` with the token; an error says the service cannot be reached.
+    async fn send_get(
+        &self,
+        path: &str,
+        mut request: reqwest::RequestBuilder,
+    ) -> anyhow::Result<reqwest::Response> {
+        if let Some(t) = &self.token {
+            request = request.bearer_auth(t);
+        }
+        request
+            .send()
+            .await
+            .with_context(|| format!("cannot reach {}{path}", self.base))
     }
 
     /// POSTs a camera frame file to `/api/v1/frames`: the status and the answer.

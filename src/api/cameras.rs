@@ -254,25 +254,7 @@ pub(super) async fn get_calibration_report(
     let page = tokio::fs::read(&path)
         .await
         .map_err(|e| unreadable(e.to_string()))?;
-    Ok((
-        [
-            (
-                header::CONTENT_TYPE,
-                HeaderValue::from_static("text/html; charset=utf-8"),
-            ),
-            (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
-            (
-                header::CONTENT_SECURITY_POLICY,
-                HeaderValue::from_static(crate::report::CONTENT_SECURITY_POLICY),
-            ),
-            (
-                header::X_CONTENT_TYPE_OPTIONS,
-                HeaderValue::from_static("nosniff"),
-            ),
-        ],
-        Body::from(page),
-    )
-        .into_response())
+    Ok(super::report::report_page(Body::from(page), None))
 }
 
 /// The newest frame of a known camera, or a 404 naming what is missing.

@@ -91,7 +91,14 @@ pub(super) async fn get_report(
         "inline; filename=\"brokenray-report-{}.html\"",
         crate::clock::format_ns(window.to_ns).replace(':', "-")
     );
-    Ok((
+    Ok(report_page(Body::from(page), Some(&name)))
+}
+
+/// A report's page as served: HTML under the reports' content policy (its own style and
+/// SVG, no script, nothing loaded), not cached, not sniffed; `disposition` its
+/// `Content-Disposition` when given.
+pub(super) fn report_page(page: Body, disposition: Option<&str>) -> Response {
+    let mut response = (
         [
             (
                 header::CONTENT_TYPE,
@@ -106,12 +113,14 @@ pub(super) async fn get_report(
                 header::X_CONTENT_TYPE_OPTIONS,
                 HeaderValue::from_static("nosniff"),
             ),
-            (
-                header::CONTENT_DISPOSITION,
-                HeaderValue::from_str(&name).unwrap_or_else(|_| HeaderValue::from_static("inline")),
-            ),
         ],
-        Body::from(page),
+        page,
     )
-        .into_response())
+        .into_response();
+    if let Some(value) = disposition.and_then(|d| HeaderValue::from_str(d).ok()) {
+        response
+            .headers_mut()
+            .insert(header::CONTENT_DISPOSITION, value);
+    }
+    response
 }

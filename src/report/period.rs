@@ -354,7 +354,10 @@ fn plots(b: &mut String, report: &PeriodReport, t: &TargetReport) {
     );
     // A figure a panel: each stays whole on a printed page.
     for p in panels(deformation) {
-        let _ = writeln!(b, "<figure>{}</figure>", panel(report, t, &p));
+        let picture = panel(report, t, &p);
+        if !picture.is_empty() {
+            let _ = writeln!(b, "<figure>{picture}</figure>");
+        }
     }
 }
 
@@ -443,20 +446,25 @@ fn panel(report: &PeriodReport, t: &TargetReport, p: &Panel) -> String {
         "none",
         Some("#bbb"),
     );
+    // The path through one of a run's three values (0 low, 1 middle, 2 high), forwards or
+    // backwards, its first point a move when `start`.
+    let trace =
+        |d: &mut String, run: &[(i64, [f64; 3])], which: usize, forwards: bool, start: bool| {
+            let points: Box<dyn Iterator<Item = &(i64, [f64; 3])>> = if forwards {
+                Box::new(run.iter())
+            } else {
+                Box::new(run.iter().rev())
+            };
+            for (i, (t, v)) in points.enumerate() {
+                let step = if i == 0 && start { 'M' } else { 'L' };
+                let _ = write!(d, "{step}{:.1},{:.1}", x(*t), y(v[which]));
+            }
+        };
+    // A band from the high values forwards and back along the low ones.
     let band = |run: &[(i64, [f64; 3])]| -> String {
         let mut d = String::new();
-        for (i, (t, v)) in run.iter().enumerate() {
-            let _ = write!(
-                d,
-                "{}{:.1},{:.1}",
-                if i == 0 { 'M' } else { 'L' },
-                x(*t),
-                y(v[2])
-            );
-        }
-        for (t, v) in run.iter().rev() {
-            let _ = write!(d, "L{:.1},{:.1}", x(*t), y(v[0]));
-        }
+        trace(&mut d, run, 2, true, true);
+        trace(&mut d, run, 0, false, false);
         d.push('Z');
         d
     };
@@ -465,17 +473,9 @@ fn panel(report: &PeriodReport, t: &TargetReport, p: &Panel) -> String {
     }
     for run in &filtered {
         svg.path(&band(run), "rgba(52,120,200,0.35)", None);
-        let mut d = String::new();
-        for (i, (t, v)) in run.iter().enumerate() {
-            let _ = write!(
-                d,
-                "{}{:.1},{:.1}",
-                if i == 0 { 'M' } else { 'L' },
-                x(*t),
-                y(v[1])
-            );
-        }
-        svg.path(&d, "none", Some("#1f4e8c"));
+        let mut line = String::new();
+        trace(&mut line, run, 1, true, true);
+        svg.path(&line, "none", Some("#1f4e8c"));
     }
     svg.text(4.0, 12.0, 11.0, p.label);
     svg.text(4.0, top + 10.0, 10.0, &format!("{hi:.4}"));
