@@ -607,6 +607,31 @@ fn hash_token_generates_a_fresh_token_and_its_hash() {
     );
 }
 
+/// The built-in installation for a service of this test on a free loopback port, its database
+/// `NAME.db` in `dir`, written to `dir/NAME.toml`: the file, its text and the port.
+fn service_installation(dir: &std::path::Path, name: &str) -> (std::path::PathBuf, String, u16) {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace(
+            "listen = \"127.0.0.1:7878\"",
+            &format!("listen = \"127.0.0.1:{port}\""),
+        )
+        .replace(
+            "database = \"brokenray.db\"",
+            &format!(
+                "database = \"{}\"",
+                dir.join(format!("{name}.db")).display()
+            ),
+        );
+    let config = dir.join(format!("{name}.toml"));
+    std::fs::write(&config, &text).unwrap();
+    (config, text, port)
+}
+
 /// `watch`: frames written into `DIR/<camera>/` while the service is down stay there; once it is
 /// up every frame is posted, stored and removed, and the refused ones (an unreadable file, an
 /// unknown camera) are moved aside with the service's answer beside them.
@@ -620,22 +645,7 @@ fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
     let dir = tempfile::tempdir().unwrap();
     let inbox = dir.path().join("inbox");
     // A free port for the service that is not up yet.
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
-        .replace(
-            "listen = \"127.0.0.1:7878\"",
-            &format!("listen = \"127.0.0.1:{port}\""),
-        )
-        .replace(
-            "database = \"brokenray.db\"",
-            &format!("database = \"{}\"", dir.path().join("watch.db").display()),
-        );
-    let config = dir.path().join("watch.toml");
-    std::fs::write(&config, &text).unwrap();
+    let (config, text, port) = service_installation(dir.path(), "watch");
     let inst = brokenray::config::parse("watch.toml", &text).unwrap();
 
     // Three groups of the three cameras, ten seconds ago, named by their time.
@@ -800,23 +810,8 @@ fn watch_posts_a_folders_frames_through_an_outage_and_sets_refusals_aside() {
 fn report_writes_a_running_service_s_period_into_a_new_file() {
     use crate::common::process;
     let dir = tempfile::tempdir().unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let (config, _, port) = service_installation(dir.path(), "report");
     let url = format!("http://127.0.0.1:{port}");
-    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
-        .replace(
-            "listen = \"127.0.0.1:7878\"",
-            &format!("listen = \"127.0.0.1:{port}\""),
-        )
-        .replace(
-            "database = \"brokenray.db\"",
-            &format!("database = \"{}\"", dir.path().join("report.db").display()),
-        );
-    let config = dir.path().join("report.toml");
-    std::fs::write(&config, &text).unwrap();
     let server = process::start(
         &config,
         "warn,brokenray=info",
