@@ -36,6 +36,14 @@ pub struct ReportedSigmas {
     pub translation_mm: [f64; 3],
 }
 
+impl ReportedSigmas {
+    /// The six, rotation about x, y, z (arc-seconds) then translation x, y, z (mm).
+    pub fn axes(&self) -> [f64; 6] {
+        let (r, t) = (self.rotation_arcsec, self.translation_mm);
+        [r[0], r[1], r[2], t[0], t[1], t[2]]
+    }
+}
+
 /// `Ad(T) S Ad(T)^T` without forming the 6x6 adjoint: rotate the four 3x3 blocks, then apply
 /// the shear `[[I, [t]x], [0, I]]`. About three times fewer flops than two 6x6 products.
 #[inline]

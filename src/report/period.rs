@@ -338,8 +338,16 @@ fn has_deformation(h: &History) -> bool {
     h.buckets.iter().any(|b| b.n_def > 0)
 }
 
+impl TargetReport {
+    /// Whether the pictures and the trend show the deformation (some result of the period has
+    /// one) or the pose.
+    fn shows_deformation(&self) -> bool {
+        has_deformation(&self.filtered.history) || has_deformation(&self.raw.history)
+    }
+}
+
 fn plots(b: &mut String, report: &PeriodReport, t: &TargetReport) {
-    let deformation = has_deformation(&t.filtered.history) || has_deformation(&t.raw.history);
+    let deformation = t.shows_deformation();
     if t.filtered.history.buckets.is_empty() && t.raw.history.buckets.is_empty() {
         b.push_str("<p>No result in the period: nothing to draw.</p>\n");
         return;
@@ -589,7 +597,7 @@ pub fn trend_per_day(history: &History, component: usize) -> Option<f64> {
 }
 
 fn trend_table(b: &mut String, t: &TargetReport) {
-    let deformation = has_deformation(&t.filtered.history);
+    let deformation = t.shows_deformation();
     let rates: Vec<Option<f64>> = panels(deformation)
         .iter()
         .map(|p| trend_per_day(&t.filtered.history, p.value))

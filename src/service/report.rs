@@ -147,7 +147,7 @@ impl Service {
                     link: link.name.clone(),
                     version: Some(c.version),
                     valid_from_ns: Some(c.valid_from_ns),
-                    sigma: sigmas(&c.parent_from_child),
+                    sigma: c.parent_from_child.reported_sigmas().axes(),
                 })
                 .collect();
             if in_force_at_start.is_none() {
@@ -155,7 +155,7 @@ impl Service {
                     link: link.name.clone(),
                     version: None,
                     valid_from_ns: None,
-                    sigma: sigmas(parent_from_child),
+                    sigma: parent_from_child.reported_sigmas().axes(),
                 });
             }
             calibrations.extend(shown);
@@ -318,19 +318,6 @@ impl Service {
             truncated,
         })
     }
-}
-
-/// The sigmas of a calibration: rotation (arc-seconds) and translation (mm).
-fn sigmas(c: &crate::geometry::PoseCov) -> [f64; 6] {
-    let s = c.reported_sigmas();
-    [
-        s.rotation_arcsec[0],
-        s.rotation_arcsec[1],
-        s.rotation_arcsec[2],
-        s.translation_mm[0],
-        s.translation_mm[1],
-        s.translation_mm[2],
-    ]
 }
 
 /// Writes `bytes` to `path` through a temporary file beside it, synced before it is renamed

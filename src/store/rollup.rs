@@ -121,29 +121,16 @@ pub(crate) fn components(
     let e = euler_from_rotation(&estimate.pose.rotation).to_degrees();
     let t = estimate.pose.translation.vector;
     let (dr, dt) = deformation.unwrap_or(([0.0; 3], [0.0; 3]));
-    (
-        [
-            e[0],
-            e[1],
-            e[2],
-            t.x,
-            t.y,
-            t.z,
-            dr[0],
-            dr[1],
-            dr[2],
-            dt[0],
-            dt[1],
-            dt[2],
-            s.rotation_arcsec[0],
-            s.rotation_arcsec[1],
-            s.rotation_arcsec[2],
-            s.translation_mm[0],
-            s.translation_mm[1],
-            s.translation_mm[2],
-        ],
-        deformation.is_some(),
-    )
+    let mut out = [0.0; N_COMPONENTS];
+    let values = [e[0], e[1], e[2], t.x, t.y, t.z]
+        .into_iter()
+        .chain(dr)
+        .chain(dt)
+        .chain(s.axes());
+    for (slot, v) in out.iter_mut().zip(values) {
+        *slot = v;
+    }
+    (out, deformation.is_some())
 }
 
 /// The buckets that new results add to, per (target, source, width, bucket start).
