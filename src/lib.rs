@@ -39,6 +39,7 @@
 #![warn(clippy::unwrap_used, clippy::expect_used)]
 #![warn(unreachable_pub)]
 
+pub mod acceptance;
 pub mod acquire;
 pub mod alarms;
 pub mod api;

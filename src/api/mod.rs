@@ -5,6 +5,7 @@
 //! [`crate::service`], convert the answer back. Every error is one [`ApiError`] with the body
 //! `{"error": {"code", "message", "details": [{"index", "field", "message"}]}}`.
 
+mod acceptance;
 mod alarms;
 pub(crate) mod auth;
 mod budget;
@@ -218,6 +219,11 @@ pub struct HealthOut {
     /// works on: the answer stays 200.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reports_problem: Option<String>,
+    /// What is wrong with the rig's acceptance when the installation states a procedure
+    /// (`[acceptance]`): none recorded, the latest failed, due for reverification, or no longer
+    /// holding after a calibration or a reset. The service works on: the answer stays 200.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub acceptance_problem: Option<String>,
     /// On a fleet's centre, the sites whose last upkeep (retention, partitions) failed, and
     /// why; the other sites' went on. The answer stays 200.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -366,6 +372,7 @@ async fn healthz(
             upstream_problem: app.upstream.as_ref().and_then(|u| u.problem()),
             storage_problem: app.service.storage_problem(),
             reports_problem: app.service.report_problem(),
+            acceptance_problem: app.service.acceptance_problem().await,
             tasks_problem,
             grouping_problem,
             filter_problem,
@@ -491,6 +498,7 @@ async fn api_not_found(uri: axum::http::Uri) -> ApiError {
         (name = "targets", description = "Compensation, history, statistics and references"),
         (name = "links", description = "Links, their samples and calibrations"),
         (name = "alarms", description = "Alarm transitions"),
+        (name = "acceptance", description = "The acceptance procedure and the recorded acceptances"),
         (name = "events", description = "Live results and alarms"),
         (name = "fleet", description = "Sites uploading to a centre, and the centre's view of its fleet"),
         (name = "operations", description = "Health, metrics, this document"),
@@ -547,6 +555,14 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(targets::get_filter))
         .routes(routes!(budget::get_budget))
         .routes(routes!(report::get_report))
+        .routes(routes!(acceptance::list_acceptances))
+        .routes(routes!(acceptance::get_acceptance))
+        .routes(routes!(
+            acceptance::post_run,
+            acceptance::get_run,
+            acceptance::delete_run
+        ))
+        .routes(routes!(acceptance::post_ready))
         .routes(routes!(targets::list_references))
         .routes(routes!(events::get_events))
         .routes(routes!(alarms::list_alarms))

@@ -31,6 +31,9 @@ macro_rules! word_schemas {
 }
 
 word_schemas!(
+    crate::acceptance::Phase,
+    crate::acceptance::Standing,
+    crate::acceptance::StepKind,
     crate::acquire::SourceStatus,
     crate::alarms::AlarmKind,
     crate::alarms::Level,

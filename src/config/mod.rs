@@ -61,6 +61,9 @@ pub struct Installation {
     pub retention: RetentionSettings,
     /// The reports filed by themselves (`[reports]`); `None`: only those asked for.
     pub reports: Option<ReportSettings>,
+    /// The acceptance procedure and its limits (`[acceptance]`); `None`: the installation
+    /// states none, and no acceptance can be run.
+    pub acceptance: Option<AcceptanceSettings>,
     /// The archive of camera frames.
     pub frames: FrameSettings,
     /// This service in a fleet: a site reporting to a centre, or the centre.
@@ -108,6 +111,16 @@ pub struct ReportSettings {
     pub folder: PathBuf,
     /// A silence between raw results longer than this is a gap (ns).
     pub min_gap_ns: i64,
+}
+
+/// The acceptance procedure (`[acceptance]`): its steps and limits, and how long an
+/// acceptance holds before the rig is due to be verified again.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AcceptanceSettings {
+    /// The steps, their windows and the limits.
+    pub plan: crate::acceptance::Plan,
+    /// How long a passed acceptance holds (ns) before reverification is due.
+    pub reverify_every_ns: i64,
 }
 
 /// How long raw samples and results are kept, counted back from the newest result.

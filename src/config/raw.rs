@@ -29,6 +29,7 @@ pub(super) struct RawFile {
     pub filter: Option<Spanned<RawFilter>>,
     pub retention: Option<Spanned<RawRetention>>,
     pub reports: Option<Spanned<RawReports>>,
+    pub acceptance: Option<Spanned<RawAcceptance>>,
     pub pnp: Option<Spanned<RawPnp>>,
     pub frames: Option<Spanned<RawFrames>>,
     pub site: Option<Spanned<RawSite>>,
@@ -94,6 +95,32 @@ pub(super) struct RawReports {
     pub every_days: f64,
     pub folder: String,
     pub min_gap_s: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawAcceptance {
+    pub reverify_every_days: Option<f64>,
+    pub still_s: Option<f64>,
+    pub settle_s: Option<f64>,
+    pub step_s: Option<f64>,
+    pub still_rms_arcsec: f64,
+    pub still_rms_mm: f64,
+    pub move_arcsec: f64,
+    pub move_mm: f64,
+    #[serde(default)]
+    pub moves: Vec<Spanned<RawAcceptanceMove>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawAcceptanceMove {
+    pub name: String,
+    pub target: Option<String>,
+    #[serde(default)]
+    pub rotation_arcsec: [f64; 3],
+    #[serde(default)]
+    pub translation_mm: [f64; 3],
 }
 
 #[derive(Debug, Default, Deserialize)]

@@ -87,6 +87,14 @@ pub(crate) struct AcknowledgeAlarm {
     pub(crate) note: Option<String>,
 }
 
+/// An acceptance of the rig to record.
+pub(crate) struct RecordAcceptance {
+    pub(crate) by: String,
+    pub(crate) note: Option<String>,
+    pub(crate) passed: bool,
+    pub(crate) record_json: String,
+}
+
 /// One job of the writer.
 #[allow(
     clippy::large_enum_variant,
@@ -101,6 +109,7 @@ pub(crate) enum Job {
     ResetLink(Call<ResetLink, i64>),
     CheckLiveness(Call<(), usize>),
     AcknowledgeAlarm(Call<AcknowledgeAlarm, ()>),
+    RecordAcceptance(Call<RecordAcceptance, (i64, i64)>),
 }
 
 /// Runs `$body` with `$call` bound to the job's call, whatever its kind.
@@ -115,6 +124,7 @@ macro_rules! on_call {
             Job::ResetLink($call) => $body,
             Job::CheckLiveness($call) => $body,
             Job::AcknowledgeAlarm($call) => $body,
+            Job::RecordAcceptance($call) => $body,
         }
     };
 }

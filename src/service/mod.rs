@@ -12,6 +12,7 @@
 //! and reference per target, link counters, and a view of the filters for predictions), which
 //! readers use without touching the pipeline.
 
+mod acceptance;
 mod job;
 mod metrics;
 use crate::deformation::ReferenceVersion;
@@ -21,6 +22,10 @@ mod pipeline;
 mod report;
 mod tasks;
 
+pub use acceptance::{
+    AcceptanceOut, AcceptanceRecord, AcceptanceSummary, AcceptedTarget, PlannedStepOut, RunOut,
+    StepOut, StillOut, WindowOut,
+};
 pub use metrics::{ConnectionCounters, Metrics, REJECTION_STATUSES};
 pub use report::{
     LISTED_GAPS, REPORT_BUCKETS, ReportWindow, last_complete_period, report_file_name,
@@ -284,6 +289,8 @@ struct Inner {
     report_problem: std::sync::Mutex<Option<String>>,
     /// The background tasks, watched.
     tasks: TaskWatch,
+    /// The acceptance run, while one is running or until the next starts.
+    acceptance: tokio::sync::Mutex<Option<acceptance::Run>>,
 }
 
 /// What one pass of retention removed.
@@ -461,6 +468,7 @@ impl Service {
             storage_problem: std::sync::Mutex::new(None),
             report_problem: std::sync::Mutex::new(None),
             tasks: TaskWatch::default(),
+            acceptance: tokio::sync::Mutex::new(None),
             heavy_reads: Arc::new(tokio::sync::Semaphore::new(
                 installation.server.max_heavy_reads,
             )),

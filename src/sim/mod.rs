@@ -191,6 +191,9 @@ pub struct Simulator {
     exposure_spread_ns: i64,
     /// Each body's motion at the previous group, to extrapolate to an exposure's own time.
     last_xi: Vec<Twist>,
+    /// Per body, the move an operator made (a world-frame motion applied after the
+    /// scenario's), as [`Self::displace_target`] sets it.
+    displaced: Vec<Option<Pose>>,
 }
 
 impl Simulator {
@@ -316,6 +319,7 @@ impl Simulator {
         let bumped = (settings.scenario == Scenario::Bump)
             .then(|| bodies.iter().position(|b| b.role == Role::Station))
             .flatten();
+        let n_bodies = bodies.len();
         let observer = Observer::new(model);
         let measured = model
             .links
@@ -354,6 +358,7 @@ impl Simulator {
             still_target: false,
             exposure_spread_ns: 0,
             last_xi: Vec::new(),
+            displaced: vec![None; n_bodies],
         })
     }
 
@@ -374,6 +379,30 @@ impl Simulator {
     /// stations must cancel in it.
     pub fn set_still_target(&mut self, still: bool) {
         self.still_target = still;
+    }
+
+    /// Plays an operator who moves target `target` (with the body it is rigid with) to stand
+    /// displaced by `displacement` from its nominal pose, as the acceptance procedure asks:
+    /// the true deformation `G0_from_G` becomes that displacement (the scenario's motion, if
+    /// any, comes on top). [`Displacement::ZERO`] puts it back.
+    pub fn displace_target(
+        &mut self,
+        target: &str,
+        displacement: &crate::acceptance::Displacement,
+    ) -> Result<(), SimError> {
+        let Some(&(_, g, _)) = self.targets.iter().find(|(name, ..)| name == target) else {
+            return Err(SimError::Settings(format!("no target `{target}`")));
+        };
+        let b = self.frame_body[g.0];
+        if self.bodies[b].role != Role::Target {
+            return Err(SimError::Settings(format!(
+                "target `{target}` is rigid with a base: it cannot be moved"
+            )));
+        }
+        let world_from_g0 = self.world_from_frame0[g.0];
+        self.displaced[b] = (*displacement != crate::acceptance::Displacement::ZERO)
+            .then(|| world_from_g0 * displacement.g0_from_g() * world_from_g0.inverse());
+        Ok(())
     }
 
     /// Spreads the cameras' exposures over `spread_ns` within each group: the cameras, in the
@@ -471,7 +500,11 @@ impl Simulator {
                         _ => *xi,
                     };
                     let w0 = self.bodies[b].world_from_body0;
-                    w0 * se3_exp(&xi) * w0.inverse()
+                    let moved = w0 * se3_exp(&xi) * w0.inverse();
+                    match self.displaced[b] {
+                        Some(operator) => operator * moved,
+                        None => moved,
+                    }
                 })
                 .collect()
         };

@@ -49,10 +49,12 @@ pub use codec::{Quality, SampleValues};
 pub use postgres::central::{
     Central, RawRequestRecord, SiteRecord, SiteUpkeep, SiteUpload, StreamRecord, SyncOutcome,
 };
-pub use rows::{Acknowledgement, StoredAlarm, StoredCalibration, StoredResult, StoredSample};
+pub use rows::{
+    Acknowledgement, StoredAcceptance, StoredAlarm, StoredCalibration, StoredResult, StoredSample,
+};
 pub use sqlite::APPLICATION_ID;
 use write::Writer;
-pub use write::{BudgetCut, NewResult, NewSample, WriteConn, WriteTx};
+pub use write::{BudgetCut, NewAcceptance, NewResult, NewSample, WriteConn, WriteTx};
 
 use crate::bank::ResultSource;
 use crate::chain::LinkId;
@@ -694,6 +696,20 @@ impl Store {
                     .map(|i| (LinkId(i), t, by, note))
             })
             .collect())
+    }
+
+    /// The newest acceptances, newest first, at most `limit`.
+    pub async fn acceptances(&self, limit: i64) -> StoreResult<Vec<StoredAcceptance>> {
+        let rows: Vec<rows::AcceptanceRow> =
+            query_on!(&self.reader, Reader, r => &r.pool, &sql::ACCEPTANCES, [limit], fetch_all)?;
+        Ok(rows.into_iter().map(StoredAcceptance::from).collect())
+    }
+
+    /// One acceptance by its id.
+    pub async fn acceptance(&self, id: i64) -> StoreResult<Option<StoredAcceptance>> {
+        let row: Option<rows::AcceptanceRow> =
+            query_on!(&self.reader, Reader, r => &r.pool, &sql::ACCEPTANCE, [id], fetch_optional)?;
+        Ok(row.map(StoredAcceptance::from))
     }
 
     /// The persisted filter state: `(installation digest, state)`.

@@ -461,3 +461,36 @@ pub(super) struct VersionColumns {
     pub pose: [f64; 7],
     pub cov: Vec<u8>,
 }
+
+/// A recorded acceptance of the rig.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredAcceptance {
+    /// Its id.
+    pub id: i64,
+    /// When it was recorded (ns, the server's clock).
+    pub created_ns: i64,
+    /// Who ran it.
+    pub by: String,
+    /// Their note.
+    pub note: Option<String>,
+    /// Whether it passed.
+    pub passed: bool,
+    /// Its record (JSON, as the service wrote it).
+    pub record_json: String,
+}
+
+/// An acceptance's row, as read.
+pub(super) type AcceptanceRow = (i64, i64, String, Option<String>, bool, String);
+
+impl From<AcceptanceRow> for StoredAcceptance {
+    fn from((id, created_ns, by, note, passed, record_json): AcceptanceRow) -> Self {
+        Self {
+            id,
+            created_ns,
+            by,
+            note,
+            passed,
+            record_json,
+        }
+    }
+}

@@ -102,6 +102,28 @@ pub(super) const LAST_LINK_RESETS: &str = "select r.link_id, r.created_ns, r.by_
      from link_resets r \
      where r.created_ns = (select max(created_ns) from link_resets where link_id = r.link_id)";
 
+/// The columns an acceptance is read with.
+const ACCEPTANCE_COLUMNS: &str = "acceptance_id, created_ns, by_name, note, passed, record";
+
+/// Records an acceptance: `$1` now (ns), `$2` who, `$3` a note, `$4` passed, `$5` the record
+/// (JSON); answers its id.
+pub(super) const INSERT_ACCEPTANCE: &str = "insert into acceptances \
+     (created_ns, by_name, note, passed, record) values ($1, $2, $3, $4, $5) \
+     returning acceptance_id";
+
+/// The newest acceptances first: `$1` the most rows.
+pub(super) static ACCEPTANCES: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {ACCEPTANCE_COLUMNS} from acceptances \
+         order by created_ns desc, acceptance_id desc limit $1"
+    )
+});
+
+/// One acceptance: `$1` its id.
+pub(super) static ACCEPTANCE: LazyLock<String> = LazyLock::new(|| {
+    format!("select {ACCEPTANCE_COLUMNS} from acceptances where acceptance_id = $1")
+});
+
 /// The persisted filter state.
 pub(super) const FILTER_STATE: &str =
     "select installation_digest, state from filter_state where id = 1";

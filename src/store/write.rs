@@ -515,6 +515,25 @@ impl WriteTx<'_> {
         on_backend!(&mut self.tx, Tx, t => t.insert_link_reset(id, by, note, now_ns).await)
     }
 
+    /// Records an acceptance of the rig; answers its id.
+    pub async fn insert_acceptance(
+        &mut self,
+        new: &NewAcceptance<'_>,
+        now_ns: i64,
+    ) -> StoreResult<i64> {
+        let (id,): (i64,) = on_backend!(&mut self.tx, Tx, t => {
+            sqlx::query_as(sql::INSERT_ACCEPTANCE)
+                .bind(now_ns)
+                .bind(new.by)
+                .bind(new.note)
+                .bind(new.passed)
+                .bind(new.record_json)
+                .fetch_one(&mut *t.conn)
+                .await
+        })?;
+        Ok(id)
+    }
+
     /// Saves the filter bank's state.
     pub async fn save_filter_state(
         &mut self,
@@ -533,6 +552,19 @@ impl WriteTx<'_> {
         })?;
         Ok(())
     }
+}
+
+/// An acceptance to record.
+#[derive(Debug, Clone, Copy)]
+pub struct NewAcceptance<'a> {
+    /// Who ran it.
+    pub by: &'a str,
+    /// Their note.
+    pub note: Option<&'a str>,
+    /// Whether it passed.
+    pub passed: bool,
+    /// Its record (JSON).
+    pub record_json: &'a str,
 }
 
 /// The columns of a reference or calibration, checked finite.

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 const CORE_LAYERS: &[&[&str]] = &[
     &["words", "geometry"],
     &["chain", "deformation", "stats"],
-    &["filter", "vision", "alarms"],
+    &["filter", "vision", "alarms", "acceptance"],
     &["model"],
     &["bank"],
     &["sim"],

@@ -12,11 +12,11 @@
 use super::error::LineIndex;
 use super::raw::{self, RawFile, RawPose, RawSigma};
 use super::{
-    AuthSettings, CalibrationReportFile, CameraAddress, CameraSource, CentralSettings,
-    ConfigProblem, FeatureSetting, FleetSettings, FrameSettings, Installation, NotifyLevel,
-    NotifySettings, PixelFormat, ReportSettings, RerunMode, RerunSettings, RetentionSettings,
-    Scope, ServerSettings, SiteName, TimestampMode, TokenSpec, TriggerMode, UpstreamSettings,
-    WebhookSpec,
+    AcceptanceSettings, AuthSettings, CalibrationReportFile, CameraAddress, CameraSource,
+    CentralSettings, ConfigProblem, FeatureSetting, FleetSettings, FrameSettings, Installation,
+    NotifyLevel, NotifySettings, PixelFormat, ReportSettings, RerunMode, RerunSettings,
+    RetentionSettings, Scope, ServerSettings, SiteName, TimestampMode, TokenSpec, TriggerMode,
+    UpstreamSettings, WebhookSpec,
 };
 use crate::alarms::AlarmThresholds;
 use crate::chain::{ChainError, Topology};
@@ -41,6 +41,7 @@ use std::sync::Arc;
 /// A disc imaging under this many pixels across is warned of.
 const MIN_TARGET_PX: f64 = 4.0;
 
+mod acceptance;
 mod access;
 mod cameras;
 mod fleet;
@@ -222,6 +223,7 @@ impl Validator {
         let filter = self.bank_settings(&raw);
         let retention = self.retention(&raw, server.as_ref());
         let reports = self.reports(&raw);
+        let acceptance = self.acceptance(&raw, &targets);
         let frames = self.frames(&raw);
         let pnp = self.pnp(&raw);
         let fleet = self.fleet(&raw, server.as_ref());
@@ -267,6 +269,7 @@ impl Validator {
             outputs,
             retention: retention?,
             reports: reports?,
+            acceptance: acceptance?,
             frames: frames?,
             fleet: fleet?,
             sources: sources?,

@@ -1,5 +1,6 @@
 //! The service in process: the router on a real SQLite file.
 
+mod acceptance;
 mod access;
 mod alarms;
 mod calibrated_cameras;

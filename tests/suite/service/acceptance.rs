@@ -1,0 +1,168 @@
+//! The acceptance procedure end to end through the API, the simulator playing the operator:
+//! it keeps the target still, makes each stated move when the run asks, and says ready.
+
+use super::helpers::{Backend, START_NS, TestApp};
+use axum::http::StatusCode;
+use brokenray::acceptance::Displacement;
+use brokenray::feed::observation_items;
+use brokenray::model::Model;
+use brokenray::sim::{Scenario, SimSettings, Simulator};
+use serde_json::{Value, json};
+use statrs::distribution::{ChiSquared, ContinuousCDF};
+
+fn simulator(model: &Model, seed: u64) -> Simulator {
+    Simulator::new(
+        model,
+        SimSettings {
+            scenario: Scenario::Static,
+            rate_hz: 25.0,
+            start_ns: START_NS - 1_000_000_000,
+            duration_s: None,
+            pixel_sigma_px: None,
+            outlier_rate: 0.0,
+            seed,
+        },
+    )
+    .unwrap()
+}
+
+/// The displacement a planned step states.
+fn stated(step: &Value) -> Displacement {
+    serde_json::from_value(step["stated"].clone()).unwrap()
+}
+
+/// Runs one acceptance with `sim` as the operator; returns the finished run.
+async fn accept(app: &TestApp, sim: &mut Simulator, by: &str) -> Value {
+    let (status, run) = app
+        .post_json(
+            "/api/v1/acceptance/run",
+            &json!({"by": by, "note": "simulated"}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED, "{run}");
+    assert_eq!(run["phase"], "awaiting_operator", "{run}");
+    for _ in 0..100_000 {
+        let mut items = Vec::new();
+        for _ in 0..5 {
+            items.extend(observation_items(&sim.next_group()));
+        }
+        let (status, body) = app
+            .post_live("/api/v1/observations", &json!({ "observations": items }))
+            .await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        let (status, run) = app.get("/api/v1/acceptance/run").await;
+        assert_eq!(status, StatusCode::OK, "{run}");
+        match run["phase"].as_str().unwrap() {
+            "measuring" => {}
+            "finished" => {
+                sim.displace_target("G", &Displacement::ZERO).unwrap();
+                return run;
+            }
+            "awaiting_operator" => {
+                let step = &run["steps"][run["step"].as_u64().unwrap() as usize];
+                sim.displace_target("G", &stated(step)).unwrap();
+                let (status, body) = app
+                    .post_json("/api/v1/acceptance/run/ready", &json!({}))
+                    .await;
+                assert_eq!(status, StatusCode::OK, "{body}");
+                assert_eq!(body["phase"], "measuring", "{body}");
+            }
+            other => panic!("phase {other}"),
+        }
+    }
+    panic!("the acceptance did not finish");
+}
+
+/// The sum of the moves' NEES of a recorded acceptance, and how many moves.
+fn moves_nees(acceptance: &Value) -> (f64, usize) {
+    let steps = acceptance["record"]["steps"].as_array().unwrap();
+    let moves: Vec<&Value> = steps.iter().filter(|s| s["kind"] == "move").collect();
+    let sum = moves
+        .iter()
+        .map(|s| s["moved"]["nees"].as_f64().unwrap_or_else(|| panic!("{s}")))
+        .sum();
+    (sum, moves.len())
+}
+
+/// Ten acceptances of the built-in rig in the simulator pass, and their deviations are what
+/// their uncertainties say: the moves' summed NEES lies in the chi-square band with 6
+/// degrees of freedom a move, and the still windows' scatter under its repeatability bound.
+#[tokio::test]
+async fn ten_simulated_acceptances_pass_with_deviations_their_uncertainty_covers() {
+    let app = TestApp::start_on(Backend::Sqlite, None).await;
+    let model = app.service.installation().model.clone();
+    let mut sim = simulator(&model, 11);
+    let (mut sum, mut moves) = (0.0, 0);
+    for k in 0..10 {
+        let run = accept(&app, &mut sim, &format!("operator {k}")).await;
+        let id = run["acceptance_id"].as_i64().unwrap();
+        let (status, acceptance) = app.get(&format!("/api/v1/acceptance/{id}")).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(run["passed"], true, "{run:#}");
+        let (s, n) = moves_nees(&acceptance);
+        sum += s;
+        moves += n;
+        let still = &acceptance["record"]["steps"][0]["still"][0];
+        assert!(still["chi2"].as_f64().unwrap() <= still["threshold"].as_f64().unwrap());
+        assert_eq!(acceptance["standing"], "valid");
+    }
+    let dof = 6.0 * moves as f64;
+    eprintln!("ten acceptances: the moves' summed NEES {sum:.1} over {dof} degrees of freedom");
+    let chi = ChiSquared::new(dof).unwrap();
+    assert!(
+        (chi.inverse_cdf(0.0005)..=chi.inverse_cdf(0.9995)).contains(&sum),
+        "summed NEES {sum:.1} over {dof} degrees of freedom"
+    );
+    let (_, list) = app.get("/api/v1/acceptance").await;
+    assert_eq!(list["acceptances"].as_array().unwrap().len(), 10);
+    assert_eq!(list["standing"], "valid");
+}
+
+/// One camera's focal length wrong by 1 % in the world (the simulator's camera), the
+/// service not told: the move along that camera's line of sight comes out 1 % long, beyond
+/// its limit, and the acceptance fails naming that step; the lateral moves still pass.
+#[tokio::test]
+async fn a_focal_length_wrong_by_one_percent_fails_the_acceptance_naming_the_step() {
+    let app = TestApp::start_on(Backend::Sqlite, None).await;
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML;
+    let wrong = text.replacen("fx = 5370.0\nfy = 5370.0", "fx = 5423.7\nfy = 5423.7", 1);
+    assert_ne!(
+        wrong, text,
+        "C3's focal length is where the test looks for it"
+    );
+    let world = brokenray::config::parse("world.toml", &wrong).unwrap();
+    let mut sim = simulator(&world.model, 12);
+    let run = accept(&app, &mut sim, "operator").await;
+    assert_eq!(run["passed"], false, "{run:#}");
+    let id = run["acceptance_id"].as_i64().unwrap();
+    let (_, acceptance) = app.get(&format!("/api/v1/acceptance/{id}")).await;
+    let failed: Vec<&str> = acceptance["failed"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    assert!(failed.contains(&"z +100 mm"), "{failed:?}");
+    assert!(
+        !failed.contains(&"x +20 mm") && !failed.contains(&"still"),
+        "{failed:?}"
+    );
+    let z = acceptance["record"]["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["name"] == "z +100 mm")
+        .unwrap();
+    // 1 % of 100 mm along z, measured to its uncertainty.
+    let dz = z["moved"]["deviation"][5].as_f64().unwrap();
+    let u = z["moved"]["uncertainty"][5].as_f64().unwrap();
+    eprintln!("z +100 mm with C3's focal length 1 % long: deviation {dz:.3} mm, u {u:.3} mm");
+    assert!((dz.abs() - 1.0).abs() < 4.0 * u + 0.1, "{dz} +- {u}");
+    assert_eq!(acceptance["standing"], "failed");
+    let (_, health) = app.get("/healthz").await;
+    let problem = health["acceptance_problem"].as_str().unwrap();
+    assert!(
+        problem.contains("failed") && problem.contains("z +100 mm"),
+        "{problem}"
+    );
+}
