@@ -1148,3 +1148,75 @@ fn a_camera_of_the_rational_or_prism_model_takes_a_covariance_of_its_size() {
         "{err}"
     );
 }
+
+/// `[acceptance]`: the procedure parsed into its plan; each mistake named at its line.
+#[test]
+fn acceptance_settings_are_checked_and_each_mistake_named() {
+    const LIMITS: &str =
+        "still_rms_arcsec = 100\nstill_rms_mm = 1\nmove_arcsec = 40\nmove_mm = 0.4\n";
+    let good = format!(
+        "{VALID}\n[acceptance]\nstep_s = 15\n{LIMITS}\n[[acceptance.moves]]\nname = \"up\"\ntranslation_mm = [0, 0, 50]\n"
+    );
+    let inst = config::parse("site.toml", &good).unwrap();
+    let a = inst.acceptance.as_ref().unwrap();
+    assert_eq!(a.plan.step_ns, 15_000_000_000);
+    assert_eq!(a.plan.still_ns, 30_000_000_000, "the default still window");
+    assert_eq!(a.reverify_every_ns, 365 * 86_400 * 1_000_000_000);
+    assert_eq!(a.plan.moves[0].target, 0, "the only target");
+    assert_eq!(
+        a.plan.moves[0].displacement.translation_mm,
+        [0.0, 0.0, 50.0]
+    );
+    assert_eq!(a.plan.limits.move_mm, 0.4);
+
+    let moved = |name: &str, rest: &str| {
+        format!("{VALID}\n[acceptance]\n{LIMITS}\n[[acceptance.moves]]\nname = \"{name}\"\n{rest}")
+    };
+    let cases: Vec<(String, &str, &str)> = vec![
+        (
+            format!("{VALID}\n[acceptance]\n{LIMITS}"),
+            "[acceptance]",
+            "needs at least one known move",
+        ),
+        (
+            moved("up", "target = \"H\"\ntranslation_mm = [0, 0, 1]\n"),
+            "[[acceptance.moves]]",
+            "acceptance.moves.target `H` is not a target (targets: G)",
+        ),
+        (
+            moved("still", "translation_mm = [0, 0, 1]\n"),
+            "[[acceptance.moves]]",
+            "is taken",
+        ),
+        (
+            moved("far", "translation_mm = [0, 0, 5000]\n"),
+            "[[acceptance.moves]]",
+            "acceptance.moves.translation_mm of `far` must lie in [-1000, 1000], not 5000",
+        ),
+        (
+            moved("up", "translation_mm = [0, 0, 1]\n").replace("move_mm = 0.4", "move_mm = 0"),
+            "[acceptance]",
+            "acceptance.move_mm must be a positive number",
+        ),
+        (
+            moved("up", "translation_mm = [0, 0, 1]\n")
+                .replace("[acceptance]\n", "[acceptance]\nreverify_every_days = 0\n"),
+            "[acceptance]",
+            "acceptance.reverify_every_days must lie in [1, 3660] days",
+        ),
+        (
+            moved("up", "translation_mm = [0, 0, 1]\n")
+                .replace("[acceptance]\n", "[acceptance]\nstep_s = 0\n"),
+            "[acceptance]",
+            "acceptance.step_s must lie in",
+        ),
+    ];
+    for (text, at, message) in cases {
+        let e = error_of(&text);
+        assert!(e.contains(message), "want `{message}` in: {e}");
+        assert!(
+            e.contains(&format!("site.toml:{}:", line_of(&text, at))),
+            "want the line of `{at}` in: {e}"
+        );
+    }
+}

@@ -4,6 +4,7 @@
 use super::helpers::{Backend, START_NS, TestApp};
 use axum::http::StatusCode;
 use brokenray::acceptance::Displacement;
+use brokenray::clock::Clock as _;
 use brokenray::feed::observation_items;
 use brokenray::model::Model;
 use brokenray::sim::{Scenario, SimSettings, Simulator};
@@ -165,4 +166,179 @@ async fn a_focal_length_wrong_by_one_percent_fails_the_acceptance_naming_the_ste
         problem.contains("failed") && problem.contains("z +100 mm"),
         "{problem}"
     );
+}
+
+/// The built-in installation with short windows and wide move limits: an acceptance that
+/// passes in a few hundred groups, for the tests of where it stands.
+fn short_installation() -> String {
+    let text = brokenray::config::DEFAULT_INSTALLATION_TOML
+        .replace("still_s = 60\n", "still_s = 4\n")
+        .replace("step_s = 20\n", "step_s = 2\n")
+        .replace("move_arcsec = 40.0\n", "move_arcsec = 400.0\n")
+        .replace("move_mm = 0.4\n", "move_mm = 4.0\n");
+    assert!(text.contains("still_s = 4\n") && text.contains("move_mm = 4.0\n"));
+    text
+}
+
+/// Where a recorded acceptance stands, through `GET /api/v1/acceptance` and `/healthz`:
+/// none recorded, valid, due once its interval is over, no longer holding once a link it
+/// accepted is calibrated again. The record survives a restart.
+async fn an_acceptance_is_due_after_its_interval_and_void_after_a_calibration(backend: Backend) {
+    let text = short_installation();
+    let app = TestApp::start_on(backend, Some(&text)).await;
+    let (_, health) = app.get("/healthz").await;
+    assert!(
+        health["acceptance_problem"]
+            .as_str()
+            .is_some_and(|p| p.contains("no acceptance")),
+        "{health}"
+    );
+    let (status, list) = app.get("/api/v1/acceptance").await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(list["configured"], true);
+    assert!(list.get("standing").is_none(), "{list}");
+    let model = app.service.installation().model.clone();
+    let mut sim = simulator(&model, 13);
+    let run = accept(&app, &mut sim, "Ada").await;
+    assert_eq!(run["passed"], true, "{run:#}");
+    let id = run["acceptance_id"].as_i64().unwrap();
+    let (_, health) = app.get("/healthz").await;
+    assert!(health.get("acceptance_problem").is_none(), "{health}");
+    let app = app.restart(Some(&text)).await;
+    let (status, one) = app.get(&format!("/api/v1/acceptance/{id}")).await;
+    assert_eq!(status, StatusCode::OK, "{one}");
+    assert_eq!(one["by"], "Ada");
+    assert_eq!(one["note"], "simulated");
+    assert_eq!(one["standing"], "valid");
+    assert_eq!(one["record"]["steps"].as_array().unwrap().len(), 6);
+    assert!(
+        one["record"]["targets"][0]["calibration_stamp"].is_i64(),
+        "{one}"
+    );
+    // A year and a day on: due.
+    app.clock
+        .set_ns(app.clock.now_ns() + 366 * 86_400 * 1_000_000_000);
+    let (_, list) = app.get("/api/v1/acceptance").await;
+    assert_eq!(list["standing"], "due", "{list}");
+    let (_, health) = app.get("/healthz").await;
+    assert!(
+        health["acceptance_problem"]
+            .as_str()
+            .is_some_and(|p| p.contains("due")),
+        "{health}"
+    );
+    // A station calibrated again: what was accepted no longer holds.
+    let (status, body) = app
+        .request(
+            "PUT",
+            "/api/v1/links/C2_from_C1/calibration",
+            Some((
+                "application/json",
+                json!({"pose": {"t_mm": [-67.2, 37.5, -106.8], "euler_deg": [76.6492, 8.9522, 176.3952]},
+                       "sigma": {"rotation_arcsec": 5.0, "translation_mm": 0.05},
+                       "valid_from": brokenray::clock::format_ns(app.clock.now_ns())})
+                .to_string(),
+            )),
+            None,
+        )
+        .await;
+    assert_eq!(status, StatusCode::CREATED, "{body}");
+    let (_, list) = app.get("/api/v1/acceptance").await;
+    assert_eq!(list["standing"], "no_longer_holds", "{list}");
+    let changed = list["acceptances"][0]["changed"][0].as_str().unwrap();
+    assert!(
+        changed.contains("C2_from_C1") && changed.contains("calibrated"),
+        "{changed}"
+    );
+    let (status, missing) = app.get("/api/v1/acceptance/999").await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{missing}");
+}
+
+#[tokio::test]
+async fn an_acceptance_is_due_after_its_interval_and_void_after_a_calibration_on_sqlite() {
+    an_acceptance_is_due_after_its_interval_and_void_after_a_calibration(Backend::Sqlite).await;
+}
+
+#[tokio::test]
+async fn an_acceptance_is_due_after_its_interval_and_void_after_a_calibration_on_postgres() {
+    if crate::common::skip_without(
+        crate::common::Needs::Postgres,
+        "an_acceptance_is_due_after_its_interval_and_void_after_a_calibration_on_postgres",
+    ) {
+        return;
+    }
+    an_acceptance_is_due_after_its_interval_and_void_after_a_calibration(Backend::Postgres).await;
+}
+
+/// The run refuses what does not fit where it is: a second run while one measures, a step
+/// placed twice, a run without `by`; abandoning it records nothing.
+#[tokio::test]
+async fn the_run_refuses_out_of_turn_requests_and_abandoning_records_nothing() {
+    let text = short_installation();
+    let app = TestApp::start_on(Backend::Sqlite, Some(&text)).await;
+    let (status, body) = app.get("/api/v1/acceptance/run").await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+    let (status, body) = app
+        .post_json("/api/v1/acceptance/run", &json!({"by": " "}))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["error"]["details"][0]["field"], "by", "{body}");
+    let (status, body) = app
+        .post_json("/api/v1/acceptance/run", &json!({"by": "Ada", "colour": 1}))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert_eq!(body["error"]["details"][0]["field"], "colour", "{body}");
+    let (status, _) = app
+        .post_json("/api/v1/acceptance/run", &json!({"by": "Ada"}))
+        .await;
+    assert_eq!(status, StatusCode::CREATED);
+    let (status, body) = app
+        .post_json("/api/v1/acceptance/run/ready", &json!({}))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (status, body) = app
+        .post_json("/api/v1/acceptance/run/ready", &json!({}))
+        .await;
+    assert_eq!(status, StatusCode::CONFLICT, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("being measured"),
+        "{body}"
+    );
+    let (status, body) = app
+        .post_json("/api/v1/acceptance/run", &json!({"by": "Bob"}))
+        .await;
+    assert_eq!(status, StatusCode::CONFLICT, "{body}");
+    assert!(
+        body["error"]["message"].as_str().unwrap().contains("Ada"),
+        "{body}"
+    );
+    let (status, _) = app
+        .request("DELETE", "/api/v1/acceptance/run", None, None)
+        .await;
+    assert_eq!(status, StatusCode::NO_CONTENT);
+    let (status, _) = app
+        .request("DELETE", "/api/v1/acceptance/run", None, None)
+        .await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    let (_, list) = app.get("/api/v1/acceptance").await;
+    assert!(list["acceptances"].as_array().unwrap().is_empty(), "{list}");
+    // An installation without [acceptance] has no procedure to run.
+    let plain = text[..text.find("[acceptance]").unwrap()].to_owned();
+    let app = TestApp::start_on(Backend::Sqlite, Some(&plain)).await;
+    let (status, body) = app
+        .post_json("/api/v1/acceptance/run", &json!({"by": "Ada"}))
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("[acceptance]"),
+        "{body}"
+    );
+    let (_, health) = app.get("/healthz").await;
+    assert!(health.get("acceptance_problem").is_none(), "{health}");
 }
