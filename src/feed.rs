@@ -140,10 +140,22 @@ impl Client {
         Ok(answer)
     }
 
+    /// DELETEs `path`; an error names the status.
+    pub async fn delete(&self, path: &str) -> anyhow::Result<()> {
+        let response = self
+            .send(path, self.http.delete(format!("{}{path}", self.base)))
+            .await?;
+        let status = response.status();
+        if !status.is_success() {
+            bail!("{path} answered {status}");
+        }
+        Ok(())
+    }
+
     /// GETs JSON from `path`; an error names the status.
     pub async fn get_json(&self, path: &str) -> anyhow::Result<Value> {
         let response = self
-            .send_get(path, self.http.get(format!("{}{path}", self.base)))
+            .send(path, self.http.get(format!("{}{path}", self.base)))
             .await?;
         let status = response.status();
         if !status.is_success() {
@@ -165,7 +177,7 @@ impl Client {
             .get(format!("{}{path}", self.base))
             .query(query)
             .timeout(timeout);
-        let response = self.send_get(path, request).await?;
+        let response = self.send(path, request).await?;
         let status = response.status();
         let text = response.text().await?;
         if !status.is_success() {
@@ -174,8 +186,8 @@ impl Client {
         Ok(text)
     }
 
-    /// Sends a GET of `path` with the token; an error says the service cannot be reached.
-    async fn send_get(
+    /// Sends a request for `path` with the token; an error says the service cannot be reached.
+    async fn send(
         &self,
         path: &str,
         mut request: reqwest::RequestBuilder,

@@ -5,6 +5,7 @@
 //! `detect.rs` turns frame files into observations and `report.rs` formats what `check-config`
 //! prints.
 
+pub mod acceptance;
 mod acquire;
 mod calibrate;
 mod commands;
@@ -394,6 +395,10 @@ pub enum Command {
         #[arg(long, env = "BROKENRAY_TOKEN", hide_env_values = true)]
         token: Option<String>,
     },
+    /// Run the installation's acceptance procedure against a running service, guiding its
+    /// operator step by step (or with `--simulate`, the simulator as rig and operator); exit
+    /// status 1 when it fails.
+    Acceptance(acceptance::AcceptanceArgs),
     /// Print a new random bearer token and the SHA-256 to put in `[[auth.tokens]]`.
     HashToken {
         /// Hash this token instead of making a new one.
@@ -849,6 +854,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 summary.posted, summary.refused, summary.retries
             );
         }
+        Command::Acceptance(args) => acceptance::run(args, out)?,
         Command::Report {
             from,
             to,

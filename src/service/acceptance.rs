@@ -280,7 +280,10 @@ impl Service {
         Ok(Some(self.run_out(run)))
     }
 
-    /// The operator placed the current step: its results settle from the newest result now.
+    /// The operator placed the current step: its results settle from the newest raw result of
+    /// its targets (measurement time, so a rig whose clock runs apart from the server's is
+    /// judged on its own times). `Conflict` while the step is measured or when a target has
+    /// no raw result at all.
     pub async fn acceptance_ready(&self) -> ServiceResult<RunOut> {
         let mut slot = self.inner.acceptance.lock().await;
         let Some(run) = slot.as_mut() else {
@@ -296,16 +299,22 @@ impl Service {
                 run.procedure.plan().step_name(k)
             )));
         }
-        let mut newest: Option<i64> = None;
+        let mut newest = i64::MIN;
         for t in run.procedure.plan().step_targets(k) {
             let latest = self
                 .store()
                 .latest_result(TargetId(t), ResultSource::Raw)
                 .await?;
-            newest = newest.max(latest.map(|r| r.time_ns));
+            let Some(latest) = latest else {
+                return Err(conflict(format!(
+                    "target {} has no raw result yet: the rig must be measuring before a step is placed",
+                    self.target_name(t)
+                )));
+            };
+            newest = newest.max(latest.time_ns);
         }
         let now = self.now_ns();
-        run.procedure.ready(newest.unwrap_or(now));
+        run.procedure.ready(newest);
         let plan = run.procedure.plan();
         let length = if k == 0 { plan.still_ns } else { plan.step_ns };
         let span =

@@ -381,6 +381,11 @@ impl Simulator {
         self.still_target = still;
     }
 
+    /// The installation's targets, in order.
+    pub fn target_names(&self) -> Vec<String> {
+        self.targets.iter().map(|(name, ..)| name.clone()).collect()
+    }
+
     /// Plays an operator who moves target `target` (with the body it is rigid with) to stand
     /// displaced by `displacement` from its nominal pose, as the acceptance procedure asks:
     /// the true deformation `G0_from_G` becomes that displacement (the scenario's motion, if

@@ -1276,3 +1276,70 @@ mod station {
         );
     }
 }
+
+/// `acceptance --simulate`: the simulator as rig and operator against a real `serve`: the
+/// guide says each step, the record is printed and it passes (exit 0); against a rig whose
+/// C3 has a focal length 1 % longer than the service's, it fails naming the move along C3's
+/// line of sight (exit 1).
+#[test]
+fn acceptance_guides_the_simulated_operator_and_fails_a_rig_with_a_wrong_focal_length() {
+    use crate::common::process;
+    let dir = tempfile::tempdir().unwrap();
+    for (name, world, passes) in [
+        ("good", None, true),
+        ("wrong", Some("fx = 5423.7\nfy = 5423.7"), false),
+    ] {
+        let (config, text, port) = service_installation(dir.path(), name);
+        let url = format!("http://127.0.0.1:{port}");
+        let server = process::start(
+            &config,
+            "warn,brokenray=info",
+            false,
+            std::time::Duration::from_secs(60),
+        );
+        let mut args = vec![
+            "acceptance".to_owned(),
+            "--simulate".into(),
+            "--fast".into(),
+            "--service".into(),
+            url.clone(),
+            "--by".into(),
+            "Ada".into(),
+        ];
+        if let Some(focal) = world {
+            let world_file = dir.path().join(format!("{name}-world.toml"));
+            let wrong = text.replacen("fx = 5370.0\nfy = 5370.0", focal, 1);
+            assert_ne!(wrong, text);
+            std::fs::write(&world_file, wrong).unwrap();
+            args.extend(["--config".into(), world_file.display().to_string()]);
+        }
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let run = brokenray(&args);
+        let stdout = String::from_utf8_lossy(&run.stdout);
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.success(), passes, "{stdout}{stderr}");
+        assert!(
+            stdout.contains("step 1/6 `still`: keep every target still"),
+            "{stdout}"
+        );
+        assert!(
+            stdout.contains("step 4/6 `z +100 mm`: move target G"),
+            "{stdout}"
+        );
+        assert!(stdout.contains("settling, then measuring"), "{stdout}");
+        if passes {
+            assert!(
+                stdout.contains("acceptance 1 PASSED; reverify by"),
+                "{stdout}"
+            );
+        } else {
+            assert!(
+                stdout.contains("acceptance 1 FAILED: ") && stdout.contains("z +100 mm"),
+                "{stdout}"
+            );
+            assert!(stdout.contains("FAIL  z +100 mm"), "{stdout}");
+            assert!(stderr.contains("the acceptance failed"), "{stderr}");
+        }
+        drop(server);
+    }
+}

@@ -62,6 +62,12 @@ async fn accept(app: &TestApp, sim: &mut Simulator, by: &str) -> Value {
             "awaiting_operator" => {
                 let step = &run["steps"][run["step"].as_u64().unwrap() as usize];
                 sim.displace_target("G", &stated(step)).unwrap();
+                if run["step"] == 0 {
+                    // The rig measures before the first step is placed.
+                    let items = observation_items(&sim.next_group());
+                    app.post_live("/api/v1/observations", &json!({ "observations": items }))
+                        .await;
+                }
                 let (status, body) = app
                     .post_json("/api/v1/acceptance/run/ready", &json!({}))
                     .await;
@@ -292,6 +298,27 @@ async fn the_run_refuses_out_of_turn_requests_and_abandoning_records_nothing() {
         .post_json("/api/v1/acceptance/run", &json!({"by": "Ada"}))
         .await;
     assert_eq!(status, StatusCode::CREATED);
+    // Nothing measured yet: no step can be placed.
+    let (status, body) = app
+        .post_json("/api/v1/acceptance/run/ready", &json!({}))
+        .await;
+    assert_eq!(status, StatusCode::CONFLICT, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("no raw result yet"),
+        "{body}"
+    );
+    let model = app.service.installation().model.clone();
+    let mut sim = simulator(&model, 14);
+    let items: Vec<Value> = (0..5)
+        .flat_map(|_| observation_items(&sim.next_group()))
+        .collect();
+    let (status, body) = app
+        .post_live("/api/v1/observations", &json!({ "observations": items }))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
     let (status, body) = app
         .post_json("/api/v1/acceptance/run/ready", &json!({}))
         .await;
