@@ -18,7 +18,9 @@
 //! * [`filter`]: one measured link's error-state Kalman filter on SE(3) (static,
 //!   constant-velocity, oscillatory) with outlier gating. [`vision`]: the camera model, PnP
 //!   (IPPE / SQPnP + Levenberg-Marquardt) and hand-eye station calibration. [`alarms`]: alarm
-//!   levels of a target with hysteresis, dwell, rate of change and stale data.
+//!   levels of a target with hysteresis, dwell, rate of change and stale data. [`acceptance`]:
+//!   the acceptance procedure's figures (zero and displacement deviations with their
+//!   uncertainty) and its steps.
 //! * [`model`]: an installation's measurement model (frames, links, targets, cameras, markers,
 //!   filter and PnP settings), the camera-marker links that solve observations, and the markers
 //!   found in a camera's frame.

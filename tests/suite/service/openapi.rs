@@ -297,6 +297,21 @@ fn the_documented_vocabularies_are_exactly_the_enums() {
             Some("UncertaintyPart"),
         ),
         (
+            "acceptance `standing` (`GET /api/v1/acceptance`)",
+            words_of::<brokenray::acceptance::Standing>(),
+            Some("Standing"),
+        ),
+        (
+            "acceptance run `phase`",
+            words_of::<brokenray::acceptance::Phase>(),
+            Some("Phase"),
+        ),
+        (
+            "acceptance step `kind`",
+            words_of::<brokenray::acceptance::StepKind>(),
+            Some("StepKind"),
+        ),
+        (
             "alarm `kind`",
             words_of::<brokenray::alarms::AlarmKind>(),
             Some("AlarmKind"),
