@@ -38,6 +38,11 @@ macro_rules! asset {
 const ASSETS: &[Asset] = &[
     asset!("index.html", "index.html", "text/html; charset=utf-8"),
     asset!("app.js", "js/app.js", "text/javascript; charset=utf-8"),
+    asset!(
+        "acceptance.js",
+        "js/acceptance.js",
+        "text/javascript; charset=utf-8"
+    ),
     asset!("util.js", "js/util.js", "text/javascript; charset=utf-8"),
     asset!("api.js", "js/api.js", "text/javascript; charset=utf-8"),
     asset!(

@@ -50,6 +50,14 @@ await run(async (browser) => {
     && budget.sums.every((x) => Math.abs(x - 100) <= 5),
   `the budget lists ${budget.n} contributors (${budget.kinds.join(', ')}), each axis' bars adding to 100 %: ${budget.sums.join(', ')}`);
 
+  // 1c. The acceptance panel: the built-in installation states a procedure, and the rig has
+  // none recorded yet.
+  await page.waitForSelector('#acceptance-section:not([hidden]) #acceptance-status [data-standing]', { timeout: 15000 });
+  const standing = await page.getAttribute('#acceptance-status [data-standing]', 'data-standing');
+  const standingText = await page.textContent('#acceptance-status');
+  check(standing === 'none' && standingText.includes('brokenray acceptance'),
+    `the acceptance panel says none is recorded: ${standing}, "${standingText}"`);
+
   // 2. The plots draw data: pixels of the series colours on both canvases.
   await page.waitForFunction(() => Number(document.body.dataset.historyLoads || 0) >= 1, null, { timeout: 15000 });
   const seriesPixels = (selector) => page.evaluate((sel) => {

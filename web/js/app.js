@@ -15,6 +15,7 @@ import { loadLinks, loadOutputs, loadWebhooks } from './links.js';
 import { renderCameraAges, startCameras } from './cameras.js';
 import { startFleet } from './fleet.js';
 import { startBudgets } from './budget.js';
+import { startAcceptance } from './acceptance.js';
 
 export function selectTarget(name, scroll) {
   state.selected = name;
@@ -99,6 +100,7 @@ export async function start() {
   }
   runEvents();
   startCameras();
+  startAcceptance();
   startBudgets((e) => { if (e.status !== 401) showMessage('budget', 'Budget: ' + e.message); });
   if (!started) {
     started = true;
