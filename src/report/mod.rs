@@ -6,6 +6,7 @@
 //! shares: text escaped for HTML, a page's frame and style, and an SVG canvas in the units of
 //! what it draws.
 
+pub mod acceptance;
 pub mod calibration;
 pub mod period;
 

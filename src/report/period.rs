@@ -1,4 +1,5 @@
-//! A period's report, the page an owner files: the installation and its calibrations, then per
+//! A period's report, the page an owner files: the installation and its calibrations, the
+//! acceptance in force at the period's end, then per
 //! target its deformation drawn over the period (the filtered result with its sigma band over
 //! the raw results' spread), the paper's statistics (Table 4/5) of the raw and the filtered
 //! results with the rms the model expects, the trend over the period, the alarms and their
@@ -40,6 +41,8 @@ pub struct PeriodReport {
     pub calibrations: Vec<CalibrationLine>,
     /// One section per target.
     pub targets: Vec<TargetReport>,
+    /// The rig's acceptance in force at the period's end.
+    pub acceptance: super::acceptance::AcceptanceSection,
 }
 
 /// A camera's calibration as the installation states it.
@@ -235,6 +238,7 @@ pub fn render(report: &PeriodReport) -> String {
         report.min_gap_ns as f64 / 1e9
     );
     cameras_section(&mut b, report);
+    super::acceptance::section(&mut b, &report.acceptance);
     for target in &report.targets {
         target_section(&mut b, report, target);
     }

@@ -25,7 +25,7 @@ use crate::bank::ResultSource;
 use crate::clock::format_ns;
 use crate::deformation::CalibrationStamp;
 use crate::model::TargetId;
-use crate::store::StoredAcceptance;
+use crate::store::{StoreResult, StoredAcceptance};
 
 /// The most raw results a window is read with (an hour at 25 Hz is 90 000).
 const MAX_WINDOW_RESULTS: i64 = 400_000;
@@ -556,7 +556,7 @@ impl Service {
         &self,
         at_ns: i64,
         record: &AcceptanceRecord,
-    ) -> ServiceResult<Vec<String>> {
+    ) -> StoreResult<Vec<String>> {
         let inst = self.installation();
         let mut changed = Vec::new();
         let resets = self.store().last_link_resets().await?;
@@ -619,12 +619,9 @@ impl Service {
         Ok(changed)
     }
 
-    async fn summary_of(&self, stored: StoredAcceptance) -> ServiceResult<AcceptanceOut> {
+    async fn summary_of(&self, stored: StoredAcceptance) -> StoreResult<AcceptanceOut> {
         let record: AcceptanceRecord = serde_json::from_str(&stored.record_json).map_err(|e| {
-            ServiceError::Storage(crate::store::StoreError::Malformed(format!(
-                "acceptance {}'s record: {e}",
-                stored.id
-            )))
+            crate::store::StoreError::Malformed(format!("acceptance {}'s record: {e}", stored.id))
         })?;
         let interval_ns = (record.reverify_every_days * 86_400e9).round() as i64;
         let changed = if stored.passed {
@@ -667,9 +664,49 @@ impl Service {
     /// One acceptance whole.
     pub async fn acceptance(&self, id: i64) -> ServiceResult<AcceptanceOut> {
         match self.store().acceptance(id).await? {
-            Some(stored) => self.summary_of(stored).await,
+            Some(stored) => Ok(self.summary_of(stored).await?),
             None => Err(ServiceError::NotFound(format!("no acceptance {id}"))),
         }
+    }
+
+    /// What a period's report says of the rig's acceptance: the newest recorded at or before
+    /// `at_ns` (the period's end), with where it stands now.
+    pub(super) async fn acceptance_section(
+        &self,
+        at_ns: i64,
+    ) -> StoreResult<crate::report::acceptance::AcceptanceSection> {
+        use crate::report::acceptance::{AcceptanceLine, AcceptanceSection, AcceptanceStep};
+        if self.installation().acceptance.is_none() {
+            return Ok(AcceptanceSection::NotStated);
+        }
+        let Some(stored) = self.store().acceptance_at(at_ns).await? else {
+            return Ok(AcceptanceSection::NoneRecorded);
+        };
+        let at_ns = stored.created_ns;
+        let a = self.summary_of(stored).await?;
+        let interval_ns = (a.record.reverify_every_days * 86_400e9).round() as i64;
+        Ok(AcceptanceSection::Latest(Box::new(AcceptanceLine {
+            id: a.summary.id,
+            at_ns,
+            by: a.summary.by,
+            note: a.summary.note,
+            passed: a.summary.passed,
+            standing: a.summary.standing,
+            due_ns: at_ns.saturating_add(interval_ns),
+            changed: a.summary.changed,
+            steps: a
+                .record
+                .steps
+                .into_iter()
+                .map(|s| AcceptanceStep {
+                    name: s.name,
+                    passed: s.passed,
+                    problem: s.problem,
+                    still: s.still.into_iter().map(|t| (t.target, t.figures)).collect(),
+                    moved: s.moved,
+                })
+                .collect(),
+        })))
     }
 
     /// For `/healthz`: what is wrong with the rig's acceptance when the installation states a

@@ -173,6 +173,7 @@ impl Service {
             cameras,
             calibrations,
             targets,
+            acceptance: self.acceptance_section(window.to_ns).await?,
         })
     }
 

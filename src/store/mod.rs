@@ -705,6 +705,14 @@ impl Store {
         Ok(rows.into_iter().map(StoredAcceptance::from).collect())
     }
 
+    /// The newest acceptance recorded at or before `at_ns`.
+    pub async fn acceptance_at(&self, at_ns: i64) -> StoreResult<Option<StoredAcceptance>> {
+        let row: Option<rows::AcceptanceRow> = query_on!(
+            &self.reader, Reader, r => &r.pool, &sql::ACCEPTANCE_AT, [at_ns], fetch_optional
+        )?;
+        Ok(row.map(StoredAcceptance::from))
+    }
+
     /// One acceptance by its id.
     pub async fn acceptance(&self, id: i64) -> StoreResult<Option<StoredAcceptance>> {
         let row: Option<rows::AcceptanceRow> =

@@ -119,6 +119,14 @@ pub(super) static ACCEPTANCES: LazyLock<String> = LazyLock::new(|| {
     )
 });
 
+/// The newest acceptance recorded at or before `$1` (ns).
+pub(super) static ACCEPTANCE_AT: LazyLock<String> = LazyLock::new(|| {
+    format!(
+        "select {ACCEPTANCE_COLUMNS} from acceptances where created_ns <= $1 \
+         order by created_ns desc, acceptance_id desc limit 1"
+    )
+});
+
 /// One acceptance: `$1` its id.
 pub(super) static ACCEPTANCE: LazyLock<String> = LazyLock::new(|| {
     format!("select {ACCEPTANCE_COLUMNS} from acceptances where acceptance_id = $1")

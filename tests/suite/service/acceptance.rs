@@ -2,6 +2,7 @@
 //! it keeps the target still, makes each stated move when the run asks, and says ready.
 
 use super::helpers::{Backend, START_NS, TestApp};
+use axum::body::Body;
 use axum::http::StatusCode;
 use brokenray::acceptance::Displacement;
 use brokenray::clock::Clock as _;
@@ -220,6 +221,27 @@ async fn an_acceptance_is_due_after_its_interval_and_void_after_a_calibration(ba
     assert!(
         one["record"]["targets"][0]["calibration_stamp"].is_i64(),
         "{one}"
+    );
+    // The period's report holds it, where it stands and each step.
+    let (status, _, page) = app
+        .request_raw("GET", "/api/v1/report", &[], Body::empty())
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    let page = String::from_utf8(page.to_vec()).unwrap();
+    assert!(
+        page.contains("data-standing=\"valid\">Acceptance 1 by Ada"),
+        "{page}"
+    );
+    let section = &page[page.find("<h2>Acceptance</h2>").unwrap()..];
+    let section = &section[..section.find("</table>").unwrap()];
+    assert_eq!(
+        section.matches("<td class=\"l\">pass</td>").count(),
+        6,
+        "{section}"
+    );
+    assert!(
+        section.contains("z +100 mm") && section.contains("deviation"),
+        "{section}"
     );
     // A year and a day on: due.
     app.clock
