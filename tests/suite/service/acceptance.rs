@@ -278,6 +278,20 @@ async fn an_acceptance_is_due_after_its_interval_and_void_after_a_calibration(ba
         changed.contains("C2_from_C1") && changed.contains("calibrated"),
         "{changed}"
     );
+    // A measured link's filter reset (a station that moved) is named too.
+    let (status, body) = app
+        .post_json(
+            "/api/v1/links/C3_from_G/reset",
+            &json!({"by": "Bob", "note": "C3 knocked"}),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let (_, list) = app.get("/api/v1/acceptance").await;
+    let changed = list["acceptances"][0]["changed"].to_string();
+    assert!(
+        changed.contains("C3_from_G") && changed.contains("reset") && changed.contains("Bob"),
+        "{changed}"
+    );
     let (status, missing) = app.get("/api/v1/acceptance/999").await;
     assert_eq!(status, StatusCode::NOT_FOUND, "{missing}");
 }
