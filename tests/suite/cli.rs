@@ -131,6 +131,7 @@ fn help_lists_only_working_subcommands() {
             "watch",
             "demo",
             "report",
+            "acceptance",
             "hash-token",
             "help"
         ]
