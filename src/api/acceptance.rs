@@ -143,3 +143,30 @@ pub(super) async fn delete_run(State(app): State<AppState>) -> Result<StatusCode
     app.service.abandon_acceptance().await?;
     Ok(StatusCode::NO_CONTENT)
 }
+
+/// `GET /api/v1/acceptance/{id}/certificate`: the acceptance's certificate, one self-contained
+/// HTML page to print and sign: the rig, what was accepted (each target's calibrations and
+/// links), the limits and the decision rule, every step's figures, lines for the signatures.
+#[utoipa::path(get, path = "/acceptance/{id}/certificate", tag = "acceptance",
+    params(("id" = i64, Path, description = "The acceptance's id")),
+    responses(
+        (status = 200, description = "The certificate (text/html)", content_type = "text/html"),
+        (status = 404, description = "No such acceptance", body = ErrorBody),
+        (status = 422, description = "Not an id", body = ErrorBody),
+    ),
+    security(("bearer" = ["read"])))]
+pub(super) async fn get_certificate(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<axum::response::Response, ApiError> {
+    let id: i64 = id
+        .parse()
+        .map_err(|_| ApiError::invalid_field("id", format!("`{id}` is not an acceptance id")))?;
+    let page = app.service.acceptance_certificate(id).await?;
+    Ok(super::report::report_page(
+        axum::body::Body::from(page),
+        Some(&format!(
+            "inline; filename=\"brokenray-acceptance-{id}.html\""
+        )),
+    ))
+}

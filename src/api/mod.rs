@@ -557,6 +557,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .routes(routes!(report::get_report))
         .routes(routes!(acceptance::list_acceptances))
         .routes(routes!(acceptance::get_acceptance))
+        .routes(routes!(acceptance::get_certificate))
         .routes(routes!(
             acceptance::post_run,
             acceptance::get_run,

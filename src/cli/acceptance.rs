@@ -26,6 +26,10 @@ pub struct AcceptanceArgs {
     /// The service.
     #[arg(long, value_name = "URL", default_value = "http://127.0.0.1:7878")]
     service: String,
+    /// Write the acceptance's certificate here once it is recorded (an HTML page to print
+    /// and sign; the file must not exist).
+    #[arg(long, value_name = "FILE.html")]
+    certificate: Option<PathBuf>,
     /// Bearer token with the `admin` scope (and `ingest` with `--simulate`).
     #[arg(long, env = "BROKENRAY_TOKEN", hide_env_values = true)]
     token: Option<String>,
@@ -135,6 +139,13 @@ impl Operator {
 /// Runs `brokenray acceptance`.
 pub(super) fn run(args: AcceptanceArgs, out: &mut impl Write) -> anyhow::Result<()> {
     let client = Client::new(&args.service, args.token.clone())?;
+    if let Some(path) = &args.certificate {
+        anyhow::ensure!(
+            !path.exists(),
+            "{} exists: a certificate is written to a new file",
+            path.display()
+        );
+    }
     let mut operator = if args.simulate {
         let installation = crate::config::load_or_default(args.config.as_deref())?;
         anyhow::ensure!(
@@ -259,6 +270,19 @@ async fn guide(
                 let id = run["acceptance_id"].as_i64().context("no acceptance id")?;
                 let a = client.get_json(&format!("/api/v1/acceptance/{id}")).await?;
                 print_record(&a, out)?;
+                if let Some(path) = &args.certificate {
+                    let page = client
+                        .get_text(
+                            &format!("/api/v1/acceptance/{id}/certificate"),
+                            &[],
+                            Duration::from_secs(60),
+                        )
+                        .await?;
+                    let mut file = super::create_new(path)?;
+                    file.write_all(page.as_bytes())?;
+                    file.sync_all()?;
+                    writeln!(out, "wrote the certificate to {}", path.display())?;
+                }
                 return Ok(a["passed"].as_bool().unwrap_or(false));
             }
             _ => bail!("the service answered an unknown phase: {run}"),

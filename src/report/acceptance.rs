@@ -1,9 +1,9 @@
-//! The acceptance section of a period's report: the acceptance in force at the period's end,
-//! where it stands now, and each step's figures against its limits (see
-//! [`crate::acceptance`]).
+//! The acceptance section of a period's report (the acceptance in force at the period's end,
+//! where it stands now, and each step's figures against its limits), and an acceptance's
+//! certificate: the page a metrologist signs (see [`crate::acceptance`]).
 
-use super::escape;
-use crate::acceptance::{MoveFigures, Standing, StillFigures};
+use super::{escape, page};
+use crate::acceptance::{COVERAGE_FACTOR, Limits, MoveFigures, Standing, StillFigures};
 use crate::clock::format_ns;
 use std::fmt::Write as _;
 
@@ -37,8 +37,29 @@ pub struct AcceptanceLine {
     pub due_ns: i64,
     /// What changed since that it no longer holds.
     pub changed: Vec<String>,
+    /// The names of its failed steps.
+    pub failed: Vec<String>,
     /// Its steps.
     pub steps: Vec<AcceptanceStep>,
+    /// The installation it was run on.
+    pub installation: String,
+    /// The limits it was judged by.
+    pub limits: Limits,
+    /// How long it holds (days).
+    pub reverify_every_days: f64,
+    /// What each target was measured with.
+    pub targets: Vec<AcceptedTargetLine>,
+}
+
+/// A target as an acceptance accepted it.
+#[derive(Debug, Clone)]
+pub struct AcceptedTargetLine {
+    /// The target.
+    pub target: String,
+    /// The calibrations its results were measured with.
+    pub calibration_stamp: Option<i64>,
+    /// The links on its paths.
+    pub links: Vec<String>,
 }
 
 /// A step of an acceptance.
@@ -78,11 +99,17 @@ pub(super) fn section(b: &mut String, acceptance: &AcceptanceSection) {
         }
         AcceptanceSection::Latest(a) => a,
     };
+    verdict(b, a);
+    steps_table(b, a);
+}
+
+/// Where an acceptance stands, in one paragraph.
+fn verdict(b: &mut String, a: &AcceptanceLine) {
     let now = match a.standing {
         Standing::Valid => "it holds".to_owned(),
         Standing::Due => format!("it is due for reverification since {}", format_ns(a.due_ns)),
         Standing::NoLongerHolds => format!("it no longer holds: {}", a.changed.join("; ")),
-        Standing::Failed => "it did not pass".to_owned(),
+        Standing::Failed => format!("it did not pass: {}", a.failed.join(", ")),
     };
     let _ = writeln!(
         b,
@@ -104,6 +131,10 @@ pub(super) fn section(b: &mut String, acceptance: &AcceptanceSection) {
             String::new()
         },
     );
+}
+
+/// Each step's result and figures.
+fn steps_table(b: &mut String, a: &AcceptanceLine) {
     b.push_str(
         "<table><tr><th class=\"l\">step</th><th class=\"l\">result</th>\
          <th class=\"l\">figures (rotation x, y, z; translation x, y, z)</th></tr>\n",
@@ -127,8 +158,9 @@ pub(super) fn section(b: &mut String, acceptance: &AcceptanceSection) {
         }
         if let Some(m) = &s.moved {
             figures.push(format!(
-                "{} results; deviation {} &plusmn; {} (u); |deviation| + 2u within {}",
+                "{} results; stated {}; deviation {} &plusmn; {} (u); |deviation| + 2u within {}",
                 m.count,
+                axes(&m.stated),
                 axes(&m.deviation),
                 axes(&m.uncertainty),
                 axes(&m.limit)
@@ -143,4 +175,63 @@ pub(super) fn section(b: &mut String, acceptance: &AcceptanceSection) {
         );
     }
     b.push_str("</table>\n");
+}
+
+/// An acceptance's certificate: the rig, what was accepted, the limits and the rule they were
+/// applied by, every step's figures, and lines to sign. Printable; no script.
+pub fn certificate(a: &AcceptanceLine, generated_ns: i64) -> String {
+    let title = format!("Acceptance certificate {}", a.id);
+    let mut b = String::new();
+    let _ = writeln!(
+        b,
+        "<h1>{}</h1>\n<p>Installation <code>{}</code>; printed {}.</p>",
+        escape(&title),
+        escape(&a.installation),
+        escape(&format_ns(generated_ns))
+    );
+    verdict(&mut b, a);
+    b.push_str(
+        "<h2>What was accepted</h2>\n<table><tr><th class=\"l\">target</th>\
+        <th class=\"l\">calibrations measured with (stamp)</th><th class=\"l\">links</th></tr>\n",
+    );
+    for t in &a.targets {
+        let _ = writeln!(
+            b,
+            "<tr><td class=\"l\">{}</td><td class=\"l\">{}</td><td class=\"l\">{}</td></tr>",
+            escape(&t.target),
+            t.calibration_stamp.map_or_else(
+                || "changed during the run".to_owned(),
+                |s| format!("{s:016x}")
+            ),
+            escape(&t.links.join(", "))
+        );
+    }
+    b.push_str("</table>\n");
+    let l = &a.limits;
+    let _ = writeln!(
+        b,
+        "<h2>Limits and decision rule</h2>\n<p>Still: the rms of each axis of the raw results \
+         about their mean at most {} arc-seconds (rotation) and {} mm (translation), and their \
+         scatter within what their sigmas allow (chi-square under its 0.999 quantile). Known \
+         moves: on each axis, |measured &minus; stated| + {COVERAGE_FACTOR} u at most {} \
+         arc-seconds and {} mm, u the deviation's standard uncertainty (conformance proven with \
+         the expanded uncertainty, ISO 14253-1). The acceptance holds {} days, and no longer \
+         once a link of a target is calibrated again or reset.</p>",
+        l.still_rms_arcsec, l.still_rms_mm, l.move_arcsec, l.move_mm, a.reverify_every_days
+    );
+    b.push_str("<h2>Steps</h2>\n");
+    steps_table(&mut b, a);
+    b.push_str(
+        "<h2>Signatures</h2>\n<table class=\"signatures\"><tr><th class=\"l\">role</th>\
+         <th class=\"l\">name</th><th class=\"l\">date</th><th class=\"l\">signature</th></tr>\n",
+    );
+    for role in ["Performed by", "Checked by", "Accepted for the owner by"] {
+        let _ = writeln!(
+            b,
+            "<tr><td class=\"l\">{role}</td><td class=\"l\">&nbsp;</td><td class=\"l\">&nbsp;</td>\
+             <td class=\"l\">&nbsp;</td></tr>"
+        );
+    }
+    b.push_str("</table>\n");
+    page(&title, &b)
 }

@@ -675,17 +675,37 @@ impl Service {
         &self,
         at_ns: i64,
     ) -> StoreResult<crate::report::acceptance::AcceptanceSection> {
-        use crate::report::acceptance::{AcceptanceLine, AcceptanceSection, AcceptanceStep};
+        use crate::report::acceptance::AcceptanceSection;
         if self.installation().acceptance.is_none() {
             return Ok(AcceptanceSection::NotStated);
         }
-        let Some(stored) = self.store().acceptance_at(at_ns).await? else {
-            return Ok(AcceptanceSection::NoneRecorded);
-        };
+        Ok(match self.store().acceptance_at(at_ns).await? {
+            Some(stored) => AcceptanceSection::Latest(Box::new(self.line_of(stored).await?)),
+            None => AcceptanceSection::NoneRecorded,
+        })
+    }
+
+    /// Acceptance `id`'s certificate: the page to print and sign.
+    pub async fn acceptance_certificate(&self, id: i64) -> ServiceResult<String> {
+        match self.store().acceptance(id).await? {
+            Some(stored) => Ok(crate::report::acceptance::certificate(
+                &self.line_of(stored).await?,
+                self.now_ns(),
+            )),
+            None => Err(ServiceError::NotFound(format!("no acceptance {id}"))),
+        }
+    }
+
+    /// A recorded acceptance as the reports show it.
+    async fn line_of(
+        &self,
+        stored: StoredAcceptance,
+    ) -> StoreResult<crate::report::acceptance::AcceptanceLine> {
+        use crate::report::acceptance::{AcceptanceLine, AcceptanceStep, AcceptedTargetLine};
         let at_ns = stored.created_ns;
         let a = self.summary_of(stored).await?;
         let interval_ns = (a.record.reverify_every_days * 86_400e9).round() as i64;
-        Ok(AcceptanceSection::Latest(Box::new(AcceptanceLine {
+        Ok(AcceptanceLine {
             id: a.summary.id,
             at_ns,
             by: a.summary.by,
@@ -694,6 +714,7 @@ impl Service {
             standing: a.summary.standing,
             due_ns: at_ns.saturating_add(interval_ns),
             changed: a.summary.changed,
+            failed: a.summary.failed,
             steps: a
                 .record
                 .steps
@@ -706,7 +727,20 @@ impl Service {
                     moved: s.moved,
                 })
                 .collect(),
-        })))
+            installation: a.record.installation,
+            limits: a.record.limits,
+            reverify_every_days: a.record.reverify_every_days,
+            targets: a
+                .record
+                .targets
+                .into_iter()
+                .map(|t| AcceptedTargetLine {
+                    target: t.target,
+                    calibration_stamp: t.calibration_stamp,
+                    links: t.links,
+                })
+                .collect(),
+        })
     }
 
     /// For `/healthz`: what is wrong with the rig's acceptance when the installation states a

@@ -389,7 +389,7 @@ impl Simulator {
     /// Plays an operator who moves target `target` (with the body it is rigid with) to stand
     /// displaced by `displacement` from its nominal pose, as the acceptance procedure asks:
     /// the true deformation `G0_from_G` becomes that displacement (the scenario's motion, if
-    /// any, comes on top). [`Displacement::ZERO`] puts it back.
+    /// any, comes on top). [`crate::acceptance::Displacement::ZERO`] puts it back.
     pub fn displace_target(
         &mut self,
         target: &str,

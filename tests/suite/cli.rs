@@ -1306,6 +1306,11 @@ fn acceptance_guides_the_simulated_operator_and_fails_a_rig_with_a_wrong_focal_l
             url.clone(),
             "--by".into(),
             "Ada".into(),
+            "--certificate".into(),
+            dir.path()
+                .join(format!("{name}.html"))
+                .display()
+                .to_string(),
         ];
         if let Some(focal) = world {
             let world_file = dir.path().join(format!("{name}-world.toml"));
@@ -1328,6 +1333,22 @@ fn acceptance_guides_the_simulated_operator_and_fails_a_rig_with_a_wrong_focal_l
             "{stdout}"
         );
         assert!(stdout.contains("settling, then measuring"), "{stdout}");
+        let certificate = std::fs::read_to_string(dir.path().join(format!("{name}.html"))).unwrap();
+        assert!(certificate.starts_with("<!DOCTYPE html>"), "{certificate}");
+        assert!(
+            certificate.contains("<h1>Acceptance certificate 1</h1>"),
+            "{certificate}"
+        );
+        assert!(
+            certificate.contains("Accepted for the owner by"),
+            "{certificate}"
+        );
+        assert_eq!(
+            certificate
+                .matches("<td class=\"l\">z +100 mm</td>")
+                .count(),
+            1
+        );
         if passes {
             assert!(
                 stdout.contains("acceptance 1 PASSED; reverify by"),

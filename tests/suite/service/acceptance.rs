@@ -243,6 +243,42 @@ async fn an_acceptance_is_due_after_its_interval_and_void_after_a_calibration(ba
         section.contains("z +100 mm") && section.contains("deviation"),
         "{section}"
     );
+    // Its certificate: the limits, the rule, each step and the lines to sign.
+    let (status, headers, page) = app
+        .request_raw(
+            "GET",
+            &format!("/api/v1/acceptance/{id}/certificate"),
+            &[],
+            Body::empty(),
+        )
+        .await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(headers["content-type"], "text/html; charset=utf-8");
+    assert!(
+        headers["content-security-policy"]
+            .to_str()
+            .unwrap()
+            .contains("default-src 'none'")
+    );
+    let page = String::from_utf8(page.to_vec()).unwrap();
+    for needle in [
+        "Acceptance certificate 1",
+        "ISO 14253-1",
+        "C3_from_G",
+        "Performed by",
+        "x +20 mm",
+    ] {
+        assert!(page.contains(needle), "{needle}: {page}");
+    }
+    let (status, _, _) = app
+        .request_raw(
+            "GET",
+            "/api/v1/acceptance/7/certificate",
+            &[],
+            Body::empty(),
+        )
+        .await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
     // A year and a day on: due.
     app.clock
         .set_ns(app.clock.now_ns() + 366 * 86_400 * 1_000_000_000);
