@@ -176,6 +176,37 @@ pub struct Measured<'a> {
     pub calibration: Option<CalibrationStamp>,
 }
 
+impl Measured<'_> {
+    /// The random part: the whole covariance less the systematic part (the noise, what
+    /// averaging and filtering bring down). The one place the split is computed.
+    pub fn random(&self) -> PoseCov {
+        PoseCov {
+            pose: self.g_from_b.pose,
+            cov: self.g_from_b.cov - self.systematic_cov,
+        }
+    }
+
+    /// The systematic part alone (the calibrations' error, the same in every result of that
+    /// geometry).
+    pub fn systematic(&self) -> PoseCov {
+        PoseCov {
+            pose: self.g_from_b.pose,
+            cov: *self.systematic_cov,
+        }
+    }
+}
+
+impl Reference {
+    /// The reference's pose with its covariance told apart, as a result's is.
+    pub fn measured(&self) -> Measured<'_> {
+        Measured {
+            g_from_b: &self.g0_from_b,
+            systematic_cov: &self.systematic_cov,
+            calibration: self.calibration,
+        }
+    }
+}
+
 /// A rotation vector in arc-seconds and a translation in mm, with their sigmas.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SmallMotion {
@@ -215,15 +246,8 @@ impl Deformation {
         let g = measured.g_from_b;
         let shared =
             reference.calibration.is_some() && reference.calibration == measured.calibration;
-        let part = |p: &PoseCov, cov: Mat6| PoseCov { pose: p.pose, cov };
         let (r, m) = if shared {
-            (
-                part(
-                    &reference.g0_from_b,
-                    reference.g0_from_b.cov - reference.systematic_cov,
-                ),
-                part(g, g.cov - measured.systematic_cov),
-            )
+            (reference.measured().random(), measured.random())
         } else {
             (reference.g0_from_b, *g)
         };
@@ -231,8 +255,10 @@ impl Deformation {
         let systematic_cov = if shared {
             Mat6::zeros()
         } else {
-            part(&reference.g0_from_b, reference.systematic_cov)
-                .compose(&part(g, *measured.systematic_cov).inverse())
+            reference
+                .measured()
+                .systematic()
+                .compose(&measured.systematic().inverse())
                 .cov
         };
         Self {

@@ -153,16 +153,8 @@ impl From<&ReferenceVersion> for ReferenceOut {
             origin,
             window,
             sigma: (&r.reference.g0_from_b).into(),
-            sigma_random: (&PoseCov {
-                pose: r.reference.g0_from_b.pose,
-                cov: r.reference.g0_from_b.cov - r.reference.systematic_cov,
-            })
-                .into(),
-            sigma_systematic: (&PoseCov {
-                pose: r.reference.g0_from_b.pose,
-                cov: r.reference.systematic_cov,
-            })
-                .into(),
+            sigma_random: (&r.reference.measured().random()).into(),
+            sigma_systematic: (&r.reference.measured().systematic()).into(),
         }
     }
 }
@@ -395,15 +387,14 @@ pub(super) fn compensation_out(
         _ => None,
     };
     let parts = |cov: &PoseCov, systematic: &Mat6| {
+        let told_apart = Measured {
+            g_from_b: cov,
+            systematic_cov: systematic,
+            calibration: None,
+        };
         (
-            SigmaOut::from(&PoseCov {
-                pose: cov.pose,
-                cov: cov.cov - systematic,
-            }),
-            SigmaOut::from(&PoseCov {
-                pose: cov.pose,
-                cov: *systematic,
-            }),
+            SigmaOut::from(&told_apart.random()),
+            SigmaOut::from(&told_apart.systematic()),
         )
     };
     CompensationOut {

@@ -117,7 +117,7 @@ pub struct RawResult {
 impl RawResult {
     /// The random part of the covariance: the samples' noise, what filtering averages down.
     pub fn random_cov(&self) -> Mat6 {
-        self.target_from_base.cov - self.systematic_cov
+        self.measured().random().cov
     }
 
     /// The result as a deformation compares it with a reference.

@@ -362,7 +362,7 @@ impl Service {
                         .iter()
                         .map(|r| RawPoint {
                             g_from_b: r.estimate.pose,
-                            random_cov: r.estimate.cov - r.systematic_cov,
+                            random_cov: r.measured().random().cov,
                             systematic_cov: r.systematic_cov,
                         })
                         .collect::<Vec<_>>(),

@@ -470,17 +470,15 @@ impl Logger {
                     let name = &inst.model.targets[target.0].name;
                     let which = source.name();
                     if *source == crate::bank::ResultSource::Filtered {
-                        let part = |cov: crate::geometry::Mat6| {
-                            crate::geometry::PoseCov {
-                                pose: target_from_base.pose,
-                                cov,
-                            }
-                            .reported_sigmas()
+                        let told_apart = crate::deformation::Measured {
+                            g_from_b: target_from_base,
+                            systematic_cov,
+                            calibration: None,
                         };
                         for (label, s) in [
-                            ("whole", part(target_from_base.cov)),
-                            ("random", part(target_from_base.cov - systematic_cov)),
-                            ("systematic", part(*systematic_cov)),
+                            ("whole", target_from_base.reported_sigmas()),
+                            ("random", told_apart.random().reported_sigmas()),
+                            ("systematic", told_apart.systematic().reported_sigmas()),
                         ] {
                             out.scalar(
                                 format!("plots/{name}/sigma_rotation_arcsec/{label}"),
