@@ -95,6 +95,18 @@ pub(crate) struct RecordAcceptance {
     pub(crate) record_json: String,
 }
 
+impl RecordAcceptance {
+    /// The row it is stored as.
+    pub(crate) fn row(&self) -> crate::store::NewAcceptance<'_> {
+        crate::store::NewAcceptance {
+            by: &self.by,
+            note: self.note.as_deref(),
+            passed: self.passed,
+            record_json: &self.record_json,
+        }
+    }
+}
+
 /// One job of the writer.
 #[allow(
     clippy::large_enum_variant,

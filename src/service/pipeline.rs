@@ -121,14 +121,11 @@ async fn apply(job: &mut Job, step: &mut Step<'_, '_>) -> Result<(), StoreError>
         Job::AddCalibration(call) => call.answer = apply_calibration(step, &call.request).await?,
         Job::ResetLink(call) => call.answer = apply_reset(step, &call.request).await?,
         Job::RecordAcceptance(call) => {
-            let r = &call.request;
-            let new = crate::store::NewAcceptance {
-                by: &r.by,
-                note: r.note.as_deref(),
-                passed: r.passed,
-                record_json: &r.record_json,
-            };
-            call.answer = Ok((step.tx.insert_acceptance(&new, step.now).await?, step.now));
+            let id = step
+                .tx
+                .insert_acceptance(&call.request.row(), step.now)
+                .await?;
+            call.answer = Ok((id, step.now));
         }
         Job::CheckLiveness(call) => {
             let raised = judge_liveness(step.bank, step.targets, step.now, step.clock_tolerance_s);
