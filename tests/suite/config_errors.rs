@@ -37,6 +37,18 @@ fn line_of(text: &str, needle: &str) -> usize {
         + 1
 }
 
+/// Each case's text is refused with its message, at the line of its first line holding `at`.
+fn assert_each_refused_at_its_line(cases: Vec<(String, &str, &str)>) {
+    for (text, at, message) in cases {
+        let e = error_of(&text);
+        assert!(e.contains(message), "want `{message}` in: {e}");
+        assert!(
+            e.contains(&format!("site.toml:{}:", line_of(&text, at))),
+            "want the line of `{at}` in: {e}"
+        );
+    }
+}
+
 #[test]
 fn a_minimal_file_is_valid() {
     let inst = config::parse("site.toml", VALID).unwrap();
@@ -574,14 +586,7 @@ fn fleet_settings_are_checked_and_each_mistake_named() {
             "only a sync token names a site",
         ),
     ];
-    for (text, at, message) in cases {
-        let e = error_of(&text);
-        assert!(e.contains(message), "want `{message}` in: {e}");
-        assert!(
-            e.contains(&format!("site.toml:{}:", line_of(&text, at))),
-            "want the line of `{at}` in: {e}"
-        );
-    }
+    assert_each_refused_at_its_line(cases);
 }
 
 /// Values that pass as numbers but would kill a task long after start (a wait of centuries, a
@@ -1211,12 +1216,5 @@ fn acceptance_settings_are_checked_and_each_mistake_named() {
             "acceptance.step_s must lie in",
         ),
     ];
-    for (text, at, message) in cases {
-        let e = error_of(&text);
-        assert!(e.contains(message), "want `{message}` in: {e}");
-        assert!(
-            e.contains(&format!("site.toml:{}:", line_of(&text, at))),
-            "want the line of `{at}` in: {e}"
-        );
-    }
+    assert_each_refused_at_its_line(cases);
 }

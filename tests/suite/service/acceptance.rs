@@ -348,6 +348,13 @@ async fn an_acceptance_is_due_after_its_interval_and_void_after_a_calibration_on
     an_acceptance_is_due_after_its_interval_and_void_after_a_calibration(Backend::Postgres).await;
 }
 
+/// Asserts a refusal: its status, and its message holding `says`.
+fn refused((status, body): (StatusCode, Value), want: StatusCode, says: &str) {
+    assert_eq!(status, want, "{body}");
+    let message = body["error"]["message"].as_str().unwrap_or_default();
+    assert!(message.contains(says), "want `{says}` in: {body}");
+}
+
 /// The run refuses what does not fit where it is: a second run while one measures, a step
 /// placed twice, a run without `by`; abandoning it records nothing.
 #[tokio::test]
@@ -371,16 +378,11 @@ async fn the_run_refuses_out_of_turn_requests_and_abandoning_records_nothing() {
         .await;
     assert_eq!(status, StatusCode::CREATED);
     // Nothing measured yet: no step can be placed.
-    let (status, body) = app
-        .post_json("/api/v1/acceptance/run/ready", &json!({}))
-        .await;
-    assert_eq!(status, StatusCode::CONFLICT, "{body}");
-    assert!(
-        body["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("no raw result yet"),
-        "{body}"
+    refused(
+        app.post_json("/api/v1/acceptance/run/ready", &json!({}))
+            .await,
+        StatusCode::CONFLICT,
+        "no raw result yet",
     );
     let model = app.service.installation().model.clone();
     let mut sim = simulator(&model, 14);
@@ -395,24 +397,17 @@ async fn the_run_refuses_out_of_turn_requests_and_abandoning_records_nothing() {
         .post_json("/api/v1/acceptance/run/ready", &json!({}))
         .await;
     assert_eq!(status, StatusCode::OK, "{body}");
-    let (status, body) = app
-        .post_json("/api/v1/acceptance/run/ready", &json!({}))
-        .await;
-    assert_eq!(status, StatusCode::CONFLICT, "{body}");
-    assert!(
-        body["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("being measured"),
-        "{body}"
+    refused(
+        app.post_json("/api/v1/acceptance/run/ready", &json!({}))
+            .await,
+        StatusCode::CONFLICT,
+        "being measured",
     );
-    let (status, body) = app
-        .post_json("/api/v1/acceptance/run", &json!({"by": "Bob"}))
-        .await;
-    assert_eq!(status, StatusCode::CONFLICT, "{body}");
-    assert!(
-        body["error"]["message"].as_str().unwrap().contains("Ada"),
-        "{body}"
+    refused(
+        app.post_json("/api/v1/acceptance/run", &json!({"by": "Bob"}))
+            .await,
+        StatusCode::CONFLICT,
+        "Ada",
     );
     let (status, _) = app
         .request("DELETE", "/api/v1/acceptance/run", None, None)
@@ -427,16 +422,11 @@ async fn the_run_refuses_out_of_turn_requests_and_abandoning_records_nothing() {
     // An installation without [acceptance] has no procedure to run.
     let plain = text[..text.find("[acceptance]").unwrap()].to_owned();
     let app = TestApp::start_on(Backend::Sqlite, Some(&plain)).await;
-    let (status, body) = app
-        .post_json("/api/v1/acceptance/run", &json!({"by": "Ada"}))
-        .await;
-    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
-    assert!(
-        body["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("[acceptance]"),
-        "{body}"
+    refused(
+        app.post_json("/api/v1/acceptance/run", &json!({"by": "Ada"}))
+            .await,
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "[acceptance]",
     );
     let (_, health) = app.get("/healthz").await;
     assert!(health.get("acceptance_problem").is_none(), "{health}");
