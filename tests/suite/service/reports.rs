@@ -138,6 +138,34 @@ async fn a_period_s_report_prints_the_api_s_figures_and_tells_its_gap_and_alarm(
     // Six pictures of the target's deformation (against the reference), each with a band.
     assert_eq!(page.matches("<svg").count(), 6);
     assert!(page.contains("aria-label=\"G: rotation x (arcsec)\""));
+    // The pictures are the history's: the filtered line of each panel, read back from its
+    // picture's pixels, is `GET .../history`'s bucket means for the same period (600 buckets),
+    // to the half tenth of a pixel the path is written with.
+    for (label, component) in [
+        ("rotation x (arcsec)", "def_rx_arcsec"),
+        ("translation z (mm)", "def_tz_mm"),
+    ] {
+        let (_, history) = app
+            .get(&format!(
+                "/api/v1/targets/G/history?{window}&source=filtered&max_points=600&components={component}"
+            ))
+            .await;
+        let means: Vec<f64> = history["series"][component]["mean"]
+            .as_array()
+            .expect("means")
+            .iter()
+            .filter_map(Value::as_f64)
+            .collect();
+        let drawn = picture_line(&page, &format!("G: {label}"));
+        assert_eq!(drawn.len(), means.len(), "{label}: a point a bucket");
+        let (lo, hi, px_value) = drawn_range(&page, &format!("G: {label}"));
+        for (k, (v, m)) in drawn.iter().zip(&means).enumerate() {
+            assert!(
+                (v - m).abs() <= 0.06 * px_value + 1e-4 * (hi - lo).abs().max(1.0),
+                "{label}, bucket {k}: drawn {v}, history {m}"
+            );
+        }
+    }
 
     // A period that is not one is refused, naming the field.
     for (query, field) in [
@@ -231,4 +259,48 @@ async fn the_scheduled_report_files_each_period_once_and_tells_a_failure() {
     );
     let (_, health) = app.get("/healthz").await;
     assert!(health["reports_problem"].is_null(), "{health}");
+}
+
+/// The picture labelled `label` in a report page.
+fn picture<'a>(page: &'a str, label: &str) -> &'a str {
+    let start = page
+        .find(&format!("aria-label=\"{label}\""))
+        .unwrap_or_else(|| panic!("a picture {label}"));
+    let end = start + page[start..].find("</svg>").expect("the picture's end");
+    &page[start..end]
+}
+
+/// A picture's value axis: its lowest and highest values as printed, and the value of a
+/// pixel (the plot area is 110 pixels high: 150 less 18 above and 22 below).
+fn drawn_range(page: &str, label: &str) -> (f64, f64, f64) {
+    let svg = picture(page, label);
+    let texts: Vec<&str> = svg
+        .split("<text ")
+        .skip(1)
+        .map(|t| &t[t.find('>').unwrap() + 1..t.find("</text>").unwrap()])
+        .collect();
+    // The label, the highest value, the lowest, then the period's ends.
+    let (hi, lo): (f64, f64) = (texts[1].parse().unwrap(), texts[2].parse().unwrap());
+    (lo, hi, (hi - lo) / 110.0)
+}
+
+/// The values of the filtered line of the picture labelled `label`, read back from its paths.
+fn picture_line(page: &str, label: &str) -> Vec<f64> {
+    let svg = picture(page, label);
+    let (lo, hi, _) = drawn_range(page, label);
+    // One path a run of consecutive buckets, in time order.
+    svg.split("<path ")
+        .filter(|p| p.contains("stroke=\"#1f4e8c\""))
+        .flat_map(|path| {
+            let d = &path[path.find("d=\"").unwrap() + 3..];
+            let d = &d[..d.find('"').unwrap()];
+            d.split(['M', 'L'])
+                .filter(|p| !p.is_empty())
+                .map(|point| {
+                    let y: f64 = point.split(',').nth(1).unwrap().parse().unwrap();
+                    hi - (y - 18.0) * (hi - lo) / 110.0
+                })
+                .collect::<Vec<f64>>()
+        })
+        .collect()
 }
