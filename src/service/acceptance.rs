@@ -33,6 +33,9 @@ const MAX_WINDOW_RESULTS: i64 = 400_000;
 /// How long past a step's expected end (on the server's clock) its results are waited for.
 const STEP_GRACE_NS: i64 = 60_000_000_000;
 
+/// How long `/healthz` waits for the acceptances' standing.
+const HEALTH_READ_LIMIT: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// A run in memory.
 pub(super) struct Run {
     procedure: Procedure,
@@ -745,11 +748,20 @@ impl Service {
 
     /// For `/healthz`: what is wrong with the rig's acceptance when the installation states a
     /// procedure (none recorded, the latest failed, due, or no longer holding).
+    ///
+    /// Read within two seconds: a store that does not answer is `/healthz`'s own
+    /// problem to tell, and must not hold its answer.
     pub async fn acceptance_problem(&self) -> Option<String> {
         self.installation().acceptance.as_ref()?;
-        let latest = match self.acceptances(1).await {
-            Ok(l) => l.into_iter().next(),
-            Err(e) => return Some(format!("the acceptances cannot be read: {e}")),
+        let latest = match tokio::time::timeout(HEALTH_READ_LIMIT, self.acceptances(1)).await {
+            Ok(Ok(l)) => l.into_iter().next(),
+            Ok(Err(e)) => return Some(format!("the acceptances cannot be read: {e}")),
+            Err(_) => {
+                return Some(format!(
+                    "the acceptances could not be read within {} s",
+                    HEALTH_READ_LIMIT.as_secs_f64()
+                ));
+            }
         };
         let Some(a) = latest else {
             return Some("the rig has no acceptance: run `brokenray acceptance`".into());
