@@ -36,6 +36,15 @@ const STEP_GRACE_NS: i64 = 60_000_000_000;
 /// How long `/healthz` waits for the acceptances' standing.
 const HEALTH_READ_LIMIT: std::time::Duration = std::time::Duration::from_secs(2);
 
+/// What the store says now of what an acceptance accepted: each link's newest manual reset,
+/// each link's newest calibration (ns, server clock), each target's newest raw result (its
+/// time and calibration stamp).
+struct CurrentState {
+    resets: Vec<(crate::chain::LinkId, i64, Option<String>, Option<String>)>,
+    calibrated_ns: Vec<Option<i64>>,
+    latest: Vec<Option<(i64, Option<i64>)>>,
+}
+
 /// A run in memory.
 pub(super) struct Run {
     procedure: Procedure,
@@ -554,37 +563,53 @@ impl Service {
         }
     }
 
-    /// What changed since an acceptance that it no longer holds.
-    async fn changed_since(
+    /// What the store says now of what acceptances accept: read once for any number of
+    /// acceptances judged against it.
+    async fn current_state(&self) -> StoreResult<CurrentState> {
+        let inst = self.installation();
+        let mut calibrated_ns = Vec::with_capacity(inst.model.links.len());
+        for l in 0..inst.model.links.len() {
+            let versions = self.store().calibrations(crate::chain::LinkId(l)).await?;
+            calibrated_ns.push(versions.iter().map(|c| c.created_ns).max());
+        }
+        let mut latest = Vec::with_capacity(inst.model.targets.len());
+        for t in 0..inst.model.targets.len() {
+            let r = self
+                .store()
+                .latest_result(TargetId(t), ResultSource::Raw)
+                .await?;
+            latest.push(r.map(|r| (r.time_ns, r.calibration.map(|s| s.0))));
+        }
+        Ok(CurrentState {
+            resets: self.store().last_link_resets().await?,
+            calibrated_ns,
+            latest,
+        })
+    }
+
+    /// What changed since an acceptance recorded at `at_ns` that it no longer holds.
+    fn changed_since(
         &self,
+        now: &CurrentState,
         at_ns: i64,
         record: &AcceptanceRecord,
-    ) -> StoreResult<Vec<String>> {
+    ) -> Vec<String> {
         let inst = self.installation();
         let mut changed = Vec::new();
-        let resets = self.store().last_link_resets().await?;
         for accepted in &record.targets {
             for name in &accepted.links {
                 let Some(l) = inst.model.links.iter().position(|l| &l.name == name) else {
                     changed.push(format!("link `{name}` is no longer in the installation"));
                     continue;
                 };
-                let link = crate::chain::LinkId(l);
-                if let Some(c) = self
-                    .store()
-                    .calibrations(link)
-                    .await?
-                    .iter()
-                    .rev()
-                    .find(|c| c.created_ns > at_ns)
-                {
-                    changed.push(format!(
-                        "link `{name}` was calibrated at {}",
-                        format_ns(c.created_ns)
-                    ));
+                if let Some(t) = now.calibrated_ns[l].filter(|t| *t > at_ns) {
+                    changed.push(format!("link `{name}` was calibrated at {}", format_ns(t)));
                 }
-                if let Some((_, t, by, _)) =
-                    resets.iter().find(|(r, t, ..)| *r == link && *t > at_ns)
+                let link = crate::chain::LinkId(l);
+                if let Some((_, t, by, _)) = now
+                    .resets
+                    .iter()
+                    .find(|(r, t, ..)| *r == link && *t > at_ns)
                 {
                     changed.push(format!(
                         "link `{name}`'s filter was reset at {}{}",
@@ -605,13 +630,9 @@ impl Service {
                 ));
                 continue;
             };
-            let latest = self
-                .store()
-                .latest_result(TargetId(t), ResultSource::Raw)
-                .await?;
-            if let Some(latest) = latest
-                && latest.time_ns > at_ns
-                && latest.calibration.map(|s| s.0) != accepted.calibration_stamp
+            if let Some((time_ns, stamp)) = now.latest[t]
+                && time_ns > at_ns
+                && stamp != accepted.calibration_stamp
             {
                 changed.push(format!(
                     "target `{}` is measured with other calibrations than those accepted (a camera's intrinsics or a station's calibration changed)",
@@ -619,16 +640,20 @@ impl Service {
                 ));
             }
         }
-        Ok(changed)
+        changed
     }
 
-    async fn summary_of(&self, stored: StoredAcceptance) -> StoreResult<AcceptanceOut> {
+    fn summary_of(
+        &self,
+        now: &CurrentState,
+        stored: StoredAcceptance,
+    ) -> StoreResult<AcceptanceOut> {
         let record: AcceptanceRecord = serde_json::from_str(&stored.record_json).map_err(|e| {
             crate::store::StoreError::Malformed(format!("acceptance {}'s record: {e}", stored.id))
         })?;
         let interval_ns = (record.reverify_every_days * 86_400e9).round() as i64;
         let changed = if stored.passed {
-            self.changed_since(stored.created_ns, &record).await?
+            self.changed_since(now, stored.created_ns, &record)
         } else {
             Vec::new()
         };
@@ -658,8 +683,13 @@ impl Service {
     /// The newest acceptances, newest first, each with where it stands.
     pub async fn acceptances(&self, limit: i64) -> ServiceResult<Vec<AcceptanceSummary>> {
         let mut out = Vec::new();
-        for stored in self.store().acceptances(limit).await? {
-            out.push(self.summary_of(stored).await?.summary);
+        let stored = self.store().acceptances(limit).await?;
+        if stored.is_empty() {
+            return Ok(out);
+        }
+        let now = self.current_state().await?;
+        for stored in stored {
+            out.push(self.summary_of(&now, stored)?.summary);
         }
         Ok(out)
     }
@@ -667,7 +697,7 @@ impl Service {
     /// One acceptance whole.
     pub async fn acceptance(&self, id: i64) -> ServiceResult<AcceptanceOut> {
         match self.store().acceptance(id).await? {
-            Some(stored) => Ok(self.summary_of(stored).await?),
+            Some(stored) => Ok(self.summary_of(&self.current_state().await?, stored)?),
             None => Err(ServiceError::NotFound(format!("no acceptance {id}"))),
         }
     }
@@ -706,7 +736,7 @@ impl Service {
     ) -> StoreResult<crate::report::acceptance::AcceptanceLine> {
         use crate::report::acceptance::{AcceptanceLine, AcceptanceStep, AcceptedTargetLine};
         let at_ns = stored.created_ns;
-        let a = self.summary_of(stored).await?;
+        let a = self.summary_of(&self.current_state().await?, stored)?;
         let interval_ns = (a.record.reverify_every_days * 86_400e9).round() as i64;
         Ok(AcceptanceLine {
             id: a.summary.id,
