@@ -231,11 +231,54 @@ impl SmallMotion {
 }
 
 fn small_motion(p: &PoseCov) -> SmallMotion {
-    let phi = so3_log(&p.pose.rotation) * ARCSEC_PER_RAD;
+    let d = Displacement::of(&p.pose);
     SmallMotion {
-        rotation_arcsec: [phi.x, phi.y, phi.z],
-        translation_mm: p.pose.translation.vector.into(),
+        rotation_arcsec: d.rotation_arcsec,
+        translation_mm: d.translation_mm,
         sigmas: p.reported_sigmas(),
+    }
+}
+
+/// A rigid displacement `G0_from_G` as users state and read it (a deformation's, or a known
+/// move's): the rotation vector (arc-seconds, about `G0`'s axes) and the translation (mm, where
+/// `G`'s origin is in `G0`'s coordinates).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Displacement {
+    /// The rotation vector (arc-seconds).
+    pub rotation_arcsec: [f64; 3],
+    /// The translation (mm).
+    pub translation_mm: [f64; 3],
+}
+
+impl Displacement {
+    /// No displacement.
+    pub const ZERO: Self = Self {
+        rotation_arcsec: [0.0; 3],
+        translation_mm: [0.0; 3],
+    };
+
+    /// The six axes: rotation x, y, z (arc-seconds), then translation x, y, z (mm).
+    pub fn axes(&self) -> [f64; 6] {
+        let (r, t) = (self.rotation_arcsec, self.translation_mm);
+        [r[0], r[1], r[2], t[0], t[1], t[2]]
+    }
+
+    /// The pose `G0_from_G` it states.
+    pub fn g0_from_g(&self) -> Pose {
+        let phi = Vec3::from(self.rotation_arcsec) / ARCSEC_PER_RAD;
+        Pose::from_parts(
+            Vec3::from(self.translation_mm).into(),
+            crate::geometry::so3_exp(&phi),
+        )
+    }
+
+    /// The displacement of a pose `G0_from_G`.
+    pub fn of(g0_from_g: &Pose) -> Self {
+        let phi = so3_log(&g0_from_g.rotation) * ARCSEC_PER_RAD;
+        Self {
+            rotation_arcsec: [phi.x, phi.y, phi.z],
+            translation_mm: g0_from_g.translation.vector.into(),
+        }
     }
 }
 

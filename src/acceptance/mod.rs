@@ -35,11 +35,10 @@ pub mod procedure;
 
 pub use procedure::{Offered, Phase, Plan, PlannedMove, Procedure, StepDone, StepFigures};
 
+use crate::chain::chi_square_quantile;
 use crate::deformation::CalibrationStamp;
-use crate::geometry::{
-    ARCSEC_PER_RAD, Mat6, Pose, PoseCov, Vec3, mean_pose, se3_exp, skew, so3_log,
-};
-use statrs::distribution::{ChiSquared, ContinuousCDF};
+pub use crate::deformation::Displacement;
+use crate::geometry::{ARCSEC_PER_RAD, Mat6, Pose, PoseCov, mean_pose, skew, so3_log};
 
 /// Probability with which the halves of a settled window agree (the chi-square quantile the
 /// settling is judged by).
@@ -54,56 +53,6 @@ pub const MIN_RESULTS: usize = 10;
 /// Six axes in the order users read them: rotation about x, y, z (arc-seconds), then
 /// translation along x, y, z (mm).
 pub type Axes = [f64; 6];
-
-/// A rigid displacement of a target from where it stood still, as users state and read it.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct Displacement {
-    /// The rotation vector (arc-seconds, about the still target's axes).
-    pub rotation_arcsec: [f64; 3],
-    /// The translation (mm, in the still target's coordinates).
-    pub translation_mm: [f64; 3],
-}
-
-impl Displacement {
-    /// No displacement.
-    pub const ZERO: Self = Self {
-        rotation_arcsec: [0.0; 3],
-        translation_mm: [0.0; 3],
-    };
-
-    /// The six axes.
-    pub fn axes(&self) -> Axes {
-        let (r, t) = (self.rotation_arcsec, self.translation_mm);
-        [r[0], r[1], r[2], t[0], t[1], t[2]]
-    }
-
-    /// The displacement of six axes.
-    pub fn from_axes(a: Axes) -> Self {
-        Self {
-            rotation_arcsec: [a[0], a[1], a[2]],
-            translation_mm: [a[3], a[4], a[5]],
-        }
-    }
-
-    /// `G0_from_G`: where a target displaced by this stands, in the still target's frame.
-    pub fn g0_from_g(&self) -> Pose {
-        let phi = Vec3::from(self.rotation_arcsec) / ARCSEC_PER_RAD;
-        let rotation = se3_exp(&crate::geometry::Twist::new(
-            0.0, 0.0, 0.0, phi.x, phi.y, phi.z,
-        ))
-        .rotation;
-        Pose::from_parts(Vec3::from(self.translation_mm).into(), rotation)
-    }
-
-    /// The displacement of a pose `G0_from_G`.
-    pub fn of(g0_from_g: &Pose) -> Self {
-        let phi = so3_log(&g0_from_g.rotation) * ARCSEC_PER_RAD;
-        Self {
-            rotation_arcsec: [phi.x, phi.y, phi.z],
-            translation_mm: g0_from_g.translation.vector.into(),
-        }
-    }
-}
 
 /// The limits an installation states (`[acceptance]`).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -232,13 +181,6 @@ fn internal_axes(d: &Pose) -> [f64; 6] {
     [phi.x, phi.y, phi.z, t.x, t.y, t.z]
 }
 
-/// The chi-square quantile at `probability` with `dof` degrees of freedom.
-fn chi2_quantile(dof: usize, probability: f64) -> f64 {
-    ChiSquared::new(dof as f64)
-        .map(|d| d.inverse_cdf(probability))
-        .unwrap_or(f64::INFINITY)
-}
-
 /// `d^T C^-1 d`, `None` when `C` is singular.
 fn mahalanobis(d: &[f64; 6], cov: &Mat6) -> Option<f64> {
     let d = nalgebra::Vector6::from_column_slice(d);
@@ -279,7 +221,7 @@ pub fn settling(first: &WindowMean, second: &WindowMean) -> Result<Settling, Acc
         .ok_or_else(|| AcceptanceError::Degenerate("the halves' covariance is singular".into()))?;
     Ok(Settling {
         chi2,
-        threshold: chi2_quantile(6, SETTLED_PROBABILITY),
+        threshold: chi_square_quantile(6, SETTLED_PROBABILITY),
     })
 }
 
@@ -355,7 +297,7 @@ pub fn still_figures(
         })
         .sum();
     let dof = 6 * (n - 1);
-    let threshold = chi2_quantile(dof, crate::stats::REPEATABILITY_PROBABILITY);
+    let threshold = chi_square_quantile(dof, crate::stats::REPEATABILITY_PROBABILITY);
     let rms = to_user_units(sum_sq.map(|s| (s / nf).sqrt()));
     let rms_uncertainty = rms.map(|r| r / (2.0 * (nf - 1.0)).sqrt());
     let expected_rms = to_user_units(std::array::from_fn(|i| mean_cov[(i, i)].max(0.0).sqrt()));
@@ -528,10 +470,11 @@ pub fn common_calibration(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::{Twist, se3_exp};
+    use crate::geometry::{Twist, Vec3, se3_exp};
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
     use rand_distr::StandardNormal;
+    use statrs::distribution::{ChiSquared, ContinuousCDF};
 
     fn still_pose() -> Pose {
         se3_exp(&Twist::new(-1283.2, -2952.2, 532.5, 0.07, -0.02, 2.87))
