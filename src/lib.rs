@@ -32,7 +32,8 @@
 //! [`clock`] is the one home of the server's clock and of time text; the core never reads it
 //! (times are passed in). The adapters do the IO around the core: [`config`] (the installation
 //! file: the model plus deployment settings), [`store`] (SQLite and PostgreSQL), [`service`] (the single
-//! writer), [`api`] (HTTP), [`notify`] (webhooks), [`outputs`] (MQTT, Modbus/TCP, NMEA 0183),
+//! writer), [`intake`] (a frame's way in, whoever brings it), [`api`] (HTTP), [`app`] (the
+//! composition root: start, the spawned tasks, the server loop, shutdown), [`notify`] (webhooks), [`outputs`] (MQTT, Modbus/TCP, NMEA 0183),
 //! [`telemetry`] (`/metrics`), [`report`] (HTML reports with SVG pictures), [`acquire`] (cameras), [`imagefile`] (frame files), [`archive`]
 //! (the frame archive), [`fleet`] (a site's uploads to a centre), [`viz`] (Rerun), [`feed`]
 //! (the simulator's HTTP client) and [`cli`] (the binary in `main.rs` only calls it). ARCHITECTURE.md has the map; conventions are in the
@@ -45,6 +46,7 @@ pub mod acceptance;
 pub mod acquire;
 pub mod alarms;
 pub mod api;
+pub mod app;
 pub mod archive;
 pub mod bank;
 pub mod chain;
@@ -57,6 +59,7 @@ pub mod filter;
 pub mod fleet;
 pub mod geometry;
 pub mod imagefile;
+pub mod intake;
 pub mod model;
 pub mod notify;
 pub mod outputs;

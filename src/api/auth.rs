@@ -1,7 +1,7 @@
 //! Bearer tokens: `Authorization: Bearer <token>`, checked against the SHA-256 hashes of the
 //! configuration, each with scopes `read`, `ingest`, `admin`, `sync` (a site's uploads to the
 //! centre, for the token's own site only; `admin` does not include it). Without configured tokens every
-//! request is accepted (the server then listens on loopback only; see [`crate::api::App`]).
+//! request is accepted (the server then listens on loopback only; see [`crate::app::App`]).
 //! The scope each route needs is declared once, in its OpenAPI annotation, and enforced from
 //! the document ([`ScopeTable`]). `/healthz` is open to all (`security(())`): health checks carry
 //! no token, and it tells only whether the service works and how old each target's data is. So

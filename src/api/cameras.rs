@@ -2,85 +2,23 @@
 //! memory (`GET /api/v1/cameras`, `/cameras/{name}/frame`, `/cameras/{name}/detections`), and
 //! the frames the archive keeps (`/cameras/{name}/frames`, [`crate::archive`]).
 //!
-//! `POST /frames` hands each frame it answered to [`LatestFrames::offer`], which keeps it when
-//! it is the camera's newest by measurement time: a move of the decoded frame and the answer,
-//! nothing encoded. The PNG a client asks for is encoded once per frame, on the first request,
-//! off the async workers, and cached beside the frame. Memory is bounded by the installation:
-//! one slot per configured camera, each holding one frame, its answer and at most one PNG.
+//! The newest frame of each camera is the intake's ([`crate::intake::Intake::latest`]): one
+//! slot per configured camera, each holding one frame, what was found in it and at most one
+//! PNG, encoded on the first request, off the async workers.
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody, ErrorCode};
 use super::frames::{FrameOut, NotFoundCode};
 use crate::archive::{ArchiveReason, FrameArchive};
 use crate::clock::format_ns;
-use crate::imagefile::encode_png_fast;
-use crate::vision::GreyImage;
+use crate::intake::LatestFrame;
 use axum::Json;
-use axum::body::{Body, Bytes};
+use axum::body::Body;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
-use std::sync::{Arc, Mutex, OnceLock};
-
-/// A camera's newest frame.
-struct Latest {
-    time_ns: i64,
-    image: Arc<GreyImage>,
-    answer: FrameOut,
-    /// The frame as PNG, encoded on the first request for it.
-    png: OnceLock<Result<Bytes, String>>,
-}
-
-/// The newest frame of every configured camera.
-pub struct LatestFrames {
-    slots: Vec<(String, Mutex<Option<Arc<Latest>>>)>,
-}
-
-impl LatestFrames {
-    /// Empty slots for `cameras`.
-    pub fn new<'a>(cameras: impl IntoIterator<Item = &'a str>) -> Self {
-        Self {
-            slots: cameras
-                .into_iter()
-                .map(|c| (c.to_owned(), Mutex::new(None)))
-                .collect(),
-        }
-    }
-
-    fn slot(&self, camera: &str) -> Option<&Mutex<Option<Arc<Latest>>>> {
-        self.slots.iter().find(|(c, _)| c == camera).map(|(_, s)| s)
-    }
-
-    fn get(&self, camera: &str) -> Option<Arc<Latest>> {
-        self.slot(camera)
-            .and_then(|s| s.lock().unwrap_or_else(|p| p.into_inner()).clone())
-    }
-
-    /// Keeps a frame `POST /frames` answered when it is its camera's newest by measurement
-    /// time (a late frame does not hide a newer one).
-    pub(super) fn offer(
-        &self,
-        camera: &str,
-        time_ns: i64,
-        image: Arc<GreyImage>,
-        answer: FrameOut,
-    ) {
-        let Some(slot) = self.slot(camera) else {
-            return;
-        };
-        let mut held = slot.lock().unwrap_or_else(|p| p.into_inner());
-        if held.as_ref().is_some_and(|l| l.time_ns > time_ns) {
-            return;
-        }
-        *held = Some(Arc::new(Latest {
-            time_ns,
-            image,
-            answer,
-            png: OnceLock::new(),
-        }));
-    }
-}
+use std::sync::Arc;
 
 /// One marker in a camera's newest frame, in short.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
@@ -174,21 +112,22 @@ pub(super) async fn list_cameras(State(app): State<AppState>) -> Json<CamerasOut
                 .map(|s| s.report().into()),
             calibration_report: report_file(&app, &c.frame)
                 .map(|_| format!("/api/v1/cameras/{}/calibration-report", c.frame)),
-            frame: app.latest_frames.get(&c.frame).map(|l| CameraFrameOut {
-                time: format_ns(l.time_ns),
-                age_s: (now_ns - l.time_ns) as f64 / 1e9,
-                blobs: l.answer.blobs,
-                markers: l
-                    .answer
-                    .markers
-                    .iter()
-                    .map(|m| CameraMarkerOut {
-                        marker: m.marker.clone(),
-                        link: m.link.clone(),
-                        found: m.found,
-                        reason_code: m.reason_code,
-                        reason: m.reason.clone(),
-                        reprojection_rms_px: m.reprojection_rms_px,
+            frame: app.intake.latest(&c.frame).map(|l| CameraFrameOut {
+                time: format_ns(l.frame.time_ns),
+                age_s: (now_ns - l.frame.time_ns) as f64 / 1e9,
+                blobs: l.frame.blobs,
+                markers: (l.frame.markers.iter())
+                    .map(|m| {
+                        let why = m.result.as_ref().err();
+                        CameraMarkerOut {
+                            marker: m.marker.clone(),
+                            link: m.link.clone(),
+                            found: why.is_none(),
+                            reason_code: why.map(NotFoundCode::from),
+                            reason: why.map(ToString::to_string),
+                            reprojection_rms_px: (m.result.as_ref().ok())
+                                .map(|f| f.solution.rms_px),
+                        }
                     })
                     .collect(),
             }),
@@ -258,12 +197,12 @@ pub(super) async fn get_calibration_report(
 }
 
 /// The newest frame of a known camera, or a 404 naming what is missing.
-fn latest_of(app: &AppState, name: &str) -> Result<Arc<Latest>, ApiError> {
+fn latest_of(app: &AppState, name: &str) -> Result<Arc<LatestFrame>, ApiError> {
     if app.service.installation().model.camera(name).is_none() {
         return Err(ApiError::not_found(format!("no camera `{name}`")));
     }
-    app.latest_frames
-        .get(name)
+    app.intake
+        .latest(name)
         .ok_or_else(|| ApiError::not_found(format!("camera `{name}` has sent no frame yet")))
 }
 
@@ -282,7 +221,8 @@ pub(super) async fn get_frame(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let latest = latest_of(&app, &name)?;
-    let etag = HeaderValue::from_str(&format!("\"{name}-{}\"", latest.time_ns))
+    let time_ns = latest.frame.time_ns;
+    let etag = HeaderValue::from_str(&format!("\"{name}-{time_ns}\""))
         .map_err(|e| ApiError::internal(e.to_string()))?;
     if headers
         .get(header::IF_NONE_MATCH)
@@ -290,19 +230,11 @@ pub(super) async fn get_frame(
     {
         return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, etag)]).into_response());
     }
-    let held = Arc::clone(&latest);
     let png = super::vision::blocking(move || {
-        held.png
-            .get_or_init(|| {
-                encode_png_fast(&held.image)
-                    .map(Bytes::from)
-                    .map_err(|e| e.to_string())
-            })
-            .clone()
-            .map_err(|e| ApiError::internal(format!("encoding the frame failed: {e}")))
+        (latest.png()).map_err(|e| ApiError::internal(format!("encoding the frame failed: {e}")))
     })
     .await??;
-    let time = HeaderValue::from_str(&format_ns(latest.time_ns))
+    let time = HeaderValue::from_str(&format_ns(time_ns))
         .map_err(|e| ApiError::internal(e.to_string()))?;
     Ok((
         [
@@ -329,7 +261,7 @@ pub(super) async fn get_detections(
     Path(name): Path<String>,
 ) -> Result<Response, ApiError> {
     let latest = latest_of(&app, &name)?;
-    Ok(Json(&latest.answer).into_response())
+    Ok(Json(FrameOut::from(&*latest.frame)).into_response())
 }
 
 /// Query of `GET /cameras/{name}/frames`.
@@ -376,7 +308,7 @@ fn archive_of<'a>(app: &'a AppState, name: &str) -> Result<&'a FrameArchive, Api
     if app.service.installation().model.camera(name).is_none() {
         return Err(ApiError::not_found(format!("no camera `{name}`")));
     }
-    app.archive.as_ref().ok_or_else(|| {
+    app.intake.archive().ok_or_else(|| {
         ApiError::not_found("no frame archive is configured (`[frames] archive_dir`)")
     })
 }

@@ -260,7 +260,7 @@ impl ApiError {
 /// A whole HTTP/1.1 response carrying the error envelope, for the answers the connection
 /// layer writes itself (before any handler runs), closing the connection. The caller counts
 /// it.
-pub(super) fn raw_response(
+pub(crate) fn raw_response(
     status: StatusCode,
     code: ErrorCode,
     message: &str,

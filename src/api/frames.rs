@@ -2,9 +2,9 @@
 //! camera sees through a measured link identified and solved, and the found ones ingested as
 //! link samples exactly as `/observations` does (atomic, durable before the answer).
 //!
-//! The frame itself is not stored in the database; the newest of each camera is kept in memory
-//! with its answer ([`super::cameras`]). Decoding and detection are CPU work: they run on the
-//! blocking pool, never on the async workers.
+//! The frame's way in is [`crate::intake`], which camera sources take too; this module reads
+//! the request, decodes the frame (on the blocking pool, in one of the intake's slots) and
+//! shapes the answer.
 
 use super::AppState;
 use super::dto::{PoseOut, SigmaOut};
@@ -12,12 +12,11 @@ use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, read_body};
 use super::query::Query;
 use crate::api::error::ErrorCode;
-use crate::archive::ArchiveReason;
 use crate::clock::format_ns;
-use crate::geometry::{Pose, PoseCov};
+use crate::geometry::PoseCov;
 use crate::imagefile::{FrameFileError, FrameFormat, decode};
-use crate::model::{FrameObservation, NotFound, ObservedLink, observe_frame_paced};
-use crate::service::IngestItem;
+use crate::intake::{IntakeError, MarkerTaken, TakenFrame};
+use crate::model::NotFound;
 use axum::Json;
 use axum::body::Body;
 use axum::extract::State;
@@ -196,7 +195,7 @@ pub(super) async fn post_frame(
         .map_err(|m| ApiError::invalid_field("time", m))?;
     let bytes = read_body(body, &headers, app.limits.max_body_bytes).await?;
     // At most a frame a core in decoding and search; the rest wait a little, then 503.
-    let slot = super::take_slot(&app.decode_slots, DECODE_WAIT, "decoding frames").await?;
+    let slot = app.intake.decode_slot(DECODE_WAIT).await?;
     let image = super::vision::blocking(move || {
         decode(&bytes, format, Some(size)).map_err(|e| {
             ApiError::invalid_field(
@@ -216,186 +215,61 @@ pub(super) async fn post_frame(
         })
     })
     .await??;
-    take_frame(&app, &q_camera, time_ns, image, slot)
-        .await
-        .map(Json)
+    let frame = app.intake.take(&q_camera, time_ns, image, slot).await?;
+    Ok(Json(FrameOut::from(&*frame)))
 }
 
-/// A decoded frame of `camera` taken the way `POST /frames` takes it: its markers searched
-/// and solved (on the blocking pool, holding `slot`), the found ones ingested, the frame
-/// offered to the archive, Rerun and the newest-frame slot. A camera source's frames come
-/// here too ([`super::sources`]).
-pub(super) async fn take_frame(
-    app: &AppState,
-    camera: &str,
-    time_ns: i64,
-    image: crate::vision::GreyImage,
-    slot: tokio::sync::OwnedSemaphorePermit,
-) -> Result<FrameOut, ApiError> {
-    let observer = app.service.observer();
-    let snapshot = app.service.snapshot();
-    let camera_name = camera.to_owned();
-    // Which lost markers may be searched for in the whole frame, decided before the search
-    // and recorded after it (two frames searched at once may both search: at most a core
-    // each, as ever).
-    let allowed: Vec<(crate::chain::LinkId, Result<(), f64>)> = {
-        let pacer = app.search_pacer.lock().unwrap_or_else(|p| p.into_inner());
-        observer
-            .links()
-            .filter(|l| l.camera_frame == camera)
-            .map(|l| (l.link, pacer.whole_frame(l.link, time_ns)))
-            .collect()
-    };
-    let pace = allowed.clone();
-    let (out, items, image, found) = super::vision::blocking(move || {
-        // The link's filtered pose at the frame's time (the nominal one follows by itself).
-        let predictions = |link: &ObservedLink| -> Vec<Pose> {
-            match snapshot.bank.link_estimate(link.link, time_ns) {
-                Ok(Some(p)) => vec![p.pose],
-                _ => Vec::new(),
-            }
-        };
-        let whole_frame = |link: &ObservedLink| {
-            pace.iter()
-                .find(|(l, _)| *l == link.link)
-                .map_or(Ok(()), |(_, allowed)| *allowed)
-        };
-        let seen = observe_frame_paced(&observer, &camera_name, &image, predictions, whole_frame)
-            .map_err(|e| ApiError::invalid_field(e.field, e.message))?;
-        let found: Vec<(crate::chain::LinkId, bool)> = seen
-            .markers
-            .iter()
-            .map(|m| (m.link.link, m.result.is_ok()))
-            .collect();
-        let (out, items) = answer(&camera_name, time_ns, &seen);
-        drop(slot);
-        Ok::<_, ApiError>((out, items, image, found))
-    })
-    .await??;
-    {
-        let mut pacer = app.search_pacer.lock().unwrap_or_else(|p| p.into_inner());
-        for (link, found) in found {
-            let searched = allowed
-                .iter()
-                .any(|(l, allowed)| *l == link && allowed.is_ok());
-            pacer.record(link, time_ns, found, searched);
+impl From<IntakeError> for ApiError {
+    fn from(e: IntakeError) -> Self {
+        match e {
+            IntakeError::Refused { field, message } => ApiError::invalid_field(field, message),
+            IntakeError::Busy => ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                ErrorCode::Busy,
+                IntakeError::Busy.to_string(),
+            ),
+            IntakeError::Failed(m) => ApiError::internal(m),
+            IntakeError::Ingest(e) => e.into(),
         }
     }
-    let ingest = if items.is_empty() {
-        IngestResponse::default()
-    } else {
-        app.service.ingest(items).await?.into()
-    };
-    let out = FrameOut { ingest, ..out };
-    let image = std::sync::Arc::new(image);
-    if let Some(archive) = &app.archive {
-        archive.offer(camera, time_ns, &image, evidence(&out));
-    }
-    if let Some(index) = app
-        .service
-        .installation()
-        .model
-        .cameras
-        .iter()
-        .position(|c| c.frame == camera)
-    {
-        app.service.frame_viz().offer(index, time_ns, &image, || {
-            out.markers.iter().map(marks).collect()
-        });
-    }
-    app.latest_frames.offer(camera, time_ns, image, out.clone());
-    Ok(out)
 }
 
-/// What Rerun draws over a frame for one marker.
-fn marks(m: &FrameMarkerOut) -> crate::viz::FrameMarks {
-    crate::viz::FrameMarks {
-        marker: m.marker.clone(),
-        points_px: m.points_px.clone().unwrap_or_default(),
-        ids: m.ids.clone().unwrap_or_default(),
-        reprojected_px: m.reprojected_px.clone().unwrap_or_default(),
-        not_found: (!m.found).then(|| m.reason.clone().unwrap_or_default()),
+impl From<&MarkerTaken> for FrameMarkerOut {
+    fn from(m: &MarkerTaken) -> Self {
+        let found = m.result.as_ref().ok();
+        let why = m.result.as_ref().err();
+        FrameMarkerOut {
+            marker: m.marker.clone(),
+            link: m.link.clone(),
+            found: found.is_some(),
+            points_px: found.map(|f| f.points_px.clone()),
+            ids: found.map(|f| f.ids.clone()),
+            sigma_px: found.map(|f| f.sigma_px.clone()),
+            pose: found.map(|f| PoseOut::from(&f.solution.camera_from_marker)),
+            sigma: found.map(|f| {
+                SigmaOut::from(&PoseCov {
+                    pose: f.solution.camera_from_marker,
+                    cov: f.solution.covariance,
+                })
+            }),
+            reprojected_px: found.map(|f| f.reprojected_px.clone()),
+            reprojection_rms_px: found.map(|f| f.solution.rms_px),
+            rejected_points: found.map(|f| f.solution.rejected_points.clone()),
+            reason: why.map(ToString::to_string),
+            reason_code: why.map(NotFoundCode::from),
+        }
     }
 }
 
-/// Why a frame is evidence worth archiving: a marker with disc targets not found, or a sample
-/// judged an outlier.
-fn evidence(out: &FrameOut) -> Option<ArchiveReason> {
-    if out
-        .markers
-        .iter()
-        .any(|m| !m.found && m.reason_code != Some(NotFoundCode::NoTarget))
-    {
-        Some(ArchiveReason::NotFound)
-    } else if out.ingest.outliers > 0 {
-        Some(ArchiveReason::Outlier)
-    } else {
-        None
-    }
-}
-
-/// The answer before ingest, and the samples to ingest.
-fn answer(camera: &str, time_ns: i64, seen: &FrameObservation<'_>) -> (FrameOut, Vec<IngestItem>) {
-    let mut items = Vec::new();
-    let markers = seen
-        .markers
-        .iter()
-        .map(|m| {
-            let mut out = FrameMarkerOut {
-                marker: m.link.marker_frame.clone(),
-                link: m.link.name.clone(),
-                found: false,
-                points_px: None,
-                ids: None,
-                sigma_px: None,
-                pose: None,
-                sigma: None,
-                reprojected_px: None,
-                reprojection_rms_px: None,
-                rejected_points: None,
-                reason: None,
-                reason_code: None,
-            };
-            match &m.result {
-                Ok(found) => {
-                    let s = &found.solution;
-                    let cov = PoseCov {
-                        pose: s.camera_from_marker,
-                        cov: s.covariance,
-                    };
-                    items.push(super::vision::solved_item(
-                        items.len(),
-                        m.link.link,
-                        time_ns,
-                        s,
-                    ));
-                    out.found = true;
-                    out.points_px = Some(found.points_px.clone());
-                    out.ids = Some(found.ids.clone());
-                    out.sigma_px = Some(found.sigma_px.clone());
-                    out.pose = Some(PoseOut::from(&s.camera_from_marker));
-                    out.sigma = Some(SigmaOut::from(&cov));
-                    out.reprojected_px = Some(found.reprojected_px.clone());
-                    out.reprojection_rms_px = Some(s.rms_px);
-                    out.rejected_points = Some(s.rejected_points.clone());
-                }
-                Err(why) => {
-                    out.reason = Some(why.to_string());
-                    out.reason_code = Some(NotFoundCode::from(why));
-                }
-            }
-            out
-        })
-        .collect();
-    (
+impl From<&TakenFrame> for FrameOut {
+    fn from(f: &TakenFrame) -> Self {
         FrameOut {
-            camera: camera.to_owned(),
-            time: format_ns(time_ns),
-            blobs: seen.blobs,
-            searched_fraction: seen.searched_fraction,
-            markers,
-            ingest: IngestResponse::default(),
-        },
-        items,
-    )
+            camera: f.camera.clone(),
+            time: format_ns(f.time_ns),
+            blobs: f.blobs,
+            searched_fraction: f.searched_fraction,
+            markers: f.markers.iter().map(FrameMarkerOut::from).collect(),
+            ingest: f.ingest.clone().into(),
+        }
+    }
 }

@@ -15,7 +15,7 @@ pub(super) async fn get_metrics(State(app): State<AppState>) -> impl IntoRespons
         service: &app.service,
         webhooks: &app.webhooks,
         outputs: &app.outputs.status(),
-        archive: app.archive.as_ref(),
+        archive: app.intake.archive(),
         upstream: app.upstream.as_deref(),
         cameras: &app.sources,
     });

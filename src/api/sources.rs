@@ -1,52 +1,10 @@
-//! The cameras `serve` takes frames from itself ([`crate::acquire`]): a task per source takes
-//! its frames in turn and hands each to the path of `POST /frames` ([`super::frames::take_frame`]),
-//! and `GET /api/v1/cameras` shows each source's state.
+//! The state of a camera `serve` takes frames from itself ([`crate::acquire`], its frames taken
+//! by [`crate::intake`]) as `GET /api/v1/cameras` shows it.
 
-use super::AppState;
-use crate::acquire::{SourceReport, SourceState, SourceStatus};
+use crate::acquire::{SourceReport, SourceStatus};
 use crate::clock::format_ns;
 use crate::config::{TimestampMode, TriggerMode};
 use serde::Serialize;
-use std::sync::Arc;
-
-/// How long a source's frame waits for a decoding slot before it is dropped (counted failed).
-const SLOT_WAIT: std::time::Duration = std::time::Duration::from_secs(5);
-
-/// Starts a task per source; each ends when its source is closed.
-pub(super) fn spawn(app: &AppState) -> Vec<tokio::task::JoinHandle<()>> {
-    app.sources
-        .iter()
-        .map(|state| {
-            let app = app.clone();
-            let state = Arc::clone(state);
-            tokio::spawn(async move { take_frames(&app, &state).await })
-        })
-        .collect()
-}
-
-async fn take_frames(app: &AppState, state: &SourceState) {
-    let camera = state.source.camera.clone();
-    while let Some(frame) = state.next().await {
-        let now = app.service.now_ns();
-        let latest =
-            crate::clock::latest_accepted_ns(now, app.service.installation().server.max_future_s);
-        if let Err(m) = crate::clock::accepted_time(frame.time_ns, latest) {
-            state.failed(format!("its time is not accepted: {m}"), now);
-            continue;
-        }
-        let slot = match super::take_slot(&app.decode_slots, SLOT_WAIT, "decoding frames").await {
-            Ok(slot) => slot,
-            Err(e) => {
-                state.failed(format!("{}: {}", e.code, e.message), now);
-                continue;
-            }
-        };
-        match super::frames::take_frame(app, &camera, frame.time_ns, frame.image, slot).await {
-            Ok(_) => state.ingested((crate::clock::wall_now_ns() - frame.time_ns) as f64 / 1e9),
-            Err(e) => state.failed(format!("{}: {}", e.code, e.message), app.service.now_ns()),
-        }
-    }
-}
 
 /// A camera source's state in `GET /api/v1/cameras`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]

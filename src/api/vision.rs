@@ -7,11 +7,9 @@ use super::dto::{PoseIn, PoseOut, SigmaOut, invalid, time_schema};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, Problems, check_batch_size, read_body};
 use super::parse_json_body;
-use crate::bank::{MeasurementUncertainty, Sample};
 use crate::clock::format_ns;
 use crate::geometry::{Pose, PoseCov};
 use crate::service::IngestItem;
-use crate::store::Quality;
 use crate::vision::{HandEyeOptions, HandEyeSolution, solve_hand_eye};
 use axum::Json;
 use axum::body::Body;
@@ -196,35 +194,14 @@ fn solve_batch(
             ambiguity_ratio: solution.ambiguity_ratio,
             rejected_points: solution.rejected_points.clone(),
         });
-        items.push(solved_item(index, link.link, time_ns, &solution));
+        items.push(crate::intake::solved_item(
+            index, link.link, time_ns, &solution,
+        ));
     }
     if problems.is_empty() {
         Ok((items, poses))
     } else {
         Err(problems)
-    }
-}
-
-/// The sample a solved observation gives its link, with the fit's quality: what
-/// `/observations` and `/frames` ingest.
-pub(super) fn solved_item(
-    index: usize,
-    link: crate::chain::LinkId,
-    time_ns: i64,
-    solution: &crate::vision::PnpSolution,
-) -> IngestItem {
-    IngestItem {
-        index,
-        sample: Sample {
-            link,
-            time_ns,
-            parent_from_child: solution.camera_from_marker,
-            uncertainty: MeasurementUncertainty::Covariance(solution.covariance),
-        },
-        quality: Quality {
-            reprojection_rms_px: Some(solution.rms_px),
-            points: u32::try_from(solution.points).ok(),
-        },
     }
 }
 

@@ -128,7 +128,7 @@ pub(super) async fn demo(
     let recordings = installation.rerun.recordings_dir.clone();
     let database = installation.server.database.clone();
     let mut sim = crate::sim::Simulator::new(&installation.model, settings)?;
-    let app = crate::api::App::build(installation).await?;
+    let app = crate::app::App::build(installation).await?;
     let addr = app.local_addr()?;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let mut server_stop = stop_rx.clone();
@@ -210,24 +210,24 @@ pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
     }
     // Past the open-files limit accepting fails and nobody gets in: raise it, and keep the
     // connection cap below it.
-    let open_files = crate::api::server::raise_open_files_limit()
-        .unwrap_or_else(|_| crate::api::server::open_files_limit());
+    let open_files = crate::app::server::raise_open_files_limit()
+        .unwrap_or_else(|_| crate::app::server::open_files_limit());
     if let Some(max) = installation.server.max_connections {
-        crate::api::server::check_connections_fit(max, open_files).map_err(anyhow::Error::msg)?;
+        crate::app::server::check_connections_fit(max, open_files).map_err(anyhow::Error::msg)?;
     }
     tracing::info!(
         open_files,
         max_connections = installation
             .server
             .max_connections
-            .unwrap_or_else(|| crate::api::server::default_max_connections(open_files)),
+            .unwrap_or_else(|| crate::app::server::default_max_connections(open_files)),
         "open files allowed"
     );
     let source = installation.source.clone();
     let database = installation.server.database.clone();
     let targets: Vec<String> = installation.model.target_names();
     let n_links = installation.model.links.len();
-    let app = crate::api::App::build(installation).await?;
+    let app = crate::app::App::build(installation).await?;
     let addr = app.local_addr()?;
     tracing::info!(
         listen = %addr,
@@ -237,7 +237,7 @@ pub(super) async fn serve(installation: Installation) -> anyhow::Result<()> {
         targets = ?targets,
         "brokenray serving on http://{addr}/api/v1, dashboard http://{addr}/"
     );
-    app.run_until(crate::api::shutdown_signal()).await?;
+    app.run_until(crate::app::shutdown_signal()).await?;
     tracing::info!("stopped: every acknowledged write is on disk");
     Ok(())
 }

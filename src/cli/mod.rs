@@ -821,7 +821,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 &installation,
                 client,
                 every,
-                crate::api::shutdown_signal(),
+                crate::app::shutdown_signal(),
             ))?;
         }
         Command::Watch {
@@ -845,7 +845,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 progress,
             };
             let summary = runtime(false)?.block_on(async {
-                let stop = Box::pin(crate::api::shutdown_signal());
+                let stop = Box::pin(crate::app::shutdown_signal());
                 watch::watch(&dir, &client, &settings, stop).await
             })?;
             settings.progress.finish_and_clear();

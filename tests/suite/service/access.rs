@@ -154,7 +154,7 @@ async fn listening_beyond_loopback_without_tokens_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let text = brokenray::config::DEFAULT_INSTALLATION_TOML.replace("127.0.0.1:7878", "0.0.0.0:0");
     let inst = super::helpers::installation(&dir, Some(&text));
-    let err = brokenray::api::App::build(inst)
+    let err = brokenray::app::App::build(inst)
         .await
         .err()
         .expect("refused");

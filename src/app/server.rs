@@ -30,7 +30,7 @@
 //!   (event streams end by themselves: they watch the same signal), and after
 //!   `shutdown_grace_s` whatever is still open is cut off, with a log line saying how many.
 
-use crate::api::error::ErrorCode;
+use crate::api::ErrorCode;
 use axum::Router;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
@@ -339,7 +339,7 @@ fn admit_request(
     use axum::response::IntoResponse as _;
     let busy = |message: String| {
         Box::new(
-            crate::api::error::ApiError::new(
+            crate::api::ApiError::new(
                 hyper::StatusCode::SERVICE_UNAVAILABLE,
                 ErrorCode::Busy,
                 message,
@@ -549,7 +549,7 @@ impl HeadErrors<tokio::net::TcpStream> {
     async fn answer_timeout(&mut self, limit: Duration) {
         use tokio::io::AsyncWriteExt as _;
         self.metrics.count_rejection(408);
-        let body = super::error::raw_response(
+        let body = crate::api::raw_response(
             axum::http::StatusCode::REQUEST_TIMEOUT,
             ErrorCode::RequestTimeout,
             &format!(
@@ -580,7 +580,7 @@ fn replacement_for(head: &[u8]) -> Option<(u16, Vec<u8>)> {
     if own(b"431 ") {
         Some((
             431,
-            super::error::raw_response(
+            crate::api::raw_response(
                 StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
                 ErrorCode::HeadersTooLarge,
                 "the request's header section is too large (at most 100 fields and about 400 KB)",
@@ -590,7 +590,7 @@ fn replacement_for(head: &[u8]) -> Option<(u16, Vec<u8>)> {
     } else if own(b"400 ") {
         Some((
             400,
-            super::error::raw_response(
+            crate::api::raw_response(
                 StatusCode::BAD_REQUEST,
                 ErrorCode::MalformedRequest,
                 "the request is not valid HTTP/1.1",
