@@ -264,64 +264,13 @@ async fn healthz(
         Some("the writer is not running".to_owned())
     };
     let output_status = app.outputs.status();
-    let snapshot = app.service.snapshot();
-    let now_ns = app.service.now_ns();
-    let inst = app.service.installation();
-    let grouping: Vec<String> = inst
-        .model
-        .links
-        .iter()
-        .filter_map(|l| {
-            let (ungrouped, closed) = snapshot.bank.link_status(l.id).grouping_problem()?;
-            Some(format!(
-                "link `{}`: {ungrouped} of its {closed} samples since the start made no measurement group \
-                 (exposures more than {:.1} ms from the other links'; set [filter] \
-                 group_tolerance_ms or synchronise the cameras)",
-                l.name,
-                snapshot.bank.group_tolerance_ns() as f64 / 1e6
-            ))
-        })
-        .collect();
-    let grouping_problem = (!grouping.is_empty()).then(|| grouping.join("; "));
-    let filtering: Vec<String> = inst
-        .model
-        .target_ids()
-        .filter_map(|(ti, t)| {
-            let tuning = snapshot.bank.target_tuning(ti)?;
-            let c = tuning.consistency;
-            (c.samples >= crate::bank::CONSISTENCY_JUDGED_FROM && !c.fits()).then(|| {
-                format!(
-                    "target `{}`: mean normalised innovation {:.1} over its last {} results, \
-                     outside the {:.1} to {:.1} a filter that fits its data stays in (model `{}`)",
-                    t.name,
-                    c.mean_nis,
-                    c.samples,
-                    c.band.0,
-                    c.band.1,
-                    tuning.tuning.model.name()
-                )
-            })
-        })
-        .collect();
-    let filter_problem = (!filtering.is_empty()).then(|| filtering.join("; "));
-    let targets = inst
-        .model
-        .targets
-        .iter()
-        .enumerate()
-        .map(|(i, t)| {
-            let now = snapshot.target_now(
-                crate::model::TargetId(i),
-                now_ns,
-                inst.server.clock_tolerance_s,
-            );
-            (
-                t.name.clone(),
-                TargetHealthOut {
-                    status: now.status,
-                    age_s: now.age_s,
-                },
-            )
+    let targets = (app.service.targets_now().into_iter())
+        .map(|(name, now)| {
+            let health = TargetHealthOut {
+                status: now.status,
+                age_s: now.age_s,
+            };
+            (name, health)
         })
         .collect();
     (
@@ -344,8 +293,8 @@ async fn healthz(
             reports_problem: app.service.report_problem(),
             acceptance_problem: app.service.acceptance_problem().await,
             tasks_problem,
-            grouping_problem,
-            filter_problem,
+            grouping_problem: app.service.grouping_problem(),
+            filter_problem: app.service.filter_problem(),
             centre_problem: app
                 .upkeep_problem
                 .lock()
