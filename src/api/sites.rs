@@ -17,7 +17,7 @@ use super::history::{HistoryQuery, StatsOut, WindowQuery, history_of, stats_of};
 use super::query::Query;
 use super::targets::{
     AtQuery, CompensationOut, CompensationSource, Described, Evaluated, ReferenceOut,
-    ReferencesOut, TargetOut, compensation_out, from_history, references_of,
+    ReferencesOut, TargetOut, compensation_out, references_of,
 };
 use crate::bank::{ResultSource, TargetStatus};
 use crate::clock::parse_query_time;
@@ -144,7 +144,7 @@ pub(super) async fn get_site_compensation(
     let reference = view.store.references(ti).await?.last().copied();
     if let Some(at) = q.at {
         let at_ns = parse_query_time(&at).map_err(|m| ApiError::invalid_field("at", m))?;
-        let e = from_history(&view.store, ti, &name, at_ns).await?;
+        let e = Evaluated::from_history(&view.store, ti, &name, at_ns).await?;
         return Ok(Json(compensation_out(&target, e, reference.as_ref())));
     }
     let Some(latest) = view.store.latest_result(ti, ResultSource::Filtered).await? else {

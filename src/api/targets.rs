@@ -4,14 +4,15 @@ use super::AppState;
 use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::{ApiError, ErrorBody};
 use super::query::Query;
-use crate::bank::{ResultSource, TargetEstimate, TargetStatus};
+use crate::bank::{TargetEstimate, TargetStatus};
 use crate::clock::{format_ns, parse_query_time};
 use crate::deformation::ReferenceVersion;
-use crate::deformation::{CalibrationStamp, Deformation, Measured, ReferenceOrigin};
+use crate::deformation::{Measured, ReferenceOrigin};
 use crate::geometry::{Mat6, PoseCov};
 use crate::model::TargetId;
 use crate::model::TargetSpec;
 use crate::service::ReferenceRequest;
+pub(super) use crate::service::{CompensationSource, Evaluated};
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
@@ -200,18 +201,6 @@ pub(super) struct ConsistencyOut {
     pub threshold: f64,
 }
 
-crate::words! {
-    /// Where a compensation's value comes from.
-    pub enum CompensationSource("compensation source") {
-        /// The newest filtered result.
-        Live = "live",
-        /// The filters predicted to a later time.
-        Predicted = "predicted",
-        /// Stored results, interpolated.
-        History = "history",
-    }
-}
-
 /// `GET .../compensation`.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub(super) struct CompensationOut {
@@ -251,94 +240,6 @@ pub(super) struct CompensationOut {
     pub consistency: Option<ConsistencyOut>,
 }
 
-/// A result to answer, wherever it came from.
-pub(super) struct Evaluated {
-    pub time_ns: Option<i64>,
-    pub status: TargetStatus,
-    pub age_s: Option<f64>,
-    pub source: CompensationSource,
-    pub estimate: Option<PoseCov>,
-    /// The systematic part of `estimate`'s covariance.
-    pub systematic_cov: Mat6,
-    /// The calibrations it was measured with, when known.
-    pub calibration: Option<CalibrationStamp>,
-    pub consistency: Option<crate::chain::Consistency>,
-}
-
-impl Evaluated {
-    /// No result yet.
-    pub(super) fn none(source: CompensationSource) -> Self {
-        Evaluated {
-            time_ns: None,
-            status: TargetStatus::Initializing,
-            age_s: None,
-            source,
-            estimate: None,
-            systematic_cov: Mat6::zeros(),
-            calibration: None,
-            consistency: None,
-        }
-    }
-
-    /// A stored result as it was.
-    pub(super) fn stored(r: &crate::store::StoredResult, source: CompensationSource) -> Self {
-        Evaluated {
-            time_ns: Some(r.time_ns),
-            status: r.status,
-            age_s: Some(r.age_s),
-            source,
-            estimate: Some(r.estimate),
-            systematic_cov: r.systematic_cov,
-            calibration: r.calibration,
-            consistency: None,
-        }
-    }
-}
-
-/// Target `ti`'s stored filtered results at `at_ns`, interpolated between the two around it;
-/// 404 before the first.
-pub(super) async fn from_history(
-    store: &crate::store::Store,
-    ti: TargetId,
-    name: &str,
-    at_ns: i64,
-) -> Result<Evaluated, ApiError> {
-    let (before, after) = store
-        .results_around(ti, ResultSource::Filtered, at_ns)
-        .await?;
-    let Some(before) = before else {
-        return Err(ApiError::not_found(format!(
-            "target `{name}` has no filtered result at or before {}",
-            format_ns(at_ns)
-        )));
-    };
-    let estimate = match after {
-        Some(after) if before.time_ns < at_ns => {
-            let a = (at_ns - before.time_ns) as f64 / (after.time_ns - before.time_ns) as f64;
-            before.estimate.interpolate(&after.estimate, a)
-        }
-        _ => before.estimate,
-    };
-    Ok(Evaluated {
-        time_ns: Some(at_ns),
-        estimate: Some(estimate),
-        ..Evaluated::stored(&before, CompensationSource::History)
-    })
-}
-
-fn evaluated(e: &TargetEstimate, source: CompensationSource) -> Evaluated {
-    Evaluated {
-        time_ns: Some(e.time_ns),
-        status: e.status,
-        age_s: Some(e.age_s),
-        source,
-        estimate: e.target_from_base,
-        systematic_cov: e.systematic_cov,
-        calibration: Some(e.calibration),
-        consistency: e.consistency,
-    }
-}
-
 /// Whose compensation is answered: a target's name, base frame and thresholds.
 pub(super) struct Described<'a> {
     /// The target.
@@ -365,27 +266,8 @@ pub(super) fn compensation_out(
     e: Evaluated,
     reference: Option<&ReferenceVersion>,
 ) -> CompensationOut {
-    let Evaluated {
-        time_ns,
-        status,
-        age_s,
-        source,
-        estimate,
-        systematic_cov,
-        calibration,
-        consistency,
-    } = e;
-    let deformation = match (estimate, reference) {
-        (Some(e), Some(r)) => Some(Deformation::new(
-            &r.reference,
-            Measured {
-                g_from_b: &e,
-                systematic_cov: &systematic_cov,
-                calibration,
-            },
-        )),
-        _ => None,
-    };
+    let deformation = e.deformation(reference);
+    let measured = e.measured();
     let parts = |cov: &PoseCov, systematic: &Mat6| {
         let told_apart = Measured {
             g_from_b: cov,
@@ -400,14 +282,14 @@ pub(super) fn compensation_out(
     CompensationOut {
         target: target.name.to_owned(),
         base: target.base.to_owned(),
-        time: time_ns.map(format_ns),
-        age_s,
-        status,
-        source,
-        pose: estimate.as_ref().map(|e| (&e.pose).into()),
-        sigma: estimate.as_ref().map(Into::into),
-        sigma_random: estimate.as_ref().map(|e| parts(e, &systematic_cov).0),
-        sigma_systematic: estimate.as_ref().map(|e| parts(e, &systematic_cov).1),
+        time: e.time_ns.map(format_ns),
+        age_s: e.age_s,
+        status: e.status,
+        source: e.source,
+        pose: e.estimate.as_ref().map(|e| (&e.pose).into()),
+        sigma: e.estimate.as_ref().map(Into::into),
+        sigma_random: measured.as_ref().map(|m| SigmaOut::from(&m.random())),
+        sigma_systematic: measured.as_ref().map(|m| SigmaOut::from(&m.systematic())),
         reference: reference.map(Into::into),
         deformation: deformation.map(|d| {
             let m = d.deformation();
@@ -438,27 +320,11 @@ pub(super) fn compensation_out(
                 m.translation_magnitude_mm(),
             )
         }),
-        consistency: consistency.map(|c| ConsistencyOut {
+        consistency: e.consistency.map(|c| ConsistencyOut {
             chi2: c.chi2,
             dof: c.dof,
             threshold: c.threshold,
         }),
-    }
-}
-
-/// A live result judged now on the server's clock (status `stale` when a link of the target
-/// stopped, the age from the result's time to now).
-fn live(service: &crate::service::Service, ti: TargetId, estimate: &TargetEstimate) -> Evaluated {
-    let now = service.snapshot().judge(
-        ti,
-        Some(estimate),
-        service.now_ns(),
-        service.installation().server.clock_tolerance_s,
-    );
-    Evaluated {
-        status: now.status,
-        age_s: now.age_s,
-        ..evaluated(estimate, CompensationSource::Live)
     }
 }
 
@@ -473,7 +339,7 @@ pub(super) fn live_compensation(
 ) -> CompensationOut {
     compensation_out(
         &Described::of(service, spec),
-        live(service, ti, estimate),
+        service.evaluate_live(ti, estimate),
         reference,
     )
 }
@@ -522,7 +388,8 @@ pub(super) async fn get_compensation(
     let Some(at) = q.at else {
         return Ok(Json(match &view.latest {
             Some(l) => {
-                let mut out = compensation_out(&target, live(&app.service, ti, l), reference);
+                let mut out =
+                    compensation_out(&target, app.service.evaluate_live(ti, l), reference);
                 // Live: the alarm state with its hysteresis, dwell, rate and stale tracks.
                 out.alarm = view.alarms.level();
                 out
@@ -550,11 +417,11 @@ pub(super) async fn get_compensation(
         };
         return Ok(Json(compensation_out(
             &target,
-            evaluated(&est, source),
+            Evaluated::estimated(&est, source),
             reference,
         )));
     }
-    let e = from_history(app.service.store(), ti, &name, at_ns).await?;
+    let e = Evaluated::from_history(app.service.store(), ti, &name, at_ns).await?;
     Ok(Json(compensation_out(&target, e, reference)))
 }
 

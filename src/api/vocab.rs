@@ -54,7 +54,7 @@ word_schemas!(
     crate::vision::WarningKind,
     super::error::ErrorCode,
     super::frames::NotFoundCode,
-    super::targets::CompensationSource,
+    crate::service::CompensationSource,
     ContributorKind,
     HealthStatus,
     LinkKindName,
@@ -106,5 +106,5 @@ crate::words! {
 }
 
 pub use super::frames::NotFoundCode;
-pub use super::targets::CompensationSource;
 pub use crate::chain::{ContributorKind, UncertaintyPart};
+pub use crate::service::CompensationSource;

@@ -13,6 +13,8 @@
 //! readers use without touching the pipeline.
 
 mod acceptance;
+mod compensation;
+mod health;
 mod job;
 mod metrics;
 use crate::deformation::ReferenceVersion;
@@ -26,6 +28,7 @@ pub use acceptance::{
     AcceptanceOut, AcceptanceRecord, AcceptanceSummary, AcceptedTarget, PlannedStepOut, RunOut,
     StepOut, StillOut, WindowOut,
 };
+pub use compensation::{CompensationSource, Evaluated};
 pub use metrics::{ConnectionCounters, Metrics, REJECTION_STATUSES};
 pub use report::{
     LISTED_GAPS, REPORT_BUCKETS, ReportWindow, last_complete_period, report_file_name,
