@@ -35,6 +35,34 @@ macro_rules! query_on {
     };
 }
 
+/// Runs an [`sql::Outboxed`] write on whichever backend `$value` holds, the `$arg`s bound in
+/// order and, on SQLite, the transaction's commit number last: `fetch_one` answers the
+/// statement's row, `execute` nothing.
+macro_rules! outboxed {
+    ($value:expr, $stmt:expr, [$($arg:expr),* $(,)?], fetch_one) => {
+        on_backend!($value, Tx, t => {
+            let seq = t.outbox_seq();
+            let q = sqlx::query_as($stmt.text(seq.is_some()))$(.bind($arg))*;
+            let q = match seq {
+                Some(seq) => q.bind(seq),
+                None => q,
+            };
+            q.fetch_one(&mut *t.conn).await
+        })
+    };
+    ($value:expr, $stmt:expr, [$($arg:expr),* $(,)?], execute) => {
+        on_backend!($value, Tx, t => {
+            let seq = t.outbox_seq();
+            let q = sqlx::query($stmt.text(seq.is_some()))$(.bind($arg))*;
+            let q = match seq {
+                Some(seq) => q.bind(seq),
+                None => q,
+            };
+            q.execute(&mut *t.conn).await.map(|_| ())
+        })
+    };
+}
+
 mod codec;
 pub mod outbox;
 pub mod postgres;

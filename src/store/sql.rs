@@ -183,3 +183,100 @@ pub(super) const ROLLUP_LAST: &str = "select bucket_ns from rollups \
 pub(super) const ROLLUP_ROWS: &str = "select bucket_ns, n, n_def, stats from rollups \
      where target_id = $1 and source = $2 and width_s = $3 \
      and bucket_ns >= $4 and bucket_ns <= $5 order by bucket_ns";
+
+/// A write whose rows carry, on SQLite, the outbox's commit number (`commit_seq`,
+/// [`super::outbox`]) and on PostgreSQL do not: one statement in the two texts the engines
+/// take. The commit number is bound last, on SQLite only.
+pub(super) struct Outboxed {
+    with_seq: String,
+    without: String,
+}
+
+impl Outboxed {
+    /// From `text`, where `{seq_col}` stands for the column in a column list, `{seq_val}` for
+    /// its value (parameter `$seq`) in a value list, and `{seq_set}` for its assignment in a
+    /// `set`.
+    fn new(text: &str, seq: usize) -> Self {
+        let fill = |col: &str, val: &str, set: &str| {
+            text.replace("{seq_col}", col)
+                .replace("{seq_val}", val)
+                .replace("{seq_set}", set)
+        };
+        Outboxed {
+            with_seq: fill(
+                ", commit_seq",
+                &format!(", ${seq}"),
+                &format!(", commit_seq = ${seq}"),
+            ),
+            without: fill("", "", ""),
+        }
+    }
+
+    /// The text for a backend whose rows carry the commit number (`outbox`) or not.
+    pub(super) fn text(&self, outbox: bool) -> &str {
+        if outbox {
+            &self.with_seq
+        } else {
+            &self.without
+        }
+    }
+}
+
+/// Stores an alarm transition, or updates the one at the same key (a transition recomputed
+/// after a rolled-back commit): `$1` target id, `$2` time, `$3` kind, `$4`..`$5` the levels,
+/// `$6` value, `$7` unit, `$8` message, `$9` created; answers its id.
+pub(super) static INSERT_ALARM: LazyLock<Outboxed> = LazyLock::new(|| {
+    Outboxed::new(
+        "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, \
+         message, created_ns{seq_col}) values ($1, $2, $3, $4, $5, $6, $7, $8, $9{seq_val}) \
+         on conflict (target_id, time_ns, kind) do update set from_level = excluded.from_level, \
+         to_level = excluded.to_level, value = excluded.value, unit = excluded.unit, \
+         message = excluded.message, created_ns = excluded.created_ns{seq_set} \
+         returning alarm_id",
+        10,
+    )
+});
+
+/// Records an acknowledgement: `$1` by, `$2` when, `$3` note, `$4` the alarm's id.
+pub(super) static ACKNOWLEDGE_ALARM: LazyLock<Outboxed> = LazyLock::new(|| {
+    Outboxed::new(
+        "update alarms set acknowledged_by = $1, acknowledged_ns = $2, ack_note = $3{seq_set} \
+         where alarm_id = $4",
+        5,
+    )
+});
+
+/// Stores a target's next reference version: `$1` target id, `$2`..`$8` the pose, `$9` its
+/// covariance, `$10` origin, `$11`..`$13` the window, `$14` created; answers the version.
+pub(super) static INSERT_REFERENCE: LazyLock<Outboxed> = LazyLock::new(|| {
+    Outboxed::new(
+        "insert into target_references (target_id, version, tx_mm, ty_mm, tz_mm, qw, qx, qy, \
+         qz, cov, origin, window_from_ns, window_to_ns, window_count, created_ns{seq_col}) \
+         select $1, coalesce(max(version), 0) + 1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, \
+         $12, $13, $14{seq_val} from target_references where target_id = $1 returning version",
+        15,
+    )
+});
+
+/// Stores a link's next calibration version: `$1` link id, `$2` valid from, `$3`..`$9` the
+/// pose, `$10` its covariance, `$11` created; answers the version.
+pub(super) static INSERT_CALIBRATION: LazyLock<Outboxed> = LazyLock::new(|| {
+    Outboxed::new(
+        "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, \
+         qx, qy, qz, cov, created_ns{seq_col}) select $1, coalesce(max(version), 0) + 1, $2, \
+         $3, $4, $5, $6, $7, $8, $9, $10, $11{seq_val} from calibrations where link_id = $1 \
+         returning version",
+        12,
+    )
+});
+
+/// Records a manual restart of a link's filter (again at the same instant: the newer words
+/// replace the older): `$1` link id, `$2` when, `$3` by, `$4` note.
+pub(super) static INSERT_LINK_RESET: LazyLock<Outboxed> = LazyLock::new(|| {
+    Outboxed::new(
+        "insert into link_resets (link_id, created_ns, by_name, note{seq_col}) \
+         values ($1, $2, $3, $4{seq_val}) on conflict (link_id, created_ns) do update set \
+         by_name = excluded.by_name, note = excluded.note{seq_set}",
+        5,
+    )
+});

@@ -354,7 +354,23 @@ impl WriteTx<'_> {
     ) -> StoreResult<i64> {
         finite("alarm value", &[t.value])?;
         let id = self.target_ids[target.0];
-        on_backend!(&mut self.tx, Tx, x => x.insert_alarm(id, t, now_ns).await)
+        let (alarm_id,): (i64,) = outboxed!(
+            &mut self.tx,
+            sql::INSERT_ALARM,
+            [
+                id,
+                t.time_ns,
+                t.kind.name(),
+                t.from.name(),
+                t.to.name(),
+                t.value,
+                t.unit.name(),
+                t.message.as_str(),
+                now_ns,
+            ],
+            fetch_one
+        )?;
+        Ok(alarm_id)
     }
 
     /// An alarm's new level and acknowledgement, read inside the transaction:
@@ -378,7 +394,13 @@ impl WriteTx<'_> {
         note: Option<&str>,
         now_ns: i64,
     ) -> StoreResult<()> {
-        on_backend!(&mut self.tx, Tx, t => t.acknowledge_alarm(id, by, note, now_ns).await)
+        outboxed!(
+            &mut self.tx,
+            sql::ACKNOWLEDGE_ALARM,
+            [by, now_ns, note, id],
+            execute
+        )?;
+        Ok(())
     }
 
     /// Deletes samples older than `samples_before_ns` and results older than
@@ -475,7 +497,28 @@ impl WriteTx<'_> {
             },
         };
         let id = self.target_ids[target.0];
-        let version = on_backend!(&mut self.tx, Tx, t => t.insert_reference(id, &columns, &origin, now_ns).await)?;
+        let p = columns.pose;
+        let (version,): (i64,) = outboxed!(
+            &mut self.tx,
+            sql::INSERT_REFERENCE,
+            [
+                id,
+                p[0],
+                p[1],
+                p[2],
+                p[3],
+                p[4],
+                p[5],
+                p[6],
+                columns.cov.as_slice(),
+                origin.origin,
+                origin.from_ns,
+                origin.to_ns,
+                origin.count,
+                now_ns,
+            ],
+            fetch_one
+        )?;
         finite("reference covariance", reference.systematic_cov.as_slice())?;
         let systematic = encode_mat6(&reference.systematic_cov);
         let stamp = reference.calibration.map(|c| c.0);
@@ -500,7 +543,26 @@ impl WriteTx<'_> {
     ) -> StoreResult<i64> {
         let columns = version_columns("calibration", parent_from_child)?;
         let id = self.link_ids[link.0];
-        on_backend!(&mut self.tx, Tx, t => t.insert_calibration(id, valid_from_ns, &columns, now_ns).await)
+        let p = columns.pose;
+        let (version,): (i64,) = outboxed!(
+            &mut self.tx,
+            sql::INSERT_CALIBRATION,
+            [
+                id,
+                valid_from_ns,
+                p[0],
+                p[1],
+                p[2],
+                p[3],
+                p[4],
+                p[5],
+                p[6],
+                columns.cov.as_slice(),
+                now_ns,
+            ],
+            fetch_one
+        )?;
+        Ok(version)
     }
 
     /// Records a manual restart of a link's filter.
@@ -512,7 +574,13 @@ impl WriteTx<'_> {
         now_ns: i64,
     ) -> StoreResult<()> {
         let id = self.link_ids[link.0];
-        on_backend!(&mut self.tx, Tx, t => t.insert_link_reset(id, by, note, now_ns).await)
+        outboxed!(
+            &mut self.tx,
+            sql::INSERT_LINK_RESET,
+            [id, now_ns, by, note],
+            execute
+        )?;
+        Ok(())
     }
 
     /// Records an acceptance of the rig; answers its id.

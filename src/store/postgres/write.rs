@@ -12,9 +12,9 @@
 //! to plan); rollups and the keys to look up as one statement each, every column an array
 //! expanded by `unnest`.
 
-use super::super::rows::{ResultColumns, RollupKey, RollupRow, SampleColumns, VersionColumns};
+use super::super::rows::{ResultColumns, RollupKey, RollupRow, SampleColumns};
 use super::super::schema::{RESULTS, SAMPLES, Table};
-use super::super::{StoreError, StoreResult, WindowOrigin};
+use super::super::{StoreError, StoreResult};
 use sqlx::postgres::{PgConnectOptions, PgConnection};
 use sqlx::{ConnectOptions, Connection};
 
@@ -224,6 +224,11 @@ impl CopyRows {
 }
 
 impl Tx<'_> {
+    /// None: PostgreSQL's rows carry no commit number (a centre's copy is no outbox).
+    pub(in crate::store) fn outbox_seq(&self) -> Option<i64> {
+        None
+    }
+
     /// Commits: flushed to the server's write-ahead log when this returns `Ok`.
     pub(in crate::store) async fn commit(self) -> StoreResult<()> {
         sqlx::query("commit").execute(&mut *self.conn).await?;
@@ -389,54 +394,6 @@ impl Tx<'_> {
         Ok(())
     }
 
-    /// Stores an alarm transition (or updates the one at the same key); returns its id.
-    pub(in crate::store) async fn insert_alarm(
-        &mut self,
-        target_id: i64,
-        t: &crate::alarms::Transition,
-        now_ns: i64,
-    ) -> StoreResult<i64> {
-        let (id,): (i64,) = sqlx::query_as(
-            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns) \
-             values ($1, $2, $3, $4, $5, $6, $7, $8, $9) \
-             on conflict (target_id, time_ns, kind) do update set from_level = excluded.from_level, \
-             to_level = excluded.to_level, value = excluded.value, unit = excluded.unit, \
-             message = excluded.message, created_ns = excluded.created_ns \
-             returning alarm_id",
-        )
-        .bind(target_id)
-        .bind(t.time_ns)
-        .bind(t.kind.name())
-        .bind(t.from.name())
-        .bind(t.to.name())
-        .bind(t.value)
-        .bind(t.unit.name())
-        .bind(t.message.as_str())
-        .bind(now_ns)
-        .fetch_one(&mut *self.conn)
-        .await?;
-        Ok(id)
-    }
-
-    pub(in crate::store) async fn acknowledge_alarm(
-        &mut self,
-        id: i64,
-        by: &str,
-        note: Option<&str>,
-        now_ns: i64,
-    ) -> StoreResult<()> {
-        sqlx::query(
-            "update alarms set acknowledged_by = $1, acknowledged_ns = $2, ack_note = $3 where alarm_id = $4",
-        )
-        .bind(by)
-        .bind(now_ns)
-        .bind(note)
-        .bind(id)
-        .execute(&mut *self.conn)
-        .await?;
-        Ok(())
-    }
-
     /// Retention: drops the day partitions wholly before each cutoff, deletes the older rows
     /// of the partition a cutoff falls in (and of the default partition), then lets pg_partman
     /// make the coming days' partitions.
@@ -449,91 +406,5 @@ impl Tx<'_> {
         let results = super::drop_before(&mut *self.conn, "results", results_before_ns).await?;
         super::maintain(&mut *self.conn).await?;
         Ok((samples, results))
-    }
-
-    /// Stores the next reference version of a target; returns it.
-    pub(in crate::store) async fn insert_reference(
-        &mut self,
-        target_id: i64,
-        columns: &VersionColumns,
-        origin: &WindowOrigin,
-        now_ns: i64,
-    ) -> StoreResult<i64> {
-        let p = columns.pose;
-        let (version,): (i64,) = sqlx::query_as(
-            "insert into target_references (target_id, version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
-             origin, window_from_ns, window_to_ns, window_count, created_ns) \
-             select $1, coalesce(max(version), 0) + 1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14 \
-             from target_references where target_id = $1 \
-             returning version",
-        )
-        .bind(target_id)
-        .bind(p[0])
-        .bind(p[1])
-        .bind(p[2])
-        .bind(p[3])
-        .bind(p[4])
-        .bind(p[5])
-        .bind(p[6])
-        .bind(columns.cov.as_slice())
-        .bind(origin.origin)
-        .bind(origin.from_ns)
-        .bind(origin.to_ns)
-        .bind(origin.count)
-        .bind(now_ns)
-        .fetch_one(&mut *self.conn)
-        .await?;
-        Ok(version)
-    }
-
-    /// Stores the next calibration version of a link; returns it.
-    pub(in crate::store) async fn insert_calibration(
-        &mut self,
-        link_id: i64,
-        valid_from_ns: i64,
-        columns: &VersionColumns,
-        now_ns: i64,
-    ) -> StoreResult<i64> {
-        let p = columns.pose;
-        let (version,): (i64,) = sqlx::query_as(
-            "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns) \
-             select $1, coalesce(max(version), 0) + 1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11 \
-             from calibrations where link_id = $1 \
-             returning version",
-        )
-        .bind(link_id)
-        .bind(valid_from_ns)
-        .bind(p[0])
-        .bind(p[1])
-        .bind(p[2])
-        .bind(p[3])
-        .bind(p[4])
-        .bind(p[5])
-        .bind(p[6])
-        .bind(columns.cov.as_slice())
-        .bind(now_ns)
-        .fetch_one(&mut *self.conn)
-        .await?;
-        Ok(version)
-    }
-
-    pub(in crate::store) async fn insert_link_reset(
-        &mut self,
-        link_id: i64,
-        by: Option<&str>,
-        note: Option<&str>,
-        now_ns: i64,
-    ) -> StoreResult<()> {
-        sqlx::query(
-            "insert into link_resets (link_id, created_ns, by_name, note) values ($1, $2, $3, $4) \
-             on conflict (link_id, created_ns) do update set by_name = excluded.by_name, note = excluded.note",
-        )
-        .bind(link_id)
-        .bind(now_ns)
-        .bind(by)
-        .bind(note)
-        .execute(&mut *self.conn)
-        .await?;
-        Ok(())
     }
 }

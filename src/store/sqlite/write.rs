@@ -11,9 +11,9 @@
 //! inode), so a deleted or replaced file is never written to in silence.
 
 use super::super::outbox::{KeepUnsent, Tier};
-use super::super::rows::{ResultColumns, RollupKey, RollupRow, SampleColumns, VersionColumns};
+use super::super::rows::{ResultColumns, RollupKey, RollupRow, SampleColumns};
 use super::super::schema::{RESULTS, SAMPLES};
-use super::super::{BudgetCut, StoreResult, WindowOrigin};
+use super::super::{BudgetCut, StoreResult};
 use super::{FileIdentity, check_identity};
 use sqlx::{ConnectOptions, Connection, QueryBuilder, Sqlite, SqliteConnection};
 use std::path::{Path, PathBuf};
@@ -117,6 +117,11 @@ impl Writer {
 }
 
 impl Tx<'_> {
+    /// The commit number every row this transaction writes carries (`commit_seq`).
+    pub(in crate::store) fn outbox_seq(&self) -> Option<i64> {
+        Some(self.seq)
+    }
+
     /// Commits: on disk, in the configured file, when this returns `Ok`.
     pub(in crate::store) async fn commit(self) -> StoreResult<()> {
         sqlx::query("commit").execute(&mut *self.conn).await?;
@@ -241,58 +246,6 @@ impl Tx<'_> {
             });
             qb.build().execute(&mut *self.conn).await?;
         }
-        Ok(())
-    }
-
-    /// Stores an alarm transition (or updates the one at the same key); returns its id.
-    pub(in crate::store) async fn insert_alarm(
-        &mut self,
-        target_id: i64,
-        t: &crate::alarms::Transition,
-        now_ns: i64,
-    ) -> StoreResult<i64> {
-        let (id,): (i64,) = sqlx::query_as(
-            "insert into alarms (target_id, time_ns, kind, from_level, to_level, value, unit, message, created_ns, commit_seq) \
-             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) \
-             on conflict (target_id, time_ns, kind) do update set from_level = excluded.from_level, \
-             to_level = excluded.to_level, value = excluded.value, unit = excluded.unit, \
-             message = excluded.message, created_ns = excluded.created_ns, \
-             commit_seq = excluded.commit_seq \
-             returning alarm_id",
-        )
-        .bind(target_id)
-        .bind(t.time_ns)
-        .bind(t.kind.name())
-        .bind(t.from.name())
-        .bind(t.to.name())
-        .bind(t.value)
-        .bind(t.unit.name())
-        .bind(t.message.as_str())
-        .bind(now_ns)
-        .bind(self.seq)
-        .fetch_one(&mut *self.conn)
-        .await?;
-        Ok(id)
-    }
-
-    pub(in crate::store) async fn acknowledge_alarm(
-        &mut self,
-        id: i64,
-        by: &str,
-        note: Option<&str>,
-        now_ns: i64,
-    ) -> StoreResult<()> {
-        sqlx::query(
-            "update alarms set acknowledged_by = ?, acknowledged_ns = ?, ack_note = ?, commit_seq = ? \
-             where alarm_id = ?",
-        )
-        .bind(by)
-        .bind(now_ns)
-        .bind(note)
-        .bind(self.seq)
-        .bind(id)
-        .execute(&mut *self.conn)
-        .await?;
         Ok(())
     }
 
@@ -492,104 +445,5 @@ impl Tx<'_> {
             .into_iter()
             .filter_map(|(t, s)| Some((Tier::parse(&t)?, s)))
             .collect())
-    }
-
-    /// Stores the next reference version of a target; returns it.
-    pub(in crate::store) async fn insert_reference(
-        &mut self,
-        target_id: i64,
-        columns: &VersionColumns,
-        origin: &WindowOrigin,
-        now_ns: i64,
-    ) -> StoreResult<i64> {
-        let (max,): (Option<i64>,) =
-            sqlx::query_as("select max(version) from target_references where target_id = ?")
-                .bind(target_id)
-                .fetch_one(&mut *self.conn)
-                .await?;
-        let version = max.unwrap_or(0) + 1;
-        let p = columns.pose;
-        sqlx::query(
-            "insert into target_references (target_id, version, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, \
-             origin, window_from_ns, window_to_ns, window_count, created_ns, commit_seq) \
-             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        )
-        .bind(target_id)
-        .bind(version)
-        .bind(p[0])
-        .bind(p[1])
-        .bind(p[2])
-        .bind(p[3])
-        .bind(p[4])
-        .bind(p[5])
-        .bind(p[6])
-        .bind(columns.cov.as_slice())
-        .bind(origin.origin)
-        .bind(origin.from_ns)
-        .bind(origin.to_ns)
-        .bind(origin.count)
-        .bind(now_ns)
-        .bind(self.seq)
-        .execute(&mut *self.conn)
-        .await?;
-        Ok(version)
-    }
-
-    /// Stores the next calibration version of a link; returns it.
-    pub(in crate::store) async fn insert_calibration(
-        &mut self,
-        link_id: i64,
-        valid_from_ns: i64,
-        columns: &VersionColumns,
-        now_ns: i64,
-    ) -> StoreResult<i64> {
-        let (max,): (Option<i64>,) =
-            sqlx::query_as("select max(version) from calibrations where link_id = ?")
-                .bind(link_id)
-                .fetch_one(&mut *self.conn)
-                .await?;
-        let version = max.unwrap_or(0) + 1;
-        let p = columns.pose;
-        sqlx::query(
-            "insert into calibrations (link_id, version, valid_from_ns, tx_mm, ty_mm, tz_mm, qw, qx, qy, qz, cov, created_ns, commit_seq) \
-             values (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        )
-        .bind(link_id)
-        .bind(version)
-        .bind(valid_from_ns)
-        .bind(p[0])
-        .bind(p[1])
-        .bind(p[2])
-        .bind(p[3])
-        .bind(p[4])
-        .bind(p[5])
-        .bind(p[6])
-        .bind(columns.cov.as_slice())
-        .bind(now_ns)
-        .bind(self.seq)
-        .execute(&mut *self.conn)
-        .await?;
-        Ok(version)
-    }
-
-    pub(in crate::store) async fn insert_link_reset(
-        &mut self,
-        link_id: i64,
-        by: Option<&str>,
-        note: Option<&str>,
-        now_ns: i64,
-    ) -> StoreResult<()> {
-        sqlx::query(
-            "insert or replace into link_resets (link_id, created_ns, by_name, note, commit_seq) \
-             values (?, ?, ?, ?, ?)",
-        )
-        .bind(link_id)
-        .bind(now_ns)
-        .bind(by)
-        .bind(note)
-        .bind(self.seq)
-        .execute(&mut *self.conn)
-        .await?;
-        Ok(())
     }
 }
