@@ -362,6 +362,15 @@ pub fn find_without_prior(
                         let c_frame = Mat3::from_columns(&[normal_c, u, normal_c.cross(&u)]);
                         let rotation = c_frame * m.transpose();
                         let t = rho * x_a - rotation * link.points_mm[i];
+                        // The partner's disc images at the size its place in this pose gives
+                        // it, within the anchor's own tolerance (the anchor's fits by
+                        // construction): a pair whose sizes cannot fit is refused before the
+                        // costlier match.
+                        let partner_ratio =
+                            (rotation * link.points_mm[j] + t).norm() / partner.distance_mm;
+                        if !(1.0 / DISTANCE_FACTOR..=DISTANCE_FACTOR).contains(&partner_ratio) {
+                            continue;
+                        }
                         let pose = Pose::from_parts(
                             Translation3::from(t),
                             UnitQuaternion::from_rotation_matrix(
@@ -468,10 +477,14 @@ fn first_match(
         if k == j {
             continue;
         }
-        let Some(p) = link
-            .camera
-            .project(&(pose * Point3::from(link.points_mm[k])).coords)
-        else {
+        // Until the fit, the pose is the hypothesis's: its images are already predicted.
+        let predicted = if refined {
+            link.camera
+                .project(&(pose * Point3::from(link.points_mm[k])).coords)
+        } else {
+            spacing_of[k]
+        };
+        let Some(p) = predicted else {
             continue;
         };
         if !link.camera.in_image(&p) {
