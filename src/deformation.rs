@@ -283,6 +283,15 @@ impl Displacement {
 }
 
 impl Deformation {
+    /// `G0_from_G` with its covariance told apart, as a result's is.
+    pub fn measured(&self) -> Measured<'_> {
+        Measured {
+            g_from_b: &self.g0_from_g,
+            systematic_cov: &self.systematic_cov,
+            calibration: None,
+        }
+    }
+
     /// The deformation of a result against a reference (see the module docs for which
     /// uncertainty it carries).
     pub fn new(reference: &Reference, measured: Measured<'_>) -> Self {

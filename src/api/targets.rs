@@ -6,9 +6,8 @@ use super::error::{ApiError, ErrorBody};
 use super::query::Query;
 use crate::bank::{TargetEstimate, TargetStatus};
 use crate::clock::{format_ns, parse_query_time};
+use crate::deformation::ReferenceOrigin;
 use crate::deformation::ReferenceVersion;
-use crate::deformation::{Measured, ReferenceOrigin};
-use crate::geometry::{Mat6, PoseCov};
 use crate::model::TargetId;
 use crate::model::TargetSpec;
 use crate::service::ReferenceRequest;
@@ -268,17 +267,6 @@ pub(super) fn compensation_out(
 ) -> CompensationOut {
     let deformation = e.deformation(reference);
     let measured = e.measured();
-    let parts = |cov: &PoseCov, systematic: &Mat6| {
-        let told_apart = Measured {
-            g_from_b: cov,
-            systematic_cov: systematic,
-            calibration: None,
-        };
-        (
-            SigmaOut::from(&told_apart.random()),
-            SigmaOut::from(&told_apart.systematic()),
-        )
-    };
     CompensationOut {
         target: target.name.to_owned(),
         base: target.base.to_owned(),
@@ -293,13 +281,13 @@ pub(super) fn compensation_out(
         reference: reference.map(Into::into),
         deformation: deformation.map(|d| {
             let m = d.deformation();
-            let (random, systematic) = parts(&d.g0_from_g, &d.systematic_cov);
+            let parts = d.measured();
             DeformationOut {
                 rotation_arcsec: m.rotation_arcsec,
                 translation_mm: m.translation_mm,
                 sigma: m.sigmas.into(),
-                sigma_random: random,
-                sigma_systematic: systematic,
+                sigma_random: SigmaOut::from(&parts.random()),
+                sigma_systematic: SigmaOut::from(&parts.systematic()),
             }
         }),
         correction: deformation.map(|d| {
