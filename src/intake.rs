@@ -43,6 +43,8 @@ pub enum IntakeError {
 /// What a frame showed of one marker a camera sees through a measured link.
 #[derive(Debug, Clone)]
 pub struct MarkerTaken {
+    /// The measured link's id.
+    pub link_id: LinkId,
     /// The marker's frame.
     pub marker: String,
     /// The measured link `<camera>_from_<marker>`.
@@ -271,7 +273,6 @@ impl Intake {
                     })?;
             drop(slot);
             let mut items = Vec::new();
-            let mut links = Vec::with_capacity(seen.markers.len());
             for m in &seen.markers {
                 if let Ok(found) = &m.result {
                     items.push(solved_item(
@@ -281,7 +282,6 @@ impl Intake {
                         &found.solution,
                     ));
                 }
-                links.push(m.link.link);
             }
             let frame = TakenFrame {
                 camera: camera_name,
@@ -290,6 +290,7 @@ impl Intake {
                 searched_fraction: seen.searched_fraction,
                 markers: (seen.markers.into_iter())
                     .map(|m| MarkerTaken {
+                        link_id: m.link.link,
                         marker: m.link.marker_frame.clone(),
                         link: m.link.name.clone(),
                         result: m.result,
@@ -297,18 +298,18 @@ impl Intake {
                     .collect(),
                 ingest: IngestReport::default(),
             };
-            Ok::<_, IntakeError>((frame, links, items, image))
+            Ok::<_, IntakeError>((frame, items, image))
         })
         .await
         .map_err(|e| IntakeError::Failed(e.to_string()))??;
-        let (mut frame, links, items, image) = searched;
+        let (mut frame, items, image) = searched;
         {
             let mut pacer = self.pacer.lock().unwrap_or_else(|p| p.into_inner());
-            for (link, m) in links.into_iter().zip(&frame.markers) {
+            for m in &frame.markers {
                 let searched = allowed
                     .iter()
-                    .any(|(l, allowed)| *l == link && allowed.is_ok());
-                pacer.record(link, time_ns, m.result.is_ok(), searched);
+                    .any(|(l, allowed)| *l == m.link_id && allowed.is_ok());
+                pacer.record(m.link_id, time_ns, m.result.is_ok(), searched);
             }
         }
         if !items.is_empty() {
