@@ -6,7 +6,9 @@
 //! point that images where its pose puts it; one that leaves visible points out is kept only
 //! when its pose is near the prediction (the rest are covered), else searched for afresh.
 //! A marker no prediction finds is searched for in the whole frame from its layout alone
-//! ([`find_without_prior`]), at the pace the caller allows ([`super::SearchPacer`]). A disc
+//! ([`find_without_prior`]), at the pace the caller allows ([`super::SearchPacer`]); when the
+//! gates of the predictions that missed reach over half the frame, the whole frame is detected
+//! at once and serves both, so a lost marker's frame is not detected nearly twice. A disc
 //! found as a point of two markers refuses both.
 //!
 //! Decoding the file and choosing the predictions (the filtered pose of the link at the frame's
@@ -21,6 +23,10 @@ use super::observation::{ObservationError, ObservedLink, Observer};
 use super::search::find_without_prior;
 use crate::geometry::Pose;
 use crate::vision::{DetectSettings, GreyImage, Polarity, SearchArea, detect_in};
+
+/// The share of the frame beyond which the gates of the predictions that missed are not
+/// detected alone: the whole frame is, once (see [`observe_frame_paced`]).
+const WHOLE_FRAME_SHARE: f64 = 0.5;
 
 /// What one frame showed of one marker.
 #[derive(Debug, Clone)]
@@ -57,7 +63,8 @@ pub fn observe_frame<'a>(
 }
 
 /// [`observe_frame`], where `whole_frame(link)` says whether a marker no prediction finds may
-/// be searched for in the whole frame, or how long (s) until it may ([`super::SearchPacer`]);
+/// be searched for in the whole frame, or how long (s) until it may ([`super::SearchPacer`];
+/// it is asked as often as needed, so it must not change what it answers within a frame);
 /// one that may not is [`NotFound::SearchPaced`]. When no marker may, the whole frame is not
 /// searched at all.
 pub fn observe_frame_paced<'a>(
@@ -96,17 +103,23 @@ pub fn observe_frame_paced<'a>(
             polarities.push(polarity);
         }
     }
-    let detect_around = |polarity: Polarity, squares: &mut dyn Iterator<Item = ([f64; 2], f64)>| {
+    let area_of = |squares: &mut dyn Iterator<Item = ([f64; 2], f64)>| {
         let mut area = SearchArea::empty(model.width_px, model.height_px);
         for (centre_px, half_side_px) in squares {
             area.add_square(centre_px, half_side_px);
         }
+        area
+    };
+    let detect_area = |polarity: Polarity, area: &SearchArea| {
         let settings = DetectSettings {
             polarity,
             gain_e_per_dn,
             ..DetectSettings::default()
         };
-        (detect_in(image, &settings, &area), area.fraction())
+        (detect_in(image, &settings, area), area.fraction())
+    };
+    let detect_around = |polarity: Polarity, squares: &mut dyn Iterator<Item = ([f64; 2], f64)>| {
+        detect_area(polarity, &area_of(squares))
     };
     let of_polarity =
         |link: &ObservedLink, polarity: Polarity| link.target.map(|t| t.polarity) == Some(polarity);
@@ -151,13 +164,27 @@ pub fn observe_frame_paced<'a>(
         // each prediction in turn; a marker found so is completed with every point that
         // images near where its pose puts it.
         if !missing.is_empty() {
-            let (wide, fraction) = detect_around(
-                polarity,
+            let wide_area = area_of(
                 &mut missing
                     .iter()
                     .flat_map(|&i| priors[i].iter().map(move |p| (i, p)))
                     .flat_map(|(i, p)| search_squares(links[i], p, Reach::Full)),
             );
+            // Gates reaching over half the frame cost most of the whole frame's detection,
+            // which a marker they miss then needs: when one of them may be searched for in the
+            // whole frame now, the whole frame is detected at once and serves both, so a lost
+            // marker's frame is detected once, not nearly twice (and a found one costs at most
+            // twice its gates' share). A paced marker's frame keeps to its gates.
+            let whole = wide_area.fraction() > WHOLE_FRAME_SHARE
+                && missing.iter().any(|&i| whole_frame(links[i]).is_ok());
+            let (wide, fraction) = if whole {
+                detect_area(
+                    polarity,
+                    &SearchArea::whole(model.width_px, model.height_px),
+                )
+            } else {
+                detect_area(polarity, &wide_area)
+            };
             searched += fraction;
             last_blobs = wide.len();
             let mut lost = Vec::new();
@@ -178,12 +205,19 @@ pub fn observe_frame_paced<'a>(
                 }
                 if let (Ok(found), Some(prior)) = (&result, from) {
                     let pose = found.solution.camera_from_marker;
-                    let (around, fraction) = detect_around(
-                        polarity,
-                        &mut search_squares(links[i], &pose, Reach::Near).into_iter(),
-                    );
-                    searched += fraction;
-                    let completed = complete(links[i], &around, found);
+                    let around_area;
+                    let around = if whole {
+                        &wide
+                    } else {
+                        let (blobs, fraction) = detect_around(
+                            polarity,
+                            &mut search_squares(links[i], &pose, Reach::Near).into_iter(),
+                        );
+                        searched += fraction;
+                        around_area = blobs;
+                        &around_area
+                    };
+                    let completed = complete(links[i], around, found);
                     // Points left out are believed covered only when the prediction was good;
                     // a marker that moved far, found on a few points, may have been found on
                     // the wrong ones, and is searched for afresh.
@@ -216,20 +250,21 @@ pub fn observe_frame_paced<'a>(
             // Last, the markers no prediction found, searched for in the whole frame from their
             // layouts alone.
             if !lost.is_empty() {
-                let (all, fraction) = detect_around(
-                    polarity,
-                    &mut std::iter::once((
-                        [
-                            0.5 * f64::from(model.width_px),
-                            0.5 * f64::from(model.height_px),
-                        ],
-                        f64::from(model.width_px.max(model.height_px)),
-                    )),
-                );
-                searched += fraction;
+                let all_area;
+                let all = if whole {
+                    &wide
+                } else {
+                    let (blobs, fraction) = detect_area(
+                        polarity,
+                        &SearchArea::whole(model.width_px, model.height_px),
+                    );
+                    searched += fraction;
+                    all_area = blobs;
+                    &all_area
+                };
                 last_blobs = all.len();
                 for i in lost {
-                    let searched = find_without_prior(links[i], &all, priors[i].first());
+                    let searched = find_without_prior(links[i], all, priors[i].first());
                     // A search that formed no identification at all adds nothing to the
                     // prediction's reason (nothing of the marker near it, nor anywhere).
                     let nothing = matches!(searched, Err(NotFound::NotIdentified { used: 0, .. }));
