@@ -16,6 +16,8 @@
 //! Run: `cargo bench --bench frames_load` (Linux); e.g.
 //! `FORMAT=pgm RERUN=save PANEL=1 cargo bench --bench frames_load`.
 
+#[path = "support/proc.rs"]
+mod proc_stats;
 #[path = "../tests/suite/common/process.rs"]
 #[allow(
     dead_code,
@@ -27,37 +29,8 @@ use brokenray::clock::format_ns;
 use brokenray::imagefile::{FrameFormat, encode};
 use brokenray::sim::render::RenderSettings;
 use brokenray::sim::{Scenario, SimSettings, Simulator};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
-
-/// CPU time (user + system) of a process so far (s).
-fn cpu_s(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    // Fields after the command name (which may hold spaces) start after the last ')'.
-    let rest = stat.rsplit(')').next().unwrap_or("");
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| {
-        fields
-            .get(i)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
-    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
-    let hz = std::process::Command::new("getconf")
-        .arg("CLK_TCK")
-        .output()
-        .ok()
-        .and_then(|o| String::from_utf8(o.stdout).ok())
-        .and_then(|t| t.trim().parse::<f64>().ok())
-        .unwrap_or(100.0);
-    (ticks(11) + ticks(12)) / hz
-}
-
-fn wall_ns() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_nanos() as i64)
-        .unwrap_or(0)
-}
+use proc_stats::{cpu_s, wall_ns};
+use std::time::{Duration, Instant};
 
 /// Camera `C<k>`: a copy of C1, seeing its own copy of marker B (`B<k>`) through a measured
 /// link with C1_from_B's nominal pose.

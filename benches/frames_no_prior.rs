@@ -19,6 +19,8 @@
 //!
 //! Run: `cargo bench --bench frames_no_prior` (Linux).
 
+#[path = "support/proc.rs"]
+mod proc_stats;
 #[path = "../tests/suite/common/process.rs"]
 #[allow(
     dead_code,
@@ -32,38 +34,9 @@ use brokenray::imagefile::{FrameFormat, encode};
 use brokenray::model::{LinkKind, Observer, find_without_prior};
 use brokenray::sim::render::{Clutter, RenderSettings, marker_discs, render_scene};
 use brokenray::vision::{CameraModel, DetectSettings, SearchArea, detect_in};
+use proc_stats::{cpu_s, wall_ns};
 use rand::{Rng, SeedableRng};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
-
-/// CPU time (user + system) of a process so far (s).
-fn cpu_s(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    // Fields after the command name (which may hold spaces) start after the last ')'.
-    let rest = stat.rsplit(')').next().unwrap_or("");
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| {
-        fields
-            .get(i)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
-    let hz = std::process::Command::new("getconf")
-        .arg("CLK_TCK")
-        .output()
-        .ok()
-        .and_then(|o| String::from_utf8(o.stdout).ok())
-        .and_then(|t| t.trim().parse::<f64>().ok())
-        .unwrap_or(100.0);
-    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
-    (ticks(11) + ticks(12)) / hz
-}
-
-fn wall_ns() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_nanos() as i64)
-        .unwrap_or(0)
-}
+use std::time::{Duration, Instant};
 
 /// The sensor the frames are rendered for, and the installation's C1 is given.
 const WIDTH: u32 = 1600;
@@ -78,7 +51,10 @@ struct Rendered {
 }
 
 fn main() {
-    if std::env::args().any(|a| a == "--list") || !cfg!(target_os = "linux") {
+    if std::env::args().any(|a| a == "--test")
+        || !std::env::args().any(|a| a == "--bench")
+        || !cfg!(target_os = "linux")
+    {
         println!("no-prior frames bench: run with `cargo bench --bench frames_no_prior`");
         return;
     }
