@@ -22,7 +22,8 @@ use super::identify::{
 use super::observation::{ObservationError, ObservedLink, Observer};
 use super::search::find_without_prior;
 use crate::geometry::Pose;
-use crate::vision::{DetectSettings, GreyImage, Polarity, SearchArea, detect_in};
+use crate::vision::{Blob, DetectSettings, GreyImage, Polarity, SearchArea, detect_in};
+use std::borrow::Cow;
 
 /// The share of the frame beyond which the gates of the predictions that missed are not
 /// detected alone: the whole frame is, once (see [`observe_frame_paced`]).
@@ -187,6 +188,16 @@ pub fn observe_frame_paced<'a>(
             };
             searched += fraction;
             last_blobs = wide.len();
+            // The discs of an area made when needed, or the whole frame's already detected.
+            let detect_unless_whole =
+                |searched: &mut f64, area: &dyn Fn() -> SearchArea| -> Cow<'_, [Blob]> {
+                    if whole {
+                        return Cow::Borrowed(&wide);
+                    }
+                    let (blobs, fraction) = detect_area(polarity, &area());
+                    *searched += fraction;
+                    Cow::Owned(blobs)
+                };
             let mut lost = Vec::new();
             for &i in &missing {
                 let mut result = Err(NotFound::NoPrediction);
@@ -205,19 +216,10 @@ pub fn observe_frame_paced<'a>(
                 }
                 if let (Ok(found), Some(prior)) = (&result, from) {
                     let pose = found.solution.camera_from_marker;
-                    let around_area;
-                    let around = if whole {
-                        &wide
-                    } else {
-                        let (blobs, fraction) = detect_around(
-                            polarity,
-                            &mut search_squares(links[i], &pose, Reach::Near).into_iter(),
-                        );
-                        searched += fraction;
-                        around_area = blobs;
-                        &around_area
-                    };
-                    let completed = complete(links[i], around, found);
+                    let around = detect_unless_whole(&mut searched, &|| {
+                        area_of(&mut search_squares(links[i], &pose, Reach::Near).into_iter())
+                    });
+                    let completed = complete(links[i], &around, found);
                     // Points left out are believed covered only when the prediction was good;
                     // a marker that moved far, found on a few points, may have been found on
                     // the wrong ones, and is searched for afresh.
@@ -250,21 +252,12 @@ pub fn observe_frame_paced<'a>(
             // Last, the markers no prediction found, searched for in the whole frame from their
             // layouts alone.
             if !lost.is_empty() {
-                let all_area;
-                let all = if whole {
-                    &wide
-                } else {
-                    let (blobs, fraction) = detect_area(
-                        polarity,
-                        &SearchArea::whole(model.width_px, model.height_px),
-                    );
-                    searched += fraction;
-                    all_area = blobs;
-                    &all_area
-                };
+                let all = detect_unless_whole(&mut searched, &|| {
+                    SearchArea::whole(model.width_px, model.height_px)
+                });
                 last_blobs = all.len();
                 for i in lost {
-                    let searched = find_without_prior(links[i], all, priors[i].first());
+                    let searched = find_without_prior(links[i], &all, priors[i].first());
                     // A search that formed no identification at all adds nothing to the
                     // prediction's reason (nothing of the marker near it, nor anywhere).
                     let nothing = matches!(searched, Err(NotFound::NotIdentified { used: 0, .. }));
