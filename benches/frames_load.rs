@@ -16,8 +16,8 @@
 //! Run: `cargo bench --bench frames_load` (Linux); e.g.
 //! `FORMAT=pgm RERUN=save PANEL=1 cargo bench --bench frames_load`.
 
-#[path = "support/proc.rs"]
-mod proc_stats;
+#[path = "support/load.rs"]
+mod load;
 #[path = "../tests/suite/common/process.rs"]
 #[allow(
     dead_code,
@@ -29,7 +29,7 @@ use brokenray::clock::format_ns;
 use brokenray::imagefile::{FrameFormat, encode};
 use brokenray::sim::render::RenderSettings;
 use brokenray::sim::{Scenario, SimSettings, Simulator};
-use proc_stats::{cpu_s, wall_ns};
+use load::{cpu_s, post_frame, wall_ns};
 use std::time::{Duration, Instant};
 
 /// Camera `C<k>`: a copy of C1, seeing its own copy of marker B (`B<k>`) through a measured
@@ -221,26 +221,15 @@ fn main() {
                     tick.tick().await;
                     let time = format_ns(wall_ns());
                     let sent = Instant::now();
-                    let answer = client
-                        .post(format!("{base}/api/v1/frames"))
-                        .query(&[("camera", camera.as_str()), ("time", time.as_str())])
-                        .header("content-type", format.content_type())
-                        .body(frames[k % frames.len()].clone())
-                        .send()
-                        .await;
+                    let body = frames[k % frames.len()].clone();
                     k += 1;
-                    match answer {
-                        Ok(r) if r.status().is_success() => {
-                            let body: serde_json::Value = r.json().await.unwrap_or_default();
+                    match post_frame(&client, &base, &camera, &time, format, body).await {
+                        Ok(body) => {
                             latencies.push(sent.elapsed().as_secs_f64() * 1e3);
                             if body["markers"][0]["found"] == true {
                                 found += 1;
                             }
                             stored += body["ingest"]["stored"].as_u64().unwrap_or(0);
-                        }
-                        Ok(r) => {
-                            errors += 1;
-                            eprintln!("{camera}: {}", r.text().await.unwrap_or_default());
                         }
                         Err(e) => {
                             errors += 1;

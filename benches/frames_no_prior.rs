@@ -19,8 +19,8 @@
 //!
 //! Run: `cargo bench --bench frames_no_prior` (Linux).
 
-#[path = "support/proc.rs"]
-mod proc_stats;
+#[path = "support/load.rs"]
+mod load;
 #[path = "../tests/suite/common/process.rs"]
 #[allow(
     dead_code,
@@ -34,7 +34,7 @@ use brokenray::imagefile::{FrameFormat, encode};
 use brokenray::model::{LinkKind, Observer, find_without_prior};
 use brokenray::sim::render::{Clutter, RenderSettings, marker_discs, render_scene};
 use brokenray::vision::{CameraModel, DetectSettings, SearchArea, detect_in};
-use proc_stats::{cpu_s, wall_ns};
+use load::{cpu_s, post_frame, wall_ns};
 use rand::{Rng, SeedableRng};
 use std::time::{Duration, Instant};
 
@@ -198,17 +198,10 @@ fn main() {
         let mut k = 0usize;
         while Instant::now() < end {
             let time = format_ns(wall_ns());
-            let answer = client
-                .post(format!("{}/api/v1/frames", server.base))
-                .query(&[("camera", "C1"), ("time", time.as_str())])
-                .header("content-type", format.content_type())
-                .body(frames[k % frames.len()].bytes.clone())
-                .send()
-                .await;
+            let body = frames[k % frames.len()].bytes.clone();
             k += 1;
-            match answer {
-                Ok(r) if r.status().is_success() => {
-                    let body: serde_json::Value = r.json().await.unwrap_or_default();
+            match post_frame(&client, &server.base, "C1", &time, format, body).await {
+                Ok(body) => {
                     answered += 1;
                     if body["markers"][0]["found"] == true {
                         found += 1;
@@ -219,10 +212,6 @@ fn main() {
                         whole += 1;
                     }
                     stored += body["ingest"]["stored"].as_u64().unwrap_or(0);
-                }
-                Ok(r) => {
-                    errors += 1;
-                    eprintln!("C1: {}", r.text().await.unwrap_or_default());
                 }
                 Err(e) => {
                     errors += 1;

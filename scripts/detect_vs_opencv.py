@@ -51,6 +51,24 @@ def rotation_error_arcsec(r_est, r_true):
     return math.degrees(math.acos(c)) * 3600.0
 
 
+def blob_detector():
+    """OpenCV's detector of the bright discs of the rendered frames (also used by
+    scripts/no_prior_vs_opencv.py, so the two comparisons run the same detector)."""
+    params = cv2.SimpleBlobDetector_Params()
+    params.filterByColor = True
+    params.blobColor = 255
+    params.minThreshold = 60
+    params.maxThreshold = 200
+    params.filterByArea = True
+    params.minArea = 12
+    params.maxArea = 40000
+    params.filterByCircularity = True
+    params.minCircularity = 0.7
+    params.filterByInertia = False
+    params.filterByConvexity = False
+    return cv2.SimpleBlobDetector_create(params)
+
+
 def main(binary, frames_dir, camera_name):
     frames_dir = Path(frames_dir)
     config = tomllib.loads(subprocess.run([binary, "default-config"], capture_output=True, text=True, check=True).stdout)
@@ -72,19 +90,7 @@ def main(binary, frames_dir, camera_name):
     ours = [json.loads(l) for l in out.stdout.splitlines()]
 
     # OpenCV.
-    params = cv2.SimpleBlobDetector_Params()
-    params.filterByColor = True
-    params.blobColor = 255
-    params.minThreshold = 60
-    params.maxThreshold = 200
-    params.filterByArea = True
-    params.minArea = 12
-    params.maxArea = 40000
-    params.filterByCircularity = True
-    params.minCircularity = 0.7
-    params.filterByInertia = False
-    params.filterByConvexity = False
-    detector = cv2.SimpleBlobDetector_create(params)
+    detector = blob_detector()
     predicted, _ = cv2.projectPoints(points, cv2.Rodrigues(nominal_r)[0], nominal_t, k, dist)
     predicted = predicted.reshape(-1, 2)
     cv_results = []

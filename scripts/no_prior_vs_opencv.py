@@ -7,9 +7,9 @@ development script, not a dependency of the service).
     target/cv/bin/python scripts/no_prior_vs_opencv.py target/no-prior
 
 For every frame, on one thread: cv2.imread of the PGM file, SimpleBlobDetector over the whole
-frame (bright discs; the parameters `scripts/detect_vs_opencv.py` uses), the blobs matched to
-the marker's points projected from the frame's TRUE pose (OpenCV is given the identities for
-free: it does no search), solvePnP SQPNP then solvePnPRefineLM. Prints frames per second of wall
+frame (bright discs; `scripts/detect_vs_opencv.py`'s detector, imported from it), the blobs
+matched to the marker's points projected from the frame's TRUE pose (OpenCV is given the
+identities for free: it does no search), solvePnP SQPNP then solvePnPRefineLM. Prints frames per second of wall
 time over the loop (reading the files included, as the service's decoding is), how many frames
 it solved, and its pose error against the truth.
 """
@@ -21,6 +21,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from detect_vs_opencv import blob_detector
 
 
 def rotation_error_arcsec(r_est, r_true):
@@ -39,19 +41,7 @@ def main(folder, rounds=3):
     frames = truth["frames"]
     cv2.setNumThreads(1)
 
-    params = cv2.SimpleBlobDetector_Params()
-    params.filterByColor = True
-    params.blobColor = 255
-    params.minThreshold = 60
-    params.maxThreshold = 200
-    params.filterByArea = True
-    params.minArea = 12
-    params.maxArea = 40000
-    params.filterByCircularity = True
-    params.minCircularity = 0.7
-    params.filterByInertia = False
-    params.filterByConvexity = False
-    detector = cv2.SimpleBlobDetector_create(params)
+    detector = blob_detector()
     # The identities, for free: each point's image at the true pose.
     predicted = []
     for f in frames:

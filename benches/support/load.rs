@@ -1,5 +1,6 @@
-//! A server process's CPU time and the wall clock, for the load benches that run the release
-//! binary in its own process (`frames_load`, `frames_no_prior`; included by path).
+//! What the load benches that run the release binary in its own process share
+//! (`frames_load`, `frames_no_prior`; included by path): the server's CPU time, the wall
+//! clock, and a frame posted with its answer read.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -32,4 +33,29 @@ pub fn wall_ns() -> i64 {
         .duration_since(UNIX_EPOCH)
         .map(|d| d.as_nanos() as i64)
         .unwrap_or(0)
+}
+
+/// Posts one frame of `camera` at `time` to `POST {base}/api/v1/frames`: its answer, or what
+/// went wrong (the refusal's text, or the transport's error).
+pub async fn post_frame(
+    client: &reqwest::Client,
+    base: &str,
+    camera: &str,
+    time: &str,
+    format: brokenray::imagefile::FrameFormat,
+    body: Vec<u8>,
+) -> Result<serde_json::Value, String> {
+    let answer = client
+        .post(format!("{base}/api/v1/frames"))
+        .query(&[("camera", camera), ("time", time)])
+        .header("content-type", format.content_type())
+        .body(body)
+        .send()
+        .await
+        .map_err(|e| e.to_string())?;
+    if answer.status().is_success() {
+        Ok(answer.json().await.unwrap_or_default())
+    } else {
+        Err(answer.text().await.unwrap_or_default())
+    }
 }
