@@ -742,7 +742,12 @@ async fn mqtts_with_credentials_reaches_a_broker_that_asks_for_them_and_a_wrong_
     let mut outputs = Value::Null;
     for _ in 0..2000 {
         outputs = app.get("/api/v1/outputs").await.1;
-        if outputs[0]["connected"] == true && !outputs[1]["last_error"].is_null() {
+        // Connected, the status published (it is queued a moment before it is sent), and the
+        // wrong password refused.
+        if outputs[0]["connected"] == true
+            && outputs[0]["sent"].as_u64().unwrap_or(0) >= 1
+            && !outputs[1]["last_error"].is_null()
+        {
             break;
         }
         tokio::time::sleep(Duration::from_millis(10)).await;
