@@ -10,10 +10,52 @@ const OPERATOR_KEY = 'brokenray.operator';
 export const operator = () => { try { return localStorage.getItem(OPERATOR_KEY) || ''; } catch (_) { return ''; } };
 const rememberOperator = (name) => { try { localStorage.setItem(OPERATOR_KEY, name); } catch (_) { /* private mode */ } };
 
-// The acknowledgement cell: who and when once acknowledged; a button on a raised level.
+// Acknowledgements being written, by alarm id, with what was typed: the table is drawn again
+// on every refresh and new transition, and an open form must survive that.
+const drafts = new Map();
+
+// The acknowledgement form of alarm `a` in `cell`, from its draft (a new one: the remembered
+// operator, no note). Returns its first field.
+function ackForm(a, cell) {
+  if (!drafts.has(a.id)) drafts.set(a.id, { by: operator(), note: '' });
+  const draft = drafts.get(a.id);
+  const by = el('input', { type: 'text', name: 'by', placeholder: 'your name', 'aria-label': 'Acknowledged by', required: '', value: draft.by });
+  const note = el('input', { type: 'text', name: 'note', placeholder: 'note (optional)', 'aria-label': 'Note', value: draft.note });
+  by.addEventListener('input', () => { draft.by = by.value; });
+  note.addEventListener('input', () => { draft.note = note.value; });
+  const save = el('button', { type: 'submit', text: 'Save' });
+  const said = el('span', { class: 'muted small', role: 'status' });
+  const form = el('form', { class: 'ack-form' }, by, note, save, said);
+  form.addEventListener('submit', async (e) => {
+    e.preventDefault();
+    if (!by.value.trim()) { said.textContent = 'Say who acknowledges.'; return; }
+    save.disabled = true;
+    try {
+      const done = await api('/api/v1/alarms/' + a.id + '/ack', {
+        method: 'POST',
+        json: note.value.trim() ? { by: by.value.trim(), note: note.value.trim() } : { by: by.value.trim() },
+      });
+      rememberOperator(by.value.trim());
+      drafts.delete(a.id);
+      const i = state.alarms.findIndex((x) => x.id === a.id);
+      if (i >= 0) state.alarms[i] = done;
+      renderAlarms();
+    } catch (err) {
+      said.textContent = err.status === 403 ? 'Refused: this token lacks the admin scope.' : 'Refused: ' + err.message;
+      save.disabled = false;
+    }
+  });
+  cell.textContent = '';
+  cell.append(form);
+  return by;
+}
+
+// The acknowledgement cell: who and when once acknowledged; a button on a raised level, or
+// the form being written.
 function ackCell(a) {
   const cell = el('td', { class: 'ack' });
   if (a.acknowledged_by) {
+    drafts.delete(a.id);
     cell.append(el('span', { text: a.acknowledged_by }),
       el('div', { class: 'muted small', text: fmtTime(parseTime(a.acknowledged_at)) }));
     if (a.note) cell.append(el('div', { class: 'muted small', text: a.note }));
@@ -21,35 +63,12 @@ function ackCell(a) {
   }
   // A site's copy at a centre is read-only: the site's operators acknowledge its alarms.
   if (a.to === 'none' || a.id === undefined || state.site) return cell;
+  if (drafts.has(a.id)) {
+    ackForm(a, cell);
+    return cell;
+  }
   const button = el('button', { type: 'button', class: 'ghost', 'data-ack': String(a.id), text: 'Acknowledge' });
-  button.addEventListener('click', () => {
-    const by = el('input', { type: 'text', name: 'by', placeholder: 'your name', 'aria-label': 'Acknowledged by', required: '', value: operator() });
-    const note = el('input', { type: 'text', name: 'note', placeholder: 'note (optional)', 'aria-label': 'Note' });
-    const save = el('button', { type: 'submit', text: 'Save' });
-    const said = el('span', { class: 'muted small', role: 'status' });
-    const form = el('form', { class: 'ack-form' }, by, note, save, said);
-    form.addEventListener('submit', async (e) => {
-      e.preventDefault();
-      if (!by.value.trim()) { said.textContent = 'Say who acknowledges.'; return; }
-      save.disabled = true;
-      try {
-        const done = await api('/api/v1/alarms/' + a.id + '/ack', {
-          method: 'POST',
-          json: note.value.trim() ? { by: by.value.trim(), note: note.value.trim() } : { by: by.value.trim() },
-        });
-        rememberOperator(by.value.trim());
-        const i = state.alarms.findIndex((x) => x.id === a.id);
-        if (i >= 0) state.alarms[i] = done;
-        renderAlarms();
-      } catch (err) {
-        said.textContent = err.status === 403 ? 'Refused: this token lacks the admin scope.' : 'Refused: ' + err.message;
-        save.disabled = false;
-      }
-    });
-    cell.textContent = '';
-    cell.append(form);
-    by.focus();
-  });
+  button.addEventListener('click', () => ackForm(a, cell).focus());
   cell.append(button);
   return cell;
 }
@@ -67,12 +86,17 @@ function alarmRow(a) {
 
 function renderAlarms() {
   const body = $('alarms').tBodies[0];
+  // The field being typed in keeps the focus across the redraw.
+  const active = document.activeElement;
+  const row = active && body.contains(active) ? active.closest('tr[data-alarm]') : null;
+  const focused = row && active.name ? [row.dataset.alarm, active.name] : null;
   body.textContent = '';
   if (!state.alarms.length) {
     body.append(el('tr', { class: 'empty' }, el('td', { colspan: '7', text: 'No alarm transitions in the shown range.' })));
     return;
   }
   for (const a of state.alarms) body.append(alarmRow(a));
+  if (focused) body.querySelector(`tr[data-alarm="${focused[0]}"] input[name="${focused[1]}"]`)?.focus();
 }
 
 export async function loadAlarms(win) {
