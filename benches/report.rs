@@ -75,12 +75,14 @@ fn result(k: i64, source: ResultSource) -> NewResult {
         target: TargetId(0),
         source,
         time_ns: T0 + k * SECOND,
-        estimate: PoseCov {
-            pose,
-            cov: Mat6::identity() * 1e-9,
+        estimate: brokenray::deformation::MeasuredPose {
+            whole: PoseCov {
+                pose,
+                cov: Mat6::identity() * 1e-9,
+            },
+            systematic_cov: Mat6::identity() * 1e-10,
+            calibration: Some(brokenray::deformation::CalibrationStamp(0)),
         },
-        systematic_cov: Mat6::identity() * 1e-10,
-        calibration: brokenray::deformation::CalibrationStamp(0),
         status: brokenray::bank::TargetStatus::Ok,
         age_s: 0.0,
         chi2: None,

@@ -185,11 +185,8 @@ fn main() {
             for s in &samples {
                 let out = bank.ingest(s).expect("ingest");
                 for r in out.raw_results.iter().filter(|r| r.target == target) {
-                    raws.push((r.time_ns, r.target_from_base.pose));
-                    let random = PoseCov {
-                        pose: r.target_from_base.pose,
-                        cov: r.random_cov(),
-                    };
+                    raws.push((r.time_ns, r.target_from_base.whole.pose));
+                    let random = r.target_from_base.random();
                     if let Some(truth) = truth_at.get(&r.time_ns)
                         && let Some((n, _)) = nees(&random, truth)
                     {
@@ -201,13 +198,7 @@ fn main() {
                     // Judged by the random part: the simulator's cameras and stations are the
                     // configured ones, so the calibrations' part is an upper bound here.
                     if let Some(p) = f.target_from_base {
-                        filtered.push((
-                            f.time_ns,
-                            PoseCov {
-                                pose: p.pose,
-                                cov: p.cov - f.systematic_cov,
-                            },
-                        ));
+                        filtered.push((f.time_ns, p.random()));
                     }
                 }
             }

@@ -75,14 +75,11 @@ impl CalibrationStamp {
 /// A target's zero reading.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Reference {
-    /// `G0_from_B`, with the whole covariance of its estimate (zero when explicit).
-    pub g0_from_b: PoseCov,
+    /// `G0_from_B` as measured: its whole covariance (zero when explicit), the systematic part
+    /// and the calibrations its results were measured with (`None`: explicit, or not known).
+    pub g0_from_b: MeasuredPose,
     /// How it was set.
     pub origin: ReferenceOrigin,
-    /// The systematic part of `g0_from_b`'s covariance (zero when explicit).
-    pub systematic_cov: Mat6,
-    /// The calibrations its results were measured with (`None`: explicit, or not known).
-    pub calibration: Option<CalibrationStamp>,
 }
 
 /// The covariance of a window's mean: the filter's own (time-correlated) uncertainty, which
@@ -108,10 +105,8 @@ impl Reference {
     /// An explicit reference pose (exact).
     pub fn explicit(g0_from_b: Pose) -> Self {
         Self {
-            g0_from_b: PoseCov::exact(g0_from_b),
+            g0_from_b: MeasuredPose::exact(g0_from_b),
             origin: ReferenceOrigin::Explicit,
-            systematic_cov: Mat6::zeros(),
-            calibration: None,
         }
     }
 
@@ -119,35 +114,42 @@ impl Reference {
     /// part the scatter of the poses over their count, never less than the mean of their own
     /// random covariances (filtered poses are correlated in time, so their scatter alone would
     /// claim too much); its systematic part their mean systematic covariance, which averaging
-    /// does not reduce. `systematic` gives each pose's systematic part (as many as `poses`, or
-    /// none: zero), `calibration` the calibrations the window was measured with when they were
-    /// the same throughout.
+    /// does not reduce; its calibrations the window's when they were the same throughout.
     pub fn from_window(
-        poses: &[PoseCov],
-        systematic: &[Mat6],
-        calibration: Option<CalibrationStamp>,
+        poses: &[MeasuredPose],
         from_ns: i64,
         to_ns: i64,
     ) -> Result<Self, GeometryError> {
-        let plain: Vec<Pose> = poses.iter().map(|p| p.pose).collect();
+        let plain: Vec<Pose> = poses.iter().map(|p| p.whole.pose).collect();
         let mean = mean_pose(&plain)?;
         let n = poses.len() as f64;
-        let systematic_cov = systematic.iter().fold(Mat6::zeros(), |acc, s| acc + s) / n;
-        let mean_own_random =
-            poses.iter().fold(Mat6::zeros(), |acc, p| acc + p.cov) / n - systematic_cov;
+        let systematic_cov = poses
+            .iter()
+            .fold(Mat6::zeros(), |acc, p| acc + p.systematic_cov)
+            / n;
+        let mean_own_random = poses
+            .iter()
+            .fold(Mat6::zeros(), |acc, p| acc + p.random().cov)
+            / n;
         let cov = window_covariance(&mean.mean.cov, &mean_own_random) + systematic_cov;
+        let calibration = poses
+            .first()
+            .and_then(|p| p.calibration)
+            .filter(|c| poses.iter().all(|p| p.calibration == Some(*c)));
         Ok(Self {
-            g0_from_b: PoseCov {
-                pose: mean.mean.pose,
-                cov,
+            g0_from_b: MeasuredPose {
+                whole: PoseCov {
+                    pose: mean.mean.pose,
+                    cov,
+                },
+                systematic_cov,
+                calibration,
             },
             origin: ReferenceOrigin::Window {
                 from_ns,
                 to_ns,
                 count: mean.count,
             },
-            systematic_cov,
-            calibration,
         })
     }
 }
@@ -155,56 +157,92 @@ impl Reference {
 /// Deformation and correction of a target at one time.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Deformation {
-    /// `G0_from_G` with its whole covariance.
-    pub g0_from_g: PoseCov,
+    /// `G0_from_G` with its whole covariance and its systematic part: zero when the reference
+    /// and the result share their calibrations (it cancels), both parts otherwise. No
+    /// calibrations of its own (it is a difference of two measurements).
+    pub g0_from_g: MeasuredPose,
     /// `G_from_G0` with its whole covariance: the correction.
     pub g_from_g0: PoseCov,
-    /// The systematic part of `g0_from_g`'s covariance: zero when the reference and the result
-    /// share their calibrations (it cancels), both parts otherwise.
-    pub systematic_cov: Mat6,
 }
 
-/// A result to compare with a reference: `G_from_B` with its whole covariance, the systematic
-/// part of it, and the calibrations it was measured with.
+/// A pose as measured: its whole covariance, the systematic part of it told apart, and the
+/// calibrations it was measured with. The one type every result, estimate, reference and
+/// deformation carries its uncertainty in, and the one place the random part is computed.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Measured<'a> {
-    /// `G_from_B` with its whole covariance.
-    pub g_from_b: &'a PoseCov,
-    /// The systematic part of that covariance.
-    pub systematic_cov: &'a Mat6,
-    /// Its calibrations, when known.
+pub struct MeasuredPose {
+    /// The pose with its whole covariance (random and systematic).
+    pub whole: PoseCov,
+    /// The systematic part of that covariance: cameras' intrinsics and calibrated links, the
+    /// same error in every result of that geometry.
+    pub systematic_cov: Mat6,
+    /// The calibrations it was measured with, when known.
     pub calibration: Option<CalibrationStamp>,
 }
 
-impl Measured<'_> {
+impl MeasuredPose {
+    /// An exact pose (no uncertainty, no calibrations).
+    pub fn exact(pose: Pose) -> Self {
+        Self::whole(PoseCov::exact(pose))
+    }
+
+    /// A pose known with its whole covariance alone (no systematic part told apart, no
+    /// calibrations known).
+    pub fn whole(whole: PoseCov) -> Self {
+        Self {
+            whole,
+            systematic_cov: Mat6::zeros(),
+            calibration: None,
+        }
+    }
+
+    /// The pose.
+    pub fn pose(&self) -> &Pose {
+        &self.whole.pose
+    }
+
     /// The random part: the whole covariance less the systematic part (the noise, what
-    /// averaging and filtering bring down). The one place the split is computed.
+    /// averaging and filtering bring down).
     pub fn random(&self) -> PoseCov {
         PoseCov {
-            pose: self.g_from_b.pose,
-            cov: self.g_from_b.cov - self.systematic_cov,
+            pose: self.whole.pose,
+            cov: Self::random_of(&self.whole.cov, &self.systematic_cov),
         }
+    }
+
+    /// The random part of a whole covariance with its systematic part: the one place the
+    /// split is computed (also for stored covariances read without their pose).
+    pub fn random_of(whole_cov: &Mat6, systematic_cov: &Mat6) -> Mat6 {
+        whole_cov - systematic_cov
     }
 
     /// The systematic part alone (the calibrations' error, the same in every result of that
     /// geometry).
     pub fn systematic(&self) -> PoseCov {
         PoseCov {
-            pose: self.g_from_b.pose,
-            cov: *self.systematic_cov,
+            pose: self.whole.pose,
+            cov: self.systematic_cov,
+        }
+    }
+
+    /// The standard deviations of the whole, random and systematic covariances.
+    pub fn sigmas(&self) -> PartSigmas {
+        PartSigmas {
+            whole: self.whole.reported_sigmas(),
+            random: self.random().reported_sigmas(),
+            systematic: self.systematic().reported_sigmas(),
         }
     }
 }
 
-impl Reference {
-    /// The reference's pose with its covariance told apart, as a result's is.
-    pub fn measured(&self) -> Measured<'_> {
-        Measured {
-            g_from_b: &self.g0_from_b,
-            systematic_cov: &self.systematic_cov,
-            calibration: self.calibration,
-        }
-    }
+/// The sigmas of a measured pose: whole, and its random and systematic parts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PartSigmas {
+    /// Of the whole covariance.
+    pub whole: ReportedSigmas,
+    /// Of its random part.
+    pub random: ReportedSigmas,
+    /// Of its systematic part.
+    pub systematic: ReportedSigmas,
 }
 
 /// A rotation vector in arc-seconds and a translation in mm, with their sigmas.
@@ -283,59 +321,35 @@ impl Displacement {
 }
 
 impl Deformation {
-    /// `G0_from_G` with its covariance told apart, as a result's is.
-    pub fn measured(&self) -> Measured<'_> {
-        Measured {
-            g_from_b: &self.g0_from_g,
-            systematic_cov: &self.systematic_cov,
-            calibration: None,
-        }
-    }
-
     /// The deformation of a result against a reference (see the module docs for which
     /// uncertainty it carries).
-    pub fn new(reference: &Reference, measured: Measured<'_>) -> Self {
-        let g = measured.g_from_b;
-        let shared =
-            reference.calibration.is_some() && reference.calibration == measured.calibration;
-        let (r, m) = if shared {
-            (reference.measured().random(), measured.random())
+    pub fn new(reference: &Reference, measured: &MeasuredPose) -> Self {
+        let r = &reference.g0_from_b;
+        let shared = r.calibration.is_some() && r.calibration == measured.calibration;
+        let (rp, mp) = if shared {
+            (r.random(), measured.random())
         } else {
-            (reference.g0_from_b, *g)
+            (r.whole, measured.whole)
         };
-        let g0_from_g = r.compose(&m.inverse());
+        let whole = rp.compose(&mp.inverse());
         let systematic_cov = if shared {
             Mat6::zeros()
         } else {
-            reference
-                .measured()
-                .systematic()
-                .compose(&measured.systematic().inverse())
-                .cov
+            r.systematic().compose(&measured.systematic().inverse()).cov
         };
         Self {
-            g0_from_g,
-            g_from_g0: g0_from_g.inverse(),
-            systematic_cov,
-        }
-    }
-
-    /// The deformation of a pose known with its whole covariance alone (no systematic part
-    /// told apart, no calibrations known).
-    pub fn of_pose(reference: &Reference, g_from_b: &PoseCov) -> Self {
-        Self::new(
-            reference,
-            Measured {
-                g_from_b,
-                systematic_cov: &Mat6::zeros(),
+            g0_from_g: MeasuredPose {
+                whole,
+                systematic_cov,
                 calibration: None,
             },
-        )
+            g_from_g0: whole.inverse(),
+        }
     }
 
     /// The deformation as users read it (`G0_from_G`).
     pub fn deformation(&self) -> SmallMotion {
-        small_motion(&self.g0_from_g)
+        small_motion(&self.g0_from_g.whole)
     }
 
     /// The correction as users read it (`G_from_G0`).

@@ -24,16 +24,26 @@ pub async fn fill_filtered_results(inst: &Installation, n: i64) {
                     target: brokenray::model::TargetId(0),
                     source: ResultSource::Filtered,
                     time_ns: T0 + k * PERIOD_NS,
-                    estimate: PoseCov {
-                        pose: Pose::from_parts(
-                            Translation3::new((t / 8.0).sin(), -2952.0, 532.0 + (t / 15.0).cos()),
-                            rotation_from_euler([-0.0718, 0.026, 2.87 + 1e-5 * (t / 8.0).sin()])
+                    estimate: brokenray::deformation::MeasuredPose {
+                        whole: PoseCov {
+                            pose: Pose::from_parts(
+                                Translation3::new(
+                                    (t / 8.0).sin(),
+                                    -2952.0,
+                                    532.0 + (t / 15.0).cos(),
+                                ),
+                                rotation_from_euler([
+                                    -0.0718,
+                                    0.026,
+                                    2.87 + 1e-5 * (t / 8.0).sin(),
+                                ])
                                 .expect("rotation"),
-                        ),
-                        cov: Mat6::identity() * 1e-6,
+                            ),
+                            cov: Mat6::identity() * 1e-6,
+                        },
+                        systematic_cov: Mat6::identity() * 1e-7,
+                        calibration: Some(brokenray::deformation::CalibrationStamp(0)),
                     },
-                    systematic_cov: Mat6::identity() * 1e-7,
-                    calibration: brokenray::deformation::CalibrationStamp(0),
                     status: brokenray::bank::TargetStatus::Ok,
                     age_s: 0.0,
                     chi2: None,

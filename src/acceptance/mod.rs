@@ -36,8 +36,8 @@ pub mod procedure;
 pub use procedure::{Offered, Phase, Plan, PlannedMove, Procedure, StepDone, StepFigures};
 
 use crate::chain::chi_square_quantile;
-use crate::deformation::CalibrationStamp;
 pub use crate::deformation::Displacement;
+use crate::deformation::{CalibrationStamp, MeasuredPose};
 use crate::geometry::{ARCSEC_PER_RAD, Mat6, Pose, PoseCov, mean_pose, skew, so3_log};
 
 /// Probability with which the halves of a settled window agree (the chi-square quantile the
@@ -95,17 +95,6 @@ pub enum AcceptanceError {
     Degenerate(String),
 }
 
-/// One raw result as the procedure uses it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RawPoint {
-    /// `G_from_B`.
-    pub g_from_b: Pose,
-    /// The random part of its covariance (left perturbation).
-    pub random_cov: Mat6,
-    /// The systematic part of its covariance.
-    pub systematic_cov: Mat6,
-}
-
 /// The mean of a window of raw results.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WindowMean {
@@ -120,19 +109,19 @@ pub struct WindowMean {
 }
 
 /// The mean of a window's results.
-pub fn window_mean(points: &[RawPoint]) -> Result<WindowMean, AcceptanceError> {
+pub fn window_mean(points: &[MeasuredPose]) -> Result<WindowMean, AcceptanceError> {
     let count = points.len();
     if count < MIN_RESULTS {
         return Err(AcceptanceError::TooFew { count });
     }
-    let poses: Vec<Pose> = points.iter().map(|p| p.g_from_b).collect();
+    let poses: Vec<Pose> = points.iter().map(|p| p.whole.pose).collect();
     let mean = mean_pose(&poses).map_err(|e| AcceptanceError::Degenerate(e.to_string()))?;
     let n = count as f64;
-    let sum = |f: fn(&RawPoint) -> Mat6| points.iter().fold(Mat6::zeros(), |acc, p| acc + f(p));
+    let sum = |f: fn(&MeasuredPose) -> Mat6| points.iter().fold(Mat6::zeros(), |acc, p| acc + f(p));
     Ok(WindowMean {
         count,
         g_from_b: mean.mean.pose,
-        random_cov: sum(|p| p.random_cov) / (n * n),
+        random_cov: sum(|p| p.random().cov) / (n * n),
         systematic_cov: sum(|p| p.systematic_cov) / n,
     })
 }
@@ -252,7 +241,7 @@ pub struct StillFigures {
 
 /// The figures of a still window of results with its mean.
 pub fn still_figures(
-    points: &[RawPoint],
+    points: &[MeasuredPose],
     mean: &WindowMean,
     limits: &Limits,
 ) -> Result<StillFigures, AcceptanceError> {
@@ -263,7 +252,7 @@ pub fn still_figures(
     let displacements: Vec<(PoseCov, [f64; 6])> = points
         .iter()
         .map(|p| {
-            let d = displacement_of(&mean.g_from_b, &p.g_from_b, &p.random_cov);
+            let d = displacement_of(&mean.g_from_b, p.pose(), &p.random().cov);
             let axes = internal_axes(&d.pose);
             (d, axes)
         })
@@ -495,13 +484,14 @@ mod tests {
     }
 
     /// `n` raw results of a target displaced by `d` from `still`, with `cov` noise.
-    fn results(rng: &mut StdRng, still: &Pose, d: &Displacement, n: usize) -> Vec<RawPoint> {
+    fn results(rng: &mut StdRng, still: &Pose, d: &Displacement, n: usize) -> Vec<MeasuredPose> {
         let truth = d.g0_from_g().inverse() * still;
         (0..n)
-            .map(|_| RawPoint {
-                g_from_b: se3_exp(&draw(rng, &noise_cov())) * truth,
-                random_cov: noise_cov(),
-                systematic_cov: Mat6::zeros(),
+            .map(|_| {
+                MeasuredPose::whole(PoseCov {
+                    pose: se3_exp(&draw(rng, &noise_cov())) * truth,
+                    cov: noise_cov(),
+                })
             })
             .collect()
     }
@@ -597,11 +587,13 @@ mod tests {
         }
         assert_eq!(f.dof, 6 * 499);
         // The same scatter reported with half the sigmas: the repeatability fails.
-        let claimed: Vec<RawPoint> = points
+        let claimed: Vec<MeasuredPose> = points
             .iter()
-            .map(|p| RawPoint {
-                random_cov: p.random_cov / 4.0,
-                ..*p
+            .map(|p| {
+                MeasuredPose::whole(PoseCov {
+                    cov: p.whole.cov / 4.0,
+                    ..p.whole
+                })
             })
             .collect();
         let f = still_figures(&claimed, &window_mean(&claimed).unwrap(), &LIMITS).unwrap();

@@ -9,9 +9,11 @@
 //!
 //! Pure: the caller reads the results of a window and hands them in.
 
+use crate::deformation::MeasuredPose;
+
 use super::{
-    AcceptanceError, Displacement, Limits, MoveFigures, RawPoint, Settling, StillFigures,
-    WindowMean, move_figures, settling, still_figures, window_mean,
+    AcceptanceError, Displacement, Limits, MoveFigures, Settling, StillFigures, WindowMean,
+    move_figures, settling, still_figures, window_mean,
 };
 
 /// How many times a window that has not settled slides on before the step fails.
@@ -211,7 +213,7 @@ impl Procedure {
     /// Hands in the current window's results of each target the step measures (in
     /// [`Plan::step_targets`]'s order, each oldest first); called once results past the
     /// window's end are in.
-    pub fn offer(&mut self, results: &[Vec<RawPoint>]) -> Offered {
+    pub fn offer(&mut self, results: &[Vec<MeasuredPose>]) -> Offered {
         let (Some(k), Some(window)) = (self.current(), self.window_ns) else {
             return Offered::StepDone;
         };
@@ -244,7 +246,7 @@ impl Procedure {
         Offered::StepDone
     }
 
-    fn figures(&mut self, k: usize, results: &[Vec<RawPoint>]) -> StepFigures {
+    fn figures(&mut self, k: usize, results: &[Vec<MeasuredPose>]) -> StepFigures {
         let limits = self.plan.limits;
         if k == 0 {
             let mut still = Vec::new();
@@ -284,7 +286,7 @@ impl Procedure {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::{ARCSEC_PER_RAD, Mat6, Pose, Twist, se3_exp};
+    use crate::geometry::{ARCSEC_PER_RAD, Mat6, Pose, PoseCov, Twist, se3_exp};
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
     use rand_distr::StandardNormal;
@@ -317,17 +319,16 @@ mod tests {
         Mat6::from_diagonal(&nalgebra::Vector6::new(t, t, t, r, r, r))
     }
 
-    fn points(rng: &mut StdRng, truth: &Pose, n: usize, drift_mm: f64) -> Vec<RawPoint> {
+    fn points(rng: &mut StdRng, truth: &Pose, n: usize, drift_mm: f64) -> Vec<MeasuredPose> {
         let l = cov().cholesky().unwrap().l();
         (0..n)
             .map(|i| {
                 let mut xi = l * Twist::from_fn(|_, _| rng.sample::<f64, _>(StandardNormal));
                 xi[0] += drift_mm * i as f64 / n as f64;
-                RawPoint {
-                    g_from_b: se3_exp(&xi) * truth,
-                    random_cov: cov(),
-                    systematic_cov: Mat6::zeros(),
-                }
+                MeasuredPose::whole(PoseCov {
+                    pose: se3_exp(&xi) * truth,
+                    cov: cov(),
+                })
             })
             .collect()
     }

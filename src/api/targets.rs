@@ -6,8 +6,7 @@ use super::error::{ApiError, ErrorBody};
 use super::query::Query;
 use crate::bank::{TargetEstimate, TargetStatus};
 use crate::clock::{format_ns, parse_query_time};
-use crate::deformation::ReferenceOrigin;
-use crate::deformation::ReferenceVersion;
+use crate::deformation::{MeasuredPose, ReferenceOrigin, ReferenceVersion};
 use crate::model::TargetId;
 use crate::model::TargetSpec;
 use crate::service::ReferenceRequest;
@@ -128,7 +127,8 @@ pub(super) struct WindowOut {
 
 impl From<&ReferenceVersion> for ReferenceOut {
     fn from(r: &ReferenceVersion) -> Self {
-        let p = PoseOut::from(&r.reference.g0_from_b.pose);
+        let p = PoseOut::from(r.reference.g0_from_b.pose());
+        let sigmas = r.reference.g0_from_b.sigmas();
         let (origin, window) = match r.reference.origin {
             ReferenceOrigin::Explicit => (super::vocab::ReferenceOriginKind::Explicit, None),
             ReferenceOrigin::Window {
@@ -152,9 +152,9 @@ impl From<&ReferenceVersion> for ReferenceOut {
             version: r.version,
             origin,
             window,
-            sigma: (&r.reference.g0_from_b).into(),
-            sigma_random: (&r.reference.measured().random()).into(),
-            sigma_systematic: (&r.reference.measured().systematic()).into(),
+            sigma: sigmas.whole.into(),
+            sigma_random: sigmas.random.into(),
+            sigma_systematic: sigmas.systematic.into(),
         }
     }
 }
@@ -266,7 +266,7 @@ pub(super) fn compensation_out(
     reference: Option<&ReferenceVersion>,
 ) -> CompensationOut {
     let deformation = e.deformation(reference);
-    let measured = e.measured();
+    let sigmas = e.estimate.as_ref().map(MeasuredPose::sigmas);
     CompensationOut {
         target: target.name.to_owned(),
         base: target.base.to_owned(),
@@ -274,20 +274,20 @@ pub(super) fn compensation_out(
         age_s: e.age_s,
         status: e.status,
         source: e.source,
-        pose: e.estimate.as_ref().map(|e| (&e.pose).into()),
-        sigma: e.estimate.as_ref().map(Into::into),
-        sigma_random: measured.as_ref().map(|m| SigmaOut::from(&m.random())),
-        sigma_systematic: measured.as_ref().map(|m| SigmaOut::from(&m.systematic())),
+        pose: e.estimate.as_ref().map(|e| e.pose().into()),
+        sigma: sigmas.map(|s| s.whole.into()),
+        sigma_random: sigmas.map(|s| s.random.into()),
+        sigma_systematic: sigmas.map(|s| s.systematic.into()),
         reference: reference.map(Into::into),
         deformation: deformation.map(|d| {
             let m = d.deformation();
-            let parts = d.measured();
+            let parts = d.g0_from_g.sigmas();
             DeformationOut {
                 rotation_arcsec: m.rotation_arcsec,
                 translation_mm: m.translation_mm,
                 sigma: m.sigmas.into(),
-                sigma_random: SigmaOut::from(&parts.random()),
-                sigma_systematic: SigmaOut::from(&parts.systematic()),
+                sigma_random: parts.random.into(),
+                sigma_systematic: parts.systematic.into(),
             }
         }),
         correction: deformation.map(|d| {

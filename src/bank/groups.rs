@@ -230,12 +230,14 @@ impl FilterBank {
                     RawResult {
                         target: ti,
                         time_ns,
-                        target_from_base: PoseCov {
-                            pose: sourced.pose,
-                            cov: random + systematic,
+                        target_from_base: MeasuredPose {
+                            whole: PoseCov {
+                                pose: sourced.pose,
+                                cov: random + systematic,
+                            },
+                            systematic_cov: systematic,
+                            calibration: Some(self.calibration_stamp(ti, time_ns)),
                         },
-                        systematic_cov: systematic,
-                        calibration: self.calibration_stamp(ti, time_ns),
                         consistency: f.consistency,
                     },
                     sourced,

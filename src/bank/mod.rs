@@ -22,7 +22,7 @@ use crate::chain::{
     Budget, Consistency, Contributor, ErrorTerms, Factor, LinkId, SourcedPose, compose_path,
     compose_path_terms, factor_of_covariance, fuse, fuse_terms,
 };
-use crate::deformation::{CalibrationStamp, Measured};
+use crate::deformation::{CalibrationStamp, MeasuredPose};
 use crate::filter::{
     BankSettings, Bounds, Disposition, FilterError, FilterTuning, InnovationReport,
     InnovationWindow, LinkFilter, LinkFilterRecord, MotionEstimator, MotionFit, MotionModel,
@@ -102,33 +102,16 @@ pub struct RawResult {
     pub target: TargetId,
     /// The group's time (ns).
     pub time_ns: i64,
-    /// `target_from_base` composed from the raw samples, with its whole covariance (random and
-    /// systematic).
-    pub target_from_base: PoseCov,
-    /// The systematic part of that covariance: cameras' intrinsics and calibrations, the same
-    /// error in every result of that geometry (the rest is the samples' noise).
-    pub systematic_cov: Mat6,
-    /// The calibrations it was measured with.
-    pub calibration: CalibrationStamp,
+    /// `target_from_base` composed from the raw samples, with its whole covariance, the
+    /// systematic part of it (cameras' intrinsics and calibrations, the same error in every
+    /// result of that geometry; the rest is the samples' noise) and the calibrations it was
+    /// measured with.
+    pub target_from_base: MeasuredPose,
     /// Disagreement of redundant paths, where there are several.
     pub consistency: Option<Consistency>,
 }
 
 impl RawResult {
-    /// The random part of the covariance: the samples' noise, what filtering averages down.
-    pub fn random_cov(&self) -> Mat6 {
-        self.measured().random().cov
-    }
-
-    /// The result as a deformation compares it with a reference.
-    pub fn measured(&self) -> Measured<'_> {
-        Measured {
-            g_from_b: &self.target_from_base,
-            systematic_cov: &self.systematic_cov,
-            calibration: Some(self.calibration),
-        }
-    }
-
     /// Its status: degraded when its redundant paths disagree beyond chance, ok otherwise (a
     /// raw result is never stale: it is made from samples of one instant).
     pub fn status(&self) -> TargetStatus {
@@ -200,31 +183,16 @@ pub struct TargetEstimate {
     /// Its status.
     pub status: TargetStatus,
     /// `target_from_base` with its whole covariance (the filter's, which is random, and the
-    /// systematic part); `None` while initialising.
-    pub target_from_base: Option<PoseCov>,
-    /// The systematic part of that covariance (cameras' intrinsics and calibrations: no
-    /// filtering reduces it); zero when every calibration is taken as exact.
-    pub systematic_cov: Mat6,
-    /// The calibrations it was measured with.
-    pub calibration: CalibrationStamp,
+    /// systematic part: cameras' intrinsics and calibrations, which no filtering reduces, zero
+    /// when every calibration is taken as exact) and the calibrations it was measured with;
+    /// `None` while initialising.
+    pub target_from_base: Option<MeasuredPose>,
     /// Time since the newest sample on the path (s); 0 when evaluated at that sample.
     pub age_s: f64,
     /// Disagreement of redundant paths, where several had data.
     pub consistency: Option<Consistency>,
     /// How many of the target's independent paths had data.
     pub paths_used: usize,
-}
-
-impl TargetEstimate {
-    /// The estimate `g_from_b` (its `target_from_base`) as a deformation compares it with a
-    /// reference.
-    pub fn measured<'a>(&'a self, g_from_b: &'a PoseCov) -> Measured<'a> {
-        Measured {
-            g_from_b,
-            systematic_cov: &self.systematic_cov,
-            calibration: Some(self.calibration),
-        }
-    }
 }
 
 /// A link's state in the bank (the default: nothing seen yet).
@@ -623,10 +591,7 @@ impl FilterBank {
             if self.frontier_ns[ti.0].is_some_and(|f| raw.time_ns <= f) {
                 continue;
             }
-            let random = PoseCov {
-                pose: raw.target_from_base.pose,
-                cov: raw.random_cov(),
-            };
+            let random = raw.target_from_base.random();
             let d = self.tracks[ti.0].update(raw.time_ns, &random, terms);
             if d.is_outlier() || matches!(d, Disposition::OutOfOrder { .. }) {
                 continue;
@@ -779,8 +744,6 @@ impl FilterBank {
                 time_ns,
                 status: TargetStatus::Initializing,
                 target_from_base: None,
-                systematic_cov: Mat6::zeros(),
-                calibration: self.calibration_stamp(target, time_ns),
                 age_s: 0.0,
                 consistency: None,
                 paths_used,
@@ -844,9 +807,11 @@ impl FilterBank {
             target,
             time_ns,
             status,
-            target_from_base: Some(pose),
-            systematic_cov,
-            calibration: self.calibration_stamp(target, time_ns),
+            target_from_base: Some(MeasuredPose {
+                whole: pose,
+                systematic_cov,
+                calibration: Some(self.calibration_stamp(target, time_ns)),
+            }),
             age_s,
             consistency: fused.consistency,
             paths_used,

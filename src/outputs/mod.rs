@@ -188,10 +188,7 @@ impl TargetFigures {
             service.installation().server.clock_tolerance_s,
         );
         let d = match (&latest.target_from_base, &view.reference) {
-            (Some(e), Some(r)) => Some(crate::deformation::Deformation::new(
-                &r.reference,
-                latest.measured(e),
-            )),
+            (Some(e), Some(r)) => Some(crate::deformation::Deformation::new(&r.reference, e)),
             _ => None,
         };
         Some(TargetFigures {

@@ -18,8 +18,8 @@
 
 use super::{Service, ServiceError, ServiceResult, job};
 use crate::acceptance::{
-    Displacement, Limits, MoveFigures, Offered, Phase, Procedure, RawPoint, Standing, StepFigures,
-    StepKind, StillFigures, standing,
+    Displacement, Limits, MoveFigures, Offered, Phase, Procedure, Standing, StepFigures, StepKind,
+    StillFigures, standing,
 };
 use crate::bank::ResultSource;
 use crate::clock::format_ns;
@@ -368,17 +368,8 @@ impl Service {
                     .store()
                     .results(TargetId(t), ResultSource::Raw, from, to, MAX_WINDOW_RESULTS)
                     .await?;
-                run.stamps[t].extend(results.iter().map(|r| r.calibration));
-                windows.push(
-                    results
-                        .iter()
-                        .map(|r| RawPoint {
-                            g_from_b: r.estimate.pose,
-                            random_cov: r.measured().random().cov,
-                            systematic_cov: r.systematic_cov,
-                        })
-                        .collect::<Vec<_>>(),
-                );
+                run.stamps[t].extend(results.iter().map(|r| r.estimate.calibration));
+                windows.push(results.iter().map(|r| r.estimate).collect::<Vec<_>>());
             }
             if run.procedure.offer(&windows) == Offered::StepDone {
                 run.deadline_ns = None;
@@ -578,7 +569,7 @@ impl Service {
                 .store()
                 .latest_result(TargetId(t), ResultSource::Raw)
                 .await?;
-            latest.push(r.map(|r| (r.time_ns, r.calibration.map(|s| s.0))));
+            latest.push(r.map(|r| (r.time_ns, r.estimate.calibration.map(|s| s.0))));
         }
         Ok(CurrentState {
             resets: self.store().last_link_resets().await?,

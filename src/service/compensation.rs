@@ -6,8 +6,7 @@
 use super::{Service, ServiceError};
 use crate::bank::{ResultSource, TargetEstimate, TargetStatus};
 use crate::clock::format_ns;
-use crate::deformation::{CalibrationStamp, Deformation, Measured, ReferenceVersion};
-use crate::geometry::{Mat6, PoseCov};
+use crate::deformation::{Deformation, MeasuredPose, ReferenceVersion};
 use crate::model::TargetId;
 
 crate::words! {
@@ -33,12 +32,8 @@ pub struct Evaluated {
     pub age_s: Option<f64>,
     /// Where it came from.
     pub source: CompensationSource,
-    /// `G_from_B` with its whole covariance.
-    pub estimate: Option<PoseCov>,
-    /// The systematic part of `estimate`'s covariance.
-    pub systematic_cov: Mat6,
-    /// The calibrations it was measured with, when known.
-    pub calibration: Option<CalibrationStamp>,
+    /// `G_from_B` with its whole covariance, its systematic part and its calibrations.
+    pub estimate: Option<MeasuredPose>,
     /// Redundant paths' agreement, where several were fused.
     pub consistency: Option<crate::chain::Consistency>,
 }
@@ -52,8 +47,6 @@ impl Evaluated {
             age_s: None,
             source,
             estimate: None,
-            systematic_cov: Mat6::zeros(),
-            calibration: None,
             consistency: None,
         }
     }
@@ -66,8 +59,6 @@ impl Evaluated {
             age_s: Some(r.age_s),
             source,
             estimate: Some(r.estimate),
-            systematic_cov: r.systematic_cov,
-            calibration: r.calibration,
             consistency: None,
         }
     }
@@ -80,24 +71,16 @@ impl Evaluated {
             age_s: Some(e.age_s),
             source,
             estimate: e.target_from_base,
-            systematic_cov: e.systematic_cov,
-            calibration: Some(e.calibration),
             consistency: e.consistency,
         }
     }
 
-    /// The estimate viewed with its random and systematic parts told apart.
-    pub fn measured(&self) -> Option<Measured<'_>> {
-        self.estimate.as_ref().map(|g_from_b| Measured {
-            g_from_b,
-            systematic_cov: &self.systematic_cov,
-            calibration: self.calibration,
-        })
-    }
-
     /// The deformation against `reference` (none without a result or a reference).
     pub fn deformation(&self, reference: Option<&ReferenceVersion>) -> Option<Deformation> {
-        Some(Deformation::new(&reference?.reference, self.measured()?))
+        Some(Deformation::new(
+            &reference?.reference,
+            self.estimate.as_ref()?,
+        ))
     }
 
     /// Target `ti`'s stored filtered results in `store` at `at_ns`, interpolated between the
@@ -117,10 +100,15 @@ impl Evaluated {
                 format_ns(at_ns)
             )));
         };
+        // The pose and its whole covariance interpolated; the systematic part and the
+        // calibrations are the earlier result's.
         let estimate = match after {
             Some(after) if before.time_ns < at_ns => {
                 let a = (at_ns - before.time_ns) as f64 / (after.time_ns - before.time_ns) as f64;
-                before.estimate.interpolate(&after.estimate, a)
+                MeasuredPose {
+                    whole: before.estimate.whole.interpolate(&after.estimate.whole, a),
+                    ..before.estimate
+                }
             }
             _ => before.estimate,
         };

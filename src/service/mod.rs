@@ -112,12 +112,8 @@ pub struct TargetView {
 impl TargetView {
     /// The deformation of the newest result against the current reference.
     pub fn deformation(&self) -> Option<Deformation> {
-        let latest = self.latest.as_ref()?;
-        let estimate = latest.target_from_base?;
-        Some(Deformation::new(
-            &self.reference?.reference,
-            latest.measured(&estimate),
-        ))
+        let estimate = self.latest.as_ref()?.target_from_base.as_ref()?;
+        Some(Deformation::new(&self.reference?.reference, estimate))
     }
 }
 
@@ -417,10 +413,6 @@ impl Service {
                     time_ns: r.time_ns,
                     status: r.status,
                     target_from_base: Some(r.estimate),
-                    systematic_cov: r.systematic_cov,
-                    calibration: r
-                        .calibration
-                        .unwrap_or(crate::deformation::CalibrationStamp(0)),
                     age_s: r.age_s,
                     consistency: None,
                     paths_used: 0,

@@ -7,7 +7,7 @@ use super::{
 use crate::bank::{BankRecord, FilterBank, ResultSource, Sample, TargetEstimate};
 use crate::chain::LinkId;
 use crate::deformation::ReferenceVersion;
-use crate::deformation::{Deformation, Reference};
+use crate::deformation::{Deformation, MeasuredPose, Reference};
 use crate::filter::Disposition;
 use crate::model::TargetId;
 use crate::store::WriteTx;
@@ -177,7 +177,7 @@ async fn apply_reference(
                     .latest
                     .as_ref()
                     .map_or(step.now, |l| l.time_ns),
-                g0_from_b: current.reference.g0_from_b.pose,
+                g0_from_b: current.reference.g0_from_b.whole.pose,
             });
     }
     Ok(answer)
@@ -623,7 +623,7 @@ fn nis_of(d: &Disposition) -> Option<f64> {
 fn deformation_of(
     targets: &[TargetView],
     target: TargetId,
-    measured: crate::deformation::Measured<'_>,
+    measured: &MeasuredPose,
 ) -> Option<(i64, crate::deformation::SmallMotion)> {
     let r = targets[target.0].reference?;
     Some((
@@ -642,8 +642,6 @@ fn raw_row(
         source: ResultSource::Raw,
         time_ns: raw.time_ns,
         estimate: raw.target_from_base,
-        systematic_cov: raw.systematic_cov,
-        calibration: raw.calibration,
         status: raw.status(),
         age_s: 0.0,
         chi2: raw.consistency.map(|c| c.chi2),
@@ -797,7 +795,7 @@ async fn ingest(
         });
         for raw in &outcome.raw_results {
             report.raw_results += 1;
-            let deformation = deformation_of(targets, raw.target, raw.measured());
+            let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
             if let Some(v) = viz.as_mut()
                 && v.sender.keep(Series::Raw(raw.target), raw.time_ns)
             {
@@ -806,7 +804,6 @@ async fn ingest(
                     time_ns: raw.time_ns,
                     source: ResultSource::Raw,
                     target_from_base: raw.target_from_base,
-                    systematic_cov: raw.systematic_cov,
                     deformation: deformation.map(|(_, d)| d),
                 });
             }
@@ -820,7 +817,7 @@ async fn ingest(
                 continue;
             };
             report.filtered_results += 1;
-            let deformation = deformation_of(targets, est.target, est.measured(&pose));
+            let deformation = deformation_of(targets, est.target, &pose);
             if let Some(v) = viz.as_mut()
                 && v.sender.keep(Series::Filtered(est.target), est.time_ns)
             {
@@ -829,7 +826,6 @@ async fn ingest(
                     time_ns: est.time_ns,
                     source: ResultSource::Filtered,
                     target_from_base: pose,
-                    systematic_cov: est.systematic_cov,
                     deformation: deformation.map(|(_, d)| d),
                 });
             }
@@ -840,8 +836,6 @@ async fn ingest(
                     source: ResultSource::Filtered,
                     time_ns: est.time_ns,
                     estimate: pose,
-                    systematic_cov: est.systematic_cov,
-                    calibration: est.calibration,
                     status: est.status,
                     age_s: est.age_s,
                     chi2: est.consistency.map(|c| c.chi2),
@@ -852,7 +846,7 @@ async fn ingest(
                 .map(|(_, d)| (d.rotation_magnitude_arcsec(), d.translation_magnitude_mm()));
             for t in targets[est.target.0]
                 .alarms
-                .update(est.time_ns, &pose.pose, magnitudes)
+                .update(est.time_ns, pose.pose(), magnitudes)
             {
                 transitions.push((est.target, t));
             }
@@ -911,7 +905,7 @@ async fn ingest(
         };
         for raw in bank.raw_results_of_group(link, group_ns, &group) {
             report.raw_results += 1;
-            let deformation = deformation_of(targets, raw.target, raw.measured());
+            let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
             result_rows.insert(
                 (raw.target, ResultSource::Raw, raw.time_ns),
                 raw_row(&raw, deformation),
@@ -965,13 +959,7 @@ async fn set_reference(
         ReferenceRequest::Window { from_ns, to_ns } => {
             let rows = tx.filtered_poses(target, from_ns, to_ns).await?;
             let poses: Vec<_> = rows.iter().map(|r| r.estimate).collect();
-            let systematic: Vec<_> = rows.iter().map(|r| r.systematic_cov).collect();
-            // The window's calibrations, when they were the same throughout.
-            let calibration = rows
-                .first()
-                .and_then(|r| r.calibration)
-                .filter(|c| rows.iter().all(|r| r.calibration == Some(*c)));
-            match Reference::from_window(&poses, &systematic, calibration, from_ns, to_ns) {
+            match Reference::from_window(&poses, from_ns, to_ns) {
                 Ok(r) => r,
                 Err(_) => {
                     return Ok(Err(ServiceError::Invalid {

@@ -131,7 +131,10 @@ pub(crate) fn source_column(source: crate::bank::ResultSource) -> i64 {
 pub(crate) fn random_covariance(cov: &[u8], systematic: Option<&[u8]>) -> Option<Mat6> {
     let whole = decode_mat6(cov).ok()?;
     match systematic {
-        Some(s) => Some(whole - decode_mat6(s).ok()?),
+        Some(s) => Some(crate::deformation::MeasuredPose::random_of(
+            &whole,
+            &decode_mat6(s).ok()?,
+        )),
         None => Some(whole),
     }
 }

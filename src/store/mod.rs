@@ -87,8 +87,8 @@ pub use write::{BudgetCut, NewAcceptance, NewResult, NewSample, WriteConn, Write
 use crate::bank::ResultSource;
 use crate::chain::LinkId;
 use crate::config::Database;
-use crate::deformation::SmallMotion;
-use crate::geometry::{Mat6, PoseCov, ReportedSigmas};
+use crate::deformation::{MeasuredPose, SmallMotion};
+use crate::geometry::{PoseCov, ReportedSigmas};
 use crate::model::TargetId;
 use codec::{encode_mat6, pose_columns};
 use outbox::{Backlog, KeepUnsent, OutboxBatch, Registry, TableRows, Tier};

@@ -141,7 +141,7 @@ pub(super) fn aggregate(
     let mut out: HashMap<(TargetId, ResultSource, i64, i64), Bucket> = HashMap::new();
     for (r, s) in results.iter().zip(sigmas) {
         let (values, has_def) = components(
-            &r.estimate,
+            &r.estimate.whole,
             s,
             r.deformation
                 .map(|(_, d)| (d.rotation_arcsec, d.translation_mm)),
@@ -365,8 +365,8 @@ impl Store {
         let mut add = |row: super::rows::ResultRow| -> StoreResult<()> {
             let r = row.into_result()?;
             let (values, has_def) = components(
-                &r.estimate,
-                &r.estimate.reported_sigmas(),
+                &r.estimate.whole,
+                &r.estimate.whole.reported_sigmas(),
                 r.deformation.map(|(_, rot, t)| (rot, t)),
             );
             let bucket_start = align(r.time_ns, start_ns, width_ns);

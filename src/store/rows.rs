@@ -7,7 +7,7 @@
 use super::codec::{decode_mat6, pose_from_columns};
 use super::{Quality, SampleValues, StoreError, StoreResult};
 use crate::bank::MeasurementUncertainty;
-use crate::deformation::ReferenceVersion;
+use crate::deformation::{CalibrationStamp, MeasuredPose, ReferenceVersion};
 use crate::geometry::PoseCov;
 use crate::model::TargetId;
 
@@ -178,9 +178,13 @@ impl ResultRow {
         };
         Ok(StoredResult {
             time_ns: self.time_ns,
-            estimate: PoseCov {
-                pose: self.pose.pose(),
-                cov: decode_mat6(&self.cov)?,
+            estimate: MeasuredPose {
+                whole: PoseCov {
+                    pose: self.pose.pose(),
+                    cov: decode_mat6(&self.cov)?,
+                },
+                systematic_cov: systematic(self.cov_systematic.as_deref())?,
+                calibration: self.calibration_stamp.map(CalibrationStamp),
             },
             status: crate::bank::TargetStatus::parse(&self.status).ok_or_else(|| {
                 StoreError::Malformed(format!(
@@ -191,10 +195,6 @@ impl ResultRow {
             age_s: self.age_s,
             chi2: self.chi2,
             deformation,
-            systematic_cov: systematic(self.cov_systematic.as_deref())?,
-            calibration: self
-                .calibration_stamp
-                .map(crate::deformation::CalibrationStamp),
         })
     }
 }
@@ -209,8 +209,9 @@ fn systematic(bytes: Option<&[u8]>) -> StoreResult<crate::geometry::Mat6> {
 pub struct StoredResult {
     /// Its time (ns).
     pub time_ns: i64,
-    /// `target_from_base` with covariance.
-    pub estimate: PoseCov,
+    /// `target_from_base` with its whole covariance, the systematic part (zero for rows stored
+    /// before it was kept) and the calibrations (`None` for rows stored before they were kept).
+    pub estimate: MeasuredPose,
     /// Its status.
     pub status: crate::bank::TargetStatus,
     /// Age of the newest sample behind it (s).
@@ -219,22 +220,6 @@ pub struct StoredResult {
     pub chi2: Option<f64>,
     /// `(reference version, rotation arcsec, translation mm)` of the deformation, if any.
     pub deformation: Option<(i64, [f64; 3], [f64; 3])>,
-    /// The systematic part of the estimate's covariance (zero for rows stored before it was
-    /// kept).
-    pub systematic_cov: crate::geometry::Mat6,
-    /// The calibrations it was measured with (`None` for rows stored before it was kept).
-    pub calibration: Option<crate::deformation::CalibrationStamp>,
-}
-
-impl StoredResult {
-    /// The result as a deformation compares it with a reference.
-    pub fn measured(&self) -> crate::deformation::Measured<'_> {
-        crate::deformation::Measured {
-            g_from_b: &self.estimate,
-            systematic_cov: &self.systematic_cov,
-            calibration: self.calibration,
-        }
-    }
 }
 
 /// A reference row.
@@ -274,15 +259,15 @@ impl ReferenceRow {
         Ok(ReferenceVersion {
             version: self.version,
             reference: crate::deformation::Reference {
-                g0_from_b: PoseCov {
-                    pose: self.pose.pose(),
-                    cov: decode_mat6(&self.cov)?,
+                g0_from_b: MeasuredPose {
+                    whole: PoseCov {
+                        pose: self.pose.pose(),
+                        cov: decode_mat6(&self.cov)?,
+                    },
+                    systematic_cov: systematic(self.cov_systematic.as_deref())?,
+                    calibration: self.calibration_stamp.map(CalibrationStamp),
                 },
                 origin,
-                systematic_cov: systematic(self.cov_systematic.as_deref())?,
-                calibration: self
-                    .calibration_stamp
-                    .map(crate::deformation::CalibrationStamp),
             },
             created_ns: self.created_ns,
         })
@@ -452,7 +437,7 @@ pub(super) struct ResultColumns {
     /// The reference version and the deformation: rotation (arcsec), translation (mm).
     pub deformation: Option<(i64, [f64; 6])>,
     pub cov_systematic: Vec<u8>,
-    pub calibration_stamp: i64,
+    pub calibration_stamp: Option<i64>,
 }
 
 /// A reference or calibration version as its row is written.

@@ -60,12 +60,8 @@ pub struct NewResult {
     pub source: ResultSource,
     /// Its time (ns).
     pub time_ns: i64,
-    /// `target_from_base` with its whole covariance.
-    pub estimate: PoseCov,
-    /// The systematic part of that covariance.
-    pub systematic_cov: Mat6,
-    /// The calibrations it was measured with.
-    pub calibration: crate::deformation::CalibrationStamp,
+    /// `target_from_base` with its whole covariance, its systematic part and its calibrations.
+    pub estimate: MeasuredPose,
     /// Its status.
     pub status: crate::bank::TargetStatus,
     /// Age of the newest sample behind it (s).
@@ -81,11 +77,12 @@ impl NewResult {
     /// stored (a target whose configuration gives numbers out of range).
     pub fn non_finite(&self) -> Option<&'static str> {
         let all = |v: &[f64]| v.iter().all(|x| x.is_finite());
-        if !all(&pose_columns(&self.estimate.pose)) {
+        let (whole, systematic) = (&self.estimate.whole, &self.estimate.systematic_cov);
+        if !all(&pose_columns(&whole.pose)) {
             Some("pose")
-        } else if !all(self.estimate.cov.as_slice()) || !all(self.systematic_cov.as_slice()) {
+        } else if !all(whole.cov.as_slice()) || !all(systematic.as_slice()) {
             Some("covariance")
-        } else if (0..6).any(|i| self.estimate.cov[(i, i)] < 0.0) {
+        } else if (0..6).any(|i| whole.cov[(i, i)] < 0.0) {
             // The sigmas are the diagonal's roots: finite exactly when it is finite and not
             // negative (checked here without deriving them twice on the ingest path).
             Some("sigma")
@@ -238,16 +235,16 @@ impl WriteTx<'_> {
         // Both the rows and the rollups carry the sigmas: derive them once.
         let sigmas: Vec<ReportedSigmas> = results
             .iter()
-            .map(|r| r.estimate.reported_sigmas())
+            .map(|r| r.estimate.whole.reported_sigmas())
             .collect();
         let mut columns: Vec<ResultColumns> = Vec::with_capacity(results.len());
         let mut at_key: std::collections::HashMap<(TargetId, ResultSource, i64), usize> =
             std::collections::HashMap::with_capacity(results.len());
         for (r, s) in results.iter().zip(&sigmas) {
-            let pose = pose_columns(&r.estimate.pose);
+            let pose = pose_columns(r.estimate.pose());
             finite("result pose", &pose)?;
-            finite("result covariance", r.estimate.cov.as_slice())?;
-            finite("result covariance", r.systematic_cov.as_slice())?;
+            finite("result covariance", r.estimate.whole.cov.as_slice())?;
+            finite("result covariance", r.estimate.systematic_cov.as_slice())?;
             finite("result sigma", &s.rotation_arcsec)?;
             finite("result sigma", &s.translation_mm)?;
             finite("result age", &[r.age_s])?;
@@ -268,14 +265,14 @@ impl WriteTx<'_> {
                 source: codec::source_column(r.source),
                 time_ns: r.time_ns,
                 pose,
-                cov: encode_mat6(&r.estimate.cov),
+                cov: encode_mat6(&r.estimate.whole.cov),
                 sigmas: [a, b, c, x, y, z],
                 status: r.status.name(),
                 age_s: r.age_s,
                 chi2: r.chi2,
                 deformation,
-                cov_systematic: encode_mat6(&r.systematic_cov),
-                calibration_stamp: r.calibration.0,
+                cov_systematic: encode_mat6(&r.estimate.systematic_cov),
+                calibration_stamp: r.estimate.calibration.map(|c| c.0),
             };
             // One row a key: a statement may not write the same key twice on every engine.
             match at_key.entry((r.target, r.source, r.time_ns)) {
@@ -477,7 +474,7 @@ impl WriteTx<'_> {
         reference: &crate::deformation::Reference,
         now_ns: i64,
     ) -> StoreResult<i64> {
-        let columns = version_columns("reference", &reference.g0_from_b)?;
+        let columns = version_columns("reference", &reference.g0_from_b.whole)?;
         let origin = match reference.origin {
             crate::deformation::ReferenceOrigin::Explicit => WindowOrigin {
                 origin: "explicit",
@@ -519,9 +516,10 @@ impl WriteTx<'_> {
             ],
             fetch_one
         )?;
-        finite("reference covariance", reference.systematic_cov.as_slice())?;
-        let systematic = encode_mat6(&reference.systematic_cov);
-        let stamp = reference.calibration.map(|c| c.0);
+        let g0_from_b = &reference.g0_from_b;
+        finite("reference covariance", g0_from_b.systematic_cov.as_slice())?;
+        let systematic = encode_mat6(&g0_from_b.systematic_cov);
+        let stamp = g0_from_b.calibration.map(|c| c.0);
         on_backend!(&mut self.tx, Tx, t => sqlx::query(sql::SET_REFERENCE_SYSTEMATIC)
             .bind(systematic.as_slice())
             .bind(stamp)

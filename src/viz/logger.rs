@@ -463,22 +463,17 @@ impl Logger {
                     target,
                     source,
                     target_from_base,
-                    systematic_cov,
                     deformation,
                     ..
                 } => {
                     let name = &inst.model.targets[target.0].name;
                     let which = source.name();
                     if *source == crate::bank::ResultSource::Filtered {
-                        let told_apart = crate::deformation::Measured {
-                            g_from_b: target_from_base,
-                            systematic_cov,
-                            calibration: None,
-                        };
+                        let s = target_from_base.sigmas();
                         for (label, s) in [
-                            ("whole", target_from_base.reported_sigmas()),
-                            ("random", told_apart.random().reported_sigmas()),
-                            ("systematic", told_apart.systematic().reported_sigmas()),
+                            ("whole", s.whole),
+                            ("random", s.random),
+                            ("systematic", s.systematic),
                         ] {
                             out.scalar(
                                 format!("plots/{name}/sigma_rotation_arcsec/{label}"),
@@ -495,7 +490,7 @@ impl Logger {
                     out.transform(
                         format!("{}/{name}_{which}", self.target_base[target.0]),
                         t,
-                        &target_from_base.pose,
+                        target_from_base.pose(),
                         true,
                     );
                     if let Some(d) = deformation {

@@ -18,7 +18,7 @@ pub(crate) mod replay;
 use crate::alarms::Transition;
 use crate::config::{Installation, RerunSettings};
 use crate::deformation::SmallMotion;
-use crate::geometry::{Pose, PoseCov};
+use crate::geometry::Pose;
 use crate::model::TargetId;
 use crate::vision::GreyImage;
 use std::sync::Arc;
@@ -54,10 +54,8 @@ pub enum Record {
         time_ns: i64,
         /// Filtered, or raw.
         source: crate::bank::ResultSource,
-        /// `target_from_base` with its whole covariance.
-        target_from_base: PoseCov,
-        /// The systematic part of that covariance.
-        systematic_cov: crate::geometry::Mat6,
+        /// `target_from_base` with its whole covariance and its systematic part.
+        target_from_base: crate::deformation::MeasuredPose,
         /// `G0_from_G` against the reference in force, with sigmas.
         deformation: Option<SmallMotion>,
     },

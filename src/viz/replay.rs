@@ -103,7 +103,7 @@ pub(crate) async fn replay(
             logger.log(&Record::Reference {
                 target: t,
                 time_ns: r.created_ns.clamp(from_ns, to_ns),
-                g0_from_b: r.reference.g0_from_b.pose,
+                g0_from_b: r.reference.g0_from_b.whole.pose,
             });
         }
         for &source in ResultSource::ALL {
@@ -119,14 +119,13 @@ pub(crate) async fn replay(
                         references
                             .iter()
                             .find(|x| x.version == version)
-                            .map(|x| Deformation::new(&x.reference, r.measured()).deformation())
+                            .map(|x| Deformation::new(&x.reference, &r.estimate).deformation())
                     });
                     batch.push(Record::Result {
                         target: t,
                         time_ns: r.time_ns,
                         source,
                         target_from_base: r.estimate,
-                        systematic_cov: r.systematic_cov,
                         deformation,
                     });
                 }

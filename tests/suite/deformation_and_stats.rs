@@ -3,7 +3,7 @@
 use crate::common;
 
 use approx::assert_relative_eq;
-use brokenray::deformation::{Deformation, Reference};
+use brokenray::deformation::{Deformation, MeasuredPose, Reference};
 use brokenray::geometry::{
     ARCSEC_PER_RAD, Mat6, Pose, PoseCov, Twist, Vec3, pose_from_parts, rotation_from_euler,
     se3_exp, se3_log,
@@ -13,6 +13,16 @@ use common::paper::{self, PRINTED, TABLE_4, TABLE_5, assert_printed};
 use common::{perturb, random_covariance, random_pose};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+
+/// The deformation of a pose known with its whole covariance alone.
+fn of_pose(reference: &Reference, g_from_b: &PoseCov) -> Deformation {
+    Deformation::new(reference, &MeasuredPose::whole(*g_from_b))
+}
+
+/// Poses known with their whole covariances alone.
+fn whole(poses: &[PoseCov]) -> Vec<MeasuredPose> {
+    poses.iter().copied().map(MeasuredPose::whole).collect()
+}
 
 #[test]
 fn the_papers_eight_samples_give_back_table_4_and_5() {
@@ -64,7 +74,7 @@ fn correction_maps_nominal_coordinates_to_true_coordinates() {
             }
         });
         let g_from_b = se3_exp(&flex) * g0_from_b;
-        let d = Deformation::of_pose(&Reference::explicit(g0_from_b), &PoseCov::exact(g_from_b));
+        let d = of_pose(&Reference::explicit(g0_from_b), &PoseCov::exact(g_from_b));
         for _ in 0..10 {
             let p_b = Vec3::new(
                 rng.random_range(-5000.0..5000.0),
@@ -104,7 +114,7 @@ fn deformation_sigmas_match_a_monte_carlo_of_the_filtered_pose() {
         pose: se3_exp(&Twist::new(0.5, -0.2, 1.0, 1e-4, -2e-4, 5e-5)) * g0_from_b,
         cov: random_covariance(&mut rng, 30.0, 0.5),
     };
-    let d = Deformation::of_pose(&Reference::explicit(g0_from_b), &g_from_b);
+    let d = of_pose(&Reference::explicit(g0_from_b), &g_from_b);
     let reported = d.deformation().sigmas;
     let n = 20000;
     let mut sum_sq_rot = [0.0; 3];
@@ -112,8 +122,7 @@ fn deformation_sigmas_match_a_monte_carlo_of_the_filtered_pose() {
     let mean = d.deformation();
     for _ in 0..n {
         let drawn = perturb(&mut rng, &g_from_b.pose, &g_from_b.cov);
-        let m = Deformation::of_pose(&Reference::explicit(g0_from_b), &PoseCov::exact(drawn))
-            .deformation();
+        let m = of_pose(&Reference::explicit(g0_from_b), &PoseCov::exact(drawn)).deformation();
         for i in 0..3 {
             sum_sq_rot[i] += (m.rotation_arcsec[i] - mean.rotation_arcsec[i]).powi(2);
             sum_sq_t[i] += (m.translation_mm[i] - mean.translation_mm[i]).powi(2);
@@ -145,8 +154,8 @@ fn a_window_reference_is_the_mean_and_adds_its_uncertainty() {
             cov,
         })
         .collect();
-    let reference = Reference::from_window(&poses, &[], None, 0, 1).unwrap();
-    let e = se3_log(&(reference.g0_from_b.pose * truth.inverse()));
+    let reference = Reference::from_window(&whole(&poses), 0, 1).unwrap();
+    let e = se3_log(&(reference.g0_from_b.whole.pose * truth.inverse()));
     // The mean is within 4 standard errors of the truth, per block (the arithmetic mean of
     // translations adds a curvature bias of |phi|^2 |t| / 2 ~ 5e-6 mm here, negligible).
     for i in 0..3 {
@@ -156,11 +165,14 @@ fn a_window_reference_is_the_mean_and_adds_its_uncertainty() {
             "phi {e}"
         );
     }
-    assert!(reference.g0_from_b.cov.trace() > 0.0);
+    assert!(reference.g0_from_b.whole.cov.trace() > 0.0);
     // An estimated reference makes the deformation less certain than the pose alone.
-    let d_est = Deformation::of_pose(&reference, &poses[0]);
-    let d_exact = Deformation::of_pose(&Reference::explicit(reference.g0_from_b.pose), &poses[0]);
-    assert!(d_est.g0_from_g.cov.trace() > d_exact.g0_from_g.cov.trace());
+    let d_est = of_pose(&reference, &poses[0]);
+    let d_exact = of_pose(
+        &Reference::explicit(reference.g0_from_b.whole.pose),
+        &poses[0],
+    );
+    assert!(d_est.g0_from_g.whole.cov.trace() > d_exact.g0_from_g.whole.cov.trace());
 }
 
 /// A window whose poses scatter a lot in translation while the filter's own rotation
@@ -189,8 +201,8 @@ fn a_window_reference_compares_translation_and_rotation_each_in_its_own_units() 
             }
         })
         .collect();
-    let r = Reference::from_window(&poses, &[], None, 0, 1).unwrap();
-    let s = r.g0_from_b.reported_sigmas();
+    let r = Reference::from_window(&whole(&poses), 0, 1).unwrap();
+    let s = r.g0_from_b.whole.reported_sigmas();
     // The rotation keeps the filter's own uncertainty (the translation scatter must not hide it).
     for axis in 0..3 {
         assert!(

@@ -53,7 +53,7 @@ fn noise_free_nominal_samples_give_the_papers_chain_product() {
         * nominal(&inst, "C2_from_M").inverse()
         * nominal(&inst, "C2_from_C1")
         * nominal(&inst, "C1_from_B");
-    let e = se3_log(&(est.target_from_base.unwrap().pose * expected.inverse()));
+    let e = se3_log(&(est.target_from_base.unwrap().whole.pose * expected.inverse()));
     assert!(e.amax() < 1e-9, "{e}");
 }
 
@@ -129,8 +129,9 @@ fn statuses_follow_the_data() {
         .unwrap()
         .target_from_base
         .unwrap()
+        .whole
         .cov;
-    assert!(later.target_from_base.unwrap().cov.trace() > now_cov.trace());
+    assert!(later.target_from_base.unwrap().whole.cov.trace() > now_cov.trace());
     // Five expected periods (5 / 25 Hz = 0.2 s) without a sample: stale.
     assert_eq!(
         bank.evaluate(TargetId(0), T0 + 250_000_000).unwrap().status,
@@ -233,10 +234,10 @@ fn station_motion_cancels_in_the_filtered_result() {
         for (name, pose) in &g.link_truth {
             let out = bank.ingest(&sample(&inst, name, g.time_ns, *pose)).unwrap();
             for f in &out.filtered_results {
-                let e = se3_log(&(f.target_from_base.unwrap().pose * truth.inverse()));
+                let e = se3_log(&(f.target_from_base.unwrap().whole.pose * truth.inverse()));
                 worst_arcsec = worst_arcsec.max(e.fixed_rows::<3>(3).norm() * ARCSEC_PER_RAD);
                 worst_mm = worst_mm.max(
-                    (f.target_from_base.unwrap().pose.translation.vector
+                    (f.target_from_base.unwrap().whole.pose.translation.vector
                         - truth.translation.vector)
                         .norm(),
                 );

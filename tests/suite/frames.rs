@@ -185,7 +185,7 @@ fn rendered_frames_give_an_unbiased_chain_three_times_better_than_published() {
         let any = *samples.keys().next().expect("a link");
         let raw = bank.raw_results_of_group(any, g as i64, &samples);
         assert_eq!(raw.len(), 1, "group {g}: the group completes the chain");
-        g_from_b.push(raw[0].target_from_base);
+        g_from_b.push(raw[0].target_from_base.whole);
     }
     eprintln!("{cut_points} point(s) near the frame's edge in {GROUPS} groups");
     for (name, sum) in &nees_by_link {

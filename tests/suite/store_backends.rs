@@ -6,6 +6,7 @@ use brokenray::alarms::{AlarmKind, Level, Transition, ValueUnit};
 use brokenray::bank::{MeasurementUncertainty, ResultSource};
 use brokenray::chain::LinkId;
 use brokenray::config::Installation;
+use brokenray::deformation::MeasuredPose;
 use brokenray::geometry::{Mat6, Pose, PoseCov, ReportedSigmas, rotation_from_euler};
 use brokenray::model::TargetId;
 use brokenray::store::{self, NewResult, NewSample, Quality, SampleValues, Store, WriteConn};
@@ -61,12 +62,14 @@ fn result(k: i64, time_ns: i64) -> NewResult {
         target: TargetId(0),
         source: ResultSource::Filtered,
         time_ns,
-        estimate: PoseCov {
-            pose: pose(k),
-            cov: Mat6::identity() * 1e-7,
+        estimate: MeasuredPose {
+            whole: PoseCov {
+                pose: pose(k),
+                cov: Mat6::identity() * 1e-7,
+            },
+            systematic_cov: Mat6::identity() * (k as f64 + 1.0) * 1e-9,
+            calibration: Some(brokenray::deformation::CalibrationStamp(k * 31)),
         },
-        systematic_cov: Mat6::identity() * (k as f64 + 1.0) * 1e-9,
-        calibration: brokenray::deformation::CalibrationStamp(k * 31),
         status: brokenray::bank::TargetStatus::Ok,
         age_s: 0.25,
         chi2: (k % 2 == 0).then_some(3.5),
@@ -133,8 +136,6 @@ async fn samples_and_results_read_back_exactly(backend: Backend) {
     for (r, new) in back.iter().zip(&results) {
         assert_eq!(r.time_ns, new.time_ns);
         assert_eq!(r.estimate, new.estimate);
-        assert_eq!(r.systematic_cov, new.systematic_cov);
-        assert_eq!(r.calibration, Some(new.calibration));
         assert_eq!(
             (r.status, r.age_s, r.chi2),
             (new.status, new.age_s, new.chi2)
@@ -244,17 +245,19 @@ async fn a_transaction_dropped_without_commit_leaves_nothing(backend: Backend) {
 async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
     let (_dir, inst, store, mut write) = open(backend).await;
     let reference = brokenray::deformation::Reference {
-        g0_from_b: PoseCov {
-            pose: pose(3),
-            cov: Mat6::identity() * 1e-9,
+        g0_from_b: MeasuredPose {
+            whole: PoseCov {
+                pose: pose(3),
+                cov: Mat6::identity() * 1e-9,
+            },
+            systematic_cov: Mat6::identity() * 4e-10,
+            calibration: Some(brokenray::deformation::CalibrationStamp(-77)),
         },
         origin: brokenray::deformation::ReferenceOrigin::Window {
             from_ns: T0_NS,
             to_ns: T0_NS + 60 * S,
             count: 600,
         },
-        systematic_cov: Mat6::identity() * 4e-10,
-        calibration: Some(brokenray::deformation::CalibrationStamp(-77)),
     };
     let transition = Transition {
         kind: AlarmKind::Deformation,
@@ -279,7 +282,7 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
         2
     );
     assert_eq!(
-        tx.insert_calibration(LinkId(0), T0_NS, &reference.g0_from_b, T0_NS)
+        tx.insert_calibration(LinkId(0), T0_NS, &reference.g0_from_b.whole, T0_NS)
             .await
             .unwrap(),
         1
@@ -316,7 +319,7 @@ async fn versions_alarms_resets_and_filter_state_round_trip(backend: Backend) {
     assert_eq!(references[1].reference, reference);
     let calibrations = store.calibrations(LinkId(0)).await.unwrap();
     assert_eq!(calibrations.len(), 1);
-    assert_eq!(calibrations[0].parent_from_child, reference.g0_from_b);
+    assert_eq!(calibrations[0].parent_from_child, reference.g0_from_b.whole);
     let alarm = store.alarm(id).await.unwrap().expect("stored");
     assert_eq!(alarm.transition, recomputed);
     let ack = alarm.ack.expect("kept");
@@ -468,7 +471,7 @@ async fn rollups_agree_with_the_results_they_summarise(backend: Backend) {
             let inside: Vec<f64> = all
                 .iter()
                 .filter(|r| r.time_ns >= b.start_ns && r.time_ns < b.start_ns + h.bucket_ns)
-                .map(|r| r.estimate.pose.translation.vector.x)
+                .map(|r| r.estimate.whole.pose.translation.vector.x)
                 .collect();
             assert_eq!(inside.len() as i64, b.n);
             let min = inside.iter().copied().fold(f64::INFINITY, f64::min);

@@ -208,17 +208,17 @@ fn measure(model: &Model, found: &[Found]) -> ((PoseCov, Mat6), Vec<PoseCov>) {
                 uncertainty: MeasurementUncertainty::Covariance(solution.covariance),
             })
             .expect("ingested");
-        raw.extend(outcome.raw_results.iter().map(|r| PoseCov {
-            pose: r.target_from_base.pose,
-            cov: r.random_cov(),
-        }));
+        raw.extend(
+            outcome
+                .raw_results
+                .iter()
+                .map(|r| r.target_from_base.random()),
+        );
     }
     let last = found.last().expect("frames").time_ns;
     let e = bank.evaluate(TargetId(0), last).expect("evaluated");
-    (
-        (e.target_from_base.expect("a result"), e.systematic_cov),
-        raw,
-    )
+    let filtered = e.target_from_base.expect("a result");
+    ((filtered.whole, filtered.systematic_cov), raw)
 }
 
 #[test]

@@ -319,7 +319,7 @@ impl Tx<'_> {
                 rows.f64_or_null(r.deformation.map(|(_, d)| d[i]));
             }
             rows.bytes(Some(&r.cov_systematic));
-            rows.i64(r.calibration_stamp);
+            rows.i64_or_null(r.calibration_stamp);
         }
         self.copy_in(rows).await
     }

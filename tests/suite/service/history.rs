@@ -28,12 +28,14 @@ fn result(k: i64) -> NewResult {
         target: TargetId(0),
         source: ResultSource::Filtered,
         time_ns: T0_NS + k * (SPAN_NS / N),
-        estimate: PoseCov {
-            pose,
-            cov: Mat6::identity() * 1e-6,
+        estimate: brokenray::deformation::MeasuredPose {
+            whole: PoseCov {
+                pose,
+                cov: Mat6::identity() * 1e-6,
+            },
+            systematic_cov: Mat6::zeros(),
+            calibration: Some(brokenray::deformation::CalibrationStamp(0)),
         },
-        systematic_cov: Mat6::zeros(),
-        calibration: brokenray::deformation::CalibrationStamp(0),
         status: brokenray::bank::TargetStatus::Ok,
         age_s: 0.0,
         chi2: None,
@@ -108,7 +110,7 @@ async fn a_month_of_results_downsamples_without_losing_a_spike(backend: Backend)
             r.time_ns < starts[b] + width_ns,
             "result outside every bucket"
         );
-        let x = r.estimate.pose.translation.vector.x;
+        let x = r.estimate.whole.pose.translation.vector.x;
         scan_min[b] = scan_min[b].min(x);
         scan_max[b] = scan_max[b].max(x);
         scan_sum[b] += x;
