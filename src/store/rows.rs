@@ -178,14 +178,12 @@ impl ResultRow {
         };
         Ok(StoredResult {
             time_ns: self.time_ns,
-            estimate: MeasuredPose {
-                whole: PoseCov {
-                    pose: self.pose.pose(),
-                    cov: decode_mat6(&self.cov)?,
-                },
-                systematic_cov: systematic(self.cov_systematic.as_deref())?,
-                calibration: self.calibration_stamp.map(CalibrationStamp),
-            },
+            estimate: measured_pose(
+                &self.pose,
+                &self.cov,
+                self.cov_systematic.as_deref(),
+                self.calibration_stamp,
+            )?,
             status: crate::bank::TargetStatus::parse(&self.status).ok_or_else(|| {
                 StoreError::Malformed(format!(
                     "a result at {} has the unknown status `{}`",
@@ -199,9 +197,23 @@ impl ResultRow {
     }
 }
 
-/// A stored systematic covariance: null in rows written before it was kept, read as zero.
-fn systematic(bytes: Option<&[u8]>) -> StoreResult<crate::geometry::Mat6> {
-    bytes.map_or(Ok(crate::geometry::Mat6::zeros()), decode_mat6)
+/// A stored pose as measured, from its columns: the systematic covariance is null in rows
+/// written before it was kept (read as zero), and so is the calibrations' stamp (read as not
+/// known).
+fn measured_pose(
+    pose: &PoseColumns,
+    cov: &[u8],
+    systematic: Option<&[u8]>,
+    stamp: Option<i64>,
+) -> StoreResult<MeasuredPose> {
+    Ok(MeasuredPose {
+        whole: PoseCov {
+            pose: pose.pose(),
+            cov: decode_mat6(cov)?,
+        },
+        systematic_cov: systematic.map_or(Ok(crate::geometry::Mat6::zeros()), decode_mat6)?,
+        calibration: stamp.map(CalibrationStamp),
+    })
 }
 
 /// A stored target result.
@@ -259,14 +271,12 @@ impl ReferenceRow {
         Ok(ReferenceVersion {
             version: self.version,
             reference: crate::deformation::Reference {
-                g0_from_b: MeasuredPose {
-                    whole: PoseCov {
-                        pose: self.pose.pose(),
-                        cov: decode_mat6(&self.cov)?,
-                    },
-                    systematic_cov: systematic(self.cov_systematic.as_deref())?,
-                    calibration: self.calibration_stamp.map(CalibrationStamp),
-                },
+                g0_from_b: measured_pose(
+                    &self.pose,
+                    &self.cov,
+                    self.cov_systematic.as_deref(),
+                    self.calibration_stamp,
+                )?,
                 origin,
             },
             created_ns: self.created_ns,
