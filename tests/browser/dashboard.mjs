@@ -305,15 +305,15 @@ await run(async (browser) => {
   await page.click(`${row} button[data-ack]`);
   await page.fill(`${row} input[name="by"]`, 'test operator');
   // The table is drawn again at every refresh (every 2 s here): the form being written stays
-  // open with what was typed, and its field keeps the focus.
-  await page.$eval(`${row} input[name="by"]`, (input) => { input.dataset.drawn = 'before'; });
+  // open with what was typed, and its field keeps the focus and the caret.
+  await page.$eval(`${row} input[name="by"]`, (input) => { input.dataset.drawn = 'before'; input.setSelectionRange(4, 4); });
   await page.waitForFunction((sel) => {
     const input = document.querySelector(sel);
     return input && input.dataset.drawn !== 'before';
   }, `${row} input[name="by"]`, { timeout: 10000 });
-  const kept = await page.$eval(`${row} input[name="by"]`, (input) => [input.value, document.activeElement === input]);
-  check(kept[0] === 'test operator' && kept[1],
-    `an acknowledgement being written survives the table's redraw: "${kept[0]}", focused ${kept[1]}`);
+  const kept = await page.$eval(`${row} input[name="by"]`, (input) => [input.value, document.activeElement === input, input.selectionStart]);
+  check(kept[0] === 'test operator' && kept[1] && kept[2] === 4,
+    `an acknowledgement being written survives the table's redraw: "${kept[0]}", focused ${kept[1]}, caret at ${kept[2]}`);
   await page.fill(`${row} input[name="note"]`, 'feed stopped on purpose');
   await page.click(`${row} .ack-form button[type="submit"]`);
   await page.waitForFunction((sel) => (document.querySelector(sel)?.textContent || '').includes('test operator'), row, { timeout: 10000 });

@@ -86,17 +86,23 @@ function alarmRow(a) {
 
 function renderAlarms() {
   const body = $('alarms').tBodies[0];
-  // The field being typed in keeps the focus across the redraw.
+  // The field being typed in keeps the focus and the caret across the redraw.
   const active = document.activeElement;
   const row = active && body.contains(active) ? active.closest('tr[data-alarm]') : null;
-  const focused = row && active.name ? [row.dataset.alarm, active.name] : null;
+  const focused = row && active.name
+    ? { alarm: row.dataset.alarm, name: active.name, start: active.selectionStart, end: active.selectionEnd }
+    : null;
   body.textContent = '';
   if (!state.alarms.length) {
     body.append(el('tr', { class: 'empty' }, el('td', { colspan: '7', text: 'No alarm transitions in the shown range.' })));
     return;
   }
   for (const a of state.alarms) body.append(alarmRow(a));
-  if (focused) body.querySelector(`tr[data-alarm="${focused[0]}"] input[name="${focused[1]}"]`)?.focus();
+  const again = focused && body.querySelector(`tr[data-alarm="${focused.alarm}"] input[name="${focused.name}"]`);
+  if (again) {
+    again.focus();
+    again.setSelectionRange(focused.start, focused.end);
+  }
 }
 
 export async function loadAlarms(win) {
