@@ -64,6 +64,7 @@ macro_rules! outboxed {
 }
 
 mod codec;
+mod migrations;
 pub mod outbox;
 pub mod postgres;
 pub(crate) mod rollup;

@@ -11,8 +11,36 @@ use crate::deformation::{CalibrationStamp, MeasuredPose, ReferenceVersion};
 use crate::geometry::PoseCov;
 use crate::model::TargetId;
 
+/// `sqlx::FromRow` for a row struct, on both backends: each named field read from the column of
+/// its name, and the `flatten` one (a struct of columns itself) from the same row. It does what
+/// sqlx's derive does, without the derive's proc-macro crate, which builds a second copy of sqlx
+/// and both database drivers for the compiler's host; a field left out of the list fails to
+/// compile.
+macro_rules! from_columns {
+    ($name:ident { $($field:ident),* $(,)? } $(flatten $flat:ident)?) => {
+        impl sqlx::FromRow<'_, sqlx::sqlite::SqliteRow> for $name {
+            fn from_row(row: &sqlx::sqlite::SqliteRow) -> Result<Self, sqlx::Error> {
+                use sqlx::Row as _;
+                Ok(Self {
+                    $($flat: sqlx::FromRow::from_row(row)?,)?
+                    $($field: row.try_get(stringify!($field))?,)*
+                })
+            }
+        }
+        impl sqlx::FromRow<'_, sqlx::postgres::PgRow> for $name {
+            fn from_row(row: &sqlx::postgres::PgRow) -> Result<Self, sqlx::Error> {
+                use sqlx::Row as _;
+                Ok(Self {
+                    $($flat: sqlx::FromRow::from_row(row)?,)?
+                    $($field: row.try_get(stringify!($field))?,)*
+                })
+            }
+        }
+    };
+}
+pub(super) use from_columns;
+
 /// The seven pose columns every row with a pose has.
-#[derive(sqlx::FromRow)]
 pub(super) struct PoseColumns {
     tx_mm: f64,
     ty_mm: f64,
@@ -22,6 +50,16 @@ pub(super) struct PoseColumns {
     qy: f64,
     qz: f64,
 }
+
+from_columns!(PoseColumns {
+    tx_mm,
+    ty_mm,
+    tz_mm,
+    qw,
+    qx,
+    qy,
+    qz
+});
 
 impl PoseColumns {
     /// The pose they hold.
@@ -43,7 +81,7 @@ pub(super) struct RollupKey {
 }
 
 /// A stored rollup row: its key, its counts and its statistics (encoded).
-#[derive(Debug, Clone, sqlx::FromRow)]
+#[derive(Debug, Clone)]
 pub(super) struct RollupRow {
     pub target_id: i64,
     pub source: i64,
@@ -55,6 +93,16 @@ pub(super) struct RollupRow {
     pub n_def: i64,
     pub stats: Vec<u8>,
 }
+
+from_columns!(RollupRow {
+    target_id,
+    source,
+    width_s,
+    bucket_ns,
+    n,
+    n_def,
+    stats
+});
 
 impl RollupRow {
     /// Its key.
@@ -69,10 +117,8 @@ impl RollupRow {
 }
 
 /// A sample row.
-#[derive(sqlx::FromRow)]
 pub(super) struct SampleRow {
     pub time_ns: i64,
-    #[sqlx(flatten)]
     pose: PoseColumns,
     uncertainty_kind: i64,
     uncertainty: Option<Vec<u8>>,
@@ -83,6 +129,8 @@ pub(super) struct SampleRow {
     nis: Option<f64>,
     received_ns: i64,
 }
+
+from_columns!(SampleRow { time_ns, uncertainty_kind, uncertainty, reprojection_rms_px, points, disposition, outlier, nis, received_ns } flatten pose);
 
 impl SampleRow {
     /// The sample's values as given.
@@ -138,10 +186,8 @@ pub struct StoredSample {
 }
 
 /// A result row.
-#[derive(sqlx::FromRow)]
 pub(super) struct ResultRow {
     pub time_ns: i64,
-    #[sqlx(flatten)]
     pose: PoseColumns,
     cov: Vec<u8>,
     status: String,
@@ -158,6 +204,8 @@ pub(super) struct ResultRow {
     cov_systematic: Option<Vec<u8>>,
     calibration_stamp: Option<i64>,
 }
+
+from_columns!(ResultRow { time_ns, cov, status, age_s, chi2, reference_version, def_rx_arcsec, def_ry_arcsec, def_rz_arcsec, def_tx_mm, def_ty_mm, def_tz_mm, cov_systematic, calibration_stamp } flatten pose);
 
 impl ResultRow {
     /// The stored result.
@@ -235,10 +283,8 @@ pub struct StoredResult {
 }
 
 /// A reference row.
-#[derive(sqlx::FromRow)]
 pub(super) struct ReferenceRow {
     version: i64,
-    #[sqlx(flatten)]
     pose: PoseColumns,
     cov: Vec<u8>,
     origin: String,
@@ -249,6 +295,8 @@ pub(super) struct ReferenceRow {
     cov_systematic: Option<Vec<u8>>,
     calibration_stamp: Option<i64>,
 }
+
+from_columns!(ReferenceRow { version, cov, origin, window_from_ns, window_to_ns, window_count, created_ns, cov_systematic, calibration_stamp } flatten pose);
 
 impl ReferenceRow {
     /// The stored reference version.
@@ -285,15 +333,15 @@ impl ReferenceRow {
 }
 
 /// A calibration row.
-#[derive(sqlx::FromRow)]
 pub(super) struct CalibrationRow {
     version: i64,
     valid_from_ns: i64,
-    #[sqlx(flatten)]
     pose: PoseColumns,
     cov: Vec<u8>,
     created_ns: i64,
 }
+
+from_columns!(CalibrationRow { version, valid_from_ns, cov, created_ns } flatten pose);
 
 impl CalibrationRow {
     /// The stored calibration version.
@@ -348,7 +396,6 @@ pub struct Acknowledgement {
 }
 
 /// An alarm row.
-#[derive(sqlx::FromRow)]
 pub(super) struct AlarmRow {
     alarm_id: i64,
     target_id: i64,
@@ -363,6 +410,21 @@ pub(super) struct AlarmRow {
     acknowledged_ns: Option<i64>,
     ack_note: Option<String>,
 }
+
+from_columns!(AlarmRow {
+    alarm_id,
+    target_id,
+    time_ns,
+    kind,
+    from_level,
+    to_level,
+    value,
+    message,
+    unit,
+    acknowledged_by,
+    acknowledged_ns,
+    ack_note
+});
 
 /// The alarm of a row; `target_ids` maps the row's target id to the installation's index.
 pub(super) fn alarm_of_row(row: AlarmRow, target_ids: &[i64]) -> StoreResult<StoredAlarm> {

@@ -21,9 +21,6 @@ use sqlx::{ConnectOptions, Connection};
 use std::str::FromStr;
 use std::time::Duration;
 
-/// The embedded migrations (`migrations-postgres/`), applied at start-up.
-pub static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migrations-postgres");
-
 /// How long a connection attempt may take before the server counts as unreachable.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 
@@ -73,7 +70,11 @@ pub(super) async fn open(
         StoreError::WriterLocked => refused("cannot write", e),
         e => refused("cannot connect", e),
     })?;
-    MIGRATOR.run(&mut conn).await.map_err(|e| {
+    let migrated = match super::migrations::POSTGRES.migrator().await {
+        Ok(migrator) => migrator.run(&mut conn).await,
+        Err(e) => Err(e),
+    };
+    migrated.map_err(|e| {
         refused(
             "cannot prepare the schema (the role needs to create tables in the database, and \
              the pg_partman extension must be installed, or the role allowed to create it)",

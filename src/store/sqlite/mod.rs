@@ -20,9 +20,6 @@ use sqlx::{ConnectOptions, Connection};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-/// The embedded migrations (`migrations/`), applied at start-up.
-pub static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!();
-
 /// The SQLite `application_id` of a brokenray database ("BRRY"): a file with another id is
 /// another program's and is never migrated into.
 pub const APPLICATION_ID: i64 = 0x4252_5259;
@@ -165,7 +162,11 @@ async fn open_inner(
     }
     let mut conn = options(path).connect().await?;
     claim(&mut conn, path).await?;
-    MIGRATOR.run(&mut conn).await?;
+    super::migrations::SQLITE
+        .migrator()
+        .await?
+        .run(&mut conn)
+        .await?;
     let identity = FileIdentity::of(path).ok_or_else(|| StoreError::Open {
         database: path.display().to_string(),
         message: "the file vanished while it was opened".into(),
@@ -305,7 +306,11 @@ pub(super) async fn new_generation(path: &Path) -> StoreResult<super::outbox::Ou
     }
     let mut conn = options(path).create_if_missing(false).connect().await?;
     claim(&mut conn, path).await?;
-    MIGRATOR.run(&mut conn).await?;
+    super::migrations::SQLITE
+        .migrator()
+        .await?
+        .run(&mut conn)
+        .await?;
     let mut tx = conn.begin().await?;
     let identity = outbox::start_generation(&mut tx).await?;
     tx.commit().await?;

@@ -23,7 +23,7 @@ use super::super::outbox::{
     ColumnValues, Kind, OutboxBatch, Registry, RequestedRows, TableRows, Tier,
 };
 use super::super::{StoreError, StoreResult};
-use super::{CONNECT_TIMEOUT, MIGRATOR, options_of};
+use super::{CONNECT_TIMEOUT, options_of};
 use crate::config::{PostgresUrl, SiteName};
 use sqlx::postgres::{PgConnectOptions, PgConnection, PgPool, PgPoolOptions};
 use sqlx::{ConnectOptions, Connection};
@@ -37,9 +37,6 @@ use requests::apply_requested;
 use rule::{
     Acked, BatchRuling, BatchSpan, GenerationHeld, GenerationRuling, rule_batch, rule_generation,
 };
-
-/// The centre's own migrations (`migrations-central/`), applied in the schema `fleet`.
-pub(crate) static FLEET_MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("./migrations-central");
 
 /// What a site sends in one request: its identity and state, and a batch of one tier (none in
 /// a report of state alone).
@@ -439,7 +436,11 @@ impl Central {
             sqlx::query("set search_path to fleet")
                 .execute(&mut conn)
                 .await?;
-            FLEET_MIGRATOR.run(&mut conn).await?;
+            crate::store::migrations::CENTRAL
+                .migrator()
+                .await?
+                .run(&mut conn)
+                .await?;
             StoreResult::Ok(())
         };
         migrate.await.map_err(refused)?;
@@ -478,7 +479,11 @@ impl Central {
                     .options([("search_path", schema.as_str())]),
             )
             .await?;
-        MIGRATOR.run(&in_schema).await?;
+        crate::store::migrations::POSTGRES
+            .migrator()
+            .await?
+            .run(&in_schema)
+            .await?;
         in_schema.close().await;
         prepared.insert(site_id);
         Ok(())

@@ -99,7 +99,6 @@ pub struct RawRequestRecord {
 }
 
 /// A row of `fleet.raw_requests`, as [`RAW_REQUEST_COLUMNS`] reads it.
-#[derive(sqlx::FromRow)]
 struct RawRequestRow {
     request_id: i64,
     from_ns: i64,
@@ -112,6 +111,19 @@ struct RawRequestRow {
     cancelled_by: Option<String>,
     cancelled_ns: Option<i64>,
 }
+
+crate::store::rows::from_columns!(RawRequestRow {
+    request_id,
+    from_ns,
+    to_ns,
+    delivered_to_ns,
+    rows_applied,
+    requested_by,
+    created_ns,
+    done_ns,
+    cancelled_by,
+    cancelled_ns,
+});
 
 impl From<RawRequestRow> for RawRequestRecord {
     fn from(r: RawRequestRow) -> Self {
