@@ -8,7 +8,8 @@ use crate::api::error::ErrorCode;
 use crate::clock::format_ns;
 use crate::config::SiteName;
 use crate::fleet::protocol::{
-    Outcome, SiteStatus, SyncRequest, SyncResponse, TargetStatus, TierBacklog, UploadLimits,
+    Outcome, SiteStatus, SyncRequest, SyncResponse, TargetStatus, TierBacklog, UploadBudget,
+    UploadRefusal,
 };
 use crate::store::outbox::OutboxBatch;
 use crate::store::{SiteUpload, SyncOutcome};
@@ -18,7 +19,6 @@ use axum::http::{HeaderMap, StatusCode, header};
 use bytes::Bytes;
 use serde::Serialize;
 use std::collections::BTreeMap;
-use std::io::Read;
 
 /// The site of a path, or 404 naming the rule.
 pub(super) fn site_of(text: &str) -> Result<SiteName, ApiError> {
@@ -36,116 +36,33 @@ pub(super) const SYNC_SLOTS: usize = 2;
 /// How long an upload waits for a slot before it is answered 503 (the site retries).
 const SYNC_WAIT: std::time::Duration = std::time::Duration::from_secs(10);
 
-/// Memory a JSON value of an upload may take once read, at the most: an `Option<String>` or
-/// hex bytes (24 bytes) in a vector that may have doubled.
-const BYTES_PER_VALUE: usize = 48;
-
-/// The most a decompressed upload may hold: a quarter of the budget (the buffer may double
-/// while it grows; the values read from it take the other half).
-fn max_json_bytes(budget: usize) -> usize {
-    budget / 4
-}
-
-/// What the centre reads of one upload at most, told to every site in every answer so that
-/// its batches fit.
-fn upload_limits(budget: usize) -> UploadLimits {
-    UploadLimits {
-        json_bytes: max_json_bytes(budget) as u64,
-        values: (budget / 2 / BYTES_PER_VALUE) as u64,
+/// An upload's refusal as an answer.
+fn refused(refusal: UploadRefusal) -> ApiError {
+    match refusal {
+        UploadRefusal::TooLarge(m) => {
+            ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, ErrorCode::PayloadTooLarge, m)
+        }
+        UploadRefusal::Malformed(m) => ApiError::bad_request(ErrorCode::MalformedBody, m),
+        e @ UploadRefusal::Encoding(_) => ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            ErrorCode::UnsupportedMediaType,
+            e.to_string(),
+        ),
+        e @ UploadRefusal::Decoder(_) => ApiError::internal(e.to_string()),
     }
-}
-
-/// The zstd window a decoder allows: at most the largest upload, so that a frame cannot make
-/// the decoder allocate more than that.
-fn window_log_max(budget: usize) -> u32 {
-    let bytes = max_json_bytes(budget).max(1 << 20);
-    (usize::BITS - (bytes - 1).leading_zeros()).clamp(20, 31)
-}
-
-fn too_large(message: String) -> ApiError {
-    ApiError::new(
-        StatusCode::PAYLOAD_TOO_LARGE,
-        ErrorCode::PayloadTooLarge,
-        message,
-    )
-}
-
-/// The body of an upload: decompressed when `Content-Encoding: zstd`, within `budget` bytes of
-/// memory for the JSON and the values read from it. The frame's declared size is checked
-/// before anything is allocated, the decoder's window is bounded, and the decoded text is
-/// read only when its values fit (counted by their separators).
-fn decompress(headers: &HeaderMap, body: &Bytes, budget: usize) -> Result<Vec<u8>, ApiError> {
-    let encoding = headers
-        .get(header::CONTENT_ENCODING)
-        .and_then(|v| v.to_str().ok())
-        .map(str::trim);
-    let max = max_json_bytes(budget);
-    let over = |what: &str| {
-        too_large(format!(
-            "the upload {what} over {max} bytes once decompressed (a quarter of \
-             `[central] max_sync_mb`)"
-        ))
-    };
-    let json = match encoding {
-        None | Some("identity") => {
-            if body.len() > max {
-                return Err(over("is"));
-            }
-            body.to_vec()
-        }
-        Some("zstd") => {
-            if let Ok(Some(declared)) = zstd::zstd_safe::get_frame_content_size(body)
-                && declared > max as u64
-            {
-                return Err(over("says it is"));
-            }
-            let mut decoder = zstd::stream::read::Decoder::new(&body[..]).map_err(|e| {
-                ApiError::bad_request(ErrorCode::MalformedBody, format!("not zstd: {e}"))
-            })?;
-            decoder
-                .window_log_max(window_log_max(budget))
-                .map_err(|e| ApiError::internal(format!("zstd decoder: {e}")))?;
-            let mut out = Vec::new();
-            decoder
-                .take(max as u64 + 1)
-                .read_to_end(&mut out)
-                .map_err(|e| {
-                    ApiError::bad_request(
-                        ErrorCode::MalformedBody,
-                        format!("the zstd stream is broken or needs too large a window: {e}"),
-                    )
-                })?;
-            if out.len() > max {
-                return Err(over("is"));
-            }
-            out
-        }
-        Some(other) => {
-            return Err(ApiError::new(
-                StatusCode::UNSUPPORTED_MEDIA_TYPE,
-                ErrorCode::UnsupportedMediaType,
-                format!("Content-Encoding `{other}`: only zstd or none"),
-            ));
-        }
-    };
-    let values = crate::fleet::protocol::json_values(&json);
-    if values > upload_limits(budget).values {
-        return Err(too_large(format!(
-            "the upload holds up to {values} values, more than `[central] max_sync_mb` allows \
-             reading at once"
-        )));
-    }
-    Ok(json)
 }
 
 /// Decompresses and parses an upload on a blocking thread (never on the async workers).
 async fn read_upload(
     headers: HeaderMap,
     body: Bytes,
-    budget: usize,
+    budget: UploadBudget,
 ) -> Result<SyncRequest, ApiError> {
     tokio::task::spawn_blocking(move || {
-        let json = decompress(&headers, &body, budget)?;
+        let encoding = headers
+            .get(header::CONTENT_ENCODING)
+            .and_then(|v| v.to_str().ok());
+        let json = budget.read(encoding, &body).map_err(refused)?;
         super::parse_json_body::<SyncRequest>(&json)
     })
     .await
@@ -181,12 +98,14 @@ pub(super) async fn post_sync(
             format!("this token does not upload for site `{site}`"),
         ));
     }
-    let budget = app
-        .service
-        .installation()
-        .fleet
-        .central
-        .map_or(128_000_000, |c| c.max_sync_bytes);
+    let budget = UploadBudget {
+        bytes: app
+            .service
+            .installation()
+            .fleet
+            .central
+            .map_or(128_000_000, |c| c.max_sync_bytes),
+    };
     // Held until the upload is applied: what it was read into lives until then.
     let _slot = super::take_slot(&app.sync_slots, SYNC_WAIT, "uploads").await?;
     let request = read_upload(headers, body.clone(), budget).await?;
@@ -286,7 +205,7 @@ pub(super) async fn post_sync(
         acked_stamp_ns,
         // Every answer tells the site what the office asks of it, and how much it reads.
         raw_requests: central.pending_raw(&site).await?,
-        limits: Some(upload_limits(budget)),
+        limits: Some(budget.limits()),
     }))
 }
 

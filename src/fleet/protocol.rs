@@ -105,6 +105,121 @@ pub fn json_values(json: &[u8]) -> u64 {
     json.iter().filter(|&&b| b == b',' || b == b'[').count() as u64
 }
 
+/// The memory a centre gives one upload being read (`[central] max_sync_mb`, in bytes): the
+/// decompressed JSON and the values read from it. It sets the [`UploadLimits`] the centre tells
+/// every site, and bounds the reading of every upload ([`UploadBudget::read`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct UploadBudget {
+    /// Bytes of memory.
+    pub bytes: usize,
+}
+
+/// Memory a JSON value of an upload may take once read, at the most: an `Option<String>` or
+/// hex bytes (24 bytes) in a vector that may have doubled.
+const BYTES_PER_VALUE: usize = 48;
+
+/// Why an upload's body is not read.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum UploadRefusal {
+    /// It is, says it is, or would be larger than the budget allows.
+    #[error("{0}")]
+    TooLarge(String),
+    /// It is not what its encoding says.
+    #[error("{0}")]
+    Malformed(String),
+    /// An encoding other than zstd or none.
+    #[error("Content-Encoding `{0}`: only zstd or none")]
+    Encoding(String),
+    /// The decoder could not be set up.
+    #[error("zstd decoder: {0}")]
+    Decoder(String),
+}
+
+impl UploadBudget {
+    /// The most a decompressed upload may hold: a quarter of the budget (the buffer may double
+    /// while it grows; the values read from it take the other half).
+    pub fn max_json_bytes(self) -> usize {
+        self.bytes / 4
+    }
+
+    /// What the centre reads of one upload at most, told to every site in every answer so
+    /// that its batches fit.
+    pub fn limits(self) -> UploadLimits {
+        UploadLimits {
+            json_bytes: self.max_json_bytes() as u64,
+            values: (self.bytes / 2 / BYTES_PER_VALUE) as u64,
+        }
+    }
+
+    /// The zstd window a decoder allows: at most the largest upload, so that a frame cannot
+    /// make the decoder allocate more than that.
+    fn window_log_max(self) -> u32 {
+        let bytes = self.max_json_bytes().max(1 << 20);
+        (usize::BITS - (bytes - 1).leading_zeros()).clamp(20, 31)
+    }
+
+    /// The JSON of an upload whose body came with `content_encoding` (the header's value,
+    /// none for none): decompressed when it is `zstd`, within the budget. The frame's declared
+    /// size is checked before anything is allocated, the decoder's window is bounded, and the
+    /// decoded text is accepted only when its values fit (counted by their separators).
+    pub fn read(
+        self,
+        content_encoding: Option<&str>,
+        body: &[u8],
+    ) -> Result<Vec<u8>, UploadRefusal> {
+        use std::io::Read;
+        let max = self.max_json_bytes();
+        let over = |what: &str| {
+            UploadRefusal::TooLarge(format!(
+                "the upload {what} over {max} bytes once decompressed (a quarter of \
+                 `[central] max_sync_mb`)"
+            ))
+        };
+        let json = match content_encoding.map(str::trim) {
+            None | Some("identity") => {
+                if body.len() > max {
+                    return Err(over("is"));
+                }
+                body.to_vec()
+            }
+            Some("zstd") => {
+                if let Ok(Some(declared)) = zstd::zstd_safe::get_frame_content_size(body)
+                    && declared > max as u64
+                {
+                    return Err(over("says it is"));
+                }
+                let mut decoder = zstd::stream::read::Decoder::new(body)
+                    .map_err(|e| UploadRefusal::Malformed(format!("not zstd: {e}")))?;
+                decoder
+                    .window_log_max(self.window_log_max())
+                    .map_err(|e| UploadRefusal::Decoder(e.to_string()))?;
+                let mut out = Vec::new();
+                decoder
+                    .take(max as u64 + 1)
+                    .read_to_end(&mut out)
+                    .map_err(|e| {
+                        UploadRefusal::Malformed(format!(
+                            "the zstd stream is broken or needs too large a window: {e}"
+                        ))
+                    })?;
+                if out.len() > max {
+                    return Err(over("is"));
+                }
+                out
+            }
+            Some(other) => return Err(UploadRefusal::Encoding(other.to_owned())),
+        };
+        let values = json_values(&json);
+        if values > self.limits().values {
+            return Err(UploadRefusal::TooLarge(format!(
+                "the upload holds up to {values} values, more than `[central] max_sync_mb` \
+                 allows reading at once"
+            )));
+        }
+        Ok(json)
+    }
+}
+
 /// A site's state as it reports it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct SiteStatus {
@@ -316,4 +431,95 @@ pub struct SyncResponse {
     /// The most the centre reads of one upload (absent from centres of earlier versions).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub limits: Option<UploadLimits>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const BUDGET: UploadBudget = UploadBudget { bytes: 4 << 20 };
+
+    /// A JSON array of `n` numbers.
+    fn array(n: usize) -> Vec<u8> {
+        let mut text = String::from("[");
+        text.push_str(&vec!["1"; n].join(","));
+        text.push(']');
+        text.into_bytes()
+    }
+
+    #[test]
+    fn an_upload_within_the_budget_reads_back_plain_or_compressed() {
+        let json = array(1000);
+        assert_eq!(BUDGET.read(None, &json), Ok(json.clone()));
+        assert_eq!(BUDGET.read(Some(" identity "), &json), Ok(json.clone()));
+        let packed = zstd::bulk::compress(&json, ZSTD_LEVEL).expect("compressed");
+        assert_eq!(BUDGET.read(Some("zstd"), &packed), Ok(json));
+    }
+
+    #[test]
+    fn an_upload_over_the_budget_is_refused_before_it_is_inflated() {
+        let max = BUDGET.max_json_bytes();
+        assert_eq!(max, 1 << 20);
+        let plain = vec![b' '; max + 1];
+        assert!(
+            matches!(BUDGET.read(None, &plain), Err(UploadRefusal::TooLarge(m)) if m.contains("is over"))
+        );
+        // A frame that says it inflates past the budget is refused on its word.
+        let packed = zstd::bulk::compress(&plain, ZSTD_LEVEL).expect("compressed");
+        assert!(packed.len() < 1000, "a bomb: {} bytes", packed.len());
+        assert!(
+            matches!(BUDGET.read(Some("zstd"), &packed), Err(UploadRefusal::TooLarge(m)) if m.contains("says it is"))
+        );
+        // A stream that does not say its size (with a window the budget allows: level 1's
+        // 512 KiB) is read no further than the budget.
+        let mut streamed = Vec::new();
+        {
+            let mut encoder =
+                zstd::stream::write::Encoder::new(&mut streamed, 1).expect("an encoder");
+            encoder.include_contentsize(false).expect("set");
+            std::io::Write::write_all(&mut encoder, &plain).expect("written");
+            encoder.finish().expect("finished");
+        }
+        assert!(
+            matches!(BUDGET.read(Some("zstd"), &streamed), Err(UploadRefusal::TooLarge(m)) if m.contains("is over"))
+        );
+    }
+
+    #[test]
+    fn values_beyond_what_the_budget_reads_are_refused_and_the_limits_say_so() {
+        let limits = BUDGET.limits();
+        assert_eq!(limits.json_bytes, 1 << 20);
+        assert_eq!(limits.values, (2 << 20) / 48);
+        let fits = array(limits.values as usize - 1);
+        assert!(json_values(&fits) <= limits.values);
+        assert!(BUDGET.read(None, &fits).is_ok());
+        // Short values: within the bytes, over the values.
+        let over = array(limits.values as usize + 1);
+        assert!(over.len() <= BUDGET.max_json_bytes());
+        assert!(
+            matches!(BUDGET.read(None, &over), Err(UploadRefusal::TooLarge(m)) if m.contains("values"))
+        );
+    }
+
+    #[test]
+    fn a_frame_that_needs_a_window_beyond_the_largest_upload_is_refused() {
+        // A stream compressor at level 9 asks for an 8 MiB window; this budget's uploads are
+        // 1 MiB at most.
+        let packed = zstd::encode_all(&array(1000)[..], ZSTD_LEVEL).expect("compressed");
+        assert!(
+            matches!(BUDGET.read(Some("zstd"), &packed), Err(UploadRefusal::Malformed(m)) if m.contains("window"))
+        );
+    }
+
+    #[test]
+    fn other_encodings_and_broken_streams_are_named() {
+        assert_eq!(
+            BUDGET.read(Some("gzip"), b"{}"),
+            Err(UploadRefusal::Encoding("gzip".into()))
+        );
+        assert!(matches!(
+            BUDGET.read(Some("zstd"), b"{}"),
+            Err(UploadRefusal::Malformed(_))
+        ));
+    }
 }
