@@ -58,10 +58,15 @@ pub(crate) const CENTRAL: Embedded = embedded!("migrations-central":
 );
 
 impl Embedded {
-    /// The migrator of these migrations, with sqlx's defaults (each migration in its own
-    /// transaction, the database locked while migrating, none applied that is not listed).
-    pub(crate) async fn migrator(self) -> Result<Migrator, MigrateError> {
-        Migrator::new(self).await
+    /// Applies those of these migrations that `conn`'s database lacks, as sqlx's migrator does
+    /// by default: each in its own transaction, the database locked while migrating, and a
+    /// database refused that has one applied that is not listed or was changed since.
+    pub(crate) async fn run<'a, A>(self, conn: A) -> Result<(), MigrateError>
+    where
+        A: sqlx::Acquire<'a>,
+        <A::Connection as std::ops::Deref>::Target: sqlx::migrate::Migrate,
+    {
+        Migrator::new(self).await?.run(conn).await
     }
 
     /// The migrations, named and parsed as sqlx parses a folder's files:

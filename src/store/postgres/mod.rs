@@ -70,17 +70,16 @@ pub(super) async fn open(
         StoreError::WriterLocked => refused("cannot write", e),
         e => refused("cannot connect", e),
     })?;
-    let migrated = match super::migrations::POSTGRES.migrator().await {
-        Ok(migrator) => migrator.run(&mut conn).await,
-        Err(e) => Err(e),
-    };
-    migrated.map_err(|e| {
-        refused(
-            "cannot prepare the schema (the role needs to create tables in the database, and \
+    super::migrations::POSTGRES
+        .run(&mut conn)
+        .await
+        .map_err(|e| {
+            refused(
+                "cannot prepare the schema (the role needs to create tables in the database, and \
              the pg_partman extension must be installed, or the role allowed to create it)",
-            e.into(),
-        )
-    })?;
+                e.into(),
+            )
+        })?;
     let ready = async {
         maintain(&mut conn).await?;
         let mut link_ids = Vec::with_capacity(link_names.len());

@@ -162,11 +162,7 @@ async fn open_inner(
     }
     let mut conn = options(path).connect().await?;
     claim(&mut conn, path).await?;
-    super::migrations::SQLITE
-        .migrator()
-        .await?
-        .run(&mut conn)
-        .await?;
+    super::migrations::SQLITE.run(&mut conn).await?;
     let identity = FileIdentity::of(path).ok_or_else(|| StoreError::Open {
         database: path.display().to_string(),
         message: "the file vanished while it was opened".into(),
@@ -306,11 +302,7 @@ pub(super) async fn new_generation(path: &Path) -> StoreResult<super::outbox::Ou
     }
     let mut conn = options(path).create_if_missing(false).connect().await?;
     claim(&mut conn, path).await?;
-    super::migrations::SQLITE
-        .migrator()
-        .await?
-        .run(&mut conn)
-        .await?;
+    super::migrations::SQLITE.run(&mut conn).await?;
     let mut tx = conn.begin().await?;
     let identity = outbox::start_generation(&mut tx).await?;
     tx.commit().await?;

@@ -436,11 +436,7 @@ impl Central {
             sqlx::query("set search_path to fleet")
                 .execute(&mut conn)
                 .await?;
-            crate::store::migrations::CENTRAL
-                .migrator()
-                .await?
-                .run(&mut conn)
-                .await?;
+            crate::store::migrations::CENTRAL.run(&mut conn).await?;
             StoreResult::Ok(())
         };
         migrate.await.map_err(refused)?;
@@ -479,11 +475,7 @@ impl Central {
                     .options([("search_path", schema.as_str())]),
             )
             .await?;
-        crate::store::migrations::POSTGRES
-            .migrator()
-            .await?
-            .run(&in_schema)
-            .await?;
+        crate::store::migrations::POSTGRES.run(&in_schema).await?;
         in_schema.close().await;
         prepared.insert(site_id);
         Ok(())
