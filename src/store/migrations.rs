@@ -9,20 +9,27 @@
 //! sqlx and both database drivers for the compiler's host, a minute of every cold build.)
 //!
 //! A file added to a folder and not to its list would never be applied: the unit test below
-//! compares each list with its folder.
+//! compares each list with its folder as sqlx reads it.
 
 use sqlx::error::BoxDynError;
 use sqlx::migrate::{MigrateError, Migration, MigrationSource, MigrationType, Migrator};
 use std::borrow::Cow;
 
-/// One folder's migrations: each file's name and text, in order.
+/// One folder's migrations: the folder (from the crate's root) and each file's name and text,
+/// in order.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Embedded(&'static [(&'static str, &'static str)]);
+pub(crate) struct Embedded {
+    folder: &'static str,
+    files: &'static [(&'static str, &'static str)],
+}
 
 /// Lists a folder's files, each embedded from the crate's root.
 macro_rules! embedded {
     ($folder:literal: $($file:literal),* $(,)?) => {
-        Embedded(&[$(($file, include_str!(concat!("../../", $folder, "/", $file)))),*])
+        Embedded {
+            folder: $folder,
+            files: &[$(($file, include_str!(concat!("../../", $folder, "/", $file)))),*],
+        }
     };
 }
 
@@ -73,18 +80,21 @@ impl Embedded {
     /// `<version>_<description>.sql`, the description's underscores read as spaces, and a file
     /// whose text starts with `-- no-transaction` run outside a transaction.
     fn migrations(self) -> Result<Vec<Migration>, String> {
-        self.0
+        self.files
             .iter()
             .map(|&(file, sql)| {
-                let (version, rest) = file
-                    .split_once('_')
-                    .ok_or_else(|| format!("migration {file:?}: no `_` after its version"))?;
-                let version: i64 = version
-                    .parse()
-                    .map_err(|_| format!("migration {file:?}: its version is not an integer"))?;
+                let (version, rest) = file.split_once('_').ok_or_else(|| {
+                    format!("migration {}/{file}: no `_` after its version", self.folder)
+                })?;
+                let version: i64 = version.parse().map_err(|_| {
+                    format!(
+                        "migration {}/{file}: its version is not an integer",
+                        self.folder
+                    )
+                })?;
                 let description = rest
                     .strip_suffix(".sql")
-                    .ok_or_else(|| format!("migration {file:?}: not a .sql file"))?
+                    .ok_or_else(|| format!("migration {}/{file}: not a .sql file", self.folder))?
                     .replace('_', " ");
                 Ok(Migration::new(
                     version,
@@ -108,60 +118,36 @@ impl<'s> MigrationSource<'s> for Embedded {
 mod tests {
     use super::*;
 
-    /// Every `.sql` file of each folder is listed, in order, with its text.
+    /// Each list is its folder, and each migration's version, description, checksum (its
+    /// text) and kind are what sqlx reads from the folder itself, which is what the `migrate!`
+    /// macro embedded: a file left out of a list fails here, and databases migrated before
+    /// read as up to date.
     #[test]
-    fn each_list_is_its_folder() {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-        for (folder, embedded) in [
-            ("migrations", SQLITE),
-            ("migrations-postgres", POSTGRES),
-            ("migrations-central", CENTRAL),
-        ] {
-            let mut on_disk: Vec<String> = std::fs::read_dir(root.join(folder))
-                .expect("the folder")
-                .map(|e| {
-                    e.expect("an entry")
-                        .file_name()
-                        .into_string()
-                        .expect("UTF-8")
-                })
-                .filter(|name| name.ends_with(".sql"))
-                .collect();
-            on_disk.sort();
-            let listed: Vec<&str> = embedded.0.iter().map(|(file, _)| *file).collect();
-            assert_eq!(listed, on_disk, "{folder}/ and its list differ");
-            for (file, sql) in embedded.0 {
-                let text = std::fs::read_to_string(root.join(folder).join(file)).expect("a file");
-                assert_eq!(*sql, text, "{folder}/{file}");
-            }
-        }
-    }
-
-    /// Versions, descriptions and checksums as sqlx reads the folders themselves (which is
-    /// what the `migrate!` macro embedded): databases migrated before read as up to date.
-    #[test]
-    fn the_migrations_are_those_sqlx_reads_from_the_folders() {
+    fn each_list_is_its_folder_as_sqlx_reads_it() {
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
         let runtime = tokio::runtime::Builder::new_current_thread()
             .build()
             .expect("a runtime");
-        for (folder, embedded) in [
-            ("migrations", SQLITE),
-            ("migrations-postgres", POSTGRES),
-            ("migrations-central", CENTRAL),
-        ] {
+        for embedded in [SQLITE, POSTGRES, CENTRAL] {
+            let folder = embedded.folder;
             let ours = embedded.migrations().expect("parsed");
             let theirs = runtime
                 .block_on(Migrator::new(root.join(folder)))
                 .expect("sqlx reads the folder");
-            let theirs: Vec<&Migration> = theirs.iter().collect();
-            assert_eq!(ours.len(), theirs.len(), "{folder}");
-            for (a, b) in ours.iter().zip(theirs) {
-                assert_eq!(a.version, b.version, "{folder}");
-                assert_eq!(a.description, b.description, "{folder}");
-                assert_eq!(a.checksum, b.checksum, "{folder}");
-                assert_eq!(a.no_tx, b.no_tx, "{folder}");
-                assert_eq!(a.migration_type, b.migration_type, "{folder}");
+            let versions = |m: &mut dyn Iterator<Item = &Migration>| -> Vec<i64> {
+                m.map(|m| m.version).collect()
+            };
+            assert_eq!(
+                versions(&mut ours.iter()),
+                versions(&mut theirs.iter()),
+                "{folder}/ and its list in store::migrations differ"
+            );
+            for (a, b) in ours.iter().zip(theirs.iter()) {
+                let which = format!("{folder}/ version {}", a.version);
+                assert_eq!(a.description, b.description, "{which}");
+                assert_eq!(a.checksum, b.checksum, "{which}");
+                assert_eq!(a.no_tx, b.no_tx, "{which}");
+                assert_eq!(a.migration_type, b.migration_type, "{which}");
             }
         }
     }
