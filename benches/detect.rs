@@ -10,7 +10,8 @@
 //! * `decode png` / `decode pgm`: the 8-bit frame file decoded into a grey frame;
 //! * at 1600 x 1200 (the same marker and lens, turned about 27 degrees, 30 pieces of clutter
 //!   around it and none over its discs): `observe_frame` tracked (a good prediction), and with
-//!   no prior (the whole frame detected, then the search from the layout alone and PnP).
+//!   no prior (the whole frame detected, then the search from the layout alone and PnP), and
+//!   that frame's detection alone.
 //!
 //! Rendering is outside the timed loops. Run: `cargo bench --bench detect`.
 
@@ -113,6 +114,9 @@ fn bench(c: &mut Criterion) {
         found.ids.len(),
         detect_in(&frame_1600, &settings, &whole).len()
     );
+    c.bench_function("no prior 1600x1200: detect the whole frame alone", |b| {
+        b.iter(|| detect_in(black_box(&frame_1600), &settings, &whole).len())
+    });
     c.bench_function(
         "no prior 1600x1200: detect the whole frame, search, PnP",
         |b| {

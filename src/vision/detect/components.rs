@@ -123,6 +123,7 @@ pub(super) fn components(
                 let stop = ((u / THRESHOLD_TILE_PX + 1) * THRESHOLD_TILE_PX).min(end);
                 let (out, pixels) = (&mut mask[u..stop], &row[u..stop]);
                 match thresholds.twice_at(u, v) {
+                    _ if thresholds.blank_at(u, v) => out.fill(0),
                     Some(t) if thresholds.bright => {
                         for (m, &p) in out.iter_mut().zip(pixels) {
                             *m = u8::from(2 * u32::from(p) > t);
