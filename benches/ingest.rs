@@ -1,6 +1,7 @@
 //! Load generator: ingest over HTTP on loopback and compensation latency, against the release
-//! binary in its own process, on each store backend in turn, with a raw SQLite insert
-//! baseline. Prints its figures.
+//! binary in its own process, on each store backend in turn, with two raw SQLite baselines:
+//! the samples alone inserted into the samples table, and (SQLite backend) every row the
+//! service stored in the run written again in the service's own commits. Prints its figures.
 //!
 //! Run: `cargo bench --bench ingest` (options through the environment: `BACKENDS`
 //! (`sqlite,postgres`: PostgreSQL in a throwaway cluster of this run, fsync and synchronous
@@ -140,6 +141,130 @@ fn raw_sqlite_baseline(dir: &std::path::Path, batches: usize, n: usize) -> f64 {
     (batches * (n / 3) * 3) as f64 / start.elapsed().as_secs_f64()
 }
 
+/// SQLite alone writing the service's own rows: every row the service stored during the run
+/// (`service_db`, read after it stopped) inserted again into a fresh database of the same
+/// schema (every migration), one transaction per commit of the service, in its order, with
+/// prepared statements, the same pragmas. Samples, results, alarms and commit numbers are
+/// written once in both; the service rewrites the rollup rows and its filter state a commit
+/// touches in every commit, the replay each rollup row once (at the commit of its last version)
+/// and the filter state once a commit. Returns samples a second and the rows and bytes a
+/// sample brings.
+fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (f64, f64, f64) {
+    use rusqlite::types::Value;
+    use std::collections::BTreeMap;
+    let source = rusqlite::Connection::open_with_flags(
+        service_db,
+        rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY,
+    )
+    .expect("open the service's database");
+    let path = dir.join("replay.sqlite");
+    let conn = rusqlite::Connection::open(&path).expect("open");
+    conn.pragma_update(None, "journal_mode", "WAL")
+        .expect("wal");
+    conn.pragma_update(None, "synchronous", "FULL")
+        .expect("sync");
+    let mut migrations: Vec<_> =
+        std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/migrations"))
+            .expect("migrations")
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "sql"))
+            .collect();
+    migrations.sort();
+    for m in &migrations {
+        conn.execute_batch(&std::fs::read_to_string(m).expect("migration"))
+            .expect("migration applies");
+    }
+    conn.execute_batch("delete from commits; delete from links; delete from targets;")
+        .expect("empty");
+    // Per commit, per table: the rows (every column, in the table's order).
+    let tables = [
+        "links",
+        "targets",
+        "commits",
+        "samples",
+        "results",
+        "rollups",
+        "alarms",
+        "target_references",
+        "filter_state",
+    ];
+    let mut per_commit: BTreeMap<i64, Vec<(usize, Vec<Value>)>> = BTreeMap::new();
+    let mut columns = Vec::new();
+    let (mut samples, mut rows, mut bytes) = (0usize, 0usize, 0usize);
+    let mut state = None;
+    for (k, table) in tables.iter().enumerate() {
+        let mut stmt = source
+            .prepare(&format!("select * from {table}"))
+            .expect("select");
+        let names: Vec<String> = stmt.column_names().iter().map(|c| c.to_string()).collect();
+        let seq_at = names
+            .iter()
+            .position(|c| c == "commit_seq" || (*table == "commits" && c == "seq"));
+        columns.push(names.len());
+        let mut q = stmt.query([]).expect("query");
+        while let Some(row) = q.next().expect("row") {
+            let values: Vec<Value> = (0..names.len())
+                .map(|i| row.get(i).expect("value"))
+                .collect();
+            let seq = match seq_at {
+                Some(i) => match values[i] {
+                    Value::Integer(s) => s,
+                    _ => 0,
+                },
+                None => i64::MIN,
+            };
+            bytes += values
+                .iter()
+                .map(|v| match v {
+                    Value::Null => 1,
+                    Value::Integer(_) | Value::Real(_) => 8,
+                    Value::Text(t) => t.len(),
+                    Value::Blob(b) => b.len(),
+                })
+                .sum::<usize>();
+            rows += 1;
+            if *table == "samples" {
+                samples += 1;
+            }
+            if *table == "filter_state" {
+                state = Some((k, values));
+            } else {
+                per_commit.entry(seq).or_default().push((k, values));
+            }
+        }
+    }
+    let state = state.expect("the service saved its filter state");
+    let mut conn = conn;
+    let start = Instant::now();
+    for (seq, rows) in &per_commit {
+        let tx = conn.transaction().expect("tx");
+        for (k, values) in rows {
+            let marks = vec!["?"; columns[*k]].join(", ");
+            let mut stmt = tx
+                .prepare_cached(&format!("insert into {} values ({marks})", tables[*k]))
+                .expect("prepare");
+            stmt.execute(rusqlite::params_from_iter(values.iter()))
+                .expect("insert");
+        }
+        if *seq != i64::MIN {
+            let marks = vec!["?"; columns[state.0]].join(", ");
+            tx.prepare_cached(&format!(
+                "insert or replace into filter_state values ({marks})"
+            ))
+            .expect("prepare")
+            .execute(rusqlite::params_from_iter(state.1.iter()))
+            .expect("state");
+        }
+        tx.commit().expect("commit");
+    }
+    let rate = samples as f64 / start.elapsed().as_secs_f64();
+    (
+        rate,
+        rows as f64 / samples as f64,
+        bytes as f64 / samples as f64,
+    )
+}
+
 fn main() {
     // Criterion-style benches also run under `cargo test --benches`: do nothing there.
     if std::env::args().any(|a| a == "--test") || !std::env::args().any(|a| a == "--bench") {
@@ -262,6 +387,7 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         .expect("server address");
     let base = format!("http://{addr}");
 
+    let mut ingest_rate = f64::NAN;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -339,6 +465,7 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         if let Some(poller) = poller {
             poller.abort();
         }
+        ingest_rate = rate;
         println!("ingest over HTTP: {total} samples in {elapsed:.2} s = {rate:.0} samples/s ({clients} clients, batches of {n}, durable before each answer)");
         println!("server peak RSS during ingest: {rss:.1} MB");
         if sse_clients > 0 {
@@ -396,6 +523,13 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         .args(["-TERM", &pid.to_string()])
         .status();
     let _ = child.wait();
+    if backend == "sqlite" {
+        let (replay, rows, bytes) = replay_service_rows(dir, std::path::Path::new(&database));
+        println!(
+            "raw SQLite writing the service's own rows ({rows:.2} rows and {bytes:.0} bytes a sample, one transaction per commit of the service): {replay:.0} samples/s; ingest / that: {:.2}",
+            ingest_rate / replay
+        );
+    }
     if let Some(p) = plant {
         println!(
             "outputs: {} NMEA datagrams and {} MQTT lines received",
