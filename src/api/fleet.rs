@@ -29,10 +29,6 @@ pub(super) fn site_of(text: &str) -> Result<SiteName, ApiError> {
     })
 }
 
-/// Uploads read at once (decompressed, parsed and applied): each may take up to
-/// `[central] max_sync_mb` of memory, so a burst of them cannot take the host's.
-pub(super) const SYNC_SLOTS: usize = 2;
-
 /// How long an upload waits for a slot before it is answered 503 (the site retries).
 const SYNC_WAIT: std::time::Duration = std::time::Duration::from_secs(10);
 
@@ -59,9 +55,15 @@ async fn read_upload(
     budget: UploadBudget,
 ) -> Result<SyncRequest, ApiError> {
     tokio::task::spawn_blocking(move || {
-        let encoding = headers
-            .get(header::CONTENT_ENCODING)
-            .and_then(|v| v.to_str().ok());
+        // A header that is not text names no encoding this reads: refused, not taken as none.
+        let encoding = match headers.get(header::CONTENT_ENCODING) {
+            None => None,
+            Some(v) => Some(v.to_str().map_err(|_| {
+                refused(UploadRefusal::Encoding(
+                    String::from_utf8_lossy(v.as_bytes()).into_owned(),
+                ))
+            })?),
+        };
         let json = budget.read(encoding, &body).map_err(refused)?;
         super::parse_json_body::<SyncRequest>(&json)
     })
@@ -89,7 +91,8 @@ pub(super) async fn post_sync(
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Json<SyncResponse>, ApiError> {
-    let central = centre(&app)?;
+    let the_centre = centre(&app)?;
+    let central = &the_centre.store;
     let site = site_of(&site)?;
     if caller.authenticated && caller.site.as_ref() != Some(&site) {
         return Err(ApiError::new(
@@ -99,15 +102,10 @@ pub(super) async fn post_sync(
         ));
     }
     let budget = UploadBudget {
-        bytes: app
-            .service
-            .installation()
-            .fleet
-            .central
-            .map_or(128_000_000, |c| c.max_sync_bytes),
+        bytes: the_centre.settings.max_sync_bytes,
     };
     // Held until the upload is applied: what it was read into lives until then.
-    let _slot = super::take_slot(&app.sync_slots, SYNC_WAIT, "uploads").await?;
+    let _slot = super::take_slot(&the_centre.sync_slots, SYNC_WAIT, "uploads").await?;
     let request = read_upload(headers, body.clone(), budget).await?;
     let status_json = request
         .check(app.service.now_ns())
@@ -266,7 +264,7 @@ pub(super) struct SitesOut {
     ),
     security(("bearer" = ["read"])))]
 pub(super) async fn list_sites(State(app): State<AppState>) -> Result<Json<SitesOut>, ApiError> {
-    let central = centre(&app)?;
+    let central = &centre(&app)?.store;
     let records = central.sites().await?;
     let sites = records
         .into_iter()
@@ -340,7 +338,7 @@ pub(super) async fn cancel_raw_request(
     Path((site, id)): Path<(String, String)>,
     axum::Extension(caller): axum::Extension<Caller>,
 ) -> Result<Json<RawRequestOut>, ApiError> {
-    let central = centre(&app)?;
+    let central = &centre(&app)?.store;
     let site = site_of(&site)?;
     let id: i64 = id
         .parse()
@@ -424,8 +422,8 @@ pub(super) struct RawRequestsOut {
 }
 
 /// The centre of this service, or 404.
-pub(super) fn centre(app: &AppState) -> Result<&crate::store::Central, ApiError> {
-    app.central.as_deref().ok_or_else(|| {
+pub(super) fn centre(app: &AppState) -> Result<&crate::fleet::Centre, ApiError> {
+    app.centre.as_deref().ok_or_else(|| {
         ApiError::not_found("this service is no centre (`[central] enabled = true` on PostgreSQL)")
     })
 }
@@ -447,7 +445,7 @@ pub(super) async fn post_raw_request(
     Path(site): Path<String>,
     body: Bytes,
 ) -> Result<(StatusCode, Json<RawRequestOut>), ApiError> {
-    let central = centre(&app)?;
+    let central = &centre(&app)?.store;
     let site = site_of(&site)?;
     let r: RawRequestIn = super::parse_json_body(&body)?;
     let from_ns =
@@ -490,7 +488,7 @@ pub(super) async fn list_raw_requests(
     State(app): State<AppState>,
     Path(site): Path<String>,
 ) -> Result<Json<RawRequestsOut>, ApiError> {
-    let central = centre(&app)?;
+    let central = &centre(&app)?.store;
     let site = site_of(&site)?;
     let requests = central.raw_requests(&site).await?;
     Ok(Json(RawRequestsOut {

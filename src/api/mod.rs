@@ -70,16 +70,12 @@ pub struct AppState {
     pub webhooks: crate::notify::Webhooks,
     /// Frames' way in: the search's slots, the archive, the newest frame of every camera.
     pub intake: Arc<crate::intake::Intake>,
-    /// The centre's record of its fleet, when this service is a centre.
-    pub central: Option<Arc<crate::store::Central>>,
+    /// The centre's side of the fleet, when this service is a centre.
+    pub centre: Option<Arc<crate::fleet::Centre>>,
     /// This site's uploads, when it pushes to a centre.
     pub upstream: Option<Arc<crate::fleet::Upstream>>,
-    /// A centre's uploads read and applied at once (each takes memory up to its budget).
-    pub sync_slots: Arc<tokio::sync::Semaphore>,
     /// Camera calibrations run at once (one: each holds a core).
     pub calibration_slots: Arc<tokio::sync::Semaphore>,
-    /// On a centre, why the last upkeep of some site failed (for `/healthz`).
-    pub upkeep_problem: Arc<std::sync::Mutex<Option<String>>>,
     /// The cameras the service takes frames from itself (`[cameras.source]`); empty unless
     /// `crate::app::App` started them.
     pub sources: Arc<[Arc<crate::acquire::SourceState>]>,
@@ -116,9 +112,7 @@ impl AppState {
         Ok(Self {
             intake: Arc::new(crate::intake::Intake::new(service.clone())?),
             webhooks: crate::notify::Webhooks::start(&service, alarms::encode_alarm),
-            central: None,
-            sync_slots: Arc::new(tokio::sync::Semaphore::new(fleet::SYNC_SLOTS)),
-            upkeep_problem: Arc::default(),
+            centre: None,
             calibration_slots: Arc::new(tokio::sync::Semaphore::new(1)),
             upstream: (site.site.clone())
                 .zip(site.upstream.clone())
@@ -295,12 +289,8 @@ async fn healthz(
             tasks_problem,
             grouping_problem: app.service.grouping_problem(),
             filter_problem: app.service.filter_problem(),
-            centre_problem: app
-                .upkeep_problem
-                .lock()
-                .unwrap_or_else(|p| p.into_inner())
-                .clone(),
-            centre: app.central.is_some(),
+            centre_problem: app.centre.as_ref().and_then(|c| c.upkeep_problem()),
+            centre: app.centre.is_some(),
             output_problem: outputs::problem(&output_status),
             outputs: output_status.into_iter().map(Into::into).collect(),
             targets,

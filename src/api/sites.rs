@@ -64,7 +64,7 @@ impl SiteView {
 
 /// The copy of `site`, or 404 saying why there is none.
 async fn site_view(app: &AppState, site: &str) -> Result<SiteView, ApiError> {
-    let central = centre(app)?;
+    let central = &centre(app)?.store;
     let name = site_of(site)?;
     let (site_id, status_json) = central.site_report(&name).await?.ok_or_else(|| {
         ApiError::not_found(format!("the centre has not heard from site `{site}`"))

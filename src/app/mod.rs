@@ -52,14 +52,8 @@ pub struct App {
 
 /// Starts the centre's upkeep of its sites' copies ([`crate::fleet::upkeep`]).
 fn spawn_centre_upkeep(state: &AppState) -> Option<tokio::task::JoinHandle<()>> {
-    let central = Arc::clone(state.central.as_ref()?);
-    let settings = state.service.installation().fleet.central?;
-    Some(crate::fleet::upkeep::spawn(
-        state.service.clone(),
-        central,
-        settings,
-        Arc::clone(&state.upkeep_problem),
-    ))
+    let centre = Arc::clone(state.centre.as_ref()?);
+    Some(crate::fleet::upkeep::spawn(state.service.clone(), centre))
 }
 
 /// Starts the uploader of a site that pushes to a centre.
@@ -81,17 +75,18 @@ impl App {
         let listener = tokio::net::TcpListener::bind(addr)
             .await
             .map_err(|source| StartError::Bind { addr, source })?;
-        let central = match (&installation.fleet.central, &installation.server.database) {
-            (Some(_), crate::config::Database::Postgres(url)) => {
-                Some(Arc::new(crate::store::Central::open(url).await.map_err(
-                    |e| StartError::Service(crate::service::ServiceError::Storage(e)),
-                )?))
+        let centre = match (installation.fleet.central, &installation.server.database) {
+            (Some(settings), crate::config::Database::Postgres(url)) => {
+                let store = crate::store::Central::open(url)
+                    .await
+                    .map_err(|e| StartError::Service(crate::service::ServiceError::Storage(e)))?;
+                Some(Arc::new(crate::fleet::Centre::new(store, settings)))
             }
             _ => None,
         };
         let (service, pipeline) = Service::start(installation).await?;
         let mut state = AppState::new(service.clone())?;
-        state.central = central;
+        state.centre = centre;
         // Cameras are opened once everything else started: their frames have somewhere to go.
         let acquisition = crate::acquire::Acquisition::start(service.installation());
         state.sources = acquisition.sources().into();

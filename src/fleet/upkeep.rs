@@ -2,21 +2,15 @@
 //! then every ten minutes until the service stops. A failed pass is logged, counted and kept as
 //! the centre's problem (`/healthz` `centre_problem`, per site); the next pass tries again.
 
-use crate::config::CentralSettings;
+use super::Centre;
 use crate::service::Service;
-use crate::store::Central;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 /// Starts the centre's upkeep of its sites' copies (retention per tier, partitions): at start,
 /// then every ten minutes, until the service stops. A failed pass is logged and counted, and
 /// the next one tries again.
-pub fn spawn(
-    service: Service,
-    central: Arc<Central>,
-    settings: CentralSettings,
-    upkeep_problem: Arc<Mutex<Option<String>>>,
-) -> tokio::task::JoinHandle<()> {
+pub fn spawn(service: Service, centre: Arc<Centre>) -> tokio::task::JoinHandle<()> {
     let mut stopping = service.stopping();
     let watched = service.clone();
     watched.spawn_watched("centre upkeep", async move {
@@ -30,7 +24,8 @@ pub fn spawn(
             if *stopping.borrow() {
                 return;
             }
-            let pass = central.maintain(service.now_ns(), settings.raw_days, settings.results_days);
+            let settings = centre.settings;
+            let pass = centre.store.maintain(service.now_ns(), settings.raw_days, settings.results_days);
             match pass.await {
                 Ok(sites) => {
                     let failed: Vec<String> = sites
@@ -46,9 +41,9 @@ pub fn spawn(
                         .metrics()
                         .centre_upkeep_failed
                         .fetch_add(failed.len() as u64, std::sync::atomic::Ordering::Relaxed);
-                    *upkeep_problem.lock().unwrap_or_else(|p| p.into_inner()) = (!failed
-                        .is_empty())
-                    .then(|| format!("the centre's upkeep failed for {}", failed.join("; ")));
+                    centre.set_upkeep_problem((!failed.is_empty()).then(|| {
+                        format!("the centre's upkeep failed for {}", failed.join("; "))
+                    }));
                     let pruned: u64 = sites
                         .iter()
                         .map(|s| s.samples + s.raw_results + s.results)
@@ -71,6 +66,7 @@ pub fn spawn(
                         .centre_upkeep_failed
                         .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     tracing::warn!(error = %e, "the centre's upkeep of its sites failed; trying again in ten minutes");
+                    centre.set_upkeep_problem(Some(format!("the centre's upkeep failed: {e}")));
                 }
             }
         }

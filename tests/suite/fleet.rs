@@ -1392,6 +1392,25 @@ async fn the_centre_applies_once_and_refuses_what_it_must_saying_why() {
         .await
         .unwrap();
     assert_eq!(r.status(), 400);
+    // An encoding that is not text is refused as an encoding, not read as none.
+    let r = client
+        .post(format!("{base}/api/v1/sites/{SITE}/sync"))
+        .bearer_auth(SYNC_TOKEN)
+        .header("content-type", "application/json")
+        .header(
+            "content-encoding",
+            reqwest::header::HeaderValue::from_bytes(b"zst\xffd").unwrap(),
+        )
+        .body(serde_json::to_vec(&reset_upload("a", Some(5), 6)).unwrap())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 415);
+    let answer: Value = r.json().await.unwrap();
+    assert_eq!(
+        answer["error"]["code"], "unsupported_media_type",
+        "{answer}"
+    );
 
     // What was applied, once: the resets at 3 and 5; nothing of the refused uploads.
     let rows = centre_rows(&url, SyncTable::LinkResets).await;
