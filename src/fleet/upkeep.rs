@@ -1,6 +1,7 @@
 //! The centre's upkeep of its sites' copies: retention per tier and partitions, at start and
 //! then every ten minutes until the service stops. A failed pass is logged, counted and kept as
-//! the centre's problem (`/healthz` `centre_problem`, per site); the next pass tries again.
+//! the centre's problem (`/healthz` `centre_problem`: per site, or the whole pass); the next
+//! pass tries again.
 
 use super::Centre;
 use crate::service::Service;
