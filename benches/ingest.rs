@@ -90,14 +90,21 @@ fn peak_rss_mb(pid: u32) -> f64 {
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
-/// The raw baseline: the same schema, one prepared statement, one transaction per batch.
-fn raw_sqlite_baseline(dir: &std::path::Path, batches: usize, n: usize) -> f64 {
-    let path = dir.join("raw.sqlite");
-    let conn = rusqlite::Connection::open(&path).expect("open");
+/// A new SQLite file with the service's pragmas: WAL, `synchronous = FULL`.
+fn open_like_the_service(path: &std::path::Path) -> rusqlite::Connection {
+    let conn = rusqlite::Connection::open(path).expect("open");
     conn.pragma_update(None, "journal_mode", "WAL")
         .expect("wal");
     conn.pragma_update(None, "synchronous", "FULL")
         .expect("sync");
+    conn
+}
+
+/// The raw baseline: the first migration's samples table, one prepared statement, one
+/// transaction per batch.
+fn raw_sqlite_baseline(dir: &std::path::Path, batches: usize, n: usize) -> f64 {
+    let path = dir.join("raw.sqlite");
+    let conn = open_like_the_service(&path);
     let schema = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/migrations/0001_initial.sql"
@@ -158,11 +165,7 @@ fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (
     )
     .expect("open the service's database");
     let path = dir.join("replay.sqlite");
-    let conn = rusqlite::Connection::open(&path).expect("open");
-    conn.pragma_update(None, "journal_mode", "WAL")
-        .expect("wal");
-    conn.pragma_update(None, "synchronous", "FULL")
-        .expect("sync");
+    let conn = open_like_the_service(&path);
     let mut migrations: Vec<_> =
         std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/migrations"))
             .expect("migrations")
