@@ -198,6 +198,17 @@ async fn the_scheduled_report_files_each_period_once_and_tells_a_failure() {
         reports.display()
     ));
     let app = TestApp::start(Some(&config)).await;
+    // The service looks at once: the day before its start (the 20th) is filed, empty. Waited
+    // for, so that this look's own file and problem cannot land among the checks below.
+    let at_start = reports.join("brokenray-report-2026-11-20T00-00-00Z--2026-11-21T00-00-00Z.html");
+    let waited = std::time::Instant::now();
+    while !at_start.exists() {
+        assert!(
+            waited.elapsed() < std::time::Duration::from_secs(60),
+            "the scheduled look at start filed nothing"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
     post_run(&app, T0_NS, 100, 0).await;
     // The next morning: the 21st has ended.
     app.clock.set_ns(T0_NS + 86_400_000_000_000);
