@@ -227,16 +227,23 @@ impl SearchArea {
 
     /// The column ranges `[u0, u1)` of searched tiles in tile row `ty`.
     fn spans(&self, ty: usize, w: usize) -> Vec<(usize, usize)> {
-        let mut out: Vec<(usize, usize)> = Vec::new();
-        for tx in (0..self.tiles_x).filter(|&tx| self.is_active(tx, ty)) {
-            let (u0, u1) = (tx * TILE_PX, ((tx + 1) * TILE_PX).min(w));
-            match out.last_mut() {
-                Some(last) if last.1 == u0 => last.1 = u1,
-                _ => out.push((u0, u1)),
-            }
-        }
-        out
+        let row = &self.active[ty * self.tiles_x..(ty + 1) * self.tiles_x];
+        column_spans(row, TILE_PX, w)
     }
+}
+
+/// The column ranges `[u0, u1)` of the runs of marked tiles in one row of tiles `tile_px`
+/// wide, in a frame `w` pixels wide.
+fn column_spans(marked: &[bool], tile_px: usize, w: usize) -> Vec<(usize, usize)> {
+    let mut out: Vec<(usize, usize)> = Vec::new();
+    for tx in (0..marked.len()).filter(|&tx| marked[tx]) {
+        let (u0, u1) = (tx * tile_px, ((tx + 1) * tile_px).min(w));
+        match out.last_mut() {
+            Some(last) if last.1 == u0 => last.1 = u1,
+            _ => out.push((u0, u1)),
+        }
+    }
+    out
 }
 
 /// Finds the discs of a frame, in the order of their first row (then column).

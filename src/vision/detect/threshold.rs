@@ -200,14 +200,7 @@ impl TileExtremes {
             let base = ty * tiles_x;
             let row_tiles = &wanted[base..base + tiles_x];
             // The runs of wanted tiles of this tile row, as column ranges.
-            let mut spans: Vec<(usize, usize)> = Vec::new();
-            for (tx, _) in row_tiles.iter().enumerate().filter(|(_, w)| **w) {
-                let (u0, u1) = (tx * t, ((tx + 1) * t).min(w));
-                match spans.last_mut() {
-                    Some(last) if last.1 == u0 => last.1 = u1,
-                    _ => spans.push((u0, u1)),
-                }
-            }
+            let spans = column_spans(row_tiles, t, w);
             if spans.is_empty() {
                 continue;
             }
