@@ -177,8 +177,6 @@ fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (
         conn.execute_batch(&std::fs::read_to_string(m).expect("migration"))
             .expect("migration applies");
     }
-    conn.execute_batch("delete from commits; delete from links; delete from targets;")
-        .expect("empty");
     // Per commit, per table: the rows (every column, in the table's order).
     let tables = [
         "links",
@@ -192,7 +190,8 @@ fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (
         "filter_state",
     ];
     let mut per_commit: BTreeMap<i64, Vec<(usize, Vec<Value>)>> = BTreeMap::new();
-    let mut columns = Vec::new();
+    // Each table's insert, written before the clock starts.
+    let mut inserts = Vec::new();
     let (mut samples, mut rows, mut bytes) = (0usize, 0usize, 0usize);
     let mut state = None;
     for (k, table) in tables.iter().enumerate() {
@@ -203,7 +202,12 @@ fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (
         let seq_at = names
             .iter()
             .position(|c| c == "commit_seq" || (*table == "commits" && c == "seq"));
-        columns.push(names.len());
+        let marks = vec!["?"; names.len()].join(", ");
+        inserts.push(if *table == "filter_state" {
+            format!("insert or replace into {table} values ({marks})")
+        } else {
+            format!("insert into {table} values ({marks})")
+        });
         let mut q = stmt.query([]).expect("query");
         while let Some(row) = q.next().expect("row") {
             let values: Vec<Value> = (0..names.len())
@@ -242,21 +246,16 @@ fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (
     for (seq, rows) in &per_commit {
         let tx = conn.transaction().expect("tx");
         for (k, values) in rows {
-            let marks = vec!["?"; columns[*k]].join(", ");
-            let mut stmt = tx
-                .prepare_cached(&format!("insert into {} values ({marks})", tables[*k]))
-                .expect("prepare");
-            stmt.execute(rusqlite::params_from_iter(values.iter()))
+            tx.prepare_cached(&inserts[*k])
+                .expect("prepare")
+                .execute(rusqlite::params_from_iter(values.iter()))
                 .expect("insert");
         }
         if *seq != i64::MIN {
-            let marks = vec!["?"; columns[state.0]].join(", ");
-            tx.prepare_cached(&format!(
-                "insert or replace into filter_state values ({marks})"
-            ))
-            .expect("prepare")
-            .execute(rusqlite::params_from_iter(state.1.iter()))
-            .expect("state");
+            tx.prepare_cached(&inserts[state.0])
+                .expect("prepare")
+                .execute(rusqlite::params_from_iter(state.1.iter()))
+                .expect("state");
         }
         tx.commit().expect("commit");
     }
