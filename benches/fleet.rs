@@ -137,7 +137,7 @@ fn centre_config(dir: &Path, port: u16, url: &str, sites: &[&str]) -> PathBuf {
     for site in sites {
         extra.push_str(&format!(
             "[[auth.tokens]]\nname = \"{site}\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"{site}\"\n\n",
-            brokenray::api::sha256_hex(&token_of(site))
+            brokenray::config::sha256_hex(&token_of(site))
         ));
     }
     installation(&path, &format!("127.0.0.1:{port}"), url, &extra);

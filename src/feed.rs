@@ -7,11 +7,10 @@
 //! frame is rendered (8-bit PNG) and posted to `POST /api/v1/frames`, or written as
 //! `DIR/<camera>/<time>.png` beside `DIR/truth.ndjson`.
 
-use crate::api::dto::PoseOut;
-use crate::api::vision::ObservationIn;
 use crate::clock::format_ns;
 use crate::model::Observer;
 use crate::sim::{SimGroup, Simulator};
+use crate::wire::{ObservationIn, PoseOut};
 use anyhow::{Context as _, bail};
 use serde_json::{Value, json};
 use std::io::Write;

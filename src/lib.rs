@@ -32,7 +32,9 @@
 //! [`clock`] is the one home of the server's clock and of time text; the core never reads it
 //! (times are passed in). The adapters do the IO around the core: [`config`] (the installation
 //! file: the model plus deployment settings), [`store`] (SQLite and PostgreSQL), [`service`] (the single
-//! writer), [`intake`] (a frame's way in, whoever brings it), [`api`] (HTTP), [`app`] (the
+//! writer), [`intake`] (a frame's way in, whoever brings it), [`wire`] (the JSON documents more
+//! than one door reads or writes: poses, observations, calibrations' requests and results),
+//! [`api`] (HTTP), [`app`] (the
 //! composition root: start, the spawned tasks, the server loop, shutdown), [`notify`] (webhooks), [`outputs`] (MQTT, Modbus/TCP, NMEA 0183),
 //! [`telemetry`] (`/metrics`), [`report`] (HTML reports with SVG pictures), [`acquire`] (cameras), [`imagefile`] (frame files), [`archive`]
 //! (the frame archive), [`fleet`] (a site's uploads to a centre), [`viz`] (Rerun), [`feed`]
@@ -71,4 +73,5 @@ pub mod store;
 pub mod telemetry;
 pub mod vision;
 pub mod viz;
+pub mod wire;
 pub mod words;

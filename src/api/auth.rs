@@ -15,7 +15,6 @@ use axum::extract::Request;
 use axum::http::{Method, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::Response;
-use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -116,11 +115,6 @@ pub(crate) struct Caller {
     pub name: Option<String>,
 }
 
-/// The lowercase hex SHA-256 of a token.
-pub fn sha256_hex(token: &str) -> String {
-    hex::encode(Sha256::digest(token.as_bytes()))
-}
-
 /// Checks the bearer token of a request against the configured tokens.
 pub(crate) async fn require_token(
     tokens: Arc<Vec<TokenSpec>>,
@@ -159,7 +153,7 @@ pub(crate) async fn require_token(
             "this request needs `Authorization: Bearer <token>`",
         ));
     };
-    let hash = sha256_hex(given);
+    let hash = crate::config::sha256_hex(given);
     let Some(token) = tokens.iter().find(|t| t.sha256_hex == hash) else {
         return Err(ApiError::new(
             StatusCode::UNAUTHORIZED,

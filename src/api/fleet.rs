@@ -355,10 +355,10 @@ pub(super) async fn cancel_raw_request(
 #[serde(deny_unknown_fields)]
 pub(super) struct RawRequestIn {
     /// The period's start (RFC 3339 or integer ns, measurement time).
-    #[schema(schema_with = super::dto::time_schema)]
+    #[schema(schema_with = crate::wire::time_schema)]
     pub from: serde_json::Value,
     /// Its end, excluded.
-    #[schema(schema_with = super::dto::time_schema)]
+    #[schema(schema_with = crate::wire::time_schema)]
     pub to: serde_json::Value,
     /// Who asks (for the record).
     pub by: Option<String>,

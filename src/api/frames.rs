@@ -7,7 +7,6 @@
 //! shapes the answer.
 
 use super::AppState;
-use super::dto::{PoseOut, SigmaOut};
 use super::error::{ApiError, ErrorBody};
 use super::ingest::{IngestResponse, read_body};
 use super::query::Query;
@@ -17,6 +16,7 @@ use crate::geometry::PoseCov;
 use crate::imagefile::{FrameFileError, FrameFormat, decode};
 use crate::intake::{IntakeError, MarkerTaken, TakenFrame};
 use crate::model::NotFound;
+use crate::wire::{PoseOut, SigmaOut};
 use axum::Json;
 use axum::body::Body;
 use axum::extract::State;

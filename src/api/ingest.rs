@@ -6,9 +6,8 @@
 //! stored. A 200 answer means the whole batch is on disk.
 
 use super::AppState;
-use super::dto::{SampleIn, covariance_from, invalid};
+use super::dto::{SampleIn, invalid};
 use super::error::{ApiError, ErrorBody, ErrorDetail};
-use super::jsonpath::{item_index, offset_of, path_at};
 use crate::api::error::ErrorCode;
 use crate::bank::{MeasurementUncertainty, Sample};
 use crate::clock::{latest_accepted_ns, parse_measurement_time};
@@ -16,6 +15,8 @@ use crate::config::Installation;
 use crate::model::LinkKind;
 use crate::service::{IngestItem, IngestReport};
 use crate::store::Quality;
+use crate::wire::json::{item_index, offset_of, path_at};
+use crate::wire::{FieldProblem, covariance_from};
 use axum::Json;
 use axum::body::Body;
 use axum::extract::State;
@@ -106,17 +107,17 @@ struct Collected {
 }
 
 impl Collected {
-    fn take(&mut self, index: usize, parsed: Result<SampleIn, (String, String)>) {
+    fn take(&mut self, index: usize, parsed: Result<SampleIn, FieldProblem>) {
         match parsed {
             Ok(s) => {
                 if self.n_problems == 0 {
                     self.items.push((index, s));
                 }
             }
-            Err((field, message)) => self.problem(ErrorDetail {
+            Err(p) => self.problem(ErrorDetail {
                 index: Some(index),
-                field: Some(field).filter(|f| !f.is_empty()),
-                message,
+                field: Some(p.field).filter(|f| !f.is_empty()),
+                message: p.message,
             }),
         }
     }
@@ -251,25 +252,22 @@ fn syntax_problem(
 }
 
 /// Parses one item, naming the field of a type error.
-fn parse_item(text: &str) -> Result<SampleIn, (String, String)> {
+fn parse_item(text: &str) -> Result<SampleIn, FieldProblem> {
     let mut de = serde_json::Deserializer::from_str(text);
     serde_path_to_error::deserialize::<_, SampleIn>(&mut de).map_err(|e| {
         let path = e.path().to_string();
         let inner = e.into_inner();
         let field = if path == "." { String::new() } else { path };
-        (field, inner.to_string())
+        FieldProblem::new(field, inner.to_string())
     })
 }
-
-/// Problems of a batch: the item index and the field problem.
-pub(super) type Problems = Vec<(Option<usize>, (String, String))>;
 
 /// Converts parsed items into validated samples, listing every problem.
 pub(super) fn validate_samples(
     installation: &Installation,
     items: Vec<(usize, SampleIn)>,
     latest_ns: i64,
-) -> Result<Vec<IngestItem>, Problems> {
+) -> Result<Vec<IngestItem>, Vec<FieldProblem>> {
     let mut problems = Vec::new();
     let mut out = Vec::with_capacity(items.len());
     let mut seen: HashSet<(usize, i64)> = HashSet::new();
@@ -277,12 +275,15 @@ pub(super) fn validate_samples(
         let mut item_problems = Vec::new();
         let link = match installation.model.link_by_name(&s.link) {
             None => {
-                item_problems.push(("link".to_owned(), format!("unknown link `{}`", s.link)));
+                item_problems.push(FieldProblem::new(
+                    "link",
+                    format!("unknown link `{}`", s.link),
+                ));
                 None
             }
             Some(spec) if matches!(spec.kind, LinkKind::Calibrated { .. }) => {
-                item_problems.push((
-                    "link".to_owned(),
+                item_problems.push(FieldProblem::new(
+                    "link",
                     format!(
                         "`{}` is a calibrated link; samples are for measured links",
                         s.link
@@ -295,7 +296,7 @@ pub(super) fn validate_samples(
         let time_ns = match parse_measurement_time(&s.time, latest_ns) {
             Ok(t) => Some(t),
             Err(m) => {
-                item_problems.push(("time".to_owned(), m));
+                item_problems.push(FieldProblem::new("time", m));
                 None
             }
         };
@@ -308,9 +309,9 @@ pub(super) fn validate_samples(
         };
         let uncertainty = match (&s.sigma, &s.covariance) {
             (Some(_), Some(_)) => {
-                item_problems.push((
-                    "sigma".to_owned(),
-                    "give `sigma` or `covariance`, not both".to_owned(),
+                item_problems.push(FieldProblem::new(
+                    "sigma",
+                    "give `sigma` or `covariance`, not both",
                 ));
                 None
             }
@@ -334,8 +335,8 @@ pub(super) fn validate_samples(
             None => Some(Quality::default()),
             Some(q) => match q.reprojection_rms_px {
                 Some(v) if !(v.is_finite() && v >= 0.0) => {
-                    item_problems.push((
-                        "quality.reprojection_rms_px".to_owned(),
+                    item_problems.push(FieldProblem::new(
+                        "quality.reprojection_rms_px",
                         format!("must be a non-negative number, not {v}"),
                     ));
                     None
@@ -349,8 +350,8 @@ pub(super) fn validate_samples(
         if let (Some(link), Some(time_ns)) = (link, time_ns)
             && !seen.insert((link.0, time_ns))
         {
-            item_problems.push((
-                "time".to_owned(),
+            item_problems.push(FieldProblem::new(
+                "time",
                 format!(
                     "a second sample of `{}` at the same time in this batch",
                     s.link
@@ -377,7 +378,7 @@ pub(super) fn validate_samples(
                     quality,
                 });
             }
-            _ => problems.extend(item_problems.into_iter().map(|p| (Some(index), p))),
+            _ => problems.extend(item_problems.into_iter().map(|p| p.at(index))),
         }
     }
     if problems.is_empty() {

@@ -1,7 +1,6 @@
 //! Links: list with counters, stored samples, calibrations.
 
 use super::AppState;
-use super::dto::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use super::error::{ApiError, ErrorBody};
 use super::query::Query;
 use crate::api::error::ErrorCode;
@@ -10,6 +9,7 @@ use crate::chain::LinkId;
 use crate::clock::{format_ns, parse_json_time};
 use crate::geometry::PoseCov;
 use crate::model::{LinkKind, LinkSpec};
+use crate::wire::{PoseIn, PoseOut, SigmaIn, SigmaOut, covariance_from};
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
@@ -302,7 +302,7 @@ pub(super) struct CalibrationIn {
     /// Its covariance, 36 numbers row-major.
     pub covariance: Option<Vec<f64>>,
     /// From when it is valid (RFC 3339 or ns); now when absent.
-    #[schema(schema_with = super::dto::time_schema)]
+    #[schema(schema_with = crate::wire::time_schema)]
     pub valid_from: Option<serde_json::Value>,
 }
 
@@ -356,19 +356,13 @@ pub(super) async fn put_calibration(
     let spec = link_spec(&app, &name)?;
     calibrated(&spec)?;
     let c: CalibrationIn = super::parse_json_body(&body)?;
-    let pose = c
-        .pose
-        .to_pose("pose")
-        .map_err(|(f, m)| ApiError::invalid_field(&f, m))?;
+    let pose = c.pose.to_pose("pose").map_err(ApiError::from)?;
     let cov = match (&c.sigma, &c.covariance) {
         (Some(s), None) => {
-            let sigmas = s
-                .to_sigmas("sigma")
-                .map_err(|(f, m)| ApiError::invalid_field(&f, m))?;
+            let sigmas = s.to_sigmas("sigma").map_err(ApiError::from)?;
             PoseCov::from_reported_sigmas(pose, &sigmas).cov
         }
-        (None, Some(values)) => covariance_from("covariance", values)
-            .map_err(|(f, m)| ApiError::invalid_field(&f, m))?,
+        (None, Some(values)) => covariance_from("covariance", values).map_err(ApiError::from)?,
         _ => {
             return Err(ApiError::invalid_field(
                 "sigma",

@@ -1,7 +1,8 @@
 //! The HTTP API (`/api/v1`, `docs/interface.md`, "HTTP API"): routes, request and response bodies,
 //! errors, authentication, and the server's start and graceful stop.
 //!
-//! Handlers are thin: read the request, convert it to domain types (`dto`), call the
+//! Handlers are thin: read the request, convert it to domain types (the documents shared with
+//! the CLI and the feed are [`crate::wire`]'s, the rest are each endpoint's own), call the
 //! [`crate::service`], convert the answer back. Every error is one [`ApiError`] with the body
 //! `{"error": {"code", "message", "details": [{"index", "field", "message"}]}}`.
 
@@ -9,18 +10,17 @@ mod acceptance;
 mod alarms;
 pub(crate) mod auth;
 mod budget;
-pub(crate) mod calibration;
+mod calibration;
 mod cameras;
 mod dashboard;
 mod drain;
-pub(crate) mod dto;
+mod dto;
 mod error;
 mod events;
 mod fleet;
 mod frames;
 mod history;
 mod ingest;
-mod jsonpath;
 mod links;
 mod metrics;
 mod outputs;
@@ -29,12 +29,11 @@ mod report;
 mod sites;
 mod sources;
 mod targets;
-pub(crate) mod vision;
+mod vision;
 pub mod vocab;
 pub use targets::output_encoders;
 mod webhooks;
 
-pub use auth::sha256_hex;
 pub(crate) use error::raw_response;
 pub use error::{ApiError, ErrorCode, ErrorDetail};
 
@@ -127,33 +126,8 @@ impl AppState {
 
 /// Parses a JSON body, naming the field of any problem (400 for malformed JSON, 422 for a
 /// well-formed body of the wrong shape).
-pub fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
-    let text = std::str::from_utf8(body).map_err(|e| {
-        ApiError::bad_request(
-            ErrorCode::MalformedJson,
-            format!("the body is not UTF-8: {e}"),
-        )
-    })?;
-    // In JSON a NUL can only be written `\u0000`: look closer only when that is there.
-    if text.contains("\\u0000")
-        && let Ok(value) = serde_json::from_str::<serde_json::Value>(text)
-        && let Some(path) = jsonpath::path_to_nul(&value)
-    {
-        return Err(ApiError::invalid_field(
-            &path,
-            "text may not hold the NUL character (U+0000)",
-        ));
-    }
-    let mut de = serde_json::Deserializer::from_str(text);
-    serde_path_to_error::deserialize(&mut de).map_err(|e| {
-        let path = e.path().to_string();
-        let inner = e.into_inner();
-        if inner.is_syntax() || inner.is_eof() {
-            ApiError::bad_request(ErrorCode::MalformedJson, format!("malformed JSON: {inner}"))
-        } else {
-            ApiError::invalid_field(if path == "." { "body" } else { &path }, inner.to_string())
-        }
-    })
+pub(crate) fn parse_json_body<T: DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
+    crate::wire::parse(body).map_err(ApiError::from)
 }
 
 /// `GET /healthz`.

@@ -1,7 +1,6 @@
 //! Targets: list, compensation, statistics, references.
 
 use super::AppState;
-use super::dto::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use super::error::{ApiError, ErrorBody};
 use super::query::Query;
 use crate::bank::{TargetEstimate, TargetStatus};
@@ -11,6 +10,7 @@ use crate::model::TargetId;
 use crate::model::TargetSpec;
 use crate::service::ReferenceRequest;
 pub(super) use crate::service::{CompensationSource, Evaluated};
+use crate::wire::{PoseIn, PoseOut, SigmaOut, rotation_vector_arcsec};
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
@@ -418,10 +418,10 @@ pub(super) async fn get_compensation(
 #[serde(deny_unknown_fields)]
 pub(super) struct ReferenceIn {
     /// Window start (with `to`).
-    #[schema(schema_with = super::dto::time_schema)]
+    #[schema(schema_with = crate::wire::time_schema)]
     pub from: Option<serde_json::Value>,
     /// Window end (with `from`).
-    #[schema(schema_with = super::dto::time_schema)]
+    #[schema(schema_with = crate::wire::time_schema)]
     pub to: Option<serde_json::Value>,
     /// An explicit `G0_from_B` (instead of a window).
     pub pose: Option<PoseIn>,
@@ -446,10 +446,9 @@ pub(super) async fn post_reference(
     let (ti, _) = target_index(&app, &name)?;
     let r: ReferenceIn = super::parse_json_body(&body)?;
     let request = match (r.pose, r.from, r.to) {
-        (Some(p), None, None) => ReferenceRequest::Explicit(
-            p.to_pose("pose")
-                .map_err(|(f, m)| ApiError::invalid_field(&f, m))?,
-        ),
+        (Some(p), None, None) => {
+            ReferenceRequest::Explicit(p.to_pose("pose").map_err(ApiError::from)?)
+        }
         (None, Some(from), Some(to)) => {
             let from_ns = crate::clock::parse_json_time(&from)
                 .map_err(|m| ApiError::invalid_field("from", m))?;

@@ -3,43 +3,20 @@
 //! (`A_i X = X B_i` for a rigid station; computes, stores nothing).
 
 use super::AppState;
-use super::dto::{PoseIn, PoseOut, SigmaOut, invalid, time_schema};
+use super::dto::invalid;
 use super::error::{ApiError, ErrorBody};
-use super::ingest::{IngestResponse, Problems, check_batch_size, read_body};
+use super::ingest::{IngestResponse, check_batch_size, read_body};
 use super::parse_json_body;
 use crate::clock::format_ns;
-use crate::geometry::{Pose, PoseCov};
+use crate::geometry::PoseCov;
 use crate::service::IngestItem;
-use crate::vision::{HandEyeOptions, HandEyeSolution, solve_hand_eye};
+use crate::wire::{FieldProblem, HandEyeIn, HandEyeOut, ObservationIn, PoseOut, SigmaOut};
 use axum::Json;
 use axum::body::Body;
 use axum::extract::State;
 use axum::http::HeaderMap;
 use serde::{Deserialize, Serialize};
-use serde_json::Value;
 use std::collections::HashSet;
-
-/// One camera image of one marker: the measured pixel of each marker point.
-#[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub(crate) struct ObservationIn {
-    /// The camera's frame.
-    pub camera: String,
-    /// The marker's frame.
-    pub marker: String,
-    /// RFC 3339 text or integer nanoseconds.
-    #[schema(schema_with = time_schema)]
-    pub time: Value,
-    /// Pixels `[u, v]`, in the marker's point order (or paired with `ids`).
-    pub points_px: Vec<[f64; 2]>,
-    /// The marker point id of each pixel, when not all points are seen or the order differs.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub ids: Option<Vec<u32>>,
-    /// Each pixel's standard deviation (px), when a detector measured it: the point is
-    /// weighted by it, the camera's `pixel_sigma` added in quadrature.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sigma_px: Option<Vec<f64>>,
-}
 
 /// A batch of observations, each solved and stored, or none.
 #[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
@@ -141,8 +118,8 @@ fn solve_batch(
     observer: &crate::model::Observer,
     observations: &[ObservationIn],
     latest_ns: i64,
-) -> Result<(Vec<IngestItem>, Vec<ObservedPoseOut>), Problems> {
-    let mut problems: Problems = Vec::new();
+) -> Result<(Vec<IngestItem>, Vec<ObservedPoseOut>), Vec<FieldProblem>> {
+    let mut problems = Vec::new();
     let mut items = Vec::with_capacity(observations.len());
     let mut poses = Vec::with_capacity(observations.len());
     let mut seen = HashSet::new();
@@ -150,7 +127,7 @@ fn solve_batch(
         let time_ns = match crate::clock::parse_measurement_time(&o.time, latest_ns) {
             Ok(t) => t,
             Err(m) => {
-                problems.push((Some(index), ("time".to_owned(), m)));
+                problems.push(FieldProblem::new("time", m).at(index));
                 continue;
             }
         };
@@ -163,21 +140,21 @@ fn solve_batch(
         ) {
             Ok(v) => v,
             Err(e) => {
-                problems.push((Some(index), (e.field.to_owned(), e.message)));
+                problems.push(FieldProblem::new(e.field, e.message).at(index));
                 continue;
             }
         };
         if !seen.insert((link.link.0, time_ns)) {
-            problems.push((
-                Some(index),
-                (
-                    "time".to_owned(),
+            problems.push(
+                FieldProblem::new(
+                    "time",
                     format!(
                         "a second observation of `{}` at the same time in this batch",
                         link.name
                     ),
-                ),
-            ));
+                )
+                .at(index),
+            );
             continue;
         }
         let cov = PoseCov {
@@ -202,165 +179,6 @@ fn solve_batch(
         Ok((items, poses))
     } else {
         Err(problems)
-    }
-}
-
-/// One motion of the station: `a` seen by the first sensor, `b` by the second.
-#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub(crate) struct HandEyePairIn {
-    /// Motion `A_i`.
-    pub a: PoseIn,
-    /// Motion `B_i`.
-    pub b: PoseIn,
-}
-
-/// The noise of the measured motions, for weighting the refinement.
-#[derive(Debug, Clone, Copy, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub(crate) struct HandEyeSigmaIn {
-    /// Rotation (arc-seconds).
-    pub rotation_arcsec: f64,
-    /// Translation (mm).
-    pub translation_mm: f64,
-}
-
-/// `A_i X = X B_i`: the motions, at least three about non-parallel axes.
-#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub(crate) struct HandEyeIn {
-    /// The motions.
-    pub pairs: Vec<HandEyePairIn>,
-    /// Their noise (default 10 arc-seconds, 0.1 mm).
-    pub sigma: Option<HandEyeSigmaIn>,
-}
-
-/// How one pair agrees with X.
-#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub(crate) struct PairResidualOut {
-    /// Rotation of `A_i X (X B_i)^-1` (arc-seconds).
-    pub rotation_arcsec: f64,
-    /// Translation of `A_i X (X B_i)^-1` (mm).
-    pub translation_mm: f64,
-}
-
-/// The fit's residuals.
-#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub(crate) struct HandEyeResidualsOut {
-    /// Per pair, in input order.
-    pub pairs: Vec<PairResidualOut>,
-    /// RMS of the rotation residuals (arc-seconds).
-    pub rms_rotation_arcsec: f64,
-    /// RMS of the translation residuals (mm).
-    pub rms_translation_mm: f64,
-}
-
-/// The rotation spread of the input motions.
-#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub(crate) struct SpreadOut {
-    /// Smallest rotation of a motion (degrees).
-    pub min_rotation_deg: f64,
-    /// Largest rotation of a motion (degrees).
-    pub max_rotation_deg: f64,
-    /// Largest angle between two motion axes (degrees, up to 90).
-    pub max_axis_angle_deg: f64,
-}
-
-/// The solved station link.
-#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
-pub(crate) struct HandEyeOut {
-    /// X.
-    pub x: PoseOut,
-    /// X's sigmas (from the weighted fit, scaled by its variance factor).
-    pub sigma: SigmaOut,
-    /// X's covariance, 36 numbers row-major, `[rho_mm; phi_rad]`: ready for
-    /// `PUT /links/{name}/calibration`.
-    pub covariance: Vec<f64>,
-    /// How the pairs agree with X.
-    pub residuals: HandEyeResidualsOut,
-    /// The input motions' spread.
-    pub spread: SpreadOut,
-    /// Park and Martin's closed form, before refinement.
-    pub closed_form: PoseOut,
-    /// Refinement iterations.
-    pub iterations: usize,
-}
-
-impl From<&HandEyeSolution> for HandEyeOut {
-    fn from(s: &HandEyeSolution) -> Self {
-        let cov = PoseCov {
-            pose: s.x,
-            cov: s.covariance,
-        };
-        Self {
-            x: PoseOut::from(&s.x),
-            sigma: SigmaOut::from(&cov),
-            covariance: s.covariance.transpose().iter().copied().collect(),
-            residuals: HandEyeResidualsOut {
-                pairs: s
-                    .residuals
-                    .iter()
-                    .map(|r| PairResidualOut {
-                        rotation_arcsec: r.rotation_arcsec,
-                        translation_mm: r.translation_mm,
-                    })
-                    .collect(),
-                rms_rotation_arcsec: s.rms_rotation_arcsec,
-                rms_translation_mm: s.rms_translation_mm,
-            },
-            spread: SpreadOut {
-                min_rotation_deg: s.spread.min_rotation_deg,
-                max_rotation_deg: s.spread.max_rotation_deg,
-                max_axis_angle_deg: s.spread.max_axis_angle_deg,
-            },
-            closed_form: PoseOut::from(&s.closed_form),
-            iterations: s.iterations,
-        }
-    }
-}
-
-impl HandEyeIn {
-    /// Validates the poses and solves; every invalid pose is named, a refusal says why.
-    pub(crate) fn solve(&self) -> Result<HandEyeOut, ApiError> {
-        let mut problems = Vec::new();
-        let mut pairs: Vec<(Pose, Pose)> = Vec::with_capacity(self.pairs.len());
-        for (i, p) in self.pairs.iter().enumerate() {
-            match (p.a.to_pose("a"), p.b.to_pose("b")) {
-                (Ok(a), Ok(b)) => pairs.push((a, b)),
-                (a, b) => {
-                    problems.extend(a.err().into_iter().chain(b.err()).map(|e| (Some(i), e)));
-                }
-            }
-        }
-        let mut options = HandEyeOptions::default();
-        if let Some(s) = self.sigma {
-            // A measurement's noise, from a thousandth of an arc-second (or a nanometre) to
-            // a hundred degrees (or a hundred metres): beyond, the weights overflow.
-            for (field, v, lo, hi) in [
-                ("sigma.rotation_arcsec", s.rotation_arcsec, 1e-3, 3.6e5),
-                ("sigma.translation_mm", s.translation_mm, 1e-6, 1e5),
-            ] {
-                if !(v.is_finite() && (lo..=hi).contains(&v)) {
-                    problems.push((
-                        None,
-                        (
-                            field.to_owned(),
-                            format!("must lie in [{lo}, {hi}], not {v}"),
-                        ),
-                    ));
-                }
-            }
-            options.sigma_rotation_arcsec = s.rotation_arcsec;
-            options.sigma_translation_mm = s.translation_mm;
-        }
-        if !problems.is_empty() {
-            return Err(invalid(
-                format!("{} invalid pose(s) or setting(s)", problems.len()),
-                problems,
-            ));
-        }
-        let solution = solve_hand_eye(&pairs, &options).map_err(super::calibration::refused)?;
-        Ok(HandEyeOut::from(&solution))
     }
 }
 

@@ -6,8 +6,6 @@
 //! detector. A frame in which the plate is not wholly found is left out with the reason (on
 //! the log), never used in part.
 
-use crate::api::calibration::{PlateIn, parse_fix};
-use crate::api::vision::HandEyeOut;
 use crate::config::Installation;
 use crate::geometry::{ARCSEC_PER_RAD, Pose};
 use crate::imagefile::{FrameFormat, decode};
@@ -17,6 +15,7 @@ use crate::vision::{
     HandEyeOptions, Intrinsic, Plate, PlateView, PnpOptions, calibrate_camera_checked, detect,
     intrinsics_of, solve_hand_eye, solve_pnp_discs,
 };
+use crate::wire::{HandEyeOut, PlateIn, parse_fix};
 use anyhow::{Context, bail};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -28,7 +27,7 @@ pub(super) fn read_plate(path: &Path) -> anyhow::Result<Plate> {
     let spec: PlateIn =
         toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     spec.to_plate()
-        .map_err(|(_, message)| anyhow::anyhow!("{}: {message}", path.display()))
+        .map_err(|p| anyhow::anyhow!("{}: {}", path.display(), p.message))
 }
 
 /// Reads `--plate CAMERA=PLATE.toml` arguments.
@@ -101,7 +100,7 @@ pub(super) fn calibrate_from_frames(
     progress: &indicatif::ProgressBar,
     log: &mut impl Write,
 ) -> anyhow::Result<FramesCalibration> {
-    let fixed = parse_fix(fix).map_err(|(_, m)| anyhow::anyhow!("--fix: {m}"))?;
+    let fixed = parse_fix(fix).map_err(|p| anyhow::anyhow!("--fix: {}", p.message))?;
     progress.set_length(frames.len() as u64);
     let mut size = None;
     let mut views = Vec::new();
@@ -641,7 +640,7 @@ pub(super) fn render_plate_views(
             .with_context(|| format!("cannot write {}", dir.join(&name).display()))?;
         truth.push(serde_json::json!({
             "frame": name,
-            "camera_from_plate": crate::api::dto::PoseOut::from(pose),
+            "camera_from_plate": crate::wire::PoseOut::from(pose),
         }));
         progress.inc(1);
     }
@@ -739,8 +738,8 @@ pub(super) fn render_station_views(
     }
     let body = serde_json::json!({
         "link": link,
-        "parent_from_child": crate::api::dto::PoseOut::from(&x),
-        "motions": motions.iter().map(crate::api::dto::PoseOut::from).collect::<Vec<_>>(),
+        "parent_from_child": crate::wire::PoseOut::from(&x),
+        "motions": motions.iter().map(crate::wire::PoseOut::from).collect::<Vec<_>>(),
     });
     std::fs::write(dir.join("truth.json"), serde_json::to_string_pretty(&body)?)
         .with_context(|| format!("cannot write {}", dir.join("truth.json").display()))?;

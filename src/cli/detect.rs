@@ -6,12 +6,12 @@
 //! A marker's points are predicted from its pose in the previous file where it was found, else
 //! from its link's nominal pose; files are taken in the order given.
 
-use crate::api::vision::ObservationIn;
 use crate::clock::{format_ns, parse_query_time};
 use crate::config::Installation;
 use crate::geometry::Pose;
 use crate::imagefile::{FrameFormat, decode};
 use crate::model::{Observer, observe_frame};
+use crate::wire::ObservationIn;
 use anyhow::{Context, bail};
 use std::collections::HashMap;
 use std::io::Write;

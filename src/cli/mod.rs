@@ -622,7 +622,7 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
         } => {
             let text = std::fs::read(&input)
                 .with_context(|| format!("cannot read {}", input.display()))?;
-            let request: crate::api::vision::HandEyeIn = crate::api::parse_json_body(&text)
+            let request: crate::wire::HandEyeIn = crate::wire::parse(&text)
                 .map_err(|e| anyhow::anyhow!("{}: {}", input.display(), e.describe()))?;
             let result = request
                 .solve()
@@ -658,14 +658,12 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
             });
             let run = run?;
             if json {
-                let mut body =
-                    crate::api::calibration::CameraCalibrationOut::from(&run.calibration);
+                let mut body = crate::wire::CameraCalibrationOut::from(&run.calibration);
                 if let Some(message) = run.file_warning() {
-                    body.warnings
-                        .push(crate::api::calibration::CalibrationWarningOut {
-                            kind: crate::vision::WarningKind::LossyFrames,
-                            message,
-                        });
+                    body.warnings.push(crate::wire::CalibrationWarningOut {
+                        kind: crate::vision::WarningKind::LossyFrames,
+                        message,
+                    });
                 }
                 writeln!(out, "{}", serde_json::to_string_pretty(&body)?)?;
             } else {
@@ -929,11 +927,11 @@ pub fn run(cli: Cli, out: &mut impl std::io::Write) -> anyhow::Result<()> {
                 None => random_token()?,
             };
             writeln!(out, "token:  {token}")?;
-            writeln!(out, "sha256: {}", crate::api::auth::sha256_hex(&token))?;
+            writeln!(out, "sha256: {}", crate::config::sha256_hex(&token))?;
             writeln!(
                 out,
                 "\nAdd to the configuration (give the token itself only to its holder):\n\n[[auth.tokens]]\nname = \"...\"\nsha256 = \"{}\"\nscopes = [\"read\"]",
-                crate::api::auth::sha256_hex(&token)
+                crate::config::sha256_hex(&token)
             )?;
         }
     }

@@ -431,6 +431,12 @@ crate::words! {
     }
 }
 
+/// The lowercase hex SHA-256 of a token, as `[[auth.tokens]]`'s `sha256` holds it.
+pub fn sha256_hex(token: &str) -> String {
+    use sha2::Digest;
+    hex::encode(sha2::Sha256::digest(token.as_bytes()))
+}
+
 /// A configured bearer token.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct TokenSpec {

@@ -213,6 +213,48 @@ fn no_two_modules_import_each_other() {
     );
 }
 
+/// What imports a module, over the whole of `src/`.
+fn importers_of(target: &str) -> BTreeSet<String> {
+    let modules = modules();
+    modules
+        .iter()
+        .filter(|m| m.as_str() != target)
+        .filter(|m| {
+            code_of(m)
+                .iter()
+                .any(|(_, code)| referenced(code, &modules).contains(target))
+        })
+        .cloned()
+        .collect()
+}
+
+/// The HTTP layer is an adapter at the top: only the composition root builds it. The CLI,
+/// the simulator's feed and the service read and write the documents they share with it
+/// through `wire`, never through `api`.
+#[test]
+fn only_the_composition_root_uses_the_http_layer() {
+    let users = importers_of("api");
+    assert_eq!(
+        users,
+        BTreeSet::from(["app".to_owned()]),
+        "modules that use `api`"
+    );
+}
+
+/// The shared documents convert to and from the core's types and nothing else: no adapter
+/// (store, service, HTTP) sits under them.
+#[test]
+fn the_shared_documents_use_only_the_core() {
+    let modules = modules();
+    let core: BTreeSet<&str> = CORE_LAYERS.iter().flat_map(|l| l.iter().copied()).collect();
+    let outside: BTreeSet<String> = code_of("wire")
+        .iter()
+        .flat_map(|(_, code)| referenced(code, &modules))
+        .filter(|m| m != "wire" && !core.contains(m.as_str()))
+        .collect();
+    assert!(outside.is_empty(), "`wire` uses {outside:?}");
+}
+
 /// `scripts/module-graph` passes on the tree and fails (exit 1, naming the pair) on a tree
 /// where two modules import each other.
 #[test]

@@ -300,7 +300,7 @@ fn healthcheck_answers_for_a_running_service_and_fails_without_one() {
     let (dir, config) = site();
     let tokens = format!(
         "\n[[auth.tokens]]\nname = \"viewer\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n",
-        brokenray::api::sha256_hex("secret")
+        brokenray::config::sha256_hex("secret")
     );
     let text = std::fs::read_to_string(&config).unwrap() + &tokens;
     std::fs::write(&config, &text).unwrap();

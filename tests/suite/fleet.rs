@@ -248,9 +248,9 @@ fn centre_installation(dir: &std::path::Path) -> (std::path::PathBuf, String) {
          [[auth.tokens]]\nname = \"ship-1\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"{SITE}\"\n\n\
          [[auth.tokens]]\nname = \"office\"\nsha256 = \"{}\"\nscopes = [\"read\"]\n\n\
          [[auth.tokens]]\nname = \"office-admin\"\nsha256 = \"{}\"\nscopes = [\"read\", \"admin\"]\n",
-        brokenray::api::sha256_hex(SYNC_TOKEN),
-        brokenray::api::sha256_hex("office-secret"),
-        brokenray::api::sha256_hex("office-admin-secret"),
+        brokenray::config::sha256_hex(SYNC_TOKEN),
+        brokenray::config::sha256_hex("office-secret"),
+        brokenray::config::sha256_hex("office-admin-secret"),
     );
     (installation(dir, "centre.toml", &url, &extra), url)
 }
@@ -2092,8 +2092,8 @@ async fn one_sites_failed_upkeep_is_reported_and_the_others_go_on() {
         "[central]\nenabled = true\n\n\
          [[auth.tokens]]\nname = \"a\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"a-site\"\n\n\
          [[auth.tokens]]\nname = \"b\"\nsha256 = \"{}\"\nscopes = [\"sync\"]\nsite = \"b-site\"\n",
-        brokenray::api::sha256_hex("a-secret"),
-        brokenray::api::sha256_hex("b-secret"),
+        brokenray::config::sha256_hex("a-secret"),
+        brokenray::config::sha256_hex("b-secret"),
     );
     let centre = start(&installation(dir.path(), "centre.toml", &url, &extra));
     let client = reqwest::Client::new();

@@ -2,7 +2,7 @@
 
 use super::helpers::{TestApp, nominal_group};
 use axum::http::StatusCode;
-use brokenray::api::sha256_hex;
+use brokenray::config::sha256_hex;
 use serde_json::json;
 
 pub fn with_tokens() -> String {

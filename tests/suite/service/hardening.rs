@@ -422,7 +422,7 @@ async fn configured_names_are_served_without_tokens() {
 
 #[tokio::test]
 async fn the_bearer_scheme_is_case_insensitive_and_tokens_need_a_scope() {
-    let hash = brokenray::api::sha256_hex("s3cret");
+    let hash = brokenray::config::sha256_hex("s3cret");
     let text = format!(
         "{}\n[[auth.tokens]]\nname = \"ops\"\nsha256 = \"{hash}\"\nscopes = [\"read\"]\n",
         brokenray::config::DEFAULT_INSTALLATION_TOML

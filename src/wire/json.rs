@@ -1,5 +1,37 @@
-//! The JSON path at a byte offset (`samples[3].pose.t_mm[1]`): lets a syntax error, which
-//! serde reports as a line and column, name the item and field it occurred in.
+//! Reading a JSON document so that a problem names its place: the path of a field of the wrong
+//! shape, the path at a syntax error's byte offset (`samples[3].pose.t_mm[1]`, which serde
+//! reports only as a line and column), and the path to a NUL character.
+
+use super::Rejection;
+use serde::de::DeserializeOwned;
+
+/// Parses a document, naming the field of any problem: text that is not UTF-8 or not JSON is
+/// [`Rejection::Malformed`], a well-formed document of the wrong shape names its field (`body`
+/// when it is the whole).
+pub fn parse<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, Rejection> {
+    let text = std::str::from_utf8(bytes)
+        .map_err(|e| Rejection::Malformed(format!("the body is not UTF-8: {e}")))?;
+    // In JSON a NUL can only be written `\u0000`: look closer only when that is there.
+    if text.contains("\\u0000")
+        && let Ok(value) = serde_json::from_str::<serde_json::Value>(text)
+        && let Some(path) = path_to_nul(&value)
+    {
+        return Err(Rejection::field(
+            path,
+            "text may not hold the NUL character (U+0000)",
+        ));
+    }
+    let mut de = serde_json::Deserializer::from_str(text);
+    serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        if inner.is_syntax() || inner.is_eof() {
+            Rejection::Malformed(format!("malformed JSON: {inner}"))
+        } else {
+            Rejection::field(if path == "." { "body" } else { &path }, inner.to_string())
+        }
+    })
+}
 
 enum Frame {
     Object {
@@ -12,7 +44,7 @@ enum Frame {
 }
 
 /// The path of the value being read at byte `offset` of `text`.
-pub(super) fn path_at(text: &str, offset: usize) -> String {
+pub fn path_at(text: &str, offset: usize) -> String {
     let bytes = text.as_bytes();
     let end = offset.min(bytes.len());
     let mut stack: Vec<Frame> = Vec::new();
@@ -78,7 +110,7 @@ pub(super) fn path_at(text: &str, offset: usize) -> String {
 }
 
 /// The byte offset of a 1-based line and column (as serde_json reports them).
-pub(super) fn offset_of(text: &str, line: usize, column: usize) -> usize {
+pub fn offset_of(text: &str, line: usize, column: usize) -> usize {
     let line_start: usize = text
         .split_inclusive('\n')
         .take(line.saturating_sub(1))
@@ -88,7 +120,7 @@ pub(super) fn offset_of(text: &str, line: usize, column: usize) -> usize {
 }
 
 /// The index of the item in a `{"samples": [...]}` batch that a path names, if any.
-pub(super) fn item_index(path: &str, array_key: &str) -> Option<usize> {
+pub fn item_index(path: &str, array_key: &str) -> Option<usize> {
     let rest = path.strip_prefix(array_key)?.strip_prefix('[')?;
     rest.split(']').next()?.parse().ok()
 }
@@ -120,7 +152,7 @@ mod tests {
 
 /// The path of the first string (or object key) in `value` that holds a NUL character
 /// (`samples[3].link`; `body` for the value itself).
-pub(super) fn path_to_nul(value: &serde_json::Value) -> Option<String> {
+pub fn path_to_nul(value: &serde_json::Value) -> Option<String> {
     fn walk(value: &serde_json::Value, path: &mut String) -> bool {
         match value {
             serde_json::Value::String(s) => s.contains('\0'),
