@@ -1,7 +1,8 @@
 //! A camera calibration's request and result, and the plate they describe, as
 //! `POST /calibration/camera` and `brokenray calibrate-camera` read and write them; the plate
 //! description ([`PlateIn`]) is also the plate file the command reads (TOML).
-//! `docs/interface.md`, "Camera calibration" describes them.
+//! `docs/interface.md` describes them (`POST /api/v1/calibration/camera` under "HTTP API", and
+//! "Calibration plates").
 
 use super::{FieldProblem, PoseOut, Rejection};
 use crate::vision::{

@@ -1,6 +1,6 @@
 //! The hand-eye problem `A_i X = X B_i` of a rigid station and its solution, as
 //! `POST /calibration/hand-eye` and `brokenray calibrate-hand-eye` read and write them
-//! (`docs/interface.md`, "Hand-eye calibration").
+//! (`docs/interface.md`, "HTTP API", `POST /api/v1/calibration/hand-eye`).
 
 use super::{FieldProblem, PoseIn, PoseOut, Rejection, SigmaOut};
 use crate::geometry::{Pose, PoseCov};

@@ -1,6 +1,6 @@
 //! An observation: one camera image of one marker, the pixel of each marker point found. The
 //! detector (`brokenray detect`) writes it, `POST /observations` reads it, the simulator's
-//! feed posts it (`docs/interface.md`, "Observations").
+//! feed posts it (`docs/interface.md`, "HTTP API", `POST /api/v1/observations`).
 
 use super::time_schema;
 use serde::{Deserialize, Serialize};
