@@ -154,9 +154,8 @@ fn raw_sqlite_baseline(dir: &std::path::Path, batches: usize, n: usize) -> f64 {
 /// prepared statements, the same pragmas. Samples, results, alarms and commit numbers are
 /// written once in both; the service rewrites the rollup rows and its filter state a commit
 /// touches in every commit, the replay each rollup row once (at the commit of its last version)
-/// and the filter state once a commit. Returns samples a second and the rows and bytes a
-/// sample brings.
-fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (f64, f64, f64) {
+/// and the filter state once a commit.
+fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> Replay {
     use rusqlite::types::Value;
     use std::collections::BTreeMap;
     let source = rusqlite::Connection::open_with_flags(
@@ -259,12 +258,22 @@ fn replay_service_rows(dir: &std::path::Path, service_db: &std::path::Path) -> (
         }
         tx.commit().expect("commit");
     }
-    let rate = samples as f64 / start.elapsed().as_secs_f64();
-    (
-        rate,
-        rows as f64 / samples as f64,
-        bytes as f64 / samples as f64,
-    )
+    Replay {
+        samples_per_s: samples as f64 / start.elapsed().as_secs_f64(),
+        rows_per_sample: rows as f64 / samples as f64,
+        bytes_per_sample: bytes as f64 / samples as f64,
+        commits: per_commit.keys().filter(|seq| **seq != i64::MIN).count(),
+    }
+}
+
+/// What [`replay_service_rows`] measured.
+struct Replay {
+    samples_per_s: f64,
+    /// Rows and bytes the service stored per sample.
+    rows_per_sample: f64,
+    bytes_per_sample: f64,
+    /// The service's commits, each one transaction of the replay (and its `fsync`).
+    commits: usize,
 }
 
 fn main() {
@@ -526,10 +535,14 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         .status();
     let _ = child.wait();
     if backend == "sqlite" {
-        let (replay, rows, bytes) = replay_service_rows(dir, std::path::Path::new(&database));
+        let replay = replay_service_rows(dir, std::path::Path::new(&database));
         println!(
-            "raw SQLite writing the service's own rows ({rows:.2} rows and {bytes:.0} bytes a sample, one transaction per commit of the service): {replay:.0} samples/s; ingest / that: {:.2}",
-            ingest_rate / replay
+            "raw SQLite writing the service's own rows ({:.2} rows and {:.0} bytes a sample, one transaction per commit of the service, {} commits): {:.0} samples/s; ingest / that: {:.2}",
+            replay.rows_per_sample,
+            replay.bytes_per_sample,
+            replay.commits,
+            replay.samples_per_s,
+            ingest_rate / replay.samples_per_s
         );
     }
     if let Some(p) = plant {
