@@ -49,7 +49,6 @@ use crate::chain::chi_square_quantile;
 use crate::geometry::{Mat3, Pose, Vec3};
 use crate::vision::{Blob, MIN_POINTS, disc_image_offset, refine};
 use nalgebra::{Point3, Rotation3, Translation3, UnitQuaternion, Vector2};
-use rayon::prelude::*;
 use std::collections::HashSet;
 
 /// Blobs each anchor is paired with: its nearest of a similar size.
@@ -284,13 +283,10 @@ pub fn find_without_prior(
             })
         })
         .collect();
-    // Each anchor's hypotheses that match four points, in the order a single loop would
-    // form them (the anchors in parallel: they share nothing but what they read).
-    let hypotheses_of = |a: usize| -> Vec<(Vec<Option<usize>>, Pose)> {
-        let mut out = Vec::new();
-        let Some(anchor) = &seen[a] else {
-            return out;
-        };
+    let mut tried: HashSet<Vec<Option<usize>>> = HashSet::new();
+    let mut identifications: Vec<Identification> = Vec::new();
+    for (a, anchor) in seen.iter().enumerate() {
+        let Some(anchor) = anchor else { continue };
         let reach_px = DISTANCE_FACTOR * 1.2 * focal_px * extent_mm / anchor.distance_mm;
         let tight_gate_px =
             TIGHT_GATE_PX.max(TIGHT_GATE_OF_RADIUS * radius_mm * focal_px / anchor.distance_mm);
@@ -395,30 +391,17 @@ pub fn find_without_prior(
                         ) else {
                             continue;
                         };
-                        out.push((first, pose));
+                        if !tried.insert(first.clone()) {
+                            continue;
+                        }
+                        if let Some(found) = verify(link, blobs, &centres, &grid, &pose, first)
+                            && !identifications.iter().any(|k| k.blobs == found.blobs)
+                        {
+                            identifications.push(found);
+                        }
                     }
                 }
             }
-        }
-        out
-    };
-    let hypotheses: Vec<Vec<(Vec<Option<usize>>, Pose)>> =
-        (0..seen.len()).into_par_iter().map(hypotheses_of).collect();
-    // The first hypothesis of each set of first matches is verified, as a single loop would.
-    let mut tried: HashSet<Vec<Option<usize>>> = HashSet::new();
-    let fresh: Vec<(Vec<Option<usize>>, Pose)> = hypotheses
-        .into_iter()
-        .flatten()
-        .filter(|(first, _)| tried.insert(first.clone()))
-        .collect();
-    let verified: Vec<Option<Identification>> = fresh
-        .into_par_iter()
-        .map(|(first, pose)| verify(link, blobs, &centres, &grid, &pose, first))
-        .collect();
-    let mut identifications: Vec<Identification> = Vec::new();
-    for found in verified.into_iter().flatten() {
-        if !identifications.iter().any(|k| k.blobs == found.blobs) {
-            identifications.push(found);
         }
     }
     choose(link, blobs, identifications, hint)

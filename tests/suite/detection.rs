@@ -697,61 +697,6 @@ mod identification {
     }
 
     /// `nominal` moved by up to `mm` and `deg` about the marker's centre, kept in view.
-    /// The search forms its hypotheses on every core, then verifies them in the order one loop
-    /// would: the same frame gives the same answer, bit for bit, on one thread and on several
-    /// (found or not, which blob is which point, the pose), and whichever thread finishes first.
-    #[test]
-    fn the_search_answers_the_same_on_one_thread_and_on_several() {
-        use brokenray::model::find_without_prior;
-        use rand::Rng;
-        let link = link_c1_b();
-        let (w, h) = (
-            f64::from(link.camera.width_px),
-            f64::from(link.camera.height_px),
-        );
-        let mut rng = rand::rngs::StdRng::seed_from_u64(41);
-        let pool = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("a thread pool")
-        };
-        let (one, three) = (pool(1), pool(3));
-        let mut found = 0;
-        for trial in 0..8 {
-            let truth = wander(&link, &nominal(&link), &mut rng, 150.0, 25.0);
-            // Stray discs of the marker's size beside it: more hypotheses, some verified.
-            let extra: Vec<[f64; 2]> = (0..6)
-                .map(|_| {
-                    [
-                        rng.random_range(60.0..w - 60.0),
-                        rng.random_range(60.0..h - 60.0),
-                    ]
-                })
-                .collect();
-            let blobs = detect(
-                &frame(&link, &truth, &[], &extra),
-                &DetectSettings::default(),
-            );
-            let serial = format!(
-                "{:?}",
-                one.install(|| find_without_prior(&link, &blobs, None))
-            );
-            for round in 0..3 {
-                let parallel = format!(
-                    "{:?}",
-                    three.install(|| find_without_prior(&link, &blobs, None))
-                );
-                assert_eq!(serial, parallel, "trial {trial}, round {round}");
-            }
-            found += usize::from(serial.starts_with("Ok"));
-        }
-        assert!(
-            found >= 6,
-            "found in {found} of 8 frames: the comparison is of real answers"
-        );
-    }
-
     fn wander(
         link: &ObservedLink,
         nominal: &Pose,
