@@ -55,12 +55,45 @@ const PTP_STATUSES: [&str; 7] = [
 /// GenICam pixel formats.
 const MONO16: u32 = 0x0110_0007;
 
-/// A frame from a PGM file.
+/// A frame from a PGM or PNG file, kept as the bytes each pixel format sends, so that making a
+/// frame is a copy of rows: the fake's own work stays out of the latency a client measures.
 struct Frame {
     width: usize,
     height: usize,
-    /// 16-bit values (8-bit files shifted up by 8).
-    pixels: Vec<u16>,
+    /// Mono8: the top 8 bits of each value.
+    mono8: Vec<u8>,
+    /// Mono16: each value little-endian (8-bit files shifted up by 8).
+    mono16: Vec<u8>,
+}
+
+impl Frame {
+    /// A frame of `width` x `height` 16-bit values, row by row.
+    fn new(width: usize, height: usize, pixels: &[u16]) -> Frame {
+        let pixels = &pixels[..width * height];
+        Frame {
+            width,
+            height,
+            mono8: pixels.iter().map(|&v| (v >> 8) as u8).collect(),
+            mono16: pixels.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        }
+    }
+
+    /// Writes the frame into `out`, a buffer of `width` x `height` pixels of `bpp` bytes: the
+    /// frame's top-left corner where the sizes differ, zeros beyond it.
+    fn copy_into(&self, out: &mut [u8], width: usize, height: usize, bpp: usize) {
+        let source = if bpp == 2 { &self.mono16 } else { &self.mono8 };
+        let row_bytes = width * bpp;
+        let kept = width.min(self.width) * bpp;
+        for (v, row) in out.chunks_exact_mut(row_bytes).take(height).enumerate() {
+            if v < self.height {
+                let from = v * self.width * bpp;
+                row[..kept].copy_from_slice(&source[from..from + kept]);
+                row[kept..].fill(0);
+            } else {
+                row.fill(0);
+            }
+        }
+    }
 }
 
 /// What the device stamps.
@@ -122,7 +155,7 @@ fn read_png(path: &std::path::Path) -> Result<Frame, String> {
         return Err(format!("{}: not a grey PNG", path.display()));
     }
     let data = &data[..info.buffer_size()];
-    let pixels = match info.bit_depth {
+    let pixels: Vec<u16> = match info.bit_depth {
         png::BitDepth::Eight => data.iter().map(|&b| u16::from(b) << 8).collect(),
         png::BitDepth::Sixteen => data
             .chunks_exact(2)
@@ -130,11 +163,8 @@ fn read_png(path: &std::path::Path) -> Result<Frame, String> {
             .collect(),
         other => return Err(format!("{}: {other:?} bits a pixel", path.display())),
     };
-    Ok(Frame {
-        width: info.width as usize,
-        height: info.height as usize,
-        pixels,
-    })
+    let (width, height) = (info.width as usize, info.height as usize);
+    Ok(Frame::new(width, height, &pixels))
 }
 
 fn read_pgm(path: &std::path::Path) -> Result<Frame, String> {
@@ -184,11 +214,7 @@ fn read_pgm(path: &std::path::Path) -> Result<Frame, String> {
             path.display()
         ));
     }
-    Ok(Frame {
-        width,
-        height,
-        pixels,
-    })
+    Ok(Frame::new(width, height, &pixels))
 }
 
 /// Fills a buffer with the next frame and stamps it.
@@ -208,31 +234,19 @@ unsafe extern "C" fn fill(
     // checks the payload before calling).
     unsafe {
         let fill = &*(data as *const Fill);
-        // The instant the frame is made, before its pixels are copied.
-        let now = utc_now_ns();
         let width = aravis_sys::arv_buffer_get_image_width(buffer).max(0) as usize;
         let height = aravis_sys::arv_buffer_get_image_height(buffer).max(0) as usize;
         let mut size = 0;
         let out = aravis_sys::arv_buffer_get_data(buffer, &mut size);
-        let sixteen = pixel_format == MONO16;
-        let bpp = if sixteen { 2 } else { 1 };
+        let bpp = if pixel_format == MONO16 { 2 } else { 1 };
         let out = std::slice::from_raw_parts_mut(out, width * height * bpp);
         let frame = &fill.frames[fill.next.fetch_add(1, Ordering::Relaxed) % fill.frames.len()];
-        for v in 0..height {
-            for u in 0..width {
-                let value = if u < frame.width && v < frame.height {
-                    frame.pixels[v * frame.width + u]
-                } else {
-                    0
-                };
-                let i = v * width + u;
-                if sixteen {
-                    out[2 * i..2 * i + 2].copy_from_slice(&value.to_le_bytes());
-                } else {
-                    out[i] = (value >> 8) as u8;
-                }
-            }
-        }
+        frame.copy_into(out, width, height, bpp);
+        // The instant the frame is made: its pixels are in the buffer and the leader packet
+        // leaves next. The fake's exposure is instantaneous and its readout free; copying the
+        // pixels is the simulation's work, which a loaded host would otherwise count as the
+        // camera's latency.
+        let now = utc_now_ns();
         if let Some((camera, status)) = fill.ptp {
             let camera = camera as *mut aravis_sys::ArvFakeCamera;
             let mut enabled = 0;
@@ -244,27 +258,17 @@ unsafe extern "C" fn fill(
             }
         }
         let stamp = match fill.clock {
-            DeviceClock::Utc => None,
+            DeviceClock::Utc => now,
             DeviceClock::Boot { drift } => {
-                Some(((now - fill.start_ns) as f64 * (1.0 + drift)) as i64 + 1_000_000_000)
+                ((now - fill.start_ns) as f64 * (1.0 + drift)) as i64 + 1_000_000_000
             }
-            DeviceClock::Tai => Some(now + 37_000_000_000),
+            DeviceClock::Tai => now + 37_000_000_000,
         };
-        if let Some(stamp) = stamp {
-            aravis_sys::arv_buffer_set_timestamp(buffer, stamp as u64);
-        }
+        aravis_sys::arv_buffer_set_timestamp(buffer, stamp as u64);
         if let Some(log) = &fill.stamps {
             use std::io::Write;
-            // A UTC stamp is the fake's own, taken as it began the frame: the truth itself.
-            let (device, utc) = match stamp {
-                Some(stamp) => (stamp, now),
-                None => {
-                    let own = aravis_sys::arv_buffer_get_timestamp(buffer) as i64;
-                    (own, own)
-                }
-            };
             let mut log = log.lock().unwrap_or_else(|p| p.into_inner());
-            let _ = writeln!(log, "{device} {utc}").and_then(|()| log.flush());
+            let _ = writeln!(log, "{stamp} {now}").and_then(|()| log.flush());
         }
     }
 }
