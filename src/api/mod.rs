@@ -8,7 +8,7 @@
 
 mod acceptance;
 mod alarms;
-pub(crate) mod auth;
+mod auth;
 mod budget;
 mod calibration;
 mod cameras;

@@ -377,7 +377,7 @@ pub fn find_without_prior(
                                 &Rotation3::from_matrix_unchecked(rotation),
                             ),
                         );
-                        let Some((first, pose)) = first_match(
+                        let Some(first) = first_match(
                             link,
                             &centres,
                             &grid,
@@ -391,10 +391,10 @@ pub fn find_without_prior(
                         ) else {
                             continue;
                         };
-                        if !tried.insert(first.clone()) {
+                        if !tried.insert(first.assignment.clone()) {
                             continue;
                         }
-                        if let Some(found) = verify(link, blobs, &centres, &grid, &pose, first)
+                        if let Some(found) = verify(link, blobs, &centres, &grid, first)
                             && !identifications.iter().any(|k| k.blobs == found.blobs)
                         {
                             identifications.push(found);
@@ -449,6 +449,13 @@ fn normal_candidates(anchor: &Seen) -> Vec<Vec3> {
     normals
 }
 
+/// A hypothesis's first matches: each point's blob, and the pose refined on them.
+struct FirstMatch {
+    /// Each point's blob, `None` where none matched.
+    assignment: Vec<Option<usize>>,
+    pose: Pose,
+}
+
 /// Each point's nearest blob under a hypothesis, grown outwards from the anchor: the points
 /// nearest the anchor in the layout first (where an error of the anchor's tilt or distance
 /// moves the prediction least), each within a gate of a fraction of the predicted spacing, the
@@ -466,7 +473,7 @@ fn first_match(
     b: usize,
     j: usize,
     tight_gate_px: f64,
-) -> Option<(Vec<Option<usize>>, Pose)> {
+) -> Option<FirstMatch> {
     let spacing_of = predict_all(link, pose);
     let mut pose = *pose;
     let mut assignment = vec![None; link.points_mm.len()];
@@ -527,7 +534,7 @@ fn first_match(
             pose = refined.camera_from_marker;
         }
     }
-    (matched >= MIN_POINTS).then_some((assignment, pose))
+    (matched >= MIN_POINTS).then_some(FirstMatch { assignment, pose })
 }
 
 /// Every point's image at `pose` (`None` behind the camera).
@@ -559,12 +566,13 @@ fn verify(
     blobs: &[Blob],
     centres: &[Vector2<f64>],
     grid: &Grid,
-    start: &Pose,
-    first: Vec<Option<usize>>,
+    first: FirstMatch,
 ) -> Option<Identification> {
-    let mut assignment = first;
+    let FirstMatch {
+        mut assignment,
+        mut pose,
+    } = first;
     let mut visible = Vec::new();
-    let mut pose = *start;
     for _ in 0..2 {
         let (object, image): (Vec<Vec3>, Vec<Vector2<f64>>) = assignment
             .iter()
