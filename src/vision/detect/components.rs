@@ -110,8 +110,10 @@ pub(super) fn components(
     // background are skipped a word (8 pixels) at a time.
     let mut mask = vec![0u8; w.next_multiple_of(8) + 8];
     for v in 0..h {
-        if v % TILE_PX == 0 {
-            spans = area.spans(v / TILE_PX, w);
+        // Only the searched tiles that can hold foreground are looked at: a blank tile has
+        // none, so no run crosses it.
+        if v % THRESHOLD_TILE_PX == 0 {
+            spans = thresholds.live_spans(v / THRESHOLD_TILE_PX, area, w);
         }
         current.clear();
         let mut next_previous = 0;
@@ -123,7 +125,6 @@ pub(super) fn components(
                 let stop = ((u / THRESHOLD_TILE_PX + 1) * THRESHOLD_TILE_PX).min(end);
                 let (out, pixels) = (&mut mask[u..stop], &row[u..stop]);
                 match thresholds.twice_at(u, v) {
-                    _ if thresholds.blank_at(u, v) => out.fill(0),
                     Some(t) if thresholds.bright => {
                         for (m, &p) in out.iter_mut().zip(pixels) {
                             *m = u8::from(2 * u32::from(p) > t);
@@ -257,4 +258,105 @@ pub(super) fn is_elliptic(
     let (_, [cuu, cvv, _]) = filled.moments();
     let perimeter = std::f64::consts::PI * 2.0 * (2.0 * (cuu + cvv)).sqrt();
     ((mismatch as f64) <= MAX_MISMATCH_PER_PERIMETER * perimeter).then_some(filled)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// The components the plain way: every searched pixel's foreground looked at one by one,
+    /// grown by a flood fill over the eight neighbours.
+    fn by_pixel(
+        w: usize,
+        h: usize,
+        area: &SearchArea,
+        thresholds: &ThresholdMap,
+        pixels: &[u16],
+    ) -> Vec<Component> {
+        let searched = |u: usize, v: usize| area.is_active(u / TILE_PX, v / TILE_PX);
+        let fore: Vec<bool> = (0..w * h)
+            .map(|i| {
+                let (u, v) = (i % w, i / w);
+                searched(u, v) && thresholds.foreground(pixels[i], u, v)
+            })
+            .collect();
+        let mut seen = vec![false; w * h];
+        let mut out = Vec::new();
+        for start in 0..w * h {
+            if !fore[start] || seen[start] {
+                continue;
+            }
+            let mut part = Component::empty();
+            let mut stack = vec![start];
+            seen[start] = true;
+            while let Some(i) = stack.pop() {
+                let (u, v) = (i % w, i / w);
+                part.add_run(v, u, u);
+                for nv in v.saturating_sub(1)..=(v + 1).min(h - 1) {
+                    for nu in u.saturating_sub(1)..=(u + 1).min(w - 1) {
+                        let k = nv * w + nu;
+                        if fore[k] && !seen[k] {
+                            seen[k] = true;
+                            stack.push(k);
+                        }
+                    }
+                }
+            }
+            out.push(part);
+        }
+        out.sort_by_key(|c| (c.v_min, c.u_min));
+        out
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        /// The components' scan skips unsearched and blank tiles and joins row runs: it finds
+        /// exactly the components a pixel-by-pixel flood fill of the searched foreground does.
+        #[test]
+        fn components_equal_a_flood_fill_of_the_searched_foreground(
+            w in 20usize..200,
+            h in 20usize..200,
+            seed in any::<u64>(),
+            active_bits in any::<u64>(),
+            discs in proptest::collection::vec((0.0f64..1.0, 0.0f64..1.0, 1.0f64..14.0), 0..12),
+        ) {
+            let mut x = seed | 1;
+            let mut noise = move || {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                (x % 7) as f64
+            };
+            let pixels: Vec<u16> = (0..w * h)
+                .map(|i| {
+                    let (u, v) = ((i % w) as f64, (i / w) as f64);
+                    let lit = discs.iter().any(|&(cu, cv, r)| {
+                        (u - cu * w as f64).hypot(v - cv * h as f64) <= r
+                    });
+                    (if lit { 200.0 } else { 30.0 } + noise()) as u16
+                })
+                .collect();
+            let mut area = SearchArea::empty(w as u32, h as u32);
+            let tiles = area.active.len();
+            for (i, a) in area.active.iter_mut().enumerate() {
+                *a = active_bits >> (i % 64) & 1 == 1 || tiles == 1;
+            }
+            let settings = DetectSettings::default();
+            let noise = noise_dn(&pixels, w, h);
+            let thresholds = ThresholdMap::new(&pixels, w, h, &settings, 1.0, noise, &area);
+            let fast = components(w, h, &area, &thresholds, &pixels);
+            let plain = by_pixel(w, h, &area, &thresholds, &pixels);
+            prop_assert_eq!(fast.len(), plain.len());
+            for (f, p) in fast.iter().zip(&plain) {
+                prop_assert_eq!(
+                    (f.area, f.u_min, f.u_max, f.v_min, f.v_max),
+                    (p.area, p.u_min, p.u_max, p.v_min, p.v_max)
+                );
+                for (a, b) in [(f.sum_u, p.sum_u), (f.sum_v, p.sum_v), (f.sum_uv, p.sum_uv)] {
+                    prop_assert!((a - b).abs() <= 1e-9 * b.abs().max(1.0), "{a} against {b}");
+                }
+            }
+        }
+    }
 }

@@ -224,12 +224,6 @@ impl SearchArea {
         );
         (v0 / TILE_PX..=ty1).all(|ty| (u0 / TILE_PX..=tx1).all(|tx| self.is_active(tx, ty)))
     }
-
-    /// The column ranges `[u0, u1)` of searched tiles in tile row `ty`.
-    fn spans(&self, ty: usize, w: usize) -> Vec<(usize, usize)> {
-        let row = &self.active[ty * self.tiles_x..(ty + 1) * self.tiles_x];
-        column_spans(row, TILE_PX, w)
-    }
 }
 
 /// The column ranges `[u0, u1)` of the runs of marked tiles in one row of tiles `tile_px`

@@ -160,9 +160,17 @@ impl ThresholdMap {
         self.twice[(v / THRESHOLD_TILE_PX) * self.tiles_x + u / THRESHOLD_TILE_PX]
     }
 
-    /// Whether no pixel of the tile holding pixel `(u, v)` is foreground.
-    pub(super) fn blank_at(&self, u: usize, v: usize) -> bool {
-        self.blank[(v / THRESHOLD_TILE_PX) * self.tiles_x + u / THRESHOLD_TILE_PX]
+    /// The column ranges `[u0, u1)` of threshold-tile row `ty` that the components must look
+    /// at: the searched tiles that are not blank (a tile with no threshold is blank).
+    pub(super) fn live_spans(&self, ty: usize, area: &SearchArea, w: usize) -> Vec<(usize, usize)> {
+        let per = TILE_PX / THRESHOLD_TILE_PX;
+        let row = &self.blank[ty * self.tiles_x..(ty + 1) * self.tiles_x];
+        let live: Vec<bool> = row
+            .iter()
+            .enumerate()
+            .map(|(tx, &blank)| !blank && area.is_active(tx / per, ty / per))
+            .collect();
+        column_spans(&live, THRESHOLD_TILE_PX, w)
     }
 
     pub(super) fn foreground(&self, p: u16, u: usize, v: usize) -> bool {
