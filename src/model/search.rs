@@ -176,13 +176,15 @@ impl Grid {
         let hi = Vector2::new(p.x + gate, p.y + gate);
         let (x0, y0) = Self::cell(&lo, self.cell_px, self.columns, self.rows);
         let (x1, y1) = Self::cell(&hi, self.cell_px, self.columns, self.rows);
+        // Squared distances: no square root per blob looked at.
+        let gate2 = gate * gate;
         let mut best: Option<(f64, usize)> = None;
         let mut within = 0;
         for y in y0..=y1 {
             for x in x0..=x1 {
                 for &k in &self.cells[y * self.columns + x] {
-                    let d = (centres[k] - p).norm();
-                    if d <= gate {
+                    let d = (centres[k] - p).norm_squared();
+                    if d <= gate2 {
                         within += 1;
                         if best.is_none_or(|(b, _)| d < b) {
                             best = Some((d, k));
@@ -344,10 +346,12 @@ pub fn find_without_prior(
                     for (j, g) in pairs[i].iter().enumerate() {
                         let Some(g) = g else { continue };
                         let (c, s) = solve(1.0, g);
-                        let rho = c.hypot(s);
-                        if !(1.0 / DISTANCE_FACTOR..=DISTANCE_FACTOR).contains(&rho) {
+                        // Most pairs fail here: the square root only for those that pass.
+                        let rho2 = c * c + s * s;
+                        if !(DISTANCE_FACTOR.powi(-2)..=DISTANCE_FACTOR.powi(2)).contains(&rho2) {
                             continue;
                         }
+                        let rho = rho2.sqrt();
                         // The anchor's distance off by about rho: solved again at rho times it.
                         let (c, s) = solve(rho, g);
                         let Some(u) = (c * e1 + s * e2).try_normalize(1e-12) else {
