@@ -321,13 +321,8 @@ mod tests {
             active_bits in any::<u64>(),
             discs in proptest::collection::vec((0.0f64..1.0, 0.0f64..1.0, 1.0f64..14.0), 0..12),
         ) {
-            let mut x = seed | 1;
-            let mut noise = move || {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
-                (x % 7) as f64
-            };
+            let mut next = xorshift(seed);
+            let mut noise = move || (next() % 7) as f64;
             let pixels: Vec<u16> = (0..w * h)
                 .map(|i| {
                     let (u, v) = ((i % w) as f64, (i / w) as f64);

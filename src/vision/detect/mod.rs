@@ -314,3 +314,15 @@ fn eigen2(a: f64, b: f64, c: f64) -> (f64, f64) {
     let d = (((a - b) / 2.0).powi(2) + c * c).sqrt();
     (mean + d, mean - d)
 }
+
+/// A xorshift generator for the detector's property tests: reproducible noise from a seed.
+#[cfg(test)]
+fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+    let mut x = seed | 1;
+    move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
+    }
+}

@@ -328,15 +328,8 @@ mod tests {
             seed in any::<u64>(),
             wanted_bits in any::<u64>(),
         ) {
-            let mut x = seed | 1;
-            let pixels: Vec<u16> = (0..w * h)
-                .map(|_| {
-                    x ^= x << 13;
-                    x ^= x >> 7;
-                    x ^= x << 17;
-                    (x % 4096) as u16
-                })
-                .collect();
+            let mut next = xorshift(seed);
+            let pixels: Vec<u16> = (0..w * h).map(|_| (next() % 4096) as u16).collect();
             let tiles = w.div_ceil(THRESHOLD_TILE_PX) * h.div_ceil(THRESHOLD_TILE_PX);
             let wanted: Vec<bool> = (0..tiles).map(|i| wanted_bits >> (i % 64) & 1 == 1).collect();
             let fast = TileExtremes::measure(&pixels, w, h, &wanted);
