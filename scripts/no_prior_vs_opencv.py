@@ -7,11 +7,12 @@ development script, not a dependency of the service).
     target/cv/bin/python scripts/no_prior_vs_opencv.py target/no-prior
 
 For every frame, on one thread (`CV_THREADS=N` for OpenCV's pool of N, 0 for its default):
-cv2.imread of the PGM file, SimpleBlobDetector over the whole frame (bright discs; `scripts/detect_vs_opencv.py`'s detector, imported from it), the blobs
-matched to the marker's points projected from the frame's TRUE pose (OpenCV is given the
-identities for free: it does no search), solvePnP SQPNP then solvePnPRefineLM. Prints frames per second of wall
-time over the loop (reading the files included, as the service's decoding is), how many frames
-it solved, and its pose error against the truth.
+cv2.imread of the PGM file, SimpleBlobDetector over the whole frame (bright discs;
+`scripts/detect_vs_opencv.py`'s detector, imported from it), the blobs matched to the marker's
+points projected from the frame's TRUE pose (OpenCV is given the identities for free: it does no
+search), solvePnP SQPNP then solvePnPRefineLM. Prints frames per second of wall time over the
+loop (reading the files included, as the service's decoding is), how many frames it solved, and
+its pose error against the truth.
 """
 import json
 import math
