@@ -354,8 +354,7 @@ fn sample_times(link: &str) -> Vec<i64> {
 /// frames come back bit-exact, and each sample is stored at the middle of its exposure on
 /// the host's clock. The fake exposes on whole multiples of the period of the host's clock, so
 /// a stored time less half the 2 ms exposure falls just after a multiple of 100 ms: by the
-/// leader packet's smallest delay (the fit's floor) and the fake's wake-up: a median under 10
-/// ms, each sample under 25 ms (a loaded machine's scheduler), a quarter of the period.
+/// leader packet's smallest delay (the fit's floor) and the fake's wake-up, under 10 ms.
 #[test]
 fn three_cameras_stream_bit_exact_frames_stored_at_their_exposure() {
     in_own_namespace!();
@@ -448,34 +447,24 @@ fn three_cameras_stream_bit_exact_frames_stored_at_their_exposure() {
     }
     // Stored at the middle of the exposure on the host's clock: each sample's time less half the
     // exposure lies just after the host's time at which the fake made its frame (the fit sits on
-    // the fastest arrivals: the leader packet's trip, under a millisecond on an idle machine and
-    // with three busy loops on two cores). The median is held to 10 ms; a single sample may be
-    // later by what the scheduler of a loaded two-core machine delays every arrival of a fit
-    // window by, never earlier than its frame and never by a quarter of the frame period.
+    // the fastest arrivals: the leader packet's trip, about a millisecond on an idle machine and
+    // on a loaded one), never before it and never 10 ms after. Each link's range is printed.
     for (link, stamps) in [("C1_from_B", &s1), ("C2_from_M", &s2), ("C3_from_G", &s3)] {
         let made = made_at(stamps);
         let times = sample_times(link);
         assert!(times.len() >= 20, "{link}: {} samples", times.len());
-        let mut errors_ms: Vec<f64> = Vec::with_capacity(times.len());
+        let (mut earliest_ms, mut latest_ms) = (f64::INFINITY, f64::NEG_INFINITY);
         for t in &times {
             let error_ms = (t - 1_000_000 - nearest(&made, t - 1_000_000)) as f64 / 1e6;
             assert!(
-                (-1.0..25.0).contains(&error_ms),
+                (-1.0..10.0).contains(&error_ms),
                 "{link}: a sample at {} is {error_ms:.2} ms from its frame's making",
                 brokenray::clock::format_ns(*t)
             );
-            errors_ms.push(error_ms);
+            (earliest_ms, latest_ms) = (earliest_ms.min(error_ms), latest_ms.max(error_ms));
         }
-        errors_ms.sort_by(f64::total_cmp);
-        let median_ms = errors_ms[errors_ms.len() / 2];
         eprintln!(
-            "{link}: samples from their frames' making: median {median_ms:.2} ms, {:.2} to {:.2} ms",
-            errors_ms[0],
-            errors_ms[errors_ms.len() - 1]
-        );
-        assert!(
-            (-1.0..10.0).contains(&median_ms),
-            "{link}: samples are a median {median_ms:.2} ms from their frames' making"
+            "{link}: samples {earliest_ms:.2} to {latest_ms:.2} ms from their frames' making"
         );
     }
     let metrics = String::from_utf8(get_bytes("/metrics").expect("metrics")).expect("text");
