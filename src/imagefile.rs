@@ -11,7 +11,12 @@
 //! may allocate at most [`decode_budget_bytes`] of the frame's size; PNG's ancillary chunks
 //! (text, colour profiles), which may be compressed bombs, are skipped unread. PNG goes
 //! through the `png` crate directly (the `image` crate decompresses them), JPEG through
-//! `zune-jpeg` (its luma plane, without a colour conversion), TIFF and PGM through `image`.
+//! `zune-jpeg` (its luma plane, without a colour conversion), TIFF through `image`. Binary PGM
+//! of 8 or 16 full bits (maximum value 255 or 65535), a camera's raw frame, is read here: a
+//! header of four numbers and the pixels as they are, widened straight from the request's
+//! bytes into the frame (the `image` crate's reader copies them twice on the way, a fifth of
+//! the decoding of a 1600 x 1200 frame); other maximum values, which `image` rescales, go
+//! through it.
 
 use crate::vision::{BitDepth, GreyImage};
 use image::{ColorType, DynamicImage, ImageFormat, ImageReader, Limits};
@@ -148,6 +153,10 @@ pub fn decode(
             Refusal::Size(e) => e,
             Refusal::Decoder(m) => undecodable(&m),
         }),
+        FrameFormat::Pgm if let Some(header) = PgmHeader::read(bytes) => {
+            check((header.width_px, header.height_px))?;
+            header.decode(bytes).map_err(|m| undecodable(&m))
+        }
         FrameFormat::Tiff | FrameFormat::Pgm => {
             let reader = || ImageReader::with_format(Cursor::new(bytes), format.image_format());
             let (width_px, height_px) = reader().into_dimensions().map_err(|e| undecodable(&e))?;
@@ -161,6 +170,100 @@ pub fn decode(
             let image = reader.decode().map_err(|e| undecodable(&e))?;
             grey_of(image).map_err(|e| undecodable(&e))
         }
+    }
+}
+
+/// The header of a binary PGM (P5) of 8 or 16 full bits: its size, depth and where its pixels
+/// start. `None` for anything else (another maximum value, a malformed header), which the
+/// `image` crate's reader then reads or refuses in its own words.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct PgmHeader {
+    width_px: u32,
+    height_px: u32,
+    depth: BitDepth,
+    /// The offset of the first pixel byte.
+    data_at: usize,
+}
+
+impl PgmHeader {
+    /// Netpbm's header: `P5`, then width, height and maximum value as decimal numbers, each
+    /// after whitespace and any `#` comments (to the end of their line), then one whitespace
+    /// byte before the pixels.
+    fn read(bytes: &[u8]) -> Option<Self> {
+        let mut at = 2;
+        if bytes.get(..2)? != b"P5" {
+            return None;
+        }
+        let mut number = || -> Option<u32> {
+            loop {
+                match *bytes.get(at)? {
+                    b' ' | b'\t' | b'\n' | b'\r' | 0x0b | 0x0c => at += 1,
+                    b'#' => {
+                        while !matches!(*bytes.get(at)?, b'\n' | b'\r') {
+                            at += 1;
+                        }
+                    }
+                    _ => break,
+                }
+            }
+            let start = at;
+            let mut value = 0u32;
+            while let Some(&d) = bytes.get(at).filter(|d| d.is_ascii_digit()) {
+                value = value.checked_mul(10)?.checked_add(u32::from(d - b'0'))?;
+                at += 1;
+            }
+            (at > start).then_some(value)
+        };
+        let (width_px, height_px, max) = (number()?, number()?, number()?);
+        let depth = match max {
+            255 => BitDepth::Eight,
+            65535 => BitDepth::Sixteen,
+            _ => return None,
+        };
+        if width_px == 0
+            || height_px == 0
+            || !matches!(bytes.get(at)?, b' ' | b'\t' | b'\n' | b'\r' | 0x0b | 0x0c)
+        {
+            return None;
+        }
+        Some(PgmHeader {
+            width_px,
+            height_px,
+            depth,
+            data_at: at + 1,
+        })
+    }
+
+    /// The frame: 8-bit pixels as they are, 16-bit ones most significant byte first. Bytes
+    /// after the frame (a second image of a multi-image file) are not read.
+    fn decode(self, bytes: &[u8]) -> Result<GreyImage, String> {
+        let n = self.width_px as usize * self.height_px as usize;
+        let per = match self.depth {
+            BitDepth::Eight => 1,
+            BitDepth::Sixteen => 2,
+        };
+        let data = &bytes[self.data_at..];
+        let Some(data) = data.get(..n * per) else {
+            return Err(format!(
+                "the data ends after {} of the {} bytes of a {} x {} frame's pixels: the file was cut",
+                data.len(),
+                n * per,
+                self.width_px,
+                self.height_px
+            ));
+        };
+        let image = match self.depth {
+            BitDepth::Eight => GreyImage::from_u8(self.width_px, self.height_px, data),
+            BitDepth::Sixteen => GreyImage::new(
+                self.width_px,
+                self.height_px,
+                BitDepth::Sixteen,
+                data.chunks_exact(2)
+                    .map(|b| u16::from_be_bytes([b[0], b[1]]))
+                    .collect(),
+            ),
+        };
+        image.map_err(|e| e.to_string())
     }
 }
 
@@ -378,4 +481,107 @@ fn to_dynamic(image: &GreyImage, format: FrameFormat) -> Result<DynamicImage, Fr
         format,
         reason: "the frame's pixel count does not match its size".to_owned(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// The `image` crate's reading of a PGM, the reference for the header read here.
+    fn through_image(bytes: &[u8]) -> GreyImage {
+        let image = ImageReader::with_format(Cursor::new(bytes), ImageFormat::Pnm)
+            .decode()
+            .expect("image reads it");
+        grey_of(image).expect("grey")
+    }
+
+    /// A P5 file of these pixels, with a comment and the given whitespace between its fields.
+    fn pgm(w: u32, h: u32, sixteen: bool, pixels: &[u16], gaps: [&str; 4]) -> Vec<u8> {
+        let max = if sixteen { 65535 } else { 255 };
+        let mut file =
+            format!("P5{}{w}{}{h}{}{max}{}", gaps[0], gaps[1], gaps[2], gaps[3]).into_bytes();
+        for &p in pixels {
+            if sixteen {
+                file.extend(p.to_be_bytes());
+            } else {
+                file.push(p as u8);
+            }
+        }
+        file
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// Any 8- or 16-bit P5 file, with comments and any whitespace in its header, reads as
+        /// the `image` crate reads it: the same size, depth and pixels.
+        #[test]
+        fn binary_pgm_reads_as_the_image_crate_reads_it(
+            w in 1u32..40,
+            h in 1u32..30,
+            sixteen in any::<bool>(),
+            seed in any::<u64>(),
+            gaps in prop::array::uniform4(prop::sample::select(vec![
+                " ", "\n", "\t", "\r\n", "  \n# a comment, 12 34\n", "\n#\n",
+            ])),
+        ) {
+            let mut state = seed | 1;
+            let pixels: Vec<u16> = (0..w * h)
+                .map(|_| {
+                    state ^= state << 13;
+                    state ^= state >> 7;
+                    state ^= state << 17;
+                    if sixteen { state as u16 } else { state as u8 as u16 }
+                })
+                .collect();
+            // The byte after the maximum value is the only one before the pixels.
+            let last = if gaps[3].ends_with('\n') { "\n" } else { " " };
+            let file = pgm(w, h, sixteen, &pixels, [gaps[0], gaps[1], gaps[2], last]);
+            let header = PgmHeader::read(&file).expect("read here");
+            prop_assert_eq!((header.width_px, header.height_px), (w, h));
+            let ours = decode(&file, FrameFormat::Pgm, Some((w, h))).expect("decodes");
+            let theirs = through_image(&file);
+            prop_assert_eq!(ours.depth(), theirs.depth());
+            prop_assert_eq!(ours.pixels(), theirs.pixels());
+            prop_assert_eq!(ours.pixels(), &pixels[..]);
+        }
+    }
+
+    #[test]
+    fn a_cut_or_wrong_sized_pgm_is_refused_by_name_and_other_depths_go_through_image() {
+        let pixels: Vec<u16> = (0..12).map(|i| i * 20).collect();
+        let file = pgm(4, 3, false, &pixels, [" ", " ", " ", "\n"]);
+        let cut = decode(&file[..file.len() - 1], FrameFormat::Pgm, None).unwrap_err();
+        assert!(
+            matches!(&cut, FrameFileError::Undecodable { reason, .. } if reason.contains("11 of the 12 bytes") && reason.contains("cut")),
+            "{cut}"
+        );
+        assert_eq!(
+            decode(&file, FrameFormat::Pgm, Some((3, 4))).unwrap_err(),
+            FrameFileError::WrongSize {
+                width_px: 4,
+                height_px: 3,
+                expected_width_px: 3,
+                expected_height_px: 4
+            }
+        );
+        // A 12-bit file (maximum 4095) is not read here; `image` scales it to 16 bits.
+        let mut twelve = b"P5 2 1 4095\n".to_vec();
+        twelve.extend([0x0f, 0xff, 0x00, 0x00]);
+        assert_eq!(PgmHeader::read(&twelve), None);
+        let read = decode(&twelve, FrameFormat::Pgm, None).expect("decodes");
+        assert_eq!(read.pixels(), through_image(&twelve).pixels());
+        assert_eq!(read.pixels(), &[65535, 0]);
+        // Malformed headers: not read here, and refused by `image` as before.
+        for bad in [
+            &b"P5 0 3 255\n"[..],
+            b"P5 4 3 255",
+            b"P5 4 x 255\n",
+            b"P2 4 3 255\n",
+        ] {
+            assert_eq!(PgmHeader::read(bad), None);
+            assert!(decode(bad, FrameFormat::Pgm, None).is_err());
+        }
+    }
 }
