@@ -377,7 +377,8 @@ pub(super) fn refine(
     let window_reach = window.ceil() as isize;
     let mut centre = mean;
     let mut result = None;
-    for _ in 0..4 {
+    const ITERATIONS: usize = 4;
+    for iteration in 0..ITERATIONS {
         let ([u0, u1, v0, v1], [cu, cv]) = bounds(centre, window_reach);
         let clipped = u0 > cu - window_reach
             || u1 < cu + window_reach
@@ -421,6 +422,12 @@ pub(super) fn refine(
             return None;
         }
         let next = [su / sw, sv / sw];
+        let moved = (next[0] - centre[0]).hypot(next[1] - centre[1]);
+        if moved >= 1e-4 && iteration + 1 < ITERATIONS {
+            // Not the last window: its covariance and shape would be replaced.
+            centre = next;
+            continue;
+        }
         // Covariance of the centroid: sum_i (x_i - c)(x_i - c)^T var_i / (sum w)^2.
         let (mut cxx, mut cyy, mut cxy) = (0.0, 0.0, 0.0);
         let (mut muu, mut mvv, mut muv) = (0.0, 0.0, 0.0);
@@ -467,11 +474,8 @@ pub(super) fn refine(
             contrast_dn: peak,
             background_dn: fitted.level,
         });
-        let moved = (next[0] - centre[0]).hypot(next[1] - centre[1]);
         centre = next;
-        if moved < 1e-4 {
-            break;
-        }
+        break;
     }
     scratch.theirs = marks;
     // A centre far from the blob's own is pulled by something else in the window.
