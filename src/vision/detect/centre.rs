@@ -172,8 +172,8 @@ pub(super) fn fit_plane(
 
 /// Gates a component and measures its centre; `None` when it is not a disc. `scale` is the
 /// frame's full scale over an 8-bit one's, `noise_dn` its pixel noise.
-pub(super) fn refine(
-    image: &GreyImage,
+pub(super) fn refine<P: Pixel>(
+    (pixels, w, h): (&[P], usize, usize),
     c: &Component,
     s: &DetectSettings,
     (scale, noise_dn): (f64, f64),
@@ -181,8 +181,6 @@ pub(super) fn refine(
     foreground: &impl Fn(usize, usize) -> bool,
     scratch: &mut Scratch,
 ) -> Option<Blob> {
-    let (w, h) = (image.width_px() as usize, image.height_px() as usize);
-    let pixels = image.pixels();
     let area = c.area as f64;
     // A disc the frame's edge cuts has a wrong centre; one wholly inside is measured however
     // close it lies, its window clipped.
@@ -302,7 +300,9 @@ pub(super) fn refine(
             }
             let d2 = du * du + dv * dv;
             if d2 >= inner2 && d2 < outer2 && !theirs(u as f64, v as f64) {
-                scratch.ring.push((du, dv, f64::from(row[u as usize])));
+                scratch
+                    .ring
+                    .push((du, dv, f64::from(row[u as usize].into())));
             }
         }
     }
@@ -342,7 +342,7 @@ pub(super) fn refine(
             if (x - mean[0]).powi(2) + (y - mean[1]).powi(2) <= inner * inner {
                 scratch
                     .values
-                    .push(contrast(f64::from(row[u as usize]), x, y));
+                    .push(contrast(f64::from(row[u as usize].into()), x, y));
             }
         }
     }
@@ -397,7 +397,7 @@ pub(super) fn refine(
                 if d2 >= window * window || theirs(x, y) {
                     continue;
                 }
-                let raw = contrast(f64::from(row[u as usize]), x, y);
+                let raw = contrast(f64::from(row[u as usize].into()), x, y);
                 // A speck or reflection in the disc's inner part weighs as the disc does.
                 let raw = if clip.is_finite() && d2 <= inner * inner {
                     raw.max(clip)

@@ -86,12 +86,12 @@ impl Component {
 }
 
 /// The 8-connected components of the foreground, from row runs joined by union-find.
-pub(super) fn components(
+pub(super) fn components<P: Pixel>(
     w: usize,
     h: usize,
     area: &SearchArea,
     thresholds: &ThresholdMap,
-    pixels: &[u16],
+    pixels: &[P],
 ) -> Vec<Component> {
     pub(super) fn find(parent: &mut [usize], mut i: usize) -> usize {
         while parent[i] != i {
@@ -127,12 +127,12 @@ pub(super) fn components(
                 match thresholds.twice_at(u, v) {
                     Some(t) if thresholds.bright => {
                         for (m, &p) in out.iter_mut().zip(pixels) {
-                            *m = u8::from(2 * u32::from(p) > t);
+                            *m = u8::from(2 * u32::from(p.into()) > t);
                         }
                     }
                     Some(t) => {
                         for (m, &p) in out.iter_mut().zip(pixels) {
-                            *m = u8::from(2 * u32::from(p) < t);
+                            *m = u8::from(2 * u32::from(p.into()) < t);
                         }
                     }
                     None => out.fill(0),

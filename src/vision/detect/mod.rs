@@ -48,7 +48,7 @@ mod centre;
 mod components;
 mod threshold;
 
-use super::image::GreyImage;
+use super::image::{GreyImage, Pixel, StoredPixels};
 use centre::{Scratch, Shape, refine};
 use components::{Component, components, is_elliptic};
 use threshold::{ThresholdMap, noise_dn};
@@ -255,11 +255,26 @@ pub fn detect_in(image: &GreyImage, settings: &DetectSettings, area: &SearchArea
         SearchArea::tiles(image.width_px(), image.height_px()),
         "a search area made for another frame size"
     );
-    let pixels = image.pixels();
     let scale = f64::from(image.depth().max_value()) / 255.0;
+    // Read at the frame's own depth: an 8-bit frame is half the bytes to pass over.
+    match image.stored() {
+        StoredPixels::Eight(pixels) => detect_pixels(pixels, (w, h), scale, settings, area),
+        StoredPixels::Sixteen(pixels) => detect_pixels(pixels, (w, h), scale, settings, area),
+    }
+}
+
+/// [`detect_in`] over a frame's pixels as they are stored; `scale` is the frame's full scale
+/// over an 8-bit one's.
+fn detect_pixels<P: Pixel>(
+    pixels: &[P],
+    (w, h): (usize, usize),
+    scale: f64,
+    settings: &DetectSettings,
+    area: &SearchArea,
+) -> Vec<Blob> {
     let noise = noise_dn(pixels, w, h);
     let thresholds = ThresholdMap::new(pixels, w, h, settings, scale, noise, area);
-    let foreground = |u: usize, v: usize| thresholds.foreground(pixels[v * w + u], u, v);
+    let foreground = |u: usize, v: usize| thresholds.foreground(pixels[v * w + u].into(), u, v);
     let mut scratch = Scratch::default();
     let candidates: Vec<Component> = components(w, h, area, &thresholds, pixels)
         .into_iter()
@@ -296,7 +311,7 @@ pub fn detect_in(image: &GreyImage, settings: &DetectSettings, area: &SearchArea
                 .map(|(_, o)| o)
                 .collect();
             refine(
-                image,
+                (pixels, w, h),
                 c,
                 settings,
                 (scale, noise),
@@ -324,5 +339,55 @@ fn xorshift(seed: u64) -> impl FnMut() -> u64 {
         x ^= x >> 7;
         x ^= x << 17;
         x
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        /// An 8-bit frame is read a byte a pixel: it gives exactly the blobs the same values
+        /// give read as 16-bit words at an 8-bit frame's scale.
+        #[test]
+        fn an_eight_bit_frame_read_as_bytes_finds_what_it_does_read_as_words(
+            seed in any::<u64>(),
+            bright in any::<bool>(),
+            discs in proptest::collection::vec((-8.0f64..8.0, -8.0f64..8.0, 4.0f64..12.0), 1..=6),
+        ) {
+            let (w, h) = (160usize, 120usize);
+            let mut next = xorshift(seed);
+            let (lit, dark) = if bright { (220.0, 25.0) } else { (25.0, 220.0) };
+            let bytes: Vec<u8> = (0..w * h)
+                .map(|i| {
+                    let (u, v) = ((i % w) as f64, (i / w) as f64);
+                    // A soft edge, so that the centroids read grey levels.
+                    // Each disc in its own cell of a 3 x 2 grid, apart from the others.
+                    let inside = discs
+                        .iter()
+                        .enumerate()
+                        .map(|(k, &(du, dv, r))| {
+                            let cu = (k % 3) as f64 * 53.0 + 27.0 + du;
+                            let cv = (k / 3) as f64 * 60.0 + 30.0 + dv;
+                            (r + 0.5 - (u - cu).hypot(v - cv)).clamp(0.0, 1.0)
+                        })
+                        .fold(0.0, f64::max);
+                    (dark + (lit - dark) * inside + (next() % 9) as f64) as u8
+                })
+                .collect();
+            let settings = DetectSettings {
+                polarity: if bright { Polarity::Bright } else { Polarity::Dark },
+                ..DetectSettings::default()
+            };
+            let image = GreyImage::from_u8(w as u32, h as u32, &bytes).expect("frame");
+            let area = SearchArea::whole(w as u32, h as u32);
+            let as_bytes = detect_in(&image, &settings, &area);
+            let words: Vec<u16> = bytes.iter().map(|&b| u16::from(b)).collect();
+            let as_words = detect_pixels(&words, (w, h), 1.0, &settings, &area);
+            prop_assert!(!as_bytes.is_empty(), "no disc found");
+            prop_assert_eq!(as_bytes, as_words);
+        }
     }
 }

@@ -26,8 +26,8 @@ pub(super) struct ThresholdMap {
 }
 
 impl ThresholdMap {
-    pub(super) fn new(
-        pixels: &[u16],
+    pub(super) fn new<P: Pixel>(
+        pixels: &[P],
         w: usize,
         h: usize,
         s: &DetectSettings,
@@ -196,14 +196,14 @@ impl TileExtremes {
     /// first (an elementwise minimum and maximum of whole rows, which the compiler vectorises),
     /// then across each tile's 16 columns once: a reduction across a tile per row would cost
     /// sixteen times as many.
-    pub(super) fn measure(pixels: &[u16], w: usize, h: usize, wanted: &[bool]) -> Self {
+    pub(super) fn measure<P: Pixel>(pixels: &[P], w: usize, h: usize, wanted: &[bool]) -> Self {
         let t = THRESHOLD_TILE_PX;
         let (tiles_x, tiles_y) = (w.div_ceil(t), h.div_ceil(t));
         let mut lo = vec![u16::MAX; tiles_x * tiles_y];
         let mut hi = vec![0u16; tiles_x * tiles_y];
         let mut steps = vec![(0u32, 0u32); tiles_x * tiles_y];
-        let mut column_lo = vec![u16::MAX; w];
-        let mut column_hi = vec![0u16; w];
+        let mut column_lo = vec![P::MAX; w];
+        let mut column_hi = vec![P::MIN; w];
         for ty in 0..tiles_y {
             let base = ty * tiles_x;
             let row_tiles = &wanted[base..base + tiles_x];
@@ -213,8 +213,8 @@ impl TileExtremes {
                 continue;
             }
             for &(u0, u1) in &spans {
-                column_lo[u0..u1].fill(u16::MAX);
-                column_hi[u0..u1].fill(0);
+                column_lo[u0..u1].fill(P::MAX);
+                column_hi[u0..u1].fill(P::MIN);
             }
             for v in ty * t..((ty + 1) * t).min(h) {
                 let row = &pixels[v * w..(v + 1) * w];
@@ -233,7 +233,7 @@ impl TileExtremes {
                         }
                         let sum: u32 = chunk
                             .windows(2)
-                            .map(|p| u32::from(p[0].abs_diff(p[1])))
+                            .map(|p| u32::from(p[0].into().abs_diff(p[1].into())))
                             .sum();
                         let e = &mut steps[base + tx];
                         e.0 += sum;
@@ -248,8 +248,8 @@ impl TileExtremes {
                     .enumerate()
                 {
                     let i = base + u0 / t + k;
-                    lo[i] = l.iter().copied().fold(u16::MAX, u16::min);
-                    hi[i] = h.iter().copied().fold(0, u16::max);
+                    lo[i] = l.iter().copied().fold(P::MAX, P::min).into();
+                    hi[i] = h.iter().copied().fold(P::MIN, P::max).into();
                 }
             }
         }
@@ -260,14 +260,14 @@ impl TileExtremes {
 /// The frame's pixel noise (DN, one sigma): the median absolute difference of horizontal
 /// neighbours over every sixteenth row, which edges hardly move (`|a - b|` of two independent
 /// values of sigma `s` has a median of `0.954 s`).
-pub(super) fn noise_dn(pixels: &[u16], w: usize, h: usize) -> f64 {
+pub(super) fn noise_dn<P: Pixel>(pixels: &[P], w: usize, h: usize) -> f64 {
     const BINS: usize = 4096;
     let mut histogram = vec![0u32; BINS];
     let mut count = 0u64;
     for v in (0..h).step_by(16) {
         let row = &pixels[v * w..(v + 1) * w];
         for pair in row.windows(2) {
-            let d = (i32::from(pair[0]) - i32::from(pair[1])).unsigned_abs() as usize;
+            let d = usize::from(pair[0].into().abs_diff(pair[1].into()));
             histogram[d.min(BINS - 1)] += 1;
             count += 1;
         }
