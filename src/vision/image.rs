@@ -31,7 +31,7 @@ impl BitDepth {
 }
 
 /// A pixel as the detector reads it: 8 or 16 bits, compared and widened as its value.
-pub trait Pixel: Copy + Ord + Into<u16> + Send + Sync + 'static {
+pub(crate) trait Pixel: Copy + Ord + Into<u16> + Send + Sync + 'static {
     /// The darkest value.
     const MIN: Self;
     /// The brightest value.

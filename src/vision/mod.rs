@@ -55,7 +55,7 @@ pub use error::VisionError;
 pub use handeye::{
     HandEyeOptions, HandEyeSolution, MIN_MOTIONS, MotionSpread, PairResidual, solve_hand_eye,
 };
-pub use image::{BitDepth, GreyImage, Pixel, StoredPixels};
+pub use image::{BitDepth, GreyImage, StoredPixels};
 pub use plate::{Plate, PlateView};
 pub use pnp::{
     MIN_POINTS, PnpOptions, PnpSolution, Refinement, initial_poses, intrinsics_sensitivity, refine,
