@@ -219,9 +219,10 @@ pub(super) fn is_elliptic(
             (cvv * du * du - 2.0 * cuv * du * dv + cuu * dv * dv) / det
         })
     };
+    let moments = c.moments();
+    let (_, [cuu, cvv, cuv]) = moments;
     // Far from an ellipse's fill (a large shape of clutter, a streak): refused before any
     // pixel is looked at. A hole (below) lowers the fill by at most a quarter.
-    let (_, [cuu, cvv, cuv]) = c.moments();
     let (major2, minor2) = eigen2(cuu, cvv, cuv);
     let fill = c.area as f64 / (std::f64::consts::PI * 4.0 * (major2 * minor2).max(0.0).sqrt());
     if !(0.5..=1.5).contains(&fill) {
@@ -231,7 +232,7 @@ pub(super) fn is_elliptic(
     let reach = reach_of(c)?;
     let mut filled = *c;
     for v in rows.clone() {
-        for u in cols.clone() {
+        for u in columns_within(moments, v, 1.44, cols.clone()) {
             if reach(u, v) <= 1.44 && !foreground(u, v) {
                 filled.add_run(v, u, u);
             }
@@ -258,6 +259,33 @@ pub(super) fn is_elliptic(
     let (_, [cuu, cvv, _]) = filled.moments();
     let perimeter = std::f64::consts::PI * 2.0 * (2.0 * (cuu + cvv)).sqrt();
     ((mismatch as f64) <= MAX_MISMATCH_PER_PERIMETER * perimeter).then_some(filled)
+}
+
+/// The columns of `cols` in row `v` where `d^T C^-1 d <= r2` can hold for the moments' mean
+/// and covariance `C`, widened by a pixel (each is still tested): between the roots of the
+/// quadratic in `du` it is along the row. Empty where the row misses the ellipse.
+fn columns_within(
+    (mean, [cuu, cvv, cuv]): ([f64; 2], [f64; 3]),
+    v: usize,
+    r2: f64,
+    cols: std::ops::RangeInclusive<usize>,
+) -> std::ops::Range<usize> {
+    let det = cuu * cvv - cuv * cuv;
+    let dv = v as f64 - mean[1];
+    // cvv du^2 - 2 cuv dv du + (cuu dv^2 - r2 det) <= 0
+    let disc = (cuv * dv).powi(2) - cvv * (cuu * dv * dv - r2 * det);
+    if cvv <= 0.0 || disc < 0.0 {
+        return 0..0;
+    }
+    let (mid, half) = (cuv * dv / cvv, disc.sqrt() / cvv);
+    let first = (mean[0] + mid - half - 1.0)
+        .floor()
+        .max(*cols.start() as f64) as usize;
+    let last = (mean[0] + mid + half + 1.0).ceil().min(*cols.end() as f64);
+    if last < first as f64 {
+        return 0..0;
+    }
+    first..last as usize + 1
 }
 
 #[cfg(test)]
@@ -307,6 +335,37 @@ mod tests {
         }
         out.sort_by_key(|c| (c.v_min, c.u_min));
         out
+    }
+
+    proptest! {
+        /// The shape test's row ranges hold every pixel of the box within the ellipse: the
+        /// same pixels are tested as over the whole box.
+        #[test]
+        fn row_ranges_hold_every_pixel_within_the_ellipse(
+            mean in (5.0f64..60.0, 5.0f64..60.0),
+            axes in (0.3f64..20.0, 0.3f64..20.0),
+            angle in 0.0f64..std::f64::consts::PI,
+            r2 in 0.5f64..5.0,
+        ) {
+            let (cos, sin) = (angle.cos(), angle.sin());
+            let (a2, b2) = (axes.0 * axes.0, axes.1 * axes.1);
+            let cuu = a2 * cos * cos + b2 * sin * sin;
+            let cvv = a2 * sin * sin + b2 * cos * cos;
+            let cuv = (a2 - b2) * cos * sin;
+            let det = cuu * cvv - cuv * cuv;
+            prop_assume!(det > 1e-9);
+            let cols = 0usize..=70;
+            for v in 0..=70usize {
+                let range = columns_within(([mean.0, mean.1], [cuu, cvv, cuv]), v, r2, cols.clone());
+                for u in cols.clone() {
+                    let (du, dv) = (u as f64 - mean.0, v as f64 - mean.1);
+                    let reach = (cvv * du * du - 2.0 * cuv * du * dv + cuu * dv * dv) / det;
+                    if reach <= r2 {
+                        prop_assert!(range.contains(&u), "({u}, {v}) at {reach} outside {range:?}");
+                    }
+                }
+            }
+        }
     }
 
     proptest! {
