@@ -165,6 +165,11 @@ pub fn render(sources: &Sources<'_>) -> String {
             &m.commits_failed,
         ),
         (
+            "brokenray_groups_filtered_ahead_total",
+            "Groups of ingest requests filtered while the commit before them was being written.",
+            &m.groups_filtered_ahead,
+        ),
+        (
             "brokenray_connections_refused_total",
             "Connections closed on arrival: a connection limit was reached and every connection was busy with a request.",
             &m.connections.refused,

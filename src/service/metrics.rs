@@ -21,6 +21,8 @@ pub struct Metrics {
     pub commits: AtomicU64,
     /// Transactions that failed (their requests were refused).
     pub commits_failed: AtomicU64,
+    /// Groups of ingest requests filtered while the commit before them was being written.
+    pub groups_filtered_ahead: AtomicU64,
     /// Sum of commit durations (microseconds).
     pub commit_micros_sum: AtomicU64,
     /// Longest commit (microseconds).

@@ -6,7 +6,14 @@
 //! filtering, results), persists the bank's state in the same transaction, commits, and only
 //! then answers each job. Many requests therefore share one commit (group commit), and an
 //! answer always means "on disk". If a commit fails, the bank is restored to the state of the
-//! last commit and the jobs are answered with an error: memory never runs ahead of the disk.
+//! last commit and the jobs are answered with an error.
+//!
+//! While one commit's rows are written (by a task of its own, on the write connection it
+//! takes along), the pipeline filters the next group when that group is ingest alone with
+//! samples newer than any stored for their links (so no read of the store can be needed); it
+//! then waits for the commit before sending its own. Readers and requesters never see the
+//! bank run ahead: a commit's snapshot is the one taken when its group was filtered, published
+//! once it has committed, and if it fails the group filtered behind it is refused too.
 //!
 //! After each commit the pipeline publishes a [`Snapshot`] (latest filtered result, deformation
 //! and reference per target, link counters, and a view of the filters for predictions), which
@@ -430,6 +437,10 @@ impl Service {
                 alarms,
             });
         }
+        let mut newest_sample_ns = Vec::with_capacity(installation.model.links.len());
+        for l in 0..installation.model.links.len() {
+            newest_sample_ns.push(store.newest_sample_ns(crate::chain::LinkId(l)).await?);
+        }
         let snapshot = Arc::new(Snapshot {
             targets: targets.clone(),
             bank: bank.current_view(),
@@ -474,6 +485,7 @@ impl Service {
                 bank,
                 targets,
                 digest,
+                newest_sample_ns,
                 pipeline::Outlets {
                     metrics,
                     events,

@@ -59,7 +59,14 @@ pub struct IngestReport {
 }
 
 pub(super) struct Pipeline {
-    write: WriteConn,
+    /// The write connection; with the commit in flight while one is (see [`InFlight`]).
+    write: Option<WriteConn>,
+    /// The commit whose rows are being written while the next group is filtered.
+    in_flight: Option<InFlight>,
+    /// Per link: at least the newest time of any sample stored or on its way to the store
+    /// (every ingest job's samples count, whatever became of them). A job whose samples are
+    /// all newer cannot repeat or contradict a stored one, so it needs no read of the store.
+    newest_sample_ns: Vec<Option<i64>>,
     bank: FilterBank,
     targets: Vec<TargetView>,
     digest: String,
@@ -129,7 +136,7 @@ async fn apply(job: &mut Job, step: &mut Step<'_, '_>) -> Result<(), StoreError>
         }
         Job::CheckLiveness(call) => {
             let raised = judge_liveness(step.bank, step.targets, step.now, step.clock_tolerance_s);
-            let t = store_alarms(step.tx, raised, step.now).await?;
+            let t = store_alarms(step.tx, &raised, step.now).await?;
             call.answer = Ok(t.len());
             step.effects.transitions.extend(t);
         }
@@ -311,11 +318,13 @@ pub(super) struct Outlets {
 }
 
 impl Pipeline {
+    /// `newest_sample_ns`: per link, the time of its newest stored sample.
     pub(super) fn new(
         write: WriteConn,
         bank: FilterBank,
         targets: Vec<TargetView>,
         digest: String,
+        newest_sample_ns: Vec<Option<i64>>,
         outlets: Outlets,
     ) -> Self {
         let Outlets {
@@ -335,7 +344,9 @@ impl Pipeline {
             viz,
             events,
             last_event_ns,
-            write,
+            write: Some(write),
+            in_flight: None,
+            newest_sample_ns,
             bank,
             targets,
             digest,
@@ -346,11 +357,12 @@ impl Pipeline {
         }
     }
 
-    /// Sends each target's newest result to live subscribers, at most `events_max_hz` per
-    /// target in measurement time. Never waits: with no subscriber the send just fails.
-    fn publish_events(&mut self) {
+    /// Sends each target's newest result in `targets` (a commit's snapshot) to live
+    /// subscribers, at most `events_max_hz` per target in measurement time. Never waits: with
+    /// no subscriber the send just fails.
+    fn publish_events(&mut self, targets: &[TargetView]) {
         let min_interval_ns = (1e9 / self.events_max_hz) as i64;
-        for (ti, view) in self.targets.iter().enumerate() {
+        for (ti, view) in targets.iter().enumerate() {
             let ti = TargetId(ti);
             let Some(latest) = &view.latest else { continue };
             if self.last_event_ns[ti.0].is_some_and(|t| latest.time_ns < t + min_interval_ns) {
@@ -413,29 +425,309 @@ impl Pipeline {
         }
     }
 
+    /// The write connection. It is away only while a commit is in flight, and every caller
+    /// settles that commit first.
+    fn writer(&mut self) -> &mut WriteConn {
+        let Some(write) = self.write.as_mut() else {
+            unreachable!("the write connection is back whenever no commit is in flight")
+        };
+        write
+    }
+
     /// Applies a group of jobs in one transaction and, after the commit, publishes the snapshot
     /// readers see (`publish`), then answers them.
+    ///
+    /// A group of ingest jobs whose samples are all newer than their links' stored ones is
+    /// filtered while the commit before it is still being written ([`Self::filter_ahead`]);
+    /// any other group waits for that commit first.
     async fn commit_group(&mut self, jobs: Vec<Job>, publish: &impl Fn(Snapshot)) {
-        let now = self.clock.now_ns();
-        // Liveness checks alone write only when a stale alarm changes: judged first on a copy,
-        // and without a transaction when nothing changes (the usual case, every second).
-        if jobs.iter().all(|j| matches!(j, Job::CheckLiveness(_))) {
-            let mut probe = self.targets.clone();
-            if judge_liveness(&self.bank, &mut probe, now, self.clock_tolerance_s).is_empty() {
-                self.targets = probe;
-                for mut job in jobs {
-                    if let Job::CheckLiveness(call) = &mut job {
-                        call.answer = Ok(0);
-                    }
-                    job.answer();
+        let ahead = !self.viz.enabled() && self.all_new_samples(&jobs);
+        for job in &jobs {
+            if let Job::Ingest(call) = job {
+                for item in &call.request {
+                    let newest = &mut self.newest_sample_ns[item.sample.link.0];
+                    *newest =
+                        Some(newest.map_or(item.sample.time_ns, |t| t.max(item.sample.time_ns)));
                 }
-                return;
             }
         }
+        if ahead {
+            self.filter_ahead(jobs, publish).await;
+        } else {
+            let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
+                return;
+            };
+            // A failure of the commit in flight was concluded there: the bank and targets
+            // are back at the last committed state, on which this group now runs.
+            let _ = self.settle(publish).await;
+            let targets_before = self.targets.clone();
+            self.commit_in_turn(Vec::new(), None, jobs, targets_before, publish)
+                .await;
+        }
+    }
+
+    /// Liveness checks alone write only when a stale alarm changes: judged first on a copy
+    /// (while a commit may be in flight: a failure of it returns the targets to before it,
+    /// and the next check judges again), and answered without a transaction when nothing
+    /// changes, the usual case every second. Gives the jobs back when they need one.
+    fn answer_unchanged_liveness(&mut self, mut jobs: Vec<Job>) -> Result<(), Vec<Job>> {
+        if !jobs.iter().all(|j| matches!(j, Job::CheckLiveness(_))) {
+            return Err(jobs);
+        }
+        let now = self.clock.now_ns();
+        let mut probe = self.targets.clone();
+        if !judge_liveness(&self.bank, &mut probe, now, self.clock_tolerance_s).is_empty() {
+            return Err(jobs);
+        }
+        self.targets = probe;
+        for job in &mut jobs {
+            if let Job::CheckLiveness(call) = job {
+                call.answer = Ok(0);
+            }
+        }
+        for job in jobs {
+            job.answer();
+        }
+        Ok(())
+    }
+
+    /// Whether every job is an ingest whose samples are all newer than anything of their
+    /// links stored, in flight, or in an earlier job of the group: then none can repeat or
+    /// contradict a stored sample, and the jobs need nothing read from the store to be
+    /// filtered.
+    fn all_new_samples(&self, jobs: &[Job]) -> bool {
+        let mut newest = self.newest_sample_ns.clone();
+        for job in jobs {
+            let Job::Ingest(call) = job else {
+                return false;
+            };
+            if call
+                .request
+                .iter()
+                .any(|item| newest[item.sample.link.0].is_some_and(|t| item.sample.time_ns <= t))
+            {
+                return false;
+            }
+            for item in &call.request {
+                let n = &mut newest[item.sample.link.0];
+                *n = Some(n.map_or(item.sample.time_ns, |t| t.max(item.sample.time_ns)));
+            }
+        }
+        true
+    }
+
+    /// Filters a group of new samples while the commit before it is written, then waits for
+    /// that commit and sends this group's rows to be written in turn. When that commit fails,
+    /// the bank and the targets return to its state before it and this group is refused too
+    /// (nothing of it was written). A job whose samples complete groups older than memory
+    /// needs the store: the group then goes on in the pipeline's own transaction once the
+    /// commit before it has landed.
+    async fn filter_ahead(&mut self, jobs: Vec<Job>, publish: &impl Fn(Snapshot)) {
         let started = std::time::Instant::now();
+        if self.in_flight.is_some() {
+            self.metrics
+                .groups_filtered_ahead
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        let now = self.clock.now_ns();
         let targets_before = self.targets.clone();
-        let mut jobs = jobs;
+        let no_stored = HashMap::new();
+        let mut filtered: Vec<(Job, JobRows)> = Vec::with_capacity(jobs.len());
+        let mut needs_store: Option<(Job, Filtered)> = None;
+        let mut defect: Option<StoreError> = None;
+        let mut rest = jobs.into_iter();
+        for mut job in rest.by_ref() {
+            let Job::Ingest(call) = &mut job else {
+                unreachable!("only ingest jobs are filtered ahead")
+            };
+            let items = std::mem::take(&mut call.request);
+            let result = match measurements_of(&self.bank, &items) {
+                Err(refusal) => Ok(Err(refusal)),
+                Ok(z) => filter_items(
+                    &mut self.bank,
+                    &mut self.targets,
+                    items,
+                    z,
+                    &no_stored,
+                    now,
+                    None,
+                ),
+            };
+            match result {
+                Err(e) => {
+                    defect = Some(e);
+                    filtered.push((job, JobRows::none()));
+                    break;
+                }
+                Ok(Err(refusal)) => {
+                    call.answer = Err(refusal);
+                    filtered.push((job, JobRows::none()));
+                }
+                Ok(Ok(f)) if f.stored_groups.is_empty() => {
+                    let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
+                    call.answer = Ok(report);
+                    filtered.push((job, rows));
+                }
+                Ok(Ok(f)) => {
+                    needs_store = Some((job, f));
+                    break;
+                }
+            }
+        }
+        let rest: Vec<Job> = rest.collect();
+        if let Some(e) = defect {
+            let jobs = filtered.into_iter().map(|(j, _)| j).chain(rest).collect();
+            self.settle_then_refuse(jobs, targets_before, e, publish)
+                .await;
+            return;
+        }
+        if needs_store.is_some() {
+            if let Err(message) = self.settle(publish).await {
+                let jobs = filtered.into_iter().map(|(j, _)| j);
+                self.refuse_after_failure(
+                    jobs.chain(needs_store.map(|(j, _)| j)).chain(rest),
+                    &message,
+                );
+                return;
+            }
+            self.commit_in_turn(filtered, needs_store, rest, targets_before, publish)
+                .await;
+            return;
+        }
+        let record = self.bank.record();
+        let state_json = match serde_json::to_string(&record) {
+            Ok(json) => json,
+            Err(e) => {
+                let jobs = filtered.into_iter().map(|(j, _)| j).collect();
+                let e = StoreError::Defect(format!("cannot encode the filter state: {e}"));
+                self.settle_then_refuse(jobs, targets_before, e, publish)
+                    .await;
+                return;
+            }
+        };
+        let snapshot = self.snapshot();
+        if let Err(message) = self.settle(publish).await {
+            self.refuse_after_failure(filtered.into_iter().map(|(j, _)| j), &message);
+            return;
+        }
+        let (jobs, rows): (Vec<Job>, Vec<JobRows>) = filtered.into_iter().unzip();
+        let Some(write) = self.write.take() else {
+            unreachable!("the write connection is back once the commit before has settled")
+        };
+        let handle = tokio::spawn(write_in_flight(
+            write,
+            rows,
+            self.digest.clone(),
+            state_json,
+            now,
+        ));
+        self.in_flight = Some(InFlight {
+            handle,
+            done: Done {
+                jobs,
+                effects: Effects::default(),
+                record,
+                snapshot,
+                targets_before,
+                started,
+            },
+        });
+    }
+
+    /// Waits for the commit in flight, if any, and concludes it (answers, or rolls back). An
+    /// error says it failed, with the message its requests were refused with.
+    async fn settle(&mut self, publish: &impl Fn(Snapshot)) -> Result<(), String> {
+        let Some(flight) = self.in_flight.as_mut() else {
+            return Ok(());
+        };
+        let joined = (&mut flight.handle).await;
+        self.land(joined, publish)
+    }
+
+    /// Concludes the commit in flight with what its task returned. A panic in the task goes on
+    /// here, as it would have in the pipeline's own task.
+    fn land(
+        &mut self,
+        joined: Result<InFlightOutcome, tokio::task::JoinError>,
+        publish: &impl Fn(Snapshot),
+    ) -> Result<(), String> {
+        let Some(flight) = self.in_flight.take() else {
+            return Ok(());
+        };
+        let (write, outcome) = match joined {
+            Ok(landed) => landed,
+            Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
+            Err(e) => panic!("the commit in flight was cancelled: {e}"),
+        };
+        self.write = Some(write);
+        let failure = outcome.as_ref().err().map(ToString::to_string);
+        self.conclude(flight.done, outcome, publish);
+        match failure {
+            None => Ok(()),
+            Some(e) => Err(format!(
+                "the database did not accept an earlier write, so this request was not applied: {e}"
+            )),
+        }
+    }
+
+    /// Refuses jobs filtered after a commit that then failed: the bank and the targets were
+    /// returned to their state before that commit, which undid these jobs too.
+    fn refuse_after_failure(&mut self, jobs: impl Iterator<Item = Job>, message: &str) {
+        for job in jobs {
+            job.fail(message);
+        }
+    }
+
+    /// Refuses a group filtered ahead that failed before its transaction began (`error`, a
+    /// defect): once the commit before it has settled, what the group did to the bank and the
+    /// targets is undone and its requests are refused.
+    async fn settle_then_refuse(
+        &mut self,
+        jobs: Vec<Job>,
+        targets_before: Vec<TargetView>,
+        error: StoreError,
+        publish: &impl Fn(Snapshot),
+    ) {
+        if let Err(message) = self.settle(publish).await {
+            // That failure already returned the bank and targets to before this group.
+            self.refuse_after_failure(jobs.into_iter(), &message);
+            return;
+        }
+        let done = Done {
+            jobs,
+            effects: Effects::default(),
+            record: self.committed_state.clone(),
+            snapshot: self.snapshot(),
+            targets_before,
+            started: std::time::Instant::now(),
+        };
+        self.conclude(done, Err(error), publish);
+    }
+
+    /// Applies jobs in one transaction of the pipeline's own, with nothing in flight: first
+    /// the rows of jobs already filtered ahead (`filtered`), then the one that needs the
+    /// store to complete its groups (`needs_store`), then `rest` job by job; commits, then
+    /// concludes.
+    async fn commit_in_turn(
+        &mut self,
+        filtered: Vec<(Job, JobRows)>,
+        needs_store: Option<(Job, Filtered)>,
+        rest: Vec<Job>,
+        targets_before: Vec<TargetView>,
+        publish: &impl Fn(Snapshot),
+    ) {
+        let now = self.clock.now_ns();
+        let started = std::time::Instant::now();
         let mut effects = Effects::default();
+        // Every job stays in `jobs`, to be answered or refused whatever happens.
+        let (mut jobs, rows): (Vec<Job>, Vec<JobRows>) = filtered.into_iter().unzip();
+        let mut in_turn = rows.len();
+        let needs_store = needs_store.map(|(job, f)| {
+            jobs.push(job);
+            in_turn += 1;
+            f
+        });
+        jobs.extend(rest);
         let Pipeline {
             viz,
             write,
@@ -445,8 +737,26 @@ impl Pipeline {
             clock_tolerance_s,
             ..
         } = self;
+        let Some(write) = write.as_mut() else {
+            unreachable!("the write connection is back whenever no commit is in flight")
+        };
         let outcome: Result<BankRecord, StoreError> = async {
             let mut tx = write.begin(now).await?;
+            for r in &rows {
+                effects
+                    .transitions
+                    .extend(write_rows(&mut tx, r, now).await?);
+            }
+            if let Some(mut f) = needs_store {
+                complete_stored_groups(&mut tx, bank, targets, &mut f).await?;
+                let (report, r) = f.into_rows(bank, targets);
+                effects
+                    .transitions
+                    .extend(write_rows(&mut tx, &r, now).await?);
+                if let Some(Job::Ingest(call)) = jobs.get_mut(in_turn - 1) {
+                    call.answer = Ok(report);
+                }
+            }
             let mut step = Step {
                 tx: &mut tx,
                 bank,
@@ -456,7 +766,7 @@ impl Pipeline {
                 clock_tolerance_s: *clock_tolerance_s,
                 effects: &mut effects,
             };
-            for job in &mut jobs {
+            for job in &mut jobs[in_turn..] {
                 apply(job, &mut step).await?;
             }
             let record = bank.record();
@@ -467,14 +777,49 @@ impl Pipeline {
             Ok(record)
         }
         .await;
+        let (record, outcome) = match outcome {
+            Ok(record) => (record, Ok(Vec::new())),
+            Err(e) => (self.committed_state.clone(), Err(e)),
+        };
+        let done = Done {
+            jobs,
+            effects,
+            record,
+            snapshot: self.snapshot(),
+            targets_before,
+            started,
+        };
+        self.conclude(done, outcome, publish);
+    }
+
+    /// Ends a group's commit. On success: the state it committed becomes the one a failure
+    /// returns to, readers see its snapshot before its requests are answered, and its alarm
+    /// transitions (`alarms`, with those it stored itself) go out. On failure: the bank
+    /// returns to the last committed state, the targets to theirs before the group, and its
+    /// requests are refused.
+    fn conclude(
+        &mut self,
+        done: Done,
+        outcome: Result<Vec<StoredAlarm>, StoreError>,
+        publish: &impl Fn(Snapshot),
+    ) {
+        let Done {
+            jobs,
+            effects,
+            record,
+            snapshot,
+            targets_before,
+            started,
+        } = done;
         let Effects {
-            transitions,
+            mut transitions,
             mut viz_records,
             added_calibrations,
         } = effects;
         match outcome {
-            Ok(record) => {
-                self.write.health().record_ok();
+            Ok(alarms) => {
+                transitions.extend(alarms);
+                self.writer().health().record_ok();
                 self.committed_state = record;
                 use std::sync::atomic::Ordering::Relaxed;
                 let m = &self.metrics;
@@ -492,11 +837,12 @@ impl Pipeline {
                 }
                 // Readers see the commit before its requests are answered: a client that
                 // reads right after its write gets what it wrote.
-                publish(self.snapshot());
+                let live = snapshot.targets.clone();
+                publish(snapshot);
                 for job in jobs {
                     job.answer();
                 }
-                self.publish_events();
+                self.publish_events(&live);
                 for a in &transitions {
                     viz_records.push(crate::viz::Record::Alarm {
                         target: a.target,
@@ -518,7 +864,7 @@ impl Pipeline {
             }
             Err(e) => {
                 tracing::error!(error = %e, "a commit failed; its requests are refused and the filters roll back");
-                self.write.health().record_failure(&e);
+                self.writer().health().record_failure(&e);
                 self.metrics
                     .commits_failed
                     .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -538,6 +884,63 @@ impl Pipeline {
     }
 }
 
+/// A group's jobs and what concluding its commit needs.
+struct Done {
+    jobs: Vec<Job>,
+    effects: Effects,
+    /// The bank's state the commit saves.
+    record: BankRecord,
+    /// What readers see once it has committed.
+    snapshot: Snapshot,
+    /// The targets before the group, restored when it fails.
+    targets_before: Vec<TargetView>,
+    started: std::time::Instant,
+}
+
+/// What the task writing a commit gives back: the connection, and the alarm transitions it
+/// stored or why it failed.
+type InFlightOutcome = (WriteConn, Result<Vec<StoredAlarm>, StoreError>);
+
+/// A commit being written by a task of its own while the pipeline filters the next group.
+struct InFlight {
+    handle: tokio::task::JoinHandle<InFlightOutcome>,
+    done: Done,
+}
+
+impl JobRows {
+    /// Nothing to write (a refused job).
+    fn none() -> Self {
+        Self {
+            samples: Vec::new(),
+            results: Vec::new(),
+            transitions: Vec::new(),
+        }
+    }
+}
+
+/// Writes a group's rows and the filters' state in one transaction and commits, on the
+/// connection it hands back.
+async fn write_in_flight(
+    mut write: WriteConn,
+    rows: Vec<JobRows>,
+    digest: String,
+    state_json: String,
+    now: i64,
+) -> InFlightOutcome {
+    let outcome = async {
+        let mut tx = write.begin(now).await?;
+        let mut alarms = Vec::new();
+        for job in &rows {
+            alarms.extend(write_rows(&mut tx, job, now).await?);
+        }
+        tx.save_filter_state(&digest, &state_json, now).await?;
+        tx.commit().await?;
+        Ok(alarms)
+    }
+    .await;
+    (write, outcome)
+}
+
 /// Runs the pipeline until every sender is gone, then checkpoints and closes the write
 /// connection. An error says the stop was not clean.
 pub(super) async fn run(
@@ -545,7 +948,22 @@ pub(super) async fn run(
     mut rx: mpsc::Receiver<Job>,
     publish: impl Fn(Snapshot),
 ) -> Result<(), String> {
-    while let Some(first) = rx.recv().await {
+    loop {
+        // With a commit in flight, whichever comes first: the next job (filtered while the
+        // commit is written), or the commit's end (concluded at once, so that its requests
+        // are answered even when nothing else arrives).
+        let next = match p.in_flight.as_mut() {
+            Some(flight) => tokio::select! {
+                job = rx.recv() => job,
+                landed = &mut flight.handle => {
+                    // A failure was logged and its requests refused there.
+                    let _ = p.land(landed, &publish);
+                    continue;
+                }
+            },
+            None => rx.recv().await,
+        };
+        let Some(first) = next else { break };
         let mut jobs = vec![first];
         while jobs.len() < MAX_JOBS_PER_COMMIT {
             match rx.try_recv() {
@@ -555,8 +973,12 @@ pub(super) async fn run(
         }
         p.commit_group(jobs, &publish).await;
     }
-    let last = p.write.health().problem();
-    if let Err(e) = p.write.close().await {
+    let _ = p.settle(&publish).await;
+    let last = p.writer().health().problem();
+    let Some(write) = p.write.take() else {
+        unreachable!("the write connection is back once the last commit has settled")
+    };
+    if let Err(e) = write.close().await {
         tracing::error!(error = %e, "closing the database failed");
         return Err(format!("closing the database failed: {e}"));
     }
@@ -569,15 +991,15 @@ pub(super) async fn run(
 /// Stores alarm transitions `(target, transition)`; returns them with their ids.
 async fn store_alarms(
     tx: &mut WriteTx<'_>,
-    raised: Vec<(TargetId, crate::alarms::Transition)>,
+    raised: &[(TargetId, crate::alarms::Transition)],
     now: i64,
 ) -> Result<Vec<StoredAlarm>, StoreError> {
     let mut out = Vec::with_capacity(raised.len());
     for (target, transition) in raised {
         out.push(StoredAlarm {
-            id: tx.insert_alarm(target, &transition, now).await?,
-            target,
-            transition,
+            id: tx.insert_alarm(*target, transition, now).await?,
+            target: *target,
+            transition: transition.clone(),
             ack: None,
         });
     }
@@ -656,8 +1078,9 @@ struct VizCollect<'a> {
     records: &'a mut Vec<crate::viz::Record>,
 }
 
-/// One ingest job: conflict checks, filtering, rows. `Ok(Err(..))` refuses the job alone (no
-/// effect on the bank or the transaction); `Err` aborts the whole transaction.
+/// One ingest job in the transaction: conflict checks against the store, filtering, groups
+/// completed from the store, rows. `Ok(Err(..))` refuses the job alone (no effect on the bank
+/// or the transaction); `Err` aborts the whole transaction.
 async fn ingest(
     tx: &mut WriteTx<'_>,
     bank: &mut FilterBank,
@@ -665,30 +1088,12 @@ async fn ingest(
     items: Vec<IngestItem>,
     now: i64,
     new_transitions: &mut Vec<StoredAlarm>,
-    mut viz: Option<VizCollect<'_>>,
+    viz: Option<VizCollect<'_>>,
 ) -> Result<ServiceResult<IngestReport>, StoreError> {
-    // Check every measurement before the bank sees any of them.
-    let mut problems = Vec::new();
-    let mut measurements = Vec::with_capacity(items.len());
-    for item in &items {
-        match bank.measurement(&item.sample) {
-            Ok(z) => measurements.push(z),
-            Err(e) => problems.push(ItemProblem {
-                index: Some(item.index),
-                field: Some("covariance".into()),
-                message: e.to_string(),
-            }),
-        }
-    }
-    if !problems.is_empty() {
-        return Ok(Err(ServiceError::Invalid {
-            message: format!(
-                "{} sample(s) have unusable uncertainties; nothing was stored",
-                problems.len()
-            ),
-            problems,
-        }));
-    }
+    let measurements = match measurements_of(bank, &items) {
+        Ok(m) => m,
+        Err(refusal) => return Ok(Err(refusal)),
+    };
     // Retries and conflicts: compare with what is stored (earlier jobs of this transaction
     // included), link by link over the batch's time span.
     let mut spans: HashMap<LinkId, (i64, i64)> = HashMap::new();
@@ -705,6 +1110,78 @@ async fn ingest(
             stored.insert((link, t), v);
         }
     }
+    let mut filtered = match filter_items(bank, targets, items, measurements, &stored, now, viz)? {
+        Ok(f) => f,
+        Err(refusal) => return Ok(Err(refusal)),
+    };
+    complete_stored_groups(tx, bank, targets, &mut filtered).await?;
+    let (report, rows) = filtered.into_rows(bank, targets);
+    *new_transitions = write_rows(tx, &rows, now).await?;
+    Ok(Ok(report))
+}
+
+/// Every item's measurement, checked before the bank sees any of them; the refusal names the
+/// items whose uncertainties cannot be used.
+fn measurements_of(
+    bank: &FilterBank,
+    items: &[IngestItem],
+) -> Result<Vec<crate::geometry::PoseCov>, ServiceError> {
+    let mut problems = Vec::new();
+    let mut measurements = Vec::with_capacity(items.len());
+    for item in items {
+        match bank.measurement(&item.sample) {
+            Ok(z) => measurements.push(z),
+            Err(e) => problems.push(ItemProblem {
+                index: Some(item.index),
+                field: Some("covariance".into()),
+                message: e.to_string(),
+            }),
+        }
+    }
+    if problems.is_empty() {
+        Ok(measurements)
+    } else {
+        Err(ServiceError::Invalid {
+            message: format!(
+                "{} sample(s) have unusable uncertainties; nothing was stored",
+                problems.len()
+            ),
+            problems,
+        })
+    }
+}
+
+/// An ingest job checked and filtered, its rows not yet written.
+struct Filtered {
+    report: IngestReport,
+    sample_rows: Vec<NewSample>,
+    result_rows: BTreeMap<(TargetId, ResultSource, i64), NewResult>,
+    latest: HashMap<TargetId, TargetEstimate>,
+    transitions: Vec<(TargetId, crate::alarms::Transition)>,
+    /// Samples too old for the groups kept in memory (a backfill): their groups are
+    /// completed from this job's samples and the store's ([`complete_stored_groups`]).
+    stored_groups: Vec<(LinkId, i64, crate::geometry::PoseCov)>,
+}
+
+/// What one ingest job writes: its samples, its results and its alarm transitions.
+struct JobRows {
+    samples: Vec<NewSample>,
+    results: Vec<NewResult>,
+    transitions: Vec<(TargetId, crate::alarms::Transition)>,
+}
+
+/// Sorts out retries and conflicts against `stored` (the stored samples over the job's
+/// span), then feeds the new samples to the bank in time order. `Ok(Err(..))` refuses the
+/// job before the bank sees any sample; `Err` is a defect.
+fn filter_items(
+    bank: &mut FilterBank,
+    targets: &mut [TargetView],
+    items: Vec<IngestItem>,
+    measurements: Vec<crate::geometry::PoseCov>,
+    stored: &HashMap<(LinkId, i64), SampleValues>,
+    now: i64,
+    mut viz: Option<VizCollect<'_>>,
+) -> Result<ServiceResult<Filtered>, StoreError> {
     let mut report = IngestReport {
         accepted: items.len(),
         ..IngestReport::default()
@@ -745,8 +1222,6 @@ async fn ingest(
     let mut result_rows: BTreeMap<(TargetId, ResultSource, i64), NewResult> = BTreeMap::new();
     let mut latest: HashMap<TargetId, TargetEstimate> = HashMap::new();
     let mut transitions: Vec<(TargetId, crate::alarms::Transition)> = Vec::new();
-    // Samples too old for the groups kept in memory (a backfill): their groups are completed
-    // from this job's samples and the store's after the loop.
     let mut stored_groups: Vec<(LinkId, i64, crate::geometry::PoseCov)> = Vec::new();
     for (item, values, z) in fresh {
         let outcome = match bank.ingest_measurement(&item.sample, z) {
@@ -853,12 +1328,31 @@ async fn ingest(
             latest.insert(est.target, est);
         }
     }
-    // Backfilled groups: the other links' samples of the same instant (within the group
-    // tolerance) come from this job or the store. A group completes once, when its last
-    // sample arrives: from this job's latest sample of it (ties: the highest link id), at its
-    // earliest sample's time.
+    Ok(Ok(Filtered {
+        report,
+        sample_rows,
+        result_rows,
+        latest,
+        transitions,
+        stored_groups,
+    }))
+}
+
+/// Completes the groups of a job's backfilled samples: the other links' samples of the same
+/// instant (within the group tolerance) come from this job or the store (earlier jobs of this
+/// transaction included). A group completes once, when its last sample arrives: from this
+/// job's latest sample of it (ties: the highest link id), at its earliest sample's time.
+async fn complete_stored_groups(
+    tx: &mut WriteTx<'_>,
+    bank: &FilterBank,
+    targets: &[TargetView],
+    f: &mut Filtered,
+) -> Result<(), StoreError> {
     let tolerance = bank.group_tolerance_ns();
-    for &(link, time_ns, z) in &stored_groups {
+    let stored_groups = &f.stored_groups;
+    let report = &mut f.report;
+    let result_rows = &mut f.result_rows;
+    for &(link, time_ns, z) in stored_groups {
         let mut group: HashMap<LinkId, (i64, crate::geometry::PoseCov)> = HashMap::new();
         group.insert(link, (time_ns, z));
         let mut latest_of_job = (time_ns, link);
@@ -912,39 +1406,72 @@ async fn ingest(
             );
         }
     }
-    tx.insert_samples(&sample_rows).await?;
-    // A result that is not finite is its target's problem, never a storage failure of all.
-    let mut rows: Vec<NewResult> = Vec::with_capacity(result_rows.len());
-    for row in result_rows.into_values() {
-        match row.non_finite() {
-            None => rows.push(row),
-            Some(what) => {
-                let name = &bank.model().targets[row.target.0].name;
-                if !report.unusable.iter().any(|(n, _)| n == name) {
-                    tracing::error!(
-                        target = %name,
-                        what,
-                        "a result of this target is not a finite number and is not stored: \
-                         its filter tuning, sigmas or calibrations give numbers out of range"
-                    );
-                    report.unusable.push((name.clone(), what));
-                }
-                latest.remove(&row.target);
-                match row.source {
-                    ResultSource::Raw => report.raw_results = report.raw_results.saturating_sub(1),
-                    ResultSource::Filtered => {
-                        report.filtered_results = report.filtered_results.saturating_sub(1)
+    Ok(())
+}
+
+impl Filtered {
+    /// The job's report and rows: a result that is not finite is left out (its target's
+    /// problem, never a storage failure of all), and each target's newest result becomes its
+    /// latest.
+    fn into_rows(self, bank: &FilterBank, targets: &mut [TargetView]) -> (IngestReport, JobRows) {
+        let Filtered {
+            mut report,
+            sample_rows,
+            result_rows,
+            mut latest,
+            transitions,
+            ..
+        } = self;
+        let mut rows: Vec<NewResult> = Vec::with_capacity(result_rows.len());
+        for row in result_rows.into_values() {
+            match row.non_finite() {
+                None => rows.push(row),
+                Some(what) => {
+                    let name = &bank.model().targets[row.target.0].name;
+                    if !report.unusable.iter().any(|(n, _)| n == name) {
+                        tracing::error!(
+                            target = %name,
+                            what,
+                            "a result of this target is not a finite number and is not stored: \
+                             its filter tuning, sigmas or calibrations give numbers out of range"
+                        );
+                        report.unusable.push((name.clone(), what));
+                    }
+                    latest.remove(&row.target);
+                    match row.source {
+                        ResultSource::Raw => {
+                            report.raw_results = report.raw_results.saturating_sub(1)
+                        }
+                        ResultSource::Filtered => {
+                            report.filtered_results = report.filtered_results.saturating_sub(1)
+                        }
                     }
                 }
             }
         }
+        for (t, est) in latest {
+            targets[t.0].latest = Some(est);
+        }
+        (
+            report,
+            JobRows {
+                samples: sample_rows,
+                results: rows,
+                transitions,
+            },
+        )
     }
-    tx.insert_results(&rows).await?;
-    *new_transitions = store_alarms(tx, transitions, now).await?;
-    for (t, est) in latest {
-        targets[t.0].latest = Some(est);
-    }
-    Ok(Ok(report))
+}
+
+/// Writes a job's rows in the transaction; returns its alarm transitions with their ids.
+async fn write_rows(
+    tx: &mut WriteTx<'_>,
+    rows: &JobRows,
+    now: i64,
+) -> Result<Vec<StoredAlarm>, StoreError> {
+    tx.insert_samples(&rows.samples).await?;
+    tx.insert_results(&rows.results).await?;
+    store_alarms(tx, &rows.transitions, now).await
 }
 
 async fn set_reference(

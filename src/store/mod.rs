@@ -600,6 +600,17 @@ impl Store {
         Ok(u64::try_from(n).unwrap_or(0))
     }
 
+    /// The time of a link's newest stored sample, `None` when it has none.
+    pub async fn newest_sample_ns(&self, link: LinkId) -> StoreResult<Option<i64>> {
+        let id = self.link_ids[link.0];
+        let (newest,): (Option<i64>,) = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            sql::NEWEST_SAMPLE, [id],
+            fetch_one
+        )?;
+        Ok(newest)
+    }
+
     /// How many samples of a link are stored in `[from_ns, to_ns]`.
     pub async fn count_samples(&self, link: LinkId, from_ns: i64, to_ns: i64) -> StoreResult<u64> {
         let id = self.link_ids[link.0];

@@ -39,6 +39,9 @@ pub(super) const RESULT_POSES_IN: &str = "select time_ns, tx_mm, ty_mm, tz_mm, q
 pub(super) const COUNT_RESULTS: &str = "select count(*) from results where target_id = $1 \
      and source = $2 and time_ns >= $3 and time_ns <= $4";
 
+/// The newest stored sample's time of a link (`null` when it has none).
+pub(super) const NEWEST_SAMPLE: &str = "select max(time_ns) from samples where link_id = $1";
+
 /// How many samples of a link lie in a window.
 pub(super) const COUNT_SAMPLES: &str =
     "select count(*) from samples where link_id = $1 and time_ns >= $2 and time_ns <= $3";

@@ -16,6 +16,7 @@ mod liveness;
 mod observations;
 mod openapi;
 mod outputs;
+mod pipelining;
 mod recordings;
 mod reports;
 mod results;

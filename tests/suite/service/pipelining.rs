@@ -1,0 +1,247 @@
+//! The writer filters a group of new samples while the commit before it is still being
+//! written. What it stores and answers must not depend on that: the same requests, sent
+//! one at a time or one after another without waiting, give the same rows and answers.
+
+use super::helpers::{START_NS, T0_NS, TestApp};
+use brokenray::bank::{MeasurementUncertainty, ResultSource, Sample};
+use brokenray::model::TargetId;
+use brokenray::service::{IngestItem, IngestReport, Metrics, Service, ServiceError, ServiceResult};
+use brokenray::sim::{Scenario, SimSettings, Simulator};
+use brokenray::store::Quality;
+
+/// Groups a batch.
+const GROUPS_PER_BATCH: usize = 4;
+/// Batches: 140 groups at 25 Hz, 5.6 s, inside what the test clock takes as current.
+const BATCHES: usize = 35;
+
+/// The requests both services get, in order: the simulated ship's link poses in batches of
+/// whole groups, with a batch sent again after two later ones (a retry: every sample a
+/// duplicate) and a batch that holds a sample older than those stored (filtered in turn).
+fn requests(app: &TestApp) -> Vec<Vec<IngestItem>> {
+    let model = &app.service.installation().model;
+    let settings = SimSettings {
+        scenario: Scenario::Ship,
+        rate_hz: 25.0,
+        start_ns: T0_NS,
+        duration_s: Some(60.0),
+        pixel_sigma_px: Some(0.0),
+        outlier_rate: 0.0,
+        seed: 11,
+    };
+    let mut sim = Simulator::new(model, settings).expect("the built-in installation simulates");
+    let mut batches: Vec<Vec<IngestItem>> = Vec::new();
+    for _ in 0..BATCHES {
+        let mut items = Vec::new();
+        for _ in 0..GROUPS_PER_BATCH {
+            let g = sim.next_group();
+            for (name, pose) in &g.link_truth {
+                items.push(IngestItem {
+                    index: items.len(),
+                    sample: Sample {
+                        link: model.topology.link_id(name).expect("a link of the model"),
+                        time_ns: g.time_ns,
+                        parent_from_child: *pose,
+                        uncertainty: MeasurementUncertainty::Default,
+                    },
+                    quality: Quality::default(),
+                });
+            }
+        }
+        batches.push(items);
+    }
+    // A retry of batch 10 after batch 12, and batch 20's first sample again among batch 22's.
+    let retry = batches[10].clone();
+    batches.insert(13, retry);
+    let mut late = batches[23].clone();
+    let mut old = batches[21][0];
+    old.index = late.len();
+    late.push(old);
+    batches[23] = late;
+    batches
+}
+
+/// Every stored sample and result, as text (their values bit for bit).
+async fn stored(app: &TestApp) -> (Vec<String>, Vec<String>) {
+    let store = app.service.store();
+    let model = &app.service.installation().model;
+    let mut samples = Vec::new();
+    for l in 0..model.links.len() {
+        for s in store
+            .samples(brokenray::chain::LinkId(l), 0, i64::MAX, i64::MAX)
+            .await
+            .expect("samples read")
+        {
+            samples.push(format!("{s:?}"));
+        }
+    }
+    let mut results = Vec::new();
+    for source in [ResultSource::Raw, ResultSource::Filtered] {
+        for r in store
+            .results(TargetId(0), source, 0, i64::MAX, i64::MAX)
+            .await
+            .expect("results read")
+        {
+            results.push(format!("{r:?}"));
+        }
+    }
+    (samples, results)
+}
+
+fn answers(list: &[ServiceResult<IngestReport>]) -> Vec<String> {
+    list.iter().map(|a| format!("{a:?}")).collect()
+}
+
+/// Holds SQLite's write lock on `app`'s database in a transaction of the test's own, so that
+/// the service's next commit waits at its start (for up to its busy timeout) until that
+/// transaction commits. Readers are not held.
+fn hold_write_lock(app: &TestApp) -> rusqlite::Connection {
+    let conn = rusqlite::Connection::open(&app.database).expect("the database opens");
+    conn.execute_batch("begin immediate")
+        .expect("the write lock");
+    conn
+}
+
+/// Sends `batches` to `app` and gives their answers in order: the first while the service's
+/// write lock is held elsewhere, so that its commit waits in flight and the second arrives
+/// while it does (it is filtered ahead); then `in_the_lock` runs in the lock's transaction,
+/// which commits, and the rest go up to three on their way at once. This runtime runs its
+/// tasks in the order they were spawned, and a request is spawned only once the one before
+/// has reached the writer or been answered, so the requests reach the writer in the order
+/// given.
+async fn send_overlapping(
+    app: &TestApp,
+    batches: &[Vec<IngestItem>],
+    in_the_lock: impl FnOnce(&rusqlite::Connection),
+) -> Vec<ServiceResult<IngestReport>> {
+    let spawn = |items: Vec<IngestItem>| {
+        let service: Service = app.service.clone();
+        tokio::spawn(async move { service.ingest(items).await })
+    };
+    let lock = hold_write_lock(app);
+    let mut on_their_way = std::collections::VecDeque::new();
+    on_their_way.push_back(spawn(batches[0].clone()));
+    // The runtime idles only once the writer has taken the first batch, filtered it and
+    // sent its commit, which then waits for the lock.
+    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    on_their_way.push_back(spawn(batches[1].clone()));
+    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    in_the_lock(&lock);
+    lock.execute_batch("commit").expect("the lock released");
+    let mut answers = Vec::new();
+    for b in &batches[2..] {
+        on_their_way.push_back(spawn(b.clone()));
+        if on_their_way.len() == 3
+            && let Some(first) = on_their_way.pop_front()
+        {
+            answers.push(first.await.expect("the request's task"));
+        }
+    }
+    for h in on_their_way {
+        answers.push(h.await.expect("the request's task"));
+    }
+    answers
+}
+
+#[tokio::test]
+async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_time() {
+    let one_at_a_time = TestApp::start(None).await;
+    let batches = requests(&one_at_a_time);
+    let mut serial_answers = Vec::new();
+    for b in &batches {
+        serial_answers.push(one_at_a_time.service.ingest(b.clone()).await);
+    }
+    let without_waiting = TestApp::start(None).await;
+    let paced_answers = send_overlapping(&without_waiting, &batches, |_| {}).await;
+
+    assert!(
+        serial_answers.iter().all(Result::is_ok),
+        "{serial_answers:?}"
+    );
+    assert_eq!(answers(&paced_answers), answers(&serial_answers));
+    let retry = serial_answers[13].as_ref().expect("the retry is accepted");
+    assert_eq!(
+        (retry.duplicates, retry.stored),
+        (batches[13].len(), 0),
+        "{retry:?}"
+    );
+    let late = serial_answers[23]
+        .as_ref()
+        .expect("the late sample's batch");
+    assert_eq!(late.duplicates, 1, "{late:?}");
+    let (serial_samples, serial_results) = stored(&one_at_a_time).await;
+    let (paced_samples, paced_results) = stored(&without_waiting).await;
+    assert_eq!(
+        serial_samples.len(),
+        BATCHES * GROUPS_PER_BATCH * 3,
+        "every sample stored once"
+    );
+    assert!(
+        serial_results.len() > BATCHES * GROUPS_PER_BATCH,
+        "raw and filtered results"
+    );
+    assert_eq!(paced_samples, serial_samples);
+    assert_eq!(paced_results, serial_results);
+    let metrics = without_waiting.service.metrics();
+    assert!(
+        Metrics::get(&metrics.groups_filtered_ahead) >= 1,
+        "the second batch was filtered while the first one's commit waited"
+    );
+    assert_eq!(Metrics::get(&metrics.commits_failed), 0);
+}
+
+#[tokio::test]
+async fn when_a_commit_fails_the_batch_filtered_behind_it_is_refused_and_retries_store_all() {
+    let one_at_a_time = TestApp::start(None).await;
+    let batches = requests(&one_at_a_time);
+    let batches = &batches[..6];
+    // The retries below are received a nanosecond later than the first attempts.
+    one_at_a_time.clock.set_ns(START_NS + 1);
+    for b in batches {
+        one_at_a_time
+            .service
+            .ingest(b.clone())
+            .await
+            .expect("stored one at a time");
+    }
+
+    let failing = TestApp::start(None).await;
+    // The database refuses the first batch's last sample as first received, so its commit
+    // fails after the second batch was filtered on top of it.
+    let refused_ns = batches[0].last().expect("a sample").sample.time_ns;
+    let answers = send_overlapping(&failing, &batches[..2], |lock| {
+        lock.execute_batch(&format!(
+            "create trigger planted before insert on samples \
+             when new.time_ns = {refused_ns} and new.received_ns = {START_NS} \
+             begin select raise(abort, 'a planted refusal'); end"
+        ))
+        .expect("the trigger");
+    })
+    .await;
+    match &answers[0] {
+        Err(ServiceError::CommitFailed(m)) => assert!(m.contains("planted"), "{m}"),
+        other => panic!("the first batch must be refused by its commit: {other:?}"),
+    }
+    match &answers[1] {
+        Err(ServiceError::CommitFailed(m)) => {
+            assert!(m.contains("earlier write") && m.contains("planted"), "{m}")
+        }
+        other => panic!("the batch filtered behind it must be refused too: {other:?}"),
+    }
+    let metrics = failing.service.metrics();
+    assert_eq!(Metrics::get(&metrics.commits_failed), 1);
+    assert_eq!(Metrics::get(&metrics.groups_filtered_ahead), 1);
+    let (nothing, no_results) = stored(&failing).await;
+    assert!(nothing.is_empty() && no_results.is_empty(), "{nothing:?}");
+
+    // The filters went back to before the failed commit: the retries give what one at a
+    // time gave.
+    failing.clock.set_ns(START_NS + 1);
+    for b in batches {
+        failing
+            .service
+            .ingest(b.clone())
+            .await
+            .expect("a retry is stored");
+    }
+    assert_eq!(stored(&failing).await, stored(&one_at_a_time).await);
+}
