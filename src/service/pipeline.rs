@@ -67,6 +67,9 @@ pub(super) struct Pipeline {
     /// (every ingest job's samples count, whatever became of them). A job whose samples are
     /// all newer cannot repeat or contradict a stored one, so it needs no read of the store.
     newest_sample_ns: Vec<Option<i64>>,
+    /// A job taken from the queue while a group was filtered ahead that could not join it:
+    /// the first of the next group.
+    held: Option<Job>,
     bank: FilterBank,
     targets: Vec<TargetView>,
     digest: String,
@@ -347,6 +350,7 @@ impl Pipeline {
             write: Some(write),
             in_flight: None,
             newest_sample_ns,
+            held: None,
             bank,
             targets,
             digest,
@@ -440,19 +444,16 @@ impl Pipeline {
     /// A group of ingest jobs whose samples are all newer than their links' stored ones is
     /// filtered while the commit before it is still being written ([`Self::filter_ahead`]);
     /// any other group waits for that commit first.
-    async fn commit_group(&mut self, jobs: Vec<Job>, publish: &impl Fn(Snapshot)) {
-        let ahead = !self.viz.enabled() && self.all_new_samples(&jobs);
-        for job in &jobs {
-            if let Job::Ingest(call) = job {
-                for item in &call.request {
-                    let newest = &mut self.newest_sample_ns[item.sample.link.0];
-                    *newest =
-                        Some(newest.map_or(item.sample.time_ns, |t| t.max(item.sample.time_ns)));
-                }
-            }
-        }
+    async fn commit_group(
+        &mut self,
+        jobs: Vec<Job>,
+        rx: &mut mpsc::Receiver<Job>,
+        publish: &impl Fn(Snapshot),
+    ) {
+        let ahead = self.all_new_samples(&jobs);
+        self.count_samples(&jobs);
         if ahead {
-            self.filter_ahead(jobs, publish).await;
+            self.filter_ahead(jobs, rx, publish).await;
         } else {
             let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
                 return;
@@ -491,11 +492,27 @@ impl Pipeline {
         Ok(())
     }
 
-    /// Whether every job is an ingest whose samples are all newer than anything of their
-    /// links stored, in flight, or in an earlier job of the group: then none can repeat or
-    /// contradict a stored sample, and the jobs need nothing read from the store to be
-    /// filtered.
+    /// Counts the jobs' samples in each link's newest time.
+    fn count_samples(&mut self, jobs: &[Job]) {
+        for job in jobs {
+            if let Job::Ingest(call) = job {
+                for item in &call.request {
+                    let newest = &mut self.newest_sample_ns[item.sample.link.0];
+                    let t = item.sample.time_ns;
+                    *newest = Some(newest.map_or(t, |n| n.max(t)));
+                }
+            }
+        }
+    }
+
+    /// Whether the jobs can be filtered ahead: Rerun is off (its scenes read the bank after
+    /// a commit), and every job is an ingest whose samples are all newer than anything of
+    /// their links stored, in flight, or in an earlier job of the group, so that none can
+    /// repeat or contradict a stored sample and nothing need be read from the store.
     fn all_new_samples(&self, jobs: &[Job]) -> bool {
+        if self.viz.enabled() {
+            return false;
+        }
         let mut newest = self.newest_sample_ns.clone();
         for job in jobs {
             let Job::Ingest(call) = job else {
@@ -522,7 +539,12 @@ impl Pipeline {
     /// (nothing of it was written). A job whose samples complete groups older than memory
     /// needs the store: the group then goes on in the pipeline's own transaction once the
     /// commit before it has landed.
-    async fn filter_ahead(&mut self, jobs: Vec<Job>, publish: &impl Fn(Snapshot)) {
+    async fn filter_ahead(
+        &mut self,
+        jobs: Vec<Job>,
+        rx: &mut mpsc::Receiver<Job>,
+        publish: &impl Fn(Snapshot),
+    ) {
         let started = std::time::Instant::now();
         if self.in_flight.is_some() {
             self.metrics
@@ -531,68 +553,64 @@ impl Pipeline {
         }
         let now = self.clock.now_ns();
         let targets_before = self.targets.clone();
-        let no_stored = HashMap::new();
         let mut filtered: Vec<(Job, JobRows)> = Vec::with_capacity(jobs.len());
-        let mut needs_store: Option<(Job, Filtered)> = None;
-        let mut defect: Option<StoreError> = None;
+        let mut stop = Ahead::Next;
         let mut rest = jobs.into_iter();
-        for mut job in rest.by_ref() {
-            let Job::Ingest(call) = &mut job else {
-                unreachable!("only ingest jobs are filtered ahead")
-            };
-            let items = std::mem::take(&mut call.request);
-            let result = match measurements_of(&self.bank, &items) {
-                Err(refusal) => Ok(Err(refusal)),
-                Ok(z) => filter_items(
-                    &mut self.bank,
-                    &mut self.targets,
-                    items,
-                    z,
-                    &no_stored,
-                    now,
-                    None,
-                ),
-            };
-            match result {
-                Err(e) => {
-                    defect = Some(e);
-                    filtered.push((job, JobRows::none()));
-                    break;
-                }
-                Ok(Err(refusal)) => {
-                    call.answer = Err(refusal);
-                    filtered.push((job, JobRows::none()));
-                }
-                Ok(Ok(f)) if f.stored_groups.is_empty() => {
-                    let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
-                    call.answer = Ok(report);
-                    filtered.push((job, rows));
-                }
-                Ok(Ok(f)) => {
-                    needs_store = Some((job, f));
-                    break;
-                }
+        for job in rest.by_ref() {
+            stop = self.filter_job_ahead(job, now, &mut filtered);
+            if !matches!(stop, Ahead::Next) {
+                break;
             }
         }
         let rest: Vec<Job> = rest.collect();
-        if let Some(e) = defect {
-            let jobs = filtered.into_iter().map(|(j, _)| j).chain(rest).collect();
-            self.settle_then_refuse(jobs, targets_before, e, publish)
-                .await;
+        // While the commit before is written, later requests of new samples join this group
+        // (one commit, one `fsync`, for as many requests as waited), until it lands.
+        let mut landed: Option<Result<(), String>> = None;
+        while matches!(stop, Ahead::Next) && filtered.len() < MAX_JOBS_PER_COMMIT {
+            let Some(flight) = self.in_flight.as_mut() else {
+                break;
+            };
+            let job = tokio::select! {
+                biased;
+                joined = &mut flight.handle => {
+                    landed = Some(self.land(joined, publish));
+                    break;
+                }
+                job = rx.recv() => job,
+            };
+            let Some(job) = job else { break };
+            if !self.all_new_samples(std::slice::from_ref(&job)) {
+                self.held = Some(job);
+                break;
+            }
+            self.count_samples(std::slice::from_ref(&job));
+            stop = self.filter_job_ahead(job, now, &mut filtered);
+        }
+        let settled = match landed {
+            Some(result) => result,
+            None => self.settle(publish).await,
+        };
+        if let Err(message) = settled {
+            let needs_store = match stop {
+                Ahead::NeedsStore(pending) => Some(pending.0),
+                _ => None,
+            };
+            let jobs = filtered.into_iter().map(|(j, _)| j);
+            self.refuse_after_failure(jobs.chain(needs_store).chain(rest), &message);
             return;
         }
-        if needs_store.is_some() {
-            if let Err(message) = self.settle(publish).await {
-                let jobs = filtered.into_iter().map(|(j, _)| j);
-                self.refuse_after_failure(
-                    jobs.chain(needs_store.map(|(j, _)| j)).chain(rest),
-                    &message,
-                );
+        match stop {
+            Ahead::Next => {}
+            Ahead::Defect(e) => {
+                let jobs = filtered.into_iter().map(|(j, _)| j).chain(rest).collect();
+                self.refuse_group(jobs, targets_before, e, publish);
                 return;
             }
-            self.commit_in_turn(filtered, needs_store, rest, targets_before, publish)
-                .await;
-            return;
+            Ahead::NeedsStore(pending) => {
+                self.commit_in_turn(filtered, Some(*pending), rest, targets_before, publish)
+                    .await;
+                return;
+            }
         }
         let record = self.bank.record();
         let state_json = match serde_json::to_string(&record) {
@@ -600,16 +618,11 @@ impl Pipeline {
             Err(e) => {
                 let jobs = filtered.into_iter().map(|(j, _)| j).collect();
                 let e = StoreError::Defect(format!("cannot encode the filter state: {e}"));
-                self.settle_then_refuse(jobs, targets_before, e, publish)
-                    .await;
+                self.refuse_group(jobs, targets_before, e, publish);
                 return;
             }
         };
         let snapshot = self.snapshot();
-        if let Err(message) = self.settle(publish).await {
-            self.refuse_after_failure(filtered.into_iter().map(|(j, _)| j), &message);
-            return;
-        }
         let (jobs, rows): (Vec<Job>, Vec<JobRows>) = filtered.into_iter().unzip();
         let Some(write) = self.write.take() else {
             unreachable!("the write connection is back once the commit before has settled")
@@ -679,20 +692,15 @@ impl Pipeline {
     }
 
     /// Refuses a group filtered ahead that failed before its transaction began (`error`, a
-    /// defect): once the commit before it has settled, what the group did to the bank and the
-    /// targets is undone and its requests are refused.
-    async fn settle_then_refuse(
+    /// defect), once the commit before it has settled: what the group did to the bank and
+    /// the targets is undone and its requests are refused.
+    fn refuse_group(
         &mut self,
         jobs: Vec<Job>,
         targets_before: Vec<TargetView>,
         error: StoreError,
         publish: &impl Fn(Snapshot),
     ) {
-        if let Err(message) = self.settle(publish).await {
-            // That failure already returned the bank and targets to before this group.
-            self.refuse_after_failure(jobs.into_iter(), &message);
-            return;
-        }
         let done = Done {
             jobs,
             effects: Effects::default(),
@@ -702,6 +710,49 @@ impl Pipeline {
             started: std::time::Instant::now(),
         };
         self.conclude(done, Err(error), publish);
+    }
+
+    /// Filters one ingest job ahead into `filtered`, and says whether the group can go on.
+    fn filter_job_ahead(
+        &mut self,
+        mut job: Job,
+        now: i64,
+        filtered: &mut Vec<(Job, JobRows)>,
+    ) -> Ahead {
+        let Job::Ingest(call) = &mut job else {
+            unreachable!("only ingest jobs are filtered ahead")
+        };
+        let items = std::mem::take(&mut call.request);
+        let result = match measurements_of(&self.bank, &items) {
+            Err(refusal) => Ok(Err(refusal)),
+            Ok(z) => filter_items(
+                &mut self.bank,
+                &mut self.targets,
+                items,
+                z,
+                &HashMap::new(),
+                now,
+                None,
+            ),
+        };
+        match result {
+            Err(e) => {
+                filtered.push((job, JobRows::none()));
+                Ahead::Defect(e)
+            }
+            Ok(Err(refusal)) => {
+                call.answer = Err(refusal);
+                filtered.push((job, JobRows::none()));
+                Ahead::Next
+            }
+            Ok(Ok(f)) if f.stored_groups.is_empty() => {
+                let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
+                call.answer = Ok(report);
+                filtered.push((job, rows));
+                Ahead::Next
+            }
+            Ok(Ok(f)) => Ahead::NeedsStore(Box::new((job, f))),
+        }
     }
 
     /// Applies jobs in one transaction of the pipeline's own, with nothing in flight: first
@@ -953,6 +1004,7 @@ pub(super) async fn run(
         // commit is written), or the commit's end (concluded at once, so that its requests
         // are answered even when nothing else arrives).
         let next = match p.in_flight.as_mut() {
+            _ if p.held.is_some() => p.held.take(),
             Some(flight) => tokio::select! {
                 job = rx.recv() => job,
                 landed = &mut flight.handle => {
@@ -971,7 +1023,7 @@ pub(super) async fn run(
                 Err(_) => break,
             }
         }
-        p.commit_group(jobs, &publish).await;
+        p.commit_group(jobs, &mut rx, &publish).await;
     }
     let _ = p.settle(&publish).await;
     let last = p.writer().health().problem();
@@ -1161,6 +1213,16 @@ struct Filtered {
     /// Samples too old for the groups kept in memory (a backfill): their groups are
     /// completed from this job's samples and the store's ([`complete_stored_groups`]).
     stored_groups: Vec<(LinkId, i64, crate::geometry::PoseCov)>,
+}
+
+/// Whether a group filtered ahead can take its next job.
+enum Ahead {
+    /// Yes.
+    Next,
+    /// No: this job's samples complete groups older than memory, which needs the store.
+    NeedsStore(Box<(Job, Filtered)>),
+    /// No: a defect (the job is among those filtered).
+    Defect(StoreError),
 }
 
 /// What one ingest job writes: its samples, its results and its alarm transitions.
