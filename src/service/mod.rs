@@ -10,8 +10,9 @@
 //!
 //! While one commit's rows are written (by a task of its own, on the write connection it
 //! takes along), the pipeline filters the next group when that group is ingest alone with
-//! samples newer than any stored for their links (so no read of the store can be needed); it
-//! then waits for the commit before sending its own. Readers and requesters never see the
+//! samples newer than any stored for their links (so no read of the store can be needed),
+//! takes into that group the requests of new samples that arrive until the commit lands (one
+//! `fsync` for all that waited), then sends its own. Readers and requesters never see the
 //! bank run ahead: a commit's snapshot is the one taken when its group was filtered, published
 //! once it has committed, and if it fails the group filtered behind it is refused too.
 //!

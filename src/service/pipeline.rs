@@ -497,9 +497,10 @@ impl Pipeline {
         for job in jobs {
             if let Job::Ingest(call) = job {
                 for item in &call.request {
-                    let newest = &mut self.newest_sample_ns[item.sample.link.0];
-                    let t = item.sample.time_ns;
-                    *newest = Some(newest.map_or(t, |n| n.max(t)));
+                    raise_to(
+                        &mut self.newest_sample_ns[item.sample.link.0],
+                        item.sample.time_ns,
+                    );
                 }
             }
         }
@@ -526,15 +527,15 @@ impl Pipeline {
                 return false;
             }
             for item in &call.request {
-                let n = &mut newest[item.sample.link.0];
-                *n = Some(n.map_or(item.sample.time_ns, |t| t.max(item.sample.time_ns)));
+                raise_to(&mut newest[item.sample.link.0], item.sample.time_ns);
             }
         }
         true
     }
 
-    /// Filters a group of new samples while the commit before it is written, then waits for
-    /// that commit and sends this group's rows to be written in turn. When that commit fails,
+    /// Filters a group of new samples while the commit before it is written, taking into it
+    /// the requests of new samples that arrive until that commit lands, then sends this
+    /// group's rows to be written in turn. When that commit fails,
     /// the bank and the targets return to its state before it and this group is refused too
     /// (nothing of it was written). A job whose samples complete groups older than memory
     /// needs the store: the group then goes on in the pipeline's own transaction once the
@@ -1038,6 +1039,11 @@ pub(super) async fn run(
         Some(problem) => Err(problem),
         None => Ok(()),
     }
+}
+
+/// Raises a newest time to `t` when `t` is newer.
+fn raise_to(newest: &mut Option<i64>, t: i64) {
+    *newest = Some(newest.map_or(t, |n| n.max(t)));
 }
 
 /// Stores alarm transitions `(target, transition)`; returns them with their ids.

@@ -87,6 +87,16 @@ async fn stored(app: &TestApp) -> (Vec<String>, Vec<String>) {
     (samples, results)
 }
 
+/// Sends `batches` to `app` one at a time, each accepted.
+async fn one_at_a_time_ok(app: &TestApp, batches: &[Vec<IngestItem>]) {
+    for b in batches {
+        app.service
+            .ingest(b.clone())
+            .await
+            .expect("a batch is stored");
+    }
+}
+
 fn answers(list: &[ServiceResult<IngestReport>]) -> Vec<String> {
     list.iter().map(|a| format!("{a:?}")).collect()
 }
@@ -196,13 +206,7 @@ async fn when_a_commit_fails_the_batch_filtered_behind_it_is_refused_and_retries
     let batches = &batches[..6];
     // The retries below are received a nanosecond later than the first attempts.
     one_at_a_time.clock.set_ns(START_NS + 1);
-    for b in batches {
-        one_at_a_time
-            .service
-            .ingest(b.clone())
-            .await
-            .expect("stored one at a time");
-    }
+    one_at_a_time_ok(&one_at_a_time, batches).await;
 
     let failing = TestApp::start(None).await;
     // The database refuses the first batch's last sample as first received, so its commit
@@ -236,12 +240,6 @@ async fn when_a_commit_fails_the_batch_filtered_behind_it_is_refused_and_retries
     // The filters went back to before the failed commit: the retries give what one at a
     // time gave.
     failing.clock.set_ns(START_NS + 1);
-    for b in batches {
-        failing
-            .service
-            .ingest(b.clone())
-            .await
-            .expect("a retry is stored");
-    }
+    one_at_a_time_ok(&failing, batches).await;
     assert_eq!(stored(&failing).await, stored(&one_at_a_time).await);
 }
