@@ -738,12 +738,12 @@ impl Pipeline {
         };
         match result {
             Err(e) => {
-                filtered.push((job, JobRows::none()));
+                filtered.push((job, JobRows::default()));
                 Ahead::Defect(e)
             }
             Ok(Err(refusal)) => {
                 call.answer = Err(refusal);
-                filtered.push((job, JobRows::none()));
+                filtered.push((job, JobRows::default()));
                 Ahead::Next
             }
             Ok(Ok(f)) if f.stored_groups.is_empty() => {
@@ -957,17 +957,6 @@ type InFlightOutcome = (WriteConn, Result<Vec<StoredAlarm>, StoreError>);
 struct InFlight {
     handle: tokio::task::JoinHandle<InFlightOutcome>,
     done: Done,
-}
-
-impl JobRows {
-    /// Nothing to write (a refused job).
-    fn none() -> Self {
-        Self {
-            samples: Vec::new(),
-            results: Vec::new(),
-            transitions: Vec::new(),
-        }
-    }
 }
 
 /// Writes a group's rows and the filters' state in one transaction and commits, on the
@@ -1231,7 +1220,9 @@ enum Ahead {
     Defect(StoreError),
 }
 
-/// What one ingest job writes: its samples, its results and its alarm transitions.
+/// What one ingest job writes: its samples, its results and its alarm transitions (nothing,
+/// by default: a refused job).
+#[derive(Default)]
 struct JobRows {
     samples: Vec<NewSample>,
     results: Vec<NewResult>,
