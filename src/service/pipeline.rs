@@ -442,18 +442,46 @@ impl Pipeline {
     /// readers see (`publish`), then answers them.
     ///
     /// A group of ingest jobs whose samples are all newer than their links' stored ones is
-    /// filtered while the commit before it is still being written ([`Self::filter_ahead`]);
-    /// any other group waits for that commit first.
+    /// filtered while the commit before it is still being written ([`Self::filter_ahead`]).
+    /// An ingest job that may repeat stored samples waits for that commit, has the stored
+    /// samples over its span read, and is then written the same way
+    /// ([`Self::filter_after_reading`]). Any other group waits for that commit and runs in a
+    /// transaction of the pipeline's own.
     async fn commit_group(
         &mut self,
-        jobs: Vec<Job>,
+        mut jobs: Vec<Job>,
         rx: &mut mpsc::Receiver<Job>,
         publish: &impl Fn(Snapshot),
     ) {
+        // A request that may repeat stored samples (a retry, a late batch) has its link's
+        // stored samples read first, once the commit before it has landed; it is then filtered
+        // and written as one filtered ahead is, and the requests after it go on meanwhile.
+        while !jobs.is_empty() && !self.all_new_samples(&jobs) && self.reads_first(&jobs[0]) {
+            let rest = jobs.split_off(1);
+            let Some(job) = std::mem::replace(&mut jobs, rest).pop() else {
+                unreachable!("the group is not empty")
+            };
+            self.count_samples(std::slice::from_ref(&job));
+            self.filter_after_reading(job, rx, publish).await;
+        }
+        if jobs.is_empty() {
+            return;
+        }
         let ahead = self.all_new_samples(&jobs);
         self.count_samples(&jobs);
         if ahead {
-            self.filter_ahead(jobs, rx, publish).await;
+            // With nothing in flight, the first request's commit starts as soon as it is
+            // filtered, and the others are filtered while it is written: the database's
+            // thread waits for one request's filtering, not for the whole queue's.
+            let mut jobs = jobs;
+            let rest = match self.in_flight {
+                None if jobs.len() > 1 => jobs.split_off(1),
+                _ => Vec::new(),
+            };
+            self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
+            if !rest.is_empty() {
+                self.filter_ahead(rest, &HashMap::new(), rx, publish).await;
+            }
         } else {
             let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
                 return;
@@ -533,6 +561,49 @@ impl Pipeline {
         true
     }
 
+    /// Whether a request that may repeat stored samples can be filtered after a read of them
+    /// rather than inside its own transaction: an ingest, with Rerun off.
+    fn reads_first(&self, job: &Job) -> bool {
+        !self.viz.enabled() && matches!(job, Job::Ingest(_))
+    }
+
+    /// Filters one ingest request after reading the stored samples of its links over its
+    /// span (once the commit before it has landed, so that what is read is all there is),
+    /// then sends its rows to be written while the next requests are filtered. When the read
+    /// fails, the request goes through a transaction of its own, which meets the same
+    /// failure and answers it.
+    async fn filter_after_reading(
+        &mut self,
+        job: Job,
+        rx: &mut mpsc::Receiver<Job>,
+        publish: &impl Fn(Snapshot),
+    ) {
+        // A failure of the commit in flight was concluded there: the bank and targets are
+        // back at the last committed state, on which this request now runs.
+        let _ = self.settle(publish).await;
+        let Job::Ingest(call) = &job else {
+            unreachable!("only ingest requests are read for first")
+        };
+        let spans = spans_of(&call.request);
+        let Some(write) = self.write.as_mut() else {
+            unreachable!("the write connection is back once the commit before has settled")
+        };
+        let mut stored: HashMap<(LinkId, i64), SampleValues> = HashMap::new();
+        for (link, (from, to)) in spans {
+            match write.stored_samples(link, from, to).await {
+                Ok(rows) => stored.extend(rows.into_iter().map(|(t, v)| ((link, t), v))),
+                Err(e) => {
+                    tracing::warn!(error = %e, "reading the stored samples before filtering");
+                    let targets_before = self.targets.clone();
+                    self.commit_in_turn(Vec::new(), None, vec![job], targets_before, publish)
+                        .await;
+                    return;
+                }
+            }
+        }
+        self.filter_ahead(vec![job], &stored, rx, publish).await;
+    }
+
     /// Filters a group of new samples while the commit before it is written, taking into it
     /// the requests of new samples that arrive until that commit lands, then sends this
     /// group's rows to be written in turn. When that commit fails,
@@ -543,6 +614,7 @@ impl Pipeline {
     async fn filter_ahead(
         &mut self,
         jobs: Vec<Job>,
+        stored: &HashMap<(LinkId, i64), SampleValues>,
         rx: &mut mpsc::Receiver<Job>,
         publish: &impl Fn(Snapshot),
     ) {
@@ -558,7 +630,7 @@ impl Pipeline {
         let mut stop = Ahead::Next;
         let mut rest = jobs.into_iter();
         for job in rest.by_ref() {
-            stop = self.filter_job_ahead(job, now, &mut filtered);
+            stop = self.filter_job_ahead(job, now, stored, &mut filtered);
             if !matches!(stop, Ahead::Next) {
                 break;
             }
@@ -585,7 +657,7 @@ impl Pipeline {
                 break;
             }
             self.count_samples(std::slice::from_ref(&job));
-            stop = self.filter_job_ahead(job, now, &mut filtered);
+            stop = self.filter_job_ahead(job, now, &HashMap::new(), &mut filtered);
         }
         let settled = match landed {
             Some(result) => result,
@@ -606,6 +678,30 @@ impl Pipeline {
                 let jobs = filtered.into_iter().map(|(j, _)| j).chain(rest).collect();
                 self.refuse_group(jobs, targets_before, e, publish);
                 return;
+            }
+            // Alone in its group, with nothing in flight: the stored samples it needs are
+            // all committed, and are read before its rows go to be written like any other.
+            Ahead::NeedsStore(pending) if filtered.is_empty() && rest.is_empty() => {
+                let (mut job, mut f) = *pending;
+                let Some(write) = self.write.as_mut() else {
+                    unreachable!("the write connection is back once the commit before has settled")
+                };
+                let read = complete_stored_groups(
+                    &mut SampleSource::Committed(write),
+                    &self.bank,
+                    &self.targets,
+                    &mut f,
+                )
+                .await;
+                if let Err(e) = read {
+                    self.refuse_group(vec![job], targets_before, e, publish);
+                    return;
+                }
+                let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
+                if let Job::Ingest(call) = &mut job {
+                    call.answer = Ok(report);
+                }
+                filtered.push((job, rows));
             }
             Ahead::NeedsStore(pending) => {
                 self.commit_in_turn(filtered, Some(*pending), rest, targets_before, publish)
@@ -646,6 +742,9 @@ impl Pipeline {
                 started,
             },
         });
+        // A task spawned from this one waits in this worker's next slot until this one
+        // yields, and the filtering of the next group does not: let the commit start now.
+        tokio::task::yield_now().await;
     }
 
     /// Waits for the commit in flight, if any, and concludes it (answers, or rolls back). An
@@ -718,6 +817,7 @@ impl Pipeline {
         &mut self,
         mut job: Job,
         now: i64,
+        stored: &HashMap<(LinkId, i64), SampleValues>,
         filtered: &mut Vec<(Job, JobRows)>,
     ) -> Ahead {
         let Job::Ingest(call) = &mut job else {
@@ -731,7 +831,7 @@ impl Pipeline {
                 &mut self.targets,
                 items,
                 z,
-                &HashMap::new(),
+                stored,
                 now,
                 None,
             ),
@@ -800,7 +900,8 @@ impl Pipeline {
                     .extend(write_rows(&mut tx, r, now).await?);
             }
             if let Some(mut f) = needs_store {
-                complete_stored_groups(&mut tx, bank, targets, &mut f).await?;
+                complete_stored_groups(&mut SampleSource::Tx(&mut tx), bank, targets, &mut f)
+                    .await?;
                 let (report, r) = f.into_rows(bank, targets);
                 effects
                     .transitions
@@ -1143,14 +1244,7 @@ async fn ingest(
     };
     // Retries and conflicts: compare with what is stored (earlier jobs of this transaction
     // included), link by link over the batch's time span.
-    let mut spans: HashMap<LinkId, (i64, i64)> = HashMap::new();
-    for item in &items {
-        let e = spans
-            .entry(item.sample.link)
-            .or_insert((item.sample.time_ns, item.sample.time_ns));
-        e.0 = e.0.min(item.sample.time_ns);
-        e.1 = e.1.max(item.sample.time_ns);
-    }
+    let spans = spans_of(&items);
     let mut stored: HashMap<(LinkId, i64), SampleValues> = HashMap::new();
     for (link, (from, to)) in spans {
         for (t, v) in tx.existing_samples(link, from, to).await? {
@@ -1161,10 +1255,23 @@ async fn ingest(
         Ok(f) => f,
         Err(refusal) => return Ok(Err(refusal)),
     };
-    complete_stored_groups(tx, bank, targets, &mut filtered).await?;
+    complete_stored_groups(&mut SampleSource::Tx(tx), bank, targets, &mut filtered).await?;
     let (report, rows) = filtered.into_rows(bank, targets);
     *new_transitions = write_rows(tx, &rows, now).await?;
     Ok(Ok(report))
+}
+
+/// Each link's span of sample times in a batch: `(first, last)` in ns.
+fn spans_of(items: &[IngestItem]) -> HashMap<LinkId, (i64, i64)> {
+    let mut spans: HashMap<LinkId, (i64, i64)> = HashMap::new();
+    for item in items {
+        let e = spans
+            .entry(item.sample.link)
+            .or_insert((item.sample.time_ns, item.sample.time_ns));
+        e.0 = e.0.min(item.sample.time_ns);
+        e.1 = e.1.max(item.sample.time_ns);
+    }
+    spans
 }
 
 /// Every item's measurement, checked before the bank sees any of them; the refusal names the
@@ -1397,12 +1504,34 @@ fn filter_items(
     }))
 }
 
+/// Where stored samples are read from: a transaction (its own writes included), or the
+/// write connection outside one (what is committed, while nothing is in flight).
+enum SampleSource<'a, 'c> {
+    Tx(&'a mut WriteTx<'c>),
+    Committed(&'a mut WriteConn),
+}
+
+impl SampleSource<'_, '_> {
+    /// The stored samples of `link` with times in `[from_ns, to_ns]`, with their values.
+    async fn samples(
+        &mut self,
+        link: LinkId,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> Result<Vec<(i64, SampleValues)>, StoreError> {
+        match self {
+            Self::Tx(tx) => tx.existing_samples(link, from_ns, to_ns).await,
+            Self::Committed(write) => write.stored_samples(link, from_ns, to_ns).await,
+        }
+    }
+}
+
 /// Completes the groups of a job's backfilled samples: the other links' samples of the same
 /// instant (within the group tolerance) come from this job or the store (earlier jobs of this
 /// transaction included). A group completes once, when its last sample arrives: from this
 /// job's latest sample of it (ties: the highest link id), at its earliest sample's time.
 async fn complete_stored_groups(
-    tx: &mut WriteTx<'_>,
+    tx: &mut SampleSource<'_, '_>,
     bank: &FilterBank,
     targets: &[TargetView],
     f: &mut Filtered,
@@ -1432,7 +1561,7 @@ async fn complete_stored_groups(
             let found = match in_job {
                 Some(found) => Some(found),
                 None => tx
-                    .existing_samples(l, time_ns - tolerance, time_ns + tolerance)
+                    .samples(l, time_ns - tolerance, time_ns + tolerance)
                     .await?
                     .into_iter()
                     .min_by_key(|(t, _)| (t - time_ns).unsigned_abs())

@@ -162,6 +162,39 @@ impl WriteConn {
         })
     }
 
+    /// The committed samples of a link with times in `[from_ns, to_ns]`, with their values,
+    /// read outside any transaction: for a writer that must know what is stored before it
+    /// filters, while nothing of its own is in flight.
+    pub async fn stored_samples(
+        &mut self,
+        link: LinkId,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<(i64, SampleValues)>> {
+        let id = self.link_ids[link.0];
+        let rows: StoreResult<Vec<rows::SampleRow>> = on_backend!(&mut self.backend, Writer, w => {
+            let read = match w.ready().await {
+                Ok(conn) => sqlx::query_as(&sql::SAMPLES_IN)
+                    .bind(id)
+                    .bind(from_ns)
+                    .bind(to_ns)
+                    .bind(i64::MAX)
+                    .fetch_all(&mut *conn)
+                    .await
+                    .map_err(Into::into),
+                Err(e) => Err(e),
+            };
+            if read.is_err() {
+                w.suspect();
+            }
+            read
+        });
+        rows?
+            .into_iter()
+            .map(|r| Ok((r.time_ns, r.values()?)))
+            .collect()
+    }
+
     /// Closes the connection (for SQLite after checkpointing the WAL into the file, so that
     /// the file alone is complete).
     pub async fn close(self) -> StoreResult<()> {

@@ -72,17 +72,7 @@ impl Writer {
     /// Starts a transaction: after one that did not commit, first rolls it back, or connects
     /// again when the connection does not answer.
     pub(in crate::store) async fn begin(&mut self) -> StoreResult<Tx<'_>> {
-        if !self.clean
-            && let Some(conn) = self.conn.as_mut()
-            && sqlx::query("rollback").execute(&mut *conn).await.is_err()
-            && let Some(old) = self.conn.take()
-        {
-            let _ = old.close().await;
-        }
-        if self.conn.is_none() {
-            self.conn = Some(Self::connect(&self.options).await?);
-            tracing::info!("the writer reconnected to PostgreSQL");
-        }
+        self.ready().await?;
         self.clean = false;
         let began = match self.conn.as_mut() {
             Some(conn) => sqlx::query("begin").execute(&mut *conn).await.map(|_| ()),
@@ -100,6 +90,33 @@ impl Writer {
             conn,
             clean: &mut self.clean,
         })
+    }
+
+    /// The connection, outside any transaction: after one that did not commit, first rolls
+    /// it back, or connects again when the connection does not answer.
+    pub(in crate::store) async fn ready(&mut self) -> StoreResult<&mut PgConnection> {
+        if !self.clean
+            && let Some(conn) = self.conn.as_mut()
+            && sqlx::query("rollback").execute(&mut *conn).await.is_err()
+            && let Some(old) = self.conn.take()
+        {
+            let _ = old.close().await;
+        }
+        if self.conn.is_none() {
+            self.conn = Some(Self::connect(&self.options).await?);
+            tracing::info!("the writer reconnected to PostgreSQL");
+        }
+        self.clean = true;
+        let Some(conn) = self.conn.as_mut() else {
+            unreachable!("connected above")
+        };
+        Ok(conn)
+    }
+
+    /// Marks the connection's state unknown after a statement outside a transaction failed:
+    /// the next use rolls back or connects again.
+    pub(in crate::store) fn suspect(&mut self) {
+        self.clean = false;
     }
 
     /// Closes the connection (rolling back an unfinished transaction), which also releases

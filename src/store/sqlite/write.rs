@@ -58,6 +58,31 @@ impl Writer {
     /// not commit. Fails when the configured file is no longer the one opened at start.
     pub(in crate::store) async fn begin(&mut self, now_ns: i64) -> StoreResult<Tx<'_>> {
         check_identity(&self.path, self.identity)?;
+        self.ready().await?;
+        self.clean = false;
+        let Some(conn) = self.conn.as_mut() else {
+            unreachable!("connected above")
+        };
+        sqlx::query("begin").execute(&mut *conn).await?;
+        // The next number: one past the last committed (a rolled-back transaction's number is
+        // used again, as nothing carries it).
+        let (seq,): (i64,) =
+            sqlx::query_as("insert into commits (created_ns) values (?) returning seq")
+                .bind(now_ns)
+                .fetch_one(&mut *conn)
+                .await?;
+        Ok(Tx {
+            conn,
+            clean: &mut self.clean,
+            path: &self.path,
+            identity: self.identity,
+            seq,
+        })
+    }
+
+    /// The connection, outside any transaction: a fresh one when the last transaction did
+    /// not commit. A statement that fails on it leaves it to be replaced the same way.
+    pub(in crate::store) async fn ready(&mut self) -> StoreResult<&mut SqliteConnection> {
         if !self.clean || self.conn.is_none() {
             if let Some(old) = self.conn.take() {
                 // Closing rolls back whatever transaction the connection still had.
@@ -76,22 +101,13 @@ impl Writer {
         let Some(conn) = self.conn.as_mut() else {
             unreachable!("connected above")
         };
+        Ok(conn)
+    }
+
+    /// Marks the connection's state unknown after a statement outside a transaction failed:
+    /// the next use replaces it.
+    pub(in crate::store) fn suspect(&mut self) {
         self.clean = false;
-        sqlx::query("begin").execute(&mut *conn).await?;
-        // The next number: one past the last committed (a rolled-back transaction's number is
-        // used again, as nothing carries it).
-        let (seq,): (i64,) =
-            sqlx::query_as("insert into commits (created_ns) values (?) returning seq")
-                .bind(now_ns)
-                .fetch_one(&mut *conn)
-                .await?;
-        Ok(Tx {
-            conn,
-            clean: &mut self.clean,
-            path: &self.path,
-            identity: self.identity,
-            seq,
-        })
     }
 
     /// Checkpoints the WAL into the database file (so that the file alone is complete) and

@@ -1,6 +1,8 @@
 //! The writer filters a group of new samples while the commit before it is still being
-//! written. What it stores and answers must not depend on that: the same requests, sent
-//! one at a time or one after another without waiting, give the same rows and answers.
+//! written, and reads what is stored before it filters a request that may repeat it. What it
+//! stores and answers must not depend on that: the same requests, sent one at a time or one
+//! after another without waiting, or each in a transaction of the writer's own (Rerun on),
+//! give the same rows and answers.
 
 use super::helpers::{START_NS, T0_NS, TestApp};
 use brokenray::bank::{MeasurementUncertainty, ResultSource, Sample};
@@ -16,7 +18,9 @@ const BATCHES: usize = 35;
 
 /// The requests both services get, in order: the simulated ship's link poses in batches of
 /// whole groups, with a batch sent again after two later ones (a retry: every sample a
-/// duplicate) and a batch that holds a sample older than those stored (filtered in turn).
+/// duplicate), a batch that holds a sample older than those stored, and the last sample of
+/// batch 5 held back until the last batch: its group is then older than the filters keep in
+/// memory, and is completed from the other links' stored samples.
 fn requests(app: &TestApp) -> Vec<Vec<IngestItem>> {
     let model = &app.service.installation().model;
     let settings = SimSettings {
@@ -49,6 +53,7 @@ fn requests(app: &TestApp) -> Vec<Vec<IngestItem>> {
         }
         batches.push(items);
     }
+    let mut withheld = batches[5].pop().expect("a sample");
     // A retry of batch 10 after batch 12, and batch 20's first sample again among batch 22's.
     let retry = batches[10].clone();
     batches.insert(13, retry);
@@ -57,6 +62,9 @@ fn requests(app: &TestApp) -> Vec<Vec<IngestItem>> {
     old.index = late.len();
     late.push(old);
     batches[23] = late;
+    let last = batches.last_mut().expect("batches");
+    withheld.index = last.len();
+    last.push(withheld);
     batches
 }
 
@@ -162,12 +170,23 @@ async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_ti
     }
     let without_waiting = TestApp::start(None).await;
     let paced_answers = send_overlapping(&without_waiting, &batches, |_| {}).await;
+    // With Rerun on (a viewer that is not there), every request goes through a transaction
+    // of the writer's own, which reads what is stored inside it.
+    let in_transactions = TestApp::start(Some(&super::recordings::with_rerun(
+        "mode = \"connect\"\nurl = \"rerun+http://127.0.0.1:1/proxy\"",
+    )))
+    .await;
+    let mut in_transaction_answers = Vec::new();
+    for b in &batches {
+        in_transaction_answers.push(in_transactions.service.ingest(b.clone()).await);
+    }
 
     assert!(
         serial_answers.iter().all(Result::is_ok),
         "{serial_answers:?}"
     );
     assert_eq!(answers(&paced_answers), answers(&serial_answers));
+    assert_eq!(answers(&in_transaction_answers), answers(&serial_answers));
     let retry = serial_answers[13].as_ref().expect("the retry is accepted");
     assert_eq!(
         (retry.duplicates, retry.stored),
@@ -178,6 +197,17 @@ async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_ti
         .as_ref()
         .expect("the late sample's batch");
     assert_eq!(late.duplicates, 1, "{late:?}");
+    let completes_old = serial_answers
+        .last()
+        .expect("answers")
+        .as_ref()
+        .expect("stored");
+    // Its own groups' raw results, and the old group's from the stored samples.
+    assert_eq!(
+        (completes_old.raw_results, completes_old.out_of_order),
+        (GROUPS_PER_BATCH + 1, 1),
+        "{completes_old:?}"
+    );
     let (serial_samples, serial_results) = stored(&one_at_a_time).await;
     let (paced_samples, paced_results) = stored(&without_waiting).await;
     assert_eq!(
@@ -191,6 +221,14 @@ async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_ti
     );
     assert_eq!(paced_samples, serial_samples);
     assert_eq!(paced_results, serial_results);
+    assert_eq!(
+        stored(&in_transactions).await,
+        (serial_samples, serial_results)
+    );
+    assert_eq!(
+        Metrics::get(&in_transactions.service.metrics().groups_filtered_ahead),
+        0
+    );
     let metrics = without_waiting.service.metrics();
     assert!(
         Metrics::get(&metrics.groups_filtered_ahead) >= 1,

@@ -13,7 +13,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 /// The built-in installation with its `[rerun]` section replaced.
-fn with_rerun(section: &str) -> String {
+pub(super) fn with_rerun(section: &str) -> String {
     brokenray::config::DEFAULT_INSTALLATION_TOML.replace(
         "[rerun]\nmode = \"off\"\nrecordings_dir = \"recordings\"\nurl = \"rerun+http://127.0.0.1:9876/proxy\"\n",
         &format!("[rerun]\n{section}\n"),
