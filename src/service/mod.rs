@@ -12,7 +12,11 @@
 //! takes along), the pipeline filters the next group when that group is ingest alone with
 //! samples newer than any stored for their links (so no read of the store can be needed),
 //! takes into that group the requests of new samples that arrive until the commit lands (one
-//! `fsync` for all that waited), then sends its own. Readers and requesters never see the
+//! `fsync` for all that waited), then sends its own. An ingest request that may repeat
+//! stored samples (a retry, a late batch) waits for the commit in flight, has the stored
+//! samples of its links over its span read on the write connection (everything there is, as
+//! nothing is in flight), and is then filtered and written the same way, so that the requests
+//! after it are filtered meanwhile. Readers and requesters never see the
 //! bank run ahead: a commit's snapshot is the one taken when its group was filtered, published
 //! once it has committed, and if it fails the group filtered behind it is refused too.
 //!

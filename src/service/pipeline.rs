@@ -470,18 +470,7 @@ impl Pipeline {
         let ahead = self.all_new_samples(&jobs);
         self.count_samples(&jobs);
         if ahead {
-            // With nothing in flight, the first request's commit starts as soon as it is
-            // filtered, and the others are filtered while it is written: the database's
-            // thread waits for one request's filtering, not for the whole queue's.
-            let mut jobs = jobs;
-            let rest = match self.in_flight {
-                None if jobs.len() > 1 => jobs.split_off(1),
-                _ => Vec::new(),
-            };
             self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
-            if !rest.is_empty() {
-                self.filter_ahead(rest, &HashMap::new(), rx, publish).await;
-            }
         } else {
             let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
                 return;
