@@ -130,6 +130,13 @@ pub struct WriteTx<'c> {
     target_ids: &'c [i64],
 }
 
+/// Sample rows as their times and values.
+fn times_and_values(rows: Vec<rows::SampleRow>) -> StoreResult<Vec<(i64, SampleValues)>> {
+    rows.into_iter()
+        .map(|r| Ok((r.time_ns, r.values()?)))
+        .collect()
+}
+
 /// Refuses a value that is not finite before it reaches a row.
 fn finite(what: &str, values: &[f64]) -> StoreResult<()> {
     if values.iter().all(|v| v.is_finite()) {
@@ -189,10 +196,7 @@ impl WriteConn {
             }
             read
         });
-        rows?
-            .into_iter()
-            .map(|r| Ok((r.time_ns, r.values()?)))
-            .collect()
+        times_and_values(rows?)
     }
 
     /// Closes the connection (for SQLite after checkpointing the WAL into the file, so that
@@ -225,9 +229,7 @@ impl WriteTx<'_> {
             &sql::SAMPLES_IN, [id, from_ns, to_ns, i64::MAX],
             fetch_all
         )?;
-        rows.into_iter()
-            .map(|r| Ok((r.time_ns, r.values()?)))
-            .collect()
+        times_and_values(rows)
     }
 
     /// Inserts samples (keys must be new), many rows a statement.
