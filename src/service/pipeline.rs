@@ -453,7 +453,7 @@ impl Pipeline {
         rx: &mut mpsc::Receiver<Job>,
         publish: &impl Fn(Snapshot),
     ) {
-        // A request that may repeat stored samples (a retry, a late batch) has its link's
+        // A request that may repeat stored samples (a retry, a late batch) has its links'
         // stored samples read first, once the commit before it has landed; it is then filtered
         // and written as one filtered ahead is, and the requests after it go on meanwhile.
         while !jobs.is_empty() && !self.all_new_samples(&jobs) && self.reads_first(&jobs[0]) {
