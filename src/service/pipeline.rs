@@ -456,11 +456,8 @@ impl Pipeline {
         // A request that may repeat stored samples (a retry, a late batch) has its links'
         // stored samples read first, once the commit before it has landed; it is then filtered
         // and written as one filtered ahead is, and the requests after it go on meanwhile.
-        while !jobs.is_empty() && !self.all_new_samples(&jobs) && self.reads_first(&jobs[0]) {
-            let rest = jobs.split_off(1);
-            let Some(job) = std::mem::replace(&mut jobs, rest).pop() else {
-                unreachable!("the group is not empty")
-            };
+        let read_first: Vec<Job> = jobs.drain(..self.read_first_count(&jobs)).collect();
+        for job in read_first {
             self.count_samples(std::slice::from_ref(&job));
             self.filter_after_reading(job, rx, publish).await;
         }
@@ -550,10 +547,38 @@ impl Pipeline {
         true
     }
 
-    /// Whether a request that may repeat stored samples can be filtered after a read of them
-    /// rather than inside its own transaction: an ingest, with Rerun off.
-    fn reads_first(&self, job: &Job) -> bool {
-        !self.viz.enabled() && matches!(job, Job::Ingest(_))
+    /// How many of the group's first jobs are filtered one by one after a read of the stored
+    /// samples, rather than inside a transaction of their own: with Rerun off, the ingest
+    /// jobs up to the last that may repeat stored samples (one not newer than everything of
+    /// its links before it) or is not an ingest, so that the jobs after them are all new.
+    /// One pass over the group.
+    fn read_first_count(&self, jobs: &[Job]) -> usize {
+        if self.viz.enabled() {
+            return 0;
+        }
+        let mut newest = self.newest_sample_ns.clone();
+        let mut through_last_not_new = 0;
+        for (i, job) in jobs.iter().enumerate() {
+            let Job::Ingest(call) = job else {
+                through_last_not_new = i + 1;
+                continue;
+            };
+            if call
+                .request
+                .iter()
+                .any(|item| newest[item.sample.link.0].is_some_and(|t| item.sample.time_ns <= t))
+            {
+                through_last_not_new = i + 1;
+            }
+            for item in &call.request {
+                raise_to(&mut newest[item.sample.link.0], item.sample.time_ns);
+            }
+        }
+        let ingest_first = jobs
+            .iter()
+            .take_while(|j| matches!(j, Job::Ingest(_)))
+            .count();
+        through_last_not_new.min(ingest_first)
     }
 
     /// Filters one ingest request after reading the stored samples of its links over its
@@ -573,24 +598,18 @@ impl Pipeline {
         let Job::Ingest(call) = &job else {
             unreachable!("only ingest requests are read for first")
         };
-        let spans = spans_of(&call.request);
         let Some(write) = self.write.as_mut() else {
             unreachable!("the write connection is back once the commit before has settled")
         };
-        let mut stored: HashMap<(LinkId, i64), SampleValues> = HashMap::new();
-        for (link, (from, to)) in spans {
-            match write.stored_samples(link, from, to).await {
-                Ok(rows) => stored.extend(rows.into_iter().map(|(t, v)| ((link, t), v))),
-                Err(e) => {
-                    tracing::warn!(error = %e, "reading the stored samples before filtering");
-                    let targets_before = self.targets.clone();
-                    self.commit_in_turn(Vec::new(), None, vec![job], targets_before, publish)
-                        .await;
-                    return;
-                }
+        match stored_over_spans(&mut SampleSource::Committed(write), &call.request).await {
+            Ok(stored) => self.filter_ahead(vec![job], &stored, rx, publish).await,
+            Err(e) => {
+                tracing::warn!(error = %e, "reading the stored samples before filtering");
+                let targets_before = self.targets.clone();
+                self.commit_in_turn(Vec::new(), None, vec![job], targets_before, publish)
+                    .await;
             }
         }
-        self.filter_ahead(vec![job], &stored, rx, publish).await;
     }
 
     /// Filters a group of new samples while the commit before it is written, taking into it
@@ -1233,13 +1252,7 @@ async fn ingest(
     };
     // Retries and conflicts: compare with what is stored (earlier jobs of this transaction
     // included), link by link over the batch's time span.
-    let spans = spans_of(&items);
-    let mut stored: HashMap<(LinkId, i64), SampleValues> = HashMap::new();
-    for (link, (from, to)) in spans {
-        for (t, v) in tx.existing_samples(link, from, to).await? {
-            stored.insert((link, t), v);
-        }
-    }
+    let stored = stored_over_spans(&mut SampleSource::Tx(tx), &items).await?;
     let mut filtered = match filter_items(bank, targets, items, measurements, &stored, now, viz)? {
         Ok(f) => f,
         Err(refusal) => return Ok(Err(refusal)),
@@ -1250,8 +1263,11 @@ async fn ingest(
     Ok(Ok(report))
 }
 
-/// Each link's span of sample times in a batch: `(first, last)` in ns.
-fn spans_of(items: &[IngestItem]) -> HashMap<LinkId, (i64, i64)> {
+/// The stored samples a batch may repeat: each link's over the batch's span of its times.
+async fn stored_over_spans(
+    source: &mut SampleSource<'_, '_>,
+    items: &[IngestItem],
+) -> Result<HashMap<(LinkId, i64), SampleValues>, StoreError> {
     let mut spans: HashMap<LinkId, (i64, i64)> = HashMap::new();
     for item in items {
         let e = spans
@@ -1260,7 +1276,13 @@ fn spans_of(items: &[IngestItem]) -> HashMap<LinkId, (i64, i64)> {
         e.0 = e.0.min(item.sample.time_ns);
         e.1 = e.1.max(item.sample.time_ns);
     }
-    spans
+    let mut stored = HashMap::new();
+    for (link, (from, to)) in spans {
+        for (t, v) in source.samples(link, from, to).await? {
+            stored.insert((link, t), v);
+        }
+    }
+    Ok(stored)
 }
 
 /// Every item's measurement, checked before the bank sees any of them; the refusal names the
