@@ -510,12 +510,7 @@ impl Pipeline {
     fn count_samples(&mut self, jobs: &[Job]) {
         for job in jobs {
             if let Job::Ingest(call) = job {
-                for item in &call.request {
-                    raise_to(
-                        &mut self.newest_sample_ns[item.sample.link.0],
-                        item.sample.time_ns,
-                    );
-                }
+                raise_all(&mut self.newest_sample_ns, &call.request);
             }
         }
     }
@@ -533,16 +528,10 @@ impl Pipeline {
             let Job::Ingest(call) = job else {
                 return false;
             };
-            if call
-                .request
-                .iter()
-                .any(|item| newest[item.sample.link.0].is_some_and(|t| item.sample.time_ns <= t))
-            {
+            if may_repeat(&newest, &call.request) {
                 return false;
             }
-            for item in &call.request {
-                raise_to(&mut newest[item.sample.link.0], item.sample.time_ns);
-            }
+            raise_all(&mut newest, &call.request);
         }
         true
     }
@@ -563,16 +552,10 @@ impl Pipeline {
                 through_last_not_new = i + 1;
                 continue;
             };
-            if call
-                .request
-                .iter()
-                .any(|item| newest[item.sample.link.0].is_some_and(|t| item.sample.time_ns <= t))
-            {
+            if may_repeat(&newest, &call.request) {
                 through_last_not_new = i + 1;
             }
-            for item in &call.request {
-                raise_to(&mut newest[item.sample.link.0], item.sample.time_ns);
-            }
+            raise_all(&mut newest, &call.request);
         }
         let ingest_first = jobs
             .iter()
@@ -676,8 +659,12 @@ impl Pipeline {
                 Ahead::NeedsStore(pending) => Some(pending.0),
                 _ => None,
             };
+            // The failure returned the bank and the targets to before that commit, which
+            // undid these jobs too.
             let jobs = filtered.into_iter().map(|(j, _)| j);
-            self.refuse_after_failure(jobs.chain(needs_store).chain(rest), &message);
+            for job in jobs.chain(needs_store).chain(rest) {
+                job.fail(&message);
+            }
             return;
         }
         match stop {
@@ -788,14 +775,6 @@ impl Pipeline {
             Some(e) => Err(format!(
                 "the database did not accept an earlier write, so this request was not applied: {e}"
             )),
-        }
-    }
-
-    /// Refuses jobs filtered after a commit that then failed: the bank and the targets were
-    /// returned to their state before that commit, which undid these jobs too.
-    fn refuse_after_failure(&mut self, jobs: impl Iterator<Item = Job>, message: &str) {
-        for job in jobs {
-            job.fail(message);
         }
     }
 
@@ -1142,6 +1121,21 @@ pub(super) async fn run(
 /// Raises a newest time to `t` when `t` is newer.
 fn raise_to(newest: &mut Option<i64>, t: i64) {
     *newest = Some(newest.map_or(t, |n| n.max(t)));
+}
+
+/// Whether a batch holds a sample not newer than its link's newest time (`newest`, by link):
+/// one that may repeat or contradict a stored sample.
+fn may_repeat(newest: &[Option<i64>], items: &[IngestItem]) -> bool {
+    items
+        .iter()
+        .any(|item| newest[item.sample.link.0].is_some_and(|t| item.sample.time_ns <= t))
+}
+
+/// Raises each link's newest time (`newest`, by link) to a batch's samples.
+fn raise_all(newest: &mut [Option<i64>], items: &[IngestItem]) {
+    for item in items {
+        raise_to(&mut newest[item.sample.link.0], item.sample.time_ns);
+    }
 }
 
 /// Stores alarm transitions `(target, transition)`; returns them with their ids.
