@@ -32,8 +32,48 @@ pub(crate) fn decode_f64s(bytes: &[u8], n: usize) -> Result<Vec<f64>, StoreError
         .collect())
 }
 
+/// Numbers in a covariance kept as its upper triangle.
+const SYM6_LEN: usize = 21;
+
+/// A covariance as the 21 little-endian f64 of its upper triangle, column by column: its
+/// symmetric part, so exact for a symmetric matrix (each off-diagonal pair is averaged, which
+/// changes nothing when the two agree). 168 bytes against [`encode_mat6`]'s 288: the results'
+/// two covariances are most of a result row, and a result row most of what a sample brings
+/// to the history.
+pub(crate) fn encode_sym6(m: &Mat6) -> Vec<u8> {
+    let mut out = Vec::with_capacity(SYM6_LEN * 8);
+    for j in 0..6 {
+        for i in 0..=j {
+            let (upper, lower) = (m[(i, j)], m[(j, i)]);
+            let v = if upper.to_bits() == lower.to_bits() {
+                upper
+            } else {
+                0.5 * upper + 0.5 * lower
+            };
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// A 6x6 matrix from either form: 36 numbers ([`encode_mat6`]) or a symmetric matrix's 21
+/// ([`encode_sym6`]).
 pub(crate) fn decode_mat6(bytes: &[u8]) -> Result<Mat6, StoreError> {
-    Ok(Mat6::from_column_slice(&decode_f64s(bytes, 36)?))
+    if bytes.len() == SYM6_LEN * 8 {
+        let v = decode_f64s(bytes, SYM6_LEN)?;
+        let mut m = Mat6::zeros();
+        let mut k = 0;
+        for j in 0..6 {
+            for i in 0..=j {
+                m[(i, j)] = v[k];
+                m[(j, i)] = v[k];
+                k += 1;
+            }
+        }
+        Ok(m)
+    } else {
+        Ok(Mat6::from_column_slice(&decode_f64s(bytes, 36)?))
+    }
 }
 
 /// A pose as `[tx, ty, tz, qw, qx, qy, qz]`.
@@ -136,5 +176,69 @@ pub(crate) fn random_covariance(cov: &[u8], systematic: Option<&[u8]>) -> Option
             &decode_mat6(s).ok()?,
         )),
         None => Some(whole),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A covariance from a 6x6 factor: `a aᵀ`, symmetric by construction (each entry's two
+    /// sums run in the same order).
+    fn covariance(a: &[f64]) -> Mat6 {
+        let a = Mat6::from_column_slice(a);
+        let mut c = Mat6::zeros();
+        for i in 0..6 {
+            for j in 0..6 {
+                c[(i, j)] = (0..6).map(|k| a[(i, k)] * a[(j, k)]).sum();
+            }
+        }
+        c
+    }
+
+    proptest! {
+        /// A symmetric matrix comes back bit for bit from its 21 numbers.
+        #[test]
+        fn a_symmetric_matrix_survives_its_upper_triangle(
+            a in proptest::collection::vec(-1e3f64..1e3, 36),
+        ) {
+            let c = covariance(&a);
+            prop_assert_eq!(c, c.transpose());
+            let bytes = encode_sym6(&c);
+            prop_assert_eq!(bytes.len(), 168);
+            let back = decode_mat6(&bytes).map_err(|e| TestCaseError::fail(e.to_string()))?;
+            for (x, y) in c.iter().zip(back.iter()) {
+                prop_assert_eq!(x.to_bits(), y.to_bits());
+            }
+        }
+
+        /// A matrix whose two triangles disagree (rounding in a product) is kept as its
+        /// symmetric part, `(m + mᵀ) / 2`.
+        #[test]
+        fn an_asymmetric_matrix_is_kept_as_its_symmetric_part(
+            a in proptest::collection::vec(-1e3f64..1e3, 36),
+        ) {
+            let m = Mat6::from_column_slice(&a);
+            let back = decode_mat6(&encode_sym6(&m))
+                .map_err(|e| TestCaseError::fail(e.to_string()))?;
+            let expected = (m + m.transpose()) * 0.5;
+            for (x, y) in expected.iter().zip(back.iter()) {
+                prop_assert!((x - y).abs() <= 1e-12 * x.abs().max(1.0), "{} against {}", x, y);
+            }
+            prop_assert_eq!(back, back.transpose());
+        }
+    }
+
+    #[test]
+    fn the_full_form_still_reads_and_other_lengths_are_refused() {
+        let m = Mat6::from_fn(|i, j| (10 * i + j) as f64);
+        let full = encode_mat6(&m);
+        assert_eq!(full.len(), 288);
+        assert_eq!(decode_mat6(&full).ok(), Some(m));
+        let Err(e) = decode_mat6(&full[..160]) else {
+            unreachable!("160 bytes decoded")
+        };
+        assert!(e.to_string().contains("160 bytes"), "{e}");
     }
 }

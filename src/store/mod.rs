@@ -15,7 +15,9 @@
 //! (checks of values before they reach a row, the merge of rollups, the planning of a history)
 //! lives here, once; the backends hold only their statements. Conventions of both schemas:
 //! times are integer nanoseconds since the Unix epoch (UTC), lengths millimetres, rotations
-//! unit quaternions, covariances 36 little-endian f64 (column-major) in a byte string.
+//! unit quaternions, covariances 36 little-endian f64 (column-major) in a byte string; a
+//! result's two covariances, written since they are kept as their upper triangle, 21 (column by
+//! column; rows written before hold 36, and both read).
 
 /// Runs the same expression on whichever backend `$value` holds.
 macro_rules! on_backend {
@@ -91,7 +93,7 @@ use crate::config::Database;
 use crate::deformation::{MeasuredPose, SmallMotion};
 use crate::geometry::{PoseCov, ReportedSigmas};
 use crate::model::TargetId;
-use codec::{encode_mat6, pose_columns};
+use codec::{encode_mat6, encode_sym6, pose_columns};
 use outbox::{Backlog, KeepUnsent, OutboxBatch, Registry, TableRows, Tier};
 use rows::{ResultColumns, SampleColumns, VersionColumns};
 use std::path::PathBuf;

@@ -300,13 +300,13 @@ impl WriteTx<'_> {
                 source: codec::source_column(r.source),
                 time_ns: r.time_ns,
                 pose,
-                cov: encode_mat6(&r.estimate.whole.cov),
+                cov: encode_sym6(&r.estimate.whole.cov),
                 sigmas: [a, b, c, x, y, z],
                 status: r.status.name(),
                 age_s: r.age_s,
                 chi2: r.chi2,
                 deformation,
-                cov_systematic: encode_mat6(&r.estimate.systematic_cov),
+                cov_systematic: encode_sym6(&r.estimate.systematic_cov),
                 calibration_stamp: r.estimate.calibration.map(|c| c.0),
             };
             // One row a key: a statement may not write the same key twice on every engine.
