@@ -16,7 +16,9 @@
 //! stored samples (a retry, a late batch) waits for the commit in flight, has the stored
 //! samples of its links over its span read on the write connection (everything there is, as
 //! nothing is in flight), and is then filtered and written the same way, so that the requests
-//! after it are filtered meanwhile. Readers and requesters never see the
+//! after it are filtered meanwhile (`pipeline::ahead`; an ingest job's checks, filtering and
+//! rows are `pipeline::filtering`, the other jobs' work in a transaction `pipeline::apply`).
+//! Readers and requesters never see the
 //! bank run ahead: a commit's snapshot is the one taken when its group was filtered, published
 //! once it has committed, and if it fails the group filtered behind it is refused too.
 //!

@@ -1,0 +1,361 @@
+//! Filtering ahead: the next group of ingest requests is filtered while the commit before it
+//! is written by a task of its own ([`InFlight`]), and a request that may repeat stored samples
+//! is filtered after a read of what is stored, with nothing in flight. See the module docs of
+//! [`crate::service`].
+
+use super::*;
+
+impl Pipeline {
+    /// How many of the group's first jobs are filtered one by one after a read of the stored
+    /// samples, rather than inside a transaction of their own: with Rerun off, the ingest
+    /// jobs up to the last that may repeat stored samples (one not newer than everything of
+    /// its links before it) or is not an ingest, so that the jobs after them are all new.
+    /// One pass over the group.
+    pub(super) fn read_first_count(&self, jobs: &[Job]) -> usize {
+        if self.viz.enabled() {
+            return 0;
+        }
+        let mut newest = self.newest_sample_ns.clone();
+        let mut through_last_not_new = 0;
+        for (i, job) in jobs.iter().enumerate() {
+            let Job::Ingest(call) = job else {
+                through_last_not_new = i + 1;
+                continue;
+            };
+            if may_repeat(&newest, &call.request) {
+                through_last_not_new = i + 1;
+            }
+            raise_all(&mut newest, &call.request);
+        }
+        let ingest_first = jobs
+            .iter()
+            .take_while(|j| matches!(j, Job::Ingest(_)))
+            .count();
+        through_last_not_new.min(ingest_first)
+    }
+
+    /// Filters one ingest request after reading the stored samples of its links over its
+    /// span (once the commit before it has landed, so that what is read is all there is),
+    /// then sends its rows to be written while the next requests are filtered. When the read
+    /// fails, the request goes through a transaction of its own, which meets the same
+    /// failure and answers it.
+    pub(super) async fn filter_after_reading(
+        &mut self,
+        job: Job,
+        rx: &mut mpsc::Receiver<Job>,
+        publish: &impl Fn(Snapshot),
+    ) {
+        // A failure of the commit in flight was concluded there: the bank and targets are
+        // back at the last committed state, on which this request now runs.
+        let _ = self.settle(publish).await;
+        let Job::Ingest(call) = &job else {
+            unreachable!("only ingest requests are read for first")
+        };
+        let Some(write) = self.write.as_mut() else {
+            unreachable!("the write connection is back once the commit before has settled")
+        };
+        match stored_over_spans(&mut SampleSource::Committed(write), &call.request).await {
+            Ok(stored) => self.filter_ahead(vec![job], &stored, rx, publish).await,
+            Err(e) => {
+                tracing::warn!(error = %e, "reading the stored samples before filtering");
+                let targets_before = self.targets.clone();
+                self.commit_in_turn(Vec::new(), None, vec![job], targets_before, publish)
+                    .await;
+            }
+        }
+    }
+
+    /// Filters a group of new samples while the commit before it is written, taking into it
+    /// the requests of new samples that arrive until that commit lands, then sends this
+    /// group's rows to be written in turn. When that commit fails,
+    /// the bank and the targets return to its state before it and this group is refused too
+    /// (nothing of it was written). A job whose samples complete groups older than memory
+    /// needs the store: the group then goes on in the pipeline's own transaction once the
+    /// commit before it has landed.
+    pub(super) async fn filter_ahead(
+        &mut self,
+        jobs: Vec<Job>,
+        stored: &HashMap<(LinkId, i64), SampleValues>,
+        rx: &mut mpsc::Receiver<Job>,
+        publish: &impl Fn(Snapshot),
+    ) {
+        let started = std::time::Instant::now();
+        if self.in_flight.is_some() {
+            self.metrics
+                .groups_filtered_ahead
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        let now = self.clock.now_ns();
+        let targets_before = self.targets.clone();
+        let mut filtered: Vec<(Job, JobRows)> = Vec::with_capacity(jobs.len());
+        let mut stop = Ahead::Next;
+        let mut rest = jobs.into_iter();
+        for job in rest.by_ref() {
+            stop = self.filter_job_ahead(job, now, stored, &mut filtered);
+            if !matches!(stop, Ahead::Next) {
+                break;
+            }
+        }
+        let rest: Vec<Job> = rest.collect();
+        // While the commit before is written, later requests of new samples join this group
+        // (one commit, one `fsync`, for as many requests as waited), until it lands.
+        let mut landed: Option<Result<(), String>> = None;
+        while matches!(stop, Ahead::Next) && filtered.len() < MAX_JOBS_PER_COMMIT {
+            let Some(flight) = self.in_flight.as_mut() else {
+                break;
+            };
+            let job = tokio::select! {
+                biased;
+                joined = &mut flight.handle => {
+                    landed = Some(self.land(joined, publish));
+                    break;
+                }
+                job = rx.recv() => job,
+            };
+            let Some(job) = job else { break };
+            if !self.all_new_samples(std::slice::from_ref(&job)) {
+                self.held = Some(job);
+                break;
+            }
+            self.count_samples(std::slice::from_ref(&job));
+            stop = self.filter_job_ahead(job, now, &HashMap::new(), &mut filtered);
+        }
+        let settled = match landed {
+            Some(result) => result,
+            None => self.settle(publish).await,
+        };
+        if let Err(message) = settled {
+            let needs_store = match stop {
+                Ahead::NeedsStore(pending) => Some(pending.0),
+                _ => None,
+            };
+            // The failure returned the bank and the targets to before that commit, which
+            // undid these jobs too.
+            let jobs = filtered.into_iter().map(|(j, _)| j);
+            for job in jobs.chain(needs_store).chain(rest) {
+                job.fail(&message);
+            }
+            return;
+        }
+        match stop {
+            Ahead::Next => {}
+            Ahead::Defect(e) => {
+                let jobs = filtered.into_iter().map(|(j, _)| j).chain(rest).collect();
+                self.refuse_group(jobs, targets_before, e, publish);
+                return;
+            }
+            // Alone in its group, with nothing in flight: the stored samples it needs are
+            // all committed, and are read before its rows go to be written like any other.
+            Ahead::NeedsStore(pending) if filtered.is_empty() && rest.is_empty() => {
+                let (mut job, mut f) = *pending;
+                let Some(write) = self.write.as_mut() else {
+                    unreachable!("the write connection is back once the commit before has settled")
+                };
+                let read = complete_stored_groups(
+                    &mut SampleSource::Committed(write),
+                    &self.bank,
+                    &self.targets,
+                    &mut f,
+                )
+                .await;
+                if let Err(e) = read {
+                    self.refuse_group(vec![job], targets_before, e, publish);
+                    return;
+                }
+                let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
+                if let Job::Ingest(call) = &mut job {
+                    call.answer = Ok(report);
+                }
+                filtered.push((job, rows));
+            }
+            Ahead::NeedsStore(pending) => {
+                self.commit_in_turn(filtered, Some(*pending), rest, targets_before, publish)
+                    .await;
+                return;
+            }
+        }
+        let record = self.bank.record();
+        let state_json = match serde_json::to_string(&record) {
+            Ok(json) => json,
+            Err(e) => {
+                let jobs = filtered.into_iter().map(|(j, _)| j).collect();
+                let e = StoreError::Defect(format!("cannot encode the filter state: {e}"));
+                self.refuse_group(jobs, targets_before, e, publish);
+                return;
+            }
+        };
+        let snapshot = self.snapshot();
+        let (jobs, rows): (Vec<Job>, Vec<JobRows>) = filtered.into_iter().unzip();
+        let Some(write) = self.write.take() else {
+            unreachable!("the write connection is back once the commit before has settled")
+        };
+        let handle = tokio::spawn(write_in_flight(
+            write,
+            rows,
+            self.digest.clone(),
+            state_json,
+            now,
+        ));
+        self.in_flight = Some(InFlight {
+            handle,
+            done: Done {
+                jobs,
+                effects: Effects::default(),
+                record,
+                snapshot,
+                targets_before,
+                started,
+            },
+        });
+        // A task spawned from this one waits in this worker's next slot until this one
+        // yields, and the filtering of the next group does not: let the commit start now.
+        tokio::task::yield_now().await;
+    }
+
+    /// Waits for the commit in flight, if any, and concludes it (answers, or rolls back). An
+    /// error says it failed, with the message its requests were refused with.
+    pub(super) async fn settle(&mut self, publish: &impl Fn(Snapshot)) -> Result<(), String> {
+        let Some(flight) = self.in_flight.as_mut() else {
+            return Ok(());
+        };
+        let joined = (&mut flight.handle).await;
+        self.land(joined, publish)
+    }
+
+    /// Concludes the commit in flight with what its task returned. A panic in the task goes on
+    /// here, as it would have in the pipeline's own task.
+    pub(super) fn land(
+        &mut self,
+        joined: Result<InFlightOutcome, tokio::task::JoinError>,
+        publish: &impl Fn(Snapshot),
+    ) -> Result<(), String> {
+        let Some(flight) = self.in_flight.take() else {
+            return Ok(());
+        };
+        let (write, outcome) = match joined {
+            Ok(landed) => landed,
+            Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
+            Err(e) => panic!("the commit in flight was cancelled: {e}"),
+        };
+        self.write = Some(write);
+        let failure = outcome.as_ref().err().map(ToString::to_string);
+        self.conclude(flight.done, outcome, publish);
+        match failure {
+            None => Ok(()),
+            Some(e) => Err(format!(
+                "the database did not accept an earlier write, so this request was not applied: {e}"
+            )),
+        }
+    }
+
+    /// Refuses a group filtered ahead that failed before its transaction began (`error`, a
+    /// defect), once the commit before it has settled: what the group did to the bank and
+    /// the targets is undone and its requests are refused.
+    fn refuse_group(
+        &mut self,
+        jobs: Vec<Job>,
+        targets_before: Vec<TargetView>,
+        error: StoreError,
+        publish: &impl Fn(Snapshot),
+    ) {
+        let done = Done {
+            jobs,
+            effects: Effects::default(),
+            record: self.committed_state.clone(),
+            snapshot: self.snapshot(),
+            targets_before,
+            started: std::time::Instant::now(),
+        };
+        self.conclude(done, Err(error), publish);
+    }
+
+    /// Filters one ingest job ahead into `filtered`, and says whether the group can go on.
+    fn filter_job_ahead(
+        &mut self,
+        mut job: Job,
+        now: i64,
+        stored: &HashMap<(LinkId, i64), SampleValues>,
+        filtered: &mut Vec<(Job, JobRows)>,
+    ) -> Ahead {
+        let Job::Ingest(call) = &mut job else {
+            unreachable!("only ingest jobs are filtered ahead")
+        };
+        let items = std::mem::take(&mut call.request);
+        let result = match measurements_of(&self.bank, &items) {
+            Err(refusal) => Ok(Err(refusal)),
+            Ok(z) => filter_items(
+                &mut self.bank,
+                &mut self.targets,
+                items,
+                z,
+                stored,
+                now,
+                None,
+            ),
+        };
+        match result {
+            Err(e) => {
+                filtered.push((job, JobRows::default()));
+                Ahead::Defect(e)
+            }
+            Ok(Err(refusal)) => {
+                call.answer = Err(refusal);
+                filtered.push((job, JobRows::default()));
+                Ahead::Next
+            }
+            Ok(Ok(f)) if f.stored_groups.is_empty() => {
+                let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
+                call.answer = Ok(report);
+                filtered.push((job, rows));
+                Ahead::Next
+            }
+            Ok(Ok(f)) => Ahead::NeedsStore(Box::new((job, f))),
+        }
+    }
+}
+
+/// A group's jobs and what concluding its commit needs.
+pub(super) struct Done {
+    pub(super) jobs: Vec<Job>,
+    pub(super) effects: Effects,
+    /// The bank's state the commit saves.
+    pub(super) record: BankRecord,
+    /// What readers see once it has committed.
+    pub(super) snapshot: Snapshot,
+    /// The targets before the group, restored when it fails.
+    pub(super) targets_before: Vec<TargetView>,
+    pub(super) started: std::time::Instant,
+}
+
+/// What the task writing a commit gives back: the connection, and the alarm transitions it
+/// stored or why it failed.
+type InFlightOutcome = (WriteConn, Result<Vec<StoredAlarm>, StoreError>);
+
+/// A commit being written by a task of its own while the pipeline filters the next group.
+pub(super) struct InFlight {
+    pub(super) handle: tokio::task::JoinHandle<InFlightOutcome>,
+    pub(super) done: Done,
+}
+
+/// Writes a group's rows and the filters' state in one transaction and commits, on the
+/// connection it hands back.
+async fn write_in_flight(
+    mut write: WriteConn,
+    rows: Vec<JobRows>,
+    digest: String,
+    state_json: String,
+    now: i64,
+) -> InFlightOutcome {
+    let outcome = async {
+        let mut tx = write.begin(now).await?;
+        let mut alarms = Vec::new();
+        for job in &rows {
+            alarms.extend(write_rows(&mut tx, job, now).await?);
+        }
+        tx.save_filter_state(&digest, &state_json, now).await?;
+        tx.commit().await?;
+        Ok(alarms)
+    }
+    .await;
+    (write, outcome)
+}
