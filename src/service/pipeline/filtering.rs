@@ -48,6 +48,32 @@ pub(super) struct VizCollect<'a> {
     pub(super) records: &'a mut Vec<crate::viz::Record>,
 }
 
+impl VizCollect<'_> {
+    /// Shows a raw or filtered result, when the sender keeps its series at this time.
+    fn result(
+        &mut self,
+        target: TargetId,
+        source: ResultSource,
+        time_ns: i64,
+        target_from_base: MeasuredPose,
+        deformation: Option<(i64, crate::deformation::SmallMotion)>,
+    ) {
+        let series = match source {
+            ResultSource::Raw => Series::Raw(target),
+            ResultSource::Filtered => Series::Filtered(target),
+        };
+        if self.sender.keep(series, time_ns) {
+            self.records.push(crate::viz::Record::Result {
+                target,
+                time_ns,
+                source,
+                target_from_base,
+                deformation: deformation.map(|(_, d)| d),
+            });
+        }
+    }
+}
+
 /// One ingest job in the transaction: conflict checks against the store, filtering, groups
 /// completed from the store, rows. `Ok(Err(..))` refuses the job alone (no effect on the bank
 /// or the transaction); `Err` aborts the whole transaction.
@@ -262,16 +288,14 @@ pub(super) fn filter_items(
         for raw in &outcome.raw_results {
             report.raw_results += 1;
             let deformation = deformation_of(targets, raw.target, &raw.target_from_base);
-            if let Some(v) = viz.as_mut()
-                && v.sender.keep(Series::Raw(raw.target), raw.time_ns)
-            {
-                v.records.push(crate::viz::Record::Result {
-                    target: raw.target,
-                    time_ns: raw.time_ns,
-                    source: ResultSource::Raw,
-                    target_from_base: raw.target_from_base,
-                    deformation: deformation.map(|(_, d)| d),
-                });
+            if let Some(v) = viz.as_mut() {
+                v.result(
+                    raw.target,
+                    ResultSource::Raw,
+                    raw.time_ns,
+                    raw.target_from_base,
+                    deformation,
+                );
             }
             result_rows.insert(
                 (raw.target, ResultSource::Raw, raw.time_ns),
@@ -284,16 +308,14 @@ pub(super) fn filter_items(
             };
             report.filtered_results += 1;
             let deformation = deformation_of(targets, est.target, &pose);
-            if let Some(v) = viz.as_mut()
-                && v.sender.keep(Series::Filtered(est.target), est.time_ns)
-            {
-                v.records.push(crate::viz::Record::Result {
-                    target: est.target,
-                    time_ns: est.time_ns,
-                    source: ResultSource::Filtered,
-                    target_from_base: pose,
-                    deformation: deformation.map(|(_, d)| d),
-                });
+            if let Some(v) = viz.as_mut() {
+                v.result(
+                    est.target,
+                    ResultSource::Filtered,
+                    est.time_ns,
+                    pose,
+                    deformation,
+                );
             }
             result_rows.insert(
                 (est.target, ResultSource::Filtered, est.time_ns),
