@@ -15,9 +15,9 @@
 //! (checks of values before they reach a row, the merge of rollups, the planning of a history)
 //! lives here, once; the backends hold only their statements. Conventions of both schemas:
 //! times are integer nanoseconds since the Unix epoch (UTC), lengths millimetres, rotations
-//! unit quaternions, covariances 36 little-endian f64 (column-major) in a byte string; a
-//! result's two covariances, written since they are kept as their upper triangle, 21 (column by
-//! column; rows written before hold 36, and both read).
+//! unit quaternions, covariances 36 little-endian f64 (column-major) in a byte string, except
+//! a result's two covariances, now written as the 21 of their upper triangle (column by
+//! column; older rows hold 36, and both forms read).
 
 /// Runs the same expression on whichever backend `$value` holds.
 macro_rules! on_backend {
