@@ -606,6 +606,15 @@ async fn postgres_start_up_refusals_name_the_reason() {
         err.contains("cannot prepare the schema") && err.contains("permission denied"),
         "{err}"
     );
+    // It had taken the writer's lock, and gave it back before it answered: a start-up right
+    // after is not refused as a second writer.
+    assert_eq!(
+        cluster.psql(
+            &name,
+            "select count(*) from pg_locks where locktype = 'advisory'"
+        ),
+        "0"
+    );
 
     let inst = at(&url);
     let (store, write) = store::open(&inst, T0_NS).await.expect("the first writer");

@@ -70,16 +70,14 @@ pub(super) async fn open(
         StoreError::WriterLocked => refused("cannot write", e),
         e => refused("cannot connect", e),
     })?;
-    super::migrations::POSTGRES
-        .run(&mut conn)
-        .await
-        .map_err(|e| {
-            refused(
-                "cannot prepare the schema (the role needs to create tables in the database, and \
+    if let Err(e) = super::migrations::POSTGRES.run(&mut conn).await {
+        release_lock(conn).await;
+        return Err(refused(
+            "cannot prepare the schema (the role needs to create tables in the database, and \
              the pg_partman extension must be installed, or the role allowed to create it)",
-                e.into(),
-            )
-        })?;
+            e.into(),
+        ));
+    }
     let ready = async {
         maintain(&mut conn).await?;
         let mut link_ids = Vec::with_capacity(link_names.len());
@@ -97,9 +95,13 @@ pub(super) async fn open(
             .await?;
         StoreResult::Ok((link_ids, target_ids, pool))
     };
-    let (link_ids, target_ids, pool) = ready
-        .await
-        .map_err(|e| refused("cannot prepare the database", e))?;
+    let (link_ids, target_ids, pool) = match ready.await {
+        Ok(ready) => ready,
+        Err(e) => {
+            release_lock(conn).await;
+            return Err(refused("cannot prepare the database", e));
+        }
+    };
     Ok((
         Reader {
             pool,
@@ -110,6 +112,18 @@ pub(super) async fn open(
         link_ids,
         target_ids,
     ))
+}
+
+/// Gives the writer's lock back on the connection of a start-up that failed after taking it,
+/// before closing it: dropped, the connection would keep the lock until the server noticed,
+/// and a start-up right after (a supervisor's restart) would be refused as a second writer.
+async fn release_lock(mut conn: PgConnection) {
+    let _ = sqlx::query("rollback").execute(&mut conn).await;
+    let _ = sqlx::query("select pg_advisory_unlock($1)")
+        .bind(WRITER_LOCK)
+        .execute(&mut conn)
+        .await;
+    let _ = conn.close().await;
 }
 
 /// Opens the database at `url` for reading only (while a service writes to it): no
