@@ -479,6 +479,25 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
         ingest_rate = rate;
         println!("ingest over HTTP: {total} samples in {elapsed:.2} s = {rate:.0} samples/s ({clients} clients, batches of {n}, durable before each answer)");
         println!("server peak RSS during ingest: {rss:.1} MB");
+        // How the writer grouped the requests: commits, groups filtered while the commit
+        // before was written, and requests read first (arrived out of order, so they may
+        // repeat stored samples).
+        let metrics = client.get(format!("{base}/metrics")).send().await.expect("metrics");
+        let text = metrics.text().await.expect("metrics text");
+        let counters: Vec<&str> = text
+            .lines()
+            .filter(|l| {
+                [
+                    "brokenray_commit_seconds_count ",
+                    "brokenray_groups_filtered_ahead_total ",
+                    "brokenray_ingest_read_first_total ",
+                    "brokenray_ingest_read_during_commit_total ",
+                ]
+                .iter()
+                .any(|name| l.starts_with(name))
+            })
+            .collect();
+        println!("writer: {}", counters.join(", "));
         if sse_clients > 0 {
             println!(
                 "{sse_clients} event-stream clients connected, {} result events delivered to them",

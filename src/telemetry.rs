@@ -170,6 +170,16 @@ pub fn render(sources: &Sources<'_>) -> String {
             &m.groups_filtered_ahead,
         ),
         (
+            "brokenray_ingest_read_first_total",
+            "Ingest requests that may repeat stored samples (a retry, a late batch), read from the store before filtering.",
+            &m.ingest_read_first,
+        ),
+        (
+            "brokenray_ingest_read_during_commit_total",
+            "Of the ingest requests read first, those read while the commit before them was being written.",
+            &m.ingest_read_during_commit,
+        ),
+        (
             "brokenray_connections_refused_total",
             "Connections closed on arrival: a connection limit was reached and every connection was busy with a request.",
             &m.connections.refused,

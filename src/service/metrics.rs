@@ -23,6 +23,12 @@ pub struct Metrics {
     pub commits_failed: AtomicU64,
     /// Groups of ingest requests filtered while the commit before them was being written.
     pub groups_filtered_ahead: AtomicU64,
+    /// Ingest requests that may repeat stored samples (a retry, a late batch), whose links'
+    /// stored samples were read before filtering.
+    pub ingest_read_first: AtomicU64,
+    /// Of those, the ones read while a commit was being written (the committed samples
+    /// through a reader, the commit's own in memory) rather than after waiting for it.
+    pub ingest_read_during_commit: AtomicU64,
     /// Sum of commit durations (microseconds).
     pub commit_micros_sum: AtomicU64,
     /// Longest commit (microseconds).

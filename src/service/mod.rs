@@ -13,10 +13,12 @@
 //! samples newer than any stored for their links (so no read of the store can be needed),
 //! takes into that group the requests of new samples that arrive until the commit lands (one
 //! `fsync` for all that waited), then sends its own. An ingest request that may repeat
-//! stored samples (a retry, a late batch) waits for the commit in flight, has the stored
-//! samples of its links over its span read on the write connection (everything there is, as
-//! nothing is in flight), and is then filtered and written the same way, so that the requests
-//! after it are filtered meanwhile (`pipeline::ahead`; an ingest job's checks, filtering and
+//! stored samples (a retry, a late batch) joins such a group too, once what is stored before
+//! it is known: the committed samples of its links over its span, read through the store's
+//! read side while the commit is written, with the samples of the commit in flight and of the
+//! group's earlier requests from memory (only the pipeline writes samples, so that is all
+//! there is; when that read fails, it waits for the commit and reads on the write connection)
+//! (`pipeline::ahead`; an ingest job's checks, filtering and
 //! rows are `pipeline::filtering`, the other jobs' work in a transaction `pipeline::apply`).
 //! Readers and requesters never see the
 //! bank run ahead: a commit's snapshot is the one taken when its group was filtered, published
@@ -468,7 +470,7 @@ impl Service {
         let inner = Arc::new(Inner {
             events: events.clone(),
             installation: Arc::clone(&installation),
-            store,
+            store: store.clone(),
             jobs,
             snapshot: Arc::clone(&slot),
             metrics: Arc::clone(&metrics),
@@ -489,6 +491,7 @@ impl Service {
         let task = tokio::spawn(pipeline::run(
             pipeline::Pipeline::new(
                 write,
+                store,
                 bank,
                 targets,
                 digest,

@@ -517,6 +517,24 @@ impl Store {
         rows.into_iter().map(rows::SampleRow::into_sample).collect()
     }
 
+    /// The committed samples of a link with times in `[from_ns, to_ns]`, with their values,
+    /// read through a reader: for the writer, which must know what is stored before it
+    /// filters a batch that may repeat it, while a commit of its own is still being written.
+    pub async fn sample_values(
+        &self,
+        link: LinkId,
+        from_ns: i64,
+        to_ns: i64,
+    ) -> StoreResult<Vec<(i64, SampleValues)>> {
+        let id = self.link_ids[link.0];
+        let rows: Vec<rows::SampleRow> = query_on!(
+            &self.reader, Reader, r => &r.pool,
+            &sql::SAMPLES_IN, [id, from_ns, to_ns, i64::MAX],
+            fetch_all
+        )?;
+        write::times_and_values(rows)
+    }
+
     /// Stored results of a target in `[from_ns, to_ns]`, oldest first, at most `limit`.
     pub async fn results(
         &self,

@@ -131,7 +131,9 @@ pub struct WriteTx<'c> {
 }
 
 /// Sample rows as their times and values.
-fn times_and_values(rows: Vec<rows::SampleRow>) -> StoreResult<Vec<(i64, SampleValues)>> {
+pub(super) fn times_and_values(
+    rows: Vec<rows::SampleRow>,
+) -> StoreResult<Vec<(i64, SampleValues)>> {
     rows.into_iter()
         .map(|r| Ok((r.time_ns, r.values()?)))
         .collect()

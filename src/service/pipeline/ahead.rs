@@ -1,16 +1,19 @@
 //! Filtering ahead: the next group of ingest requests is filtered while the commit before it
-//! is written by a task of its own ([`InFlight`]), and a request that may repeat stored samples
-//! is filtered after a read of what is stored, with nothing in flight. See the module docs of
-//! [`crate::service`].
+//! is written by a task of its own ([`InFlight`]). A request that may repeat stored samples is
+//! filtered after a read of what is stored before it: the committed samples through the
+//! store's read side, with those of the commit in flight and of its group's earlier requests
+//! from memory. See the module docs of [`crate::service`].
 
 use super::*;
+use std::sync::Arc;
+use std::sync::atomic::Ordering::Relaxed;
 
 impl Pipeline {
     /// How many of the group's first jobs are filtered one by one after a read of the stored
-    /// samples, rather than inside a transaction of their own: with Rerun off, the ingest
-    /// jobs up to the last that may repeat stored samples (one not newer than everything of
-    /// its links before it) or is not an ingest, so that the jobs after them are all new.
-    /// One pass over the group.
+    /// samples (each the first of a group filtered ahead), rather than inside a transaction
+    /// of their own: with Rerun off, the ingest jobs up to the last that may repeat stored
+    /// samples (one not newer than everything of its links before it) or is not an ingest,
+    /// so that the jobs after them are all new. One pass over the group.
     pub(super) fn read_first_count(&self, jobs: &[Job]) -> usize {
         if self.viz.enabled() {
             return 0;
@@ -34,28 +37,69 @@ impl Pipeline {
         through_last_not_new.min(ingest_first)
     }
 
+    /// The samples stored before a request that may repeat them, while a commit is being
+    /// written: the committed ones over the request's spans, read through the store's read
+    /// side, with the samples of the commit in flight and of the group's earlier jobs
+    /// (`group`) from memory. A commit that lands during the read is then seen twice, with
+    /// the same values. Only this pipeline writes samples, and nothing else of it is
+    /// unconcluded, so that is all there is.
+    pub(super) async fn stored_during_commit(
+        &self,
+        items: &[IngestItem],
+        group: &[(Job, JobRows)],
+    ) -> Result<HashMap<(LinkId, i64), SampleValues>, StoreError> {
+        let mut stored = stored_over_spans(&mut SampleSource::Reader(&self.read), items).await?;
+        let spans = spans_of(items);
+        let in_flight = self.in_flight.iter().flat_map(|f| f.rows.iter());
+        for rows in in_flight.chain(group.iter().map(|(_, rows)| rows)) {
+            for s in &rows.samples {
+                let within = spans
+                    .get(&s.link)
+                    .is_some_and(|&(from, to)| from <= s.time_ns && s.time_ns <= to);
+                if within {
+                    stored.insert((s.link, s.time_ns), s.values);
+                }
+            }
+        }
+        self.metrics.ingest_read_first.fetch_add(1, Relaxed);
+        self.metrics.ingest_read_during_commit.fetch_add(1, Relaxed);
+        Ok(stored)
+    }
+
     /// Filters one ingest request after reading the stored samples of its links over its
-    /// span (once the commit before it has landed, so that what is read is all there is),
-    /// then sends its rows to be written while the next requests are filtered. When the read
-    /// fails, the request goes through a transaction of its own, which meets the same
-    /// failure and answers it.
+    /// span, as the first of a group filtered ahead: while a commit is in flight, through
+    /// [`Self::stored_during_commit`]; otherwise (or when that read fails) on the write
+    /// connection once that commit has landed, so that what is read is all there is. When
+    /// that read fails too, the request goes through a transaction of its own, which meets
+    /// the same failure and answers it.
     pub(super) async fn filter_after_reading(
         &mut self,
         job: Job,
         rx: &mut mpsc::Receiver<Job>,
         publish: &impl Fn(Snapshot),
     ) {
-        // A failure of the commit in flight was concluded there: the bank and targets are
-        // back at the last committed state, on which this request now runs.
-        let _ = self.settle(publish).await;
         let Job::Ingest(call) = &job else {
             unreachable!("only ingest requests are read for first")
         };
+        if self.in_flight.is_some() {
+            match self.stored_during_commit(&call.request, &[]).await {
+                Ok(stored) => return self.filter_ahead(vec![job], &stored, rx, publish).await,
+                Err(e) => {
+                    tracing::warn!(error = %e, "reading the stored samples while a commit is written");
+                }
+            }
+        }
+        // A failure of the commit in flight was concluded there: the bank and targets are
+        // back at the last committed state, on which this request now runs.
+        let _ = self.settle(publish).await;
         let Some(write) = self.write.as_mut() else {
             unreachable!("the write connection is back once the commit before has settled")
         };
         match stored_over_spans(&mut SampleSource::Committed(write), &call.request).await {
-            Ok(stored) => self.filter_ahead(vec![job], &stored, rx, publish).await,
+            Ok(stored) => {
+                self.metrics.ingest_read_first.fetch_add(1, Relaxed);
+                self.filter_ahead(vec![job], &stored, rx, publish).await;
+            }
             Err(e) => {
                 tracing::warn!(error = %e, "reading the stored samples before filtering");
                 let targets_before = self.targets.clone();
@@ -65,9 +109,11 @@ impl Pipeline {
         }
     }
 
-    /// Filters a group of new samples while the commit before it is written, taking into it
-    /// the requests of new samples that arrive until that commit lands, then sends this
-    /// group's rows to be written in turn. When that commit fails,
+    /// Filters a group of ingest requests while the commit before it is written, taking into
+    /// it the ingest requests that arrive until that commit lands (one that may repeat stored
+    /// samples after [`Self::stored_during_commit`]), then sends this group's rows to be
+    /// written in turn. `stored`: what is stored over the first job's spans, when it may
+    /// repeat it (the others' are all new). When that commit fails,
     /// the bank and the targets return to its state before it and this group is refused too
     /// (nothing of it was written). A job whose samples complete groups older than memory
     /// needs the store: the group then goes on in the pipeline's own transaction once the
@@ -97,8 +143,8 @@ impl Pipeline {
             }
         }
         let rest: Vec<Job> = rest.collect();
-        // While the commit before is written, later requests of new samples join this group
-        // (one commit, one `fsync`, for as many requests as waited), until it lands.
+        // While the commit before is written, later ingest requests join this group (one
+        // commit, one `fsync`, for as many requests as waited), until it lands.
         let mut landed: Option<Result<(), String>> = None;
         while matches!(stop, Ahead::Next) && filtered.len() < MAX_JOBS_PER_COMMIT {
             let Some(flight) = self.in_flight.as_mut() else {
@@ -113,12 +159,26 @@ impl Pipeline {
                 job = rx.recv() => job,
             };
             let Some(job) = job else { break };
-            if !self.all_new_samples(std::slice::from_ref(&job)) {
-                self.held = Some(job);
-                break;
-            }
+            let stored = if self.all_new_samples(std::slice::from_ref(&job)) {
+                HashMap::new()
+            } else {
+                // A request that may repeat stored samples joins too, once what is stored
+                // before it is known: committed, in flight, or earlier in this group.
+                let Job::Ingest(call) = &job else {
+                    self.held = Some(job);
+                    break;
+                };
+                match self.stored_during_commit(&call.request, &filtered).await {
+                    Ok(stored) => stored,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "reading the stored samples while a commit is written");
+                        self.held = Some(job);
+                        break;
+                    }
+                }
+            };
             self.count_samples(std::slice::from_ref(&job));
-            stop = self.filter_job_ahead(job, now, &HashMap::new(), &mut filtered);
+            stop = self.filter_job_ahead(job, now, &stored, &mut filtered);
         }
         let settled = match landed {
             Some(result) => result,
@@ -186,18 +246,20 @@ impl Pipeline {
         };
         let snapshot = self.snapshot();
         let (jobs, rows): (Vec<Job>, Vec<JobRows>) = filtered.into_iter().unzip();
+        let rows: Arc<[JobRows]> = rows.into();
         let Some(write) = self.write.take() else {
             unreachable!("the write connection is back once the commit before has settled")
         };
         let handle = tokio::spawn(write_in_flight(
             write,
-            rows,
+            Arc::clone(&rows),
             self.digest.clone(),
             state_json,
             now,
         ));
         self.in_flight = Some(InFlight {
             handle,
+            rows,
             done: Done {
                 jobs,
                 effects: Effects::default(),
@@ -334,6 +396,8 @@ type InFlightOutcome = (WriteConn, Result<Vec<StoredAlarm>, StoreError>);
 /// A commit being written by a task of its own while the pipeline filters the next group.
 pub(super) struct InFlight {
     pub(super) handle: tokio::task::JoinHandle<InFlightOutcome>,
+    /// Its rows, for requests filtered before it lands that may repeat its samples.
+    pub(super) rows: Arc<[JobRows]>,
     pub(super) done: Done,
 }
 
@@ -341,7 +405,7 @@ pub(super) struct InFlight {
 /// connection it hands back.
 async fn write_in_flight(
     mut write: WriteConn,
-    rows: Vec<JobRows>,
+    rows: Arc<[JobRows]>,
     digest: String,
     state_json: String,
     now: i64,
@@ -349,7 +413,7 @@ async fn write_in_flight(
     let outcome = async {
         let mut tx = write.begin(now).await?;
         let mut alarms = Vec::new();
-        for job in &rows {
+        for job in rows.iter() {
             alarms.extend(write_rows(&mut tx, job, now).await?);
         }
         tx.save_filter_state(&digest, &state_json, now).await?;

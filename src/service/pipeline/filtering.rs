@@ -108,6 +108,17 @@ pub(super) async fn stored_over_spans(
     source: &mut SampleSource<'_, '_>,
     items: &[IngestItem],
 ) -> Result<HashMap<(LinkId, i64), SampleValues>, StoreError> {
+    let mut stored = HashMap::new();
+    for (link, (from, to)) in spans_of(items) {
+        for (t, v) in source.samples(link, from, to).await? {
+            stored.insert((link, t), v);
+        }
+    }
+    Ok(stored)
+}
+
+/// Each link's span of a batch's times, `(first, last)`.
+pub(super) fn spans_of(items: &[IngestItem]) -> HashMap<LinkId, (i64, i64)> {
     let mut spans: HashMap<LinkId, (i64, i64)> = HashMap::new();
     for item in items {
         let e = spans
@@ -116,13 +127,7 @@ pub(super) async fn stored_over_spans(
         e.0 = e.0.min(item.sample.time_ns);
         e.1 = e.1.max(item.sample.time_ns);
     }
-    let mut stored = HashMap::new();
-    for (link, (from, to)) in spans {
-        for (t, v) in source.samples(link, from, to).await? {
-            stored.insert((link, t), v);
-        }
-    }
-    Ok(stored)
+    spans
 }
 
 /// Every item's measurement, checked before the bank sees any of them; the refusal names the
@@ -356,6 +361,8 @@ pub(super) fn filter_items(
 pub(super) enum SampleSource<'a, 'c> {
     Tx(&'a mut WriteTx<'c>),
     Committed(&'a mut WriteConn),
+    /// What is committed, through the store's read side (while a commit is in flight).
+    Reader(&'a Store),
 }
 
 impl SampleSource<'_, '_> {
@@ -369,6 +376,7 @@ impl SampleSource<'_, '_> {
         match self {
             Self::Tx(tx) => tx.existing_samples(link, from_ns, to_ns).await,
             Self::Committed(write) => write.stored_samples(link, from_ns, to_ns).await,
+            Self::Reader(store) => store.sample_values(link, from_ns, to_ns).await,
         }
     }
 }

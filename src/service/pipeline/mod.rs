@@ -15,7 +15,7 @@ use crate::model::TargetId;
 use crate::store::WriteTx;
 use crate::store::outbox::KeepUnsent;
 use crate::store::{
-    NewResult, NewSample, Quality, SampleValues, StoreError, StoredAlarm, WriteConn,
+    NewResult, NewSample, Quality, SampleValues, Store, StoreError, StoredAlarm, WriteConn,
 };
 use crate::viz::Series;
 use std::collections::{BTreeMap, HashMap};
@@ -29,7 +29,7 @@ use ahead::{Done, InFlight};
 use apply::{Effects, Step, apply};
 use filtering::{
     Ahead, Filtered, JobRows, SampleSource, VizCollect, complete_stored_groups, filter_items,
-    ingest, measurements_of, stored_over_spans, write_rows,
+    ingest, measurements_of, spans_of, stored_over_spans, write_rows,
 };
 
 /// At most this many queued jobs share one commit (bounds the latency of the first).
@@ -74,6 +74,8 @@ pub struct IngestReport {
 pub(super) struct Pipeline {
     /// The write connection; with the commit in flight while one is (see [`InFlight`]).
     write: Option<WriteConn>,
+    /// The store's read side: what is committed, read while a commit is in flight.
+    read: Store,
     /// The commit whose rows are being written while the next group is filtered.
     in_flight: Option<InFlight>,
     /// Per link: at least the newest time of any sample stored or on its way to the store
@@ -120,6 +122,7 @@ impl Pipeline {
     /// `newest_sample_ns`: per link, the time of its newest stored sample.
     pub(super) fn new(
         write: WriteConn,
+        read: Store,
         bank: FilterBank,
         targets: Vec<TargetView>,
         digest: String,
@@ -144,6 +147,7 @@ impl Pipeline {
             events,
             last_event_ns,
             write: Some(write),
+            read,
             in_flight: None,
             newest_sample_ns,
             held: None,
@@ -239,8 +243,9 @@ impl Pipeline {
     ///
     /// A group of ingest jobs whose samples are all newer than their links' stored ones is
     /// filtered while the commit before it is still being written ([`Self::filter_ahead`]).
-    /// An ingest job that may repeat stored samples waits for that commit, has the stored
-    /// samples over its span read, and is then written the same way
+    /// An ingest job that may repeat stored samples has the stored samples over its span read
+    /// first (the committed ones through the store's read side while that commit is written,
+    /// with the commit's own from memory), and is then filtered and written the same way
     /// ([`Self::filter_after_reading`]). Any other group waits for that commit and runs in a
     /// transaction of the pipeline's own.
     async fn commit_group(
@@ -250,8 +255,8 @@ impl Pipeline {
         publish: &impl Fn(Snapshot),
     ) {
         // A request that may repeat stored samples (a retry, a late batch) has its links'
-        // stored samples read first, once the commit before it has landed; it is then filtered
-        // and written as one filtered ahead is, and the requests after it go on meanwhile.
+        // stored samples read first; it is then filtered and written as one filtered ahead
+        // is, and the requests after it go on meanwhile.
         let read_first: Vec<Job> = jobs.drain(..self.read_first_count(&jobs)).collect();
         for job in read_first {
             self.count_samples(std::slice::from_ref(&job));

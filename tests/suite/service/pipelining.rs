@@ -119,16 +119,17 @@ fn hold_write_lock(app: &TestApp) -> rusqlite::Connection {
     conn
 }
 
-/// Sends `batches` to `app` and gives their answers in order: the first while the service's
-/// write lock is held elsewhere, so that its commit waits in flight and the second arrives
-/// while it does (it is filtered ahead); then `in_the_lock` runs in the lock's transaction,
-/// which commits, and the rest go up to three on their way at once. This runtime runs its
-/// tasks in the order they were spawned, and a request is spawned only once the one before
-/// has reached the writer or been answered, so the requests reach the writer in the order
-/// given.
+/// Sends `batches` to `app` and gives their answers in order: the first `held` while the
+/// service's write lock is held elsewhere, so that the first one's commit waits in flight and
+/// the others arrive while it does (they are filtered ahead, into one group); then
+/// `in_the_lock` runs in the lock's transaction, which commits, and the rest go up to three on
+/// their way at once. This runtime runs its tasks in the order they were spawned, and a
+/// request is spawned only once the one before has reached the writer or been answered, so
+/// the requests reach the writer in the order given.
 async fn send_overlapping(
     app: &TestApp,
     batches: &[Vec<IngestItem>],
+    held: usize,
     in_the_lock: impl FnOnce(&rusqlite::Connection),
 ) -> Vec<ServiceResult<IngestReport>> {
     let spawn = |items: Vec<IngestItem>| {
@@ -137,16 +138,16 @@ async fn send_overlapping(
     };
     let lock = hold_write_lock(app);
     let mut on_their_way = std::collections::VecDeque::new();
-    on_their_way.push_back(spawn(batches[0].clone()));
-    // The runtime idles only once the writer has taken the first batch, filtered it and
-    // sent its commit, which then waits for the lock.
-    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-    on_their_way.push_back(spawn(batches[1].clone()));
-    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    // The runtime idles only once the writer has taken a batch and filtered it (the first
+    // one's commit then waits for the lock).
+    for b in &batches[..held] {
+        on_their_way.push_back(spawn(b.clone()));
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
     in_the_lock(&lock);
     lock.execute_batch("commit").expect("the lock released");
     let mut answers = Vec::new();
-    for b in &batches[2..] {
+    for b in &batches[held..] {
         on_their_way.push_back(spawn(b.clone()));
         if on_their_way.len() == 3
             && let Some(first) = on_their_way.pop_front()
@@ -169,7 +170,7 @@ async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_ti
         serial_answers.push(one_at_a_time.service.ingest(b.clone()).await);
     }
     let without_waiting = TestApp::start(None).await;
-    let paced_answers = send_overlapping(&without_waiting, &batches, |_| {}).await;
+    let paced_answers = send_overlapping(&without_waiting, &batches, 2, |_| {}).await;
     // With Rerun on (a viewer that is not there), every request goes through a transaction
     // of the writer's own, which reads what is stored inside it.
     let in_transactions = TestApp::start(Some(&super::recordings::with_rerun(
@@ -237,6 +238,82 @@ async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_ti
     assert_eq!(Metrics::get(&metrics.commits_failed), 0);
 }
 
+/// Retries of samples not yet committed: a batch again while its own commit waits in flight,
+/// a batch again in the group filtered behind that commit, right after the batch itself, and a
+/// sample of the first batch again once the group behind it is in flight. What is stored before
+/// each comes from a reader (the committed samples) and from memory (the commit in flight, the
+/// group's earlier requests): each must be answered as a duplicate and stored once, as when
+/// the same requests come one at a time.
+#[tokio::test]
+async fn retries_of_samples_in_flight_or_earlier_in_the_group_are_duplicates_of_them() {
+    let one_at_a_time = TestApp::start(None).await;
+    let plain = requests(&one_at_a_time);
+    let mut late = plain[2].clone();
+    let mut again = plain[0][1];
+    again.index = late.len();
+    late.push(again);
+    let batches = vec![
+        plain[0].clone(),
+        plain[0].clone(),
+        plain[1].clone(),
+        plain[1].clone(),
+        late,
+        plain[3].clone(),
+    ];
+    let mut serial_answers = Vec::new();
+    for b in &batches {
+        serial_answers.push(one_at_a_time.service.ingest(b.clone()).await);
+    }
+    let without_waiting = TestApp::start(None).await;
+    let overlapping = send_overlapping(&without_waiting, &batches, 4, |_| {}).await;
+
+    for retry in [1, 3] {
+        let report = serial_answers[retry].as_ref().expect("a retry is accepted");
+        assert_eq!(
+            (report.duplicates, report.stored),
+            (batches[retry].len(), 0),
+            "{report:?}"
+        );
+    }
+    let late = serial_answers[4].as_ref().expect("the late sample's batch");
+    assert_eq!(late.duplicates, 1, "{late:?}");
+    assert_eq!(answers(&overlapping), answers(&serial_answers));
+    let (serial_samples, serial_results) = stored(&one_at_a_time).await;
+    assert_eq!(
+        serial_samples.len(),
+        4 * GROUPS_PER_BATCH * 3,
+        "each sample once"
+    );
+    assert_eq!(
+        stored(&without_waiting).await,
+        (serial_samples, serial_results)
+    );
+    let metrics = without_waiting.service.metrics();
+    // The two retries sent while the lock was held were read while a commit was in flight.
+    assert!(
+        Metrics::get(&metrics.ingest_read_during_commit) >= 2,
+        "{}",
+        Metrics::get(&metrics.ingest_read_during_commit)
+    );
+    assert_eq!(
+        Metrics::get(&metrics.ingest_read_first),
+        3,
+        "each retry read once"
+    );
+    assert!(Metrics::get(&metrics.groups_filtered_ahead) >= 1);
+    assert_eq!(Metrics::get(&metrics.commits_failed), 0);
+    // One at a time, every commit has landed before the next request: the retries are read
+    // on the write connection.
+    let serial = one_at_a_time.service.metrics();
+    assert_eq!(
+        (
+            Metrics::get(&serial.ingest_read_first),
+            Metrics::get(&serial.ingest_read_during_commit)
+        ),
+        (3, 0)
+    );
+}
+
 #[tokio::test]
 async fn when_a_commit_fails_the_batch_filtered_behind_it_is_refused_and_retries_store_all() {
     let one_at_a_time = TestApp::start(None).await;
@@ -250,7 +327,7 @@ async fn when_a_commit_fails_the_batch_filtered_behind_it_is_refused_and_retries
     // The database refuses the first batch's last sample as first received, so its commit
     // fails after the second batch was filtered on top of it.
     let refused_ns = batches[0].last().expect("a sample").sample.time_ns;
-    let answers = send_overlapping(&failing, &batches[..2], |lock| {
+    let answers = send_overlapping(&failing, &batches[..2], 2, |lock| {
         lock.execute_batch(&format!(
             "create trigger planted before insert on samples \
              when new.time_ns = {refused_ns} and new.received_ns = {START_NS} \
