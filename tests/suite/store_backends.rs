@@ -607,11 +607,13 @@ async fn postgres_start_up_refusals_name_the_reason() {
         "{err}"
     );
     // It had taken the writer's lock, and gave it back before it answered: a start-up right
-    // after is not refused as a second writer.
+    // after is not refused as a second writer. (The cluster is shared with other tests: only
+    // this database's locks count.)
     assert_eq!(
         cluster.psql(
             &name,
-            "select count(*) from pg_locks where locktype = 'advisory'"
+            "select count(*) from pg_locks where locktype = 'advisory' and database = \
+             (select oid from pg_database where datname = current_database())"
         ),
         "0"
     );

@@ -114,13 +114,13 @@ pub(super) async fn open(
     ))
 }
 
-/// Gives the writer's lock back on the connection of a start-up that failed after taking it,
-/// before closing it: dropped, the connection would keep the lock until the server noticed,
-/// and a start-up right after (a supervisor's restart) would be refused as a second writer.
+/// Gives back the locks of a start-up that failed after taking them (the writer's, and the
+/// migrations' own when they failed holding it), before closing its connection: dropped, the
+/// connection would keep them until the server noticed, and a start-up right after (a
+/// supervisor's restart) would be refused as a second writer.
 async fn release_lock(mut conn: PgConnection) {
     let _ = sqlx::query("rollback").execute(&mut conn).await;
-    let _ = sqlx::query("select pg_advisory_unlock($1)")
-        .bind(WRITER_LOCK)
+    let _ = sqlx::query("select pg_advisory_unlock_all()")
         .execute(&mut conn)
         .await;
     let _ = conn.close().await;
