@@ -9,20 +9,20 @@
 //! last commit and the jobs are answered with an error.
 //!
 //! While one commit's rows are written (by a task of its own, on the write connection it
-//! takes along), the pipeline filters the next group when that group is ingest alone with
-//! samples newer than any stored for their links (so no read of the store can be needed),
-//! takes into that group the requests of new samples that arrive until the commit lands (one
-//! `fsync` for all that waited), then sends its own. An ingest request that may repeat
-//! stored samples (a retry, a late batch) joins such a group too, once what is stored before
-//! it is known: the committed samples of its links over its span, read through the store's
-//! read side while the commit is written, with the samples of the commit in flight and of the
-//! group's earlier requests from memory (only the pipeline writes samples, so that is all
-//! there is; when that read fails, it waits for the commit and reads on the write connection)
-//! (`pipeline::ahead`; an ingest job's checks, filtering and
-//! rows are `pipeline::filtering`, the other jobs' work in a transaction `pipeline::apply`).
-//! Readers and requesters never see the
-//! bank run ahead: a commit's snapshot is the one taken when its group was filtered, published
-//! once it has committed, and if it fails the group filtered behind it is refused too.
+//! takes along), the pipeline filters the next group when that group is ingest alone, takes
+//! into that group the ingest requests that arrive until the commit lands (one `fsync` for
+//! all that waited), then sends its own. A request whose samples are all newer than any
+//! stored for their links needs no read of the store. One that may repeat stored samples (a
+//! retry, a late batch) is filtered once what is stored before it is known: the committed
+//! samples of its links over its span, read through the store's read side while the commit
+//! is written, with the samples of the commit in flight and of the group's earlier requests
+//! from memory. Only the pipeline writes samples, so that is all there is; when that read
+//! fails, the request waits for the commit and is read on the write connection
+//! (`pipeline::ahead`; an ingest job's checks, filtering and rows are `pipeline::filtering`,
+//! the other jobs' work in a transaction `pipeline::apply`). Readers and requesters never see
+//! the bank run ahead: a commit's snapshot is the one taken when its group was filtered,
+//! published once it has committed, and if it fails the group filtered behind it is refused
+//! too.
 //!
 //! After each commit the pipeline publishes a [`Snapshot`] (latest filtered result, deformation
 //! and reference per target, link counters, and a view of the filters for predictions), which
