@@ -526,13 +526,8 @@ impl Store {
         from_ns: i64,
         to_ns: i64,
     ) -> StoreResult<Vec<(i64, SampleValues)>> {
-        let id = self.link_ids[link.0];
-        let rows: Vec<rows::SampleRow> = query_on!(
-            &self.reader, Reader, r => &r.pool,
-            &sql::SAMPLES_IN, [id, from_ns, to_ns, i64::MAX],
-            fetch_all
-        )?;
-        write::times_and_values(rows)
+        let samples = self.samples(link, from_ns, to_ns, i64::MAX).await?;
+        Ok(samples.into_iter().map(|s| (s.time_ns, s.values)).collect())
     }
 
     /// Stored results of a target in `[from_ns, to_ns]`, oldest first, at most `limit`.
