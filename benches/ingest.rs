@@ -492,6 +492,7 @@ fn measure(backend: &str, dir: &std::path::Path, clients: usize, batches: usize,
                     "brokenray_groups_filtered_ahead_total ",
                     "brokenray_ingest_read_first_total ",
                     "brokenray_ingest_read_during_commit_total ",
+                    "brokenray_ingest_old_groups_from_store_total ",
                 ]
                 .iter()
                 .any(|name| l.starts_with(name))

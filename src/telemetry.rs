@@ -180,6 +180,11 @@ pub fn render(sources: &Sources<'_>) -> String {
             &m.ingest_read_during_commit,
         ),
         (
+            "brokenray_ingest_old_groups_from_store_total",
+            "Ingest requests whose samples older than the filters' memory needed other links' stored samples: they waited for the commit before them.",
+            &m.ingest_old_groups_from_store,
+        ),
+        (
             "brokenray_connections_refused_total",
             "Connections closed on arrival: a connection limit was reached and every connection was busy with a request.",
             &m.connections.refused,

@@ -29,6 +29,11 @@ pub struct Metrics {
     /// Of those, the ones read while a commit was being written (the committed samples
     /// through a reader, the commit's own in memory) rather than after waiting for it.
     pub ingest_read_during_commit: AtomicU64,
+    /// Ingest requests filtered ahead whose samples older than the filters' memory needed
+    /// other links' stored samples to complete their groups: they waited for the commit
+    /// before them and went on in a transaction of the writer's own. (A late batch of whole
+    /// groups completes them from its own samples and is not counted.)
+    pub ingest_old_groups_from_store: AtomicU64,
     /// Sum of commit durations (microseconds).
     pub commit_micros_sum: AtomicU64,
     /// Longest commit (microseconds).

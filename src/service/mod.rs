@@ -11,9 +11,14 @@
 //! While one commit's rows are written (by a task of its own, on the write connection it
 //! takes along), the pipeline filters the next group when that group is ingest alone, takes
 //! into that group the ingest requests that arrive until the commit lands (one `fsync` for
-//! all that waited), then sends its own. A request whose samples are all newer than any
-//! stored for their links needs no read of the store. One that may repeat stored samples (a
-//! retry, a late batch) is filtered once what is stored before it is known: the committed
+//! all that waited), then sends its own. The pipeline keeps, per link, a few intervals of
+//! time that cover every sample stored or on its way (`pipeline::spans`). A request whose
+//! samples of each link lie outside that link's intervals (new samples, or a late batch that
+//! fills a gap) needs no read of the store. A late batch of whole groups older than the
+//! filters' memory completes those groups from its own samples and is filtered ahead too;
+//! one that needs other links' stored samples waits for the commit. A request that may
+//! repeat stored samples (a retry, a late batch over stored times) is filtered once what is
+//! stored before it is known: the committed
 //! samples of its links over its span, read through the store's read side while the commit
 //! is written, with the samples of the commit in flight and of the group's earlier requests
 //! from memory. Only the pipeline writes samples, so that is all there is; when that read

@@ -5,6 +5,7 @@
 //! from memory. See the module docs of [`crate::service`].
 
 use super::*;
+use futures::FutureExt;
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 
@@ -12,23 +13,29 @@ impl Pipeline {
     /// How many of the group's first jobs are filtered one by one after a read of the stored
     /// samples (each the first of a group filtered ahead), rather than inside a transaction
     /// of their own: with Rerun off, the ingest jobs up to the last that may repeat stored
-    /// samples (one not newer than everything of its links before it) or is not an ingest,
-    /// so that the jobs after them are all new. One pass over the group.
+    /// samples (one whose samples of a link meet that link's cover, including the group's
+    /// jobs before it) or is not an ingest, so that the jobs after them are all new. One pass
+    /// over the group.
     pub(super) fn read_first_count(&self, jobs: &[Job]) -> usize {
         if self.viz.enabled() {
             return 0;
         }
-        let mut newest = self.newest_sample_ns.clone();
+        let mut covered = None;
         let mut through_last_not_new = 0;
         for (i, job) in jobs.iter().enumerate() {
             let Job::Ingest(call) = job else {
                 through_last_not_new = i + 1;
                 continue;
             };
-            if may_repeat(&newest, &call.request) {
+            let cover = covered.as_ref().unwrap_or(&self.covered);
+            if cover.may_repeat(&call.request) {
                 through_last_not_new = i + 1;
             }
-            raise_all(&mut newest, &call.request);
+            if jobs.len() > 1 {
+                covered
+                    .get_or_insert_with(|| self.covered.clone())
+                    .add_all(&call.request);
+            }
         }
         let ingest_first = jobs
             .iter()
@@ -116,8 +123,9 @@ impl Pipeline {
     /// repeat it (the others' are all new). When that commit fails,
     /// the bank and the targets return to its state before it and this group is refused too
     /// (nothing of it was written). A job whose samples complete groups older than memory
-    /// needs the store: the group then goes on in the pipeline's own transaction once the
-    /// commit before it has landed.
+    /// from other links' stored samples needs the store: the group then goes on in the
+    /// pipeline's own transaction once the commit before it has landed. One that holds every
+    /// sample of those groups itself completes them here ([`completes_within_job`]).
     pub(super) async fn filter_ahead(
         &mut self,
         jobs: Vec<Job>,
@@ -371,7 +379,39 @@ impl Pipeline {
                 filtered.push((job, rows));
                 Ahead::Next
             }
-            Ok(Ok(f)) => Ahead::NeedsStore(Box::new((job, f))),
+            // A late batch of whole groups completes them from its own samples: no read.
+            Ok(Ok(mut f)) if completes_within_job(&self.bank, &f) => {
+                let completed = complete_stored_groups(
+                    &mut SampleSource::JobAlone,
+                    &self.bank,
+                    &self.targets,
+                    &mut f,
+                )
+                .now_or_never()
+                .unwrap_or_else(|| {
+                    Err(StoreError::Defect(
+                        "completing a late batch's groups from itself waited".into(),
+                    ))
+                });
+                match completed {
+                    Ok(()) => {
+                        let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
+                        call.answer = Ok(report);
+                        filtered.push((job, rows));
+                        Ahead::Next
+                    }
+                    Err(e) => {
+                        filtered.push((job, JobRows::default()));
+                        Ahead::Defect(e)
+                    }
+                }
+            }
+            Ok(Ok(f)) => {
+                self.metrics
+                    .ingest_old_groups_from_store
+                    .fetch_add(1, Relaxed);
+                Ahead::NeedsStore(Box::new((job, f)))
+            }
         }
     }
 }

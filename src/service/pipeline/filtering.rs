@@ -177,7 +177,8 @@ pub(super) struct Filtered {
 pub(super) enum Ahead {
     /// Yes.
     Next,
-    /// No: this job's samples complete groups older than memory, which needs the store.
+    /// No: this job's samples complete groups older than memory from other links' stored
+    /// samples, which needs the store.
     NeedsStore(Box<(Job, Filtered)>),
     /// No: a defect (the job is among those filtered).
     Defect(StoreError),
@@ -363,6 +364,9 @@ pub(super) enum SampleSource<'a, 'c> {
     Committed(&'a mut WriteConn),
     /// What is committed, through the store's read side (while a commit is in flight).
     Reader(&'a Store),
+    /// No store: the job holds every sample its stored groups need
+    /// ([`completes_within_job`]), so none is read.
+    JobAlone,
 }
 
 impl SampleSource<'_, '_> {
@@ -377,6 +381,10 @@ impl SampleSource<'_, '_> {
             Self::Tx(tx) => tx.existing_samples(link, from_ns, to_ns).await,
             Self::Committed(write) => write.stored_samples(link, from_ns, to_ns).await,
             Self::Reader(store) => store.sample_values(link, from_ns, to_ns).await,
+            Self::JobAlone => Err(StoreError::Defect(format!(
+                "a group completed from its job alone needed a stored sample of link {}",
+                link.0
+            ))),
         }
     }
 }
@@ -405,11 +413,7 @@ pub(super) async fn complete_stored_groups(
                 continue;
             }
             // This job's sample of that instant, else the store's: the nearest in time.
-            let in_job = stored_groups
-                .iter()
-                .filter(|(other, t, _)| *other == l && (t - time_ns).abs() <= tolerance)
-                .min_by_key(|(_, t, _)| (t - time_ns).unsigned_abs())
-                .map(|&(_, t, z)| (t, z));
+            let in_job = job_sample_near(stored_groups, l, time_ns, tolerance);
             if let Some((t, _)) = in_job {
                 latest_of_job = latest_of_job.max((t, l));
             }
@@ -450,6 +454,41 @@ pub(super) async fn complete_stored_groups(
         }
     }
     Ok(())
+}
+
+/// The job's sample of `link` nearest to `time_ns` within `tolerance`, among its samples
+/// whose groups are older than memory.
+fn job_sample_near(
+    stored_groups: &[(LinkId, i64, crate::geometry::PoseCov)],
+    link: LinkId,
+    time_ns: i64,
+    tolerance: i64,
+) -> Option<(i64, crate::geometry::PoseCov)> {
+    stored_groups
+        .iter()
+        .filter(|(other, t, _)| *other == link && (t - time_ns).abs() <= tolerance)
+        .min_by_key(|(_, t, _)| (t - time_ns).unsigned_abs())
+        .map(|&(_, t, z)| (t, z))
+}
+
+/// Whether [`complete_stored_groups`] completes every group of the job's samples older than
+/// memory from the job itself: each holds a sample of every other measured link at that
+/// instant (a late batch of whole groups), so that nothing stored is read, and the job can be
+/// filtered ahead like any other.
+pub(super) fn completes_within_job(bank: &FilterBank, f: &Filtered) -> bool {
+    let tolerance = bank.group_tolerance_ns();
+    f.stored_groups.iter().all(|&(link, time_ns, _)| {
+        bank.model()
+            .links
+            .iter()
+            .enumerate()
+            .filter(|(l, spec)| {
+                *l != link.0 && matches!(spec.kind, crate::model::LinkKind::Measured(_))
+            })
+            .all(|(l, _)| {
+                job_sample_near(&f.stored_groups, LinkId(l), time_ns, tolerance).is_some()
+            })
+    })
 }
 
 impl Filtered {

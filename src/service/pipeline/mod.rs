@@ -1,5 +1,6 @@
 //! The pipeline task: the one writer (its jobs in a transaction in [`apply`], an ingest job's
-//! filtering in [`filtering`], the group filtered while a commit is written in [`ahead`]). See
+//! filtering in [`filtering`], the group filtered while a commit is written in [`ahead`], the
+//! cover of what is stored that spares a late request a read in [`spans`]). See
 //! the module docs of [`crate::service`].
 
 use super::job::{self, Job};
@@ -24,12 +25,14 @@ use tokio::sync::mpsc;
 mod ahead;
 mod apply;
 mod filtering;
+mod spans;
 
 use ahead::{Done, InFlight};
 use apply::{Effects, Step, apply};
 use filtering::{
-    Ahead, Filtered, JobRows, SampleSource, VizCollect, complete_stored_groups, filter_items,
-    ingest, measurements_of, spans_of, stored_over_spans, write_rows,
+    Ahead, Filtered, JobRows, SampleSource, VizCollect, complete_stored_groups,
+    completes_within_job, filter_items, ingest, measurements_of, spans_of, stored_over_spans,
+    write_rows,
 };
 
 /// At most this many queued jobs share one commit (bounds the latency of the first).
@@ -78,10 +81,11 @@ pub(super) struct Pipeline {
     read: Store,
     /// The commit whose rows are being written while the next group is filtered.
     in_flight: Option<InFlight>,
-    /// Per link: at least the newest time of any sample stored or on its way to the store
-    /// (every ingest job's samples count, whatever became of them). A job whose samples are
-    /// all newer cannot repeat or contradict a stored one, so it needs no read of the store.
-    newest_sample_ns: Vec<Option<i64>>,
+    /// Per link: intervals of time covering every sample stored or on its way to the store
+    /// (every ingest job's samples count, whatever became of them). A job whose samples of
+    /// each link lie in a gap of that link's cover cannot repeat or contradict a stored one,
+    /// so it needs no read of the store.
+    covered: spans::StoredSpans,
     /// A job taken from the queue while a group was filtered ahead that could not join it:
     /// the first of the next group.
     held: Option<Job>,
@@ -149,7 +153,7 @@ impl Pipeline {
             write: Some(write),
             read,
             in_flight: None,
-            newest_sample_ns,
+            covered: spans::StoredSpans::new(&newest_sample_ns),
             held: None,
             bank,
             targets,
@@ -307,32 +311,37 @@ impl Pipeline {
         Ok(())
     }
 
-    /// Counts the jobs' samples in each link's newest time.
+    /// Covers the jobs' samples in each link's intervals.
     fn count_samples(&mut self, jobs: &[Job]) {
         for job in jobs {
             if let Job::Ingest(call) = job {
-                raise_all(&mut self.newest_sample_ns, &call.request);
+                self.covered.add_all(&call.request);
             }
         }
     }
 
     /// Whether the jobs can be filtered ahead: Rerun is off (its scenes read the bank after
-    /// a commit), and every job is an ingest whose samples are all newer than anything of
-    /// their links stored, in flight, or in an earlier job of the group, so that none can
-    /// repeat or contradict a stored sample and nothing need be read from the store.
+    /// a commit), and every job is an ingest whose samples lie where their links hold
+    /// nothing stored, in flight, or in an earlier job of the group, so that none can repeat
+    /// or contradict a stored sample and nothing need be read from the store.
     fn all_new_samples(&self, jobs: &[Job]) -> bool {
         if self.viz.enabled() {
             return false;
         }
-        let mut newest = self.newest_sample_ns.clone();
+        let mut covered = None;
         for job in jobs {
             let Job::Ingest(call) = job else {
                 return false;
             };
-            if may_repeat(&newest, &call.request) {
+            let cover = covered.as_ref().unwrap_or(&self.covered);
+            if cover.may_repeat(&call.request) {
                 return false;
             }
-            raise_all(&mut newest, &call.request);
+            if jobs.len() > 1 {
+                covered
+                    .get_or_insert_with(|| self.covered.clone())
+                    .add_all(&call.request);
+            }
         }
         true
     }
@@ -542,7 +551,11 @@ pub(super) async fn run(
         };
         let Some(first) = next else { break };
         let mut jobs = vec![first];
-        while jobs.len() < MAX_JOBS_PER_COMMIT {
+        // With a commit in flight, the jobs after this one join its group one at a time,
+        // each after a look at whether that commit has landed (`Pipeline::filter_ahead`), so
+        // that the next commit starts as soon as the writer is free. With none, every job
+        // waiting shares the next commit.
+        while p.in_flight.is_none() && jobs.len() < MAX_JOBS_PER_COMMIT {
             match rx.try_recv() {
                 Ok(j) => jobs.push(j),
                 Err(_) => break,
@@ -562,26 +575,6 @@ pub(super) async fn run(
     match last {
         Some(problem) => Err(problem),
         None => Ok(()),
-    }
-}
-
-/// Raises a newest time to `t` when `t` is newer.
-fn raise_to(newest: &mut Option<i64>, t: i64) {
-    *newest = Some(newest.map_or(t, |n| n.max(t)));
-}
-
-/// Whether a batch holds a sample not newer than its link's newest time (`newest`, by link):
-/// one that may repeat or contradict a stored sample.
-fn may_repeat(newest: &[Option<i64>], items: &[IngestItem]) -> bool {
-    items
-        .iter()
-        .any(|item| newest[item.sample.link.0].is_some_and(|t| item.sample.time_ns <= t))
-}
-
-/// Raises each link's newest time (`newest`, by link) to a batch's samples.
-fn raise_all(newest: &mut [Option<i64>], items: &[IngestItem]) {
-    for item in items {
-        raise_to(&mut newest[item.sample.link.0], item.sample.time_ns);
     }
 }
 

@@ -22,6 +22,24 @@ const BATCHES: usize = 35;
 /// batch 5 held back until the last batch: its group is then older than the filters keep in
 /// memory, and is completed from the other links' stored samples.
 fn requests(app: &TestApp) -> Vec<Vec<IngestItem>> {
+    let mut batches = whole_batches(app);
+    let mut withheld = batches[5].pop().expect("a sample");
+    // A retry of batch 10 after batch 12, and batch 20's first sample again among batch 22's.
+    let retry = batches[10].clone();
+    batches.insert(13, retry);
+    let mut late = batches[23].clone();
+    let mut old = batches[21][0];
+    old.index = late.len();
+    late.push(old);
+    batches[23] = late;
+    let last = batches.last_mut().expect("batches");
+    withheld.index = last.len();
+    last.push(withheld);
+    batches
+}
+
+/// The simulated ship's link poses in batches of whole groups, in time order.
+fn whole_batches(app: &TestApp) -> Vec<Vec<IngestItem>> {
     let model = &app.service.installation().model;
     let settings = SimSettings {
         scenario: Scenario::Ship,
@@ -53,18 +71,6 @@ fn requests(app: &TestApp) -> Vec<Vec<IngestItem>> {
         }
         batches.push(items);
     }
-    let mut withheld = batches[5].pop().expect("a sample");
-    // A retry of batch 10 after batch 12, and batch 20's first sample again among batch 22's.
-    let retry = batches[10].clone();
-    batches.insert(13, retry);
-    let mut late = batches[23].clone();
-    let mut old = batches[21][0];
-    old.index = late.len();
-    late.push(old);
-    batches[23] = late;
-    let last = batches.last_mut().expect("batches");
-    withheld.index = last.len();
-    last.push(withheld);
     batches
 }
 
@@ -236,6 +242,54 @@ async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_ti
         "the second batch was filtered while the first one's commit waited"
     );
     assert_eq!(Metrics::get(&metrics.commits_failed), 0);
+}
+
+/// Late batches of whole groups, one within the filters' memory (batch 5 after batch 6) and
+/// one older than it (batch 2 last), lie in gaps of what is stored: they are read for nothing,
+/// join the group filtered ahead, and the old one completes its groups from its own samples
+/// (no wait for the commit before it). Answers and stored rows equal those of the same
+/// requests one at a time.
+#[tokio::test]
+async fn late_batches_of_whole_groups_are_filtered_ahead_without_reading_the_store() {
+    let one_at_a_time = TestApp::start(None).await;
+    let in_order = whole_batches(&one_at_a_time);
+    let order: Vec<usize> = [0, 1, 3, 4, 6, 5]
+        .into_iter()
+        .chain(7..BATCHES)
+        .chain([2])
+        .collect();
+    let batches: Vec<Vec<IngestItem>> = order.iter().map(|&b| in_order[b].clone()).collect();
+    let mut serial_answers = Vec::new();
+    for b in &batches {
+        serial_answers.push(one_at_a_time.service.ingest(b.clone()).await);
+    }
+    let without_waiting = TestApp::start(None).await;
+    let overlapping = send_overlapping(&without_waiting, &batches, 2, |_| {}).await;
+
+    assert!(
+        serial_answers.iter().all(Result::is_ok),
+        "{serial_answers:?}"
+    );
+    assert_eq!(answers(&overlapping), answers(&serial_answers));
+    let oldest = serial_answers
+        .last()
+        .expect("answers")
+        .as_ref()
+        .expect("stored");
+    // Behind every link's filter, and each group completed from the batch's own samples.
+    assert_eq!(
+        (oldest.out_of_order, oldest.raw_results, oldest.duplicates),
+        (GROUPS_PER_BATCH * 3, GROUPS_PER_BATCH, 0),
+        "{oldest:?}"
+    );
+    assert_eq!(stored(&without_waiting).await, stored(&one_at_a_time).await);
+    for app in [&one_at_a_time, &without_waiting] {
+        let metrics = app.service.metrics();
+        assert_eq!(Metrics::get(&metrics.ingest_read_first), 0);
+        assert_eq!(Metrics::get(&metrics.ingest_old_groups_from_store), 0);
+        assert_eq!(Metrics::get(&metrics.commits_failed), 0);
+    }
+    assert!(Metrics::get(&without_waiting.service.metrics().groups_filtered_ahead) >= 1);
 }
 
 /// Retries of samples not yet committed: a batch again while its own commit waits in flight,
