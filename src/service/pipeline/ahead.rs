@@ -20,23 +20,7 @@ impl Pipeline {
         if self.viz.enabled() {
             return 0;
         }
-        let mut covered = None;
-        let mut through_last_not_new = 0;
-        for (i, job) in jobs.iter().enumerate() {
-            let Job::Ingest(call) = job else {
-                through_last_not_new = i + 1;
-                continue;
-            };
-            let cover = covered.as_ref().unwrap_or(&self.covered);
-            if cover.may_repeat(&call.request) {
-                through_last_not_new = i + 1;
-            }
-            if jobs.len() > 1 {
-                covered
-                    .get_or_insert_with(|| self.covered.clone())
-                    .add_all(&call.request);
-            }
-        }
+        let through_last_not_new = self.last_not_new(jobs).map_or(0, |i| i + 1);
         let ingest_first = jobs
             .iter()
             .take_while(|j| matches!(j, Job::Ingest(_)))
@@ -55,8 +39,8 @@ impl Pipeline {
         items: &[IngestItem],
         group: &[(Job, JobRows)],
     ) -> Result<HashMap<(LinkId, i64), SampleValues>, StoreError> {
-        let mut stored = stored_over_spans(&mut SampleSource::Reader(&self.read), items).await?;
         let spans = spans_of(items);
+        let mut stored = stored_over_spans(&mut SampleSource::Reader(&self.read), &spans).await?;
         let in_flight = self.in_flight.iter().flat_map(|f| f.rows.iter());
         for rows in in_flight.chain(group.iter().map(|(_, rows)| rows)) {
             for s in &rows.samples {
@@ -102,7 +86,12 @@ impl Pipeline {
         let Some(write) = self.write.as_mut() else {
             unreachable!("the write connection is back once the commit before has settled")
         };
-        match stored_over_spans(&mut SampleSource::Committed(write), &call.request).await {
+        match stored_over_spans(
+            &mut SampleSource::Committed(write),
+            &spans_of(&call.request),
+        )
+        .await
+        {
             Ok(stored) => {
                 self.metrics.ingest_read_first.fetch_add(1, Relaxed);
                 self.filter_ahead(vec![job], &stored, rx, publish).await;
@@ -373,13 +362,8 @@ impl Pipeline {
                 filtered.push((job, JobRows::default()));
                 Ahead::Next
             }
-            Ok(Ok(f)) if f.stored_groups.is_empty() => {
-                let (report, rows) = f.into_rows(&self.bank, &mut self.targets);
-                call.answer = Ok(report);
-                filtered.push((job, rows));
-                Ahead::Next
-            }
-            // A late batch of whole groups completes them from its own samples: no read.
+            // No group older than memory, or a late batch of whole groups that completes
+            // them from its own samples: no read.
             Ok(Ok(mut f)) if completes_within_job(&self.bank, &f) => {
                 let completed = complete_stored_groups(
                     &mut SampleSource::JobAlone,

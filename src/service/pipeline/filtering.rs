@@ -92,7 +92,7 @@ pub(super) async fn ingest(
     };
     // Retries and conflicts: compare with what is stored (earlier jobs of this transaction
     // included), link by link over the batch's time span.
-    let stored = stored_over_spans(&mut SampleSource::Tx(tx), &items).await?;
+    let stored = stored_over_spans(&mut SampleSource::Tx(tx), &spans_of(&items)).await?;
     let mut filtered = match filter_items(bank, targets, items, measurements, &stored, now, viz)? {
         Ok(f) => f,
         Err(refusal) => return Ok(Err(refusal)),
@@ -103,13 +103,14 @@ pub(super) async fn ingest(
     Ok(Ok(report))
 }
 
-/// The stored samples a batch may repeat: each link's over the batch's span of its times.
+/// The stored samples a batch may repeat: each link's over the batch's span of its times
+/// (`spans`, from [`spans_of`]).
 pub(super) async fn stored_over_spans(
     source: &mut SampleSource<'_, '_>,
-    items: &[IngestItem],
+    spans: &HashMap<LinkId, (i64, i64)>,
 ) -> Result<HashMap<(LinkId, i64), SampleValues>, StoreError> {
     let mut stored = HashMap::new();
-    for (link, (from, to)) in spans_of(items) {
+    for (&link, &(from, to)) in spans {
         for (t, v) in source.samples(link, from, to).await? {
             stored.insert((link, t), v);
         }
@@ -472,9 +473,9 @@ fn job_sample_near(
 }
 
 /// Whether [`complete_stored_groups`] completes every group of the job's samples older than
-/// memory from the job itself: each holds a sample of every other measured link at that
-/// instant (a late batch of whole groups), so that nothing stored is read, and the job can be
-/// filtered ahead like any other.
+/// memory from the job itself (true when it has none): each holds a sample of every other
+/// measured link at that instant (a late batch of whole groups), so that nothing stored is
+/// read, and the job can be filtered ahead like any other.
 pub(super) fn completes_within_job(bank: &FilterBank, f: &Filtered) -> bool {
     let tolerance = bank.group_tolerance_ns();
     f.stored_groups.iter().all(|&(link, time_ns, _)| {

@@ -325,25 +325,34 @@ impl Pipeline {
     /// nothing stored, in flight, or in an earlier job of the group, so that none can repeat
     /// or contradict a stored sample and nothing need be read from the store.
     fn all_new_samples(&self, jobs: &[Job]) -> bool {
-        if self.viz.enabled() {
-            return false;
-        }
-        let mut covered = None;
-        for job in jobs {
+        !self.viz.enabled() && self.last_not_new(jobs).is_none()
+    }
+
+    /// The last of the jobs that is not an ingest, or may repeat or contradict a sample
+    /// stored, in flight, or of an earlier job of them (its samples of a link meet that
+    /// link's cover). One pass; the cover is copied only for more than one job.
+    fn last_not_new(&self, jobs: &[Job]) -> Option<usize> {
+        let mut with_earlier: Option<spans::StoredSpans> = None;
+        let mut last = None;
+        for (i, job) in jobs.iter().enumerate() {
             let Job::Ingest(call) = job else {
-                return false;
+                last = Some(i);
+                continue;
             };
-            let cover = covered.as_ref().unwrap_or(&self.covered);
-            if cover.may_repeat(&call.request) {
-                return false;
+            if with_earlier
+                .as_ref()
+                .unwrap_or(&self.covered)
+                .may_repeat(&call.request)
+            {
+                last = Some(i);
             }
-            if jobs.len() > 1 {
-                covered
+            if i + 1 < jobs.len() {
+                with_earlier
                     .get_or_insert_with(|| self.covered.clone())
                     .add_all(&call.request);
             }
         }
-        true
+        last
     }
     /// Applies jobs in one transaction of the pipeline's own, with nothing in flight: first
     /// the rows of jobs already filtered ahead (`filtered`), then the one that needs the
