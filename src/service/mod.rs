@@ -23,8 +23,11 @@
 //! is written, with the samples of the commit in flight and of the group's earlier requests
 //! from memory. Only the pipeline writes samples, so that is all there is; when that read
 //! fails, the request waits for the commit and is read on the write connection
-//! (`pipeline::ahead`; an ingest job's checks, filtering and rows are `pipeline::filtering`,
-//! the other jobs' work in a transaction `pipeline::apply`). Readers and requesters never see
+//! (`pipeline::ahead`). Requests are filtered in the order they arrived: those taken from
+//! the queue together behind one that must be read first are held, in order, ahead of the
+//! queue, and join the next group before anything newer. An ingest job's checks, filtering
+//! and rows are `pipeline::filtering`, the other jobs' work in a transaction
+//! `pipeline::apply`. Readers and requesters never see
 //! the bank run ahead: a commit's snapshot is the one taken when its group was filtered,
 //! published once it has committed, and if it fails the group filtered behind it is refused
 //! too.

@@ -10,24 +10,6 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 
 impl Pipeline {
-    /// How many of the group's first jobs are filtered one by one after a read of the stored
-    /// samples (each the first of a group filtered ahead), rather than inside a transaction
-    /// of their own: with Rerun off, the ingest jobs up to the last that may repeat stored
-    /// samples (one whose samples of a link meet that link's cover, including the group's
-    /// jobs before it) or is not an ingest, so that the jobs after them are all new. One pass
-    /// over the group.
-    pub(super) fn read_first_count(&self, jobs: &[Job]) -> usize {
-        if self.viz.enabled() {
-            return 0;
-        }
-        let through_last_not_new = self.last_not_new(jobs).map_or(0, |i| i + 1);
-        let ingest_first = jobs
-            .iter()
-            .take_while(|j| matches!(j, Job::Ingest(_)))
-            .count();
-        through_last_not_new.min(ingest_first)
-    }
-
     /// The samples stored before a request that may repeat them, while a commit is being
     /// written: the committed ones over the request's spans, read through the store's read
     /// side, with the samples of the commit in flight and of the group's earlier jobs
@@ -147,13 +129,24 @@ impl Pipeline {
             let Some(flight) = self.in_flight.as_mut() else {
                 break;
             };
-            let job = tokio::select! {
-                biased;
-                joined = &mut flight.handle => {
-                    landed = Some(self.land(joined, publish));
-                    break;
-                }
-                job = rx.recv() => job,
+            // Jobs held (taken from the queue before) join first, in their order.
+            let job = match self.held.pop_front() {
+                Some(job) => match (&mut flight.handle).now_or_never() {
+                    Some(joined) => {
+                        self.held.push_front(job);
+                        landed = Some(self.land(joined, publish));
+                        break;
+                    }
+                    None => Some(job),
+                },
+                None => tokio::select! {
+                    biased;
+                    joined = &mut flight.handle => {
+                        landed = Some(self.land(joined, publish));
+                        break;
+                    }
+                    job = rx.recv() => job,
+                },
             };
             let Some(job) = job else { break };
             let stored = if self.all_new_samples(std::slice::from_ref(&job)) {
@@ -162,14 +155,14 @@ impl Pipeline {
                 // A request that may repeat stored samples joins too, once what is stored
                 // before it is known: committed, in flight, or earlier in this group.
                 let Job::Ingest(call) = &job else {
-                    self.held = Some(job);
+                    self.held.push_front(job);
                     break;
                 };
                 match self.stored_during_commit(&call.request, &filtered).await {
                     Ok(stored) => stored,
                     Err(e) => {
                         tracing::warn!(error = %e, "reading the stored samples while a commit is written");
-                        self.held = Some(job);
+                        self.held.push_front(job);
                         break;
                     }
                 }

@@ -86,9 +86,11 @@ pub(super) struct Pipeline {
     /// each link lie in a gap of that link's cover cannot repeat or contradict a stored one,
     /// so it needs no read of the store.
     covered: spans::StoredSpans,
-    /// A job taken from the queue while a group was filtered ahead that could not join it:
-    /// the first of the next group.
-    held: Option<Job>,
+    /// Jobs taken from the queue but not yet filtered, in the order they came: those of a
+    /// group taken at once behind its first request that must be read first, and one that
+    /// could not join a group filtered ahead. They go before anything still on the queue, so
+    /// that requests are filtered in the order they arrived.
+    held: std::collections::VecDeque<Job>,
     bank: FilterBank,
     targets: Vec<TargetView>,
     digest: String,
@@ -154,7 +156,7 @@ impl Pipeline {
             read,
             in_flight: None,
             covered: spans::StoredSpans::new(&newest_sample_ns),
-            held: None,
+            held: std::collections::VecDeque::new(),
             bank,
             targets,
             digest,
@@ -245,44 +247,65 @@ impl Pipeline {
     /// Applies a group of jobs in one transaction and, after the commit, publishes the snapshot
     /// readers see (`publish`), then answers them.
     ///
-    /// A group of ingest jobs whose samples are all newer than their links' stored ones is
-    /// filtered while the commit before it is still being written ([`Self::filter_ahead`]).
-    /// An ingest job that may repeat stored samples has the stored samples over its span read
-    /// first (the committed ones through the store's read side while that commit is written,
-    /// with the commit's own from memory), and is then filtered and written the same way
-    /// ([`Self::filter_after_reading`]). Any other group waits for that commit and runs in a
-    /// transaction of the pipeline's own.
+    /// The group's leading ingest jobs whose samples are all new (none stored, in flight, or
+    /// in an earlier job of the group over their spans) are filtered while the commit before
+    /// them is still being written ([`Self::filter_ahead`]). An ingest job that may repeat
+    /// stored samples has the stored samples over its span read first (the committed ones
+    /// through the store's read side while that commit is written, with the commit's own from
+    /// memory), and is then filtered and written the same way ([`Self::filter_after_reading`]).
+    /// The jobs behind either are held, in their order, ahead of the queue: they join the
+    /// group filtered behind it, or the next. A group that starts with any other job waits
+    /// for that commit and runs in a transaction of the pipeline's own, as does every group
+    /// while Rerun is on (its scenes read the bank after a commit).
     async fn commit_group(
         &mut self,
         mut jobs: Vec<Job>,
         rx: &mut mpsc::Receiver<Job>,
         publish: &impl Fn(Snapshot),
     ) {
-        // A request that may repeat stored samples (a retry, a late batch) has its links'
-        // stored samples read first; it is then filtered and written as one filtered ahead
-        // is, and the requests after it go on meanwhile.
-        let read_first: Vec<Job> = jobs.drain(..self.read_first_count(&jobs)).collect();
-        for job in read_first {
-            self.count_samples(std::slice::from_ref(&job));
-            self.filter_after_reading(job, rx, publish).await;
-        }
-        if jobs.is_empty() {
-            return;
-        }
-        let ahead = self.all_new_samples(&jobs);
-        self.count_samples(&jobs);
-        if ahead {
-            self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
+        let first_not_new = if self.viz.enabled() {
+            Some(0)
         } else {
-            let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
-                return;
-            };
-            // A failure of the commit in flight was concluded there: the bank and targets
-            // are back at the last committed state, on which this group now runs.
-            let _ = self.settle(publish).await;
-            let targets_before = self.targets.clone();
-            self.commit_in_turn(Vec::new(), None, jobs, targets_before, publish)
-                .await;
+            self.first_not_new(&jobs)
+        };
+        match first_not_new {
+            None => {
+                self.count_samples(&jobs);
+                self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
+            }
+            Some(new) if new > 0 => {
+                self.hold(jobs.split_off(new));
+                self.count_samples(&jobs);
+                self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
+            }
+            // A request that may repeat stored samples (a retry, a late batch).
+            Some(_) if !self.viz.enabled() && matches!(jobs[0], Job::Ingest(_)) => {
+                self.hold(jobs.split_off(1));
+                let Some(first) = jobs.pop() else {
+                    unreachable!("a group has a first job")
+                };
+                self.count_samples(std::slice::from_ref(&first));
+                self.filter_after_reading(first, rx, publish).await;
+            }
+            Some(_) => {
+                self.count_samples(&jobs);
+                let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
+                    return;
+                };
+                // A failure of the commit in flight was concluded there: the bank and
+                // targets are back at the last committed state, on which this group now runs.
+                let _ = self.settle(publish).await;
+                let targets_before = self.targets.clone();
+                self.commit_in_turn(Vec::new(), None, jobs, targets_before, publish)
+                    .await;
+            }
+        }
+    }
+
+    /// Puts jobs taken from the queue but not filtered back ahead of it, in their order.
+    fn hold(&mut self, jobs: Vec<Job>) {
+        for job in jobs.into_iter().rev() {
+            self.held.push_front(job);
         }
     }
 
@@ -325,26 +348,24 @@ impl Pipeline {
     /// nothing stored, in flight, or in an earlier job of the group, so that none can repeat
     /// or contradict a stored sample and nothing need be read from the store.
     fn all_new_samples(&self, jobs: &[Job]) -> bool {
-        !self.viz.enabled() && self.last_not_new(jobs).is_none()
+        !self.viz.enabled() && self.first_not_new(jobs).is_none()
     }
 
-    /// The last of the jobs that is not an ingest, or may repeat or contradict a sample
+    /// The first of the jobs that is not an ingest, or may repeat or contradict a sample
     /// stored, in flight, or of an earlier job of them (its samples of a link meet that
-    /// link's cover). One pass; the cover is copied only for more than one job.
-    fn last_not_new(&self, jobs: &[Job]) -> Option<usize> {
+    /// link's cover). The cover is copied only for more than one job.
+    fn first_not_new(&self, jobs: &[Job]) -> Option<usize> {
         let mut with_earlier: Option<spans::StoredSpans> = None;
-        let mut last = None;
         for (i, job) in jobs.iter().enumerate() {
             let Job::Ingest(call) = job else {
-                last = Some(i);
-                continue;
+                return Some(i);
             };
             if with_earlier
                 .as_ref()
                 .unwrap_or(&self.covered)
                 .may_repeat(&call.request)
             {
-                last = Some(i);
+                return Some(i);
             }
             if i + 1 < jobs.len() {
                 with_earlier
@@ -352,8 +373,9 @@ impl Pipeline {
                     .add_all(&call.request);
             }
         }
-        last
+        None
     }
+
     /// Applies jobs in one transaction of the pipeline's own, with nothing in flight: first
     /// the rows of jobs already filtered ahead (`filtered`), then the one that needs the
     /// store to complete its groups (`needs_store`), then `rest` job by job; commits, then
@@ -543,11 +565,12 @@ pub(super) async fn run(
     publish: impl Fn(Snapshot),
 ) -> Result<(), String> {
     loop {
-        // With a commit in flight, whichever comes first: the next job (filtered while the
+        // A job held (taken from the queue, not yet filtered) goes first. Otherwise, with a
+        // commit in flight, whichever comes first: the next job (filtered while the
         // commit is written), or the commit's end (concluded at once, so that its requests
         // are answered even when nothing else arrives).
         let next = match p.in_flight.as_mut() {
-            _ if p.held.is_some() => p.held.take(),
+            _ if !p.held.is_empty() => p.held.pop_front(),
             Some(flight) => tokio::select! {
                 job = rx.recv() => job,
                 landed = &mut flight.handle => {
@@ -563,12 +586,12 @@ pub(super) async fn run(
         // With a commit in flight, the jobs after this one join its group one at a time,
         // each after a look at whether that commit has landed (`Pipeline::filter_ahead`), so
         // that the next commit starts as soon as the writer is free. With none, every job
-        // waiting shares the next commit.
+        // waiting (held ones first) shares the next commit.
         while p.in_flight.is_none() && jobs.len() < MAX_JOBS_PER_COMMIT {
-            match rx.try_recv() {
-                Ok(j) => jobs.push(j),
-                Err(_) => break,
-            }
+            let Some(job) = p.held.pop_front().or_else(|| rx.try_recv().ok()) else {
+                break;
+            };
+            jobs.push(job);
         }
         p.commit_group(jobs, &mut rx, &publish).await;
     }

@@ -412,3 +412,83 @@ async fn when_a_commit_fails_the_batch_filtered_behind_it_is_refused_and_retries
     one_at_a_time_ok(&failing, batches).await;
     assert_eq!(stored(&failing).await, stored(&one_at_a_time).await);
 }
+
+/// Requests taken from the queue together are filtered in the order they came, even when two
+/// of them must be read first and a request behind them repeats one they overtook. The
+/// writer is held in a transaction of its own (a prune waiting for the write lock) while the
+/// queue fills with two retries, a new sample, more new samples up to a full group, and that
+/// new sample again; each commit after the lock is made slow, so that the second retry is
+/// read and filtered while the first one's commit is written, and the repeat, still on the
+/// queue, arrives then. The repeat must be answered as the duplicate, as one at a time.
+#[tokio::test]
+async fn requests_taken_together_are_filtered_in_their_order_behind_retries_read_first() {
+    let one_at_a_time = TestApp::start(None).await;
+    let batches = whole_batches(&one_at_a_time);
+    let singles: Vec<Vec<IngestItem>> = batches[2..]
+        .iter()
+        .flatten()
+        .map(|item| vec![IngestItem { index: 0, ..*item }])
+        .collect();
+    // The writer takes at most 256 requests into a group: the retries, the new sample and
+    // 253 more fill it, and the repeat stays on the queue.
+    let mut queued = vec![batches[0].clone(), batches[1].clone()];
+    queued.extend(singles[..254].iter().cloned());
+    queued.push(singles[0].clone());
+    let repeat = queued.len() - 1;
+
+    one_at_a_time_ok(&one_at_a_time, &batches[..2]).await;
+    one_at_a_time.service.prune().await.expect("a prune");
+    let mut serial_answers = Vec::new();
+    for b in &queued {
+        serial_answers.push(one_at_a_time.service.ingest(b.clone()).await);
+    }
+
+    let taken_together = TestApp::start(None).await;
+    one_at_a_time_ok(&taken_together, &batches[..2]).await;
+    let lock = hold_write_lock(&taken_together);
+    // About half a second of work for every commit from here on.
+    lock.execute_batch(
+        "create trigger slow after update on filter_state begin \
+         select count(*) from (with recursive c(x) as (select 1 union all \
+         select x + 1 from c where x < 1000000) select x from c); end",
+    )
+    .expect("the trigger");
+    let service = taken_together.service.clone();
+    let prune = tokio::spawn(async move { service.prune().await });
+    tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    let mut on_their_way = Vec::new();
+    for b in &queued {
+        let service = taken_together.service.clone();
+        let items = b.clone();
+        on_their_way.push(tokio::spawn(async move { service.ingest(items).await }));
+    }
+    tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    lock.execute_batch("commit").expect("the lock released");
+    prune
+        .await
+        .expect("the prune's task")
+        .expect("the prune waited for the lock");
+    let mut together_answers = Vec::new();
+    for h in on_their_way {
+        together_answers.push(h.await.expect("the request's task"));
+    }
+
+    let again = serial_answers[repeat].as_ref().expect("the repeat");
+    assert_eq!((again.duplicates, again.stored), (1, 0), "{again:?}");
+    // The new sample and its repeat, each as one at a time answered them.
+    for i in [2, repeat] {
+        assert_eq!(
+            answers(&together_answers[i..=i]),
+            answers(&serial_answers[i..=i]),
+            "request {i}"
+        );
+    }
+    assert_eq!(answers(&together_answers), answers(&serial_answers));
+    assert_eq!(stored(&taken_together).await, stored(&one_at_a_time).await);
+    let metrics = taken_together.service.metrics();
+    assert!(
+        Metrics::get(&metrics.ingest_read_during_commit) >= 1,
+        "the second retry was read while the first one's commit was written"
+    );
+    assert_eq!(Metrics::get(&metrics.commits_failed), 0);
+}
