@@ -138,7 +138,7 @@ fn measure(database: &str, days: i64) {
                     .flat_map(|k| [result(k, ResultSource::Raw), result(k, ResultSource::Filtered)])
                     .collect();
                 let mut tx = write.begin(0).await.expect("begin");
-                tx.insert_results(&rows).await.expect("insert");
+                tx.insert_results(&[&rows]).await.expect("insert");
                 tx.commit().await.expect("commit");
             }
             // A hundred alarm transitions, half of them acknowledged.

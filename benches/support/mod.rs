@@ -52,7 +52,7 @@ pub async fn fill_filtered_results(inst: &Installation, n: i64) {
             })
             .collect();
         let mut tx = write.begin(0).await.expect("begin");
-        tx.insert_results(&rows).await.expect("insert");
+        tx.insert_results(&[&rows]).await.expect("insert");
         tx.commit().await.expect("commit");
     }
     write.close().await.expect("close");

@@ -135,7 +135,7 @@ pub(crate) fn components(
 
 /// The buckets that new results add to, per (target, source, width, bucket start).
 pub(super) fn aggregate(
-    results: &[NewResult],
+    results: &[&NewResult],
     sigmas: &[ReportedSigmas],
 ) -> HashMap<(TargetId, ResultSource, i64, i64), Bucket> {
     let mut out: HashMap<(TargetId, ResultSource, i64, i64), Bucket> = HashMap::new();

@@ -234,10 +234,11 @@ impl WriteTx<'_> {
         times_and_values(rows)
     }
 
-    /// Inserts samples (keys must be new), many rows a statement.
-    pub async fn insert_samples(&mut self, samples: &[NewSample]) -> StoreResult<()> {
-        let mut columns = Vec::with_capacity(samples.len());
-        for s in samples {
+    /// Inserts samples (keys must be new), many rows a statement. `parts`: the samples in
+    /// parts (a commit's requests), written as one.
+    pub async fn insert_samples(&mut self, parts: &[&[NewSample]]) -> StoreResult<()> {
+        let mut columns = Vec::with_capacity(parts.iter().map(|p| p.len()).sum());
+        for s in parts.iter().copied().flatten() {
             let pose = pose_columns(&s.values.pose);
             finite("sample pose", &pose)?;
             finite(
@@ -268,7 +269,13 @@ impl WriteTx<'_> {
     /// Inserts target results and adds them to the rollups, in this transaction; a result at an
     /// existing (target, source, time) replaces it (a raw group completed again by a late
     /// sample, or a filtered result recomputed; within one call the last one counts).
-    pub async fn insert_results(&mut self, results: &[NewResult]) -> StoreResult<()> {
+    ///
+    /// `parts`: the results in parts (a commit's requests), written as one, so that the
+    /// rollups are read and written once a commit. A bucket's sums then add a commit's
+    /// results before the stored sum, so they equal those of one request at a time only to
+    /// rounding.
+    pub async fn insert_results(&mut self, parts: &[&[NewResult]]) -> StoreResult<()> {
+        let results: Vec<&NewResult> = parts.iter().copied().flatten().collect();
         // Both the rows and the rollups carry the sigmas: derive them once.
         let sigmas: Vec<ReportedSigmas> = results
             .iter()
@@ -321,14 +328,14 @@ impl WriteTx<'_> {
             }
         }
         on_backend!(&mut self.tx, Tx, t => t.upsert_results(&columns).await)?;
-        self.update_rollups(results, &sigmas).await
+        self.update_rollups(&results, &sigmas).await
     }
 
     /// Adds new results to the rollups: the touched buckets of every level are read in one
     /// statement, merged, and written back in one.
     async fn update_rollups(
         &mut self,
-        results: &[NewResult],
+        results: &[&NewResult],
         sigmas: &[ReportedSigmas],
     ) -> StoreResult<()> {
         use rollup::{Bucket, decode_bucket, encode_stats};

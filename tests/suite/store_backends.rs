@@ -79,13 +79,13 @@ fn result(k: i64, time_ns: i64) -> NewResult {
 
 async fn commit_samples(write: &mut WriteConn, samples: &[NewSample]) {
     let mut tx = write.begin(0).await.unwrap();
-    tx.insert_samples(samples).await.unwrap();
+    tx.insert_samples(&[samples]).await.unwrap();
     tx.commit().await.unwrap();
 }
 
 async fn commit_results(write: &mut WriteConn, results: &[NewResult]) {
     let mut tx = write.begin(0).await.unwrap();
-    tx.insert_results(results).await.unwrap();
+    tx.insert_results(&[results]).await.unwrap();
     tx.commit().await.unwrap();
 }
 
@@ -211,8 +211,8 @@ async fn a_transaction_dropped_without_commit_leaves_nothing(backend: Backend) {
     let (_dir, _inst, store, mut write) = open(backend).await;
     {
         let mut tx = write.begin(0).await.unwrap();
-        tx.insert_samples(&[sample(1, T0_NS)]).await.unwrap();
-        tx.insert_results(&[result(1, T0_NS)]).await.unwrap();
+        tx.insert_samples(&[&[sample(1, T0_NS)]]).await.unwrap();
+        tx.insert_results(&[&[result(1, T0_NS)]]).await.unwrap();
     }
     commit_samples(&mut write, &[sample(2, T0_NS + S)]).await;
     let stored = store

@@ -429,10 +429,7 @@ async fn write_in_flight(
 ) -> InFlightOutcome {
     let outcome = async {
         let mut tx = write.begin(now).await?;
-        let mut alarms = Vec::new();
-        for job in rows.iter() {
-            alarms.extend(write_rows(&mut tx, job, now).await?);
-        }
+        let alarms = write_rows(&mut tx, &rows, now).await?;
         tx.save_filter_state(&digest, &state_json, now).await?;
         tx.commit().await?;
         Ok(alarms)

@@ -99,7 +99,7 @@ pub(super) async fn ingest(
     };
     complete_stored_groups(&mut SampleSource::Tx(tx), bank, targets, &mut filtered).await?;
     let (report, rows) = filtered.into_rows(bank, targets);
-    *new_transitions = write_rows(tx, &rows, now).await?;
+    *new_transitions = write_rows(tx, std::slice::from_ref(&rows), now).await?;
     Ok(Ok(report))
 }
 
@@ -550,13 +550,21 @@ impl Filtered {
     }
 }
 
-/// Writes a job's rows in the transaction; returns its alarm transitions with their ids.
+/// Writes jobs' rows in the transaction, every job's samples in one call and results in one
+/// (so that the rollups are read and written once); returns their alarm transitions with
+/// their ids, in the jobs' order.
 pub(super) async fn write_rows(
     tx: &mut WriteTx<'_>,
-    rows: &JobRows,
+    rows: &[JobRows],
     now: i64,
 ) -> Result<Vec<StoredAlarm>, StoreError> {
-    tx.insert_samples(&rows.samples).await?;
-    tx.insert_results(&rows.results).await?;
-    store_alarms(tx, &rows.transitions, now).await
+    let samples: Vec<&[NewSample]> = rows.iter().map(|r| r.samples.as_slice()).collect();
+    tx.insert_samples(&samples).await?;
+    let results: Vec<&[NewResult]> = rows.iter().map(|r| r.results.as_slice()).collect();
+    tx.insert_results(&results).await?;
+    let mut alarms = Vec::new();
+    for r in rows {
+        alarms.extend(store_alarms(tx, &r.transitions, now).await?);
+    }
+    Ok(alarms)
 }

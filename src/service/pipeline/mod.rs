@@ -414,18 +414,16 @@ impl Pipeline {
         };
         let outcome: Result<BankRecord, StoreError> = async {
             let mut tx = write.begin(now).await?;
-            for r in &rows {
-                effects
-                    .transitions
-                    .extend(write_rows(&mut tx, r, now).await?);
-            }
+            effects
+                .transitions
+                .extend(write_rows(&mut tx, &rows, now).await?);
             if let Some(mut f) = needs_store {
                 complete_stored_groups(&mut SampleSource::Tx(&mut tx), bank, targets, &mut f)
                     .await?;
                 let (report, r) = f.into_rows(bank, targets);
                 effects
                     .transitions
-                    .extend(write_rows(&mut tx, &r, now).await?);
+                    .extend(write_rows(&mut tx, std::slice::from_ref(&r), now).await?);
                 if let Some(Job::Ingest(call)) = jobs.get_mut(in_turn - 1) {
                     call.answer = Ok(report);
                 }

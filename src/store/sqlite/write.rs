@@ -18,8 +18,10 @@ use super::{FileIdentity, check_identity};
 use sqlx::{ConnectOptions, Connection, QueryBuilder, Sqlite, SqliteConnection};
 use std::path::{Path, PathBuf};
 
-/// Rows per multi-row insert: well under SQLite's limit on bound parameters.
-const ROWS_PER_STATEMENT: usize = 400;
+/// Rows per multi-row insert: a sample binds 19 parameters and a result 30 (half as many rows
+/// a statement), under SQLite's limit of 32,766. Fewer, larger statements cost the writer
+/// less (BENCHMARKS.md).
+const ROWS_PER_STATEMENT: usize = 1000;
 
 /// The one connection that writes.
 #[derive(Debug)]

@@ -57,7 +57,7 @@ async fn a_month_of_results_downsamples_without_losing_a_spike(backend: Backend)
         for chunk_start in (0..N).step_by(100_000) {
             let rows: Vec<NewResult> = (chunk_start..chunk_start + 100_000).map(result).collect();
             let mut tx = write.begin(0).await.unwrap();
-            tx.insert_results(&rows).await.unwrap();
+            tx.insert_results(&[&rows]).await.unwrap();
             tx.commit().await.unwrap();
         }
         write.close().await.unwrap();

@@ -101,6 +101,59 @@ async fn stored(app: &TestApp) -> (Vec<String>, Vec<String>) {
     (samples, results)
 }
 
+/// The 1 s rollups of both sources, read through the history (a 100 s window in 100 points).
+/// A rollup bucket: start (ns), results, of which with a deformation; per component the
+/// minimum, sum and maximum.
+type Rollup = (i64, i64, i64, Vec<f64>, Vec<f64>, Vec<f64>);
+
+async fn rollups(app: &TestApp) -> Vec<Rollup> {
+    let mut out = Vec::new();
+    for source in [ResultSource::Raw, ResultSource::Filtered] {
+        let h = app
+            .service
+            .store()
+            .history(
+                TargetId(0),
+                source,
+                T0_NS - 50_000_000_000,
+                T0_NS + 50_000_000_000,
+                100,
+            )
+            .await
+            .expect("the history");
+        assert_eq!(h.resolution_s, Some(1), "read from the rollups");
+        out.extend(h.buckets.iter().map(|b| {
+            (
+                b.start_ns,
+                b.n,
+                b.n_def,
+                b.min.to_vec(),
+                b.sum.to_vec(),
+                b.max.to_vec(),
+            )
+        }));
+    }
+    out
+}
+
+/// Rollups agree when their counts, minima and maxima are equal and their sums differ by no
+/// more than rounding: a commit's requests are added up before the stored sum, one request at
+/// a time each is.
+fn assert_rollups_agree(got: &[Rollup], want: &[Rollup]) {
+    assert_eq!(got.len(), want.len());
+    assert!(!want.is_empty());
+    for (g, w) in got.iter().zip(want) {
+        assert_eq!(
+            (g.0, g.1, g.2, &g.3, &g.5),
+            (w.0, w.1, w.2, &w.3, &w.5),
+            "counts, minima, maxima"
+        );
+        for (a, b) in g.4.iter().zip(&w.4) {
+            assert!((a - b).abs() <= 1e-12 * (1.0 + b.abs()), "{a} against {b}");
+        }
+    }
+}
+
 /// Sends `batches` to `app` one at a time, each accepted.
 async fn one_at_a_time_ok(app: &TestApp, batches: &[Vec<IngestItem>]) {
     for b in batches {
@@ -232,6 +285,9 @@ async fn requests_sent_without_waiting_store_and_answer_what_they_do_one_at_a_ti
         stored(&in_transactions).await,
         (serial_samples, serial_results)
     );
+    let serial_rollups = rollups(&one_at_a_time).await;
+    assert_rollups_agree(&rollups(&without_waiting).await, &serial_rollups);
+    assert_rollups_agree(&rollups(&in_transactions).await, &serial_rollups);
     assert_eq!(
         Metrics::get(&in_transactions.service.metrics().groups_filtered_ahead),
         0
