@@ -129,26 +129,30 @@ impl Pipeline {
             let Some(flight) = self.in_flight.as_mut() else {
                 break;
             };
-            // Jobs held (taken from the queue before) join first, in their order.
-            let job = match self.held.pop_front() {
+            // Jobs held (taken from the queue before) join first, in their order; either
+            // way, once a look has found the commit not landed.
+            let next = match self.held.pop_front() {
                 Some(job) => match (&mut flight.handle).now_or_never() {
                     Some(joined) => {
                         self.held.push_front(job);
-                        landed = Some(self.land(joined, publish));
-                        break;
+                        Err(joined)
                     }
-                    None => Some(job),
+                    None => Ok(Some(job)),
                 },
                 None => tokio::select! {
                     biased;
-                    joined = &mut flight.handle => {
-                        landed = Some(self.land(joined, publish));
-                        break;
-                    }
-                    job = rx.recv() => job,
+                    joined = &mut flight.handle => Err(joined),
+                    job = rx.recv() => Ok(job),
                 },
             };
-            let Some(job) = job else { break };
+            let job = match next {
+                Ok(Some(job)) => job,
+                Ok(None) => break,
+                Err(joined) => {
+                    landed = Some(self.land(joined, publish));
+                    break;
+                }
+            };
             let stored = if self.all_new_samples(std::slice::from_ref(&job)) {
                 HashMap::new()
             } else {

@@ -263,42 +263,35 @@ impl Pipeline {
         rx: &mut mpsc::Receiver<Job>,
         publish: &impl Fn(Snapshot),
     ) {
-        let first_not_new = if self.viz.enabled() {
-            Some(0)
+        // How many of the group's first jobs are ingests of new samples only.
+        let new = if self.viz.enabled() {
+            0
         } else {
-            self.first_not_new(&jobs)
+            self.first_not_new(&jobs).unwrap_or(jobs.len())
         };
-        match first_not_new {
-            None => {
-                self.count_samples(&jobs);
-                self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
-            }
-            Some(new) if new > 0 => {
-                self.hold(jobs.split_off(new));
-                self.count_samples(&jobs);
-                self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
-            }
+        if new > 0 {
+            self.hold(jobs.split_off(new));
+            self.count_samples(&jobs);
+            self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
+        } else if !self.viz.enabled() && matches!(jobs[0], Job::Ingest(_)) {
             // A request that may repeat stored samples (a retry, a late batch).
-            Some(_) if !self.viz.enabled() && matches!(jobs[0], Job::Ingest(_)) => {
-                self.hold(jobs.split_off(1));
-                let Some(first) = jobs.pop() else {
-                    unreachable!("a group has a first job")
-                };
-                self.count_samples(std::slice::from_ref(&first));
-                self.filter_after_reading(first, rx, publish).await;
-            }
-            Some(_) => {
-                self.count_samples(&jobs);
-                let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
-                    return;
-                };
-                // A failure of the commit in flight was concluded there: the bank and
-                // targets are back at the last committed state, on which this group now runs.
-                let _ = self.settle(publish).await;
-                let targets_before = self.targets.clone();
-                self.commit_in_turn(Vec::new(), None, jobs, targets_before, publish)
-                    .await;
-            }
+            self.hold(jobs.split_off(1));
+            let Some(first) = jobs.pop() else {
+                unreachable!("a group has a first job")
+            };
+            self.count_samples(std::slice::from_ref(&first));
+            self.filter_after_reading(first, rx, publish).await;
+        } else {
+            self.count_samples(&jobs);
+            let Err(jobs) = self.answer_unchanged_liveness(jobs) else {
+                return;
+            };
+            // A failure of the commit in flight was concluded there: the bank and targets
+            // are back at the last committed state, on which this group now runs.
+            let _ = self.settle(publish).await;
+            let targets_before = self.targets.clone();
+            self.commit_in_turn(Vec::new(), None, jobs, targets_before, publish)
+                .await;
         }
     }
 
