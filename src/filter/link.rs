@@ -98,7 +98,8 @@ enum State {
         pose: Pose,
         /// Twist rate `[v (mm/s); w (rad/s)]` in the left frame: `T <- Exp(nu dt) T`.
         nu: Twist,
-        p: Mat12,
+        /// Boxed, as [`State::Oscillatory`]'s.
+        p: Box<Mat12>,
     },
     Oscillatory {
         mean: Pose,
@@ -106,8 +107,11 @@ enum State {
         x: Twist,
         /// Its rate.
         v: Twist,
-        /// Error state `[d_mean; d_x; d_v]`.
-        p: Mat18,
+        /// Error state `[d_mean; d_x; d_v]`. Boxed: a filter is the size of its largest state,
+        /// and every fused sample keeps a copy among the link's past states (`bank::slot`), so
+        /// an unboxed 18 x 18 would make each copy of a static link's filter 2.6 KB instead of
+        /// a few hundred bytes.
+        p: Box<Mat18>,
     },
 }
 
@@ -187,7 +191,7 @@ impl LinkFilter {
                 State::ConstantVelocity {
                     pose: z.pose,
                     nu: Twist::zeros(),
-                    p,
+                    p: Box::new(p),
                 }
             }
             MotionModel::Oscillatory => {
@@ -206,7 +210,7 @@ impl LinkFilter {
                     mean: z.pose,
                     x: Twist::zeros(),
                     v: Twist::zeros(),
-                    p,
+                    p: Box::new(p),
                 }
             }
         });
@@ -239,11 +243,11 @@ impl LinkFilter {
                     qd[(i + 6, i)] = q[i] * dt_s * dt_s / 2.0;
                     qd[(i + 6, i + 6)] = q[i] * dt_s;
                 }
-                let p_new = f * p * f.transpose() + qd;
+                let p_new = f * p.as_ref() * f.transpose() + qd;
                 State::ConstantVelocity {
                     pose: motion * pose,
                     nu: *nu,
-                    p: (p_new + p_new.transpose()) * 0.5,
+                    p: Box::new((p_new + p_new.transpose()) * 0.5),
                 }
             }
             State::Oscillatory { mean, x, v, p } => {
@@ -271,12 +275,12 @@ impl LinkFilter {
                 }
                 let x_new = x * phi[(0, 0)] + v * phi[(0, 1)];
                 let v_new = x * phi[(1, 0)] + v * phi[(1, 1)];
-                let p_new = f * p * f.transpose() + qd;
+                let p_new = f * p.as_ref() * f.transpose() + qd;
                 State::Oscillatory {
                     mean: *mean,
                     x: x_new,
                     v: v_new,
-                    p: (p_new + p_new.transpose()) * 0.5,
+                    p: Box::new((p_new + p_new.transpose()) * 0.5),
                 }
             }
         }
@@ -298,7 +302,7 @@ impl LinkFilter {
                 let h = Self::oscillatory_h();
                 PoseCov {
                     pose: se3_exp(x) * mean,
-                    cov: symmetrize(&(h * p * h.transpose())),
+                    cov: symmetrize(&(h * p.as_ref() * h.transpose())),
                 }
             }
         }
@@ -388,7 +392,7 @@ impl LinkFilter {
                             State::ConstantVelocity {
                                 pose: se3_exp(&six(d, 0)) * pose,
                                 nu: nu + six(d, 6),
-                                p,
+                                p: Box::new(p),
                             },
                             nis,
                         ))
@@ -405,7 +409,7 @@ impl LinkFilter {
                                 mean: se3_exp(&six(d, 0)) * mean,
                                 x: x + six(d, 6),
                                 v: v + six(d, 12),
-                                p,
+                                p: Box::new(p),
                             },
                             nis,
                         ))
@@ -556,13 +560,13 @@ impl LinkFilter {
             MotionModel::ConstantVelocity => State::ConstantVelocity {
                 pose,
                 nu: twist(0),
-                p: Mat12::from_column_slice(&record.p),
+                p: Box::new(Mat12::from_column_slice(&record.p)),
             },
             MotionModel::Oscillatory => State::Oscillatory {
                 mean: pose,
                 x: twist(0),
                 v: twist(6),
-                p: Mat18::from_column_slice(&record.p),
+                p: Box::new(Mat18::from_column_slice(&record.p)),
             },
         };
         let mut outlier_run = Vec::with_capacity(record.outlier_run.len());
@@ -583,5 +587,23 @@ impl LinkFilter {
         filter.time_ns = record.time_ns;
         filter.outlier_run = outlier_run;
         Ok(filter)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A filter is the size of its largest state, and a measured link keeps a copy of its
+    /// filter after every fused sample (`bank::slot`): the 12- and 18-state covariances are
+    /// boxed, so a static link's copies are not the size of an oscillatory one's.
+    #[test]
+    fn a_filter_is_smaller_than_the_larger_models_covariances() {
+        let size = std::mem::size_of::<LinkFilter>();
+        assert!(
+            size < std::mem::size_of::<Mat12>(),
+            "a LinkFilter is {size} bytes"
+        );
+        assert!(size >= std::mem::size_of::<Mat6>());
     }
 }
