@@ -263,17 +263,19 @@ impl Pipeline {
         rx: &mut mpsc::Receiver<Job>,
         publish: &impl Fn(Snapshot),
     ) {
+        // Rerun's scenes read the bank after each commit: nothing is filtered ahead of one.
+        let ahead = !self.viz.enabled();
         // How many of the group's first jobs are ingests of new samples only.
-        let new = if self.viz.enabled() {
-            0
-        } else {
+        let new = if ahead {
             self.first_not_new(&jobs).unwrap_or(jobs.len())
+        } else {
+            0
         };
         if new > 0 {
             self.hold(jobs.split_off(new));
             self.count_samples(&jobs);
             self.filter_ahead(jobs, &HashMap::new(), rx, publish).await;
-        } else if !self.viz.enabled() && matches!(jobs[0], Job::Ingest(_)) {
+        } else if ahead && matches!(jobs[0], Job::Ingest(_)) {
             // A request that may repeat stored samples (a retry, a late batch).
             self.hold(jobs.split_off(1));
             let Some(first) = jobs.pop() else {
